@@ -1,0 +1,1 @@
+//! markhold-autopilot (being built).

@@ -1,0 +1,165 @@
+//! markhold-exposure: frames, the camera seam, and exposure controllers.
+//!
+//! Pure Rust, no OpenCV. The controllers follow `docs/exposure.md`: AAEC (the
+//! paper's method, RoI + momentum on a soft-percentile gradient metric), AEC
+//! (Zhang et al. 2017), GEC (Shim et al.) and a camera's mean-intensity AE.
+
+mod frame;
+mod mean;
+
+pub use frame::{Camera, CameraError, Corners, ExposureLimits, Frame, FrameMeta, ImageView, Roi};
+pub use mean::{MeanAe, MeanAeConfig};
+
+use serde::{Deserialize, Serialize};
+
+/// Errors of this crate. Config errors name the key and the value.
+#[derive(Debug, thiserror::Error)]
+pub enum ExposureError {
+    #[error("exposure.{key} = {value}: expected {expected}")]
+    InvalidConfig {
+        key: String,
+        value: String,
+        expected: String,
+    },
+    #[error("image buffer of {len} bytes is too small for {width}x{height}")]
+    BufferTooSmall {
+        width: usize,
+        height: usize,
+        len: usize,
+    },
+}
+
+/// The exposure methods markhold can run (the columns of the paper's tables).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum ExposureMethod {
+    /// Adaptive Active Exposure Control (the paper's method).
+    Aaec,
+    /// Active exposure control, Zhang, Forster & Scaramuzza 2017.
+    Aec,
+    /// Gamma-based exposure control, Shim et al.
+    Gec,
+    /// A camera's built-in mean-intensity auto exposure ("Default" in the paper).
+    Default,
+}
+
+impl ExposureMethod {
+    pub const ALL: [ExposureMethod; 4] = [Self::Aaec, Self::Gec, Self::Aec, Self::Default];
+
+    pub fn as_str(self) -> &'static str {
+        match self {
+            Self::Aaec => "aaec",
+            Self::Aec => "aec",
+            Self::Gec => "gec",
+            Self::Default => "default",
+        }
+    }
+}
+
+impl std::fmt::Display for ExposureMethod {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(self.as_str())
+    }
+}
+
+impl std::str::FromStr for ExposureMethod {
+    type Err = String;
+    fn from_str(s: &str) -> Result<Self, Self::Err> {
+        match s.to_ascii_lowercase().as_str() {
+            "aaec" => Ok(Self::Aaec),
+            "aec" => Ok(Self::Aec),
+            "gec" => Ok(Self::Gec),
+            "default" | "mean" => Ok(Self::Default),
+            other => Err(format!(
+                "unknown exposure method '{other}': expected one of aaec, aec, gec, default"
+            )),
+        }
+    }
+}
+
+/// What one controller update decided.
+#[derive(Debug, Clone, Copy, PartialEq, Default, Serialize)]
+pub struct ExposureStep {
+    /// Exposure to command next, microseconds, within the camera's limits.
+    pub exposure_us: f64,
+    /// The controller's metric on this frame (NaN when it computed none).
+    pub metric: f64,
+    /// False when the frame was skipped (not exposed at the last commanded value).
+    pub used_frame: bool,
+    /// The region the controller metered, when it metered a region.
+    pub roi: Option<Roi>,
+}
+
+/// An exposure controller: fed every frame, it decides the next exposure.
+pub trait ExposureController: Send {
+    fn method(&self) -> ExposureMethod;
+    /// Feed one frame and, when the marker was detected in it, its corners.
+    fn update(&mut self, frame: &Frame, marker: Option<&Corners>) -> ExposureStep;
+    /// The exposure last commanded, microseconds.
+    fn commanded_us(&self) -> f64;
+    /// Forget all state and command `exposure_us` next.
+    fn reset(&mut self, exposure_us: f64);
+}
+
+/// True when `frame` was exposed with `commanded_us` (within rounding of the driver).
+/// Controllers only learn from such frames: a camera applies a new value late.
+pub fn exposed_as_commanded(frame: &Frame, commanded_us: f64) -> bool {
+    let t = frame.meta.exposure_us;
+    (t - commanded_us).abs() <= 1e-3 * commanded_us.abs().max(1.0) + 0.5
+}
+
+/// The `[exposure]` section of a site file.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct ExposureConfig {
+    /// Which controller runs.
+    pub method: ExposureMethod,
+    /// Parameters of the mean-intensity AE ("default").
+    pub default: MeanAeConfig,
+}
+
+impl Default for ExposureConfig {
+    fn default() -> Self {
+        Self {
+            method: ExposureMethod::Aaec,
+            default: MeanAeConfig::default(),
+        }
+    }
+}
+
+impl ExposureConfig {
+    /// Check every range; the error names the key.
+    pub fn validate(&self) -> Result<(), ExposureError> {
+        self.default.validate()
+    }
+}
+
+/// Build the configured controller for a camera with `limits`, starting at `initial_us`.
+pub fn build_controller(
+    cfg: &ExposureConfig,
+    method: ExposureMethod,
+    limits: ExposureLimits,
+    initial_us: f64,
+) -> Result<Box<dyn ExposureController>, ExposureError> {
+    cfg.validate()?;
+    match method {
+        ExposureMethod::Default => Ok(Box::new(MeanAe::new(
+            cfg.default.clone(),
+            limits,
+            initial_us,
+        )?)),
+        other => Err(ExposureError::InvalidConfig {
+            key: "method".into(),
+            value: other.to_string(),
+            expected: "a method this build implements (default)".into(),
+        }),
+    }
+}
+
+pub(crate) fn invalid(key: &str, value: impl std::fmt::Display, expected: &str) -> ExposureError {
+    ExposureError::InvalidConfig {
+        key: key.to_string(),
+        value: value.to_string(),
+        expected: expected.to_string(),
+    }
+}

@@ -1,0 +1,198 @@
+//! A camera's built-in auto exposure: damped mean-intensity targeting in log
+//! exposure, `ln t += kappa * (ln target - ln mean)`. The "Default" of the paper.
+
+use crate::{
+    exposed_as_commanded, invalid, Corners, ExposureController, ExposureError, ExposureLimits,
+    ExposureMethod, ExposureStep, Frame, Roi,
+};
+use serde::{Deserialize, Serialize};
+
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct MeanAeConfig {
+    /// Target mean grey level, 1..254.
+    pub target_grey: f64,
+    /// Damping of the log-exposure step, (0, 1].
+    pub kappa: f64,
+    /// Meter on the marker's RoI instead of the whole image (a fairer baseline than a
+    /// camera's own AE, which cannot know where the marker is).
+    pub meter_roi: bool,
+    /// Pixel subsampling step when metering (1 = every pixel).
+    pub subsample: u32,
+}
+
+impl Default for MeanAeConfig {
+    fn default() -> Self {
+        Self {
+            target_grey: 127.0,
+            kappa: 0.2,
+            meter_roi: false,
+            subsample: 4,
+        }
+    }
+}
+
+impl MeanAeConfig {
+    pub fn validate(&self) -> Result<(), ExposureError> {
+        if !(self.target_grey > 1.0 && self.target_grey < 254.0) {
+            return Err(invalid("default.target_grey", self.target_grey, "a grey level in (1, 254)"));
+        }
+        if !(self.kappa > 0.0 && self.kappa <= 1.0) {
+            return Err(invalid("default.kappa", self.kappa, "a damping factor in (0, 1]"));
+        }
+        if self.subsample == 0 || self.subsample > 64 {
+            return Err(invalid("default.subsample", self.subsample, "a pixel step in 1..=64"));
+        }
+        Ok(())
+    }
+}
+
+pub struct MeanAe {
+    cfg: MeanAeConfig,
+    limits: ExposureLimits,
+    commanded_us: f64,
+}
+
+impl MeanAe {
+    pub fn new(
+        cfg: MeanAeConfig,
+        limits: ExposureLimits,
+        initial_us: f64,
+    ) -> Result<Self, ExposureError> {
+        cfg.validate()?;
+        Ok(Self {
+            cfg,
+            commanded_us: limits.clamp(initial_us),
+            limits,
+        })
+    }
+
+    /// Mean grey of `roi` in `frame`, sampling every `step`-th pixel and row.
+    pub fn mean_grey(frame: &Frame, roi: Roi, step: u32) -> Option<f64> {
+        let view = frame.view().crop(roi);
+        if view.width == 0 || view.height == 0 {
+            return None;
+        }
+        let step = step.max(1) as usize;
+        let (mut sum, mut n) = (0u64, 0u64);
+        for y in (0..view.height).step_by(step) {
+            for &p in view.row(y).iter().step_by(step) {
+                sum += p as u64;
+                n += 1;
+            }
+        }
+        Some(sum as f64 / n as f64)
+    }
+}
+
+impl ExposureController for MeanAe {
+    fn method(&self) -> ExposureMethod {
+        ExposureMethod::Default
+    }
+
+    fn update(&mut self, frame: &Frame, marker: Option<&Corners>) -> ExposureStep {
+        let roi = match (self.cfg.meter_roi, marker) {
+            (true, Some(c)) => Roi::from_corners_padded(c, 0.1, frame.width, frame.height),
+            _ => None,
+        };
+        let metered = roi.unwrap_or_else(|| frame.full_roi());
+        if !exposed_as_commanded(frame, self.commanded_us) {
+            return ExposureStep {
+                exposure_us: self.commanded_us,
+                metric: f64::NAN,
+                used_frame: false,
+                roi,
+            };
+        }
+        let Some(mean) = Self::mean_grey(frame, metered, self.cfg.subsample) else {
+            return ExposureStep {
+                exposure_us: self.commanded_us,
+                metric: f64::NAN,
+                used_frame: false,
+                roi,
+            };
+        };
+        // Half a grey level keeps ln finite on an all-black frame.
+        let ln_step = self.cfg.kappa * (self.cfg.target_grey.ln() - mean.max(0.5).ln());
+        self.commanded_us = self.limits.clamp(self.commanded_us * ln_step.exp());
+        ExposureStep {
+            exposure_us: self.commanded_us,
+            metric: mean,
+            used_frame: true,
+            roi,
+        }
+    }
+
+    fn commanded_us(&self) -> f64 {
+        self.commanded_us
+    }
+
+    fn reset(&mut self, exposure_us: f64) {
+        self.commanded_us = self.limits.clamp(exposure_us);
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn limits() -> ExposureLimits {
+        ExposureLimits {
+            min_us: 10.0,
+            max_us: 30_000.0,
+            fps: 30.0,
+        }
+    }
+
+    fn flat(grey: u8, exposure_us: f64) -> Frame {
+        let mut f = Frame::new(8, 8);
+        f.data.fill(grey);
+        f.meta.exposure_us = exposure_us;
+        f
+    }
+
+    #[test]
+    fn step_is_damped_log_ratio() {
+        // mean 64, target 128, kappa 0.5: ln t grows by 0.5 ln 2, t by sqrt(2).
+        let cfg = MeanAeConfig {
+            target_grey: 128.0,
+            kappa: 0.5,
+            meter_roi: false,
+            subsample: 1,
+        };
+        let mut ae = MeanAe::new(cfg, limits(), 1000.0).unwrap();
+        let s = ae.update(&flat(64, 1000.0), None);
+        assert!(s.used_frame);
+        assert!((s.exposure_us - 1000.0 * 2f64.sqrt()).abs() < 1e-9, "{}", s.exposure_us);
+        assert_eq!(s.metric, 64.0);
+    }
+
+    #[test]
+    fn frames_not_at_commanded_exposure_are_skipped() {
+        let mut ae = MeanAe::new(MeanAeConfig::default(), limits(), 1000.0).unwrap();
+        let s = ae.update(&flat(10, 500.0), None);
+        assert!(!s.used_frame);
+        assert_eq!(s.exposure_us, 1000.0);
+    }
+
+    #[test]
+    fn black_frame_saturates_at_frame_period() {
+        let mut ae = MeanAe::new(MeanAeConfig::default(), limits(), 20_000.0).unwrap();
+        let mut t = 20_000.0;
+        for _ in 0..50 {
+            t = ae.update(&flat(0, t), None).exposure_us;
+            assert!(t.is_finite());
+        }
+        assert!((t - 1e6 / 30.0).abs() < 1e-6, "{t}");
+    }
+
+    #[test]
+    fn bad_config_names_key() {
+        let cfg = MeanAeConfig {
+            kappa: 0.0,
+            ..Default::default()
+        };
+        let e = MeanAe::new(cfg, limits(), 1000.0).err().unwrap().to_string();
+        assert!(e.contains("default.kappa"), "{e}");
+    }
+}

@@ -1,0 +1,1 @@
+//! The underwater camera (being built by the camera engineer).

@@ -1,0 +1,1 @@
+//! The scene: marker plate, background, water and light (being built by the camera engineer).

@@ -1,0 +1,1 @@
+//! markhold-vision (being built).
