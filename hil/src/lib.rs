@@ -6,6 +6,21 @@
 
 pub mod camera;
 mod error;
+pub mod mixer;
 pub mod scene;
+pub mod thruster;
+pub mod vehicle;
 
 pub use error::HilError;
+pub use mixer::{Frame6Dof, Mixer};
+pub use thruster::ThrusterConfig;
+pub use vehicle::{Hydrodynamics, Vehicle, VehicleConfig, VehicleMotion, VehicleState};
+
+/// A config error naming the key, the bad value and what was expected.
+pub(crate) fn invalid(key: &str, value: impl std::fmt::Display, expected: &str) -> HilError {
+    HilError::InvalidConfig {
+        key: key.to_string(),
+        value: value.to_string(),
+        expected: expected.to_string(),
+    }
+}

@@ -1,0 +1,298 @@
+//! ArduSub's 6-DOF motor mixer for the BlueROV2 frames, and the thruster geometry that
+//! is consistent with its factor tables.
+//!
+//! Efforts follow docs/frames.md: `[surge, sway, heave (+down), roll, pitch, yaw]`, each
+//! in -1..1, FRD. ArduSub's throttle is positive up, so throttle = -heave.
+
+use nalgebra::Vector3;
+use serde::{Deserialize, Serialize};
+
+/// The vehicle frame (ArduSub FRAME_CONFIG).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Frame6Dof {
+    /// BlueROV2 Heavy: 8 thrusters, `vectored_6dof`, fully 6-DOF.
+    #[default]
+    Heavy,
+    /// BlueROV2: 6 thrusters, `vectored`, no pitch authority.
+    Standard,
+}
+
+impl Frame6Dof {
+    pub fn as_str(self) -> &'static str {
+        match self {
+            Frame6Dof::Heavy => "heavy",
+            Frame6Dof::Standard => "standard",
+        }
+    }
+
+    pub fn motor_count(self) -> usize {
+        match self {
+            Frame6Dof::Heavy => 8,
+            Frame6Dof::Standard => 6,
+        }
+    }
+}
+
+impl std::fmt::Display for Frame6Dof {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(self.as_str())
+    }
+}
+
+impl std::str::FromStr for Frame6Dof {
+    type Err = crate::HilError;
+    fn from_str(s: &str) -> Result<Self, Self::Err> {
+        match s {
+            "heavy" => Ok(Frame6Dof::Heavy),
+            "standard" => Ok(Frame6Dof::Standard),
+            _ => Err(crate::invalid(
+                "vehicle.frame",
+                s,
+                "\"heavy\" or \"standard\"",
+            )),
+        }
+    }
+}
+
+/// Maximum number of motors (Heavy).
+pub const MAX_MOTORS: usize = 8;
+
+/// Per-motor factors: (roll, pitch, yaw, throttle, forward, lateral), ArduSub's tables.
+const FACTORS_COMMON: [[f64; 6]; 4] = [
+    [0.0, 0.0, 1.0, 0.0, -1.0, 1.0],
+    [0.0, 0.0, -1.0, 0.0, -1.0, -1.0],
+    [0.0, 0.0, -1.0, 0.0, 1.0, 1.0],
+    [0.0, 0.0, 1.0, 0.0, 1.0, -1.0],
+];
+const FACTORS_VECTORED: [[f64; 6]; 2] = [
+    [1.0, 0.0, 0.0, -1.0, 0.0, 0.0],
+    [-1.0, 0.0, 0.0, -1.0, 0.0, 0.0],
+];
+const FACTORS_HEAVY: [[f64; 6]; 4] = [
+    [1.0, -1.0, 0.0, -1.0, 0.0, 0.0],
+    [-1.0, -1.0, 0.0, -1.0, 0.0, 0.0],
+    [1.0, 1.0, 0.0, -1.0, 0.0, 0.0],
+    [-1.0, 1.0, 0.0, -1.0, 0.0, 0.0],
+];
+
+/// Where a thruster sits (body FRD, metres from the centre of gravity) and which way a
+/// positive command pushes the vehicle (unit vector, body FRD).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct ThrusterMount {
+    pub position_m: Vector3<f64>,
+    pub direction: Vector3<f64>,
+}
+
+/// The mixer and geometry of one frame.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Mixer {
+    frame: Frame6Dof,
+    factors: [[f64; 6]; MAX_MOTORS],
+    mounts: [ThrusterMount; MAX_MOTORS],
+    n: usize,
+}
+
+impl Mixer {
+    pub fn new(frame: Frame6Dof) -> Self {
+        let s = std::f64::consts::FRAC_1_SQRT_2;
+        let horiz = |x: f64, y: f64, dx: f64, dy: f64| ThrusterMount {
+            position_m: Vector3::new(x, y, 0.0),
+            direction: Vector3::new(dx * s, dy * s, 0.0),
+        };
+        let vert = |x: f64, y: f64, z: f64| ThrusterMount {
+            position_m: Vector3::new(x, y, z),
+            direction: Vector3::new(0.0, 0.0, 1.0),
+        };
+        let unused = ThrusterMount {
+            position_m: Vector3::zeros(),
+            direction: Vector3::zeros(),
+        };
+        let mut factors = [[0.0; 6]; MAX_MOTORS];
+        let mut mounts = [unused; MAX_MOTORS];
+        factors[..4].copy_from_slice(&FACTORS_COMMON);
+        mounts[0] = horiz(0.14, 0.092, -1.0, 1.0);
+        mounts[1] = horiz(0.14, -0.092, -1.0, -1.0);
+        mounts[2] = horiz(-0.15, 0.092, 1.0, 1.0);
+        mounts[3] = horiz(-0.15, -0.092, 1.0, -1.0);
+        match frame {
+            Frame6Dof::Standard => {
+                factors[4..6].copy_from_slice(&FACTORS_VECTORED);
+                mounts[4] = vert(0.0, 0.109, -0.077);
+                mounts[5] = vert(0.0, -0.109, -0.077);
+            }
+            Frame6Dof::Heavy => {
+                factors[4..8].copy_from_slice(&FACTORS_HEAVY);
+                mounts[4] = vert(0.118, 0.215, -0.064);
+                mounts[5] = vert(0.118, -0.215, -0.064);
+                mounts[6] = vert(-0.118, 0.215, -0.064);
+                mounts[7] = vert(-0.118, -0.215, -0.064);
+            }
+        }
+        Self {
+            frame,
+            factors,
+            mounts,
+            n: frame.motor_count(),
+        }
+    }
+
+    pub fn frame(&self) -> Frame6Dof {
+        self.frame
+    }
+
+    pub fn motor_count(&self) -> usize {
+        self.n
+    }
+
+    /// Mount of motor `i` (0-based); motors past `motor_count()` have zero direction.
+    pub fn mounts(&self) -> &[ThrusterMount; MAX_MOTORS] {
+        &self.mounts
+    }
+
+    /// Normalised motor outputs (-1..1) for efforts `[surge, sway, heave(+down), roll,
+    /// pitch, yaw]`. Non-finite efforts count as zero; each is clamped to -1..1 first.
+    /// Motors past `motor_count()` output 0.
+    pub fn mix_outputs(&self, efforts: &[f64; 6]) -> [f64; MAX_MOTORS] {
+        let e = efforts.map(|v| {
+            if v.is_finite() {
+                v.clamp(-1.0, 1.0)
+            } else {
+                0.0
+            }
+        });
+        let (forward, lateral, throttle) = (e[0], e[1], -e[2]);
+        let (roll, pitch, yaw) = (e[3], e[4], e[5]);
+        let mut vert = [0.0; MAX_MOTORS];
+        let mut horz = [0.0; MAX_MOTORS];
+        for i in 0..self.n {
+            let f = &self.factors[i];
+            vert[i] = roll * f[0] + pitch * f[1] + throttle * f[3];
+            horz[i] = yaw * f[2] + forward * f[4] + lateral * f[5];
+        }
+        let mut out = [0.0; MAX_MOTORS];
+        match self.frame {
+            Frame6Dof::Heavy => {
+                // Each group is scaled down together so that it keeps its direction when
+                // one motor would saturate.
+                let vmax = vert.iter().fold(1.0f64, |m, v| m.max(v.abs()));
+                let hmax = horz.iter().fold(1.0f64, |m, v| m.max(v.abs()));
+                for i in 0..self.n {
+                    out[i] = (vert[i] / vmax + horz[i] / hmax).clamp(-1.0, 1.0);
+                }
+            }
+            Frame6Dof::Standard => {
+                for i in 0..self.n {
+                    out[i] = (vert[i] + horz[i]).clamp(-1.0, 1.0);
+                }
+            }
+        }
+        out
+    }
+
+    /// Servo PWM for each motor: `1500 + 400 * out`, and 1500 for every motor when
+    /// disarmed. Motors past `motor_count()` read 0 (no output), like SERVO_OUTPUT_RAW.
+    pub fn mix_pwm(&self, efforts: &[f64; 6], armed: bool) -> [u16; MAX_MOTORS] {
+        let mut pwm = [0u16; MAX_MOTORS];
+        if !armed {
+            pwm[..self.n].fill(1500);
+            return pwm;
+        }
+        let out = self.mix_outputs(efforts);
+        for i in 0..self.n {
+            pwm[i] = (1500.0 + 400.0 * out[i]).round() as u16;
+        }
+        pwm
+    }
+
+    /// Body force (N) and moment about the centre of gravity (N m) produced by the given
+    /// per-motor thrusts (N, signed along each mount's direction).
+    pub fn wrench(&self, thrust_n: &[f64; MAX_MOTORS]) -> (Vector3<f64>, Vector3<f64>) {
+        let mut f = Vector3::zeros();
+        let mut m = Vector3::zeros();
+        for (mount, &t) in self.mounts.iter().zip(thrust_n).take(self.n) {
+            let fi = mount.direction * t;
+            f += fi;
+            m += mount.position_m.cross(&fi);
+        }
+        (f, m)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::thruster::ThrusterConfig;
+
+    fn wrench_of(frame: Frame6Dof, efforts: [f64; 6]) -> (Vector3<f64>, Vector3<f64>) {
+        let mixer = Mixer::new(frame);
+        let t = ThrusterConfig::default();
+        let pwm = mixer.mix_pwm(&efforts, true);
+        let thrust = pwm.map(|p| t.steady_thrust_n(p as f64));
+        mixer.wrench(&thrust)
+    }
+
+    #[test]
+    fn each_effort_pushes_its_own_axis_positive() {
+        for frame in [Frame6Dof::Heavy, Frame6Dof::Standard] {
+            for axis in 0..6 {
+                if frame == Frame6Dof::Standard && axis == 4 {
+                    continue; // no pitch authority
+                }
+                let mut e = [0.0; 6];
+                e[axis] = 0.8;
+                let (f, m) = wrench_of(frame, e);
+                let w = [f.x, f.y, f.z, m.x, m.y, m.z];
+                assert!(w[axis] > 0.0, "{frame} axis {axis}: wrench {w:?}");
+                // Reverse effort reverses it.
+                e[axis] = -0.8;
+                let (f, m) = wrench_of(frame, e);
+                let w2 = [f.x, f.y, f.z, m.x, m.y, m.z];
+                assert!(w2[axis] < 0.0, "{frame} axis {axis} reversed: {w2:?}");
+            }
+        }
+    }
+
+    #[test]
+    fn forward_effort_makes_no_side_force_or_yaw() {
+        let (f, m) = wrench_of(Frame6Dof::Heavy, [1.0, 0.0, 0.0, 0.0, 0.0, 0.0]);
+        // Two thrusters forward, two in reverse, all at 45 degrees.
+        let expect = (2.0 * 51.4 + 2.0 * 39.9) * std::f64::consts::FRAC_1_SQRT_2;
+        assert!((f.x - expect).abs() < 1e-6, "{f:?}");
+        assert!(f.y.abs() < 1e-9 && f.z.abs() < 1e-9);
+        assert!(m.z.abs() < 0.5, "yaw {m:?}");
+    }
+
+    #[test]
+    fn standard_frame_has_no_pitch_authority() {
+        let (_, m) = wrench_of(Frame6Dof::Standard, [0.0, 0.0, 0.0, 0.0, 1.0, 0.0]);
+        assert_eq!(m.norm(), 0.0);
+    }
+
+    #[test]
+    fn disarmed_is_1500_and_outputs_clamped() {
+        let mixer = Mixer::new(Frame6Dof::Heavy);
+        assert_eq!(mixer.mix_pwm(&[1.0; 6], false), [1500; 8]);
+        let std = Mixer::new(Frame6Dof::Standard);
+        assert_eq!(
+            std.mix_pwm(&[0.0; 6], false),
+            [1500, 1500, 1500, 1500, 1500, 1500, 0, 0]
+        );
+        for p in mixer.mix_pwm(&[1.0, 1.0, -1.0, 1.0, 1.0, 1.0], true) {
+            assert!((1100..=1900).contains(&p));
+        }
+        assert_eq!(mixer.mix_pwm(&[f64::NAN; 6], true), [1500; 8]);
+    }
+
+    #[test]
+    fn heavy_group_normalisation_keeps_direction() {
+        let mixer = Mixer::new(Frame6Dof::Heavy);
+        // Surge + yaw saturate the horizontal group; the ratio between motors is kept.
+        let out = mixer.mix_outputs(&[1.0, 0.0, 0.0, 0.0, 0.0, 1.0]);
+        // Raw horizontal: m1 = 1 - 1 = 0, m2 = -1 - 1 = -2, m3 = -1 + 1 = 0, m4 = 2.
+        assert_eq!(&out[..4], &[0.0, -1.0, 0.0, 1.0]);
+        let out = mixer.mix_outputs(&[0.0, 0.0, -1.0, 1.0, 0.0, 0.0]);
+        // Raw vertical (throttle 1, roll 1): m5 = 1 - 1 = 0, m6 = -2, m7 = 0, m8 = -2.
+        assert_eq!(&out[4..], &[0.0, -1.0, 0.0, -1.0]);
+    }
+}
