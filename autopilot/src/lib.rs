@@ -1,1 +1,27 @@
-//! markhold-autopilot (being built).
+//! markhold-autopilot: a 6-DOF station keeper and an ArduSub MAVLink link with failsafes.
+//!
+//! - [`StationKeeper`]: six PID axes (pid crate, stepped at a fixed rate on the loop's
+//!   clock) on the body-frame pose error to a station in front of the marker.
+//! - [`VehicleLink`]: ArduSub session over MAVLink 2 (UDP, TCP, serial), synchronous and
+//!   non-blocking for the per-frame loop.
+//! - [`Supervisor`]: the failsafe state machine.
+//!
+//! Frames and units: `docs/frames.md` of the workspace.
+
+pub mod config;
+pub mod error;
+pub mod keeper;
+pub mod link;
+pub mod pilot;
+pub mod supervisor;
+pub mod transport;
+
+pub use config::{
+    AxisConfig, CommandKind, ControllerConfig, LinkConfig, LinkMode, MarkerLostAction, PilotInput,
+    StationConfig,
+};
+pub use error::AutopilotError;
+pub use keeper::{wrap_pi, Effort, KeeperStatus, PoseMeasurement, StationKeeper};
+pub use link::{ArduSubMode, CommandStatus, VehicleLink, VehicleState};
+pub use pilot::PilotMap;
+pub use supervisor::{Directive, FailsafeEvent, Supervisor, SupervisorInput};

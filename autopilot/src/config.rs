@@ -1,0 +1,622 @@
+//! Site-file sections owned by this crate: `[station]`, `[controller]`, `[link]`.
+
+use std::path::PathBuf;
+
+use nalgebra::{Isometry3, Matrix3, Rotation3, Translation3, UnitQuaternion, Vector3};
+use serde::{Deserialize, Serialize};
+
+use crate::error::AutopilotError;
+
+fn check_finite(key: &str, v: f64) -> Result<(), AutopilotError> {
+    if v.is_finite() {
+        Ok(())
+    } else {
+        Err(AutopilotError::config(key, v, "must be a finite number"))
+    }
+}
+
+fn check_positive(key: &str, v: f64) -> Result<(), AutopilotError> {
+    if v.is_finite() && v > 0.0 {
+        Ok(())
+    } else {
+        Err(AutopilotError::config(
+            key,
+            v,
+            "must be a finite number > 0",
+        ))
+    }
+}
+
+fn check_non_negative(key: &str, v: f64) -> Result<(), AutopilotError> {
+    if v.is_finite() && v >= 0.0 {
+        Ok(())
+    } else {
+        Err(AutopilotError::config(
+            key,
+            v,
+            "must be a finite number >= 0",
+        ))
+    }
+}
+
+/// `[station]`: where the vehicle should sit relative to the marker (docs/frames.md).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct StationConfig {
+    /// Distance in front of the printed face (marker +z), metres.
+    pub distance_m: f64,
+    /// Offset toward the marker's +x (the vehicle's right when facing it), metres.
+    pub lateral_m: f64,
+    /// Offset toward the marker's +y (up), metres.
+    pub vertical_m: f64,
+    /// Heading offset from facing the marker, degrees, positive = turned right (FRD yaw).
+    pub yaw_deg: f64,
+}
+
+impl Default for StationConfig {
+    fn default() -> Self {
+        Self {
+            distance_m: 1.0,
+            lateral_m: 0.0,
+            vertical_m: 0.0,
+            yaw_deg: 0.0,
+        }
+    }
+}
+
+/// Rotation of a vehicle facing the marker (x_b = -z_m, y_b = x_m, z_b = -y_m), as `R_marker_body`.
+pub fn r_marker_body_facing() -> Rotation3<f64> {
+    // Columns are the body axes expressed in the marker frame.
+    Rotation3::from_matrix_unchecked(Matrix3::from_columns(&[
+        Vector3::new(0.0, 0.0, -1.0),
+        Vector3::new(1.0, 0.0, 0.0),
+        Vector3::new(0.0, -1.0, 0.0),
+    ]))
+}
+
+impl StationConfig {
+    /// Checks every key.
+    pub fn validate(&self) -> Result<(), AutopilotError> {
+        check_positive("station.distance_m", self.distance_m)?;
+        check_finite("station.lateral_m", self.lateral_m)?;
+        check_finite("station.vertical_m", self.vertical_m)?;
+        check_finite("station.yaw_deg", self.yaw_deg)?;
+        if self.yaw_deg.abs() > 180.0 {
+            return Err(AutopilotError::config(
+                "station.yaw_deg",
+                self.yaw_deg,
+                "must lie in -180..180",
+            ));
+        }
+        Ok(())
+    }
+
+    /// Desired vehicle pose in the marker frame.
+    pub fn t_marker_vehicle(&self) -> Isometry3<f64> {
+        let facing = r_marker_body_facing();
+        let yaw = Rotation3::from_axis_angle(&Vector3::z_axis(), self.yaw_deg.to_radians());
+        let r = UnitQuaternion::from_rotation_matrix(&(facing * yaw));
+        Isometry3::from_parts(
+            Translation3::new(self.lateral_m, self.vertical_m, self.distance_m),
+            r,
+        )
+    }
+}
+
+/// Gains and limits of one PID axis. Units: effort (-1..1) per metre (translation axes)
+/// or per radian (rotation axes); `ki` per unit error and second, `kd` per unit error rate.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct AxisConfig {
+    /// Proportional gain.
+    pub kp: f64,
+    /// Integral gain (per second).
+    pub ki: f64,
+    /// Derivative gain (seconds), on the filtered measurement rate.
+    pub kd: f64,
+    /// Largest proportional contribution (effort).
+    pub p_limit: f64,
+    /// Largest integral contribution (effort): the integral clamp.
+    pub i_limit: f64,
+    /// Largest derivative contribution (effort).
+    pub d_limit: f64,
+    /// Largest output (effort, <= 1).
+    pub output_limit: f64,
+}
+
+impl Default for AxisConfig {
+    fn default() -> Self {
+        Self {
+            kp: 0.5,
+            ki: 0.05,
+            kd: 0.3,
+            p_limit: 1.0,
+            i_limit: 0.2,
+            d_limit: 0.5,
+            output_limit: 0.6,
+        }
+    }
+}
+
+impl AxisConfig {
+    fn with(kp: f64, ki: f64, kd: f64, i_limit: f64, output_limit: f64) -> Self {
+        Self {
+            kp,
+            ki,
+            kd,
+            p_limit: 1.0,
+            i_limit,
+            d_limit: 0.5,
+            output_limit,
+        }
+    }
+
+    fn validate(&self, axis: &str) -> Result<(), AutopilotError> {
+        let k = |f: &str| format!("controller.{axis}.{f}");
+        check_non_negative(&k("kp"), self.kp)?;
+        check_non_negative(&k("ki"), self.ki)?;
+        check_non_negative(&k("kd"), self.kd)?;
+        check_non_negative(&k("p_limit"), self.p_limit)?;
+        check_non_negative(&k("i_limit"), self.i_limit)?;
+        check_non_negative(&k("d_limit"), self.d_limit)?;
+        check_non_negative(&k("output_limit"), self.output_limit)?;
+        if self.output_limit > 1.0 {
+            return Err(AutopilotError::config(
+                k("output_limit"),
+                self.output_limit,
+                "must be <= 1 (efforts are normalized)",
+            ));
+        }
+        Ok(())
+    }
+}
+
+/// What to do once the marker has been lost for `marker_lost_action_after_s`.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum MarkerLostAction {
+    /// Stay neutral in the current mode.
+    None,
+    /// Switch to SURFACE mode.
+    Surface,
+    /// Switch to ALT_HOLD (hold depth).
+    AltHold,
+}
+
+/// `[controller]`: the station keeper's six PID axes, filter and marker-loss behaviour.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct ControllerConfig {
+    /// Forward (body x) axis, per metre.
+    pub surge: AxisConfig,
+    /// Right (body y) axis, per metre.
+    pub sway: AxisConfig,
+    /// Down (body z) axis, per metre.
+    pub heave: AxisConfig,
+    /// Roll axis, per radian.
+    pub roll: AxisConfig,
+    /// Pitch axis, per radian.
+    pub pitch: AxisConfig,
+    /// Yaw axis, per radian.
+    pub yaw: AxisConfig,
+    /// Fixed rate of the PID steps on the loop's clock, Hz.
+    pub rate_hz: f64,
+    /// Cut-off of the first-order filter on the measured rate (derivative term), Hz.
+    pub derivative_filter_hz: f64,
+    /// After the last measurement, keep the last command this long, seconds.
+    pub marker_lost_hold_s: f64,
+    /// After this long without the marker, request `marker_lost_action`, seconds.
+    pub marker_lost_action_after_s: f64,
+    /// Optional action on a long marker loss.
+    pub marker_lost_action: MarkerLostAction,
+    /// Pose filter process noise for translation, m^2 per second (random walk).
+    pub filter_q_trans_m2_per_s: f64,
+    /// Pose filter process noise for rotation, rad^2 per second (random walk).
+    pub filter_q_rot_rad2_per_s: f64,
+    /// A frame gap longer than this resets the controller (stale state), seconds.
+    pub max_gap_s: f64,
+    /// The camera frames stop arriving for this long: vision stalled, seconds.
+    pub vision_stall_s: f64,
+}
+
+impl Default for ControllerConfig {
+    fn default() -> Self {
+        // Gains for a BlueROV2 Heavy at 1 m in MANUAL with dead-band compensation: the
+        // translation axes get ~0.25 effort at 0.3 m, yaw ~0.2 effort at 20 degrees.
+        Self {
+            surge: AxisConfig::with(0.8, 0.08, 0.6, 0.2, 0.5),
+            sway: AxisConfig::with(0.8, 0.08, 0.6, 0.2, 0.5),
+            heave: AxisConfig::with(1.0, 0.15, 0.5, 0.3, 0.6),
+            roll: AxisConfig::with(0.4, 0.0, 0.1, 0.0, 0.3),
+            pitch: AxisConfig::with(0.4, 0.0, 0.1, 0.0, 0.3),
+            yaw: AxisConfig::with(0.6, 0.03, 0.3, 0.15, 0.4),
+            rate_hz: 50.0,
+            derivative_filter_hz: 4.0,
+            marker_lost_hold_s: 0.5,
+            marker_lost_action_after_s: 10.0,
+            marker_lost_action: MarkerLostAction::None,
+            filter_q_trans_m2_per_s: 0.02,
+            filter_q_rot_rad2_per_s: 0.02,
+            max_gap_s: 1.0,
+            vision_stall_s: 0.5,
+        }
+    }
+}
+
+impl ControllerConfig {
+    /// Checks every key.
+    pub fn validate(&self) -> Result<(), AutopilotError> {
+        for (name, axis) in self.axes_named() {
+            axis.validate(name)?;
+        }
+        check_positive("controller.rate_hz", self.rate_hz)?;
+        if self.rate_hz > 1000.0 {
+            return Err(AutopilotError::config(
+                "controller.rate_hz",
+                self.rate_hz,
+                "must be <= 1000",
+            ));
+        }
+        check_positive("controller.derivative_filter_hz", self.derivative_filter_hz)?;
+        check_non_negative("controller.marker_lost_hold_s", self.marker_lost_hold_s)?;
+        check_non_negative(
+            "controller.marker_lost_action_after_s",
+            self.marker_lost_action_after_s,
+        )?;
+        check_positive(
+            "controller.filter_q_trans_m2_per_s",
+            self.filter_q_trans_m2_per_s,
+        )?;
+        check_positive(
+            "controller.filter_q_rot_rad2_per_s",
+            self.filter_q_rot_rad2_per_s,
+        )?;
+        check_positive("controller.max_gap_s", self.max_gap_s)?;
+        check_positive("controller.vision_stall_s", self.vision_stall_s)?;
+        Ok(())
+    }
+
+    /// The six axes in effort order with their key names.
+    pub fn axes_named(&self) -> [(&'static str, &AxisConfig); 6] {
+        [
+            ("surge", &self.surge),
+            ("sway", &self.sway),
+            ("heave", &self.heave),
+            ("roll", &self.roll),
+            ("pitch", &self.pitch),
+            ("yaw", &self.yaw),
+        ]
+    }
+}
+
+/// How efforts reach the vehicle.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum CommandKind {
+    /// Pilot input (RC override or MANUAL_CONTROL) from the station keeper's efforts.
+    Effort,
+    /// GUIDED position targets plus vision pose estimates.
+    Setpoint,
+}
+
+impl CommandKind {
+    /// Key value as written in the site file.
+    pub fn as_str(self) -> &'static str {
+        match self {
+            Self::Effort => "effort",
+            Self::Setpoint => "setpoint",
+        }
+    }
+}
+
+/// Which pilot-input message carries efforts.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum PilotInput {
+    /// RC_CHANNELS_OVERRIDE (70): full PWM range, no joystick gain.
+    RcOverride,
+    /// MANUAL_CONTROL (69): scaled by ArduSub's joystick gain.
+    ManualControl,
+}
+
+/// Flight mode to run in (`link.mode`).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum LinkMode {
+    /// MANUAL (19): efforts straight into the mixer.
+    Manual,
+    /// STABILIZE (0): attitude held by ArduSub, input dead zones apply.
+    Stabilize,
+    /// ALT_HOLD (2): depth held by ArduSub, input dead zones apply.
+    AltHold,
+    /// GUIDED (4): position targets (setpoint command only).
+    Guided,
+}
+
+impl LinkMode {
+    /// The ArduSub mode number.
+    pub fn ardusub(self) -> crate::link::ArduSubMode {
+        use crate::link::ArduSubMode;
+        match self {
+            Self::Manual => ArduSubMode::Manual,
+            Self::Stabilize => ArduSubMode::Stabilize,
+            Self::AltHold => ArduSubMode::AltHold,
+            Self::Guided => ArduSubMode::Guided,
+        }
+    }
+
+    /// True where ArduSub applies its pilot-input dead zones.
+    pub fn has_input_dead_zone(self) -> bool {
+        matches!(self, Self::Stabilize | Self::AltHold)
+    }
+}
+
+/// `[link]`: the MAVLink connection to ArduSub and how it is driven.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct LinkConfig {
+    /// `udpin:HOST:PORT`, `udpout:HOST:PORT`, `tcpout:HOST:PORT`, `tcpin:HOST:PORT`,
+    /// `serial:/dev/ttyACM0:115200`.
+    pub url: String,
+    /// Our system id; ArduSub drops pilot input from any id but SYSID_MYGCS (255).
+    pub gcs_system_id: u8,
+    /// Our component id (190 = MAV_COMP_ID_MISSIONPLANNER).
+    pub gcs_component_id: u8,
+    /// Vehicle system id used until its heartbeat is seen.
+    pub vehicle_system_id: u8,
+    /// Vehicle component id (1 = autopilot).
+    pub vehicle_component_id: u8,
+    /// `effort` or `setpoint`.
+    pub command: CommandKind,
+    /// `rc_override` or `manual_control`.
+    pub pilot_input: PilotInput,
+    /// `manual`, `stabilize`, `alt_hold` (effort) or `guided` (setpoint).
+    pub mode: LinkMode,
+    /// 32-byte MAVLink 2 signing key: raw 32 bytes, or 64 hex digits.
+    pub signing_key_file: Option<PathBuf>,
+    /// Signing link id.
+    pub signing_link_id: u8,
+    /// GCS heartbeat rate, Hz (ArduSub's GCS failsafe needs about 1 Hz).
+    pub heartbeat_hz: f64,
+    /// Requested telemetry rate for each stream, Hz.
+    pub stream_hz: f64,
+    /// Stream requests are repeated this often (a rebooted vehicle forgets them), seconds.
+    pub stream_rerequest_s: f64,
+    /// Neutral pilot input is sent at this rate when nothing is commanded, Hz (>= 5 keeps
+    /// FS_PILOT_INPUT quiet; ArduSub wants >= 20 for smooth control).
+    pub pilot_input_hz: f64,
+    /// Vehicle heartbeat older than this: link lost, seconds.
+    pub vehicle_heartbeat_timeout_s: f64,
+    /// Wait for COMMAND_ACK this long before retrying, seconds.
+    pub command_timeout_s: f64,
+    /// On Ctrl-C / SIGTERM, disarm after sending neutral pilot input.
+    pub disarm_on_exit: bool,
+    /// Retries after the first COMMAND_LONG.
+    pub command_retries: u32,
+    /// Thruster dead band half-width around 1500 us that compensation skips, us.
+    pub thruster_deadband_us: f64,
+    /// ArduSub's pilot-input dead zone in stabilized modes, us.
+    pub input_deadzone_us: f64,
+    /// ArduSub's yaw input dead zone in stabilized modes, us.
+    pub yaw_deadzone_us: f64,
+    /// Efforts below this magnitude are sent as exact neutral (no compensation).
+    pub effort_epsilon: f64,
+    /// ArduSub's joystick gain (JS_GAIN_DEFAULT), undone for MANUAL_CONTROL.
+    pub manual_control_gain: f64,
+    /// Surface air pressure for depth from SCALED_PRESSURE2, Pa.
+    pub surface_pressure_pa: f64,
+    /// Water density for depth, kg/m^3 (fresh 997, sea 1025).
+    pub water_density_kg_m3: f64,
+    /// SET_GPS_GLOBAL_ORIGIN latitude for setpoint mode, degrees.
+    pub origin_lat_deg: f64,
+    /// SET_GPS_GLOBAL_ORIGIN longitude, degrees.
+    pub origin_lon_deg: f64,
+    /// SET_GPS_GLOBAL_ORIGIN altitude (AMSL), metres.
+    pub origin_alt_m: f64,
+}
+
+impl Default for LinkConfig {
+    fn default() -> Self {
+        Self {
+            url: "udpout:127.0.0.1:14550".into(),
+            gcs_system_id: 255,
+            gcs_component_id: 190,
+            vehicle_system_id: 1,
+            vehicle_component_id: 1,
+            command: CommandKind::Effort,
+            pilot_input: PilotInput::RcOverride,
+            mode: LinkMode::Manual,
+            signing_key_file: None,
+            signing_link_id: 0,
+            heartbeat_hz: 1.0,
+            stream_hz: 10.0,
+            stream_rerequest_s: 10.0,
+            pilot_input_hz: 20.0,
+            vehicle_heartbeat_timeout_s: 2.0,
+            command_timeout_s: 1.0,
+            disarm_on_exit: false,
+            command_retries: 3,
+            thruster_deadband_us: 28.0,
+            input_deadzone_us: 30.0,
+            yaw_deadzone_us: 40.0,
+            effort_epsilon: 1e-3,
+            manual_control_gain: 0.5,
+            surface_pressure_pa: 101_325.0,
+            water_density_kg_m3: 997.0,
+            origin_lat_deg: 0.0,
+            origin_lon_deg: 0.0,
+            origin_alt_m: 0.0,
+        }
+    }
+}
+
+impl LinkConfig {
+    /// Checks every key (the URL is parsed too).
+    pub fn validate(&self) -> Result<(), AutopilotError> {
+        crate::transport::Endpoint::parse(&self.url)?;
+        if self.gcs_system_id == 0 {
+            return Err(AutopilotError::config(
+                "link.gcs_system_id",
+                self.gcs_system_id,
+                "must be 1..255 (ArduSub expects SYSID_MYGCS, default 255)",
+            ));
+        }
+        if self.vehicle_system_id == 0 {
+            return Err(AutopilotError::config(
+                "link.vehicle_system_id",
+                self.vehicle_system_id,
+                "must be 1..255",
+            ));
+        }
+        match (self.command, self.mode) {
+            (CommandKind::Effort, LinkMode::Guided) => {
+                return Err(AutopilotError::config(
+                    "link.mode",
+                    "guided",
+                    "effort commands need manual, stabilize or alt_hold",
+                ))
+            }
+            (CommandKind::Setpoint, m) if m != LinkMode::Guided => {
+                return Err(AutopilotError::config(
+                    "link.mode",
+                    format!("{m:?}").to_lowercase(),
+                    "setpoint commands need guided",
+                ))
+            }
+            _ => {}
+        }
+        check_positive("link.heartbeat_hz", self.heartbeat_hz)?;
+        check_positive("link.stream_hz", self.stream_hz)?;
+        check_positive("link.stream_rerequest_s", self.stream_rerequest_s)?;
+        check_positive("link.pilot_input_hz", self.pilot_input_hz)?;
+        if self.pilot_input_hz < 5.0 {
+            return Err(AutopilotError::config(
+                "link.pilot_input_hz",
+                self.pilot_input_hz,
+                "must be >= 5 or ArduSub's pilot-input failsafe disarms",
+            ));
+        }
+        check_positive(
+            "link.vehicle_heartbeat_timeout_s",
+            self.vehicle_heartbeat_timeout_s,
+        )?;
+        check_positive("link.command_timeout_s", self.command_timeout_s)?;
+        for (k, v) in [
+            ("link.thruster_deadband_us", self.thruster_deadband_us),
+            ("link.input_deadzone_us", self.input_deadzone_us),
+            ("link.yaw_deadzone_us", self.yaw_deadzone_us),
+        ] {
+            check_non_negative(k, v)?;
+            if v >= 200.0 {
+                return Err(AutopilotError::config(k, v, "must be < 200 us"));
+            }
+        }
+        check_non_negative("link.effort_epsilon", self.effort_epsilon)?;
+        if self.effort_epsilon >= 0.5 {
+            return Err(AutopilotError::config(
+                "link.effort_epsilon",
+                self.effort_epsilon,
+                "must be < 0.5",
+            ));
+        }
+        check_positive("link.surface_pressure_pa", self.surface_pressure_pa)?;
+        check_positive("link.water_density_kg_m3", self.water_density_kg_m3)?;
+        if !(self.manual_control_gain.is_finite()
+            && self.manual_control_gain >= 0.1
+            && self.manual_control_gain <= 1.0)
+        {
+            return Err(AutopilotError::config(
+                "link.manual_control_gain",
+                self.manual_control_gain,
+                "must lie in 0.1..1 (ArduSub JS_GAIN range)",
+            ));
+        }
+        if !(self.origin_lat_deg.is_finite() && self.origin_lat_deg.abs() <= 90.0) {
+            return Err(AutopilotError::config(
+                "link.origin_lat_deg",
+                self.origin_lat_deg,
+                "must lie in -90..90",
+            ));
+        }
+        if !(self.origin_lon_deg.is_finite() && self.origin_lon_deg.abs() <= 180.0) {
+            return Err(AutopilotError::config(
+                "link.origin_lon_deg",
+                self.origin_lon_deg,
+                "must lie in -180..180",
+            ));
+        }
+        check_finite("link.origin_alt_m", self.origin_alt_m)?;
+        Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use nalgebra::Point3;
+
+    #[test]
+    fn default_station_matches_frames_doc() {
+        let t = StationConfig::default().t_marker_vehicle();
+        // On station the vehicle sits at (0, 0, 1) in the marker frame.
+        assert!((t.translation.vector - Vector3::new(0.0, 0.0, 1.0)).norm() < 1e-12);
+        // Its forward axis points at the marker (-z_m), right = x_m, down = -y_m.
+        let r = t.rotation;
+        assert!((r * Vector3::x() - Vector3::new(0.0, 0.0, -1.0)).norm() < 1e-12);
+        assert!((r * Vector3::y() - Vector3::new(1.0, 0.0, 0.0)).norm() < 1e-12);
+        assert!((r * Vector3::z() - Vector3::new(0.0, -1.0, 0.0)).norm() < 1e-12);
+        // The marker centre is 1 m straight ahead in the body frame.
+        let p_b = t.inverse() * Point3::origin();
+        assert!((p_b.coords - Vector3::new(1.0, 0.0, 0.0)).norm() < 1e-12);
+    }
+
+    #[test]
+    fn positive_station_yaw_turns_right() {
+        let st = StationConfig {
+            yaw_deg: 90.0,
+            ..Default::default()
+        };
+        let r = st.t_marker_vehicle().rotation;
+        // Turned right by 90 degrees, forward is what was the right (x_m).
+        assert!((r * Vector3::x() - Vector3::new(1.0, 0.0, 0.0)).norm() < 1e-12);
+    }
+
+    #[test]
+    fn validation_names_key_and_value() {
+        let mut c = ControllerConfig::default();
+        c.yaw.output_limit = 1.5;
+        let e = c.validate().unwrap_err().to_string();
+        assert!(e.contains("controller.yaw.output_limit"), "{e}");
+        assert!(e.contains("1.5"), "{e}");
+
+        let l = LinkConfig {
+            pilot_input_hz: 2.0,
+            ..Default::default()
+        };
+        let e = l.validate().unwrap_err().to_string();
+        assert!(e.contains("link.pilot_input_hz") && e.contains('2'), "{e}");
+
+        let l = LinkConfig {
+            url: "bogus:1".into(),
+            ..Default::default()
+        };
+        assert!(l.validate().is_err());
+
+        let s = StationConfig {
+            distance_m: -1.0,
+            ..Default::default()
+        };
+        assert!(s
+            .validate()
+            .unwrap_err()
+            .to_string()
+            .contains("station.distance_m"));
+    }
+
+    #[test]
+    fn defaults_validate() {
+        StationConfig::default().validate().unwrap();
+        ControllerConfig::default().validate().unwrap();
+        LinkConfig::default().validate().unwrap();
+    }
+}

@@ -1,0 +1,696 @@
+//! The 6-DOF station keeper: pose error in the body frame, a covariance-weighted filter,
+//! six PID axes stepped at a fixed rate on the loop's clock, and marker-loss handling.
+//!
+//! `StationKeeper::update` is a pure function of its inputs and its state: no wall clock,
+//! no telemetry arriving behind its back, so HIL runs repeat bit for bit.
+
+use nalgebra::{Isometry3, Matrix3, Matrix6, Vector3};
+use serde::Serialize;
+
+use crate::config::{AxisConfig, ControllerConfig, StationConfig};
+use crate::error::AutopilotError;
+
+/// Normalized efforts for ArduSub's mixer, body FRD, each in -1..1.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize)]
+pub struct Effort {
+    /// Forward (+x).
+    pub surge: f64,
+    /// Right (+y).
+    pub sway: f64,
+    /// Down (+z).
+    pub heave: f64,
+    /// Roll right.
+    pub roll: f64,
+    /// Pitch nose up.
+    pub pitch: f64,
+    /// Yaw right.
+    pub yaw: f64,
+}
+
+impl Effort {
+    /// All axes zero.
+    pub const NEUTRAL: Effort = Effort {
+        surge: 0.0,
+        sway: 0.0,
+        heave: 0.0,
+        roll: 0.0,
+        pitch: 0.0,
+        yaw: 0.0,
+    };
+
+    /// The axes in order (surge, sway, heave, roll, pitch, yaw).
+    pub fn to_array(&self) -> [f64; 6] {
+        [
+            self.surge, self.sway, self.heave, self.roll, self.pitch, self.yaw,
+        ]
+    }
+
+    /// From (surge, sway, heave, roll, pitch, yaw).
+    pub fn from_array(a: [f64; 6]) -> Self {
+        Self {
+            surge: a[0],
+            sway: a[1],
+            heave: a[2],
+            roll: a[3],
+            pitch: a[4],
+            yaw: a[5],
+        }
+    }
+
+    /// Every axis clamped to -1..1; NaN becomes 0 (never command garbage).
+    pub fn clamped(&self) -> Self {
+        let mut a = self.to_array();
+        for v in &mut a {
+            *v = if v.is_finite() {
+                v.clamp(-1.0, 1.0)
+            } else {
+                0.0
+            };
+        }
+        Self::from_array(a)
+    }
+
+    /// True when every axis is exactly zero.
+    pub fn is_neutral(&self) -> bool {
+        self.to_array().iter().all(|v| *v == 0.0)
+    }
+}
+
+/// One marker pose from vision: the marker in the camera frame, with its 6x6 covariance
+/// (tx, ty, tz, rx, ry, rz) in the camera frame.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct PoseMeasurement {
+    /// Frame stamp, loop seconds.
+    pub stamp_s: f64,
+    /// Pose of the marker in the camera frame.
+    pub t_cam_marker: Isometry3<f64>,
+    /// Covariance of `t_cam_marker`, camera frame.
+    pub cov_cam: Matrix6<f64>,
+}
+
+/// Wraps an angle to (-pi, pi].
+pub fn wrap_pi(a: f64) -> f64 {
+    use std::f64::consts::PI;
+    let w = (a + PI).rem_euclid(2.0 * PI) - PI;
+    if w <= -PI {
+        w + 2.0 * PI
+    } else {
+        w
+    }
+}
+
+/// Where the keeper stands with respect to the marker.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize)]
+pub enum KeeperStatus {
+    /// No measurement yet (or since a reset).
+    NoFix,
+    /// Marker seen this frame; PIDs running.
+    Tracking,
+    /// Marker missed, within `marker_lost_hold_s`: last command held.
+    Holding,
+    /// Marker lost longer than the hold: neutral.
+    Lost,
+}
+
+/// Body-frame pose error of the vehicle relative to its station: the goal expressed in the
+/// current body frame. (surge, sway, heave) in metres, (roll, pitch, yaw) in radians, yaw
+/// wrapped to (-pi, pi].
+pub fn body_error(
+    t_marker_vehicle_meas: &Isometry3<f64>,
+    t_marker_vehicle_goal: &Isometry3<f64>,
+) -> [f64; 6] {
+    let t_b_goal = t_marker_vehicle_meas.inverse() * t_marker_vehicle_goal;
+    let p = t_b_goal.translation.vector;
+    let (r, pi, y) = t_b_goal.rotation.euler_angles();
+    [p.x, p.y, p.z, wrap_pi(r), wrap_pi(pi), wrap_pi(y)]
+}
+
+fn skew(v: &Vector3<f64>) -> Matrix3<f64> {
+    Matrix3::new(0.0, -v.z, v.y, v.z, 0.0, -v.x, -v.y, v.x, 0.0)
+}
+
+/// Propagates the camera-frame covariance of `t_cam_marker` to the body-frame error.
+/// Perturbation model: t' = t + dt, R' = exp(dr) R, both in the camera frame.
+fn body_error_variances(
+    r_body_cam: &Matrix3<f64>,
+    t_cam_marker: &Isometry3<f64>,
+    t_marker_goal: &Vector3<f64>,
+    cov_cam: &Matrix6<f64>,
+) -> [f64; 6] {
+    let a = t_cam_marker.rotation * t_marker_goal;
+    let mut j = Matrix6::zeros();
+    j.fixed_view_mut::<3, 3>(0, 0).copy_from(r_body_cam);
+    j.fixed_view_mut::<3, 3>(0, 3)
+        .copy_from(&(-(r_body_cam * skew(&a))));
+    j.fixed_view_mut::<3, 3>(3, 3).copy_from(r_body_cam);
+    let c = j * cov_cam * j.transpose();
+    [
+        c[(0, 0)],
+        c[(1, 1)],
+        c[(2, 2)],
+        c[(3, 3)],
+        c[(4, 4)],
+        c[(5, 5)],
+    ]
+}
+
+/// Random-walk Kalman filter per axis: weights each measurement by its variance against the
+/// prediction, and bridges frames where the marker is missed (prediction only).
+#[derive(Clone, Debug)]
+struct PoseFilter {
+    x: [f64; 6],
+    p: [f64; 6],
+    q: [f64; 6],
+    init: bool,
+}
+
+impl PoseFilter {
+    const MIN_VAR: f64 = 1e-10;
+
+    fn new(q_trans: f64, q_rot: f64) -> Self {
+        Self {
+            x: [0.0; 6],
+            p: [0.0; 6],
+            q: [q_trans, q_trans, q_trans, q_rot, q_rot, q_rot],
+            init: false,
+        }
+    }
+
+    fn reset(&mut self) {
+        self.init = false;
+    }
+
+    fn predict(&mut self, dt: f64) {
+        if self.init {
+            for i in 0..6 {
+                self.p[i] += self.q[i] * dt;
+            }
+        }
+    }
+
+    fn update(&mut self, z: &[f64; 6], var: &[f64; 6]) {
+        if !self.init {
+            self.x = *z;
+            for (p, v) in self.p.iter_mut().zip(var) {
+                *p = v.max(Self::MIN_VAR);
+            }
+            self.init = true;
+            return;
+        }
+        for i in 0..6 {
+            let r = var[i].max(Self::MIN_VAR);
+            let k = self.p[i] / (self.p[i] + r);
+            let innov = if i >= 3 {
+                wrap_pi(z[i] - self.x[i])
+            } else {
+                z[i] - self.x[i]
+            };
+            self.x[i] += k * innov;
+            if i >= 3 {
+                self.x[i] = wrap_pi(self.x[i]);
+            }
+            self.p[i] *= 1.0 - k;
+        }
+    }
+}
+
+/// One PID axis: P and I (with its clamp) from the pid crate stepped at a fixed rate, the
+/// derivative on the filtered measurement rate, clamping anti-windup and the output limit.
+#[derive(Clone, Debug)]
+struct Axis {
+    pid: pid::Pid<f64>,
+    cfg: AxisConfig,
+    ki_step: f64,
+    wrap: bool,
+    prev_err: Option<f64>,
+    rate: f64,
+    last_out: f64,
+}
+
+impl Axis {
+    fn new(cfg: &AxisConfig, dt_step: f64, wrap: bool) -> Self {
+        let ki_step = cfg.ki * dt_step;
+        let mut pid = pid::Pid::new(0.0, f64::MAX);
+        pid.p(cfg.kp, cfg.p_limit).i(ki_step, cfg.i_limit);
+        Self {
+            pid,
+            cfg: *cfg,
+            ki_step,
+            wrap,
+            prev_err: None,
+            rate: 0.0,
+            last_out: 0.0,
+        }
+    }
+
+    fn reset(&mut self) {
+        self.pid.reset_integral_term();
+        self.prev_err = None;
+        self.rate = 0.0;
+        self.last_out = 0.0;
+    }
+
+    /// New error sample at frame rate: updates the filtered error rate. The goal is fixed,
+    /// so the error rate is minus the measurement rate: no derivative kick.
+    fn observe(&mut self, err: f64, dt: f64, alpha: f64) {
+        if let Some(prev) = self.prev_err {
+            if dt > 0.0 {
+                let de = if self.wrap {
+                    wrap_pi(err - prev)
+                } else {
+                    err - prev
+                };
+                self.rate += alpha * (de / dt - self.rate);
+            }
+        }
+        self.prev_err = Some(err);
+    }
+
+    /// One fixed-rate step.
+    fn step(&mut self, err: f64) -> f64 {
+        let lim = self.cfg.output_limit;
+        // Clamping anti-windup: do not integrate further into a saturated output.
+        let saturated = self.last_out.abs() >= lim && lim > 0.0;
+        let pushing = saturated && err.signum() == self.last_out.signum();
+        self.pid.ki = if pushing { 0.0 } else { self.ki_step };
+        // The crate computes setpoint - measurement: feed -err against a zero setpoint so
+        // that angle wrapping is ours.
+        let o = self.pid.next_control_output(-err);
+        let d = (self.cfg.kd * self.rate).clamp(-self.cfg.d_limit, self.cfg.d_limit);
+        let out = (o.p + o.i + d).clamp(-lim, lim);
+        self.last_out = if out.is_finite() { out } else { 0.0 };
+        self.last_out
+    }
+}
+
+/// Holds the vehicle at its station in front of the marker.
+#[derive(Clone, Debug)]
+pub struct StationKeeper {
+    axes: [Axis; 6],
+    filter: PoseFilter,
+    t_vehicle_cam: Isometry3<f64>,
+    t_marker_goal: Isometry3<f64>,
+    dt_step: f64,
+    deriv_tau_s: f64,
+    hold_s: f64,
+    max_gap_s: f64,
+    max_steps: u32,
+    last_stamp: Option<f64>,
+    last_seen: Option<f64>,
+    acc: f64,
+    out: Effort,
+    raw_error: Option<[f64; 6]>,
+    status: KeeperStatus,
+}
+
+impl StationKeeper {
+    /// Builds the keeper; validates both configs and the camera mount.
+    pub fn new(
+        station: &StationConfig,
+        ctl: &ControllerConfig,
+        t_vehicle_cam: Isometry3<f64>,
+    ) -> Result<Self, AutopilotError> {
+        station.validate()?;
+        ctl.validate()?;
+        let tv = t_vehicle_cam.translation.vector;
+        let q = t_vehicle_cam.rotation;
+        if !(tv.iter().all(|v| v.is_finite()) && q.coords.iter().all(|v| v.is_finite())) {
+            return Err(AutopilotError::config(
+                "camera.mount",
+                format!("{t_vehicle_cam:?}"),
+                "t_vehicle_cam must be finite",
+            ));
+        }
+        let dt_step = 1.0 / ctl.rate_hz;
+        let a = ctl.axes_named();
+        let axes = [
+            Axis::new(a[0].1, dt_step, false),
+            Axis::new(a[1].1, dt_step, false),
+            Axis::new(a[2].1, dt_step, false),
+            Axis::new(a[3].1, dt_step, true),
+            Axis::new(a[4].1, dt_step, true),
+            Axis::new(a[5].1, dt_step, true),
+        ];
+        Ok(Self {
+            axes,
+            filter: PoseFilter::new(ctl.filter_q_trans_m2_per_s, ctl.filter_q_rot_rad2_per_s),
+            t_vehicle_cam,
+            t_marker_goal: station.t_marker_vehicle(),
+            dt_step,
+            deriv_tau_s: 1.0 / (2.0 * std::f64::consts::PI * ctl.derivative_filter_hz),
+            hold_s: ctl.marker_lost_hold_s,
+            max_gap_s: ctl.max_gap_s,
+            max_steps: (ctl.max_gap_s * ctl.rate_hz).ceil().max(1.0) as u32,
+            last_stamp: None,
+            last_seen: None,
+            acc: 0.0,
+            out: Effort::NEUTRAL,
+            raw_error: None,
+            status: KeeperStatus::NoFix,
+        })
+    }
+
+    /// Desired vehicle pose in the marker frame.
+    pub fn t_marker_vehicle_goal(&self) -> Isometry3<f64> {
+        self.t_marker_goal
+    }
+
+    /// Vehicle pose in the marker frame from a camera measurement, through the mount.
+    pub fn t_marker_vehicle(&self, t_cam_marker: &Isometry3<f64>) -> Isometry3<f64> {
+        (self.t_vehicle_cam * t_cam_marker).inverse()
+    }
+
+    fn usable(m: &PoseMeasurement) -> bool {
+        let t = &m.t_cam_marker;
+        t.translation.vector.iter().all(|v| v.is_finite())
+            && t.rotation.coords.iter().all(|v| v.is_finite())
+            && m.cov_cam.iter().all(|v| v.is_finite())
+    }
+
+    /// One control step at frame time `stamp_s` (monotonic loop time), with this frame's
+    /// measurement if the marker was seen. Handles marker loss (hold briefly, then neutral).
+    pub fn update(&mut self, stamp_s: f64, meas: Option<&PoseMeasurement>) -> Effort {
+        if !stamp_s.is_finite() {
+            return self.out;
+        }
+        let dt = match self.last_stamp {
+            Some(last) => stamp_s - last,
+            None => 0.0,
+        };
+        if dt < 0.0 || dt > self.max_gap_s {
+            // Time went backwards or a long gap: the state is stale.
+            tracing::debug!(dt, "station keeper: clock jump, reset");
+            self.reset_state();
+        }
+        let dt = dt.clamp(0.0, self.max_gap_s);
+        self.last_stamp = Some(stamp_s);
+        self.filter.predict(dt);
+
+        let meas = meas.filter(|m| Self::usable(m));
+        match meas {
+            Some(m) => {
+                let reacquired =
+                    !matches!(self.status, KeeperStatus::Tracking | KeeperStatus::Holding);
+                if reacquired {
+                    // Fresh start: old integrals and rates belong to another situation.
+                    for a in &mut self.axes {
+                        a.reset();
+                    }
+                    self.filter.reset();
+                    // Run one step right away instead of waiting a controller period.
+                    self.acc = self.dt_step;
+                } else {
+                    self.acc += dt;
+                }
+                let z = body_error(&self.t_marker_vehicle(&m.t_cam_marker), &self.t_marker_goal);
+                let var = body_error_variances(
+                    self.t_vehicle_cam.rotation.to_rotation_matrix().matrix(),
+                    &m.t_cam_marker,
+                    &self.t_marker_goal.translation.vector,
+                    &m.cov_cam,
+                );
+                self.filter.update(&z, &var);
+                self.raw_error = Some(z);
+                self.last_seen = Some(stamp_s);
+                self.status = KeeperStatus::Tracking;
+
+                let alpha = if dt > 0.0 {
+                    dt / (self.deriv_tau_s + dt)
+                } else {
+                    0.0
+                };
+                let x = self.filter.x;
+                for (a, e) in self.axes.iter_mut().zip(x.iter()) {
+                    a.observe(*e, dt, alpha);
+                }
+                let mut steps = 0;
+                while self.acc + 1e-9 >= self.dt_step && steps < self.max_steps {
+                    let mut o = [0.0; 6];
+                    for (i, a) in self.axes.iter_mut().enumerate() {
+                        o[i] = a.step(x[i]);
+                    }
+                    self.out = Effort::from_array(o);
+                    self.acc -= self.dt_step;
+                    steps += 1;
+                }
+                self.acc = self.acc.clamp(0.0, self.dt_step);
+            }
+            None => {
+                let age = self.last_seen.map(|t| stamp_s - t);
+                match age {
+                    Some(a) if a <= self.hold_s && self.status != KeeperStatus::Lost => {
+                        self.status = KeeperStatus::Holding;
+                    }
+                    Some(_) => {
+                        if self.status != KeeperStatus::Lost {
+                            tracing::info!(stamp_s, "station keeper: marker lost, neutral");
+                        }
+                        self.status = KeeperStatus::Lost;
+                        self.out = Effort::NEUTRAL;
+                    }
+                    None => {
+                        self.status = KeeperStatus::NoFix;
+                        self.out = Effort::NEUTRAL;
+                    }
+                }
+            }
+        }
+        self.out
+    }
+
+    /// Last body-frame pose error (surge, sway, heave m; roll, pitch, yaw rad) the PIDs
+    /// used (filtered), if any.
+    pub fn error(&self) -> Option<[f64; 6]> {
+        if self.filter.init {
+            Some(self.filter.x)
+        } else {
+            None
+        }
+    }
+
+    /// Last unfiltered body-frame error from a measurement.
+    pub fn raw_error(&self) -> Option<[f64; 6]> {
+        self.raw_error
+    }
+
+    /// Tracking, holding, lost, or no fix yet.
+    pub fn status(&self) -> KeeperStatus {
+        self.status
+    }
+
+    /// Seconds since the marker was last seen at loop time `now_s`, if ever seen.
+    pub fn marker_age_s(&self, now_s: f64) -> Option<f64> {
+        self.last_seen.map(|t| now_s - t)
+    }
+
+    /// Last output.
+    pub fn last_effort(&self) -> Effort {
+        self.out
+    }
+
+    fn reset_state(&mut self) {
+        for a in &mut self.axes {
+            a.reset();
+        }
+        self.filter.reset();
+        self.acc = 0.0;
+        self.out = Effort::NEUTRAL;
+        self.status = KeeperStatus::NoFix;
+        self.last_seen = None;
+    }
+
+    /// Forgets integrals, rates, the filter and the marker history (mode change, re-arm).
+    pub fn reset(&mut self) {
+        self.reset_state();
+        self.last_stamp = None;
+        self.raw_error = None;
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use nalgebra::{Rotation3, Translation3, UnitQuaternion};
+
+    fn forward_cam() -> Isometry3<f64> {
+        let r = Rotation3::from_matrix_unchecked(Matrix3::from_columns(&[
+            Vector3::new(0.0, 1.0, 0.0),
+            Vector3::new(0.0, 0.0, 1.0),
+            Vector3::new(1.0, 0.0, 0.0),
+        ]));
+        Isometry3::from_parts(
+            Translation3::new(0.2, 0.0, 0.0),
+            UnitQuaternion::from_rotation_matrix(&r),
+        )
+    }
+
+    /// Marker pose in the camera for a vehicle at `t_marker_vehicle`.
+    fn meas_for(stamp: f64, t_mv: &Isometry3<f64>) -> PoseMeasurement {
+        let t_cm = (t_mv * forward_cam()).inverse();
+        PoseMeasurement {
+            stamp_s: stamp,
+            t_cam_marker: t_cm,
+            cov_cam: Matrix6::identity() * 1e-6,
+        }
+    }
+
+    fn keeper() -> StationKeeper {
+        StationKeeper::new(
+            &StationConfig::default(),
+            &ControllerConfig::default(),
+            forward_cam(),
+        )
+        .unwrap()
+    }
+
+    #[test]
+    fn wrap_pi_range() {
+        use std::f64::consts::PI;
+        assert!((wrap_pi(3.0 * PI / 2.0) + PI / 2.0).abs() < 1e-12);
+        assert!((wrap_pi(-3.0 * PI / 2.0) - PI / 2.0).abs() < 1e-12);
+        assert_eq!(wrap_pi(PI), PI);
+        assert_eq!(wrap_pi(-PI), PI);
+        assert!(
+            (wrap_pi(179f64.to_radians() - (-179f64).to_radians()) - (-2f64).to_radians()).abs()
+                < 1e-12
+        );
+    }
+
+    #[test]
+    fn on_station_gives_zero_error_and_neutral() {
+        let mut k = keeper();
+        let goal = StationConfig::default().t_marker_vehicle();
+        let e = k.update(0.0, Some(&meas_for(0.0, &goal)));
+        let err = k.error().unwrap();
+        assert!(err.iter().all(|v| v.abs() < 1e-9), "{err:?}");
+        assert!(e.to_array().iter().all(|v| v.abs() < 1e-9), "{e:?}");
+    }
+
+    #[test]
+    fn too_far_drives_forward_too_right_drives_left() {
+        let mut k = keeper();
+        // 0.3 m too far from the marker (marker +z), 0.2 m to the right (+x_m).
+        let goal = StationConfig::default().t_marker_vehicle();
+        let t = Isometry3::from_parts(Translation3::new(0.2, 0.0, 1.3), goal.rotation);
+        let e = k.update(0.0, Some(&meas_for(0.0, &t)));
+        let err = k.error().unwrap();
+        assert!((err[0] - 0.3).abs() < 1e-6, "{err:?}");
+        assert!((err[1] + 0.2).abs() < 1e-6, "{err:?}");
+        assert!(e.surge > 0.1 && e.sway < -0.1, "{e:?}");
+        assert!(e.heave.abs() < 1e-9 && e.yaw.abs() < 1e-9);
+    }
+
+    #[test]
+    fn too_high_drives_down_and_yawed_left_turns_right() {
+        let mut k = keeper();
+        let st = StationConfig::default();
+        // 0.2 m above the station (marker +y) and yawed 10 degrees left.
+        let goal = st.t_marker_vehicle();
+        let yaw_left = UnitQuaternion::from_axis_angle(&Vector3::z_axis(), -10f64.to_radians());
+        let t = Isometry3::from_parts(Translation3::new(0.0, 0.2, 1.0), goal.rotation * yaw_left);
+        let e = k.update(0.0, Some(&meas_for(0.0, &t)));
+        let err = k.error().unwrap();
+        assert!((err[5] - 10f64.to_radians()).abs() < 1e-6, "{err:?}");
+        assert!(e.heave > 0.05, "{e:?}");
+        assert!(e.yaw > 0.05, "{e:?}");
+    }
+
+    #[test]
+    fn hold_then_neutral_then_reset_on_reacquire() {
+        let ctl = ControllerConfig {
+            marker_lost_hold_s: 0.2,
+            ..Default::default()
+        };
+        let mut k = StationKeeper::new(&StationConfig::default(), &ctl, forward_cam()).unwrap();
+        let goal = StationConfig::default().t_marker_vehicle();
+        let off = Isometry3::from_parts(Translation3::new(0.0, 0.0, 1.5), goal.rotation);
+        let mut t = 0.0;
+        let mut last = Effort::NEUTRAL;
+        for _ in 0..30 {
+            last = k.update(t, Some(&meas_for(t, &off)));
+            t += 1.0 / 30.0;
+        }
+        assert!(last.surge > 0.0);
+        // Missed frames: held.
+        let h = k.update(t, None);
+        assert_eq!(h, last);
+        assert_eq!(k.status(), KeeperStatus::Holding);
+        t += 0.3;
+        let n = k.update(t, None);
+        assert!(n.is_neutral());
+        assert_eq!(k.status(), KeeperStatus::Lost);
+        // Still lost a frame later, still neutral.
+        t += 1.0 / 30.0;
+        assert!(k.update(t, None).is_neutral());
+        // Re-acquired on station: integral was reset, so output is ~zero.
+        t += 1.0 / 30.0;
+        let e = k.update(t, Some(&meas_for(t, &goal)));
+        assert_eq!(k.status(), KeeperStatus::Tracking);
+        assert!(e.surge.abs() < 1e-9, "{e:?}");
+    }
+
+    #[test]
+    fn integral_grows_with_time_not_with_frame_count() {
+        // Same 1 s of constant error at 15 Hz and 60 Hz frames: similar integral.
+        let goal = StationConfig::default().t_marker_vehicle();
+        let off = Isometry3::from_parts(Translation3::new(0.0, 0.0, 1.1), goal.rotation);
+        let run = |fps: f64| {
+            let mut k = keeper();
+            let mut e = Effort::NEUTRAL;
+            let n = fps as usize * 3;
+            for i in 0..=n {
+                let t = i as f64 / fps;
+                e = k.update(t, Some(&meas_for(t, &off)));
+            }
+            e.surge
+        };
+        let a = run(15.0);
+        let b = run(60.0);
+        let p_only = 0.8 * 0.1;
+        assert!(a > p_only + 0.01 && b > p_only + 0.01, "{a} {b}");
+        assert!((a - b).abs() < 0.01, "{a} vs {b}");
+    }
+
+    #[test]
+    fn covariance_weights_measurements() {
+        // A noisy measurement moves the estimate less than a precise one.
+        let goal = StationConfig::default().t_marker_vehicle();
+        let off = Isometry3::from_parts(Translation3::new(0.0, 0.0, 1.2), goal.rotation);
+        let run = |var: f64| {
+            let mut k = keeper();
+            let mut m = meas_for(0.0, &goal);
+            m.cov_cam = Matrix6::identity() * 1e-6;
+            k.update(0.0, Some(&m));
+            let mut m2 = meas_for(0.05, &off);
+            m2.cov_cam = Matrix6::identity() * var;
+            k.update(0.05, Some(&m2));
+            k.error().unwrap()[0]
+        };
+        let precise = run(1e-6);
+        let noisy = run(1e-1);
+        assert!(precise > 0.15, "{precise}");
+        assert!(noisy < 0.05, "{noisy}");
+    }
+
+    #[test]
+    fn deterministic() {
+        let goal = StationConfig::default().t_marker_vehicle();
+        let run = || {
+            let mut k = keeper();
+            let mut v = Vec::new();
+            for i in 0..100 {
+                let t = i as f64 * 0.033;
+                let off = Isometry3::from_parts(
+                    Translation3::new(0.1 * (t * 3.0).sin(), 0.05, 1.0 + 0.2 * t.cos()),
+                    goal.rotation,
+                );
+                let m = (i % 7 != 3).then(|| meas_for(t, &off));
+                v.push(k.update(t, m.as_ref()));
+            }
+            v
+        };
+        let a = run();
+        let b = run();
+        assert_eq!(a, b);
+    }
+}

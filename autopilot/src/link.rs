@@ -1,0 +1,958 @@
+//! The ArduSub session over MAVLink 2: GCS heartbeat, vehicle discovery, stream requests,
+//! arm/mode commands with COMMAND_ACK and retries, pilot input, GUIDED setpoints with vision
+//! pose estimates, and telemetry parsing into `VehicleState`.
+//!
+//! Synchronous facade: every call is non-blocking. Bytes go on the wire from the caller's
+//! thread at the call; a tokio task decodes incoming frames into a bounded queue that
+//! `tick` drains. All session timing (heartbeat, retries, timeouts) runs on the caller's
+//! loop time `now_s`, never the wall clock.
+
+use std::io::Cursor;
+use std::net::SocketAddr;
+use std::sync::atomic::Ordering;
+use std::sync::Arc;
+
+// SET_GPS_GLOBAL_ORIGIN is marked superseded upstream, but ArduSub's GUIDED setup still
+// documents it; keep sending it.
+#[allow(deprecated)]
+use mavlink::dialects::ardupilotmega::{
+    MavAutopilot, MavCmd, MavFrame, MavMessage, MavModeFlag, MavResult, MavState, MavType,
+    PositionTargetTypemask, COMMAND_LONG_DATA, HEARTBEAT_DATA, MANUAL_CONTROL_DATA,
+    RC_CHANNELS_OVERRIDE_DATA, SET_GPS_GLOBAL_ORIGIN_DATA, SET_POSITION_TARGET_LOCAL_NED_DATA,
+    VISION_POSITION_ESTIMATE_DATA,
+};
+use mavlink::{MavHeader, Message, SigningConfig, SigningData};
+use nalgebra::{Isometry3, UnitQuaternion};
+use serde::Serialize;
+
+use crate::config::{r_marker_body_facing, CommandKind, LinkConfig, PilotInput};
+use crate::error::AutopilotError;
+use crate::keeper::{wrap_pi, Effort};
+use crate::pilot::PilotMap;
+use crate::transport::{Incoming, Transport, WriteOutcome, MAX_FRAME};
+
+/// ArduSub flight modes (HEARTBEAT.custom_mode).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, Serialize)]
+#[repr(u32)]
+pub enum ArduSubMode {
+    /// Attitude held, pilot controls rates.
+    Stabilize = 0,
+    /// Rate control.
+    Acro = 1,
+    /// Depth held.
+    AltHold = 2,
+    /// Mission.
+    Auto = 3,
+    /// Position targets from a companion.
+    Guided = 4,
+    /// Circle.
+    Circle = 7,
+    /// Ascend to the surface.
+    Surface = 9,
+    /// Position hold (needs a position estimate).
+    PosHold = 16,
+    /// Pilot input straight into the mixer.
+    Manual = 19,
+    /// Motor direction detection.
+    MotorDetect = 20,
+    /// Hold altitude above the seabed.
+    SurfTrak = 21,
+}
+
+impl ArduSubMode {
+    /// From HEARTBEAT.custom_mode.
+    pub fn from_custom_mode(m: u32) -> Option<Self> {
+        Some(match m {
+            0 => Self::Stabilize,
+            1 => Self::Acro,
+            2 => Self::AltHold,
+            3 => Self::Auto,
+            4 => Self::Guided,
+            7 => Self::Circle,
+            9 => Self::Surface,
+            16 => Self::PosHold,
+            19 => Self::Manual,
+            20 => Self::MotorDetect,
+            21 => Self::SurfTrak,
+            _ => return None,
+        })
+    }
+
+    /// The custom_mode number.
+    pub fn number(self) -> u32 {
+        self as u32
+    }
+}
+
+/// Progress of an acknowledged command (arm, mode).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize)]
+pub enum CommandStatus {
+    /// Nothing requested.
+    Idle,
+    /// Sent, waiting for COMMAND_ACK (attempt number, from 1).
+    Pending {
+        /// Attempts made so far.
+        attempt: u32,
+    },
+    /// ACK with MAV_RESULT_ACCEPTED (or the heartbeat shows the result).
+    Accepted,
+    /// ACK with another result (MAV_RESULT number).
+    Rejected {
+        /// MAV_RESULT value.
+        result: u8,
+    },
+    /// No ACK after every retry.
+    TimedOut,
+}
+
+/// ATTITUDE (30).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize)]
+pub struct Attitude {
+    /// Loop time it was applied.
+    pub stamp_s: f64,
+    /// Vehicle boot time, ms.
+    pub time_boot_ms: u32,
+    /// Roll, rad.
+    pub roll: f64,
+    /// Pitch, rad.
+    pub pitch: f64,
+    /// Yaw, rad.
+    pub yaw: f64,
+    /// Body rates p, q, r, rad/s.
+    pub rates: [f64; 3],
+}
+
+/// LOCAL_POSITION_NED (32).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize)]
+pub struct LocalPosition {
+    /// Loop time it was applied.
+    pub stamp_s: f64,
+    /// Vehicle boot time, ms.
+    pub time_boot_ms: u32,
+    /// Position NED, m.
+    pub position: [f64; 3],
+    /// Velocity NED, m/s.
+    pub velocity: [f64; 3],
+}
+
+/// Depth from SCALED_PRESSURE2 (137), the external pressure sensor.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize)]
+pub struct Depth {
+    /// Loop time it was applied.
+    pub stamp_s: f64,
+    /// Absolute pressure, hPa.
+    pub press_abs_hpa: f64,
+    /// Depth below the surface, m (+ down).
+    pub depth_m: f64,
+    /// Water temperature, degC.
+    pub temperature_c: f64,
+}
+
+/// SERVO_OUTPUT_RAW (36): the motor PWMs.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize)]
+pub struct ServoOutputs {
+    /// Loop time it was applied.
+    pub stamp_s: f64,
+    /// Servo 1..16, us.
+    pub pwm: [u16; 16],
+}
+
+/// Traffic counters.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize)]
+pub struct LinkCounters {
+    /// Frames written.
+    pub sent: u64,
+    /// Frames decoded and applied.
+    pub received: u64,
+    /// Frames not written (no peer yet, buffers full).
+    pub send_dropped: u64,
+    /// Pilot-input frames written (RC override / MANUAL_CONTROL).
+    pub pilot_inputs: u64,
+    /// GCS heartbeats written.
+    pub heartbeats: u64,
+    /// Incoming frames dropped because the queue was full.
+    pub receive_dropped: u64,
+    /// Frames that failed to parse (CRC, unknown id, bad signature).
+    pub parse_errors: u64,
+    /// Stream transport reconnections.
+    pub reconnects: u64,
+}
+
+/// What the link knows about the vehicle.
+#[derive(Clone, Debug, PartialEq, Serialize)]
+pub struct VehicleState {
+    /// Vehicle system id (configured until discovered).
+    pub system_id: u8,
+    /// Vehicle component id.
+    pub component_id: u8,
+    /// A vehicle heartbeat has set the ids.
+    pub discovered: bool,
+    /// HEARTBEAT.base_mode has SAFETY_ARMED.
+    pub armed: bool,
+    /// Mode from the last heartbeat.
+    pub mode: Option<ArduSubMode>,
+    /// Raw custom_mode of the last heartbeat.
+    pub custom_mode: u32,
+    /// MAV_TYPE of the vehicle's heartbeat.
+    pub vehicle_type: u8,
+    /// Loop time of the last vehicle heartbeat.
+    pub last_heartbeat_s: Option<f64>,
+    /// Vehicle heartbeats seen.
+    pub heartbeats: u64,
+    /// Vehicle heartbeat is current (within `vehicle_heartbeat_timeout_s`).
+    pub heartbeat_ok: bool,
+    /// Stream transport up (always true for UDP).
+    pub transport_connected: bool,
+    /// Last ATTITUDE.
+    pub attitude: Option<Attitude>,
+    /// Last LOCAL_POSITION_NED.
+    pub local_position: Option<LocalPosition>,
+    /// Last depth from SCALED_PRESSURE2.
+    pub depth: Option<Depth>,
+    /// Last SERVO_OUTPUT_RAW.
+    pub servo_outputs: Option<ServoOutputs>,
+    /// Arm/disarm command progress.
+    pub arm_command: CommandStatus,
+    /// Set-mode command progress.
+    pub mode_command: CommandStatus,
+    /// Traffic counters.
+    pub counters: LinkCounters,
+}
+
+impl VehicleState {
+    fn new(cfg: &LinkConfig) -> Self {
+        Self {
+            system_id: cfg.vehicle_system_id,
+            component_id: cfg.vehicle_component_id,
+            discovered: false,
+            armed: false,
+            mode: None,
+            custom_mode: 0,
+            vehicle_type: 0,
+            last_heartbeat_s: None,
+            heartbeats: 0,
+            heartbeat_ok: false,
+            transport_connected: false,
+            attitude: None,
+            local_position: None,
+            depth: None,
+            servo_outputs: None,
+            arm_command: CommandStatus::Idle,
+            mode_command: CommandStatus::Idle,
+            counters: LinkCounters::default(),
+        }
+    }
+}
+
+const CMD_ARM: u16 = 400;
+const CMD_SET_MODE: u16 = 176;
+const CMD_SET_MESSAGE_INTERVAL: u16 = 511;
+const ARM_MAGIC_FORCE: f32 = 21196.0;
+/// Streams requested with SET_MESSAGE_INTERVAL: ATTITUDE, LOCAL_POSITION_NED,
+/// SERVO_OUTPUT_RAW, RC_CHANNELS, SCALED_PRESSURE2.
+pub const STREAMS: [u32; 5] = [30, 32, 36, 65, 137];
+const GRAVITY: f64 = 9.80665;
+
+#[derive(Clone, Copy, Debug)]
+struct PendingCommand {
+    command: MavCmd,
+    params: [f32; 7],
+    sent_s: f64,
+    attempt: u32,
+}
+
+/// The vehicle link.
+pub struct VehicleLink {
+    cfg: LinkConfig,
+    map: PilotMap,
+    transport: Transport,
+    signing: Option<Arc<SigningData>>,
+    seq: u8,
+    state: VehicleState,
+    last_hb_sent_s: Option<f64>,
+    last_pilot_s: Option<f64>,
+    last_streams_s: Option<f64>,
+    arm_pending: Option<PendingCommand>,
+    mode_pending: Option<PendingCommand>,
+    requested_mode: Option<ArduSubMode>,
+    requested_arm: Option<bool>,
+    origin_sent: bool,
+    last_tick_s: Option<f64>,
+    /// Keep-alive neutral pilot input while the vehicle's heartbeat is current.
+    pilot_keepalive: bool,
+}
+
+fn read_key(path: &std::path::Path) -> Result<[u8; 32], AutopilotError> {
+    let p = path.display().to_string();
+    let bytes = std::fs::read(path).map_err(|e| AutopilotError::SigningKey {
+        path: p.clone(),
+        reason: e.to_string(),
+    })?;
+    if bytes.len() == 32 {
+        let mut k = [0u8; 32];
+        k.copy_from_slice(&bytes);
+        return Ok(k);
+    }
+    let text = String::from_utf8_lossy(&bytes);
+    let hex = text.trim();
+    if hex.len() == 64 && hex.chars().all(|c| c.is_ascii_hexdigit()) {
+        let mut k = [0u8; 32];
+        for (i, kb) in k.iter_mut().enumerate() {
+            *kb = u8::from_str_radix(&hex[2 * i..2 * i + 2], 16).map_err(|e| {
+                AutopilotError::SigningKey {
+                    path: p.clone(),
+                    reason: e.to_string(),
+                }
+            })?;
+        }
+        return Ok(k);
+    }
+    Err(AutopilotError::SigningKey {
+        path: p,
+        reason: format!(
+            "expected 32 raw bytes or 64 hex digits, found {} bytes",
+            bytes.len()
+        ),
+    })
+}
+
+impl VehicleLink {
+    /// Opens the transport named by `cfg.url` (validated first; a bad URL is a clear
+    /// error). Sockets that must exist are bound here; TCP/serial connect in the background.
+    pub fn connect(cfg: &LinkConfig) -> Result<Self, AutopilotError> {
+        cfg.validate()?;
+        let signing = match &cfg.signing_key_file {
+            Some(path) => {
+                let key = read_key(path)?;
+                Some(Arc::new(SigningData::from_config(SigningConfig::new(
+                    key,
+                    cfg.signing_link_id,
+                    true,
+                    false,
+                ))))
+            }
+            None => None,
+        };
+        let transport = Transport::open(&cfg.url, signing.clone())?;
+        let mut state = VehicleState::new(cfg);
+        state.transport_connected = transport.always_connected;
+        tracing::info!(url = %cfg.url, gcs_sysid = cfg.gcs_system_id, "vehicle link open");
+        Ok(Self {
+            cfg: cfg.clone(),
+            map: PilotMap::from_config(cfg),
+            transport,
+            signing,
+            seq: 0,
+            state,
+            last_hb_sent_s: None,
+            last_pilot_s: None,
+            last_streams_s: None,
+            arm_pending: None,
+            mode_pending: None,
+            requested_mode: None,
+            requested_arm: None,
+            origin_sent: false,
+            last_tick_s: None,
+            pilot_keepalive: true,
+        })
+    }
+
+    /// Local socket address for `udpin:`/`udpout:`/`tcpin:` (handy with port 0).
+    pub fn local_addr(&self) -> Option<SocketAddr> {
+        self.transport.local_addr()
+    }
+
+    /// The configuration in use.
+    pub fn config(&self) -> &LinkConfig {
+        &self.cfg
+    }
+
+    /// Turns the automatic neutral pilot input (sent while nothing is commanded and the
+    /// vehicle's heartbeat is current) on or off. On by default.
+    pub fn set_pilot_keepalive(&mut self, on: bool) {
+        self.pilot_keepalive = on;
+    }
+
+    fn header(&mut self) -> MavHeader {
+        let h = MavHeader {
+            system_id: u32::from(self.cfg.gcs_system_id),
+            component_id: self.cfg.gcs_component_id,
+            sequence: self.seq,
+        };
+        self.seq = self.seq.wrapping_add(1);
+        h
+    }
+
+    /// Serializes and writes one message now, on this thread.
+    fn send(&mut self, msg: &MavMessage) -> Result<bool, AutopilotError> {
+        let header = self.header();
+        let mut buf = [0u8; MAX_FRAME];
+        let mut cur = Cursor::new(&mut buf[..]);
+        let n = mavlink::write_v2_msg_signed(&mut cur, header, msg, self.signing.as_deref())
+            .map_err(|e| AutopilotError::Send {
+                message: msg.message_name(),
+                source: std::io::Error::other(e.to_string()),
+            })?;
+        match self.transport.writer.write(&buf[..n]) {
+            Ok(WriteOutcome::Sent) => {
+                self.state.counters.sent += 1;
+                Ok(true)
+            }
+            Ok(WriteOutcome::NoPeer | WriteOutcome::Dropped) => {
+                self.state.counters.send_dropped += 1;
+                Ok(false)
+            }
+            Err(e) => Err(AutopilotError::Send {
+                message: msg.message_name(),
+                source: e,
+            }),
+        }
+    }
+
+    fn command_long(
+        &mut self,
+        command: MavCmd,
+        params: [f32; 7],
+        confirmation: u8,
+    ) -> Result<bool, AutopilotError> {
+        let msg = MavMessage::COMMAND_LONG(COMMAND_LONG_DATA {
+            param1: params[0],
+            param2: params[1],
+            param3: params[2],
+            param4: params[3],
+            param5: params[4],
+            param6: params[5],
+            param7: params[6],
+            command,
+            target_system: self.state.system_id,
+            target_component: self.state.component_id,
+            confirmation,
+        });
+        self.send(&msg)
+    }
+
+    fn send_heartbeat(&mut self) -> Result<(), AutopilotError> {
+        let msg = MavMessage::HEARTBEAT(HEARTBEAT_DATA {
+            custom_mode: 0,
+            mavtype: MavType::MAV_TYPE_GCS,
+            autopilot: MavAutopilot::MAV_AUTOPILOT_INVALID,
+            base_mode: MavModeFlag::empty(),
+            system_status: MavState::MAV_STATE_ACTIVE,
+            mavlink_version: 3,
+        });
+        if self.send(&msg)? {
+            self.state.counters.heartbeats += 1;
+        }
+        Ok(())
+    }
+
+    fn request_streams(&mut self) -> Result<(), AutopilotError> {
+        let interval_us = (1e6 / self.cfg.stream_hz) as f32;
+        for id in STREAMS {
+            self.command_long(
+                MavCmd::MAV_CMD_SET_MESSAGE_INTERVAL,
+                [id as f32, interval_us, 0.0, 0.0, 0.0, 0.0, 0.0],
+                0,
+            )?;
+        }
+        Ok(())
+    }
+
+    fn apply(&mut self, h: &MavHeader, msg: &MavMessage, now_s: f64) {
+        self.state.counters.received += 1;
+        if let MavMessage::HEARTBEAT(hb) = msg {
+            // GCSes and companions on the same link also heartbeat: only a vehicle counts.
+            if hb.mavtype == MavType::MAV_TYPE_GCS
+                || hb.autopilot == MavAutopilot::MAV_AUTOPILOT_INVALID
+            {
+                return;
+            }
+            let Ok(sysid) = u8::try_from(h.system_id) else {
+                return;
+            };
+            if !self.state.discovered
+                || (sysid == self.state.system_id && h.component_id == self.state.component_id)
+            {
+                if !self.state.discovered {
+                    tracing::info!(sysid, compid = h.component_id, "vehicle discovered");
+                }
+                let was_ok = self.state.heartbeat_ok;
+                self.state.system_id = sysid;
+                self.state.component_id = h.component_id;
+                self.state.discovered = true;
+                self.state.vehicle_type = hb.mavtype as u8;
+                let armed = hb
+                    .base_mode
+                    .contains(MavModeFlag::MAV_MODE_FLAG_SAFETY_ARMED);
+                if armed != self.state.armed {
+                    tracing::info!(armed, "vehicle arm state changed");
+                }
+                self.state.armed = armed;
+                let mode = ArduSubMode::from_custom_mode(hb.custom_mode);
+                if mode != self.state.mode {
+                    tracing::info!(?mode, "vehicle mode changed");
+                }
+                self.state.mode = mode;
+                self.state.custom_mode = hb.custom_mode;
+                self.state.last_heartbeat_s = Some(now_s);
+                self.state.heartbeats += 1;
+                self.state.heartbeat_ok = true;
+                if !was_ok {
+                    // A returning (maybe rebooted) vehicle forgets its streams.
+                    self.last_streams_s = None;
+                    self.origin_sent = false;
+                }
+                // The heartbeat confirms a pending request even if its ACK was lost.
+                if self.mode_pending.is_some() && mode.is_some() && mode == self.requested_mode {
+                    self.mode_pending = None;
+                    self.state.mode_command = CommandStatus::Accepted;
+                }
+                if self.arm_pending.is_some() && self.requested_arm == Some(armed) {
+                    self.arm_pending = None;
+                    self.state.arm_command = CommandStatus::Accepted;
+                }
+            }
+            return;
+        }
+        if !self.state.discovered || h.system_id != u32::from(self.state.system_id) {
+            return;
+        }
+        match msg {
+            MavMessage::ATTITUDE(a) => {
+                self.state.attitude = Some(Attitude {
+                    stamp_s: now_s,
+                    time_boot_ms: a.time_boot_ms,
+                    roll: f64::from(a.roll),
+                    pitch: f64::from(a.pitch),
+                    yaw: f64::from(a.yaw),
+                    rates: [
+                        f64::from(a.rollspeed),
+                        f64::from(a.pitchspeed),
+                        f64::from(a.yawspeed),
+                    ],
+                });
+            }
+            MavMessage::LOCAL_POSITION_NED(p) => {
+                self.state.local_position = Some(LocalPosition {
+                    stamp_s: now_s,
+                    time_boot_ms: p.time_boot_ms,
+                    position: [f64::from(p.x), f64::from(p.y), f64::from(p.z)],
+                    velocity: [f64::from(p.vx), f64::from(p.vy), f64::from(p.vz)],
+                });
+            }
+            MavMessage::SCALED_PRESSURE2(p) => {
+                let pa = f64::from(p.press_abs) * 100.0;
+                let depth =
+                    (pa - self.cfg.surface_pressure_pa) / (self.cfg.water_density_kg_m3 * GRAVITY);
+                self.state.depth = Some(Depth {
+                    stamp_s: now_s,
+                    press_abs_hpa: f64::from(p.press_abs),
+                    depth_m: depth,
+                    temperature_c: f64::from(p.temperature) / 100.0,
+                });
+            }
+            // Port 0 carries servos 1..16 (the extension fields hold 9..16).
+            MavMessage::SERVO_OUTPUT_RAW(s) if s.port == 0 => {
+                self.state.servo_outputs = Some(ServoOutputs {
+                    stamp_s: now_s,
+                    pwm: [
+                        s.servo1_raw,
+                        s.servo2_raw,
+                        s.servo3_raw,
+                        s.servo4_raw,
+                        s.servo5_raw,
+                        s.servo6_raw,
+                        s.servo7_raw,
+                        s.servo8_raw,
+                        s.servo9_raw,
+                        s.servo10_raw,
+                        s.servo11_raw,
+                        s.servo12_raw,
+                        s.servo13_raw,
+                        s.servo14_raw,
+                        s.servo15_raw,
+                        s.servo16_raw,
+                    ],
+                });
+            }
+            MavMessage::COMMAND_ACK(ack) => {
+                let cmd = ack.command as u16;
+                let accepted = ack.result == MavResult::MAV_RESULT_ACCEPTED;
+                let in_progress = ack.result == MavResult::MAV_RESULT_IN_PROGRESS;
+                let status = if accepted {
+                    CommandStatus::Accepted
+                } else {
+                    CommandStatus::Rejected {
+                        result: ack.result as u8,
+                    }
+                };
+                if in_progress {
+                    return;
+                }
+                if cmd == CMD_ARM && self.arm_pending.is_some() {
+                    self.arm_pending = None;
+                    self.state.arm_command = status;
+                    tracing::info!(?status, "arm/disarm acknowledged");
+                } else if cmd == CMD_SET_MODE && self.mode_pending.is_some() {
+                    self.mode_pending = None;
+                    self.state.mode_command = status;
+                    tracing::info!(?status, "set mode acknowledged");
+                } else if cmd == CMD_SET_MESSAGE_INTERVAL && !accepted {
+                    tracing::debug!(result = ack.result as u8, "stream request refused");
+                }
+            }
+            _ => {}
+        }
+    }
+
+    fn retry(&mut self, which: u16, now_s: f64) -> Result<(), AutopilotError> {
+        let pending = if which == CMD_ARM {
+            &mut self.arm_pending
+        } else {
+            &mut self.mode_pending
+        };
+        let Some(p) = pending.as_mut() else {
+            return Ok(());
+        };
+        if now_s - p.sent_s < self.cfg.command_timeout_s {
+            return Ok(());
+        }
+        if p.attempt > self.cfg.command_retries {
+            *pending = None;
+            tracing::warn!(command = which, "command timed out without COMMAND_ACK");
+            if which == CMD_ARM {
+                self.state.arm_command = CommandStatus::TimedOut;
+            } else {
+                self.state.mode_command = CommandStatus::TimedOut;
+            }
+            return Ok(());
+        }
+        p.attempt += 1;
+        p.sent_s = now_s;
+        let (cmd, params, attempt) = (p.command, p.params, p.attempt);
+        let status = CommandStatus::Pending { attempt };
+        if which == CMD_ARM {
+            self.state.arm_command = status;
+        } else {
+            self.state.mode_command = status;
+        }
+        tracing::debug!(command = which, attempt, "command retry");
+        // COMMAND_LONG.confirmation counts retransmissions.
+        self.command_long(cmd, params, (attempt - 1).min(255) as u8)?;
+        Ok(())
+    }
+
+    /// Drive the session at loop time `now_s`: receive and apply incoming messages, GCS
+    /// heartbeat, stream requests (and re-requests), command retries, link-loss detection,
+    /// reconnect, pilot-input keep-alive. Call every frame.
+    pub fn tick(&mut self, now_s: f64) -> Result<(), AutopilotError> {
+        if !now_s.is_finite() {
+            return Ok(());
+        }
+        if let Some(last) = self.last_tick_s {
+            if now_s < last {
+                // The loop clock restarted (replay, new HIL run): restart the schedules.
+                self.last_hb_sent_s = None;
+                self.last_pilot_s = None;
+                self.last_streams_s = None;
+                self.state.last_heartbeat_s = None;
+            }
+        }
+        self.last_tick_s = Some(now_s);
+        self.transport.writer.flush();
+        while let Ok(inc) = self.transport.rx.try_recv() {
+            match inc {
+                Incoming::Msg(h, m) => self.apply(&h, &m, now_s),
+                Incoming::Connected(peer) => {
+                    tracing::info!(%peer, "transport connected");
+                    self.state.transport_connected = true;
+                    // A new stream may be a new vehicle boot: ask again.
+                    self.last_streams_s = None;
+                }
+                Incoming::Disconnected(why) => {
+                    tracing::warn!(%why, "transport disconnected");
+                    self.state.transport_connected = self.transport.always_connected;
+                }
+            }
+        }
+        let c = &self.transport.counters;
+        self.state.counters.receive_dropped = c.dropped_rx.load(Ordering::Relaxed);
+        self.state.counters.parse_errors = c.parse_errors.load(Ordering::Relaxed);
+        self.state.counters.reconnects = c.reconnects.load(Ordering::Relaxed);
+
+        // Link loss: vehicle heartbeat too old.
+        if let Some(t) = self.state.last_heartbeat_s {
+            let ok = now_s - t <= self.cfg.vehicle_heartbeat_timeout_s;
+            if self.state.heartbeat_ok && !ok {
+                tracing::warn!(age_s = now_s - t, "vehicle heartbeat lost");
+                // A half-open TCP connection never errors: make a new one.
+                self.transport.request_reconnect();
+            }
+            self.state.heartbeat_ok = ok;
+        }
+
+        let hb_period = 1.0 / self.cfg.heartbeat_hz;
+        if self.last_hb_sent_s.is_none_or(|t| now_s - t >= hb_period) {
+            self.send_heartbeat()?;
+            self.last_hb_sent_s = Some(now_s);
+        }
+        if self.state.discovered
+            && self.state.heartbeat_ok
+            && self
+                .last_streams_s
+                .is_none_or(|t| now_s - t >= self.cfg.stream_rerequest_s)
+        {
+            self.request_streams()?;
+            self.last_streams_s = Some(now_s);
+        }
+        self.retry(CMD_ARM, now_s)?;
+        self.retry(CMD_SET_MODE, now_s)?;
+
+        if self.pilot_keepalive
+            && self.cfg.command == CommandKind::Effort
+            && self.state.heartbeat_ok
+            && self
+                .last_pilot_s
+                .is_none_or(|t| now_s - t >= 1.0 / self.cfg.pilot_input_hz)
+        {
+            self.send_pilot(&Effort::NEUTRAL, now_s)?;
+        }
+        Ok(())
+    }
+
+    /// COMMAND_LONG 400 (arm 1 / disarm 0), retried until COMMAND_ACK or the heartbeat
+    /// confirms. A new request replaces a pending one. Progress in `state().arm_command`.
+    pub fn request_arm(&mut self, arm: bool, now_s: f64) -> Result<(), AutopilotError> {
+        self.request_arm_with(arm, false, now_s)
+    }
+
+    /// Like `request_arm`, optionally forced (param2 = 21196 skips ArduSub's checks).
+    pub fn request_arm_with(
+        &mut self,
+        arm: bool,
+        force: bool,
+        now_s: f64,
+    ) -> Result<(), AutopilotError> {
+        let params = [
+            if arm { 1.0 } else { 0.0 },
+            if force { ARM_MAGIC_FORCE } else { 0.0 },
+            0.0,
+            0.0,
+            0.0,
+            0.0,
+            0.0,
+        ];
+        self.arm_pending = Some(PendingCommand {
+            command: MavCmd::MAV_CMD_COMPONENT_ARM_DISARM,
+            params,
+            sent_s: now_s,
+            attempt: 1,
+        });
+        self.requested_arm = Some(arm);
+        self.state.arm_command = CommandStatus::Pending { attempt: 1 };
+        tracing::info!(arm, "arm request");
+        self.command_long(MavCmd::MAV_CMD_COMPONENT_ARM_DISARM, params, 0)?;
+        Ok(())
+    }
+
+    /// COMMAND_LONG 176 (param1 = 1 custom mode, param2 = mode), retried until COMMAND_ACK
+    /// or the heartbeat shows the mode. Progress in `state().mode_command`.
+    pub fn request_mode(&mut self, mode: ArduSubMode, now_s: f64) -> Result<(), AutopilotError> {
+        let params = [1.0, mode.number() as f32, 0.0, 0.0, 0.0, 0.0, 0.0];
+        self.mode_pending = Some(PendingCommand {
+            command: MavCmd::MAV_CMD_DO_SET_MODE,
+            params,
+            sent_s: now_s,
+            attempt: 1,
+        });
+        self.requested_mode = Some(mode);
+        self.state.mode_command = CommandStatus::Pending { attempt: 1 };
+        tracing::info!(?mode, "mode request");
+        self.command_long(MavCmd::MAV_CMD_DO_SET_MODE, params, 0)?;
+        Ok(())
+    }
+
+    fn send_pilot(&mut self, e: &Effort, now_s: f64) -> Result<(), AutopilotError> {
+        let msg = match self.cfg.pilot_input {
+            PilotInput::RcOverride => {
+                let ch = self.map.rc_channels(e);
+                MavMessage::RC_CHANNELS_OVERRIDE(RC_CHANNELS_OVERRIDE_DATA {
+                    chan1_raw: ch[0],
+                    chan2_raw: ch[1],
+                    chan3_raw: ch[2],
+                    chan4_raw: ch[3],
+                    chan5_raw: ch[4],
+                    chan6_raw: ch[5],
+                    // 0 = release the channel back to the RC receiver / joystick.
+                    chan7_raw: 0,
+                    chan8_raw: 0,
+                    target_system: self.state.system_id,
+                    target_component: self.state.component_id,
+                    ..Default::default()
+                })
+            }
+            PilotInput::ManualControl => {
+                let v = self.map.manual_control(e);
+                MavMessage::MANUAL_CONTROL(MANUAL_CONTROL_DATA {
+                    x: v[0],
+                    y: v[1],
+                    z: v[2],
+                    r: v[3],
+                    buttons: 0,
+                    target: self.state.system_id,
+                    // bit 0: pitch (s) valid, bit 1: roll (t) valid.
+                    enabled_extensions: 0b11,
+                    s: v[4],
+                    t: v[5],
+                    ..Default::default()
+                })
+            }
+        };
+        if self.send(&msg)? {
+            self.state.counters.pilot_inputs += 1;
+        }
+        self.last_pilot_s = Some(now_s);
+        Ok(())
+    }
+
+    /// Pilot input from efforts (RC override or MANUAL_CONTROL per `link.pilot_input`),
+    /// dead zones compensated, written now.
+    pub fn send_effort(&mut self, e: &Effort, now_s: f64) -> Result<(), AutopilotError> {
+        if self.cfg.command != CommandKind::Effort {
+            return Err(AutopilotError::WrongCommandMode {
+                configured: self.cfg.command.as_str(),
+                requested: "effort",
+            });
+        }
+        self.send_pilot(&e.clamped(), now_s)
+    }
+
+    /// Neutral pilot input (all channels 1500 / sticks centred), written now. Works in
+    /// either command style, so a shutdown can always centre the sticks.
+    pub fn send_neutral(&mut self, now_s: f64) -> Result<(), AutopilotError> {
+        self.send_pilot(&Effort::NEUTRAL, now_s)
+    }
+
+    /// Setpoint mode: the vehicle pose measured from the marker goes out as
+    /// VISION_POSITION_ESTIMATE and the goal as SET_POSITION_TARGET_LOCAL_NED (position +
+    /// yaw). Also sends SET_GPS_GLOBAL_ORIGIN once per vehicle boot. Call at >= 10 Hz.
+    ///
+    /// Frames: the vision frame `L` is the marker frame turned so that a vehicle on station
+    /// facing the marker is level with yaw 0: x_L = -z_m, y_L = x_m, z_L = -y_m (NED-like,
+    /// origin at the marker). With ArduSub's EKF on external navigation for XY and yaw but
+    /// the barometer for Z, the target is sent as the EKF's own position
+    /// (LOCAL_POSITION_NED, ATTITUDE yaw) plus the remaining offset, so the two frames'
+    /// origins need not agree; before that telemetry arrives the `L` goal is sent.
+    pub fn send_setpoint(
+        &mut self,
+        t_marker_vehicle_meas: &Isometry3<f64>,
+        t_marker_vehicle_goal: &Isometry3<f64>,
+        now_s: f64,
+    ) -> Result<(), AutopilotError> {
+        if self.cfg.command != CommandKind::Setpoint {
+            return Err(AutopilotError::WrongCommandMode {
+                configured: self.cfg.command.as_str(),
+                requested: "setpoint",
+            });
+        }
+        if !self.origin_sent && self.state.discovered {
+            #[allow(deprecated)]
+            let msg = MavMessage::SET_GPS_GLOBAL_ORIGIN(SET_GPS_GLOBAL_ORIGIN_DATA {
+                latitude: (self.cfg.origin_lat_deg * 1e7).round() as i32,
+                longitude: (self.cfg.origin_lon_deg * 1e7).round() as i32,
+                altitude: (self.cfg.origin_alt_m * 1000.0).round() as i32,
+                target_system: self.state.system_id,
+                time_usec: 0,
+            });
+            if self.send(&msg)? {
+                self.origin_sent = true;
+            }
+        }
+        let t_l_m = Isometry3::from_parts(
+            nalgebra::Translation3::identity(),
+            UnitQuaternion::from_rotation_matrix(&r_marker_body_facing().inverse()),
+        );
+        let meas = t_l_m * t_marker_vehicle_meas;
+        let goal = t_l_m * t_marker_vehicle_goal;
+        let (mr, mp, my) = meas.rotation.euler_angles();
+        let (_, _, gy) = goal.rotation.euler_angles();
+        let mt = meas.translation.vector;
+        let usec = (now_s.max(0.0) * 1e6) as u64;
+        let vpe = MavMessage::VISION_POSITION_ESTIMATE(VISION_POSITION_ESTIMATE_DATA {
+            usec,
+            x: mt.x as f32,
+            y: mt.y as f32,
+            z: mt.z as f32,
+            roll: mr as f32,
+            pitch: mp as f32,
+            yaw: my as f32,
+            // NaN in the first element: covariance unknown.
+            covariance: {
+                let mut c = [0.0f32; 21];
+                c[0] = f32::NAN;
+                c
+            },
+            reset_counter: 0,
+        });
+        self.send(&vpe)?;
+
+        let delta = goal.translation.vector - mt;
+        let dyaw = wrap_pi(gy - my);
+        let (target, yaw) = match (self.state.local_position, self.state.attitude) {
+            (Some(lp), Some(att)) => (
+                [
+                    lp.position[0] + delta.x,
+                    lp.position[1] + delta.y,
+                    lp.position[2] + delta.z,
+                ],
+                wrap_pi(att.yaw + dyaw),
+            ),
+            _ => {
+                let g = goal.translation.vector;
+                ([g.x, g.y, g.z], wrap_pi(gy))
+            }
+        };
+        let mask = PositionTargetTypemask::POSITION_TARGET_TYPEMASK_VX_IGNORE
+            | PositionTargetTypemask::POSITION_TARGET_TYPEMASK_VY_IGNORE
+            | PositionTargetTypemask::POSITION_TARGET_TYPEMASK_VZ_IGNORE
+            | PositionTargetTypemask::POSITION_TARGET_TYPEMASK_AX_IGNORE
+            | PositionTargetTypemask::POSITION_TARGET_TYPEMASK_AY_IGNORE
+            | PositionTargetTypemask::POSITION_TARGET_TYPEMASK_AZ_IGNORE
+            | PositionTargetTypemask::POSITION_TARGET_TYPEMASK_YAW_RATE_IGNORE;
+        let sp = MavMessage::SET_POSITION_TARGET_LOCAL_NED(SET_POSITION_TARGET_LOCAL_NED_DATA {
+            time_boot_ms: (now_s.max(0.0) * 1e3) as u32,
+            x: target[0] as f32,
+            y: target[1] as f32,
+            z: target[2] as f32,
+            vx: 0.0,
+            vy: 0.0,
+            vz: 0.0,
+            afx: 0.0,
+            afy: 0.0,
+            afz: 0.0,
+            yaw: yaw as f32,
+            yaw_rate: 0.0,
+            type_mask: mask,
+            target_system: self.state.system_id,
+            target_component: self.state.component_id,
+            coordinate_frame: MavFrame::MAV_FRAME_LOCAL_NED,
+        });
+        self.send(&sp)?;
+        Ok(())
+    }
+
+    /// What the link knows about the vehicle.
+    pub fn state(&self) -> &VehicleState {
+        &self.state
+    }
+
+    /// Frames written to the wire.
+    pub fn messages_sent(&self) -> u64 {
+        self.state.counters.sent
+    }
+
+    /// Frames received and applied.
+    pub fn messages_received(&self) -> u64 {
+        self.state.counters.received
+    }
+}

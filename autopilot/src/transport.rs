@@ -1,0 +1,644 @@
+//! Byte transports for the vehicle link: URL parsing, tokio reader tasks that decode frames
+//! into a bounded queue, and writers that put bytes on the wire from the caller's thread.
+
+use std::io::Write;
+use std::net::{SocketAddr, ToSocketAddrs};
+use std::pin::Pin;
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::mpsc::{Receiver, SyncSender, TrySendError};
+use std::sync::{Arc, Mutex};
+use std::task::{Context, Poll};
+use std::time::Duration;
+
+use mavlink::dialects::ardupilotmega::MavMessage;
+use mavlink::{AsyncMavlinkReader, MavHeader, SigningData};
+use tokio::io::{AsyncRead, AsyncWriteExt, ReadBuf};
+use tokio::sync::Notify;
+
+use crate::error::AutopilotError;
+
+/// Wall-clock waits bounding reconnect attempts (never used for control timing).
+const RECONNECT_BACKOFF: Duration = Duration::from_millis(500);
+const CONNECT_TIMEOUT: Duration = Duration::from_secs(2);
+/// Decoded messages waiting for `tick`; beyond this the oldest traffic is dropped.
+const QUEUE_LEN: usize = 1024;
+/// Largest MAVLink 2 frame with signature.
+pub(crate) const MAX_FRAME: usize = 280;
+
+/// A parsed link URL.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub enum Endpoint {
+    /// Listen on a UDP address; reply to the last peer that spoke.
+    UdpIn(String),
+    /// Send to a UDP address from an ephemeral port.
+    UdpOut(String),
+    /// Connect to a TCP server (SITL 5760, BlueOS 5777).
+    TcpOut(String),
+    /// Accept one TCP client at a time.
+    TcpIn(String),
+    /// Serial device and baud rate.
+    Serial {
+        /// Device path, e.g. /dev/ttyACM0.
+        path: String,
+        /// Baud rate.
+        baud: u32,
+    },
+}
+
+fn bad(url: &str, reason: impl Into<String>) -> AutopilotError {
+    AutopilotError::InvalidUrl {
+        url: url.to_string(),
+        reason: reason.into(),
+    }
+}
+
+fn check_host_port(url: &str, hp: &str) -> Result<String, AutopilotError> {
+    let (host, port) = hp
+        .rsplit_once(':')
+        .ok_or_else(|| bad(url, "expected HOST:PORT"))?;
+    if host.is_empty() {
+        return Err(bad(url, "empty host"));
+    }
+    port.parse::<u16>()
+        .map_err(|_| bad(url, format!("port `{port}` is not a number 0..65535")))?;
+    Ok(hp.to_string())
+}
+
+impl Endpoint {
+    /// Parses `udpin:`, `udpout:`, `tcpout:`, `tcpin:` (HOST:PORT) and
+    /// `serial:DEVICE:BAUD`.
+    pub fn parse(url: &str) -> Result<Self, AutopilotError> {
+        let (scheme, rest) = url
+            .split_once(':')
+            .ok_or_else(|| bad(url, "expected SCHEME:ADDRESS"))?;
+        match scheme {
+            "udpin" => Ok(Self::UdpIn(check_host_port(url, rest)?)),
+            "udpout" | "udp" => Ok(Self::UdpOut(check_host_port(url, rest)?)),
+            "tcpout" | "tcp" => Ok(Self::TcpOut(check_host_port(url, rest)?)),
+            "tcpin" => Ok(Self::TcpIn(check_host_port(url, rest)?)),
+            "serial" => {
+                let (path, baud) = rest
+                    .rsplit_once(':')
+                    .ok_or_else(|| bad(url, "expected serial:DEVICE:BAUD"))?;
+                if path.is_empty() {
+                    return Err(bad(url, "empty serial device"));
+                }
+                let baud: u32 = baud
+                    .parse()
+                    .map_err(|_| bad(url, format!("baud `{baud}` is not a number")))?;
+                if baud == 0 {
+                    return Err(bad(url, "baud must be > 0"));
+                }
+                Ok(Self::Serial {
+                    path: path.to_string(),
+                    baud,
+                })
+            }
+            other => Err(bad(
+                url,
+                format!("unknown scheme `{other}` (udpin, udpout, tcpout, tcpin, serial)"),
+            )),
+        }
+    }
+}
+
+fn resolve(url: &str, hp: &str) -> Result<SocketAddr, AutopilotError> {
+    hp.to_socket_addrs()
+        .map_err(|e| bad(url, format!("cannot resolve `{hp}`: {e}")))?
+        .next()
+        .ok_or_else(|| bad(url, format!("`{hp}` resolves to no address")))
+}
+
+/// What the reader tasks hand to the link.
+// Unboxed on purpose: the bounded queue's slots are allocated once, messages are not.
+#[allow(clippy::large_enum_variant)]
+#[derive(Debug)]
+pub(crate) enum Incoming {
+    /// A decoded message.
+    Msg(MavHeader, MavMessage),
+    /// The byte stream (TCP, serial) came up.
+    Connected(String),
+    /// The byte stream went down; the task reconnects by itself.
+    Disconnected(String),
+}
+
+/// Counters shared with the tasks.
+#[derive(Debug, Default)]
+pub(crate) struct TaskCounters {
+    pub(crate) dropped_rx: AtomicU64,
+    pub(crate) parse_errors: AtomicU64,
+    pub(crate) reconnects: AtomicU64,
+}
+
+/// Where outgoing bytes go.
+pub(crate) enum Writer {
+    Udp {
+        sock: std::net::UdpSocket,
+        dest: Arc<Mutex<Option<SocketAddr>>>,
+    },
+    Tcp {
+        stream: Arc<Mutex<Option<std::net::TcpStream>>>,
+        pending: Vec<u8>,
+    },
+    Serial {
+        tx: tokio::sync::mpsc::Sender<([u8; MAX_FRAME], usize)>,
+    },
+}
+
+/// Outcome of one write.
+#[derive(Debug, PartialEq, Eq)]
+pub(crate) enum WriteOutcome {
+    /// On the wire (or, for serial, handed to the writer task).
+    Sent,
+    /// No peer yet (udpin before anyone spoke, TCP not connected).
+    NoPeer,
+    /// Transport buffers full: frame dropped whole.
+    Dropped,
+}
+
+const TCP_PENDING_CAP: usize = 16 * 1024;
+
+impl Writer {
+    pub(crate) fn write(&mut self, bytes: &[u8]) -> std::io::Result<WriteOutcome> {
+        match self {
+            Writer::Udp { sock, dest } => {
+                let d = match dest.lock() {
+                    Ok(g) => *g,
+                    Err(p) => *p.into_inner(),
+                };
+                let Some(d) = d else {
+                    return Ok(WriteOutcome::NoPeer);
+                };
+                match sock.send_to(bytes, d) {
+                    Ok(_) => Ok(WriteOutcome::Sent),
+                    Err(e) if e.kind() == std::io::ErrorKind::WouldBlock => {
+                        Ok(WriteOutcome::Dropped)
+                    }
+                    // ICMP port unreachable from an earlier datagram: the vehicle is not
+                    // listening yet; heartbeat loss handles it.
+                    Err(e) if e.kind() == std::io::ErrorKind::ConnectionRefused => {
+                        Ok(WriteOutcome::Dropped)
+                    }
+                    Err(e) => Err(e),
+                }
+            }
+            Writer::Tcp { stream, pending } => {
+                let mut g = match stream.lock() {
+                    Ok(g) => g,
+                    Err(p) => p.into_inner(),
+                };
+                let Some(s) = g.as_mut() else {
+                    pending.clear();
+                    return Ok(WriteOutcome::NoPeer);
+                };
+                // Keep frames whole and in order: finish the remainder of an earlier one.
+                if !pending.is_empty() {
+                    match s.write(pending) {
+                        Ok(n) => {
+                            pending.drain(..n);
+                        }
+                        Err(e) if e.kind() == std::io::ErrorKind::WouldBlock => {}
+                        Err(_) => {
+                            pending.clear();
+                            return Ok(WriteOutcome::Dropped);
+                        }
+                    }
+                }
+                if !pending.is_empty() {
+                    if pending.len() + bytes.len() > TCP_PENDING_CAP {
+                        return Ok(WriteOutcome::Dropped);
+                    }
+                    pending.extend_from_slice(bytes);
+                    return Ok(WriteOutcome::Sent);
+                }
+                match s.write(bytes) {
+                    Ok(n) => {
+                        if n < bytes.len() {
+                            pending.extend_from_slice(&bytes[n..]);
+                        }
+                        Ok(WriteOutcome::Sent)
+                    }
+                    Err(e) if e.kind() == std::io::ErrorKind::WouldBlock => {
+                        pending.extend_from_slice(bytes);
+                        Ok(WriteOutcome::Sent)
+                    }
+                    // The reader task sees the broken stream and reconnects.
+                    Err(_) => Ok(WriteOutcome::Dropped),
+                }
+            }
+            Writer::Serial { tx } => {
+                let mut f = [0u8; MAX_FRAME];
+                let n = bytes.len().min(MAX_FRAME);
+                f[..n].copy_from_slice(&bytes[..n]);
+                match tx.try_send((f, n)) {
+                    Ok(()) => Ok(WriteOutcome::Sent),
+                    Err(_) => Ok(WriteOutcome::Dropped),
+                }
+            }
+        }
+    }
+
+    /// Flushes a TCP remainder, if any.
+    pub(crate) fn flush(&mut self) {
+        if let Writer::Tcp { pending, .. } = self {
+            if !pending.is_empty() {
+                let _ = self.write(&[]);
+            }
+        }
+    }
+}
+
+/// A running transport: the runtime with its reader task, the writer, and the queue.
+pub(crate) struct Transport {
+    rt: Option<tokio::runtime::Runtime>,
+    pub(crate) writer: Writer,
+    pub(crate) rx: Receiver<Incoming>,
+    pub(crate) counters: Arc<TaskCounters>,
+    reconnect: Arc<Notify>,
+    local_addr: Option<SocketAddr>,
+    /// UDP is connectionless: it is "connected" from the start.
+    pub(crate) always_connected: bool,
+}
+
+impl Drop for Transport {
+    fn drop(&mut self) {
+        if let Some(rt) = self.rt.take() {
+            // Never blocks, so the link may be dropped inside an async context too.
+            rt.shutdown_background();
+        }
+    }
+}
+
+fn push(tx: &SyncSender<Incoming>, counters: &TaskCounters, m: Incoming) {
+    match tx.try_send(m) {
+        Ok(()) => {}
+        Err(TrySendError::Full(_)) => {
+            counters.dropped_rx.fetch_add(1, Ordering::Relaxed);
+        }
+        Err(TrySendError::Disconnected(_)) => {}
+    }
+}
+
+/// Reads frames until the source fails; returns why.
+async fn pump<R: AsyncRead + Unpin>(
+    reader: &mut AsyncMavlinkReader<R>,
+    signing: Option<&SigningData>,
+    tx: &SyncSender<Incoming>,
+    counters: &TaskCounters,
+) -> String {
+    loop {
+        match reader.read_any_message_signed::<MavMessage>(signing).await {
+            Ok((h, m)) => push(tx, counters, Incoming::Msg(h, m)),
+            Err(mavlink::error::MessageReadError::Io(e)) => return e.to_string(),
+            Err(mavlink::error::MessageReadError::Parse(e)) => {
+                counters.parse_errors.fetch_add(1, Ordering::Relaxed);
+                tracing::debug!(error = %e, "mavlink parse error");
+            }
+        }
+    }
+}
+
+/// Datagram source for the frame reader; remembers the last sender for udpin replies.
+struct UdpRead {
+    sock: Arc<tokio::net::UdpSocket>,
+    peer: Option<Arc<Mutex<Option<SocketAddr>>>>,
+}
+
+impl AsyncRead for UdpRead {
+    fn poll_read(
+        self: Pin<&mut Self>,
+        cx: &mut Context<'_>,
+        buf: &mut ReadBuf<'_>,
+    ) -> Poll<std::io::Result<()>> {
+        match self.sock.poll_recv_from(cx, buf) {
+            Poll::Ready(Ok(addr)) => {
+                if let Some(p) = &self.peer {
+                    if let Ok(mut g) = p.lock() {
+                        *g = Some(addr);
+                    }
+                }
+                Poll::Ready(Ok(()))
+            }
+            Poll::Ready(Err(e)) if e.kind() == std::io::ErrorKind::ConnectionRefused => {
+                // A previous send hit a closed port: not fatal for a datagram socket.
+                cx.waker().wake_by_ref();
+                Poll::Pending
+            }
+            Poll::Ready(Err(e)) => Poll::Ready(Err(e)),
+            Poll::Pending => Poll::Pending,
+        }
+    }
+}
+
+impl Transport {
+    /// Opens the endpoint: sockets that must exist (udp, tcpin listener) are bound here so
+    /// errors surface at once; stream connections are made by the task.
+    pub(crate) fn open(
+        url: &str,
+        signing: Option<Arc<SigningData>>,
+    ) -> Result<Self, AutopilotError> {
+        let ep = Endpoint::parse(url)?;
+        let rt = tokio::runtime::Builder::new_multi_thread()
+            .worker_threads(1)
+            .thread_name("markhold-link")
+            .enable_all()
+            .build()
+            .map_err(|e| AutopilotError::Open {
+                what: "runtime",
+                target: url.to_string(),
+                source: e,
+            })?;
+        let (tx, rx) = std::sync::mpsc::sync_channel(QUEUE_LEN);
+        let counters = Arc::new(TaskCounters::default());
+        let reconnect = Arc::new(Notify::new());
+        let open_err = |what, target: &str| {
+            let target = target.to_string();
+            move |e| AutopilotError::Open {
+                what,
+                target,
+                source: e,
+            }
+        };
+        match ep {
+            Endpoint::UdpIn(hp) | Endpoint::UdpOut(hp) => {
+                let udpin = url.starts_with("udpin");
+                let (bind, dest) = if udpin {
+                    (resolve(url, &hp)?, None)
+                } else {
+                    let d = resolve(url, &hp)?;
+                    let any: SocketAddr = if d.is_ipv4() {
+                        ([0, 0, 0, 0], 0).into()
+                    } else {
+                        (std::net::Ipv6Addr::UNSPECIFIED, 0).into()
+                    };
+                    (any, Some(d))
+                };
+                let sock = std::net::UdpSocket::bind(bind).map_err(open_err("udp socket", &hp))?;
+                sock.set_nonblocking(true)
+                    .map_err(open_err("udp socket", &hp))?;
+                let local = sock.local_addr().ok();
+                let wsock = sock.try_clone().map_err(open_err("udp socket", &hp))?;
+                let dest = Arc::new(Mutex::new(dest));
+                let peer = udpin.then(|| dest.clone());
+                let asock = {
+                    let _g = rt.enter();
+                    tokio::net::UdpSocket::from_std(sock).map_err(open_err("udp socket", &hp))?
+                };
+                let c = counters.clone();
+                rt.spawn(async move {
+                    let mut reader = AsyncMavlinkReader::new(UdpRead {
+                        sock: Arc::new(asock),
+                        peer,
+                    });
+                    loop {
+                        let why = pump(&mut reader, signing.as_deref(), &tx, &c).await;
+                        tracing::warn!(%why, "udp receive error");
+                        tokio::time::sleep(RECONNECT_BACKOFF).await;
+                    }
+                });
+                Ok(Self {
+                    rt: Some(rt),
+                    writer: Writer::Udp { sock: wsock, dest },
+                    rx,
+                    counters,
+                    reconnect,
+                    local_addr: local,
+                    always_connected: true,
+                })
+            }
+            Endpoint::TcpOut(hp) => {
+                let addr = resolve(url, &hp)?;
+                let slot: Arc<Mutex<Option<std::net::TcpStream>>> = Arc::new(Mutex::new(None));
+                let s2 = slot.clone();
+                let c = counters.clone();
+                let rc = reconnect.clone();
+                rt.spawn(async move {
+                    loop {
+                        match tokio::time::timeout(
+                            CONNECT_TIMEOUT,
+                            tokio::net::TcpStream::connect(addr),
+                        )
+                        .await
+                        {
+                            Ok(Ok(s)) => {
+                                serve_tcp(s, &s2, signing.as_deref(), &tx, &c, &rc).await;
+                                c.reconnects.fetch_add(1, Ordering::Relaxed);
+                            }
+                            Ok(Err(e)) => tracing::debug!(%addr, error = %e, "tcp connect failed"),
+                            Err(_) => tracing::debug!(%addr, "tcp connect timed out"),
+                        }
+                        tokio::time::sleep(RECONNECT_BACKOFF).await;
+                    }
+                });
+                Ok(Self {
+                    rt: Some(rt),
+                    writer: Writer::Tcp {
+                        stream: slot,
+                        pending: Vec::with_capacity(TCP_PENDING_CAP),
+                    },
+                    rx,
+                    counters,
+                    reconnect,
+                    local_addr: None,
+                    always_connected: false,
+                })
+            }
+            Endpoint::TcpIn(hp) => {
+                let addr = resolve(url, &hp)?;
+                let l = std::net::TcpListener::bind(addr).map_err(open_err("tcp listener", &hp))?;
+                l.set_nonblocking(true)
+                    .map_err(open_err("tcp listener", &hp))?;
+                let local = l.local_addr().ok();
+                let listener = {
+                    let _g = rt.enter();
+                    tokio::net::TcpListener::from_std(l).map_err(open_err("tcp listener", &hp))?
+                };
+                let slot: Arc<Mutex<Option<std::net::TcpStream>>> = Arc::new(Mutex::new(None));
+                let s2 = slot.clone();
+                let c = counters.clone();
+                let rc = reconnect.clone();
+                rt.spawn(async move {
+                    loop {
+                        match listener.accept().await {
+                            Ok((s, peer)) => {
+                                tracing::info!(%peer, "tcp client connected");
+                                serve_tcp(s, &s2, signing.as_deref(), &tx, &c, &rc).await;
+                                c.reconnects.fetch_add(1, Ordering::Relaxed);
+                            }
+                            Err(e) => {
+                                tracing::warn!(error = %e, "tcp accept failed");
+                                tokio::time::sleep(RECONNECT_BACKOFF).await;
+                            }
+                        }
+                    }
+                });
+                Ok(Self {
+                    rt: Some(rt),
+                    writer: Writer::Tcp {
+                        stream: slot,
+                        pending: Vec::with_capacity(TCP_PENDING_CAP),
+                    },
+                    rx,
+                    counters,
+                    reconnect,
+                    local_addr: local,
+                    always_connected: false,
+                })
+            }
+            Endpoint::Serial { path, baud } => {
+                let (wtx, mut wrx) = tokio::sync::mpsc::channel::<([u8; MAX_FRAME], usize)>(256);
+                let c = counters.clone();
+                let rc = reconnect.clone();
+                rt.spawn(async move {
+                    loop {
+                        let builder = tokio_serial::new(path.as_str(), baud);
+                        match tokio_serial::SerialStream::open(&builder) {
+                            Ok(port) => {
+                                push(&tx, &c, Incoming::Connected(path.clone()));
+                                let (r, mut w) = tokio::io::split(port);
+                                let mut reader = AsyncMavlinkReader::new(r);
+                                let why = tokio::select! {
+                                    why = pump(&mut reader, signing.as_deref(), &tx, &c) => why,
+                                    why = async {
+                                        while let Some((f, n)) = wrx.recv().await {
+                                            if let Err(e) = w.write_all(&f[..n]).await {
+                                                return e.to_string();
+                                            }
+                                        }
+                                        "writer closed".to_string()
+                                    } => why,
+                                    _ = rc.notified() => "reconnect requested".to_string(),
+                                };
+                                push(&tx, &c, Incoming::Disconnected(why));
+                                c.reconnects.fetch_add(1, Ordering::Relaxed);
+                            }
+                            Err(e) => tracing::debug!(%path, error = %e, "serial open failed"),
+                        }
+                        // Frames queued while the port was down are stale: drop them.
+                        while wrx.try_recv().is_ok() {}
+                        tokio::time::sleep(RECONNECT_BACKOFF).await;
+                    }
+                });
+                Ok(Self {
+                    rt: Some(rt),
+                    writer: Writer::Serial { tx: wtx },
+                    rx,
+                    counters,
+                    reconnect,
+                    local_addr: None,
+                    always_connected: false,
+                })
+            }
+        }
+    }
+
+    /// Local socket address (udp, tcpin), useful with port 0.
+    pub(crate) fn local_addr(&self) -> Option<SocketAddr> {
+        self.local_addr
+    }
+
+    /// Asks a stream transport to drop its connection and make a new one.
+    pub(crate) fn request_reconnect(&self) {
+        self.reconnect.notify_one();
+    }
+}
+
+async fn serve_tcp(
+    s: tokio::net::TcpStream,
+    slot: &Mutex<Option<std::net::TcpStream>>,
+    signing: Option<&SigningData>,
+    tx: &SyncSender<Incoming>,
+    c: &TaskCounters,
+    reconnect: &Notify,
+) {
+    let peer = s
+        .peer_addr()
+        .map(|a| a.to_string())
+        .unwrap_or_else(|_| "?".into());
+    let _ = s.set_nodelay(true);
+    // A std clone of the socket lets the caller's thread write without the runtime.
+    let std_s = match s.into_std() {
+        Ok(x) => x,
+        Err(e) => {
+            tracing::warn!(error = %e, "tcp into_std failed");
+            return;
+        }
+    };
+    let w = match std_s.try_clone() {
+        Ok(w) => w,
+        Err(e) => {
+            tracing::warn!(error = %e, "tcp clone failed");
+            return;
+        }
+    };
+    let s = match tokio::net::TcpStream::from_std(std_s) {
+        Ok(s) => s,
+        Err(e) => {
+            tracing::warn!(error = %e, "tcp from_std failed");
+            return;
+        }
+    };
+    if let Ok(mut g) = slot.lock() {
+        *g = Some(w);
+    }
+    push(tx, c, Incoming::Connected(peer.clone()));
+    let mut reader = AsyncMavlinkReader::new(s);
+    let why = tokio::select! {
+        why = pump(&mut reader, signing, tx, c) => why,
+        _ = reconnect.notified() => "reconnect requested".to_string(),
+    };
+    if let Ok(mut g) = slot.lock() {
+        if let Some(w) = g.take() {
+            let _ = w.shutdown(std::net::Shutdown::Both);
+        }
+    }
+    tracing::warn!(%peer, %why, "tcp link down");
+    push(tx, c, Incoming::Disconnected(why));
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn parses_every_scheme() {
+        assert_eq!(
+            Endpoint::parse("udpout:127.0.0.1:14550").unwrap(),
+            Endpoint::UdpOut("127.0.0.1:14550".into())
+        );
+        assert_eq!(
+            Endpoint::parse("udpin:0.0.0.0:14550").unwrap(),
+            Endpoint::UdpIn("0.0.0.0:14550".into())
+        );
+        assert_eq!(
+            Endpoint::parse("tcpout:localhost:5760").unwrap(),
+            Endpoint::TcpOut("localhost:5760".into())
+        );
+        assert_eq!(
+            Endpoint::parse("tcpin:127.0.0.1:0").unwrap(),
+            Endpoint::TcpIn("127.0.0.1:0".into())
+        );
+        assert_eq!(
+            Endpoint::parse("serial:/dev/ttyACM0:115200").unwrap(),
+            Endpoint::Serial {
+                path: "/dev/ttyACM0".into(),
+                baud: 115200
+            }
+        );
+    }
+
+    #[test]
+    fn rejects_bad_urls_with_a_reason() {
+        for (u, why) in [
+            ("ftp:1.2.3.4:5", "unknown scheme"),
+            ("udpout:127.0.0.1", "HOST:PORT"),
+            ("udpout:127.0.0.1:99999", "port"),
+            ("serial:/dev/ttyACM0:fast", "baud"),
+            ("nocolon", "SCHEME"),
+            ("tcpout::5760", "empty host"),
+        ] {
+            let e = Endpoint::parse(u).unwrap_err().to_string();
+            assert!(e.contains(why) && e.contains(u), "{u}: {e}");
+        }
+    }
+}
