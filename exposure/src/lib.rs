@@ -4,11 +4,18 @@
 //! paper's method, RoI + momentum on a soft-percentile gradient metric), AEC
 //! (Zhang et al. 2017), GEC (Shim et al.) and a camera's mean-intensity AE.
 
+mod aaec;
 mod frame;
 mod mean;
+pub mod metric;
+pub mod reference;
+mod response;
 
+pub use aaec::{Aaec, AaecConfig, AaecFallback};
 pub use frame::{Camera, CameraError, Corners, ExposureLimits, Frame, FrameMeta, ImageView, Roi};
 pub use mean::{MeanAe, MeanAeConfig};
+pub use metric::{soft_percentile_weights, GradientMetric, MetricParams, MetricValue, RankWeights};
+pub use response::{Response, ResponseModel};
 
 use serde::{Deserialize, Serialize};
 
@@ -26,6 +33,23 @@ pub enum ExposureError {
         width: usize,
         height: usize,
         len: usize,
+    },
+    #[error("camera response table {}: cannot read: {source}", file.display())]
+    ResponseIo {
+        file: std::path::PathBuf,
+        source: std::io::Error,
+    },
+    #[error("camera response table {}, line {line}: '{value}': expected {expected}", file.display())]
+    ResponseTable {
+        file: std::path::PathBuf,
+        line: usize,
+        value: String,
+        expected: String,
+    },
+    #[error("camera response table {}: {count} values, expected 256", file.display())]
+    ResponseTableLength {
+        file: std::path::PathBuf,
+        count: usize,
     },
 }
 
@@ -116,6 +140,10 @@ pub struct ExposureConfig {
     pub method: ExposureMethod,
     /// Parameters of the mean-intensity AE ("default").
     pub default: MeanAeConfig,
+    /// Parameters of AAEC.
+    pub aaec: AaecConfig,
+    /// The camera response the gradient controllers assume (and HIL renders with).
+    pub response: ResponseModel,
 }
 
 impl Default for ExposureConfig {
@@ -123,14 +151,19 @@ impl Default for ExposureConfig {
         Self {
             method: ExposureMethod::Aaec,
             default: MeanAeConfig::default(),
+            aaec: AaecConfig::default(),
+            response: ResponseModel::default(),
         }
     }
 }
 
 impl ExposureConfig {
-    /// Check every range; the error names the key.
+    /// Check every range (files are read by [`ResponseModel::load`]); the error names
+    /// the key.
     pub fn validate(&self) -> Result<(), ExposureError> {
-        self.default.validate()
+        self.default.validate()?;
+        self.aaec.validate()?;
+        self.response.validate()
     }
 }
 
@@ -148,10 +181,32 @@ pub fn build_controller(
             limits,
             initial_us,
         )?)),
+        ExposureMethod::Aaec => {
+            let response = cfg.response.load()?;
+            let fallback: Box<dyn ExposureController> = match cfg.aaec.fallback {
+                AaecFallback::Mean => {
+                    Box::new(MeanAe::new(cfg.default.clone(), limits, initial_us)?)
+                }
+                AaecFallback::Aec => {
+                    return Err(invalid(
+                        "aaec.fallback",
+                        "aec",
+                        "mean (AEC fallback not built yet)",
+                    ))
+                }
+            };
+            Ok(Box::new(Aaec::new(
+                cfg.aaec.clone(),
+                response,
+                limits,
+                initial_us,
+                fallback,
+            )?))
+        }
         other => Err(ExposureError::InvalidConfig {
             key: "method".into(),
             value: other.to_string(),
-            expected: "a method this build implements (default)".into(),
+            expected: "a method this build implements (aaec, default)".into(),
         }),
     }
 }

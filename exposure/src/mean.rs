@@ -35,13 +35,25 @@ impl Default for MeanAeConfig {
 impl MeanAeConfig {
     pub fn validate(&self) -> Result<(), ExposureError> {
         if !(self.target_grey > 1.0 && self.target_grey < 254.0) {
-            return Err(invalid("default.target_grey", self.target_grey, "a grey level in (1, 254)"));
+            return Err(invalid(
+                "default.target_grey",
+                self.target_grey,
+                "a grey level in (1, 254)",
+            ));
         }
         if !(self.kappa > 0.0 && self.kappa <= 1.0) {
-            return Err(invalid("default.kappa", self.kappa, "a damping factor in (0, 1]"));
+            return Err(invalid(
+                "default.kappa",
+                self.kappa,
+                "a damping factor in (0, 1]",
+            ));
         }
         if self.subsample == 0 || self.subsample > 64 {
-            return Err(invalid("default.subsample", self.subsample, "a pixel step in 1..=64"));
+            return Err(invalid(
+                "default.subsample",
+                self.subsample,
+                "a pixel step in 1..=64",
+            ));
         }
         Ok(())
     }
@@ -163,7 +175,11 @@ mod tests {
         let mut ae = MeanAe::new(cfg, limits(), 1000.0).unwrap();
         let s = ae.update(&flat(64, 1000.0), None);
         assert!(s.used_frame);
-        assert!((s.exposure_us - 1000.0 * 2f64.sqrt()).abs() < 1e-9, "{}", s.exposure_us);
+        assert!(
+            (s.exposure_us - 1000.0 * 2f64.sqrt()).abs() < 1e-9,
+            "{}",
+            s.exposure_us
+        );
         assert_eq!(s.metric, 64.0);
     }
 
@@ -177,7 +193,12 @@ mod tests {
 
     #[test]
     fn black_frame_saturates_at_frame_period() {
-        let mut ae = MeanAe::new(MeanAeConfig::default(), limits(), 20_000.0).unwrap();
+        // max_us above the frame period, so the period is what binds.
+        let lim = ExposureLimits {
+            max_us: 100_000.0,
+            ..limits()
+        };
+        let mut ae = MeanAe::new(MeanAeConfig::default(), lim, 20_000.0).unwrap();
         let mut t = 20_000.0;
         for _ in 0..50 {
             t = ae.update(&flat(0, t), None).exposure_us;
@@ -192,7 +213,10 @@ mod tests {
             kappa: 0.0,
             ..Default::default()
         };
-        let e = MeanAe::new(cfg, limits(), 1000.0).err().unwrap().to_string();
+        let e = MeanAe::new(cfg, limits(), 1000.0)
+            .err()
+            .unwrap()
+            .to_string();
         assert!(e.contains("default.kappa"), "{e}");
     }
 }
