@@ -1,1 +1,375 @@
-//! The underwater camera (being built by the camera engineer).
+//! The underwater camera: a pinhole camera with OpenCV's distortion model, mounted on the
+//! vehicle, rendering the [`Scene`] through water onto a simulated sensor (shot and read
+//! noise, full well, gain, the camera response, 8-bit output). A new exposure takes
+//! effect `delay_frames` frames late and every frame carries the exposure it really had.
+
+mod reference;
+mod sensor;
+
+use std::collections::VecDeque;
+
+use markhold_exposure::{ExposureLimits, Frame, Response, ResponseModel};
+use nalgebra::{Isometry3, Point3};
+use serde::{Deserialize, Serialize};
+
+use crate::scene::{Scene, WorldLamp};
+use crate::{invalid, HilError};
+use sensor::{Exposure, SensorTables, XorShift64Star};
+
+/// `[camera.sensor]`: how the sensor turns light into electrons and electrons into noise.
+/// Defaults are those of a Sony IMX273 (FLIR Blackfly S BFS-U3-16S2M, the paper's camera).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct SensorConfig {
+    /// Electrons a pixel holds before it clips.
+    pub full_well_e: f64,
+    /// Read noise, electrons RMS.
+    pub read_noise_e: f64,
+    /// Electrons per (W/m2 of exitance-equivalent scene light x microsecond) at 0 dB:
+    /// lens aperture, pixel area and quantum efficiency in one number.
+    pub electrons_per_w_m2_us: f64,
+    /// Shot and read noise on (false renders the noise-free mean, for tests).
+    pub noise: bool,
+}
+
+impl Default for SensorConfig {
+    fn default() -> Self {
+        Self {
+            full_well_e: 10_500.0,
+            read_noise_e: 2.3,
+            electrons_per_w_m2_us: 0.035,
+            noise: true,
+        }
+    }
+}
+
+impl SensorConfig {
+    pub fn validate(&self) -> Result<(), HilError> {
+        if !(self.full_well_e >= 100.0 && self.full_well_e <= 1e7) {
+            return Err(invalid(
+                "camera.sensor.full_well_e",
+                self.full_well_e,
+                "a capacity in [100, 1e7] electrons",
+            ));
+        }
+        if !(self.read_noise_e >= 0.0 && self.read_noise_e <= 1000.0) {
+            return Err(invalid(
+                "camera.sensor.read_noise_e",
+                self.read_noise_e,
+                "a noise in [0, 1000] electrons",
+            ));
+        }
+        if !(self.electrons_per_w_m2_us > 0.0 && self.electrons_per_w_m2_us <= 1e6) {
+            return Err(invalid(
+                "camera.sensor.electrons_per_w_m2_us",
+                self.electrons_per_w_m2_us,
+                "a sensitivity in (0, 1e6]",
+            ));
+        }
+        Ok(())
+    }
+}
+
+/// Intrinsics, distortion, timing, exposure and sensor of the simulated camera.
+#[derive(Debug, Clone, PartialEq)]
+pub struct CameraModel {
+    pub width: u32,
+    pub height: u32,
+    pub fx: f64,
+    pub fy: f64,
+    pub cx: f64,
+    pub cy: f64,
+    /// OpenCV order: k1, k2, p1, p2, k3.
+    pub dist: [f64; 5],
+    pub fps: f64,
+    pub limits: ExposureLimits,
+    pub gain_db: f64,
+    /// Frames between a request and the first frame exposed with it (0 = next frame).
+    pub delay_frames: u32,
+    pub response: ResponseModel,
+    pub sensor: SensorConfig,
+}
+
+impl CameraModel {
+    /// A FLIR Blackfly S (1440x1080, 30 fps) behind a flat port with a 4.5 mm lens
+    /// (about 80 degrees horizontal field of view in water), no distortion.
+    pub fn blackfly_s(response: ResponseModel) -> Self {
+        Self {
+            width: 1440,
+            height: 1080,
+            fx: 860.0,
+            fy: 860.0,
+            cx: 719.5,
+            cy: 539.5,
+            dist: [0.0; 5],
+            fps: 30.0,
+            limits: ExposureLimits {
+                min_us: 20.0,
+                max_us: 30_000.0,
+                fps: 30.0,
+            },
+            gain_db: 0.0,
+            delay_frames: 1,
+            response,
+            sensor: SensorConfig::default(),
+        }
+    }
+
+    pub fn validate(&self) -> Result<(), HilError> {
+        if !(8..=16384).contains(&self.width) {
+            return Err(invalid("camera.width", self.width, "8..=16384 pixels"));
+        }
+        if !(8..=16384).contains(&self.height) {
+            return Err(invalid("camera.height", self.height, "8..=16384 pixels"));
+        }
+        for (key, v) in [("camera.fx", self.fx), ("camera.fy", self.fy)] {
+            if !(v.is_finite() && v > 1.0) {
+                return Err(invalid(key, v, "a focal length > 1 pixel"));
+            }
+        }
+        for (key, v) in [("camera.cx", self.cx), ("camera.cy", self.cy)] {
+            if !v.is_finite() {
+                return Err(invalid(key, v, "a finite principal point"));
+            }
+        }
+        if let Some((i, v)) = self
+            .dist
+            .iter()
+            .enumerate()
+            .find(|(_, v)| !(v.is_finite() && v.abs() < 100.0))
+        {
+            return Err(invalid(
+                &format!("camera.distortion[{i}]"),
+                v,
+                "a finite coefficient, |k| < 100",
+            ));
+        }
+        if !(self.fps > 0.0 && self.fps <= 1000.0) {
+            return Err(invalid("camera.fps", self.fps, "a frame rate in (0, 1000]"));
+        }
+        let l = &self.limits;
+        if !(l.min_us > 0.0 && l.max_us >= l.min_us && l.max_us.is_finite()) {
+            return Err(invalid(
+                "camera.exposure_min_us",
+                format!("{}..{}", l.min_us, l.max_us),
+                "0 < exposure_min_us <= exposure_max_us",
+            ));
+        }
+        if !(self.gain_db >= 0.0 && self.gain_db <= 48.0) {
+            return Err(invalid(
+                "camera.gain_db",
+                self.gain_db,
+                "a gain in [0, 48] dB",
+            ));
+        }
+        if self.delay_frames > 8 {
+            return Err(invalid(
+                "camera.actuation_delay_frames",
+                self.delay_frames,
+                "0..=8 frames",
+            ));
+        }
+        self.sensor.validate()
+    }
+
+    /// Apply the distortion to normalized coordinates (OpenCV's model).
+    pub fn distort(&self, x: f64, y: f64) -> (f64, f64) {
+        let [k1, k2, p1, p2, k3] = self.dist;
+        let r2 = x * x + y * y;
+        let radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3));
+        (
+            x * radial + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x),
+            y * radial + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y,
+        )
+    }
+
+    /// Normalized coordinates of the ray through pixel (u, v) (pixel centres at integers),
+    /// inverting the distortion by fixed-point iteration like OpenCV's undistortPoints.
+    pub fn undistort_pixel(&self, u: f64, v: f64) -> (f64, f64) {
+        let xd = (u - self.cx) / self.fx;
+        let yd = (v - self.cy) / self.fy;
+        if self.dist.iter().all(|k| *k == 0.0) {
+            return (xd, yd);
+        }
+        let [k1, k2, p1, p2, k3] = self.dist;
+        let (mut x, mut y) = (xd, yd);
+        for _ in 0..20 {
+            let r2 = x * x + y * y;
+            let radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3));
+            let dx = 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x);
+            let dy = p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y;
+            x = (xd - dx) / radial;
+            y = (yd - dy) / radial;
+        }
+        (x, y)
+    }
+
+    /// Pixel where a point in the camera frame projects; `None` behind the camera.
+    pub fn project(&self, p_cam: &Point3<f64>) -> Option<[f64; 2]> {
+        if p_cam.z <= 1e-9 {
+            return None;
+        }
+        let (x, y) = self.distort(p_cam.x / p_cam.z, p_cam.y / p_cam.z);
+        Some([self.fx * x + self.cx, self.fy * y + self.cy])
+    }
+}
+
+/// The simulated camera. Holds every buffer it renders with, so `render` allocates
+/// nothing after the first frame.
+pub struct UnderwaterCamera {
+    model: CameraModel,
+    tables: SensorTables,
+    rng: XorShift64Star,
+    /// Frames rendered so far (the next frame's seq).
+    seq: u64,
+    /// Exposure the sensor is set to now.
+    current_us: f64,
+    /// Requests not yet in effect: (first seq exposed with it, value).
+    pending: VecDeque<(u64, f64)>,
+    lamps: Vec<WorldLamp>,
+}
+
+impl UnderwaterCamera {
+    pub fn new(model: CameraModel, seed: u64) -> Result<Self, HilError> {
+        model.validate()?;
+        let response: Response = model
+            .response
+            .load()
+            .map_err(|source| HilError::CameraResponse { source })?;
+        let tables = SensorTables::new(seed, &response);
+        let current_us = model.limits.clamp(
+            model
+                .limits
+                .min_us
+                .max(1000.0)
+                .min(model.limits.effective_max_us()),
+        );
+        Ok(Self {
+            tables,
+            rng: XorShift64Star::new(seed),
+            seq: 0,
+            current_us,
+            pending: VecDeque::with_capacity(model.delay_frames as usize + 2),
+            lamps: Vec::with_capacity(8),
+            model,
+        })
+    }
+
+    /// Request an exposure; takes effect `delay_frames` frames later (before the first
+    /// frame: at once, as a camera configured before it streams). Returns the value the
+    /// camera will use (clamped to limits).
+    pub fn set_exposure_us(&mut self, us: f64) -> f64 {
+        let us = self.model.limits.clamp(us);
+        if self.seq == 0 {
+            // Set before streaming starts: the first frame already has it.
+            self.pending.clear();
+            self.current_us = us;
+            return us;
+        }
+        let effective = self.seq + self.model.delay_frames as u64;
+        // Requests made before the same frame collapse: the last one wins.
+        while let Some(&(s, _)) = self.pending.back() {
+            if s >= effective {
+                self.pending.pop_back();
+            } else {
+                break;
+            }
+        }
+        self.pending.push_back((effective, us));
+        us
+    }
+
+    /// The exposure the next frame will be taken with.
+    pub fn next_exposure_us(&self) -> f64 {
+        let mut t = self.current_us;
+        for &(s, v) in &self.pending {
+            if s <= self.seq {
+                t = v;
+            }
+        }
+        t
+    }
+
+    pub fn model(&self) -> &CameraModel {
+        &self.model
+    }
+
+    /// Render the frame taken at `time_s` from camera pose `t_world_cam` (vehicle lamps are
+    /// placed from `t_world_vehicle`) into `out` (resized to the model once, then reused),
+    /// filling out.meta (seq, stamp_s = time_s, exposure_us really used, gain_db).
+    pub fn render(
+        &mut self,
+        scene: &Scene,
+        t_world_cam: &Isometry3<f64>,
+        t_world_vehicle: &Isometry3<f64>,
+        time_s: f64,
+        out: &mut Frame,
+    ) {
+        let exposure_us = self.begin_frame();
+        out.resize(self.model.width, self.model.height);
+        scene.lamps_for(t_world_vehicle, &mut self.lamps);
+        let exposure = Exposure::new(&self.model, exposure_us);
+        reference::render(
+            &self.model,
+            scene,
+            t_world_cam,
+            &self.lamps,
+            time_s,
+            &exposure,
+            &self.tables,
+            &mut self.rng,
+            out,
+        );
+        self.finish_frame(out, time_s, exposure_us);
+    }
+
+    /// The slow, obviously-correct renderer (f64 per pixel, no precomputation): the
+    /// reference the fast path is tested and benchmarked against. Same state handling
+    /// as [`render`](Self::render).
+    pub fn render_reference(
+        &mut self,
+        scene: &Scene,
+        t_world_cam: &Isometry3<f64>,
+        t_world_vehicle: &Isometry3<f64>,
+        time_s: f64,
+        out: &mut Frame,
+    ) {
+        let exposure_us = self.begin_frame();
+        out.resize(self.model.width, self.model.height);
+        scene.lamps_for(t_world_vehicle, &mut self.lamps);
+        let exposure = Exposure::new(&self.model, exposure_us);
+        reference::render(
+            &self.model,
+            scene,
+            t_world_cam,
+            &self.lamps,
+            time_s,
+            &exposure,
+            &self.tables,
+            &mut self.rng,
+            out,
+        );
+        self.finish_frame(out, time_s, exposure_us);
+    }
+
+    /// Apply the requests due for this frame; returns its exposure.
+    fn begin_frame(&mut self) -> f64 {
+        while let Some(&(s, v)) = self.pending.front() {
+            if s <= self.seq {
+                self.current_us = v;
+                self.pending.pop_front();
+            } else {
+                break;
+            }
+        }
+        self.current_us
+    }
+
+    fn finish_frame(&mut self, out: &mut Frame, time_s: f64, exposure_us: f64) {
+        out.meta.seq = self.seq;
+        out.meta.stamp_s = time_s;
+        out.meta.exposure_us = exposure_us;
+        out.meta.gain_db = self.model.gain_db;
+        self.seq += 1;
+    }
+}

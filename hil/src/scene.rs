@@ -1,1 +1,810 @@
-//! The scene: marker plate, background, water and light (being built by the camera engineer).
+//! The scene the HIL camera sees: a marker plate (a real dictionary marker with its white
+//! border) mounted in front of a rock wall that stands on a seabed, in water that
+//! attenuates and scatters light, lit by daylight from above, the vehicle's lamps and,
+//! in the `adversarial` scenario, a bright lamp aimed at the marker.
+//!
+//! Radiometry is grey (one band). Light is counted as the irradiance-equivalent that a
+//! white Lambertian surface would need to look as bright ("exitance", W/m2): a surface of
+//! albedo `rho` under irradiance `E` seen through a path of length `d` contributes
+//! `rho * E * exp(-c d)`; the water in front of it adds backscatter
+//! `B_inf * (1 - exp(-b d))` (Akkaynak & Treibitz 2018, one band).
+
+mod texture;
+
+use std::str::FromStr;
+
+use nalgebra::{Isometry3, Point3, Unit, Vector3};
+use serde::{Deserialize, Serialize};
+
+use crate::{invalid, HilError};
+pub(crate) use texture::{SplitMix64, Texture};
+
+/// Water types with tabulated coefficients (green band, where a grey camera is most
+/// sensitive), from the ranges reported for Jerlov oceanic / coastal types and turbid
+/// rivers.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum WaterType {
+    /// Open ocean (Jerlov I-II).
+    Clear,
+    /// Coastal water (Jerlov 3C-5C).
+    Coastal,
+    /// Turbid river water (the paper's Connecticut River).
+    River,
+}
+
+impl WaterType {
+    /// (beam attenuation c, backscatter coefficient b, diffuse attenuation K_d,
+    /// veiling light over downwelling irradiance) for this water.
+    fn coefficients(self) -> (f64, f64, f64, f64) {
+        match self {
+            Self::Clear => (0.15, 0.10, 0.06, 0.02),
+            Self::Coastal => (0.50, 0.35, 0.20, 0.05),
+            Self::River => (1.50, 1.10, 0.80, 0.10),
+        }
+    }
+}
+
+/// `[water]`: the water's optical properties. Explicit coefficients override the type's.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct WaterConfig {
+    /// "clear", "coastal" or "river".
+    #[serde(rename = "type")]
+    pub water_type: WaterType,
+    /// Beam attenuation of the direct signal along a path, 1/m (Beer-Lambert).
+    pub attenuation_per_m: Option<f64>,
+    /// Backscatter coefficient b of `B_inf (1 - exp(-b z))`, 1/m.
+    pub backscatter_per_m: Option<f64>,
+    /// Diffuse attenuation of downwelling daylight with depth, 1/m.
+    pub daylight_attenuation_per_m: Option<f64>,
+    /// Veiling light `B_inf` as a fraction of the downwelling irradiance at the camera.
+    pub veiling_fraction: Option<f64>,
+    /// Veiling light per unit of lamp irradiance along the view ray (single scattering
+    /// of the lamps' beams), 1/m.
+    pub lamp_scatter_per_m: Option<f64>,
+}
+
+impl Default for WaterConfig {
+    fn default() -> Self {
+        Self {
+            water_type: WaterType::Coastal,
+            attenuation_per_m: None,
+            backscatter_per_m: None,
+            daylight_attenuation_per_m: None,
+            veiling_fraction: None,
+            lamp_scatter_per_m: None,
+        }
+    }
+}
+
+/// Water coefficients resolved from a [`WaterConfig`].
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct WaterOptics {
+    pub attenuation_per_m: f64,
+    pub backscatter_per_m: f64,
+    pub daylight_attenuation_per_m: f64,
+    pub veiling_fraction: f64,
+    pub lamp_scatter_per_m: f64,
+}
+
+impl WaterConfig {
+    pub fn validate(&self) -> Result<(), HilError> {
+        let checks = [
+            ("water.attenuation_per_m", self.attenuation_per_m, 0.0, 20.0),
+            ("water.backscatter_per_m", self.backscatter_per_m, 0.0, 20.0),
+            (
+                "water.daylight_attenuation_per_m",
+                self.daylight_attenuation_per_m,
+                0.0,
+                20.0,
+            ),
+            ("water.veiling_fraction", self.veiling_fraction, 0.0, 1.0),
+            (
+                "water.lamp_scatter_per_m",
+                self.lamp_scatter_per_m,
+                0.0,
+                10.0,
+            ),
+        ];
+        for (key, v, lo, hi) in checks {
+            if let Some(v) = v {
+                if !(v >= lo && v <= hi) {
+                    return Err(invalid(key, v, &format!("a number in [{lo}, {hi}]")));
+                }
+            }
+        }
+        Ok(())
+    }
+
+    /// The coefficients this water uses (explicit values, else the type's).
+    pub fn optics(&self) -> WaterOptics {
+        let (c, b, kd, veil) = self.water_type.coefficients();
+        WaterOptics {
+            attenuation_per_m: self.attenuation_per_m.unwrap_or(c),
+            backscatter_per_m: self.backscatter_per_m.unwrap_or(b),
+            daylight_attenuation_per_m: self.daylight_attenuation_per_m.unwrap_or(kd),
+            veiling_fraction: self.veiling_fraction.unwrap_or(veil),
+            // About a tenth of the scattering goes back toward a camera beside the lamp.
+            lamp_scatter_per_m: self.lamp_scatter_per_m.unwrap_or(0.05 * b),
+        }
+    }
+}
+
+/// The lighting scenarios of the paper's experiments (plus caustics).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum LightingScenario {
+    /// Flat overhead daylight.
+    Normal,
+    /// Dim daylight, dim vehicle lamps: long exposures, visible noise.
+    Low,
+    /// A bright lamp on the marker, dark surroundings.
+    Adversarial,
+    /// Shallow, sunny: moving caustic webs over everything.
+    Caustics,
+}
+
+impl LightingScenario {
+    pub const ALL: [LightingScenario; 4] =
+        [Self::Normal, Self::Low, Self::Adversarial, Self::Caustics];
+
+    pub fn as_str(self) -> &'static str {
+        match self {
+            Self::Normal => "normal",
+            Self::Low => "low",
+            Self::Adversarial => "adversarial",
+            Self::Caustics => "caustics",
+        }
+    }
+}
+
+impl std::fmt::Display for LightingScenario {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(self.as_str())
+    }
+}
+
+impl FromStr for LightingScenario {
+    type Err = String;
+    fn from_str(s: &str) -> Result<Self, Self::Err> {
+        match s.to_ascii_lowercase().as_str() {
+            "normal" => Ok(Self::Normal),
+            "low" => Ok(Self::Low),
+            "adversarial" => Ok(Self::Adversarial),
+            "caustics" => Ok(Self::Caustics),
+            other => Err(format!(
+                "unknown lighting scenario '{other}': expected one of normal, low, adversarial, caustics"
+            )),
+        }
+    }
+}
+
+/// A spotlight. Position and direction are in the frame of what carries it: the vehicle
+/// body (FRD) for vehicle lamps, the marker frame for the marker lamp.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct LampConfig {
+    pub position_m: [f64; 3],
+    /// Axis of the beam (need not be unit length).
+    pub direction: [f64; 3],
+    /// Radiant intensity on the axis, W/sr (the irradiance at 1 m in clear water, W/m2).
+    pub intensity_w_sr: f64,
+    /// Half angle of the full-intensity cone, degrees.
+    pub inner_half_angle_deg: f64,
+    /// Half angle where the beam has faded to zero, degrees.
+    pub outer_half_angle_deg: f64,
+}
+
+impl Default for LampConfig {
+    fn default() -> Self {
+        Self {
+            position_m: [0.2, 0.0, 0.0],
+            direction: [1.0, 0.0, 0.0],
+            intensity_w_sr: 0.0,
+            inner_half_angle_deg: 30.0,
+            outer_half_angle_deg: 60.0,
+        }
+    }
+}
+
+impl LampConfig {
+    fn validate(&self, key: &str) -> Result<(), HilError> {
+        if self.position_m.iter().any(|v| !v.is_finite()) {
+            return Err(invalid(
+                &format!("{key}.position_m"),
+                format!("{:?}", self.position_m),
+                "finite metres",
+            ));
+        }
+        let n = Vector3::from(self.direction).norm();
+        if !(n.is_finite() && n > 1e-9) {
+            return Err(invalid(
+                &format!("{key}.direction"),
+                format!("{:?}", self.direction),
+                "a non-zero finite vector",
+            ));
+        }
+        if !(self.intensity_w_sr >= 0.0 && self.intensity_w_sr <= 1e6) {
+            return Err(invalid(
+                &format!("{key}.intensity_w_sr"),
+                self.intensity_w_sr,
+                "an intensity in [0, 1e6] W/sr",
+            ));
+        }
+        if !(self.inner_half_angle_deg >= 0.0 && self.inner_half_angle_deg < 89.0) {
+            return Err(invalid(
+                &format!("{key}.inner_half_angle_deg"),
+                self.inner_half_angle_deg,
+                "an angle in [0, 89) degrees",
+            ));
+        }
+        if !(self.outer_half_angle_deg > self.inner_half_angle_deg
+            && self.outer_half_angle_deg <= 90.0)
+        {
+            return Err(invalid(
+                &format!("{key}.outer_half_angle_deg"),
+                self.outer_half_angle_deg,
+                "an angle above inner_half_angle_deg, at most 90 degrees",
+            ));
+        }
+        Ok(())
+    }
+}
+
+/// `[lighting]`: the scenario and optional overrides of its values.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct LightingConfig {
+    pub scenario: LightingScenario,
+    /// Daylight irradiance just below the surface, W/m2 (band-integrated).
+    pub ambient_surface_w_m2: Option<f64>,
+    /// Lamps on the vehicle (body frame). Replaces the scenario's lamps when given.
+    pub vehicle_lamps: Option<Vec<LampConfig>>,
+    /// A fixed lamp aimed at the marker (marker frame). Replaces the scenario's.
+    pub marker_lamp: Option<LampConfig>,
+    /// Caustic contrast, 0 (none) .. 1 (black gaps between the bright lines).
+    pub caustics_strength: Option<f64>,
+    /// Size of one caustic cell on a surface, metres.
+    pub caustics_scale_m: Option<f64>,
+    /// Drift speed of the caustic pattern, m/s.
+    pub caustics_speed_mps: Option<f64>,
+}
+
+impl Default for LightingConfig {
+    fn default() -> Self {
+        Self {
+            scenario: LightingScenario::Normal,
+            ambient_surface_w_m2: None,
+            vehicle_lamps: None,
+            marker_lamp: None,
+            caustics_strength: None,
+            caustics_scale_m: None,
+            caustics_speed_mps: None,
+        }
+    }
+}
+
+/// Lighting resolved from a [`LightingConfig`]: the scenario's values with overrides.
+#[derive(Debug, Clone, PartialEq)]
+pub struct LightingSetup {
+    pub ambient_surface_w_m2: f64,
+    pub vehicle_lamps: Vec<LampConfig>,
+    pub marker_lamp: Option<LampConfig>,
+    pub caustics_strength: f64,
+    pub caustics_scale_m: f64,
+    pub caustics_speed_mps: f64,
+}
+
+/// Two lamps beside the camera housing, like a BlueROV2's Lumen lights.
+fn vehicle_lamp_pair(intensity_w_sr: f64) -> Vec<LampConfig> {
+    [-0.12, 0.12]
+        .iter()
+        .map(|&y| LampConfig {
+            position_m: [0.22, y, -0.05],
+            direction: [1.0, 0.0, 0.0],
+            intensity_w_sr,
+            inner_half_angle_deg: 35.0,
+            outer_half_angle_deg: 65.0,
+        })
+        .collect()
+}
+
+impl LightingConfig {
+    pub fn validate(&self) -> Result<(), HilError> {
+        if let Some(a) = self.ambient_surface_w_m2 {
+            if !(0.0..=5000.0).contains(&a) {
+                return Err(invalid(
+                    "lighting.ambient_surface_w_m2",
+                    a,
+                    "an irradiance in [0, 5000] W/m2",
+                ));
+            }
+        }
+        if let Some(lamps) = &self.vehicle_lamps {
+            for (i, l) in lamps.iter().enumerate() {
+                l.validate(&format!("lighting.vehicle_lamps[{i}]"))?;
+            }
+        }
+        if let Some(l) = &self.marker_lamp {
+            l.validate("lighting.marker_lamp")?;
+        }
+        if let Some(s) = self.caustics_strength {
+            if !(0.0..=1.0).contains(&s) {
+                return Err(invalid(
+                    "lighting.caustics_strength",
+                    s,
+                    "a contrast in [0, 1]",
+                ));
+            }
+        }
+        if let Some(s) = self.caustics_scale_m {
+            if !(0.01..=10.0).contains(&s) {
+                return Err(invalid(
+                    "lighting.caustics_scale_m",
+                    s,
+                    "a size in [0.01, 10] m",
+                ));
+            }
+        }
+        if let Some(s) = self.caustics_speed_mps {
+            if !(0.0..=10.0).contains(&s) {
+                return Err(invalid(
+                    "lighting.caustics_speed_mps",
+                    s,
+                    "a speed in [0, 10] m/s",
+                ));
+            }
+        }
+        Ok(())
+    }
+
+    /// The scenario's values with this config's overrides.
+    pub fn resolve(&self) -> LightingSetup {
+        use LightingScenario::*;
+        let (ambient, lamps, marker_lamp, caustics) = match self.scenario {
+            Normal => (400.0, vehicle_lamp_pair(0.0), None, 0.0),
+            Low => (6.0, vehicle_lamp_pair(0.3), None, 0.0),
+            // Night dive: no daylight to speak of; one narrow, very bright lamp on the
+            // marker from above and to the side (a glare the marker's matte black ink
+            // cannot absorb once the exposure is set for the dark surroundings).
+            Adversarial => (
+                1.0,
+                vehicle_lamp_pair(0.0),
+                Some(LampConfig {
+                    position_m: [0.25, 0.35, 0.6],
+                    direction: [-0.25, -0.35, -0.6],
+                    intensity_w_sr: 250.0,
+                    inner_half_angle_deg: 8.0,
+                    outer_half_angle_deg: 16.0,
+                }),
+                0.0,
+            ),
+            Caustics => (600.0, vehicle_lamp_pair(0.0), None, 0.8),
+        };
+        LightingSetup {
+            ambient_surface_w_m2: self.ambient_surface_w_m2.unwrap_or(ambient),
+            vehicle_lamps: self.vehicle_lamps.clone().unwrap_or(lamps),
+            marker_lamp: self.marker_lamp.clone().or(marker_lamp),
+            caustics_strength: self.caustics_strength.unwrap_or(caustics),
+            caustics_scale_m: self.caustics_scale_m.unwrap_or(0.25),
+            caustics_speed_mps: self.caustics_speed_mps.unwrap_or(0.15),
+        }
+    }
+}
+
+/// Where the background is, relative to the marker.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct BackgroundConfig {
+    /// The rock wall behind the plate, metres behind the marker's face.
+    pub wall_behind_marker_m: f64,
+    /// The seabed, metres below the marker's centre.
+    pub seabed_below_marker_m: f64,
+    /// Mean albedo of rock and seabed.
+    pub albedo_mean: f64,
+    /// Albedo spread around the mean (texture contrast).
+    pub albedo_spread: f64,
+    /// Size of one texel of the procedural rock, metres.
+    pub texel_m: f64,
+}
+
+impl Default for BackgroundConfig {
+    fn default() -> Self {
+        Self {
+            wall_behind_marker_m: 0.05,
+            seabed_below_marker_m: 1.0,
+            albedo_mean: 0.25,
+            albedo_spread: 0.15,
+            texel_m: 0.0015,
+        }
+    }
+}
+
+impl BackgroundConfig {
+    pub fn validate(&self) -> Result<(), HilError> {
+        if !(self.wall_behind_marker_m >= 0.001 && self.wall_behind_marker_m <= 1000.0) {
+            return Err(invalid(
+                "scene.wall_behind_marker_m",
+                self.wall_behind_marker_m,
+                "a distance in [0.001, 1000] m",
+            ));
+        }
+        if !(self.seabed_below_marker_m >= 0.0 && self.seabed_below_marker_m <= 1000.0) {
+            return Err(invalid(
+                "scene.seabed_below_marker_m",
+                self.seabed_below_marker_m,
+                "a distance in [0, 1000] m",
+            ));
+        }
+        if !(self.albedo_spread >= 0.0
+            && self.albedo_mean - self.albedo_spread >= 0.0
+            && self.albedo_mean + self.albedo_spread <= 1.0)
+        {
+            return Err(invalid(
+                "scene.albedo_mean",
+                self.albedo_mean,
+                "albedo_mean +- albedo_spread within [0, 1]",
+            ));
+        }
+        if !(self.texel_m >= 1e-4 && self.texel_m <= 0.1) {
+            return Err(invalid(
+                "scene.texel_m",
+                self.texel_m,
+                "a size in [1e-4, 0.1] m",
+            ));
+        }
+        Ok(())
+    }
+}
+
+/// The printed marker and the white plate it is printed on.
+#[derive(Debug, Clone, PartialEq)]
+pub struct MarkerSpec {
+    /// Cells per side, including the black border.
+    pub cells: usize,
+    /// Row-major, top row first as printed, including the border; true = white.
+    pub white: Vec<bool>,
+    /// Edge of the black square, metres.
+    pub size_m: f64,
+    /// White plate around the marker, metres on each side.
+    pub plate_margin_m: f64,
+}
+
+impl MarkerSpec {
+    pub fn validate(&self) -> Result<(), HilError> {
+        if !(3..=64).contains(&self.cells) {
+            return Err(invalid("marker.cells", self.cells, "3..=64 cells per side"));
+        }
+        if self.white.len() != self.cells * self.cells {
+            return Err(invalid(
+                "marker.white",
+                format!("{} cells", self.white.len()),
+                &format!("cells^2 = {} cells", self.cells * self.cells),
+            ));
+        }
+        if !(self.size_m > 0.0 && self.size_m <= 10.0) {
+            return Err(invalid("marker.size_m", self.size_m, "a size in (0, 10] m"));
+        }
+        if !(self.plate_margin_m >= 0.0 && self.plate_margin_m <= 10.0) {
+            return Err(invalid(
+                "marker.plate_margin_m",
+                self.plate_margin_m,
+                "a margin in [0, 10] m",
+            ));
+        }
+        Ok(())
+    }
+}
+
+/// Albedo of the marker's white plate and black ink (matte print).
+pub const ALBEDO_WHITE: f64 = 0.85;
+pub const ALBEDO_BLACK: f64 = 0.04;
+/// Albedo of the back of the plate (seen only from behind).
+const ALBEDO_PLATE_BACK: f64 = 0.3;
+
+/// Share of the downwelling daylight that reaches a vertical surface (the light field
+/// under water is not all from above).
+const SIDE_LIGHT_FRACTION: f64 = 0.35;
+
+/// A spotlight placed in the world for one frame.
+#[derive(Debug, Clone, Copy)]
+pub(crate) struct WorldLamp {
+    pub(crate) pos: Vector3<f64>,
+    pub(crate) axis: Vector3<f64>,
+    pub(crate) intensity: f64,
+    pub(crate) cos_inner: f64,
+    pub(crate) cos_outer: f64,
+}
+
+impl WorldLamp {
+    fn place(l: &LampConfig, t_world_frame: &Isometry3<f64>) -> Self {
+        let axis = t_world_frame.rotation * Unit::new_normalize(Vector3::from(l.direction));
+        Self {
+            pos: (t_world_frame * Point3::from(l.position_m)).coords,
+            axis: axis.into_inner(),
+            intensity: l.intensity_w_sr,
+            cos_inner: l.inner_half_angle_deg.to_radians().cos(),
+            cos_outer: l.outer_half_angle_deg.to_radians().cos(),
+        }
+    }
+
+    /// Irradiance the lamp gives to a point with unit normal `n` (attenuated on the way).
+    #[inline]
+    fn irradiance(&self, p: &Vector3<f64>, n: Option<&Vector3<f64>>, c: f64) -> f64 {
+        let v = self.pos - p;
+        let r2 = v.norm_squared().max(1e-4);
+        let r = r2.sqrt();
+        let l = v / r;
+        let cos_axis = -l.dot(&self.axis);
+        let cone = smoothstep(self.cos_outer, self.cos_inner, cos_axis);
+        if cone <= 0.0 {
+            return 0.0;
+        }
+        let cos_i = match n {
+            Some(n) => n.dot(&l).max(0.0),
+            None => 1.0,
+        };
+        self.intensity * cone * cos_i * (-c * r).exp() / r2
+    }
+}
+
+fn smoothstep(e0: f64, e1: f64, x: f64) -> f64 {
+    let t = ((x - e0) / (e1 - e0)).clamp(0.0, 1.0);
+    t * t * (3.0 - 2.0 * t)
+}
+
+/// Which surface a ray hit.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub(crate) enum Surface {
+    Plate,
+    Wall,
+    Seabed,
+}
+
+/// What the light model says about one surface point seen from the camera, in
+/// exitance-equivalent units (W/m2): the signal is
+/// `albedo * (ambient * caustic + lamp) + backscatter`.
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+pub(crate) struct Shade {
+    /// Daylight reflected by a white surface, attenuated on the way to the camera.
+    pub(crate) ambient: f64,
+    /// Lamp light reflected by a white surface, attenuated on the way to the camera.
+    pub(crate) lamp: f64,
+    /// Water between the camera and the point.
+    pub(crate) backscatter: f64,
+}
+
+/// The world the camera renders: geometry, materials, water and light.
+#[derive(Debug, Clone)]
+pub struct Scene {
+    pub(crate) marker: MarkerSpec,
+    pub(crate) t_world_marker: Isometry3<f64>,
+    pub(crate) water: WaterOptics,
+    pub(crate) lighting: LightingSetup,
+    pub(crate) background: BackgroundConfig,
+    /// Fixed lamps in the world (the marker lamp).
+    pub(crate) world_lamps: Vec<WorldLamp>,
+    pub(crate) rock: Texture,
+    pub(crate) caustic: Texture,
+    /// Caustic drift directions of the two layers (unit, in surface coordinates).
+    pub(crate) caustic_dirs: [(f64, f64); 2],
+}
+
+/// Side of the rock texture (texels, power of two).
+const ROCK_LOG2: u32 = 10;
+/// Side of the caustic texture (texels, power of two) and its cells per side.
+const CAUSTIC_LOG2: u32 = 9;
+const CAUSTIC_CELLS: usize = 8;
+
+impl Scene {
+    /// A scene with the default background (a rock wall 5 cm behind the plate on a seabed
+    /// 1 m below the marker).
+    pub fn new(
+        water: &WaterConfig,
+        lighting: &LightingConfig,
+        marker: MarkerSpec,
+        t_world_marker: Isometry3<f64>,
+        seed: u64,
+    ) -> Result<Self, HilError> {
+        Self::with_background(
+            water,
+            lighting,
+            &BackgroundConfig::default(),
+            marker,
+            t_world_marker,
+            seed,
+        )
+    }
+
+    pub fn with_background(
+        water: &WaterConfig,
+        lighting: &LightingConfig,
+        background: &BackgroundConfig,
+        marker: MarkerSpec,
+        t_world_marker: Isometry3<f64>,
+        seed: u64,
+    ) -> Result<Self, HilError> {
+        water.validate()?;
+        lighting.validate()?;
+        background.validate()?;
+        marker.validate()?;
+        let lighting = lighting.resolve();
+        let world_lamps = lighting
+            .marker_lamp
+            .iter()
+            .map(|l| WorldLamp::place(l, &t_world_marker))
+            .collect();
+        let mut rng = SplitMix64::new(seed);
+        let rock = texture::rock_texture(
+            rng.next_u64(),
+            ROCK_LOG2,
+            background.albedo_mean as f32,
+            background.albedo_spread as f32,
+        );
+        let caustic = texture::caustic_texture(rng.next_u64(), CAUSTIC_LOG2, CAUSTIC_CELLS);
+        let a0 = rng.next_f64() * std::f64::consts::TAU;
+        // The second layer drifts at a clearly different angle so the web keeps changing.
+        let a1 = a0 + 2.0 + rng.next_f64();
+        Ok(Self {
+            marker,
+            t_world_marker,
+            water: water.optics(),
+            lighting,
+            background: background.clone(),
+            world_lamps,
+            rock,
+            caustic,
+            caustic_dirs: [(a0.cos(), a0.sin()), (a1.cos(), a1.sin())],
+        })
+    }
+
+    pub fn marker(&self) -> &MarkerSpec {
+        &self.marker
+    }
+
+    pub fn t_world_marker(&self) -> &Isometry3<f64> {
+        &self.t_world_marker
+    }
+
+    pub fn water(&self) -> &WaterOptics {
+        &self.water
+    }
+
+    pub fn lighting(&self) -> &LightingSetup {
+        &self.lighting
+    }
+
+    /// Half the edge of the white plate, metres.
+    pub(crate) fn plate_half_m(&self) -> f64 {
+        0.5 * self.marker.size_m + self.marker.plate_margin_m
+    }
+
+    /// All lamps lit for a frame: the world's fixed lamps and the vehicle's, placed from
+    /// `t_world_vehicle`. Writes into `out` (cleared first).
+    pub(crate) fn lamps_for(&self, t_world_vehicle: &Isometry3<f64>, out: &mut Vec<WorldLamp>) {
+        out.clear();
+        out.extend_from_slice(&self.world_lamps);
+        out.extend(
+            self.lighting
+                .vehicle_lamps
+                .iter()
+                .filter(|l| l.intensity_w_sr > 0.0)
+                .map(|l| WorldLamp::place(l, t_world_vehicle)),
+        );
+    }
+
+    /// Downwelling daylight at depth `z` (world NED, metres below the surface).
+    pub(crate) fn daylight(&self, z: f64) -> f64 {
+        self.lighting.ambient_surface_w_m2
+            * (-self.water.daylight_attenuation_per_m * z.max(0.0)).exp()
+    }
+
+    /// The light model at world point `p` on a surface with unit normal `n`, seen from
+    /// `cam` along unit direction `ray` at distance `dist`.
+    pub(crate) fn shade(
+        &self,
+        p: &Vector3<f64>,
+        n: &Vector3<f64>,
+        cam: &Vector3<f64>,
+        ray: &Vector3<f64>,
+        dist: f64,
+        lamps: &[WorldLamp],
+    ) -> Shade {
+        let c = self.water.attenuation_per_m;
+        let to_cam = (-c * dist).exp();
+        // Up is -z in NED.
+        let facing_up = (-n.z).max(0.0);
+        let e_amb =
+            self.daylight(p.z) * (SIDE_LIGHT_FRACTION + (1.0 - SIDE_LIGHT_FRACTION) * facing_up);
+        let e_lamp: f64 = lamps.iter().map(|l| l.irradiance(p, Some(n), c)).sum();
+        Shade {
+            ambient: e_amb * to_cam,
+            lamp: e_lamp * to_cam,
+            backscatter: self.backscatter(cam, ray, dist, lamps),
+        }
+    }
+
+    /// Light scattered toward the camera by the water on a path of length `dist` (may be
+    /// infinite: open water).
+    pub(crate) fn backscatter(
+        &self,
+        cam: &Vector3<f64>,
+        ray: &Vector3<f64>,
+        dist: f64,
+        lamps: &[WorldLamp],
+    ) -> f64 {
+        let w = &self.water;
+        let b_inf = w.veiling_fraction * self.daylight(cam.z);
+        let mut b = b_inf * (1.0 - (-w.backscatter_per_m * dist).exp());
+        if !lamps.is_empty() && w.lamp_scatter_per_m > 0.0 {
+            // Single scattering of the lamps' beams along the ray, midpoint rule on two
+            // samples over the part of the path light can come back from.
+            let reach = dist.min(4.0 / w.attenuation_per_m.max(0.25));
+            let mut acc = 0.0;
+            for f in [0.25, 0.75] {
+                let s = f * reach;
+                let q = cam + ray * s;
+                let e: f64 = lamps
+                    .iter()
+                    .map(|l| l.irradiance(&q, None, w.attenuation_per_m))
+                    .sum();
+                acc += e * (-w.attenuation_per_m * s).exp();
+            }
+            b += w.lamp_scatter_per_m * acc * 0.5 * reach;
+        }
+        b
+    }
+
+    /// Albedo of the plate at marker-frame coordinates (u, v) (inside the plate).
+    pub(crate) fn plate_albedo(&self, u: f64, v: f64) -> f64 {
+        let l = self.marker.size_m;
+        let n = self.marker.cells as f64;
+        let cu = (u + 0.5 * l) / l * n;
+        let cv = (0.5 * l - v) / l * n;
+        if cu < 0.0 || cv < 0.0 || cu >= n || cv >= n {
+            return ALBEDO_WHITE;
+        }
+        let i = (cv as usize) * self.marker.cells + cu as usize;
+        if self.marker.white[i] {
+            ALBEDO_WHITE
+        } else {
+            ALBEDO_BLACK
+        }
+    }
+
+    /// Caustic factor (mean 1) at surface coordinates (u, v) metres at time `t`, for a
+    /// surface. Two layers of the web drift in different directions; their mean
+    /// keeps changing shape like a real caustic network.
+    pub(crate) fn caustic(&self, u: f64, v: f64, t: f64) -> f64 {
+        let s = self.lighting.caustics_strength;
+        if s <= 0.0 {
+            return 1.0;
+        }
+        let texels =
+            self.caustic.side() as f64 / CAUSTIC_CELLS as f64 / self.lighting.caustics_scale_m;
+        let d = self.lighting.caustics_speed_mps * t;
+        let [(a, b), (c, e)] = self.caustic_dirs;
+        let l0 = self
+            .caustic
+            .bilinear((u + a * d) * texels, (v + b * d) * texels);
+        // The second layer is scaled by an irrational-ish factor to avoid visible tiling.
+        let l1 = self.caustic.bilinear(
+            (u * 0.73 + c * d) * texels + 97.0,
+            (v * 0.73 + e * d) * texels + 31.0,
+        );
+        1.0 + s * (0.5 * (l0 + l1) - 1.0)
+    }
+
+    /// Rock / seabed albedo at surface coordinates (u, v) metres.
+    pub(crate) fn rock_albedo(&self, u: f64, v: f64) -> f64 {
+        let k = 1.0 / self.background.texel_m;
+        self.rock
+            .at((u * k).floor() as i64 as i32, (v * k).floor() as i64 as i32) as f64
+    }
+
+    /// Back-face albedo of the plate.
+    pub(crate) fn plate_back_albedo(&self) -> f64 {
+        ALBEDO_PLATE_BACK
+    }
+}

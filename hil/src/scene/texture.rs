@@ -1,0 +1,205 @@
+//! Seeded procedural textures: rock / seabed albedo and the caustic web.
+//!
+//! Both are square, power-of-two and tileable so that a lookup is a mask, not a modulo.
+
+/// SplitMix64: seeds the other generators and drives start-up work.
+#[derive(Debug, Clone)]
+pub(crate) struct SplitMix64(u64);
+
+impl SplitMix64 {
+    pub(crate) fn new(seed: u64) -> Self {
+        Self(seed)
+    }
+
+    pub(crate) fn next_u64(&mut self) -> u64 {
+        self.0 = self.0.wrapping_add(0x9E37_79B9_7F4A_7C15);
+        let mut z = self.0;
+        z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
+        z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
+        z ^ (z >> 31)
+    }
+
+    /// Uniform in [0, 1).
+    pub(crate) fn next_f64(&mut self) -> f64 {
+        (self.next_u64() >> 11) as f64 * (1.0 / (1u64 << 53) as f64)
+    }
+}
+
+/// A square tileable texture of `f32` values, side `1 << log2`.
+#[derive(Debug, Clone)]
+pub(crate) struct Texture {
+    pub(crate) log2: u32,
+    pub(crate) data: Vec<f32>,
+}
+
+impl Texture {
+    pub(crate) fn side(&self) -> usize {
+        1 << self.log2
+    }
+
+    pub(crate) fn mask(&self) -> usize {
+        self.side() - 1
+    }
+
+    /// Nearest texel at texel coordinates (wraps).
+    #[inline(always)]
+    pub(crate) fn at(&self, tx: i32, ty: i32) -> f32 {
+        let m = self.mask();
+        self.data[((ty as usize & m) << self.log2) | (tx as usize & m)]
+    }
+
+    /// Bilinear lookup at texel coordinates (wraps).
+    pub(crate) fn bilinear(&self, tx: f64, ty: f64) -> f64 {
+        let x0 = tx.floor();
+        let y0 = ty.floor();
+        let fx = tx - x0;
+        let fy = ty - y0;
+        let (x0, y0) = (x0 as i64 as i32, y0 as i64 as i32);
+        let a = self.at(x0, y0) as f64;
+        let b = self.at(x0.wrapping_add(1), y0) as f64;
+        let c = self.at(x0, y0.wrapping_add(1)) as f64;
+        let d = self.at(x0.wrapping_add(1), y0.wrapping_add(1)) as f64;
+        (a * (1.0 - fx) + b * fx) * (1.0 - fy) + (c * (1.0 - fx) + d * fx) * fy
+    }
+}
+
+/// Value noise lattice of side `cells` (tileable), smoothly interpolated.
+fn value_noise_octave(rng: &mut SplitMix64, side: usize, cells: usize, out: &mut [f32], amp: f32) {
+    let lattice: Vec<f32> = (0..cells * cells).map(|_| rng.next_f64() as f32).collect();
+    let scale = cells as f32 / side as f32;
+    for y in 0..side {
+        let gy = y as f32 * scale;
+        let iy = gy as usize;
+        let fy = gy - iy as f32;
+        let sy = fy * fy * (3.0 - 2.0 * fy);
+        for x in 0..side {
+            let gx = x as f32 * scale;
+            let ix = gx as usize;
+            let fx = gx - ix as f32;
+            let sx = fx * fx * (3.0 - 2.0 * fx);
+            let l = |i: usize, j: usize| lattice[(j % cells) * cells + (i % cells)];
+            let a = l(ix, iy) + (l(ix + 1, iy) - l(ix, iy)) * sx;
+            let b = l(ix, iy + 1) + (l(ix + 1, iy + 1) - l(ix, iy + 1)) * sx;
+            out[y * side + x] += amp * (a + (b - a) * sy);
+        }
+    }
+}
+
+/// Rock / seabed albedo: fractal value noise (pebbles, grain) with a few dark cracks,
+/// mapped to albedo `mean +- spread`.
+pub(crate) fn rock_texture(seed: u64, log2: u32, mean: f32, spread: f32) -> Texture {
+    let side = 1usize << log2;
+    let mut rng = SplitMix64::new(seed ^ 0x0B5E_ED00_0000_0001);
+    let mut acc = vec![0f32; side * side];
+    let mut amp = 1.0f32;
+    let mut cells = 4usize;
+    while cells <= side / 2 {
+        value_noise_octave(&mut rng, side, cells, &mut acc, amp);
+        amp *= 0.55;
+        cells *= 2;
+    }
+    // Normalize to zero mean, unit range, then to albedo.
+    let n = acc.len() as f32;
+    let m = acc.iter().sum::<f32>() / n;
+    let max_dev = acc.iter().fold(0f32, |a, v| a.max((v - m).abs())).max(1e-6);
+    for v in acc.iter_mut() {
+        *v = (mean + spread * (*v - m) / max_dev).clamp(0.01, 0.99);
+    }
+    Texture { log2, data: acc }
+}
+
+/// Caustic web: bright thin lines along the borders of a jittered (tileable) Voronoi
+/// diagram, the pattern refracting surface waves focus on the bottom. Values have mean 1.
+pub(crate) fn caustic_texture(seed: u64, log2: u32, cells_per_side: usize) -> Texture {
+    let side = 1usize << log2;
+    let mut rng = SplitMix64::new(seed ^ 0xCA05_71C5_0000_0002);
+    let n = cells_per_side.max(2);
+    let cell = side as f32 / n as f32;
+    let pts: Vec<(f32, f32)> = (0..n * n)
+        .map(|i| {
+            let (cx, cy) = ((i % n) as f32, (i / n) as f32);
+            (
+                (cx + 0.15 + 0.7 * rng.next_f64() as f32) * cell,
+                (cy + 0.15 + 0.7 * rng.next_f64() as f32) * cell,
+            )
+        })
+        .collect();
+    let mut data = vec![0f32; side * side];
+    for y in 0..side {
+        for x in 0..side {
+            let (px, py) = (x as f32 + 0.5, y as f32 + 0.5);
+            let (gx, gy) = ((px / cell) as i64, (py / cell) as i64);
+            let (mut d1, mut d2) = (f32::MAX, f32::MAX);
+            for dy in -1..=1i64 {
+                for dx in -1..=1i64 {
+                    let (cx, cy) = (gx + dx, gy + dy);
+                    let (wx, wy) = (cx.rem_euclid(n as i64), cy.rem_euclid(n as i64));
+                    let (qx, qy) = pts[(wy as usize) * n + wx as usize];
+                    // Shift the wrapped point next to this cell (tileable).
+                    let qx = qx + (cx - wx) as f32 * cell;
+                    let qy = qy + (cy - wy) as f32 * cell;
+                    let d = ((qx - px).powi(2) + (qy - py).powi(2)).sqrt();
+                    if d < d1 {
+                        d2 = d1;
+                        d1 = d;
+                    } else if d < d2 {
+                        d2 = d;
+                    }
+                }
+            }
+            // Distance to the cell border, in cell units; bright near the border.
+            let edge = (d2 - d1) / cell;
+            data[y * side + x] = (-edge * 9.0).exp();
+        }
+    }
+    let mean = data.iter().sum::<f32>() / data.len() as f32;
+    for v in data.iter_mut() {
+        *v /= mean.max(1e-6);
+    }
+    Texture { log2, data }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn rock_is_seeded_and_in_range() {
+        let a = rock_texture(7, 6, 0.25, 0.15);
+        let b = rock_texture(7, 6, 0.25, 0.15);
+        let c = rock_texture(8, 6, 0.25, 0.15);
+        assert_eq!(a.data, b.data);
+        assert_ne!(a.data, c.data);
+        assert!(a.data.iter().all(|v| (0.09..=0.41).contains(v)));
+        let mean = a.data.iter().sum::<f32>() / a.data.len() as f32;
+        assert!((mean - 0.25).abs() < 0.03, "{mean}");
+    }
+
+    #[test]
+    fn caustics_have_unit_mean_and_contrast() {
+        let t = caustic_texture(3, 7, 6);
+        let mean = t.data.iter().sum::<f32>() / t.data.len() as f32;
+        assert!((mean - 1.0).abs() < 1e-3);
+        let max = t.data.iter().cloned().fold(0f32, f32::max);
+        let min = t.data.iter().cloned().fold(f32::MAX, f32::min);
+        assert!(max > 2.0 * mean && min < 0.5 * mean, "{min} {max}");
+    }
+
+    #[test]
+    fn caustics_tile_seamlessly() {
+        // Opposite borders of a tileable texture differ no more than neighbours inside.
+        let t = caustic_texture(5, 7, 5);
+        let s = t.side();
+        let mut border = 0f32;
+        let mut inner = 0f32;
+        for y in 0..s {
+            border += (t.data[y * s + s - 1] - t.data[y * s]).abs();
+            for x in 1..s {
+                inner += (t.data[y * s + x] - t.data[y * s + x - 1]).abs();
+            }
+        }
+        // Mean jump between neighbouring columns inside.
+        inner /= (s - 1) as f32;
+        assert!(border < 3.0 * inner + 1e-3, "{border} vs {inner}");
+    }
+}
