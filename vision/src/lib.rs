@@ -1,1 +1,27 @@
-//! markhold-vision (being built).
+//! markhold-vision: frames in, marker poses the controller can trust out.
+//!
+//! - [`MarkerTracker`]: detection of the configured marker (OpenCV 4.6 aruco, SUBPIX
+//!   corners), RoI tracking, IPPE_SQUARE pose with both solutions considered, LM
+//!   refinement and a covariance from the reprojection Jacobian.
+//! - [`CameraCalibration`]: intrinsics, read from OpenCV or ROS YAML files.
+//! - [`marker_bitmap`]: the printed marker, module by module (the HIL camera renders it).
+//! - [`synth`]: a reference renderer for tests and benchmarks.
+//!
+//! Conventions: `docs/frames.md` (aruco corner order, OpenCV camera frame, covariance
+//! order (tx, ty, tz, rx, ry, rz)).
+
+mod calib;
+mod config;
+mod dict;
+mod error;
+pub mod pose;
+pub mod synth;
+mod tracker;
+mod yaml;
+
+pub use calib::CameraCalibration;
+pub use config::{DetectorConfig, MarkerConfig, MarkerFamily};
+pub use dict::{marker_bitmap, MarkerBitmap};
+pub use error::VisionError;
+pub use pose::{cov_in_frame, cov_of_inverse};
+pub use tracker::{MarkerObservation, MarkerTracker, TrackerStats};

@@ -1,0 +1,455 @@
+//! Pinhole camera calibration with OpenCV's distortion model, read from OpenCV
+//! FileStorage YAML or ROS camera_info YAML.
+
+use crate::yaml::{self, Node};
+use crate::VisionError;
+use std::path::{Path, PathBuf};
+
+/// Intrinsics of one camera at one resolution.
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct CameraCalibration {
+    pub width: u32,
+    pub height: u32,
+    pub fx: f64,
+    pub fy: f64,
+    pub cx: f64,
+    pub cy: f64,
+    /// OpenCV order: k1 k2 p1 p2 [k3]; empty = no distortion.
+    pub dist: Vec<f64>,
+}
+
+impl CameraCalibration {
+    /// A distortion-free camera.
+    pub fn pinhole(width: u32, height: u32, fx: f64, fy: f64, cx: f64, cy: f64) -> Self {
+        Self {
+            width,
+            height,
+            fx,
+            fy,
+            cx,
+            cy,
+            dist: Vec::new(),
+        }
+    }
+
+    /// Check the values; the error names the field (`calibration.<field>`).
+    pub fn validate(&self) -> Result<(), VisionError> {
+        let bad = |field: &str, value: String, expected: &str| VisionError::InvalidConfig {
+            key: format!("calibration.{field}"),
+            value,
+            expected: expected.to_string(),
+        };
+        if self.width == 0 || self.height == 0 {
+            return Err(bad(
+                "image_width/image_height",
+                format!("{}x{}", self.width, self.height),
+                "a non-empty resolution",
+            ));
+        }
+        for (name, v) in [("fx", self.fx), ("fy", self.fy)] {
+            if !(v.is_finite() && v > 0.0) {
+                return Err(bad(name, v.to_string(), "a focal length > 0 px"));
+            }
+        }
+        if !(self.cx.is_finite() && self.cx > 0.0 && self.cx < self.width as f64) {
+            return Err(bad(
+                "cx",
+                self.cx.to_string(),
+                "a principal point inside the image",
+            ));
+        }
+        if !(self.cy.is_finite() && self.cy > 0.0 && self.cy < self.height as f64) {
+            return Err(bad(
+                "cy",
+                self.cy.to_string(),
+                "a principal point inside the image",
+            ));
+        }
+        if !matches!(self.dist.len(), 0 | 4 | 5) || self.dist.iter().any(|k| !k.is_finite()) {
+            return Err(bad(
+                "dist",
+                format!("{:?}", self.dist),
+                "0, 4 or 5 finite coefficients (k1 k2 p1 p2 [k3])",
+            ));
+        }
+        Ok(())
+    }
+
+    /// Error unless the calibration was made at `width` x `height`.
+    pub fn check_resolution(&self, width: u32, height: u32) -> Result<(), VisionError> {
+        if self.width != width || self.height != height {
+            return Err(VisionError::FrameSize {
+                what: "the camera calibration (image_width/image_height)",
+                width,
+                height,
+                expected_width: self.width,
+                expected_height: self.height,
+            });
+        }
+        Ok(())
+    }
+
+    /// Read an OpenCV FileStorage YAML (`camera_matrix`, `distortion_coefficients`,
+    /// `image_width`, `image_height`) or a ROS camera_info YAML file. Errors name the
+    /// file and the field.
+    pub fn load(path: &Path) -> Result<Self, VisionError> {
+        let text = std::fs::read_to_string(path).map_err(|source| VisionError::Io {
+            path: path.to_path_buf(),
+            source,
+        })?;
+        Self::parse(&text, path)
+    }
+
+    /// Read a calibration file and check it was made at `width` x `height`; a mismatch
+    /// names the file and the field.
+    pub fn load_for(path: &Path, width: u32, height: u32) -> Result<Self, VisionError> {
+        let c = Self::load(path)?;
+        let err = |field: &str, got: u32, want: u32| VisionError::Calibration {
+            path: path.to_path_buf(),
+            field: field.to_string(),
+            reason: format!("calibrated at {got} but the camera delivers {want}"),
+        };
+        if c.width != width {
+            return Err(err("image_width", c.width, width));
+        }
+        if c.height != height {
+            return Err(err("image_height", c.height, height));
+        }
+        Ok(c)
+    }
+
+    /// Parse the text of a calibration file (`path` only names it in errors).
+    pub fn parse(text: &str, path: &Path) -> Result<Self, VisionError> {
+        let p = path.to_path_buf();
+        let root = yaml::parse(text).map_err(|e| VisionError::Calibration {
+            path: p.clone(),
+            field: format!("line {}", e.line),
+            reason: e.reason,
+        })?;
+        let f = Fields {
+            path: p,
+            root: &root,
+        };
+
+        let (width, height) = f.resolution()?;
+        let (k_name, k) = f.matrix(&["camera_matrix", "cameraMatrix", "K"], Some((3, 3)))?;
+        let (d_name, dist) = f.matrix(
+            &["distortion_coefficients", "dist_coeffs", "distCoeffs", "D"],
+            None,
+        )?;
+        if let Some(model) = f.scalar_opt("distortion_model") {
+            if model != "plumb_bob" && !(model == "rational_polynomial" && dist.len() >= 5) {
+                return Err(f.err(
+                    "distortion_model",
+                    format!("'{model}' is not supported (plumb_bob: k1 k2 p1 p2 k3)"),
+                ));
+            }
+        }
+        // k1 k2 p1 p2 k3, then rational/prism/tilt terms we do not model: accepted only
+        // when they are all zero.
+        let mut dist = dist;
+        if !matches!(dist.len(), 0 | 4 | 5) {
+            if dist.len() < 4 || dist[5.min(dist.len())..].iter().any(|v| *v != 0.0) {
+                return Err(f.err(
+                    &d_name,
+                    format!(
+                        "{} coefficients; only k1 k2 p1 p2 [k3] are supported (higher terms must be 0)",
+                        dist.len()
+                    ),
+                ));
+            }
+            dist.truncate(5);
+        }
+        let skew = k[1];
+        if skew.abs() > 1e-9 * k[0].abs().max(1.0) || k[3] != 0.0 || k[6] != 0.0 || k[7] != 0.0 {
+            return Err(f.err(
+                &k_name,
+                format!("not an upper-triangular zero-skew camera matrix: {k:?}"),
+            ));
+        }
+        if (k[8] - 1.0).abs() > 1e-9 {
+            return Err(f.err(&k_name, format!("element (2,2) is {} instead of 1", k[8])));
+        }
+        let calib = CameraCalibration {
+            width,
+            height,
+            fx: k[0],
+            fy: k[4],
+            cx: k[2],
+            cy: k[5],
+            dist,
+        };
+        calib.validate().map_err(|e| match e {
+            VisionError::InvalidConfig {
+                key,
+                value,
+                expected,
+            } => {
+                let field = match key.trim_start_matches("calibration.") {
+                    "dist" => d_name.clone(),
+                    "image_width/image_height" => "image_width".to_string(),
+                    other => format!("{k_name} ({other})"),
+                };
+                f.err(&field, format!("{value}: expected {expected}"))
+            }
+            other => other,
+        })?;
+        Ok(calib)
+    }
+}
+
+struct Fields<'a> {
+    path: PathBuf,
+    root: &'a Node,
+}
+
+impl Fields<'_> {
+    fn err(&self, field: &str, reason: String) -> VisionError {
+        VisionError::Calibration {
+            path: self.path.clone(),
+            field: field.to_string(),
+            reason,
+        }
+    }
+
+    fn scalar_opt(&self, key: &str) -> Option<&str> {
+        match self.root.get(key) {
+            Some(Node::Scalar(s)) => Some(s.as_str()),
+            _ => None,
+        }
+    }
+
+    fn uint(&self, node: &Node, field: &str) -> Result<u32, VisionError> {
+        match node {
+            Node::Scalar(s) => s
+                .trim()
+                .parse::<u32>()
+                .map_err(|_| self.err(field, format!("'{s}' is not a non-negative integer"))),
+            _ => Err(self.err(field, "expected an integer".into())),
+        }
+    }
+
+    fn resolution(&self) -> Result<(u32, u32), VisionError> {
+        match (self.root.get("image_width"), self.root.get("image_height")) {
+            (Some(w), Some(h)) => Ok((self.uint(w, "image_width")?, self.uint(h, "image_height")?)),
+            (Some(_), None) => Err(self.err("image_height", "missing".into())),
+            (None, Some(_)) => Err(self.err("image_width", "missing".into())),
+            (None, None) => match self.root.get("image_size").or(self.root.get("imageSize")) {
+                Some(Node::Seq(v)) if v.len() == 2 => {
+                    let w = self.uint(&Node::Scalar(v[0].clone()), "image_size")?;
+                    let h = self.uint(&Node::Scalar(v[1].clone()), "image_size")?;
+                    Ok((w, h))
+                }
+                Some(_) => Err(self.err("image_size", "expected [width, height]".into())),
+                None => Err(self.err("image_width", "missing".into())),
+            },
+        }
+    }
+
+    /// A matrix under one of `names`: an `!!opencv-matrix` or ROS `{rows, cols,
+    /// data}` mapping, or a bare sequence. Returns the name found and the data.
+    fn matrix(
+        &self,
+        names: &[&str],
+        shape: Option<(usize, usize)>,
+    ) -> Result<(String, Vec<f64>), VisionError> {
+        let Some((name, node)) = names
+            .iter()
+            .find_map(|n| self.root.get(n).map(|node| (n.to_string(), node)))
+        else {
+            return Err(self.err(names[0], "missing".into()));
+        };
+        let parse_data = |items: &[String], field: &str| -> Result<Vec<f64>, VisionError> {
+            items
+                .iter()
+                .map(|s| {
+                    s.trim()
+                        .parse::<f64>()
+                        .ok()
+                        .filter(|v| v.is_finite())
+                        .ok_or_else(|| self.err(field, format!("'{s}' is not a finite number")))
+                })
+                .collect()
+        };
+        let (rows, cols, data) = match node {
+            Node::Seq(items) => {
+                let data = parse_data(items, &name)?;
+                let n = data.len();
+                match shape {
+                    Some((r, c)) => (r, c, data),
+                    None => (1, n, data),
+                }
+            }
+            Node::Map(_) => {
+                let field = |k: &str| format!("{name}.{k}");
+                let rows =
+                    node.get("rows")
+                        .ok_or_else(|| self.err(&field("rows"), "missing".into()))
+                        .and_then(|n| self.uint(n, &field("rows")))? as usize;
+                let cols =
+                    node.get("cols")
+                        .ok_or_else(|| self.err(&field("cols"), "missing".into()))
+                        .and_then(|n| self.uint(n, &field("cols")))? as usize;
+                if let Some(Node::Scalar(dt)) = node.get("dt") {
+                    if dt != "d" && dt != "f" {
+                        return Err(self.err(
+                            &field("dt"),
+                            format!("'{dt}': expected d (double) or f (float)"),
+                        ));
+                    }
+                }
+                let data = match node.get("data") {
+                    Some(Node::Seq(items)) => parse_data(items, &field("data"))?,
+                    Some(_) => return Err(self.err(&field("data"), "expected [v, v, ...]".into())),
+                    None => return Err(self.err(&field("data"), "missing".into())),
+                };
+                (rows, cols, data)
+            }
+            Node::Scalar(s) => {
+                return Err(self.err(&name, format!("expected a matrix, found '{s}'")));
+            }
+        };
+        if rows * cols != data.len() {
+            return Err(self.err(
+                &format!("{name}.data"),
+                format!("{} values for a {rows}x{cols} matrix", data.len()),
+            ));
+        }
+        if let Some((r, c)) = shape {
+            if (rows, cols) != (r, c) {
+                return Err(self.err(&name, format!("{rows}x{cols}, expected {r}x{c}")));
+            }
+        } else if rows != 1 && cols != 1 && !data.is_empty() {
+            return Err(self.err(&name, format!("{rows}x{cols}, expected a vector")));
+        }
+        Ok((name, data))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    const OPENCV: &str = "%YAML:1.0
+---
+calibration_time: \"Mon 23 Nov 2026\"
+image_width: 1440
+image_height: 1080
+camera_matrix: !!opencv-matrix
+   rows: 3
+   cols: 3
+   dt: d
+   data: [ 1.1e+03, 0., 7.2e+02, 0., 1.105e+03, 5.4e+02, 0., 0.,
+       1. ]
+distortion_coefficients: !!opencv-matrix
+   rows: 5
+   cols: 1
+   dt: d
+   data: [ -0.2, 0.05, 1.0e-03, -2.0e-03, 0. ]
+avg_reprojection_error: 0.21
+";
+
+    const ROS: &str = "image_width: 640
+image_height: 480
+camera_name: narrow_stereo
+camera_matrix:
+  rows: 3
+  cols: 3
+  data: [500.5, 0, 320.25, 0, 501, 240.5, 0, 0, 1]
+distortion_model: plumb_bob
+distortion_coefficients:
+  rows: 1
+  cols: 5
+  data: [0.1, -0.01, 0, 0, 0]
+rectification_matrix:
+  rows: 3
+  cols: 3
+  data: [1, 0, 0, 0, 1, 0, 0, 0, 1]
+projection_matrix:
+  rows: 3
+  cols: 4
+  data: [500, 0, 320, 0, 0, 501, 240, 0, 0, 0, 1, 0]
+";
+
+    fn p() -> &'static Path {
+        Path::new("cam.yaml")
+    }
+
+    #[test]
+    fn reads_opencv_yaml() {
+        let c = CameraCalibration::parse(OPENCV, p()).unwrap();
+        assert_eq!((c.width, c.height), (1440, 1080));
+        assert_eq!((c.fx, c.fy, c.cx, c.cy), (1100.0, 1105.0, 720.0, 540.0));
+        assert_eq!(c.dist, vec![-0.2, 0.05, 1e-3, -2e-3, 0.0]);
+    }
+
+    #[test]
+    fn reads_ros_camera_info() {
+        let c = CameraCalibration::parse(ROS, p()).unwrap();
+        assert_eq!((c.width, c.height), (640, 480));
+        assert_eq!((c.fx, c.fy, c.cx, c.cy), (500.5, 501.0, 320.25, 240.5));
+        assert_eq!(c.dist, vec![0.1, -0.01, 0.0, 0.0, 0.0]);
+    }
+
+    fn err_of(text: &str) -> String {
+        CameraCalibration::parse(text, p()).unwrap_err().to_string()
+    }
+
+    #[test]
+    fn malformed_files_name_file_and_field() {
+        let e = err_of(&OPENCV.replace("image_height: 1080\n", ""));
+        assert!(
+            e.contains("cam.yaml") && e.contains("image_height") && e.contains("missing"),
+            "{e}"
+        );
+        let e = err_of(&OPENCV.replace("1.1e+03, 0., ", "1.1e+03, "));
+        assert!(
+            e.contains("camera_matrix.data") && e.contains("8 values"),
+            "{e}"
+        );
+        let e = err_of(&OPENCV.replace("5.4e+02, 0., 0.,", "5.4e+02, 0., 0."));
+        assert!(
+            e.contains("camera_matrix.data") && e.contains("'0. 1.'"),
+            "{e}"
+        );
+        let e = err_of(&OPENCV.replace("-0.2, 0.05", "-0.2, abc"));
+        assert!(
+            e.contains("distortion_coefficients.data") && e.contains("abc"),
+            "{e}"
+        );
+        let e = err_of(&ROS.replace("plumb_bob", "equidistant"));
+        assert!(
+            e.contains("distortion_model") && e.contains("equidistant"),
+            "{e}"
+        );
+        let e = err_of(&ROS.replace("data: [500.5, 0, 320.25", "data: [-500.5, 0, 320.25"));
+        assert!(e.contains("camera_matrix (fx)"), "{e}");
+        let e = err_of(&ROS.replace("cols: 5\n  data: [0.1", "cols: 5\n  data: [0.1, 0.2, 0.3,"));
+        assert!(e.contains("distortion_coefficients.data"), "{e}");
+        let e = err_of("image_width: 640\nimage_height: 480\ncamera_matrix: [1, 0\n");
+        assert!(e.contains("line 3") && e.contains("cam.yaml"), "{e}");
+        let e = err_of(&ROS.replace("image_width: 640", "image_width: wide"));
+        assert!(e.contains("image_width") && e.contains("wide"), "{e}");
+    }
+
+    #[test]
+    fn resolution_mismatch_names_field_and_file() {
+        let dir = std::env::temp_dir().join(format!("markhold-calib-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let file = dir.join("ros.yaml");
+        std::fs::write(&file, ROS).unwrap();
+        let c = CameraCalibration::load(&file).unwrap();
+        c.check_resolution(640, 480).unwrap();
+        let e = c.check_resolution(1280, 480).unwrap_err().to_string();
+        assert!(e.contains("1280x480") && e.contains("640x480"), "{e}");
+        let e = CameraCalibration::load_for(&file, 640, 512)
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("ros.yaml") && e.contains("image_height"), "{e}");
+        let e = CameraCalibration::load(&dir.join("none.yaml"))
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("none.yaml"), "{e}");
+        std::fs::remove_dir_all(&dir).ok();
+    }
+}

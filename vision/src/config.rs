@@ -1,0 +1,525 @@
+//! The `[marker]` and `[vision]` sections of a site file.
+
+use crate::error::invalid;
+use crate::VisionError;
+use opencv::aruco::PREDEFINED_DICTIONARY_NAME as D;
+use serde::{Deserialize, Serialize};
+
+/// Marker dictionaries OpenCV 4.6's aruco module knows.
+#[allow(non_camel_case_types)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize)]
+pub enum MarkerFamily {
+    #[serde(rename = "apriltag_36h11")]
+    AprilTag36h11,
+    #[serde(rename = "apriltag_36h10")]
+    AprilTag36h10,
+    #[serde(rename = "apriltag_25h9")]
+    AprilTag25h9,
+    #[serde(rename = "apriltag_16h5")]
+    AprilTag16h5,
+    #[serde(rename = "aruco_4x4_50")]
+    Aruco4x4_50,
+    #[serde(rename = "aruco_4x4_100")]
+    Aruco4x4_100,
+    #[serde(rename = "aruco_4x4_250")]
+    Aruco4x4_250,
+    #[serde(rename = "aruco_4x4_1000")]
+    Aruco4x4_1000,
+    #[serde(rename = "aruco_5x5_50")]
+    Aruco5x5_50,
+    #[serde(rename = "aruco_5x5_100")]
+    Aruco5x5_100,
+    #[serde(rename = "aruco_5x5_250")]
+    Aruco5x5_250,
+    #[serde(rename = "aruco_5x5_1000")]
+    Aruco5x5_1000,
+    #[serde(rename = "aruco_6x6_50")]
+    Aruco6x6_50,
+    #[serde(rename = "aruco_6x6_100")]
+    Aruco6x6_100,
+    #[serde(rename = "aruco_6x6_250")]
+    Aruco6x6_250,
+    #[serde(rename = "aruco_6x6_1000")]
+    Aruco6x6_1000,
+    #[serde(rename = "aruco_7x7_50")]
+    Aruco7x7_50,
+    #[serde(rename = "aruco_7x7_100")]
+    Aruco7x7_100,
+    #[serde(rename = "aruco_7x7_250")]
+    Aruco7x7_250,
+    #[serde(rename = "aruco_7x7_1000")]
+    Aruco7x7_1000,
+    #[serde(rename = "aruco_original")]
+    ArucoOriginal,
+}
+
+use MarkerFamily as F;
+
+/// (family, site-file name, OpenCV dictionary, number of ids, data bits per side).
+const FAMILIES: [(MarkerFamily, &str, D, u32, usize); 21] = [
+    (
+        F::AprilTag36h11,
+        "apriltag_36h11",
+        D::DICT_APRILTAG_36h11,
+        587,
+        6,
+    ),
+    (
+        F::AprilTag36h10,
+        "apriltag_36h10",
+        D::DICT_APRILTAG_36h10,
+        2320,
+        6,
+    ),
+    (
+        F::AprilTag25h9,
+        "apriltag_25h9",
+        D::DICT_APRILTAG_25h9,
+        35,
+        5,
+    ),
+    (
+        F::AprilTag16h5,
+        "apriltag_16h5",
+        D::DICT_APRILTAG_16h5,
+        30,
+        4,
+    ),
+    (F::Aruco4x4_50, "aruco_4x4_50", D::DICT_4X4_50, 50, 4),
+    (F::Aruco4x4_100, "aruco_4x4_100", D::DICT_4X4_100, 100, 4),
+    (F::Aruco4x4_250, "aruco_4x4_250", D::DICT_4X4_250, 250, 4),
+    (
+        F::Aruco4x4_1000,
+        "aruco_4x4_1000",
+        D::DICT_4X4_1000,
+        1000,
+        4,
+    ),
+    (F::Aruco5x5_50, "aruco_5x5_50", D::DICT_5X5_50, 50, 5),
+    (F::Aruco5x5_100, "aruco_5x5_100", D::DICT_5X5_100, 100, 5),
+    (F::Aruco5x5_250, "aruco_5x5_250", D::DICT_5X5_250, 250, 5),
+    (
+        F::Aruco5x5_1000,
+        "aruco_5x5_1000",
+        D::DICT_5X5_1000,
+        1000,
+        5,
+    ),
+    (F::Aruco6x6_50, "aruco_6x6_50", D::DICT_6X6_50, 50, 6),
+    (F::Aruco6x6_100, "aruco_6x6_100", D::DICT_6X6_100, 100, 6),
+    (F::Aruco6x6_250, "aruco_6x6_250", D::DICT_6X6_250, 250, 6),
+    (
+        F::Aruco6x6_1000,
+        "aruco_6x6_1000",
+        D::DICT_6X6_1000,
+        1000,
+        6,
+    ),
+    (F::Aruco7x7_50, "aruco_7x7_50", D::DICT_7X7_50, 50, 7),
+    (F::Aruco7x7_100, "aruco_7x7_100", D::DICT_7X7_100, 100, 7),
+    (F::Aruco7x7_250, "aruco_7x7_250", D::DICT_7X7_250, 250, 7),
+    (
+        F::Aruco7x7_1000,
+        "aruco_7x7_1000",
+        D::DICT_7X7_1000,
+        1000,
+        7,
+    ),
+    (
+        F::ArucoOriginal,
+        "aruco_original",
+        D::DICT_ARUCO_ORIGINAL,
+        1024,
+        5,
+    ),
+];
+
+impl MarkerFamily {
+    /// Every family, in the order of the table above.
+    pub fn all() -> impl Iterator<Item = MarkerFamily> {
+        FAMILIES.iter().map(|f| f.0)
+    }
+
+    fn entry(self) -> &'static (MarkerFamily, &'static str, D, u32, usize) {
+        // Every variant is in the table (checked by a unit test).
+        FAMILIES
+            .iter()
+            .find(|f| f.0 == self)
+            .unwrap_or(&FAMILIES[0])
+    }
+
+    /// The site-file name (`apriltag_36h11`, `aruco_4x4_50`, ...).
+    pub fn as_str(self) -> &'static str {
+        self.entry().1
+    }
+
+    /// Number of ids in the dictionary (valid ids are `0..id_count()`).
+    pub fn id_count(self) -> u32 {
+        self.entry().3
+    }
+
+    /// Data bits per side, without the black border.
+    pub fn data_bits(self) -> usize {
+        self.entry().4
+    }
+
+    pub(crate) fn opencv_dictionary(self) -> D {
+        self.entry().2
+    }
+}
+
+impl std::fmt::Display for MarkerFamily {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(self.as_str())
+    }
+}
+
+impl std::str::FromStr for MarkerFamily {
+    type Err = VisionError;
+    fn from_str(s: &str) -> Result<Self, Self::Err> {
+        let lower = s.trim().to_ascii_lowercase();
+        FAMILIES
+            .iter()
+            .find(|f| f.1 == lower)
+            .map(|f| f.0)
+            .ok_or_else(|| VisionError::UnknownFamily {
+                name: s.to_string(),
+                expected: FAMILIES.iter().map(|f| f.1).collect::<Vec<_>>().join(", "),
+            })
+    }
+}
+
+/// The `[marker]` section: which marker to hold station on.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct MarkerConfig {
+    pub family: MarkerFamily,
+    pub id: u32,
+    /// Side of the black square (outer edge of the black border), metres.
+    pub size_m: f64,
+}
+
+impl MarkerConfig {
+    pub fn validate(&self) -> Result<(), VisionError> {
+        let n = self.family.id_count();
+        if self.id >= n {
+            return Err(invalid(
+                "marker.id",
+                self.id,
+                &format!("an id of {} in 0..{n}", self.family),
+            ));
+        }
+        if !(self.size_m.is_finite() && self.size_m > 0.0) {
+            return Err(invalid(
+                "marker.size_m",
+                self.size_m,
+                "a size > 0 in metres",
+            ));
+        }
+        Ok(())
+    }
+}
+
+/// The `[vision]` section: detector, tracking and pose-estimation parameters.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct DetectorConfig {
+    /// Smallest adaptive-threshold window, pixels (odd, >= 3).
+    pub adaptive_thresh_win_min_px: i32,
+    /// Largest adaptive-threshold window, pixels.
+    pub adaptive_thresh_win_max_px: i32,
+    /// Step between threshold windows, pixels. Each window is one pass over the
+    /// searched image: the main cost of a search.
+    pub adaptive_thresh_win_step_px: i32,
+    /// Constant subtracted from the local mean in adaptive thresholding, grey levels.
+    pub adaptive_thresh_constant: f64,
+    /// Smallest marker perimeter as a fraction of the frame's larger side.
+    pub min_marker_perimeter_rate: f64,
+    /// Largest marker perimeter as a fraction of the frame's larger side.
+    pub max_marker_perimeter_rate: f64,
+    /// Polygon approximation accuracy as a fraction of the contour's perimeter.
+    pub polygonal_approx_accuracy_rate: f64,
+    /// Fraction of the dictionary's correctable bits used (0..=1).
+    pub error_correction_rate: f64,
+    /// Half-size of the sub-pixel corner refinement window, pixels.
+    pub subpix_window_px: i32,
+    /// Iterations of the sub-pixel refinement.
+    pub subpix_max_iterations: i32,
+    /// Sub-pixel refinement stops when a corner moves less than this, pixels.
+    pub subpix_min_accuracy_px: f64,
+    /// RoI tracking: padding on each side of the predicted marker box, as a fraction
+    /// of the marker's side in pixels.
+    pub track_window_scale: f64,
+    /// RoI tracking: extra padding per pixel of predicted inter-frame motion.
+    pub track_motion_gain: f64,
+    /// Full-frame search every this many frames even while tracking (0 = never
+    /// unless tracking fails).
+    pub full_search_period_frames: u32,
+    /// Full-frame search on an image downscaled by this factor (1 = full resolution),
+    /// followed by a full-resolution RoI search for sub-pixel corners.
+    pub full_search_downscale: u32,
+    /// Standard deviation of a refined corner, pixels, per axis: scales the pose
+    /// covariance.
+    pub corner_sigma_px: f64,
+    /// The two IPPE solutions are ambiguous when the worse one's reprojection RMS is
+    /// within this factor of the better one's; continuity with the previous pose
+    /// decides then.
+    pub ambiguity_ratio: f64,
+    /// A previous pose older than this (frame stamps, seconds) is not used for
+    /// continuity or tracking.
+    pub track_max_age_s: f64,
+    /// Detections whose reprojection RMS exceeds this are rejected, pixels.
+    pub max_reproj_rms_px: f64,
+    /// OpenCV worker threads (process-wide setting; 0 leaves OpenCV's default).
+    pub opencv_threads: i32,
+}
+
+impl Default for DetectorConfig {
+    fn default() -> Self {
+        Self {
+            adaptive_thresh_win_min_px: 3,
+            adaptive_thresh_win_max_px: 23,
+            adaptive_thresh_win_step_px: 10,
+            adaptive_thresh_constant: 7.0,
+            min_marker_perimeter_rate: 0.03,
+            max_marker_perimeter_rate: 4.0,
+            polygonal_approx_accuracy_rate: 0.03,
+            error_correction_rate: 0.6,
+            subpix_window_px: 5,
+            subpix_max_iterations: 30,
+            subpix_min_accuracy_px: 0.01,
+            track_window_scale: 0.75,
+            track_motion_gain: 2.0,
+            full_search_period_frames: 30,
+            full_search_downscale: 1,
+            corner_sigma_px: 0.1,
+            ambiguity_ratio: 3.0,
+            track_max_age_s: 0.5,
+            max_reproj_rms_px: 3.0,
+            opencv_threads: 1,
+        }
+    }
+}
+
+impl DetectorConfig {
+    pub fn validate(&self) -> Result<(), VisionError> {
+        let k = |name: &str| format!("vision.{name}");
+        if self.adaptive_thresh_win_min_px < 3 {
+            return Err(invalid(
+                &k("adaptive_thresh_win_min_px"),
+                self.adaptive_thresh_win_min_px,
+                "a window >= 3 px",
+            ));
+        }
+        if self.adaptive_thresh_win_max_px < self.adaptive_thresh_win_min_px
+            || self.adaptive_thresh_win_max_px > 255
+        {
+            return Err(invalid(
+                &k("adaptive_thresh_win_max_px"),
+                self.adaptive_thresh_win_max_px,
+                "a window between adaptive_thresh_win_min_px and 255 px",
+            ));
+        }
+        if self.adaptive_thresh_win_step_px < 1 {
+            return Err(invalid(
+                &k("adaptive_thresh_win_step_px"),
+                self.adaptive_thresh_win_step_px,
+                "a step >= 1 px",
+            ));
+        }
+        if !(self.adaptive_thresh_constant.is_finite()) {
+            return Err(invalid(
+                &k("adaptive_thresh_constant"),
+                self.adaptive_thresh_constant,
+                "a finite grey-level offset",
+            ));
+        }
+        if !(self.min_marker_perimeter_rate > 0.0 && self.min_marker_perimeter_rate < 4.0) {
+            return Err(invalid(
+                &k("min_marker_perimeter_rate"),
+                self.min_marker_perimeter_rate,
+                "a rate in (0, 4)",
+            ));
+        }
+        if !(self.max_marker_perimeter_rate > self.min_marker_perimeter_rate
+            && self.max_marker_perimeter_rate <= 4.0)
+        {
+            return Err(invalid(
+                &k("max_marker_perimeter_rate"),
+                self.max_marker_perimeter_rate,
+                "a rate in (min_marker_perimeter_rate, 4]",
+            ));
+        }
+        if !(self.polygonal_approx_accuracy_rate > 0.0 && self.polygonal_approx_accuracy_rate < 0.5)
+        {
+            return Err(invalid(
+                &k("polygonal_approx_accuracy_rate"),
+                self.polygonal_approx_accuracy_rate,
+                "a rate in (0, 0.5)",
+            ));
+        }
+        if !(0.0..=1.0).contains(&self.error_correction_rate) {
+            return Err(invalid(
+                &k("error_correction_rate"),
+                self.error_correction_rate,
+                "a rate in [0, 1]",
+            ));
+        }
+        if !(1..=32).contains(&self.subpix_window_px) {
+            return Err(invalid(
+                &k("subpix_window_px"),
+                self.subpix_window_px,
+                "a half-window in 1..=32 px",
+            ));
+        }
+        if !(1..=1000).contains(&self.subpix_max_iterations) {
+            return Err(invalid(
+                &k("subpix_max_iterations"),
+                self.subpix_max_iterations,
+                "a count in 1..=1000",
+            ));
+        }
+        if !(self.subpix_min_accuracy_px > 0.0 && self.subpix_min_accuracy_px < 1.0) {
+            return Err(invalid(
+                &k("subpix_min_accuracy_px"),
+                self.subpix_min_accuracy_px,
+                "a distance in (0, 1) px",
+            ));
+        }
+        if !(self.track_window_scale >= 0.1 && self.track_window_scale <= 10.0) {
+            return Err(invalid(
+                &k("track_window_scale"),
+                self.track_window_scale,
+                "a fraction of the marker side in [0.1, 10]",
+            ));
+        }
+        if !(self.track_motion_gain >= 0.0 && self.track_motion_gain <= 20.0) {
+            return Err(invalid(
+                &k("track_motion_gain"),
+                self.track_motion_gain,
+                "a gain in [0, 20]",
+            ));
+        }
+        if !(1..=8).contains(&self.full_search_downscale) {
+            return Err(invalid(
+                &k("full_search_downscale"),
+                self.full_search_downscale,
+                "a factor in 1..=8",
+            ));
+        }
+        if !(self.corner_sigma_px > 0.0 && self.corner_sigma_px.is_finite()) {
+            return Err(invalid(
+                &k("corner_sigma_px"),
+                self.corner_sigma_px,
+                "a standard deviation > 0 px",
+            ));
+        }
+        if !(self.ambiguity_ratio >= 1.0 && self.ambiguity_ratio.is_finite()) {
+            return Err(invalid(
+                &k("ambiguity_ratio"),
+                self.ambiguity_ratio,
+                "a ratio >= 1",
+            ));
+        }
+        if !(self.track_max_age_s > 0.0 && self.track_max_age_s.is_finite()) {
+            return Err(invalid(
+                &k("track_max_age_s"),
+                self.track_max_age_s,
+                "a time > 0 s",
+            ));
+        }
+        if self.max_reproj_rms_px.is_nan() || self.max_reproj_rms_px <= 0.0 {
+            return Err(invalid(
+                &k("max_reproj_rms_px"),
+                self.max_reproj_rms_px,
+                "an RMS > 0 px",
+            ));
+        }
+        if !(0..=64).contains(&self.opencv_threads) {
+            return Err(invalid(
+                &k("opencv_threads"),
+                self.opencv_threads,
+                "a thread count in 0..=64 (0 = OpenCV's default)",
+            ));
+        }
+        Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn every_variant_in_table_and_names_round_trip() {
+        for f in MarkerFamily::all() {
+            assert_eq!(f.entry().0, f);
+            let parsed: MarkerFamily = f.as_str().parse().unwrap();
+            assert_eq!(parsed, f);
+            assert_eq!(f.to_string(), f.as_str());
+            let json = serde_json_like(f);
+            assert_eq!(json, f.as_str());
+        }
+        assert_eq!(FAMILIES.len(), MarkerFamily::all().count());
+    }
+
+    // serde name of a unit variant, through serde's own serializer of strings.
+    fn serde_json_like(f: MarkerFamily) -> String {
+        use serde::de::IntoDeserializer;
+        let back: MarkerFamily = MarkerFamily::deserialize(IntoDeserializer::<
+            serde::de::value::Error,
+        >::into_deserializer(f.as_str()))
+        .unwrap();
+        assert_eq!(back, f);
+        back.as_str().to_string()
+    }
+
+    #[test]
+    fn unknown_family_lists_choices() {
+        let e = "apriltag_99"
+            .parse::<MarkerFamily>()
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.contains("apriltag_99") && e.contains("aruco_4x4_50"),
+            "{e}"
+        );
+    }
+
+    #[test]
+    fn marker_validate_names_key_and_value() {
+        let m = MarkerConfig {
+            family: MarkerFamily::Aruco4x4_50,
+            id: 50,
+            size_m: 0.2,
+        };
+        let e = m.validate().unwrap_err().to_string();
+        assert!(e.contains("marker.id") && e.contains("50"), "{e}");
+        let m = MarkerConfig {
+            family: MarkerFamily::AprilTag36h11,
+            id: 586,
+            size_m: -1.0,
+        };
+        let e = m.validate().unwrap_err().to_string();
+        assert!(e.contains("marker.size_m") && e.contains("-1"), "{e}");
+        let ok = MarkerConfig { size_m: 0.15, ..m };
+        ok.validate().unwrap();
+    }
+
+    #[test]
+    fn detector_validate_names_key() {
+        DetectorConfig::default().validate().unwrap();
+        let c = DetectorConfig {
+            corner_sigma_px: 0.0,
+            ..Default::default()
+        };
+        let e = c.validate().unwrap_err().to_string();
+        assert!(e.contains("vision.corner_sigma_px"), "{e}");
+        let c = DetectorConfig {
+            adaptive_thresh_win_max_px: 2,
+            ..Default::default()
+        };
+        let e = c.validate().unwrap_err().to_string();
+        assert!(e.contains("vision.adaptive_thresh_win_max_px = 2"), "{e}");
+    }
+}

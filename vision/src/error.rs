@@ -1,0 +1,70 @@
+//! The one error type of this crate.
+
+use std::path::PathBuf;
+
+/// Errors of markhold-vision. Config errors name the site-file key and the value,
+/// file errors name the file and the field.
+#[derive(Debug, thiserror::Error)]
+pub enum VisionError {
+    #[error("{key} = {value}: expected {expected}")]
+    InvalidConfig {
+        key: String,
+        value: String,
+        expected: String,
+    },
+    #[error("unknown marker family '{name}': expected one of {expected}")]
+    UnknownFamily { name: String, expected: String },
+    #[error("{path}: field '{field}': {reason}")]
+    Calibration {
+        path: PathBuf,
+        field: String,
+        reason: String,
+    },
+    #[error("{path}: {source}")]
+    Io {
+        path: PathBuf,
+        #[source]
+        source: std::io::Error,
+    },
+    #[error("{path}, line {line}: {reason}")]
+    Recording {
+        path: PathBuf,
+        line: usize,
+        reason: String,
+    },
+    #[error("frame is {width}x{height} but {what} expects {expected_width}x{expected_height}")]
+    FrameSize {
+        what: &'static str,
+        width: u32,
+        height: u32,
+        expected_width: u32,
+        expected_height: u32,
+    },
+    #[error("OpenCV {op}: {source}")]
+    OpenCv {
+        op: &'static str,
+        #[source]
+        source: opencv::Error,
+    },
+    #[error(transparent)]
+    Camera(#[from] markhold_exposure::CameraError),
+}
+
+/// Attach the name of the OpenCV operation to its error.
+pub(crate) trait CvContext<T> {
+    fn cv(self, op: &'static str) -> Result<T, VisionError>;
+}
+
+impl<T> CvContext<T> for Result<T, opencv::Error> {
+    fn cv(self, op: &'static str) -> Result<T, VisionError> {
+        self.map_err(|source| VisionError::OpenCv { op, source })
+    }
+}
+
+pub(crate) fn invalid(key: &str, value: impl std::fmt::Display, expected: &str) -> VisionError {
+    VisionError::InvalidConfig {
+        key: key.to_string(),
+        value: value.to_string(),
+        expected: expected.to_string(),
+    }
+}

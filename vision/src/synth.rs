@@ -1,0 +1,178 @@
+//! A reference renderer of a printed marker seen by a calibrated camera, for tests,
+//! benches and parity checks: every pixel is the area average of `supersample^2`
+//! rays cast through the (distorted) camera onto the marker plane. No noise: callers
+//! add their own.
+
+use crate::{CameraCalibration, MarkerBitmap};
+use markhold_exposure::Frame;
+use nalgebra::{Isometry3, Point3, Vector3};
+
+/// Grey levels and geometry of the scene.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct SceneParams {
+    /// Grey level of black modules.
+    pub black: f64,
+    /// Grey level of white modules and of the paper around the marker.
+    pub white: f64,
+    /// Grey level of everything beyond the paper.
+    pub background: f64,
+    /// White paper around the black border, in modules, each side.
+    pub margin_cells: f64,
+    /// Rays per pixel side (area anti-aliasing).
+    pub supersample: u32,
+}
+
+impl Default for SceneParams {
+    fn default() -> Self {
+        Self {
+            black: 30.0,
+            white: 200.0,
+            background: 90.0,
+            margin_cells: 1.5,
+            supersample: 4,
+        }
+    }
+}
+
+/// Render `bitmap` (side `size_m` for the black square) at `t_cam_marker` into
+/// `frame` (resized to the calibration's resolution). Returns the exact pixel
+/// positions of the four corners in aruco order (`None` for a corner behind the
+/// camera).
+pub fn render_marker(
+    frame: &mut Frame,
+    calib: &CameraCalibration,
+    bitmap: &MarkerBitmap,
+    size_m: f64,
+    t_cam_marker: &Isometry3<f64>,
+    scene: &SceneParams,
+) -> [Option<[f64; 2]>; 4] {
+    frame.resize(calib.width, calib.height);
+    let bg = scene.background.round().clamp(0.0, 255.0) as u8;
+    frame.data.fill(bg);
+    let cells = bitmap.cells as f64;
+    let cell_m = size_m / cells;
+    let half_paper = size_m / 2.0 + scene.margin_cells * cell_m;
+    let t_marker_cam = t_cam_marker.inverse();
+    let origin = t_marker_cam.translation.vector;
+
+    // Bounding box of the paper in the image (sampled along its edges: distortion
+    // bends them), padded by a few pixels.
+    let (mut x0, mut y0, mut x1, mut y1) = (f64::MAX, f64::MAX, f64::MIN, f64::MIN);
+    let n = 32;
+    for i in 0..=n {
+        let s = -half_paper + 2.0 * half_paper * i as f64 / n as f64;
+        for (x, y) in [
+            (s, half_paper),
+            (s, -half_paper),
+            (half_paper, s),
+            (-half_paper, s),
+        ] {
+            if let Some(uv) = calib.project(&(t_cam_marker * Point3::new(x, y, 0.0))) {
+                x0 = x0.min(uv.x);
+                y0 = y0.min(uv.y);
+                x1 = x1.max(uv.x);
+                y1 = y1.max(uv.y);
+            } else {
+                // Part of the paper is behind the camera: render every pixel.
+                (x0, y0, x1, y1) = (0.0, 0.0, calib.width as f64, calib.height as f64);
+            }
+        }
+    }
+    let w = calib.width as usize;
+    let px0 = (x0 - 3.0).floor().clamp(0.0, calib.width as f64) as usize;
+    let py0 = (y0 - 3.0).floor().clamp(0.0, calib.height as f64) as usize;
+    let px1 = (x1 + 3.0).ceil().clamp(0.0, calib.width as f64) as usize;
+    let py1 = (y1 + 3.0).ceil().clamp(0.0, calib.height as f64) as usize;
+
+    let ss = scene.supersample.max(1);
+    let inv = 1.0 / (ss * ss) as f64;
+    let rot = t_marker_cam.rotation;
+    for py in py0..py1 {
+        for px in px0..px1 {
+            let mut acc = 0.0;
+            for sy in 0..ss {
+                for sx in 0..ss {
+                    // Pixel centres are at integer coordinates (OpenCV convention).
+                    let u = px as f64 - 0.5 + (sx as f64 + 0.5) / ss as f64;
+                    let v = py as f64 - 0.5 + (sy as f64 + 0.5) / ss as f64;
+                    let n = calib.undistort_pixel(u, v);
+                    let d = rot * Vector3::new(n.x, n.y, 1.0);
+                    acc += if d.z.abs() < 1e-12 {
+                        scene.background
+                    } else {
+                        let lambda = -origin.z / d.z;
+                        if lambda <= 0.0 {
+                            scene.background
+                        } else {
+                            let x = origin.x + lambda * d.x;
+                            let y = origin.y + lambda * d.y;
+                            shade(x, y, size_m, half_paper, cell_m, bitmap, scene)
+                        }
+                    };
+                }
+            }
+            frame.data[py * w + px] = (acc * inv).round().clamp(0.0, 255.0) as u8;
+        }
+    }
+    crate::pose::marker_object_points(size_m)
+        .map(|p| calib.project(&(t_cam_marker * p)).map(|uv| [uv.x, uv.y]))
+}
+
+fn shade(
+    x: f64,
+    y: f64,
+    size_m: f64,
+    half_paper: f64,
+    cell_m: f64,
+    bitmap: &MarkerBitmap,
+    scene: &SceneParams,
+) -> f64 {
+    if x.abs() > half_paper || y.abs() > half_paper {
+        return scene.background;
+    }
+    let h = size_m / 2.0;
+    if x.abs() >= h || y.abs() >= h {
+        return scene.white;
+    }
+    // Column from the left edge, row from the top edge (marker y is up).
+    let col = ((x + h) / cell_m).floor() as usize;
+    let row = ((h - y) / cell_m).floor() as usize;
+    if bitmap.is_white(row, col) {
+        scene.white
+    } else {
+        scene.black
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::{marker_bitmap, MarkerFamily};
+
+    #[test]
+    fn frontal_marker_has_black_border_where_projected() {
+        let calib = CameraCalibration::pinhole(320, 240, 300.0, 300.0, 160.0, 120.0);
+        let bm = marker_bitmap(MarkerFamily::AprilTag36h11, 3).unwrap();
+        let mut f = Frame::default();
+        // Facing the camera: marker y up (camera -y), marker z toward the camera.
+        let pose = Isometry3::new(Vector3::z(), Vector3::x() * std::f64::consts::PI);
+        let c = render_marker(&mut f, &calib, &bm, 0.2, &pose, &SceneParams::default());
+        // 0.2 m at 1 m and f = 300: 60 px square centred on (160, 120).
+        let tl = c[0].unwrap();
+        assert!(
+            (tl[0] - 130.0).abs() < 1e-9 && (tl[1] - 90.0).abs() < 1e-9,
+            "{tl:?}"
+        );
+        let br = c[2].unwrap();
+        assert!(
+            (br[0] - 190.0).abs() < 1e-9 && (br[1] - 150.0).abs() < 1e-9,
+            "{br:?}"
+        );
+        let at = |x: usize, y: usize| f.data[y * 320 + x];
+        assert_eq!(at(132, 120), 30, "left border is black");
+        assert_eq!(at(127, 120), 200, "paper is white");
+        assert_eq!(at(10, 10), 90, "background");
+        // Half-covered pixel on the edge x = 130 (pixel 130 spans 129.5..130.5).
+        assert_eq!(at(130, 100), 115);
+    }
+}
