@@ -271,6 +271,8 @@ pub struct VehicleLink {
     state: VehicleState,
     last_hb_sent_s: Option<f64>,
     last_pilot_s: Option<f64>,
+    /// Last pilot input the caller sent (not the keep-alive).
+    last_commanded_s: Option<f64>,
     last_streams_s: Option<f64>,
     arm_pending: Option<PendingCommand>,
     mode_pending: Option<PendingCommand>,
@@ -346,6 +348,7 @@ impl VehicleLink {
             state,
             last_hb_sent_s: None,
             last_pilot_s: None,
+            last_commanded_s: None,
             last_streams_s: None,
             arm_pending: None,
             mode_pending: None,
@@ -654,10 +657,12 @@ impl VehicleLink {
                 // The loop clock restarted (replay, new HIL run): restart the schedules.
                 self.last_hb_sent_s = None;
                 self.last_pilot_s = None;
+                self.last_commanded_s = None;
                 self.last_streams_s = None;
                 self.state.last_heartbeat_s = None;
             }
         }
+        let prev_tick = self.last_tick_s;
         self.last_tick_s = Some(now_s);
         self.transport.writer.flush();
         while let Ok(inc) = self.transport.rx.try_recv() {
@@ -708,12 +713,21 @@ impl VehicleLink {
         self.retry(CMD_ARM, now_s)?;
         self.retry(CMD_SET_MODE, now_s)?;
 
+        // Keep-alive: the loop sends pilot input after `tick` in each frame; if the previous
+        // frame sent none, centre the sticks now (at most twice `pilot_input_hz` when ticks
+        // come fast) so that ArduSub's pilot-input failsafe never fires.
+        let idle = match (self.last_commanded_s, prev_tick) {
+            (None, _) | (_, None) => true,
+            (Some(p), Some(prev)) => p < prev,
+        };
+        let not_too_fast = self
+            .last_pilot_s
+            .is_none_or(|p| now_s - p >= 0.5 / self.cfg.pilot_input_hz);
         if self.pilot_keepalive
             && self.cfg.command == CommandKind::Effort
             && self.state.heartbeat_ok
-            && self
-                .last_pilot_s
-                .is_none_or(|t| now_s - t >= 1.0 / self.cfg.pilot_input_hz)
+            && idle
+            && not_too_fast
         {
             self.send_pilot(&Effort::NEUTRAL, now_s)?;
         }
@@ -824,12 +838,14 @@ impl VehicleLink {
                 requested: "effort",
             });
         }
+        self.last_commanded_s = Some(now_s);
         self.send_pilot(&e.clamped(), now_s)
     }
 
     /// Neutral pilot input (all channels 1500 / sticks centred), written now. Works in
     /// either command style, so a shutdown can always centre the sticks.
     pub fn send_neutral(&mut self, now_s: f64) -> Result<(), AutopilotError> {
+        self.last_commanded_s = Some(now_s);
         self.send_pilot(&Effort::NEUTRAL, now_s)
     }
 

@@ -539,7 +539,9 @@ impl Transport {
 
     /// Asks a stream transport to drop its connection and make a new one.
     pub(crate) fn request_reconnect(&self) {
-        self.reconnect.notify_one();
+        // notify_waiters stores no permit: a request made while already reconnecting must
+        // not tear down the fresh connection.
+        self.reconnect.notify_waiters();
     }
 }
 

@@ -1,0 +1,409 @@
+//! The link and the station keeper against a fake ArduSub over real loopback UDP and TCP:
+//! discovery, arm and mode with COMMAND_ACK (and a retry), stream requests, telemetry,
+//! closed-loop station keeping, neutral on exit, heartbeat loss, TCP reconnect.
+
+mod common;
+
+use std::time::{Duration, Instant};
+
+use common::{FakeVehicle, Kind, STEP_S};
+use markhold_autopilot::*;
+use mavlink::dialects::ardupilotmega::{MavAutopilot, MavCmd, MavType};
+use nalgebra::{Isometry3, Matrix3, Matrix6, Rotation3, Translation3, UnitQuaternion, Vector3};
+
+const WAIT: Duration = Duration::from_secs(10);
+
+fn cam() -> Isometry3<f64> {
+    let r = Rotation3::from_matrix_unchecked(Matrix3::from_columns(&[
+        Vector3::new(0.0, 1.0, 0.0),
+        Vector3::new(0.0, 0.0, 1.0),
+        Vector3::new(1.0, 0.0, 0.0),
+    ]));
+    Isometry3::from_parts(
+        Translation3::new(0.25, 0.0, 0.05),
+        UnitQuaternion::from_rotation_matrix(&r),
+    )
+}
+
+struct Harness {
+    link: VehicleLink,
+    fake: FakeVehicle,
+    now: f64,
+}
+
+impl Harness {
+    /// Ticks with loop time advancing `STEP_S` per call and a short wall sleep, until `f`
+    /// holds or the wall deadline passes.
+    fn tick_until(&mut self, what: &str, mut f: impl FnMut(&VehicleLink, &common::Rec) -> bool) {
+        let t0 = Instant::now();
+        loop {
+            self.now += STEP_S;
+            self.link.tick(self.now).unwrap();
+            if f(&self.link, &self.fake.rec()) {
+                return;
+            }
+            assert!(
+                t0.elapsed() < WAIT,
+                "timed out waiting for {what}: {:?}",
+                self.link.state()
+            );
+            std::thread::sleep(Duration::from_millis(3));
+        }
+    }
+
+    fn arm_manual(&mut self) {
+        let now = self.now;
+        self.tick_until("vehicle heartbeat", |l, _| l.state().discovered);
+        self.link.request_mode(ArduSubMode::Manual, now).unwrap();
+        self.link.request_arm(true, now).unwrap();
+        self.tick_until("armed in MANUAL", |l, _| {
+            let s = l.state();
+            s.armed
+                && s.mode == Some(ArduSubMode::Manual)
+                && s.arm_command == CommandStatus::Accepted
+                && s.mode_command == CommandStatus::Accepted
+        });
+    }
+
+    /// Closed loop: measurement from the fake's pose, keeper, effort on the wire, wait for
+    /// the fake to apply it (one plant step per override).
+    fn hold(&mut self, keeper: &mut StationKeeper, steps: usize) {
+        let mut sup = Supervisor::new(&ControllerConfig::default(), self.link.config());
+        let mut events = Vec::new();
+        for _ in 0..steps {
+            self.now += STEP_S;
+            self.link.tick(self.now).unwrap();
+            let t_mv = self.fake.rec().t_marker_vehicle();
+            let meas = PoseMeasurement {
+                stamp_s: self.now,
+                t_cam_marker: (t_mv * cam()).inverse(),
+                cov_cam: Matrix6::identity() * 1e-6,
+            };
+            let d = sup.update(
+                &SupervisorInput {
+                    now_s: self.now,
+                    vehicle_heartbeat_s: self.link.state().last_heartbeat_s,
+                    last_frame_s: Some(self.now),
+                    marker_seen_s: Some(self.now),
+                    shutdown: false,
+                },
+                &mut events,
+            );
+            assert_eq!(d, Directive::Command, "{events:?}");
+            let e = keeper.update(self.now, Some(&meas));
+            let before = self.fake.rec().steps;
+            self.link.send_effort(&e, self.now).unwrap();
+            let t0 = Instant::now();
+            while self.fake.rec().steps <= before {
+                assert!(
+                    t0.elapsed() < WAIT,
+                    "fake vehicle never applied the override"
+                );
+                std::thread::sleep(Duration::from_micros(100));
+            }
+        }
+    }
+}
+
+fn link_cfg(url: String) -> LinkConfig {
+    LinkConfig {
+        url,
+        ..Default::default()
+    }
+}
+
+fn station_error(rec: &common::Rec) -> (f64, f64) {
+    let p = Vector3::from(rec.pos_m) - Vector3::new(0.0, 0.0, 1.0);
+    (p.norm(), rec.yaw.abs())
+}
+
+#[test]
+fn udp_arm_mode_hold_station_and_neutral_on_exit() {
+    let fake = FakeVehicle::start(Kind::UdpServer);
+    let addr = fake.addr.unwrap();
+    {
+        let mut r = fake.rec();
+        r.drop_arm_commands = 1;
+        r.pos_m = [0.3, -0.2, 1.5];
+        r.yaw = 0.3;
+        r.current_m = [0.02, 0.0, 0.0];
+    }
+    let link = VehicleLink::connect(&link_cfg(format!("udpout:{addr}"))).unwrap();
+    let mut h = Harness {
+        link,
+        fake,
+        now: 0.0,
+    };
+    h.arm_manual();
+    let mut keeper = StationKeeper::new(
+        &StationConfig::default(),
+        &ControllerConfig::default(),
+        cam(),
+    )
+    .unwrap();
+    let t_start = h.now;
+    h.hold(&mut keeper, 900);
+    let sim_s = h.now - t_start;
+
+    let (pos_err, yaw_err) = station_error(&h.fake.rec());
+    assert!(pos_err < 0.05, "position error {pos_err} m");
+    assert!(yaw_err < 0.03, "yaw error {yaw_err} rad");
+
+    // Neutral on exit.
+    let before = h.fake.rec().rc.len();
+    h.link.send_neutral(h.now).unwrap();
+    let t0 = Instant::now();
+    while h.fake.rec().rc.len() <= before {
+        assert!(t0.elapsed() < WAIT);
+        std::thread::sleep(Duration::from_millis(1));
+    }
+
+    let s = h.link.state().clone();
+    let r = h.fake.rec();
+    // Arm needed a retry (first COMMAND_LONG dropped); the retry counts confirmation.
+    let arms: Vec<_> = r
+        .commands
+        .iter()
+        .filter(|(_, c)| c.command == MavCmd::MAV_CMD_COMPONENT_ARM_DISARM)
+        .collect();
+    assert!(arms.len() >= 2, "{arms:?}");
+    assert_eq!(arms[0].1.confirmation, 0);
+    assert_eq!(arms[1].1.confirmation, 1);
+    assert!(arms
+        .iter()
+        .all(|(_, c)| c.param1 == 1.0 && c.target_system == 1));
+    // Every command from the GCS id.
+    assert!(r.commands.iter().all(|(sys, _)| *sys == 255));
+    // Streams requested.
+    for id in [30.0, 32.0, 36.0, 65.0, 137.0] {
+        assert!(
+            r.commands
+                .iter()
+                .any(|(_, c)| c.command == MavCmd::MAV_CMD_SET_MESSAGE_INTERVAL
+                    && c.param1 == id
+                    && (c.param2 - 1e5).abs() < 1.0),
+            "stream {id} not requested"
+        );
+    }
+    // GCS heartbeats: from 255, type GCS, autopilot invalid, ~1 Hz of loop time.
+    assert!(!r.gcs_heartbeats.is_empty());
+    for (sys, comp, hb) in &r.gcs_heartbeats {
+        assert_eq!((*sys, *comp), (255, 190));
+        assert_eq!(hb.mavtype, MavType::MAV_TYPE_GCS);
+        assert_eq!(hb.autopilot, MavAutopilot::MAV_AUTOPILOT_INVALID);
+    }
+    let n_hb = r.gcs_heartbeats.len() as f64;
+    assert!(
+        (n_hb - h.now).abs() <= 2.0,
+        "{n_hb} heartbeats in {} s",
+        h.now
+    );
+    // Pilot input: RC overrides from 255/190 to 1/1, PWM in range, >= 20 Hz.
+    assert!(r
+        .rc
+        .iter()
+        .all(|rc| rc.sysid == 255 && rc.compid == 190 && rc.target == (1, 1)));
+    assert!(r
+        .rc
+        .iter()
+        .all(|rc| rc.ch[..6].iter().all(|p| (1100..=1900).contains(p)) && rc.ch[6..] == [0, 0]));
+    assert!(
+        r.rc.len() as f64 >= 20.0 * sim_s,
+        "{} overrides in {sim_s} s",
+        r.rc.len()
+    );
+    let last = r.rc.last().unwrap();
+    assert_eq!(last.ch[..6], [1500; 6]);
+    // The controller really commanded something (not neutral all along).
+    assert!(r.rc.iter().any(|rc| rc.ch[4] > 1550));
+
+    // Telemetry parsed.
+    let d = s.depth.expect("depth");
+    assert!((d.depth_m - 2.0).abs() < 0.01, "{d:?}");
+    assert!((d.temperature_c - 12.34).abs() < 1e-9);
+    let a = s.attitude.expect("attitude");
+    assert!((a.roll - 0.01).abs() < 1e-6 && (a.pitch + 0.02).abs() < 1e-6);
+    let so = s.servo_outputs.expect("servo outputs");
+    assert_eq!(
+        so.pwm[..8],
+        [1501, 1502, 1503, 1504, 1505, 1506, 1507, 1508]
+    );
+    let lp = s.local_position.expect("local position");
+    assert!((lp.position[2] - 2.0).abs() < 1e-6);
+    assert_eq!(s.counters.sent, h.link.messages_sent());
+    assert!(h.link.messages_received() > 10);
+}
+
+#[test]
+fn tcpout_hold_and_reconnect() {
+    let fake = FakeVehicle::start(Kind::TcpServer);
+    let addr = fake.addr.unwrap();
+    fake.rec().pos_m = [0.0, 0.1, 1.2];
+    let link = VehicleLink::connect(&link_cfg(format!("tcpout:{addr}"))).unwrap();
+    let mut h = Harness {
+        link,
+        fake,
+        now: 0.0,
+    };
+    h.arm_manual();
+    let mut keeper = StationKeeper::new(
+        &StationConfig::default(),
+        &ControllerConfig::default(),
+        cam(),
+    )
+    .unwrap();
+    h.hold(&mut keeper, 450);
+    let (pos_err, _) = station_error(&h.fake.rec());
+    assert!(pos_err < 0.05, "position error {pos_err} m");
+
+    // The vehicle end drops the connection: the link notices and reconnects by itself.
+    h.fake.rec().disconnect_now = true;
+    h.tick_until("disconnect seen", |l, _| !l.state().transport_connected);
+    h.tick_until("reconnected", |l, _| {
+        l.state().transport_connected && l.state().counters.reconnects >= 1
+    });
+    // Pilot input flows again on the new connection.
+    let before = h.fake.rec().rc.len();
+    h.tick_until("pilot input after reconnect", |_, r| {
+        r.rc.len() > before + 5
+    });
+}
+
+#[test]
+fn tcpin_accepts_vehicle_and_arms() {
+    let link = VehicleLink::connect(&link_cfg("tcpin:127.0.0.1:0".into())).unwrap();
+    let addr = link.local_addr().unwrap();
+    let fake = FakeVehicle::start(Kind::TcpClient(addr));
+    let mut h = Harness {
+        link,
+        fake,
+        now: 0.0,
+    };
+    h.arm_manual();
+    assert!(h.fake.rec().armed);
+}
+
+#[test]
+fn udpin_replies_to_the_vehicle_that_spoke() {
+    let link = VehicleLink::connect(&link_cfg("udpin:127.0.0.1:0".into())).unwrap();
+    let addr = link.local_addr().unwrap();
+    let fake = FakeVehicle::start(Kind::UdpClient(addr));
+    let mut h = Harness {
+        link,
+        fake,
+        now: 0.0,
+    };
+    h.arm_manual();
+    assert_eq!(h.fake.rec().mode, 19);
+}
+
+#[test]
+fn heartbeat_loss_stops_commanding_until_it_returns() {
+    let fake = FakeVehicle::start(Kind::UdpServer);
+    let addr = fake.addr.unwrap();
+    let link = VehicleLink::connect(&link_cfg(format!("udpout:{addr}"))).unwrap();
+    let mut h = Harness {
+        link,
+        fake,
+        now: 0.0,
+    };
+    h.tick_until("vehicle heartbeat", |l, _| l.state().heartbeat_ok);
+    let mut sup = Supervisor::new(&ControllerConfig::default(), h.link.config());
+    let mut events = Vec::new();
+
+    // Nothing commanded: the link keeps neutral pilot input going by itself.
+    let rc0 = h.fake.rec().rc.len();
+    let p0 = h.link.state().counters.pilot_inputs;
+    for _ in 0..30 {
+        h.now += STEP_S;
+        h.link.tick(h.now).unwrap();
+        std::thread::sleep(Duration::from_millis(2));
+    }
+    let sent = h.link.state().counters.pilot_inputs - p0;
+    assert!(
+        sent >= 20,
+        "keep-alive: {sent} overrides in 1 s of loop time"
+    );
+    h.tick_until("keep-alive overrides", |_, r| r.rc.len() >= rc0 + 20);
+    assert!(h.fake.rec().rc[rc0..]
+        .iter()
+        .all(|rc| rc.ch[..6] == [1500; 6]));
+
+    // Heartbeats stop.
+    h.fake.rec().heartbeats_on = false;
+    let lost_at = h.now;
+    h.tick_until("heartbeat loss", |l, _| !l.state().heartbeat_ok);
+    assert!(h.now - lost_at >= 2.0 - 0.5, "lost too early");
+    let d = sup.update(
+        &SupervisorInput {
+            now_s: h.now,
+            vehicle_heartbeat_s: h.link.state().last_heartbeat_s,
+            last_frame_s: Some(h.now),
+            marker_seen_s: Some(h.now),
+            shutdown: false,
+        },
+        &mut events,
+    );
+    assert_eq!(d, Directive::Silent);
+    assert!(events
+        .iter()
+        .any(|e| matches!(e, FailsafeEvent::VehicleHeartbeatLost { .. })));
+    // No more pilot input while it is gone.
+    std::thread::sleep(Duration::from_millis(20));
+    let rc1 = h.fake.rec().rc.len();
+    for _ in 0..30 {
+        h.now += STEP_S;
+        h.link.tick(h.now).unwrap();
+    }
+    std::thread::sleep(Duration::from_millis(20));
+    assert_eq!(
+        h.fake.rec().rc.len(),
+        rc1,
+        "pilot input sent to a lost vehicle"
+    );
+
+    // It comes back: streams are requested again, commanding resumes.
+    let streams_before = h
+        .fake
+        .rec()
+        .commands
+        .iter()
+        .filter(|(_, c)| c.command == MavCmd::MAV_CMD_SET_MESSAGE_INTERVAL)
+        .count();
+    h.fake.rec().heartbeats_on = true;
+    h.tick_until("heartbeat back", |l, _| l.state().heartbeat_ok);
+    events.clear();
+    let d = sup.update(
+        &SupervisorInput {
+            now_s: h.now,
+            vehicle_heartbeat_s: h.link.state().last_heartbeat_s,
+            last_frame_s: Some(h.now),
+            marker_seen_s: Some(h.now),
+            shutdown: false,
+        },
+        &mut events,
+    );
+    assert_eq!(d, Directive::Command);
+    assert!(events
+        .iter()
+        .any(|e| matches!(e, FailsafeEvent::VehicleHeartbeatRestored { .. })));
+    h.tick_until("streams re-requested", |_, r| {
+        r.commands
+            .iter()
+            .filter(|(_, c)| c.command == MavCmd::MAV_CMD_SET_MESSAGE_INTERVAL)
+            .count()
+            >= streams_before + 5
+    });
+}
+
+#[test]
+fn bad_url_is_a_clear_error() {
+    let e = VehicleLink::connect(&link_cfg("udpout:nowhere".into()))
+        .err()
+        .expect("must fail")
+        .to_string();
+    assert!(
+        e.contains("udpout:nowhere") && e.contains("HOST:PORT"),
+        "{e}"
+    );
+}
