@@ -6,12 +6,15 @@
 //! slope `s = dM/d(ln t) / max(M, floor)` (= d ln M / d ln t).
 //!
 //! Beyond the paper (its open problem is oscillation when caustics fill the RoI):
-//! - the step scale shrinks when `s` changes sign and grows back while it holds (Rprop);
-//! - on a sign change the momentum is dropped and the step goes to the secant estimate
-//!   of the zero of `s` between the last two exposures, which always lies inside the
-//!   bracket, so successive steps shrink geometrically when `s` flickers;
-//! - an upward step never goes past the exposure that would bring the RoI's bright end
-//!   (99th percentile grey) to saturation, predicted through the camera response;
+//! - once the slope has changed sign, the optimum is bracketed between the latest
+//!   exposures with a positive and a negative slope; momentum stops and each step goes
+//!   to the secant zero of the slope inside the bracket (regula falsi, Illinois
+//!   variant). Every new frame narrows the bracket, so a flickering slope cannot make
+//!   the exposure wander outside it; the bracket is dropped after `bracket_frames`, or
+//!   when the slope contradicts it, and the ascent restarts;
+//! - outside a bracket, the momentum step is scaled by a factor that halves on each
+//!   sign change and grows back while the sign holds (Rprop-like);
+//! - a RoI with no gradient (black, or washed out) steps toward mid grey at once;
 //! - the per-frame change is bounded by `max_ratio_per_frame`.
 //!
 //! With `adaptive_step = false` it is the paper's plain momentum ascent (same metric,
@@ -39,7 +42,8 @@ pub enum AaecFallback {
 #[serde(deny_unknown_fields, default)]
 pub struct AaecConfig {
     /// Percentile `p` where the soft-percentile weights peak, (0, 1). The paper's text
-    /// recommends 0.6 to 0.9; the official AEC uses 0.7.
+    /// recommends 0.6 to 0.9, its code uses 0.9; on a marker RoI 0.7 lands in flat
+    /// cells, whose slope has spurious zeros when the white cells clip.
     pub percentile: f64,
     /// Sine-weight exponent `k`, odd in 1..=9 (published: 5).
     pub weight_power: u32,
@@ -61,13 +65,19 @@ pub struct AaecConfig {
     pub step_grow: f64,
     /// Smallest step scale, (0, 1].
     pub min_step_scale: f64,
-    /// Floor of `M` when normalizing the slope, grey levels squared, > 0.
+    /// Below this `M` (grey levels squared, > 0) the RoI holds no gradient to climb
+    /// (black or washed out): step toward mid grey by the largest ratio.
     pub metric_floor_grey2: f64,
-    /// A RoI darker than this on average with `M` under the floor holds no gradient to
-    /// climb: step up by the largest ratio. Grey level in [0, 128].
-    pub dark_mean_grey: f64,
-    /// Grey level from which a pixel counts as saturated, 128..=255 (official AEC: 250).
+    /// Used frames a bracket of the optimum is trusted before the ascent restarts
+    /// (lets the controller follow a changing scene), 1..=1000.
+    pub bracket_frames: u32,
+    /// Grey level from which a pixel counts as clipped, 128..=255 (official AEC: 250;
+    /// ours: 255, the only level a linear sensor really clips at).
     pub saturation_grey: u8,
+    /// A clipped pixel's `dG` becomes `-penalty * max(|dG|, 0.5)`, [0, 10] (official AEC:
+    /// 3; ours: 1, which puts the zero of the slope within a few percent of the argmax
+    /// of `M`, where 3 stops 10-20% short of it).
+    pub saturation_penalty: f64,
     /// Frames the last RoI is kept after the marker is lost, 0..=1000.
     pub lost_hold_frames: u32,
     /// Controller used after that (momentum is reset on the switch).
@@ -77,7 +87,7 @@ pub struct AaecConfig {
 impl Default for AaecConfig {
     fn default() -> Self {
         Self {
-            percentile: 0.7,
+            percentile: 0.9,
             weight_power: 5,
             roi_pad_frac: 0.1,
             momentum: 0.9,
@@ -89,8 +99,9 @@ impl Default for AaecConfig {
             step_grow: 1.2,
             min_step_scale: 0.02,
             metric_floor_grey2: 1.0,
-            dark_mean_grey: 8.0,
-            saturation_grey: 250,
+            bracket_frames: 15,
+            saturation_grey: 255,
+            saturation_penalty: 1.0,
             lost_hold_frames: 5,
             fallback: AaecFallback::Mean,
         }
@@ -174,15 +185,22 @@ impl AaecConfig {
             &v,
             "a positive value",
         )?;
-        let v = self.dark_mean_grey;
+        let v = self.bracket_frames;
         check(
-            (0.0..=128.0).contains(&v),
-            "dark_mean_grey",
+            (1..=1000).contains(&v),
+            "bracket_frames",
             &v,
-            "a grey level in [0, 128]",
+            "frames in 1..=1000",
         )?;
         let v = self.saturation_grey;
         check(v >= 128, "saturation_grey", &v, "a grey level in 128..=255")?;
+        let v = self.saturation_penalty;
+        check(
+            (0.0..=10.0).contains(&v),
+            "saturation_penalty",
+            &v,
+            "a factor in [0, 10]",
+        )?;
         let v = self.lost_hold_frames;
         check(v <= 1000, "lost_hold_frames", &v, "frames in 0..=1000")?;
         Ok(())
@@ -194,6 +212,7 @@ impl AaecConfig {
             percentile: self.percentile,
             weight_power: self.weight_power,
             saturation_grey: self.saturation_grey,
+            saturation_penalty: self.saturation_penalty,
             ..MetricParams::default()
         }
     }
@@ -202,7 +221,6 @@ impl AaecConfig {
 pub struct Aaec {
     cfg: AaecConfig,
     limits: ExposureLimits,
-    response: Response,
     metric: GradientMetric,
     fallback: Box<dyn ExposureController>,
     commanded_us: f64,
@@ -211,6 +229,7 @@ pub struct Aaec {
     step_scale: f64,
     /// ln t and slope of the last used frame.
     prev: Option<(f64, f64)>,
+    bracket: Option<Bracket>,
     last_roi: Option<Roi>,
     lost_frames: u32,
     in_fallback: bool,
@@ -231,12 +250,12 @@ impl Aaec {
             cfg,
             commanded_us: limits.clamp(initial_us),
             limits,
-            response,
             metric,
             fallback,
             v: 0.0,
             step_scale: 1.0,
             prev: None,
+            bracket: None,
             last_roi: None,
             lost_frames: 0,
             in_fallback: false,
@@ -252,6 +271,7 @@ impl Aaec {
         self.v = 0.0;
         self.step_scale = 1.0;
         self.prev = None;
+        self.bracket = None;
     }
 
     /// The region to meter: the marker's padded box, else the last one for a few frames.
@@ -277,58 +297,100 @@ impl Aaec {
         }
     }
 
-    /// Largest upward step (ln t) before the bright end of the RoI reaches saturation.
-    fn headroom(&self, bright_grey: u8) -> f64 {
-        let sat = self.cfg.saturation_grey.saturating_sub(1) as f64;
-        if bright_grey as f64 >= sat {
-            return f64::INFINITY;
-        }
-        let now = self.response.signal(bright_grey.max(1) as f64);
-        let top = self.response.signal(sat);
-        (top / now).ln().max(0.0)
-    }
-
     /// One ascent step in ln t from the slope `s` at `x = ln t`.
-    fn ascent_step(&mut self, x: f64, s: f64, bright_grey: u8) -> f64 {
+    fn ascent_step(&mut self, x: f64, s: f64) -> f64 {
         let bound = self.cfg.max_ratio_per_frame.ln();
         let gamma = self.cfg.momentum;
         let eta = self.cfg.learning_rate;
-        let delta = if !self.cfg.adaptive_step {
-            self.v = gamma * self.v + eta * s;
-            self.v
+        if !self.cfg.adaptive_step {
+            // The paper: v = gamma v + eta M'; t += v.
+            self.v = (gamma * self.v + eta * s).clamp(-bound, bound);
+            return self.v;
+        }
+        let flipped = matches!(self.prev, Some((_, sp)) if sp * s < 0.0);
+        self.step_scale = if flipped {
+            (self.step_scale * self.cfg.step_shrink).max(self.cfg.min_step_scale)
         } else {
-            match self.prev {
-                Some((xp, sp)) if sp * s < 0.0 => {
-                    self.step_scale =
-                        (self.step_scale * self.cfg.step_shrink).max(self.cfg.min_step_scale);
-                    self.v = 0.0;
-                    if (x - xp).abs() > 1e-12 {
-                        // Secant zero of the slope: strictly between xp and x.
-                        -s * (x - xp) / (s - sp)
-                    } else {
-                        0.0
-                    }
-                }
-                _ => {
-                    self.step_scale = (self.step_scale * self.cfg.step_grow).min(1.0);
-                    self.v = gamma * self.v + eta * self.step_scale * s;
-                    let mut d = self.v;
-                    if d > 0.0 {
-                        d = d.min(self.headroom(bright_grey));
-                    }
-                    d
-                }
+            (self.step_scale * self.cfg.step_grow).min(1.0)
+        };
+        self.update_bracket(x, s);
+        let delta = match &self.bracket {
+            Some(b) => {
+                // Secant zero of the slope between the bracket's ends (regula falsi).
+                let target = b.lo.0 + (b.hi.0 - b.lo.0) * b.lo.1 / (b.lo.1 - b.hi.1);
+                target - x
             }
+            None => gamma * self.v + eta * self.step_scale * s,
         };
         let delta = delta.clamp(-bound, bound);
-        if self.cfg.adaptive_step {
-            // Momentum never exceeds what was applied (no wind-up past the bounds).
-            self.v = delta;
-        } else {
-            self.v = self.v.clamp(-bound, bound);
-        }
+        // Momentum only outside a bracket, and never more than what was applied.
+        self.v = if self.bracket.is_some() { 0.0 } else { delta };
         delta
     }
+
+    /// Keep `[lo, hi]`: the latest exposures with a positive and a negative slope.
+    fn update_bracket(&mut self, x: f64, s: f64) {
+        if s == 0.0 {
+            return;
+        }
+        let side = if s > 0.0 { 1 } else { -1 };
+        match self.bracket.as_mut() {
+            None => {
+                if let Some((xp, sp)) = self.prev {
+                    if sp * s < 0.0 {
+                        let (lo, hi) = if s > 0.0 {
+                            ((x, s), (xp, sp))
+                        } else {
+                            ((xp, sp), (x, s))
+                        };
+                        self.bracket = Some(Bracket {
+                            lo,
+                            hi,
+                            age: 0,
+                            last_side: side,
+                        });
+                    }
+                }
+            }
+            Some(b) => {
+                b.age += 1;
+                // Illinois: when the same end moves twice, halve the other end's slope so
+                // the secant does not crawl from one side.
+                if side > 0 {
+                    if b.last_side > 0 {
+                        b.hi.1 *= 0.5;
+                    }
+                    b.lo = (x, s);
+                } else {
+                    if b.last_side < 0 {
+                        b.lo.1 *= 0.5;
+                    }
+                    b.hi = (x, s);
+                }
+                b.last_side = side;
+                // A slope that rises with exposure is not a maximum (the scene changed or
+                // the metric is not unimodal here); a bracket too old no longer describes
+                // the scene; a collapsed bracket with a strong slope means the optimum
+                // moved. Each case: drop it and climb again.
+                let width = (b.hi.0 - b.lo.0).abs();
+                if b.lo.0 >= b.hi.0
+                    || b.age >= self.cfg.bracket_frames
+                    || (width < 2e-3 && s.abs() > 0.5)
+                {
+                    self.bracket = None;
+                }
+            }
+        }
+    }
+}
+
+/// Exposures (ln t) and slopes on both sides of the zero of the slope.
+#[derive(Debug, Clone, Copy)]
+struct Bracket {
+    lo: (f64, f64),
+    hi: (f64, f64),
+    age: u32,
+    last_side: i8,
 }
 
 impl ExposureController for Aaec {
@@ -368,14 +430,18 @@ impl ExposureController for Aaec {
         let t = self.commanded_us;
         let x = t.ln();
         let bound = self.cfg.max_ratio_per_frame.ln();
-        let delta = if mv.m < self.cfg.metric_floor_grey2 && mv.mean_grey < self.cfg.dark_mean_grey
-        {
-            // Nothing to climb in the dark: brighten as fast as allowed.
+        let delta = if mv.m < self.cfg.metric_floor_grey2 {
+            // No gradient to climb (black or washed out): move toward mid grey as fast
+            // as allowed.
             self.reset_ascent();
-            bound.min(self.headroom(mv.bright_grey))
+            if mv.mean_grey < 128.0 {
+                bound
+            } else {
+                -bound
+            }
         } else {
-            let s = mv.dm_dlnt / mv.m.max(self.cfg.metric_floor_grey2);
-            let d = self.ascent_step(x, s, mv.bright_grey);
+            let s = mv.dm_dlnt / mv.m;
+            let d = self.ascent_step(x, s);
             self.prev = Some((x, s));
             d
         };

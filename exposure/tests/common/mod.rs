@@ -1,0 +1,185 @@
+//! A small scene renderer for the controller tests: a linear (or given-response) camera
+//! imaging a marker-like pattern under uneven light (bright spot on the marker, dark
+//! surround), with an optional caustic flicker. Deterministic.
+#![allow(dead_code)]
+
+use markhold_exposure::{
+    Corners, ExposureController, ExposureLimits, Frame, GradientMetric, MetricParams, Response, Roi,
+};
+
+pub const W: u32 = 320;
+pub const H: u32 = 240;
+
+pub fn limits() -> ExposureLimits {
+    ExposureLimits {
+        min_us: 10.0,
+        max_us: 30_000.0,
+        fps: 30.0,
+    }
+}
+
+/// Irradiance map in units where `E * t_us / FULL_WELL_US = 1` is full well.
+pub const FULL_WELL_US: f64 = 1000.0;
+
+pub struct Scene {
+    pub irradiance: Vec<f64>,
+    pub corners: Corners,
+    pub response: Response,
+    /// Multiplicative light pattern per pixel and frame (caustics), if any.
+    pub caustic_amp: f64,
+}
+
+/// Reflectance of the 6x6 cell marker (black border, fixed inner bits).
+fn marker_cell(cx: usize, cy: usize) -> f64 {
+    const BITS: [[u8; 4]; 4] = [[1, 0, 1, 1], [0, 1, 0, 0], [1, 1, 0, 1], [0, 0, 1, 0]];
+    if cx == 0 || cy == 0 || cx == 5 || cy == 5 {
+        0.05
+    } else if BITS[cy - 1][cx - 1] == 1 {
+        0.9
+    } else {
+        0.05
+    }
+}
+
+impl Scene {
+    /// Marker of `side` pixels centred at (cx, cy); light `spot` on the marker and
+    /// `ambient` elsewhere (relative irradiance).
+    pub fn marker(response: Response, spot: f64, ambient: f64) -> Self {
+        Self::marker_lit(response, spot, ambient, 400.0)
+    }
+
+    /// As [`Scene::marker`] with the light spot's radius in pixels.
+    pub fn marker_lit(response: Response, spot: f64, ambient: f64, radius: f64) -> Self {
+        let (w, h) = (W as usize, H as usize);
+        let side = 120.0;
+        let (mx, my) = (160.0 - side / 2.0, 120.0 - side / 2.0);
+        let mut irradiance = vec![0.0; w * h];
+        // 4x4 supersampling gives anti-aliased edges, like a real lens.
+        for y in 0..h {
+            for x in 0..w {
+                let mut acc = 0.0;
+                for sy in 0..4 {
+                    for sx in 0..4 {
+                        let px = x as f64 + (sx as f64 + 0.5) / 4.0;
+                        let py = y as f64 + (sy as f64 + 0.5) / 4.0;
+                        let (u, v) = ((px - mx) / side, (py - my) / side);
+                        let refl = if (0.0..1.0).contains(&u) && (0.0..1.0).contains(&v) {
+                            marker_cell((u * 6.0) as usize, (v * 6.0) as usize)
+                        } else {
+                            // Textured surround (rock / sand).
+                            0.35 + 0.2 * (px * 0.11).sin() * (py * 0.07).cos()
+                                + 0.1 * (px * 0.023 + py * 0.031).sin()
+                        };
+                        let d2 = ((px - 160.0).powi(2) + (py - 120.0).powi(2)) / radius.powi(2);
+                        let light = ambient + spot * (-d2).exp();
+                        acc += refl * light;
+                    }
+                }
+                irradiance[y * w + x] = acc / 16.0;
+            }
+        }
+        let corners = [
+            [mx as f32, my as f32],
+            [(mx + side) as f32, my as f32],
+            [(mx + side) as f32, (my + side) as f32],
+            [mx as f32, (my + side) as f32],
+        ];
+        Self {
+            irradiance,
+            corners,
+            response,
+            caustic_amp: 0.0,
+        }
+    }
+
+    /// Render at `t_us` into `frame` (frame index `k` drives the caustics).
+    pub fn render(&self, t_us: f64, k: u64, frame: &mut Frame) {
+        frame.resize(W, H);
+        let scale = t_us / FULL_WELL_US;
+        let ph = k as f64 * 2.3;
+        for y in 0..H as usize {
+            for x in 0..W as usize {
+                let mut e = self.irradiance[y * W as usize + x];
+                if self.caustic_amp > 0.0 {
+                    // Moving bright ridges, changing every frame.
+                    let c = ((x as f64 * 0.21 + ph).sin()
+                        + (y as f64 * 0.17 - 1.3 * ph).sin()
+                        + ((x + y) as f64 * 0.13 + 0.7 * ph).sin())
+                        / 3.0;
+                    e *= 1.0 + self.caustic_amp * c.max(0.0).powi(2) * 3.0;
+                }
+                let g = self.response.grey(e * scale);
+                frame.data[y * W as usize + x] = g.round().clamp(0.0, 255.0) as u8;
+            }
+        }
+        frame.meta.exposure_us = t_us;
+        frame.meta.seq = k;
+        frame.meta.stamp_s = k as f64 / 30.0;
+    }
+
+    pub fn roi(&self) -> Roi {
+        Roi::from_corners_padded(&self.corners, 0.1, W, H).unwrap()
+    }
+
+    /// `M` on `roi` at exposure `t_us`.
+    pub fn metric_at(&self, t_us: f64, roi: Roi, params: MetricParams) -> f64 {
+        let mut f = Frame::new(W, H);
+        self.render(t_us, 0, &mut f);
+        let mut m = GradientMetric::new(&self.response, params);
+        m.evaluate(f.view().crop(roi))
+            .map(|v| v.m)
+            .unwrap_or(f64::NAN)
+    }
+
+    /// Argmax of `score(t)` over a log sweep of `[lo, hi]` with ratio steps of 0.5%.
+    pub fn argmax(lo: f64, hi: f64, mut score: impl FnMut(f64) -> f64) -> f64 {
+        let (mut best_t, mut best) = (lo, f64::MIN);
+        let mut t = lo;
+        while t <= hi {
+            let s = score(t);
+            if s > best {
+                best = s;
+                best_t = t;
+            }
+            t *= 1.005;
+        }
+        best_t
+    }
+}
+
+/// Run a controller on the scene for `frames` frames; a command issued after frame k
+/// takes effect at frame k + 1 + `delay`. Returns the exposure of every frame.
+pub fn run(
+    scene: &Scene,
+    ctrl: &mut dyn ExposureController,
+    t0: f64,
+    frames: usize,
+    delay: usize,
+    marker: bool,
+) -> Vec<f64> {
+    let mut applied = vec![t0; frames + delay + 2];
+    let mut frame = Frame::new(W, H);
+    for k in 0..frames {
+        scene.render(applied[k], k as u64, &mut frame);
+        let step = ctrl.update(&frame, marker.then_some(&scene.corners));
+        assert!(step.exposure_us.is_finite());
+        for a in applied.iter_mut().skip(k + 1 + delay) {
+            *a = step.exposure_us;
+        }
+    }
+    applied.truncate(frames);
+    applied
+}
+
+/// First frame index from which every exposure stays within `tol` (relative) of `target`.
+pub fn settled_at(exposures: &[f64], target: f64, tol: f64) -> Option<usize> {
+    let mut first = None;
+    for (i, &t) in exposures.iter().enumerate() {
+        if ((t - target) / target).abs() <= tol {
+            first.get_or_insert(i);
+        } else {
+            first = None;
+        }
+    }
+    first
+}
