@@ -287,3 +287,170 @@ impl Supervisor {
         self.action_taken
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn sup(action: MarkerLostAction) -> Supervisor {
+        let ctl = ControllerConfig {
+            marker_lost_hold_s: 0.5,
+            marker_lost_action_after_s: 3.0,
+            marker_lost_action: action,
+            vision_stall_s: 0.5,
+            ..Default::default()
+        };
+        let link = LinkConfig {
+            vehicle_heartbeat_timeout_s: 2.0,
+            disarm_on_exit: true,
+            ..Default::default()
+        };
+        Supervisor::new(&ctl, &link)
+    }
+
+    fn input(
+        now: f64,
+        hb: Option<f64>,
+        frame: Option<f64>,
+        marker: Option<f64>,
+    ) -> SupervisorInput {
+        SupervisorInput {
+            now_s: now,
+            vehicle_heartbeat_s: hb,
+            last_frame_s: frame,
+            marker_seen_s: marker,
+            shutdown: false,
+        }
+    }
+
+    #[test]
+    fn silent_until_vehicle_then_command() {
+        let mut s = sup(MarkerLostAction::None);
+        let mut ev = Vec::new();
+        assert_eq!(
+            s.update(&input(0.0, None, Some(0.0), Some(0.0)), &mut ev),
+            Directive::Silent
+        );
+        assert!(ev.is_empty());
+        assert_eq!(
+            s.update(&input(0.1, Some(0.1), Some(0.1), Some(0.1)), &mut ev),
+            Directive::Command
+        );
+        assert!(matches!(ev[..], [FailsafeEvent::VehicleConnected { .. }]));
+    }
+
+    #[test]
+    fn vision_stall_goes_neutral_and_recovers() {
+        let mut s = sup(MarkerLostAction::None);
+        let mut ev = Vec::new();
+        s.update(&input(0.0, Some(0.0), Some(0.0), Some(0.0)), &mut ev);
+        ev.clear();
+        let d = s.update(&input(0.6, Some(0.6), Some(0.0), Some(0.0)), &mut ev);
+        assert_eq!(d, Directive::Neutral);
+        assert!(ev
+            .iter()
+            .any(|e| matches!(e, FailsafeEvent::VisionStalled { .. })));
+        ev.clear();
+        let d = s.update(&input(0.7, Some(0.7), Some(0.7), Some(0.7)), &mut ev);
+        assert_eq!(d, Directive::Command);
+        assert!(ev
+            .iter()
+            .any(|e| matches!(e, FailsafeEvent::VisionRestored { .. })));
+    }
+
+    #[test]
+    fn marker_loss_events_and_action_once() {
+        let mut s = sup(MarkerLostAction::AltHold);
+        let mut ev = Vec::new();
+        s.update(&input(0.0, Some(0.0), Some(0.0), Some(0.0)), &mut ev);
+        ev.clear();
+        // Within the hold: nothing.
+        assert_eq!(
+            s.update(&input(0.4, Some(0.4), Some(0.4), Some(0.0)), &mut ev),
+            Directive::Command
+        );
+        assert!(ev.is_empty());
+        // Past the hold: MarkerLost; the keeper itself goes neutral, the loop still commands.
+        assert_eq!(
+            s.update(&input(1.0, Some(1.0), Some(1.0), Some(0.0)), &mut ev),
+            Directive::Command
+        );
+        assert!(
+            matches!(ev[..], [FailsafeEvent::MarkerLost { last_seen_s, .. }] if last_seen_s == 0.0)
+        );
+        ev.clear();
+        // Past the action time: action due once, then neutral.
+        assert_eq!(
+            s.update(&input(3.1, Some(3.1), Some(3.1), Some(0.0)), &mut ev),
+            Directive::Neutral
+        );
+        assert!(matches!(
+            ev[..],
+            [FailsafeEvent::MarkerLostActionDue {
+                action: MarkerLostAction::AltHold,
+                ..
+            }]
+        ));
+        ev.clear();
+        s.update(&input(4.0, Some(4.0), Some(4.0), Some(0.0)), &mut ev);
+        assert!(ev.is_empty());
+        // Re-acquired.
+        assert_eq!(
+            s.update(&input(5.0, Some(5.0), Some(5.0), Some(5.0)), &mut ev),
+            Directive::Command
+        );
+        assert!(
+            matches!(ev[..], [FailsafeEvent::MarkerReacquired { lost_for_s, .. }] if (lost_for_s - 5.0).abs() < 1e-12)
+        );
+    }
+
+    #[test]
+    fn shutdown_wins_and_reports_disarm() {
+        let mut s = sup(MarkerLostAction::None);
+        let mut ev = Vec::new();
+        let mut i = input(1.0, Some(1.0), Some(1.0), Some(1.0));
+        i.shutdown = true;
+        assert_eq!(s.update(&i, &mut ev), Directive::Shutdown { disarm: true });
+        assert_eq!(s.update(&i, &mut ev), Directive::Shutdown { disarm: true });
+        assert_eq!(ev.len(), 1, "{ev:?}");
+    }
+
+    mod props {
+        use super::*;
+        use proptest::prelude::*;
+
+        proptest! {
+            /// Random heartbeat arrival gaps: the directive is Silent exactly when the last
+            /// heartbeat is older than the timeout, and Lost/Restored events alternate.
+            #[test]
+            fn heartbeat_loss_transitions(gaps in prop::collection::vec(0.01..4.0f64, 1..60)) {
+                let mut s = sup(MarkerLostAction::None);
+                let mut ev = Vec::new();
+                let mut t_hb = 0.0;
+                let mut now = 0.0;
+                for g in gaps {
+                    // Tick every 0.1 s until the next heartbeat arrives.
+                    let next = t_hb + g;
+                    while now + 0.1 < next {
+                        now += 0.1;
+                        let d = s.update(&input(now, Some(t_hb), Some(now), Some(now)), &mut ev);
+                        let lost = now - t_hb > 2.0;
+                        prop_assert_eq!(d == Directive::Silent, lost);
+                    }
+                    now = next;
+                    t_hb = next;
+                    let d = s.update(&input(now, Some(t_hb), Some(now), Some(now)), &mut ev);
+                    prop_assert_eq!(d, Directive::Command);
+                }
+                let hb: Vec<_> = ev
+                    .iter()
+                    .filter(|e| matches!(e, FailsafeEvent::VehicleHeartbeatLost { .. } | FailsafeEvent::VehicleHeartbeatRestored { .. }))
+                    .collect();
+                for (i, e) in hb.iter().enumerate() {
+                    let lost = matches!(e, FailsafeEvent::VehicleHeartbeatLost { .. });
+                    prop_assert_eq!(lost, i % 2 == 0, "events out of order: {:?}", hb);
+                }
+            }
+        }
+    }
+}
