@@ -125,8 +125,8 @@ impl WaterConfig {
             backscatter_per_m: self.backscatter_per_m.unwrap_or(b),
             daylight_attenuation_per_m: self.daylight_attenuation_per_m.unwrap_or(kd),
             veiling_fraction: self.veiling_fraction.unwrap_or(veil),
-            // About a tenth of the scattering goes back toward a camera beside the lamp.
-            lamp_scatter_per_m: self.lamp_scatter_per_m.unwrap_or(0.05 * b),
+            // A small share of the scattered beam comes back toward the camera.
+            lamp_scatter_per_m: self.lamp_scatter_per_m.unwrap_or(0.02 * b),
         }
     }
 }
@@ -372,9 +372,9 @@ impl LightingConfig {
                 1.0,
                 vehicle_lamp_pair(0.0),
                 Some(LampConfig {
-                    position_m: [0.25, 0.35, 0.6],
-                    direction: [-0.25, -0.35, -0.6],
-                    intensity_w_sr: 250.0,
+                    position_m: [0.12, 0.25, 0.7],
+                    direction: [-0.12, -0.25, -0.7],
+                    intensity_w_sr: 500.0,
                     inner_half_angle_deg: 8.0,
                     outer_half_angle_deg: 16.0,
                 }),
@@ -500,6 +500,11 @@ impl MarkerSpec {
 /// Albedo of the marker's white plate and black ink (matte print).
 pub const ALBEDO_WHITE: f64 = 0.85;
 pub const ALBEDO_BLACK: f64 = 0.04;
+/// Specular reflectance of the marker's matte laminate (2 %; a glossy one reflects about
+/// 4 %) and the Blinn-Phong exponent of its lobe: a glare spot about 15 degrees wide that
+/// lifts black and white cells alike, as in the paper's adversarial pictures.
+const GLOSS_REFLECTANCE: f64 = 0.02;
+const GLOSS_EXPONENT: f64 = 40.0;
 /// Albedo of the back of the plate (seen only from behind).
 const ALBEDO_PLATE_BACK: f64 = 0.3;
 
@@ -532,6 +537,17 @@ impl WorldLamp {
     /// Irradiance the lamp gives to a point with unit normal `n` (attenuated on the way).
     #[inline]
     fn irradiance(&self, p: &Vector3<f64>, n: Option<&Vector3<f64>>, c: f64) -> f64 {
+        self.irradiance_from(p, n, c).0
+    }
+
+    /// Irradiance at `p` and the unit direction from `p` toward the lamp.
+    #[inline]
+    fn irradiance_from(
+        &self,
+        p: &Vector3<f64>,
+        n: Option<&Vector3<f64>>,
+        c: f64,
+    ) -> (f64, Vector3<f64>) {
         let v = self.pos - p;
         let r2 = v.norm_squared().max(1e-4);
         let r = r2.sqrt();
@@ -539,13 +555,13 @@ impl WorldLamp {
         let cos_axis = -l.dot(&self.axis);
         let cone = smoothstep(self.cos_outer, self.cos_inner, cos_axis);
         if cone <= 0.0 {
-            return 0.0;
+            return (0.0, l);
         }
         let cos_i = match n {
             Some(n) => n.dot(&l).max(0.0),
             None => 1.0,
         };
-        self.intensity * cone * cos_i * (-c * r).exp() / r2
+        (self.intensity * cone * cos_i * (-c * r).exp() / r2, l)
     }
 }
 
@@ -564,13 +580,15 @@ pub(crate) enum Surface {
 
 /// What the light model says about one surface point seen from the camera, in
 /// exitance-equivalent units (W/m2): the signal is
-/// `albedo * (ambient * caustic + lamp) + backscatter`.
+/// `albedo * (ambient * caustic + lamp) + glare + backscatter`.
 #[derive(Debug, Clone, Copy, PartialEq, Default)]
 pub(crate) struct Shade {
     /// Daylight reflected by a white surface, attenuated on the way to the camera.
     pub(crate) ambient: f64,
     /// Lamp light reflected by a white surface, attenuated on the way to the camera.
     pub(crate) lamp: f64,
+    /// Lamp light mirrored by the plate's laminate (same on black and white cells).
+    pub(crate) glare: f64,
     /// Water between the camera and the point.
     pub(crate) backscatter: f64,
 }
@@ -702,6 +720,7 @@ impl Scene {
 
     /// The light model at world point `p` on a surface with unit normal `n`, seen from
     /// `cam` along unit direction `ray` at distance `dist`.
+    #[allow(clippy::too_many_arguments)]
     pub(crate) fn shade(
         &self,
         p: &Vector3<f64>,
@@ -710,6 +729,7 @@ impl Scene {
         ray: &Vector3<f64>,
         dist: f64,
         lamps: &[WorldLamp],
+        glossy: bool,
     ) -> Shade {
         let c = self.water.attenuation_per_m;
         let to_cam = (-c * dist).exp();
@@ -717,10 +737,23 @@ impl Scene {
         let facing_up = (-n.z).max(0.0);
         let e_amb =
             self.daylight(p.z) * (SIDE_LIGHT_FRACTION + (1.0 - SIDE_LIGHT_FRACTION) * facing_up);
-        let e_lamp: f64 = lamps.iter().map(|l| l.irradiance(p, Some(n), c)).sum();
+        let mut e_lamp = 0.0;
+        let mut glare = 0.0;
+        for lamp in lamps {
+            let (e, l) = lamp.irradiance_from(p, Some(n), c);
+            e_lamp += e;
+            if glossy && e > 0.0 {
+                // Blinn-Phong lobe of the laminate, energy-normalized, in exitance units.
+                let h = (l - ray).normalize();
+                let nh = n.dot(&h).max(0.0);
+                glare +=
+                    e * GLOSS_REFLECTANCE * (GLOSS_EXPONENT + 8.0) / 8.0 * nh.powf(GLOSS_EXPONENT);
+            }
+        }
         Shade {
             ambient: e_amb * to_cam,
             lamp: e_lamp * to_cam,
+            glare: glare * to_cam,
             backscatter: self.backscatter(cam, ray, dist, lamps),
         }
     }

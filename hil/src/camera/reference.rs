@@ -163,7 +163,8 @@ pub(crate) fn pixel_light(
     let Some(hit) = trace(scene, &o, &r) else {
         return scene.backscatter(&o, &r, f64::INFINITY, lamps);
     };
-    let shade = scene.shade(&hit.point, &hit.normal, &o, &r, hit.dist, lamps);
+    let glossy = hit.surface == Surface::Plate && hit.front;
+    let shade = scene.shade(&hit.point, &hit.normal, &o, &r, hit.dist, lamps, glossy);
     let albedo = match hit.surface {
         Surface::Plate if hit.front => {
             // Footprint from the neighbouring pixels' rays on the plate plane.
@@ -185,7 +186,7 @@ pub(crate) fn pixel_light(
         Surface::Wall | Surface::Seabed => scene.rock_albedo(hit.uv.0, hit.uv.1),
     };
     let caustic = scene.caustic(hit.uv.0, hit.uv.1, time_s);
-    albedo * (shade.ambient * caustic + shade.lamp) + shade.backscatter
+    albedo * (shade.ambient * caustic + shade.lamp) + shade.glare + shade.backscatter
 }
 
 #[allow(clippy::too_many_arguments)]

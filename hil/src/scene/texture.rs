@@ -95,7 +95,7 @@ pub(crate) fn rock_texture(seed: u64, log2: u32, mean: f32, spread: f32) -> Text
     let mut cells = 4usize;
     while cells <= side / 2 {
         value_noise_octave(&mut rng, side, cells, &mut acc, amp);
-        amp *= 0.55;
+        amp *= 0.7;
         cells *= 2;
     }
     // Normalize to zero mean, unit range, then to albedo.
