@@ -1,0 +1,242 @@
+#!/usr/bin/env python3
+"""A pymavlink 'vehicle' for markhold-autopilot's interop test.
+
+It listens on UDP (127.0.0.1, port 0) or on a pseudo-terminal, prints where on its first
+stdout line ("UDP <port>" or "PTY <path>"), sends ArduSub-like heartbeats and telemetry,
+acknowledges arm / mode / stream commands, and checks what the link sends: sender system
+id, GCS heartbeat type and rate, pilot-input channel map, PWM ranges and rate, neutral
+before the final disarm. The run ends at the disarm (or the deadline); the verdict is a
+JSON line on stdout and the exit status (0 = all checks passed).
+"""
+import argparse
+import json
+import os
+import select
+import socket
+import sys
+import time
+
+from pymavlink.dialects.v20 import ardupilotmega as mav2
+
+
+class Out:
+    """File-like sink for pymavlink's *_send methods."""
+
+    def __init__(self, send):
+        self.send = send
+
+    def write(self, data):
+        self.send(bytes(data))
+
+
+def main():
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--mode", choices=["udp", "pty"], default="udp")
+    ap.add_argument("--pilot", choices=["rc", "manual"], default="rc")
+    ap.add_argument("--deadline", type=float, default=30.0)
+    args = ap.parse_args()
+
+    peer = [None]
+    if args.mode == "udp":
+        sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        sock.bind(("127.0.0.1", 0))
+        sock.setblocking(False)
+        print("UDP %d" % sock.getsockname()[1], flush=True)
+
+        def send(b):
+            if peer[0] is not None:
+                sock.sendto(b, peer[0])
+
+        def recv():
+            r, _, _ = select.select([sock], [], [], 0.005)
+            if not r:
+                return b""
+            data, addr = sock.recvfrom(4096)
+            peer[0] = addr
+            return data
+    else:
+        import tty
+
+        master, slave = os.openpty()
+        tty.setraw(slave)
+        path = os.ttyname(slave)
+        os.set_blocking(master, False)
+        print("PTY %s" % path, flush=True)
+
+        def send(b):
+            try:
+                os.write(master, b)
+            except OSError:
+                pass
+
+        def recv():
+            r, _, _ = select.select([master], [], [], 0.005)
+            if not r:
+                return b""
+            try:
+                return os.read(master, 4096)
+            except OSError:
+                return b""
+
+    mav = mav2.MAVLink(Out(send), srcSystem=1, srcComponent=1)
+    mav.robust_parsing = True
+
+    failures = []
+    armed = False
+    mode = 0
+    gcs_hb_times = []
+    pilot = []  # (t, sysid, compid, fields)
+    stream_ids = set()
+    disarm_at = None
+    neutral_before_disarm = None
+    t0 = time.time()
+    last_hb = 0.0
+
+    while time.time() - t0 < args.deadline:
+        now = time.time()
+        if now - last_hb >= 0.1:
+            last_hb = now
+            base = mav2.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED | (mav2.MAV_MODE_FLAG_SAFETY_ARMED if armed else 0)
+            mav.heartbeat_send(mav2.MAV_TYPE_SUBMARINE, mav2.MAV_AUTOPILOT_ARDUPILOTMEGA, base, mode, mav2.MAV_STATE_ACTIVE)
+            if stream_ids:
+                mav.attitude_send(1234, 0.05, -0.04, 1.5, 0.0, 0.0, 0.2)
+                # 3 m deep, fresh water (997 kg/m^3), 101325 Pa surface.
+                mav.scaled_pressure2_send(1234, (101325.0 + 997.0 * 9.80665 * 3.0) / 100.0, 0.0, 1500)
+                mav.servo_output_raw_send(1234, 0, 1100, 1200, 1300, 1400, 1500, 1600, 1700, 1800)
+                mav.local_position_ned_send(1234, 1.0, -2.0, 3.0, 0.1, 0.2, 0.3)
+        data = recv()
+        if not data:
+            if disarm_at is not None and now - disarm_at > 0.3:
+                break
+            continue
+        try:
+            msgs = mav.parse_buffer(data) or []
+        except Exception as e:  # a frame pymavlink cannot decode is a failure
+            failures.append("parse error: %r" % (e,))
+            continue
+        for m in msgs:
+            t = m.get_type()
+            src = (m.get_srcSystem(), m.get_srcComponent())
+            if t == "BAD_DATA":
+                failures.append("bad data from link")
+                continue
+            if t == "HEARTBEAT":
+                gcs_hb_times.append(now)
+                if m.type != mav2.MAV_TYPE_GCS or m.autopilot != mav2.MAV_AUTOPILOT_INVALID:
+                    failures.append("heartbeat type %d autopilot %d" % (m.type, m.autopilot))
+                if src[0] != 255:
+                    failures.append("heartbeat from system %d" % src[0])
+            elif t in ("RC_CHANNELS_OVERRIDE", "MANUAL_CONTROL"):
+                if src[0] != 255:
+                    failures.append("%s from system %d (ArduSub drops it)" % (t, src[0]))
+                pilot.append((now, t, m))
+            elif t == "COMMAND_LONG":
+                if src[0] != 255:
+                    failures.append("COMMAND_LONG from system %d" % src[0])
+                if m.target_system != 1:
+                    failures.append("COMMAND_LONG to system %d" % m.target_system)
+                result = mav2.MAV_RESULT_ACCEPTED
+                if m.command == mav2.MAV_CMD_COMPONENT_ARM_DISARM:
+                    armed = m.param1 > 0.5
+                    if not armed and disarm_at is None:
+                        disarm_at = now
+                        neutral_before_disarm = pilot[-1] if pilot else None
+                elif m.command == mav2.MAV_CMD_DO_SET_MODE:
+                    if int(m.param1) != 1:
+                        failures.append("DO_SET_MODE param1 %r" % m.param1)
+                    mode = int(m.param2)
+                elif m.command == mav2.MAV_CMD_SET_MESSAGE_INTERVAL:
+                    stream_ids.add(int(m.param1))
+                mav.command_ack_send(m.command, result)
+
+    # --- verdict ---
+    if disarm_at is None:
+        failures.append("no disarm received before the deadline")
+    if not gcs_hb_times:
+        failures.append("no GCS heartbeat")
+    else:
+        span = gcs_hb_times[-1] - gcs_hb_times[0]
+        if len(gcs_hb_times) >= 2:
+            rate = (len(gcs_hb_times) - 1) / span
+            if not 0.7 <= rate <= 1.4:
+                failures.append("heartbeat rate %.2f Hz" % rate)
+    for want in (30, 32, 36, 137):
+        if want not in stream_ids:
+            failures.append("stream %d not requested" % want)
+    if mode != 19:
+        failures.append("mode %d, expected MANUAL (19)" % mode)
+
+    # Pilot-input rate over the commanded period (wall clock, the link runs at 30 Hz).
+    pilot_rate = 0.0
+    if len(pilot) >= 2:
+        pilot_rate = (len(pilot) - 1) / (pilot[-1][0] - pilot[0][0])
+        if pilot_rate < 20.0:
+            failures.append("pilot input %.1f Hz < 20 Hz" % pilot_rate)
+    else:
+        failures.append("no pilot input")
+
+    seen = set()
+    expected = None
+    if args.pilot == "rc":
+        # Channel map: 1 pitch, 2 roll, 3 throttle, 4 yaw, 5 forward, 6 lateral.
+        expected = {(5, 1), (6, -1), (3, -1), (4, 1), (2, 1), (1, -1)}
+        for _, t, m in pilot:
+            if t != "RC_CHANNELS_OVERRIDE":
+                failures.append("unexpected %s" % t)
+                continue
+            if (m.target_system, m.target_component) != (1, 1):
+                failures.append("override to %d/%d" % (m.target_system, m.target_component))
+            ch = [m.chan1_raw, m.chan2_raw, m.chan3_raw, m.chan4_raw, m.chan5_raw, m.chan6_raw]
+            for c in ch:
+                if not 1100 <= c <= 1900:
+                    failures.append("pwm %d out of 1100..1900" % c)
+            dev = [(i + 1, 1 if c > 1500 else -1, abs(c - 1500)) for i, c in enumerate(ch) if c != 1500]
+            if len(dev) > 1:
+                failures.append("several channels moved at once: %r" % (ch,))
+            for i, s, mag in dev:
+                seen.add((i, s))
+                # Effort 0.5 in MANUAL: 28 us dead band + 0.5 * 372.
+                if mag != 214:
+                    failures.append("channel %d offset %d, expected 214" % (i, mag))
+        last = neutral_before_disarm
+        if last is None or [last[2].chan1_raw, last[2].chan2_raw, last[2].chan3_raw, last[2].chan4_raw,
+                            last[2].chan5_raw, last[2].chan6_raw] != [1500] * 6:
+            failures.append("last override before disarm not neutral")
+    else:
+        # MANUAL_CONTROL: x fwd, y lat, z throttle 0..1000 (500 neutral), r yaw, s pitch, t roll.
+        expected = {("x", 1), ("y", -1), ("z", -1), ("r", 1), ("t", 1), ("s", -1)}
+        for _, t, m in pilot:
+            if t != "MANUAL_CONTROL":
+                failures.append("unexpected %s" % t)
+                continue
+            if m.target != 1:
+                failures.append("MANUAL_CONTROL target %d" % m.target)
+            vals = {"x": m.x, "y": m.y, "z": m.z - 500, "r": m.r, "s": m.s, "t": m.t}
+            for k, v in vals.items():
+                lim = 500 if k == "z" else 1000
+                if not -lim <= v <= lim:
+                    failures.append("%s=%d out of range" % (k, v))
+            dev = [(k, 1 if v > 0 else -1) for k, v in vals.items() if v != 0]
+            if len(dev) > 1:
+                failures.append("several axes moved at once: %r" % (vals,))
+            seen.update(dev)
+        last = neutral_before_disarm
+        if last is None or (last[2].x, last[2].y, last[2].z, last[2].r, last[2].s, last[2].t) != (0, 0, 500, 0, 0, 0):
+            failures.append("last MANUAL_CONTROL before disarm not neutral")
+    if seen != expected:
+        failures.append("axis map: saw %r expected %r" % (sorted(seen), sorted(expected)))
+
+    verdict = {
+        "ok": not failures,
+        "failures": failures[:20],
+        "heartbeats": len(gcs_hb_times),
+        "pilot_inputs": len(pilot),
+        "pilot_rate_hz": round(pilot_rate, 2),
+        "streams": sorted(stream_ids),
+    }
+    print(json.dumps(verdict), flush=True)
+    sys.exit(0 if not failures else 1)
+
+
+if __name__ == "__main__":
+    main()
