@@ -5,14 +5,18 @@
 //! based underwater camera; and ArduPilot's SITL JSON physics server.
 
 pub mod camera;
+pub mod endpoint;
 mod error;
 pub mod mixer;
+pub mod rig;
 pub mod scene;
 pub mod thruster;
 pub mod vehicle;
 
+pub use endpoint::{EndpointConfig, VehicleEndpoint};
 pub use error::HilError;
 pub use mixer::{Frame6Dof, Mixer};
+pub use rig::{HilRig, HilSetup, Truth};
 pub use thruster::ThrusterConfig;
 pub use vehicle::{Hydrodynamics, Vehicle, VehicleConfig, VehicleMotion, VehicleState};
 

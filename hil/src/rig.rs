@@ -1,0 +1,285 @@
+//! The HIL rig: the simulated vehicle, its MAVLink endpoint and the underwater camera on
+//! one simulation clock, seen by markhold as a [`Camera`] whose frames come from a world
+//! that moves with the commands markhold sends.
+//!
+//! One `grab` = one camera frame: (lock-step) wait for the client's pilot input for this
+//! frame, handle all pending MAVLink, step physics at the fixed rate up to the frame's
+//! time while the endpoint's autopilot mixes efforts onto the thrusters and streams
+//! telemetry on simulation time, then render the frame from the vehicle's pose.
+
+use std::net::SocketAddr;
+use std::time::{Duration, Instant};
+
+use markhold_exposure::{Camera, CameraError, ExposureLimits, Frame};
+use nalgebra::Isometry3;
+
+use crate::camera::{CameraModel, UnderwaterCamera};
+use crate::endpoint::{EndpointConfig, EndpointStats, VehicleEndpoint};
+use crate::mixer::MAX_MOTORS;
+use crate::scene::{LightingConfig, MarkerSpec, Scene, WaterConfig};
+use crate::vehicle::{Vehicle, VehicleConfig, VehicleMotion, VehicleState};
+use crate::{invalid, HilError};
+
+/// How long a lock-step grab waits for the client's input, wall clock.
+pub const LOCKSTEP_WAIT: Duration = Duration::from_millis(250);
+
+/// Everything the rig is built from (the site file, resolved by the caller).
+#[derive(Debug, Clone)]
+pub struct HilSetup {
+    pub vehicle: VehicleConfig,
+    pub endpoint: EndpointConfig,
+    pub water: WaterConfig,
+    pub lighting: LightingConfig,
+    pub camera: CameraModel,
+    /// Camera mount on the vehicle (docs/frames.md).
+    pub t_vehicle_cam: Isometry3<f64>,
+    pub marker: MarkerSpec,
+    pub t_world_marker: Isometry3<f64>,
+    pub t_world_vehicle_start: Isometry3<f64>,
+    pub motion: VehicleMotion,
+    pub seed: u64,
+    /// Wait for the client's pilot input before each frame (once it has sent any).
+    pub lock_step: bool,
+}
+
+/// Ground truth at the last grabbed frame (or now, before the first).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Truth {
+    pub time_s: f64,
+    pub t_world_vehicle: Isometry3<f64>,
+    pub t_world_cam: Isometry3<f64>,
+    pub t_cam_marker: Isometry3<f64>,
+    pub velocity_world_mps: [f64; 3],
+    pub armed: bool,
+    /// ArduSub custom_mode.
+    pub mode: u32,
+    /// Servo outputs (0 for motors the frame does not have).
+    pub pwm: [u16; 8],
+    /// Lock-step waits that ran out without client input.
+    pub lockstep_timeouts: u64,
+}
+
+/// The simulated world as a camera.
+pub struct HilRig {
+    vehicle: Vehicle,
+    endpoint: VehicleEndpoint,
+    camera: UnderwaterCamera,
+    scene: Scene,
+    t_vehicle_cam: Isometry3<f64>,
+    t_world_marker: Isometry3<f64>,
+    lock_step: bool,
+    lockstep_wait: Duration,
+    frames: u64,
+    steps: u64,
+    physics_hz: f64,
+    fps: f64,
+    pwm: [u16; MAX_MOTORS],
+    inputs_at_last_grab: u64,
+    lockstep_timeouts: u64,
+}
+
+fn cam_err(seq: u64, e: HilError) -> CameraError {
+    CameraError::Read {
+        device: "hil".to_string(),
+        seq,
+        reason: e.to_string(),
+    }
+}
+
+impl HilRig {
+    /// Build the world and bind the MAVLink endpoint (UDP on 127.0.0.1, port from
+    /// `setup.endpoint.udp_port`, 0 = any).
+    pub fn new(setup: HilSetup) -> Result<Self, HilError> {
+        setup.vehicle.validate()?;
+        setup.endpoint.validate()?;
+        let fps = setup.camera.fps;
+        if !(fps.is_finite() && fps > 0.0 && fps <= setup.vehicle.physics_hz) {
+            return Err(invalid("camera.fps", fps, "0 < fps <= vehicle.physics_hz"));
+        }
+        // Independent streams for the scene, the sensor noise and the gusts.
+        let scene = Scene::new(
+            &setup.water,
+            &setup.lighting,
+            setup.marker,
+            setup.t_world_marker,
+            setup.seed,
+        )?;
+        let camera =
+            UnderwaterCamera::new(setup.camera, setup.seed.wrapping_add(0x9E37_79B9_7F4A_7C15))?;
+        let mut vehicle = Vehicle::new(
+            &setup.vehicle,
+            &setup.t_world_vehicle_start,
+            setup.seed.wrapping_add(0x6A09_E667_F3BC_C908),
+        )?;
+        vehicle.set_motion(setup.motion);
+        let endpoint = VehicleEndpoint::bind(&setup.endpoint)?;
+        let idle = vehicle.mixer().mix_pwm(&[0.0; 6], false);
+        Ok(Self {
+            physics_hz: setup.vehicle.physics_hz,
+            vehicle,
+            endpoint,
+            camera,
+            scene,
+            t_vehicle_cam: setup.t_vehicle_cam,
+            t_world_marker: setup.t_world_marker,
+            lock_step: setup.lock_step,
+            lockstep_wait: LOCKSTEP_WAIT,
+            frames: 0,
+            steps: 0,
+            fps,
+            pwm: idle,
+            inputs_at_last_grab: 0,
+            lockstep_timeouts: 0,
+        })
+    }
+
+    /// Where markhold sends MAVLink (`udpout:<addr>`).
+    pub fn mavlink_udp_addr(&self) -> SocketAddr {
+        self.endpoint.udp_addr()
+    }
+
+    /// The TCP address when `endpoint.tcp_enabled`.
+    pub fn mavlink_tcp_addr(&self) -> Option<SocketAddr> {
+        self.endpoint.tcp_addr()
+    }
+
+    /// Process pending MAVLink now without advancing time (answer acks, heartbeats due).
+    pub fn pump(&mut self) -> Result<usize, HilError> {
+        let now = self.vehicle.time_s();
+        let n = self.endpoint.poll(now)?;
+        let state = self.vehicle.state();
+        self.endpoint.tick(&state, &self.pwm)?;
+        Ok(n)
+    }
+
+    /// Ground truth now.
+    pub fn truth(&self) -> Truth {
+        let s = self.vehicle.state();
+        let t_world_cam = s.t_world_vehicle * self.t_vehicle_cam;
+        Truth {
+            time_s: s.time_s,
+            t_world_vehicle: s.t_world_vehicle,
+            t_world_cam,
+            t_cam_marker: t_world_cam.inverse() * self.t_world_marker,
+            velocity_world_mps: s.velocity_world_mps.into(),
+            armed: self.endpoint.armed(),
+            mode: self.endpoint.mode(),
+            pwm: self.pwm,
+            lockstep_timeouts: self.lockstep_timeouts,
+        }
+    }
+
+    /// The vehicle's full state now.
+    pub fn vehicle_state(&self) -> VehicleState {
+        self.vehicle.state()
+    }
+
+    pub fn endpoint_stats(&self) -> EndpointStats {
+        self.endpoint.stats()
+    }
+
+    pub fn scene(&self) -> &Scene {
+        &self.scene
+    }
+
+    pub fn camera_model(&self) -> &CameraModel {
+        self.camera.model()
+    }
+
+    /// Simulation time, seconds.
+    pub fn sim_time_s(&self) -> f64 {
+        self.vehicle.time_s()
+    }
+
+    /// Frames grabbed so far.
+    pub fn frames(&self) -> u64 {
+        self.frames
+    }
+
+    /// Change how long lock-step waits for the client (wall clock).
+    pub fn set_lockstep_wait(&mut self, wait: Duration) {
+        self.lockstep_wait = wait;
+    }
+
+    fn lockstep_inputs(&self) -> u64 {
+        let s = self.endpoint.stats();
+        s.pilot_inputs + s.guided_targets
+    }
+
+    /// Wait (bounded) until the client sent input for this frame, handling MAVLink meanwhile.
+    fn wait_for_client(&mut self) -> Result<(), HilError> {
+        let now = self.vehicle.time_s();
+        self.endpoint.poll(now)?;
+        if !self.lock_step || self.lockstep_inputs() == 0 {
+            return Ok(());
+        }
+        let start = Instant::now();
+        while self.lockstep_inputs() <= self.inputs_at_last_grab {
+            let Some(left) = self.lockstep_wait.checked_sub(start.elapsed()) else {
+                self.lockstep_timeouts += 1;
+                tracing::debug!(frame = self.frames, "lock-step wait ran out");
+                break;
+            };
+            self.endpoint
+                .wait_readable(left.min(Duration::from_millis(5)))?;
+            self.endpoint.poll(now)?;
+        }
+        Ok(())
+    }
+
+    /// Advance physics to simulation time `frames / fps` (integer step count: no drift).
+    fn advance_to_frame(&mut self) -> Result<(), HilError> {
+        let target = (self.frames as f64 * self.physics_hz / self.fps).round() as u64;
+        let dt = self.vehicle.dt_s();
+        while self.steps < target {
+            let state = self.vehicle.state();
+            let efforts = self.endpoint.efforts(&state, dt);
+            self.pwm = self
+                .vehicle
+                .mixer()
+                .mix_pwm(&efforts, self.endpoint.armed());
+            self.vehicle.step(&self.pwm);
+            self.steps += 1;
+            let after = self.vehicle.state();
+            self.endpoint.tick(&after, &self.pwm)?;
+        }
+        Ok(())
+    }
+
+    /// One frame without the Camera trait's error type (the work of `grab`).
+    pub fn step_frame(&mut self, frame: &mut Frame) -> Result<(), HilError> {
+        self.wait_for_client()?;
+        self.inputs_at_last_grab = self.lockstep_inputs();
+        self.advance_to_frame()?;
+        let state = self.vehicle.state();
+        let t_world_cam = state.t_world_vehicle * self.t_vehicle_cam;
+        self.camera.render(
+            &self.scene,
+            &t_world_cam,
+            &state.t_world_vehicle,
+            state.time_s,
+            frame,
+        );
+        self.frames += 1;
+        Ok(())
+    }
+}
+
+impl Camera for HilRig {
+    fn name(&self) -> &str {
+        "hil"
+    }
+
+    fn exposure_limits(&self) -> ExposureLimits {
+        self.camera.model().limits
+    }
+
+    fn set_exposure_us(&mut self, exposure_us: f64) -> Result<f64, CameraError> {
+        Ok(self.camera.set_exposure_us(exposure_us))
+    }
+
+    fn grab(&mut self, frame: &mut Frame) -> Result<(), CameraError> {
+        let seq = self.frames;
+        self.step_frame(frame).map_err(|e| cam_err(seq, e))
+    }
+}
