@@ -1,0 +1,155 @@
+//! MAVLink 2 signing with a key file: outgoing frames carry a valid signature (checked with
+//! rust-mavlink's verifier and the same key), unsigned or wrongly signed incoming frames are
+//! ignored, signed ones are accepted.
+
+use std::net::UdpSocket;
+use std::path::PathBuf;
+use std::time::{Duration, Instant};
+
+use markhold_autopilot::*;
+use mavlink::dialects::ardupilotmega::*;
+use mavlink::{MavHeader, MavlinkReader, SigningConfig, SigningData};
+
+const KEY: [u8; 32] = [
+    0x11, 0x22, 0x33, 0x44, 0x55, 0x66, 0x77, 0x88, 0x99, 0xaa, 0xbb, 0xcc, 0xdd, 0xee, 0xff, 0x00,
+    0x01, 0x02, 0x03, 0x04, 0x05, 0x06, 0x07, 0x08, 0x09, 0x0a, 0x0b, 0x0c, 0x0d, 0x0e, 0x0f, 0x10,
+];
+
+fn key_file(name: &str, contents: &[u8]) -> PathBuf {
+    let p = std::env::temp_dir().join(format!("markhold-{}-{name}", std::process::id()));
+    std::fs::write(&p, contents).unwrap();
+    p
+}
+
+fn hex(k: &[u8]) -> String {
+    k.iter().map(|b| format!("{b:02x}")).collect()
+}
+
+fn vehicle_heartbeat(signing: Option<&SigningData>) -> Vec<u8> {
+    let msg = MavMessage::HEARTBEAT(HEARTBEAT_DATA {
+        custom_mode: 19,
+        mavtype: MavType::MAV_TYPE_SUBMARINE,
+        autopilot: MavAutopilot::MAV_AUTOPILOT_ARDUPILOTMEGA,
+        base_mode: MavModeFlag::MAV_MODE_FLAG_CUSTOM_MODE_ENABLED,
+        system_status: MavState::MAV_STATE_ACTIVE,
+        mavlink_version: 3,
+    });
+    let h = MavHeader {
+        system_id: 1,
+        component_id: 1,
+        sequence: 0,
+    };
+    let mut v = Vec::new();
+    mavlink::write_v2_msg_signed(&mut v, h, &msg, signing).unwrap();
+    v
+}
+
+#[test]
+fn signed_link_signs_and_checks() {
+    let path = key_file("key.hex", format!("{}\n", hex(&KEY)).as_bytes());
+    let vehicle = UdpSocket::bind("127.0.0.1:0").unwrap();
+    vehicle
+        .set_read_timeout(Some(Duration::from_millis(100)))
+        .unwrap();
+    let cfg = LinkConfig {
+        url: format!("udpout:{}", vehicle.local_addr().unwrap()),
+        signing_key_file: Some(path.clone()),
+        signing_link_id: 7,
+        ..Default::default()
+    };
+    let mut link = VehicleLink::connect(&cfg).unwrap();
+    link.tick(0.0).unwrap();
+
+    // Outgoing: signed, and the signature checks out with the key only.
+    let mut buf = [0u8; 512];
+    let (n, from) = vehicle
+        .recv_from(&mut buf)
+        .expect("heartbeat from the link");
+    assert_eq!(buf[0], 0xFD, "MAVLink 2");
+    assert_eq!(buf[2] & 0x01, 0x01, "incompat flag SIGNED");
+    let good = SigningData::from_config(SigningConfig::new(KEY, 0, false, false));
+    let mut r = MavlinkReader::new(&buf[..n]);
+    let (h, m) = r
+        .read_any_message_signed::<MavMessage>(Some(&good))
+        .expect("valid signature");
+    assert_eq!(h.system_id, 255);
+    assert!(matches!(m, MavMessage::HEARTBEAT(_)));
+    let mut wrong_key = KEY;
+    wrong_key[0] ^= 1;
+    let bad = SigningData::from_config(SigningConfig::new(wrong_key, 0, false, false));
+    let mut r = MavlinkReader::new(&buf[..n]);
+    assert!(r.read_any_message_signed::<MavMessage>(Some(&bad)).is_err());
+    // The link id from the config is in the signature block (13 bytes before the end).
+    assert_eq!(buf[n - 13], 7);
+
+    // Incoming: unsigned and wrongly signed heartbeats are ignored.
+    let to = ("127.0.0.1", from.port());
+    let signer_bad = SigningData::from_config(SigningConfig::new(wrong_key, 0, true, false));
+    let signer = SigningData::from_config(SigningConfig::new(KEY, 0, true, false));
+    let mut now = 0.0;
+    let t0 = Instant::now();
+    while t0.elapsed() < Duration::from_millis(300) {
+        vehicle.send_to(&vehicle_heartbeat(None), to).unwrap();
+        vehicle
+            .send_to(&vehicle_heartbeat(Some(&signer_bad)), to)
+            .unwrap();
+        now += 0.03;
+        link.tick(now).unwrap();
+        std::thread::sleep(Duration::from_millis(10));
+    }
+    assert!(
+        !link.state().discovered,
+        "accepted an unsigned or badly signed frame"
+    );
+
+    // A correctly signed heartbeat is accepted.
+    let t0 = Instant::now();
+    while !link.state().discovered {
+        assert!(
+            t0.elapsed() < Duration::from_secs(5),
+            "signed heartbeat not accepted"
+        );
+        vehicle
+            .send_to(&vehicle_heartbeat(Some(&signer)), to)
+            .unwrap();
+        now += 0.03;
+        link.tick(now).unwrap();
+        std::thread::sleep(Duration::from_millis(10));
+    }
+    assert_eq!(link.state().mode, Some(ArduSubMode::Manual));
+    let _ = std::fs::remove_file(path);
+}
+
+#[test]
+fn raw_32_byte_key_file_works_and_bad_files_are_named() {
+    let raw = key_file("key.bin", &KEY);
+    let cfg = LinkConfig {
+        url: "udpout:127.0.0.1:9".into(),
+        signing_key_file: Some(raw.clone()),
+        ..Default::default()
+    };
+    assert!(VehicleLink::connect(&cfg).is_ok());
+    let _ = std::fs::remove_file(raw);
+
+    let short = key_file("short.key", b"abc");
+    let cfg = LinkConfig {
+        signing_key_file: Some(short.clone()),
+        ..cfg
+    };
+    let e = VehicleLink::connect(&cfg)
+        .err()
+        .expect("must fail")
+        .to_string();
+    assert!(e.contains("short.key") && e.contains("32"), "{e}");
+    let _ = std::fs::remove_file(short);
+
+    let missing = LinkConfig {
+        signing_key_file: Some(PathBuf::from("/nonexistent/markhold.key")),
+        ..cfg
+    };
+    let e = VehicleLink::connect(&missing)
+        .err()
+        .expect("must fail")
+        .to_string();
+    assert!(e.contains("/nonexistent/markhold.key"), "{e}");
+}
