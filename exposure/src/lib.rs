@@ -5,14 +5,19 @@
 //! (Zhang et al. 2017), GEC (Shim et al.) and a camera's mean-intensity AE.
 
 mod aaec;
+mod aec;
 mod frame;
+mod gec;
 mod mean;
 pub mod metric;
+pub mod pyramid;
 pub mod reference;
 mod response;
 
 pub use aaec::{Aaec, AaecConfig, AaecFallback};
+pub use aec::{Aec, AecConfig};
 pub use frame::{Camera, CameraError, Corners, ExposureLimits, Frame, FrameMeta, ImageView, Roi};
+pub use gec::{best_gamma, fit_quintic, gec_ratio, Gec, GecConfig, GecScorer, GEC_GAMMAS};
 pub use mean::{MeanAe, MeanAeConfig};
 pub use metric::{soft_percentile_weights, GradientMetric, MetricParams, MetricValue, RankWeights};
 pub use response::{Response, ResponseModel};
@@ -142,6 +147,10 @@ pub struct ExposureConfig {
     pub default: MeanAeConfig,
     /// Parameters of AAEC.
     pub aaec: AaecConfig,
+    /// Parameters of AEC (also AAEC's fallback when `aaec.fallback = "aec"`).
+    pub aec: AecConfig,
+    /// Parameters of GEC.
+    pub gec: GecConfig,
     /// The camera response the gradient controllers assume (and HIL renders with).
     pub response: ResponseModel,
 }
@@ -152,6 +161,8 @@ impl Default for ExposureConfig {
             method: ExposureMethod::Aaec,
             default: MeanAeConfig::default(),
             aaec: AaecConfig::default(),
+            aec: AecConfig::default(),
+            gec: GecConfig::default(),
             response: ResponseModel::default(),
         }
     }
@@ -163,6 +174,8 @@ impl ExposureConfig {
     pub fn validate(&self) -> Result<(), ExposureError> {
         self.default.validate()?;
         self.aaec.validate()?;
+        self.aec.validate()?;
+        self.gec.validate()?;
         self.response.validate()
     }
 }
@@ -181,6 +194,16 @@ pub fn build_controller(
             limits,
             initial_us,
         )?)),
+        ExposureMethod::Gec => Ok(Box::new(Gec::new(cfg.gec.clone(), limits, initial_us)?)),
+        ExposureMethod::Aec => {
+            let response = cfg.response.load()?;
+            Ok(Box::new(Aec::new(
+                cfg.aec.clone(),
+                &response,
+                limits,
+                initial_us,
+            )?))
+        }
         ExposureMethod::Aaec => {
             let response = cfg.response.load()?;
             let fallback: Box<dyn ExposureController> = match cfg.aaec.fallback {
@@ -188,11 +211,7 @@ pub fn build_controller(
                     Box::new(MeanAe::new(cfg.default.clone(), limits, initial_us)?)
                 }
                 AaecFallback::Aec => {
-                    return Err(invalid(
-                        "aaec.fallback",
-                        "aec",
-                        "mean (AEC fallback not built yet)",
-                    ))
+                    Box::new(Aec::new(cfg.aec.clone(), &response, limits, initial_us)?)
                 }
             };
             Ok(Box::new(Aaec::new(
@@ -203,11 +222,6 @@ pub fn build_controller(
                 fallback,
             )?))
         }
-        other => Err(ExposureError::InvalidConfig {
-            key: "method".into(),
-            value: other.to_string(),
-            expected: "a method this build implements (aaec, default)".into(),
-        }),
     }
 }
 
