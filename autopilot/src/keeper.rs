@@ -4,7 +4,7 @@
 //! `StationKeeper::update` is a pure function of its inputs and its state: no wall clock,
 //! no telemetry arriving behind its back, so HIL runs repeat bit for bit.
 
-use nalgebra::{Isometry3, Matrix3, Matrix6, Vector3};
+use nalgebra::{Isometry3, Matrix3, Matrix6, UnitQuaternion, Vector3};
 use serde::Serialize;
 
 use crate::config::{AxisConfig, ControllerConfig, StationConfig};
@@ -305,6 +305,8 @@ pub struct StationKeeper {
     out: Effort,
     raw_error: Option<[f64; 6]>,
     status: KeeperStatus,
+    att_now: Option<UnitQuaternion<f64>>,
+    att_prev: Option<UnitQuaternion<f64>>,
 }
 
 impl StationKeeper {
@@ -351,6 +353,8 @@ impl StationKeeper {
             out: Effort::NEUTRAL,
             raw_error: None,
             status: KeeperStatus::NoFix,
+            att_now: None,
+            att_prev: None,
         })
     }
 
@@ -389,6 +393,7 @@ impl StationKeeper {
         let dt = dt.clamp(0.0, self.max_gap_s);
         self.last_stamp = Some(stamp_s);
         self.filter.predict(dt);
+        let bridged = self.propagate_attitude();
 
         let meas = meas.filter(|m| Self::usable(m));
         match meas {
@@ -418,32 +423,18 @@ impl StationKeeper {
                 self.last_seen = Some(stamp_s);
                 self.status = KeeperStatus::Tracking;
 
-                let alpha = if dt > 0.0 {
-                    dt / (self.deriv_tau_s + dt)
-                } else {
-                    0.0
-                };
-                let x = self.filter.x;
-                for (a, e) in self.axes.iter_mut().zip(x.iter()) {
-                    a.observe(*e, dt, alpha);
-                }
-                let mut steps = 0;
-                while self.acc + 1e-9 >= self.dt_step && steps < self.max_steps {
-                    let mut o = [0.0; 6];
-                    for (i, a) in self.axes.iter_mut().enumerate() {
-                        o[i] = a.step(x[i]);
-                    }
-                    self.out = Effort::from_array(o);
-                    self.acc -= self.dt_step;
-                    steps += 1;
-                }
-                self.acc = self.acc.clamp(0.0, self.dt_step);
+                self.run_pids(dt);
             }
             None => {
                 let age = self.last_seen.map(|t| stamp_s - t);
                 match age {
                     Some(a) if a <= self.hold_s && self.status != KeeperStatus::Lost => {
                         self.status = KeeperStatus::Holding;
+                        if bridged {
+                            // The attitude-propagated error keeps the loop closed.
+                            self.acc += dt;
+                            self.run_pids(dt);
+                        }
                     }
                     Some(_) => {
                         if self.status != KeeperStatus::Lost {
@@ -460,6 +451,65 @@ impl StationKeeper {
             }
         }
         self.out
+    }
+
+    /// Steps the PIDs on the filtered error for the controller periods due.
+    fn run_pids(&mut self, dt: f64) {
+        let alpha = if dt > 0.0 {
+            dt / (self.deriv_tau_s + dt)
+        } else {
+            0.0
+        };
+        let x = self.filter.x;
+        for (a, e) in self.axes.iter_mut().zip(x.iter()) {
+            a.observe(*e, dt, alpha);
+        }
+        let mut steps = 0;
+        while self.acc + 1e-9 >= self.dt_step && steps < self.max_steps {
+            let mut o = [0.0; 6];
+            for (i, a) in self.axes.iter_mut().enumerate() {
+                o[i] = a.step(x[i]);
+            }
+            self.out = Effort::from_array(o);
+            self.acc -= self.dt_step;
+            steps += 1;
+        }
+        self.acc = self.acc.clamp(0.0, self.dt_step);
+    }
+
+    /// Vehicle attitude from telemetry (ATTITUDE roll, pitch, yaw in rad, FRD body in the
+    /// autopilot's NED frame), given before `update` for the same frame. Optional: with it
+    /// the filter turns its error estimate by the vehicle's rotation between frames, and
+    /// missed frames within the hold keep the PIDs running on that estimate instead of
+    /// holding the last command. Feed it from the loop's clock (sim attitude in HIL) to
+    /// stay deterministic.
+    pub fn set_attitude(&mut self, roll: f64, pitch: f64, yaw: f64) {
+        if roll.is_finite() && pitch.is_finite() && yaw.is_finite() {
+            self.att_now = Some(UnitQuaternion::from_euler_angles(roll, pitch, yaw));
+        }
+    }
+
+    /// Prediction step from the attitude change since the previous update: the goal is
+    /// fixed in the world, so in the body frame it turns by the inverse rotation. Returns
+    /// true when a fresh attitude was applied.
+    fn propagate_attitude(&mut self) -> bool {
+        let Some(q_now) = self.att_now.take() else {
+            return false;
+        };
+        let applied = match self.att_prev {
+            Some(q_prev) if self.filter.init => {
+                let inv = (q_prev.inverse() * q_now).inverse();
+                let x = self.filter.x;
+                let p = inv * Vector3::new(x[0], x[1], x[2]);
+                let r = inv * UnitQuaternion::from_euler_angles(x[3], x[4], x[5]);
+                let (rr, rp, ry) = r.euler_angles();
+                self.filter.x = [p.x, p.y, p.z, rr, rp, ry];
+                true
+            }
+            _ => false,
+        };
+        self.att_prev = Some(q_now);
+        applied
     }
 
     /// Last body-frame pose error (surge, sway, heave m; roll, pitch, yaw rad) the PIDs
@@ -501,6 +551,7 @@ impl StationKeeper {
         self.out = Effort::NEUTRAL;
         self.status = KeeperStatus::NoFix;
         self.last_seen = None;
+        self.att_prev = None;
     }
 
     /// Forgets integrals, rates, the filter and the marker history (mode change, re-arm).
@@ -514,7 +565,7 @@ impl StationKeeper {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use nalgebra::{Rotation3, Translation3, UnitQuaternion};
+    use nalgebra::{Rotation3, Translation3};
 
     fn forward_cam() -> Isometry3<f64> {
         let r = Rotation3::from_matrix_unchecked(Matrix3::from_columns(&[
@@ -696,6 +747,56 @@ mod tests {
         let a = run();
         let b = run();
         assert_eq!(a, b);
+    }
+
+    #[test]
+    fn attitude_bridges_missed_frames() {
+        let goal = StationConfig::default().t_marker_vehicle();
+        let run = |with_attitude: bool| {
+            let mut k = keeper();
+            let mut t = 0.0;
+            for _ in 0..10 {
+                if with_attitude {
+                    k.set_attitude(0.0, 0.0, 0.0);
+                }
+                k.update(t, Some(&meas_for(t, &goal)));
+                t += 1.0 / 30.0;
+            }
+            // Marker missed while the vehicle turns 0.2 rad to the right.
+            if with_attitude {
+                k.set_attitude(0.0, 0.0, 0.2);
+            }
+            let e = k.update(t, None);
+            (e, k.error().unwrap())
+        };
+        let (held, _) = run(false);
+        assert!(held.yaw.abs() < 1e-9, "no attitude: last command held");
+        let (bridged, err) = run(true);
+        assert!((err[5] + 0.2).abs() < 1e-9, "{err:?}");
+        // Turned right of the goal: the bridged loop turns back left.
+        assert!(bridged.yaw < -0.05, "{bridged:?}");
+        // Turning in place about the station point leaves the position error at zero.
+        assert!(err[..3].iter().all(|v| v.abs() < 1e-9), "{err:?}");
+    }
+
+    #[test]
+    fn attitude_prediction_then_measurement_agree() {
+        // With the vehicle really turned, prediction and measurement say the same.
+        let goal = StationConfig::default().t_marker_vehicle();
+        let turned = Isometry3::from_parts(
+            goal.translation,
+            goal.rotation * UnitQuaternion::from_axis_angle(&Vector3::z_axis(), 0.1),
+        );
+        let mut k = keeper();
+        k.set_attitude(0.0, 0.0, 0.0);
+        k.update(0.0, Some(&meas_for(0.0, &goal)));
+        k.set_attitude(0.0, 0.0, 0.1);
+        k.update(0.04, Some(&meas_for(0.04, &turned)));
+        let err = k.error().unwrap();
+        let raw = k.raw_error().unwrap();
+        for i in 0..6 {
+            assert!((err[i] - raw[i]).abs() < 1e-6, "{err:?} vs {raw:?}");
+        }
     }
 
     mod props {
