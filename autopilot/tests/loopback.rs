@@ -407,3 +407,78 @@ fn bad_url_is_a_clear_error() {
         "{e}"
     );
 }
+
+#[test]
+fn setpoint_mode_sends_guided_targets_vision_and_origin_once() {
+    let fake = FakeVehicle::start(Kind::UdpServer);
+    let addr = fake.addr.unwrap();
+    {
+        let mut r = fake.rec();
+        r.pos_m = [0.3, 0.0, 1.5];
+    }
+    let cfg = LinkConfig {
+        url: format!("udpout:{addr}"),
+        command: CommandKind::Setpoint,
+        mode: LinkMode::Guided,
+        origin_lat_deg: 47.5,
+        origin_lon_deg: -122.25,
+        origin_alt_m: -3.0,
+        ..Default::default()
+    };
+    let link = VehicleLink::connect(&cfg).unwrap();
+    let mut h = Harness {
+        link,
+        fake,
+        now: 0.0,
+    };
+    h.tick_until("telemetry", |l, _| {
+        l.state().local_position.is_some() && l.state().attitude.is_some()
+    });
+    // Effort commands are refused in setpoint mode, and vice versa.
+    assert!(h.link.send_effort(&Effort::NEUTRAL, h.now).is_err());
+    let goal = StationConfig::default().t_marker_vehicle();
+    let t0 = h.now;
+    let sent0 = h.link.messages_sent();
+    for _ in 0..30 {
+        h.now += STEP_S;
+        h.link.tick(h.now).unwrap();
+        let meas = h.fake.rec().t_marker_vehicle();
+        h.link.send_setpoint(&meas, &goal, h.now).unwrap();
+        std::thread::sleep(Duration::from_millis(2));
+    }
+    assert!(h.link.messages_sent() >= sent0 + 60);
+    let secs = h.now - t0;
+    h.tick_until("setpoints received", |_, r| {
+        r.setpoints.len() >= 30 && r.vision.len() >= 30
+    });
+    let r = h.fake.rec();
+    // Vision estimates at >= 10 Hz of loop time.
+    assert!(r.vision.len() as f64 / secs >= 10.0);
+    // Vehicle at marker (0.3, 0, 1.5) facing it: L frame (-1.5, 0.3, 0), level, yaw 0.
+    let v = r.vision.last().unwrap();
+    assert!(
+        (v.x + 1.5).abs() < 1e-5 && (v.y - 0.3).abs() < 1e-5 && v.z.abs() < 1e-5,
+        "{v:?}"
+    );
+    assert!(v.yaw.abs() < 1e-5 && v.roll.abs() < 1e-5 && v.pitch.abs() < 1e-5);
+    // Target = EKF position (-1.5, 0.3, 2.0) + remaining offset (0.5, -0.3, 0).
+    let sp = r.setpoints.last().unwrap();
+    assert!(
+        (sp.x + 1.0).abs() < 1e-5 && sp.y.abs() < 1e-5 && (sp.z - 2.0).abs() < 1e-5,
+        "{sp:?}"
+    );
+    assert!(sp.yaw.abs() < 1e-5);
+    assert_eq!(
+        sp.coordinate_frame,
+        mavlink::dialects::ardupilotmega::MavFrame::MAV_FRAME_LOCAL_NED
+    );
+    assert_eq!(
+        sp.type_mask.bits() & 0b111,
+        0,
+        "position must not be ignored"
+    );
+    assert_ne!(sp.type_mask.bits() & 0b111_111_000, 0);
+    assert_eq!((sp.target_system, sp.target_component), (1, 1));
+    // Origin exactly once, from the GCS id.
+    assert_eq!(r.origins, vec![(255, 475_000_000, -1_222_500_000, -3000)]);
+}

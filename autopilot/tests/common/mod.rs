@@ -34,6 +34,9 @@ pub struct Rec {
     pub gcs_heartbeats: Vec<(u32, u8, HEARTBEAT_DATA)>,
     pub commands: Vec<(u32, COMMAND_LONG_DATA)>,
     pub other: Vec<(u32, String)>,
+    pub setpoints: Vec<SET_POSITION_TARGET_LOCAL_NED_DATA>,
+    pub vision: Vec<VISION_POSITION_ESTIMATE_DATA>,
+    pub origins: Vec<(u32, i32, i32, i32)>,
     pub armed: bool,
     pub mode: u32,
     /// Vehicle pose in the marker frame: position and yaw offset from facing the marker.
@@ -331,6 +334,13 @@ fn run(
                             target_component: h.component_id,
                             ..Default::default()
                         }));
+                    }
+                    MavMessage::SET_POSITION_TARGET_LOCAL_NED(d) => g.setpoints.push(d),
+                    MavMessage::VISION_POSITION_ESTIMATE(d) => g.vision.push(d),
+                    #[allow(deprecated)]
+                    MavMessage::SET_GPS_GLOBAL_ORIGIN(d) => {
+                        g.origins
+                            .push((h.system_id, d.latitude, d.longitude, d.altitude))
                     }
                     other => g.other.push((h.system_id, format!("{other:?}"))),
                 }
