@@ -1,1 +1,230 @@
-fn main() {}
+//! The markhold command line.
+
+use std::path::{Path, PathBuf};
+use std::process::ExitCode;
+
+use anyhow::Context;
+use clap::{Parser, Subcommand};
+use indicatif::{ProgressBar, ProgressStyle};
+use markhold::hil_run::{run_hil, HilOptions};
+use markhold::params::{self, ParamsError, EXIT_CONFIG};
+use markhold::summary::Summary;
+use markhold_exposure::ExposureMethod;
+use markhold_hil::scene::LightingScenario;
+
+#[derive(Parser)]
+#[command(
+    name = "markhold",
+    version,
+    about = "Hold an ArduSub vehicle on station in front of a fiducial marker"
+)]
+struct Cli {
+    #[command(subcommand)]
+    command: Command,
+}
+
+#[derive(Subcommand)]
+enum Command {
+    /// Run the station-keeping loop against the simulated vehicle, water and camera.
+    Hil(HilArgs),
+    /// Dive-site parameter files.
+    Params {
+        #[command(subcommand)]
+        command: ParamsCommand,
+    },
+}
+
+#[derive(Subcommand)]
+enum ParamsCommand {
+    /// Validate a site file and print the effective values (defaults filled in).
+    Check { file: PathBuf },
+}
+
+#[derive(clap::Args)]
+struct HilArgs {
+    /// Dive-site file.
+    #[arg(long, default_value = "params/pool.toml")]
+    site: PathBuf,
+    /// Simulated seconds to run.
+    #[arg(long, default_value_t = 60.0)]
+    seconds: f64,
+    /// Seed of the simulated world (noise, texture, gusts, caustics).
+    #[arg(long, default_value_t = 1)]
+    seed: u64,
+    /// Write a JSON summary here.
+    #[arg(long)]
+    summary: Option<PathBuf>,
+    /// Exposure method: aaec, aec, gec or default (overrides the site file).
+    #[arg(long)]
+    exposure: Option<ExposureMethod>,
+    /// Lighting scenario: normal, low, adversarial or caustics (overrides the site file).
+    #[arg(long)]
+    lighting: Option<LightingScenario>,
+    /// Exposure at start, microseconds (overrides the site file).
+    #[arg(long)]
+    initial_exposure_us: Option<f64>,
+    /// Save frames as PNG into this folder.
+    #[arg(long)]
+    snapshot: Option<PathBuf>,
+    /// With --snapshot: save every n-th frame.
+    #[arg(long, default_value_t = 30)]
+    snapshot_every: u64,
+    /// No progress bar.
+    #[arg(long)]
+    quiet: bool,
+}
+
+fn main() -> ExitCode {
+    tracing_subscriber::fmt()
+        .with_env_filter(
+            tracing_subscriber::EnvFilter::try_from_default_env()
+                .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("warn")),
+        )
+        .with_writer(std::io::stderr)
+        .init();
+    let cli = Cli::parse();
+    match run(cli) {
+        Ok(()) => ExitCode::SUCCESS,
+        Err(e) => {
+            eprintln!("markhold: error: {e:#}");
+            if e.downcast_ref::<ParamsError>().is_some() {
+                ExitCode::from(EXIT_CONFIG as u8)
+            } else {
+                ExitCode::from(2)
+            }
+        }
+    }
+}
+
+fn run(cli: Cli) -> anyhow::Result<()> {
+    match cli.command {
+        Command::Hil(args) => hil(args),
+        Command::Params {
+            command: ParamsCommand::Check { file },
+        } => params_check(&file),
+    }
+}
+
+fn params_check(file: &Path) -> anyhow::Result<()> {
+    let site = params::load(file)?;
+    let text = toml::to_string_pretty(&site.site).context("printing the effective values")?;
+    println!(
+        "# {}: valid. Effective values, defaults filled in:\n",
+        file.display()
+    );
+    println!("{text}");
+    Ok(())
+}
+
+fn hil(args: HilArgs) -> anyhow::Result<()> {
+    let site = params::load(&args.site)?;
+    anyhow::ensure!(
+        args.seconds > 0.0 && args.seconds.is_finite(),
+        "--seconds {}: expected a positive number of simulated seconds",
+        args.seconds
+    );
+    if let Some(dir) = &args.snapshot {
+        std::fs::create_dir_all(dir)
+            .with_context(|| format!("creating --snapshot {}", dir.display()))?;
+    }
+    let opts = HilOptions {
+        seconds: args.seconds,
+        seed: args.seed,
+        exposure: args.exposure,
+        lighting: args.lighting,
+        initial_exposure_us: args.initial_exposure_us,
+        snapshot_dir: args.snapshot.clone(),
+        snapshot_every: args.snapshot_every.max(1),
+        ..HilOptions::default()
+    };
+    let frames = (args.seconds * site.site.camera.fps).round() as u64;
+    let bar = if args.quiet {
+        ProgressBar::hidden()
+    } else {
+        let b = ProgressBar::new(frames);
+        b.set_style(
+            ProgressStyle::with_template(
+                "{spinner} {elapsed_precise} [{bar:30}] {pos}/{len} frames {msg}",
+            )
+            .unwrap_or_else(|_| ProgressStyle::default_bar())
+            .progress_chars("=> "),
+        );
+        b
+    };
+    let mut snap_err = None;
+    let summary = run_hil(&site, &opts, &mut |rec, truth, frame| {
+        bar.inc(1);
+        if rec.seq % 15 == 0 {
+            bar.set_message(format!(
+                "t={:.1}s exp={:.0}us {}",
+                truth.time_s,
+                rec.exposure.exposure_us,
+                if rec.detected { "marker" } else { "no marker" }
+            ));
+        }
+        if let Some(dir) = &opts.snapshot_dir {
+            if rec.seq % opts.snapshot_every == 0 && snap_err.is_none() {
+                let path = dir.join(format!("frame-{:06}.png", rec.seq));
+                if let Err(e) = markhold::snapshot::save_png(frame, &path) {
+                    snap_err = Some(e);
+                }
+            }
+        }
+    })?;
+    bar.finish_and_clear();
+    if let Some(e) = snap_err {
+        return Err(e.context("saving snapshots"));
+    }
+    print_table(&site.site.site.name, &summary);
+    if let Some(path) = &args.summary {
+        let json = serde_json::to_string_pretty(&summary)?;
+        std::fs::write(path, json + "\n")
+            .with_context(|| format!("writing --summary {}", path.display()))?;
+    }
+    Ok(())
+}
+
+fn print_table(site: &str, s: &Summary) {
+    let pct = |v: f64| format!("{:.1} %", 100.0 * v);
+    let rows = [
+        ("site", site.to_string()),
+        ("exposure method", s.exposure_method.clone()),
+        ("lighting", s.lighting.clone()),
+        ("seed", s.seed.to_string()),
+        ("frames", s.frames.to_string()),
+        ("simulated time", format!("{:.1} s", s.sim_seconds)),
+        (
+            "wall time",
+            format!(
+                "{:.1} s ({:.1}x real time)",
+                s.wall_seconds, s.realtime_factor
+            ),
+        ),
+        ("marker detected", pct(s.detection_rate)),
+        (
+            "position RMS (last half)",
+            format!("{:.3} m", s.position_rms_m),
+        ),
+        (
+            "final position error",
+            format!("{:.3} m", s.final_position_error_m),
+        ),
+        (
+            "final yaw error",
+            format!("{:.2} deg", s.final_yaw_error_deg),
+        ),
+        (
+            "exposure converged after",
+            format!("{} frames", s.exposure_convergence_frames),
+        ),
+        ("final exposure", format!("{:.0} us", s.final_exposure_us)),
+        (
+            "loop latency p99",
+            format!("{:.2} ms", s.loop_latency_p99_ms),
+        ),
+    ];
+    println!("markhold hil");
+    for (k, v) in rows {
+        println!("  {k:<26} {v}");
+    }
+}

@@ -1,0 +1,223 @@
+//! `markhold hil`: the loop against the simulated world, on simulation time.
+
+use std::path::PathBuf;
+use std::time::{Duration, Instant};
+
+use anyhow::Context;
+use markhold_autopilot::{ArduSubMode, StationKeeper, VehicleLink};
+use markhold_exposure::{build_controller, Camera, ExposureMethod, Frame};
+use markhold_hil::camera::CameraModel;
+use markhold_hil::scene::{LightingScenario, MarkerSpec};
+use markhold_hil::{EndpointConfig, HilRig, HilSetup, Truth, VehicleMotion};
+use markhold_vision::{marker_bitmap, MarkerTracker};
+use nalgebra::{Isometry3, Translation3, UnitQuaternion, Vector3};
+
+use crate::params::LoadedSite;
+use crate::pipeline::{FrameRecord, Pipeline};
+use crate::summary::{RunStats, Summary};
+
+/// Options of one HIL run (the command line's flags, or an experiment of `compare`).
+#[derive(Debug, Clone)]
+pub struct HilOptions {
+    pub seconds: f64,
+    pub seed: u64,
+    pub exposure: Option<ExposureMethod>,
+    pub lighting: Option<LightingScenario>,
+    pub initial_exposure_us: Option<f64>,
+    pub motion: VehicleMotion,
+    /// Start exactly on station instead of the site's initial offset.
+    pub start_on_station: bool,
+    pub snapshot_dir: Option<PathBuf>,
+    /// Save every n-th frame when `snapshot_dir` is set.
+    pub snapshot_every: u64,
+}
+
+impl Default for HilOptions {
+    fn default() -> Self {
+        Self {
+            seconds: 60.0,
+            seed: 1,
+            exposure: None,
+            lighting: None,
+            initial_exposure_us: None,
+            motion: VehicleMotion::Free,
+            start_on_station: false,
+            snapshot_dir: None,
+            snapshot_every: 30,
+        }
+    }
+}
+
+/// Everything a HIL run is made of, built from a site and options.
+pub struct HilRun {
+    pub rig: HilRig,
+    pub pipeline: Pipeline,
+    pub method: ExposureMethod,
+    pub lighting: LightingScenario,
+    pub t_world_marker: Isometry3<f64>,
+    pub t_marker_station: Isometry3<f64>,
+}
+
+/// The vehicle's start pose: the station, displaced by the site's initial offset.
+fn start_pose(site: &LoadedSite, station: &Isometry3<f64>, on_station: bool) -> Isometry3<f64> {
+    let t_world_station = site.t_world_marker() * station;
+    if on_station {
+        return t_world_station;
+    }
+    let v = &site.site.vehicle;
+    // 0.3 m split equally over surge (back), sway and heave, so every axis has to act,
+    // and the yaw turned toward the marker: the camera sits 0.2 m ahead of the centre of
+    // gravity, 0.8 m from the marker, and a 0.3 m sideways offset with the yaw turned away
+    // would start with the marker outside a 62-degree field of view.
+    let d = v.initial_offset_m / 3f64.sqrt();
+    let off = Isometry3::from_parts(
+        Translation3::from(Vector3::new(-d, d, d)),
+        UnitQuaternion::from_euler_angles(0.0, 0.0, -v.initial_offset_deg.to_radians()),
+    );
+    t_world_station * off
+}
+
+impl HilRun {
+    pub fn build(site: &LoadedSite, opts: &HilOptions) -> anyhow::Result<Self> {
+        let s = &site.site;
+        let method = opts.exposure.unwrap_or(s.exposure.method);
+        let mut lighting_cfg = s.lighting.clone();
+        if let Some(l) = opts.lighting {
+            lighting_cfg.scenario = l;
+        }
+        let lighting = lighting_cfg.scenario;
+        let limits = site.limits();
+        let initial_us = limits.clamp(
+            opts.initial_exposure_us
+                .unwrap_or(s.camera.initial_exposure_us),
+        );
+
+        let bitmap = marker_bitmap(s.marker.family, s.marker.id)
+            .with_context(|| format!("marker {} id {}", s.marker.family, s.marker.id))?;
+        let calib = &site.calibration;
+        let model = CameraModel {
+            width: calib.width,
+            height: calib.height,
+            fx: calib.fx,
+            fy: calib.fy,
+            cx: calib.cx,
+            cy: calib.cy,
+            dist: dist5(&calib.dist),
+            fps: s.camera.fps,
+            limits,
+            gain_db: s.camera.gain_db,
+            delay_frames: s.camera.actuation_delay_frames,
+            response: s.exposure.response.clone(),
+            sensor: s.camera.sensor.clone(),
+        };
+        let t_marker_station = s.station.t_marker_vehicle();
+        let t_world_marker = site.t_world_marker();
+        let setup = HilSetup {
+            vehicle: s.vehicle.clone(),
+            endpoint: EndpointConfig {
+                gcs_system_id: s.link.gcs_system_id,
+                ..EndpointConfig::default()
+            },
+            water: s.water.clone(),
+            lighting: lighting_cfg,
+            camera: model,
+            t_vehicle_cam: site.t_vehicle_cam(),
+            marker: MarkerSpec {
+                cells: bitmap.cells,
+                white: bitmap.white,
+                size_m: s.marker.size_m,
+                plate_margin_m: s.marker.size_m * 0.25,
+            },
+            t_world_marker,
+            t_world_vehicle_start: start_pose(site, &t_marker_station, opts.start_on_station),
+            motion: opts.motion,
+            seed: opts.seed,
+            lock_step: true,
+        };
+        let mut rig = HilRig::new(setup).context("building the HIL world")?;
+        rig.set_exposure_us(initial_us)?;
+
+        let mut link_cfg = s.link.clone();
+        link_cfg.url = format!("udpout:{}", rig.mavlink_udp_addr());
+        let link = VehicleLink::connect(&link_cfg).context("connecting to the HIL vehicle")?;
+        let exposure = build_controller(&s.exposure, method, limits, initial_us)?;
+        let tracker = MarkerTracker::new(&s.marker, &s.vision, site.calibration.clone())?;
+        let keeper = StationKeeper::new(&s.station, &s.controller, site.t_vehicle_cam())?;
+        let pipeline = Pipeline {
+            tracker,
+            exposure,
+            keeper,
+            link,
+            frame: Frame::new(calib.width, calib.height),
+        };
+        Ok(Self {
+            rig,
+            pipeline,
+            method,
+            lighting,
+            t_world_marker,
+            t_marker_station,
+        })
+    }
+
+    /// Arm in the configured mode before the first frame. The handshake is bounded by a
+    /// wall-clock deadline: it waits on sockets, not on simulated time.
+    pub fn arm(&mut self, mode: ArduSubMode) -> anyhow::Result<()> {
+        let link = &mut self.pipeline.link;
+        link.request_mode(mode, 0.0)?;
+        link.request_arm(true, 0.0)?;
+        let deadline = Instant::now() + Duration::from_secs(5);
+        while Instant::now() < deadline {
+            self.rig.pump()?;
+            link.tick(0.0)?;
+            if link.state().armed && self.rig.truth().armed {
+                return Ok(());
+            }
+            std::thread::sleep(Duration::from_millis(2));
+        }
+        anyhow::bail!("the HIL vehicle did not arm within 5 s (no COMMAND_ACK over loopback UDP)")
+    }
+
+    /// One frame of the loop, with the world's truth after it.
+    pub fn step(&mut self) -> anyhow::Result<(FrameRecord, Truth)> {
+        let rec = self.pipeline.step(&mut self.rig)?;
+        Ok((rec, self.rig.truth()))
+    }
+}
+
+fn dist5(d: &[f64]) -> [f64; 5] {
+    let mut out = [0.0; 5];
+    for (o, v) in out.iter_mut().zip(d) {
+        *o = *v;
+    }
+    out
+}
+
+/// Run a whole HIL session and summarize it. `on_frame` sees every frame (progress,
+/// snapshots, recording).
+pub fn run_hil(
+    site: &LoadedSite,
+    opts: &HilOptions,
+    on_frame: &mut dyn FnMut(&FrameRecord, &Truth, &Frame),
+) -> anyhow::Result<Summary> {
+    let wall = Instant::now();
+    let mut run = HilRun::build(site, opts)?;
+    run.arm(site.site.link.mode.ardusub())?;
+    let frames = (opts.seconds * site.site.camera.fps).round().max(1.0) as u64;
+    let mut stats = RunStats::new(frames as usize, run.t_world_marker, run.t_marker_station);
+    for _ in 0..frames {
+        let (rec, truth) = run.step()?;
+        stats.push(&rec, &truth);
+        on_frame(&rec, &truth, &run.pipeline.frame);
+    }
+    // Leave the vehicle with neutral pilot input.
+    let now = run.rig.truth().time_s;
+    run.pipeline.link.send_neutral(now)?;
+    Ok(stats.summary(
+        run.method,
+        run.lighting,
+        opts.seed,
+        wall.elapsed().as_secs_f64(),
+        run.rig.truth().lockstep_timeouts,
+    ))
+}

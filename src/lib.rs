@@ -1,0 +1,11 @@
+//! markhold: keeps an ArduSub vehicle on station in front of a fiducial marker.
+//!
+//! This crate wires the member crates into one loop ([`pipeline`]) and runs it against
+//! the simulated world ([`hil_run`]); `params` reads dive-site files.
+
+pub mod hil_run;
+pub mod params;
+mod params_validate;
+pub mod pipeline;
+pub mod snapshot;
+pub mod summary;

@@ -1,0 +1,162 @@
+//! End-to-end: the built binary holds station in HIL, deterministically, and rejects bad
+//! site files with a message that names the file and the key.
+
+use std::path::{Path, PathBuf};
+use std::process::Command;
+
+fn bin() -> Command {
+    Command::new(env!("CARGO_BIN_EXE_markhold"))
+}
+
+fn repo(p: &str) -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join(p)
+}
+
+fn tmpdir(name: &str) -> PathBuf {
+    let d = std::env::temp_dir().join(format!("markhold-e2e-{}-{name}", std::process::id()));
+    std::fs::create_dir_all(&d).unwrap();
+    d
+}
+
+fn run_summary(args: &[&str], out: &Path) -> serde_json::Value {
+    let o = bin()
+        .args(args)
+        .arg("--quiet")
+        .arg("--summary")
+        .arg(out)
+        .output()
+        .expect("run markhold");
+    assert!(
+        o.status.success(),
+        "markhold {args:?} failed: {}\n{}",
+        String::from_utf8_lossy(&o.stderr),
+        String::from_utf8_lossy(&o.stdout)
+    );
+    serde_json::from_str(&std::fs::read_to_string(out).unwrap()).unwrap()
+}
+
+#[test]
+fn pool_station_keeping_settles() {
+    let d = tmpdir("settle");
+    let pool = repo("params/pool.toml");
+    let s = run_summary(
+        &[
+            "hil",
+            "--site",
+            pool.to_str().unwrap(),
+            "--seconds",
+            "30",
+            "--seed",
+            "1",
+        ],
+        &d.join("s.json"),
+    );
+    let f = |k: &str| {
+        s[k].as_f64()
+            .unwrap_or_else(|| panic!("summary has no number {k}: {s}"))
+    };
+    assert!(f("final_position_error_m") < 0.05, "{s}");
+    assert!(f("final_yaw_error_deg") < 3.0, "{s}");
+    assert!(f("detection_rate") > 0.95, "{s}");
+    assert_eq!(s["frames"].as_u64(), Some(900), "{s}");
+    for k in [
+        "position_rms_m",
+        "exposure_convergence_frames",
+        "sim_seconds",
+        "wall_seconds",
+        "exposure_method",
+        "lighting",
+        "seed",
+        "loop_latency_p99_ms",
+    ] {
+        assert!(s.get(k).is_some(), "summary lacks {k}: {s}");
+    }
+}
+
+#[test]
+fn same_seed_same_numbers() {
+    let d = tmpdir("determinism");
+    let pool = repo("params/pool.toml");
+    let args = [
+        "hil",
+        "--site",
+        pool.to_str().unwrap(),
+        "--seconds",
+        "4",
+        "--seed",
+        "7",
+    ];
+    let mut a = run_summary(&args, &d.join("a.json"));
+    let mut b = run_summary(&args, &d.join("b.json"));
+    // Wall-clock measurements are the only fields allowed to differ.
+    for k in ["wall_seconds", "realtime_factor", "loop_latency_p99_ms"] {
+        a.as_object_mut().unwrap().remove(k);
+        b.as_object_mut().unwrap().remove(k);
+    }
+    assert_eq!(a, b);
+}
+
+fn bad_site(name: &str, text: &str) -> (i32, String) {
+    let d = tmpdir("bad");
+    let path = d.join(name);
+    std::fs::write(&path, text).unwrap();
+    let o = bin()
+        .args(["hil", "--quiet", "--seconds", "1", "--site"])
+        .arg(&path)
+        .output()
+        .unwrap();
+    (
+        o.status.code().unwrap_or(-1),
+        String::from_utf8_lossy(&o.stderr).into_owned(),
+    )
+}
+
+fn pool_text() -> String {
+    std::fs::read_to_string(repo("params/pool.toml")).unwrap()
+}
+
+#[test]
+fn missing_site_file_is_named() {
+    let o = bin()
+        .args(["hil", "--quiet", "--site", "/nonexistent/site.toml"])
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(78), "{err}");
+    assert!(err.contains("/nonexistent/site.toml"), "{err}");
+    assert!(!err.contains("panicked"), "{err}");
+}
+
+#[test]
+fn unknown_key_is_named_with_file_and_line() {
+    let text = pool_text().replacen("[marker]", "[marker]\ncolour = \"red\"", 1);
+    let (code, err) = bad_site("unknown.toml", &text);
+    assert_eq!(code, 78, "{err}");
+    assert!(err.contains("unknown.toml"), "{err}");
+    assert!(err.contains("colour"), "{err}");
+    let line = text.lines().position(|l| l.starts_with("colour")).unwrap() + 1;
+    assert!(
+        err.contains(&format!(":{line}:")),
+        "line {line} not in {err}"
+    );
+}
+
+#[test]
+fn wrong_type_is_named() {
+    let text = pool_text().replacen("fps = 30.0", "fps = \"thirty\"", 1);
+    assert_ne!(text, pool_text(), "pool.toml must set camera fps = 30.0");
+    let (code, err) = bad_site("wrongtype.toml", &text);
+    assert_eq!(code, 78, "{err}");
+    assert!(
+        err.contains("wrongtype.toml") && err.contains("fps"),
+        "{err}"
+    );
+}
+
+#[test]
+fn out_of_range_value_is_named() {
+    let text = pool_text().replacen("fps = 30.0", "fps = -5.0", 1);
+    let (code, err) = bad_site("range.toml", &text);
+    assert_eq!(code, 78, "{err}");
+    assert!(err.contains("camera.fps") && err.contains("-5"), "{err}");
+}
