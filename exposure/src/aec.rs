@@ -234,9 +234,12 @@ impl Aec {
         initial_us: f64,
     ) -> Result<Self, ExposureError> {
         cfg.validate()?;
-        // The method's own range, inside the camera's.
-        let lo = limits.min_us.max(cfg.exposure_min_us);
-        let hi = limits.effective_max_us().min(cfg.exposure_max_us).max(lo);
+        // The method's own range, inside the camera's (the camera wins when they do not
+        // overlap).
+        let cam_lo = limits.min_us;
+        let cam_hi = limits.effective_max_us().max(cam_lo);
+        let lo = cfg.exposure_min_us.clamp(cam_lo, cam_hi);
+        let hi = cfg.exposure_max_us.clamp(lo, cam_hi);
         let limits = ExposureLimits {
             min_us: lo,
             max_us: hi,

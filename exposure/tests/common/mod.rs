@@ -92,6 +92,30 @@ impl Scene {
         }
     }
 
+    /// A smooth, gradient-rich pattern (two crossed gratings under a vignette): most
+    /// pixels have gradients far above 8-bit rounding, so finite differences of `M` are
+    /// clean. The "marker" is the centre 160 x 120 window.
+    pub fn grating(response: Response) -> Self {
+        let (w, h) = (W as usize, H as usize);
+        let mut irradiance = vec![0.0; w * h];
+        for y in 0..h {
+            for x in 0..w {
+                let (fx, fy) = (x as f64, y as f64);
+                let vignette = 1.0 - 0.5 * ((fx - 160.0).powi(2) + (fy - 120.0).powi(2)) / 40000.0;
+                let pattern = 0.5
+                    + 0.22 * (fx / 4.0).sin() * (fy / 5.0).cos()
+                    + 0.18 * ((fx + 2.0 * fy) / 9.0).sin();
+                irradiance[y * w + x] = vignette * pattern;
+            }
+        }
+        Self {
+            irradiance,
+            corners: [[80.0, 60.0], [240.0, 60.0], [240.0, 180.0], [80.0, 180.0]],
+            response,
+            caustic_amp: 0.0,
+        }
+    }
+
     /// Render at `t_us` into `frame` (frame index `k` drives the caustics).
     pub fn render(&self, t_us: f64, k: u64, frame: &mut Frame) {
         frame.resize(W, H);
