@@ -129,6 +129,8 @@ pub(crate) struct Controller {
     depth_i: f64,
     hold_position: Option<Vector3<f64>>,
     last_nav: Option<NavEstimate>,
+    /// The throttle stick was out of its dead zone on the last update.
+    climbing: bool,
 }
 
 impl Controller {
@@ -140,6 +142,7 @@ impl Controller {
             depth_i: 0.0,
             hold_position: None,
             last_nav: None,
+            climbing: false,
         }
     }
 
@@ -149,6 +152,7 @@ impl Controller {
         self.depth_target = None;
         self.depth_i = 0.0;
         self.hold_position = None;
+        self.climbing = false;
     }
 
     pub fn last_nav(&self) -> Option<NavEstimate> {
@@ -230,10 +234,17 @@ impl Controller {
                 // Throttle up = climb = depth decreasing.
                 let rate = -thr * g.max_climb_mps;
                 let t = self.depth_target.unwrap_or(depth) + rate * dt;
-                let t = depth + (t - depth).clamp(-0.3, 0.3);
+                let t = depth + (t - depth).clamp(-0.1, 0.1);
                 self.depth_target = Some(t);
+                self.climbing = true;
                 self.depth_pid(t, rate, depth, vz, dt)
             } else {
+                if self.climbing {
+                    // Stick released: hold where the vehicle will stop, not where the
+                    // moving target had got to.
+                    self.climbing = false;
+                    self.depth_target = Some(depth + vz.abs() * vz * 0.5);
+                }
                 let t = *self.depth_target.get_or_insert(depth);
                 self.depth_pid(t, 0.0, depth, vz, dt)
             };
