@@ -4,7 +4,7 @@ use std::path::PathBuf;
 use std::time::{Duration, Instant};
 
 use anyhow::Context;
-use markhold_autopilot::{ArduSubMode, StationKeeper, VehicleLink};
+use markhold_autopilot::{ArduSubMode, StationKeeper, Supervisor, VehicleLink};
 use markhold_exposure::{build_controller, Camera, ExposureMethod, Frame};
 use markhold_hil::camera::CameraModel;
 use markhold_hil::scene::{LightingScenario, MarkerSpec};
@@ -147,8 +147,12 @@ impl HilRun {
             tracker,
             exposure,
             keeper,
+            supervisor: Supervisor::new(&s.controller, &s.link),
             link,
             frame: Frame::new(calib.width, calib.height),
+            events: Vec::with_capacity(8),
+            marker_seen_s: None,
+            shutdown: false,
         };
         Ok(Self {
             rig,

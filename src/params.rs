@@ -1,9 +1,10 @@
 //! Dive-site parameter files: one TOML file per site, each section owned by the crate
+//! that uses it. Loading validates everything once; errors name the file, line, key,
+//! value and what was expected, and map to exit code 78 (EX_CONFIG).
+
 // Validation is written as `!(lo <= v && v <= hi)` on purpose: NaN fails every
 // comparison, so the negated form rejects it with the same message.
 #![allow(clippy::neg_cmp_op_on_partial_ord)]
-//! that uses it. Loading validates everything once; errors name the file, line, key,
-//! value and what was expected, and map to exit code 78 (EX_CONFIG).
 
 use std::path::{Path, PathBuf};
 

@@ -4,7 +4,10 @@
 
 use std::time::Instant;
 
-use markhold_autopilot::{Effort, PoseMeasurement, StationKeeper, VehicleLink};
+use markhold_autopilot::{
+    Directive, Effort, FailsafeEvent, PoseMeasurement, StationKeeper, Supervisor, SupervisorInput,
+    VehicleLink,
+};
 use markhold_exposure::{Camera, Corners, ExposureController, ExposureStep, Frame};
 use markhold_vision::{MarkerObservation, MarkerTracker};
 use nalgebra::Isometry3;
@@ -22,20 +25,58 @@ pub struct FrameRecord {
     pub corners: Option<Corners>,
     pub t_cam_marker: Option<Isometry3<f64>>,
     pub reproj_rms_px: f64,
+    /// The station keeper's effort.
     pub effort: Effort,
+    /// What the failsafe supervisor let through (neutral and silent send no effort).
+    pub directive: Directive,
     /// Wall time from the frame being available to the command written to the socket.
     pub latency_s: f64,
 }
 
-pub struct Pipeline {
+/// Where the loop's commands go: a real MAVLink link, or (replay) a sink that only
+/// keeps them.
+pub trait CommandLink {
+    /// Drive the link at loop time `now_s` (heartbeats, incoming telemetry).
+    fn tick(&mut self, now_s: f64) -> anyhow::Result<()>;
+    /// Send this frame's effort.
+    fn send_effort(&mut self, effort: &Effort, now_s: f64) -> anyhow::Result<()>;
+    /// Send neutral pilot input (on exit, on failsafe).
+    fn send_neutral(&mut self, now_s: f64) -> anyhow::Result<()>;
+    /// Loop time of the vehicle's last heartbeat, if one was heard.
+    fn vehicle_heartbeat_s(&self) -> Option<f64>;
+}
+
+impl CommandLink for VehicleLink {
+    fn tick(&mut self, now_s: f64) -> anyhow::Result<()> {
+        Ok(VehicleLink::tick(self, now_s)?)
+    }
+    fn send_effort(&mut self, effort: &Effort, now_s: f64) -> anyhow::Result<()> {
+        Ok(VehicleLink::send_effort(self, effort, now_s)?)
+    }
+    fn send_neutral(&mut self, now_s: f64) -> anyhow::Result<()> {
+        Ok(VehicleLink::send_neutral(self, now_s)?)
+    }
+    fn vehicle_heartbeat_s(&self) -> Option<f64> {
+        self.state().last_heartbeat_s
+    }
+}
+
+pub struct Pipeline<L: CommandLink = VehicleLink> {
     pub tracker: MarkerTracker,
     pub exposure: Box<dyn ExposureController>,
     pub keeper: StationKeeper,
-    pub link: VehicleLink,
+    pub link: L,
+    pub supervisor: Supervisor,
     pub frame: Frame,
+    /// Failsafe transitions of the last frame (reused buffer).
+    pub events: Vec<FailsafeEvent>,
+    /// Loop time the marker was last seen.
+    pub marker_seen_s: Option<f64>,
+    /// Set by a signal handler: the next frame sends neutral and the loop ends.
+    pub shutdown: bool,
 }
 
-impl Pipeline {
+impl<L: CommandLink> Pipeline<L> {
     /// Run one frame through the loop.
     pub fn step(&mut self, camera: &mut dyn Camera) -> anyhow::Result<FrameRecord> {
         camera.grab(&mut self.frame)?;
@@ -48,8 +89,27 @@ impl Pipeline {
             cov_cam: o.cov_cam,
         });
         let effort = self.keeper.update(stamp, meas.as_ref());
+        if obs.is_some() {
+            self.marker_seen_s = Some(stamp);
+        }
         self.link.tick(stamp)?;
-        self.link.send_effort(&effort, stamp)?;
+        self.events.clear();
+        let directive = self.supervisor.update(
+            &SupervisorInput {
+                now_s: stamp,
+                vehicle_heartbeat_s: self.link.vehicle_heartbeat_s(),
+                last_frame_s: Some(stamp),
+                marker_seen_s: self.marker_seen_s,
+                shutdown: self.shutdown,
+            },
+            &mut self.events,
+        );
+        match directive {
+            Directive::Command => self.link.send_effort(&effort, stamp)?,
+            Directive::Neutral | Directive::Shutdown { .. } => self.link.send_neutral(stamp)?,
+            // No vehicle to talk to: pilot input to a vehicle we cannot hear is not sent.
+            Directive::Silent => {}
+        }
         let latency_s = t0.elapsed().as_secs_f64();
 
         // Exposure after the command: it does not gate the vehicle.
@@ -66,6 +126,7 @@ impl Pipeline {
             t_cam_marker: obs.as_ref().map(|o| o.t_cam_marker),
             reproj_rms_px: obs.as_ref().map_or(f64::NAN, |o| o.reproj_rms_px),
             effort,
+            directive,
             latency_s,
         })
     }
