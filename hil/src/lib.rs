@@ -10,6 +10,7 @@ mod error;
 pub mod mixer;
 pub mod rig;
 pub mod scene;
+pub mod sitl;
 pub mod thruster;
 pub mod vehicle;
 
@@ -17,6 +18,7 @@ pub use endpoint::{EndpointConfig, VehicleEndpoint};
 pub use error::HilError;
 pub use mixer::{Frame6Dof, Mixer};
 pub use rig::{HilRig, HilSetup, Truth};
+pub use sitl::{SitlConfig, SitlServer};
 pub use thruster::ThrusterConfig;
 pub use vehicle::{Hydrodynamics, Vehicle, VehicleConfig, VehicleMotion, VehicleState};
 
