@@ -135,6 +135,9 @@ pub(crate) enum Writer {
     Udp {
         sock: std::net::UdpSocket,
         dest: Arc<Mutex<Option<SocketAddr>>>,
+        /// udpout: the socket is connected to the vehicle, so `send` skips the per-packet
+        /// route lookup and the lock.
+        connected: bool,
     },
     Tcp {
         stream: Arc<Mutex<Option<std::net::TcpStream>>>,
@@ -161,15 +164,24 @@ const TCP_PENDING_CAP: usize = 16 * 1024;
 impl Writer {
     pub(crate) fn write(&mut self, bytes: &[u8]) -> std::io::Result<WriteOutcome> {
         match self {
-            Writer::Udp { sock, dest } => {
-                let d = match dest.lock() {
-                    Ok(g) => *g,
-                    Err(p) => *p.into_inner(),
+            Writer::Udp {
+                sock,
+                dest,
+                connected,
+            } => {
+                let r = if *connected {
+                    sock.send(bytes)
+                } else {
+                    let d = match dest.lock() {
+                        Ok(g) => *g,
+                        Err(p) => *p.into_inner(),
+                    };
+                    let Some(d) = d else {
+                        return Ok(WriteOutcome::NoPeer);
+                    };
+                    sock.send_to(bytes, d)
                 };
-                let Some(d) = d else {
-                    return Ok(WriteOutcome::NoPeer);
-                };
-                match sock.send_to(bytes, d) {
+                match r {
                     Ok(_) => Ok(WriteOutcome::Sent),
                     Err(e) if e.kind() == std::io::ErrorKind::WouldBlock => {
                         Ok(WriteOutcome::Dropped)
@@ -374,6 +386,9 @@ impl Transport {
                     (any, Some(d))
                 };
                 let sock = std::net::UdpSocket::bind(bind).map_err(open_err("udp socket", &hp))?;
+                if let Some(d) = dest {
+                    sock.connect(d).map_err(open_err("udp socket", &hp))?;
+                }
                 sock.set_nonblocking(true)
                     .map_err(open_err("udp socket", &hp))?;
                 let local = sock.local_addr().ok();
@@ -398,7 +413,11 @@ impl Transport {
                 });
                 Ok(Self {
                     rt: Some(rt),
-                    writer: Writer::Udp { sock: wsock, dest },
+                    writer: Writer::Udp {
+                        sock: wsock,
+                        dest,
+                        connected: !udpin,
+                    },
                     rx,
                     counters,
                     reconnect,

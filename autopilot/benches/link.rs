@@ -1,0 +1,132 @@
+//! Pilot input from effort to the wire: the link's direct write on the caller's thread
+//! against rust-mavlink's own connections (sync, and async driven with block_on), all to a
+//! loopback UDP socket drained by a thread. Plus one station-keeper update.
+
+use std::hint::black_box;
+use std::net::UdpSocket;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::Arc;
+use std::time::Duration;
+
+use criterion::{criterion_group, criterion_main, Criterion};
+use markhold_autopilot::*;
+use mavlink::dialects::ardupilotmega::{MavMessage, RC_CHANNELS_OVERRIDE_DATA};
+use mavlink::{AsyncMavConnection, MavConnection, MavHeader};
+use nalgebra::{Isometry3, Matrix3, Matrix6, Rotation3, Translation3, UnitQuaternion, Vector3};
+
+fn sink() -> (
+    std::net::SocketAddr,
+    Arc<AtomicBool>,
+    std::thread::JoinHandle<()>,
+) {
+    let s = UdpSocket::bind("127.0.0.1:0").unwrap();
+    s.set_read_timeout(Some(Duration::from_millis(50))).unwrap();
+    let addr = s.local_addr().unwrap();
+    let stop = Arc::new(AtomicBool::new(false));
+    let st = stop.clone();
+    let h = std::thread::spawn(move || {
+        let mut buf = [0u8; 2048];
+        while !st.load(Ordering::Relaxed) {
+            let _ = s.recv_from(&mut buf);
+        }
+    });
+    (addr, stop, h)
+}
+
+fn rc_msg(map: &PilotMap, e: &Effort) -> MavMessage {
+    let ch = map.rc_channels(e);
+    MavMessage::RC_CHANNELS_OVERRIDE(RC_CHANNELS_OVERRIDE_DATA {
+        chan1_raw: ch[0],
+        chan2_raw: ch[1],
+        chan3_raw: ch[2],
+        chan4_raw: ch[3],
+        chan5_raw: ch[4],
+        chan6_raw: ch[5],
+        target_system: 1,
+        target_component: 1,
+        ..Default::default()
+    })
+}
+
+fn pilot_input(c: &mut Criterion) {
+    let (addr, stop, h) = sink();
+    let url = format!("udpout:{addr}");
+    let cfg = LinkConfig {
+        url: url.clone(),
+        ..Default::default()
+    };
+    let e = Effort {
+        surge: 0.2,
+        sway: -0.1,
+        heave: 0.05,
+        roll: 0.0,
+        pitch: 0.0,
+        yaw: 0.03,
+    };
+    let map = PilotMap::from_config(&cfg);
+    let header = MavHeader {
+        system_id: 255,
+        component_id: 190,
+        sequence: 0,
+    };
+    let mut g = c.benchmark_group("pilot_input_to_wire");
+
+    let mut link = VehicleLink::connect(&cfg).unwrap();
+    g.bench_function("markhold_direct", |b| {
+        b.iter(|| link.send_effort(black_box(&e), 0.0).unwrap())
+    });
+
+    let conn = mavlink::connect::<MavMessage>(&url).unwrap();
+    g.bench_function("mavlink_sync_connection", |b| {
+        b.iter(|| conn.send(&header, &rc_msg(&map, black_box(&e))).unwrap())
+    });
+
+    let rt = tokio::runtime::Builder::new_multi_thread()
+        .worker_threads(1)
+        .enable_all()
+        .build()
+        .unwrap();
+    let aconn = rt
+        .block_on(mavlink::connect_async::<MavMessage>(&url))
+        .unwrap();
+    g.bench_function("mavlink_async_block_on", |b| {
+        b.iter(|| {
+            rt.block_on(aconn.send(&header, &rc_msg(&map, black_box(&e))))
+                .unwrap()
+        })
+    });
+    g.finish();
+    stop.store(true, Ordering::Relaxed);
+    let _ = h.join();
+}
+
+fn keeper(c: &mut Criterion) {
+    let r = Rotation3::from_matrix_unchecked(Matrix3::from_columns(&[
+        Vector3::new(0.0, 1.0, 0.0),
+        Vector3::new(0.0, 0.0, 1.0),
+        Vector3::new(1.0, 0.0, 0.0),
+    ]));
+    let cam = Isometry3::from_parts(
+        Translation3::new(0.2, 0.0, 0.0),
+        UnitQuaternion::from_rotation_matrix(&r),
+    );
+    let mut k =
+        StationKeeper::new(&StationConfig::default(), &ControllerConfig::default(), cam).unwrap();
+    let goal = StationConfig::default().t_marker_vehicle();
+    let off = Isometry3::from_parts(Translation3::new(0.1, -0.05, 1.2), goal.rotation);
+    let meas = PoseMeasurement {
+        stamp_s: 0.0,
+        t_cam_marker: (off * cam).inverse(),
+        cov_cam: Matrix6::identity() * 1e-5,
+    };
+    let mut t = 0.0;
+    c.bench_function("station_keeper_update", |b| {
+        b.iter(|| {
+            t += 1.0 / 30.0;
+            black_box(k.update(t, Some(black_box(&meas))))
+        })
+    });
+}
+
+criterion_group!(benches, pilot_input, keeper);
+criterion_main!(benches);
