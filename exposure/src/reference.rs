@@ -84,3 +84,75 @@ pub fn metric_full_sort(
         },
     })
 }
+
+/// Box downsampling by `factor` into a fresh buffer, in f64.
+pub fn downsample(view: ImageView<'_>, factor: usize) -> (usize, usize, Vec<u8>) {
+    let f = factor.max(1);
+    let (w, h) = (view.width / f, view.height / f);
+    let mut out = Vec::new();
+    for oy in 0..h {
+        for ox in 0..w {
+            let mut sum = 0.0;
+            for y in oy * f..oy * f + f {
+                for x in ox * f..ox * f + f {
+                    sum += view.row(y)[x] as f64;
+                }
+            }
+            out.push((sum / (f * f) as f64).round() as u8);
+        }
+    }
+    (w, h, out)
+}
+
+/// AEC's metric the naive way: fresh pyramid level, then [`metric_full_sort`].
+pub fn aec_metric(
+    view: ImageView<'_>,
+    factor: usize,
+    response: &Response,
+    params: &MetricParams,
+) -> Option<MetricValue> {
+    let (w, h, data) = downsample(view, factor);
+    let small = ImageView {
+        width: w,
+        height: h,
+        stride: w,
+        data: &data,
+    };
+    metric_full_sort(small, response, params)
+}
+
+/// GEC's anchor scores the naive way: each gamma image synthesized with `powf` into a
+/// fresh buffer, f64 gradients, `ln` per pixel.
+pub fn gec_scores(view: ImageView<'_>, cfg: &crate::GecConfig) -> Option<[f64; 7]> {
+    let (w, h) = (view.width, view.height);
+    if w < 3 || h < 3 {
+        return None;
+    }
+    let norm = (cfg.lambda * (1.0 - cfg.delta) + 1.0).ln();
+    let mut out = [0.0; 7];
+    for (k, &g) in crate::GEC_GAMMAS.iter().enumerate() {
+        let mut img = Vec::new();
+        for y in 0..h {
+            for &p in view.row(y) {
+                img.push((255.0 * (p as f64 / 255.0).powf(g)).round());
+            }
+        }
+        let at = |x: usize, y: usize| img[y * w + x];
+        let mut score = 0.0;
+        for y in 1..h - 1 {
+            for x in 1..w - 1 {
+                let sx = (at(x + 1, y - 1) - at(x - 1, y - 1))
+                    + 2.0 * (at(x + 1, y) - at(x - 1, y))
+                    + (at(x + 1, y + 1) - at(x - 1, y + 1));
+                let sy = (at(x - 1, y + 1) + 2.0 * at(x, y + 1) + at(x + 1, y + 1))
+                    - (at(x - 1, y - 1) + 2.0 * at(x, y - 1) + at(x + 1, y - 1));
+                let m = ((sx * sx + sy * sy).sqrt() / 1020.0).min(1.0);
+                if m >= cfg.delta {
+                    score += (cfg.lambda * (m - cfg.delta) + 1.0).ln() / norm;
+                }
+            }
+        }
+        out[k] = score;
+    }
+    Some(out)
+}

@@ -143,3 +143,29 @@ fn histogram_is_exact_on_small_gradients() {
     );
     assert!((fast.dm_dlnt - slow.dm_dlnt).abs() < 1e-6 * slow.dm_dlnt.abs().max(1.0));
 }
+
+/// The fast GEC scorer (tables, reused rows) against the naive one.
+#[test]
+fn gec_scores_match_reference() {
+    let scene = Scene::marker(Response::linear(), 3.0, 0.15);
+    let mut f = Frame::new(W, H);
+    let cfg = GecConfig::default();
+    let mut sc = GecScorer::new(&cfg);
+    for t in [50.0, 300.0, 1500.0] {
+        scene.render(t, 0, &mut f);
+        let fast = sc.scores(f.view()).unwrap();
+        let slow = reference::gec_scores(f.view(), &cfg).unwrap();
+        for (a, b) in fast.iter().zip(&slow) {
+            assert!(
+                (a - b).abs() <= 2e-3 * b.abs() + 1e-3,
+                "t {t}: {fast:?} vs {slow:?}"
+            );
+        }
+        // And the pyramid level.
+        let mut d = pyramid::Downsampler::new();
+        let (w, h, data) = reference::downsample(f.view(), 8);
+        let v = d.run(f.view(), 8);
+        assert_eq!((v.width, v.height), (w, h));
+        assert_eq!(v.data, &data[..]);
+    }
+}

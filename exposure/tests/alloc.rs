@@ -1,0 +1,80 @@
+//! Per-frame paths allocate nothing after the first frame (one test in this binary, so
+//! no other test allocates while it counts).
+mod common;
+
+use common::*;
+use markhold_exposure::*;
+use std::alloc::{GlobalAlloc, Layout, System};
+use std::sync::atomic::{AtomicUsize, Ordering};
+
+struct Counting;
+
+static ALLOCS: AtomicUsize = AtomicUsize::new(0);
+
+unsafe impl GlobalAlloc for Counting {
+    unsafe fn alloc(&self, layout: Layout) -> *mut u8 {
+        ALLOCS.fetch_add(1, Ordering::Relaxed);
+        unsafe { System.alloc(layout) }
+    }
+    unsafe fn dealloc(&self, ptr: *mut u8, layout: Layout) {
+        unsafe { System.dealloc(ptr, layout) }
+    }
+    unsafe fn realloc(&self, ptr: *mut u8, layout: Layout, new_size: usize) -> *mut u8 {
+        ALLOCS.fetch_add(1, Ordering::Relaxed);
+        unsafe { System.realloc(ptr, layout, new_size) }
+    }
+}
+
+#[global_allocator]
+static GLOBAL: Counting = Counting;
+
+#[test]
+fn controllers_do_not_allocate_per_frame() {
+    let scene = Scene::marker(Response::linear(), 3.0, 0.15);
+    let mut frames: Vec<Frame> = (0..6)
+        .map(|k| {
+            let mut f = Frame::new(W, H);
+            scene.render(200.0 * (k + 1) as f64, k, &mut f);
+            f
+        })
+        .collect();
+    let mut cfg = ExposureConfig::default();
+    let mut ctrls: Vec<Box<dyn ExposureController>> = ExposureMethod::ALL
+        .iter()
+        .map(|&m| build_controller(&cfg, m, limits(), 200.0).unwrap())
+        .collect();
+    cfg.aaec.fallback = AaecFallback::Aec;
+    ctrls.push(build_controller(&cfg, ExposureMethod::Aaec, limits(), 200.0).unwrap());
+    for c in ctrls.iter_mut() {
+        // First frames (with and without the marker, so AAEC's fallback runs too)
+        // size the buffers.
+        for (k, f) in frames.iter_mut().enumerate() {
+            f.meta.exposure_us = c.commanded_us();
+            let marker = (k % 3 != 2).then_some(&scene.corners);
+            c.update(f, marker);
+        }
+        c.reset(300.0);
+        for (k, f) in frames.iter_mut().enumerate().take(2) {
+            f.meta.exposure_us = c.commanded_us();
+            c.update(f, (k == 0).then_some(&scene.corners));
+        }
+        let before = ALLOCS.load(Ordering::Relaxed);
+        for round in 0..3 {
+            for (k, f) in frames.iter_mut().enumerate() {
+                f.meta.exposure_us = c.commanded_us();
+                // Marker seen, then lost long enough for the fallback, then back.
+                let marker = (round != 1).then_some(&scene.corners);
+                let s = c.update(f, marker);
+                assert!(s.used_frame || k > 0);
+            }
+        }
+        let after = ALLOCS.load(Ordering::Relaxed);
+        assert_eq!(
+            after - before,
+            0,
+            "{} allocated {} times",
+            c.method(),
+            after - before
+        );
+    }
+}
