@@ -258,8 +258,11 @@ pub struct DetectorConfig {
     /// Full-frame search on an image downscaled by this factor (1 = full resolution),
     /// followed by a full-resolution RoI search for sub-pixel corners.
     pub full_search_downscale: u32,
-    /// Standard deviation of a refined corner, pixels, per axis: scales the pose
-    /// covariance.
+    /// Independent noise added to each corner's edge-fit covariance, pixels per
+    /// axis (what the fit residuals cannot see: blur asymmetry, model error).
+    pub corner_sigma_floor_px: f64,
+    /// Corner noise, pixels per axis, assumed when the edge fit fails and
+    /// cv::cornerSubPix corners are used instead.
     pub corner_sigma_px: f64,
     /// The two IPPE solutions are ambiguous when the worse one's reprojection RMS is
     /// within this factor of the better one's; continuity with the previous pose
@@ -292,7 +295,8 @@ impl Default for DetectorConfig {
             track_motion_gain: 2.0,
             full_search_period_frames: 30,
             full_search_downscale: 1,
-            corner_sigma_px: 0.1,
+            corner_sigma_floor_px: 0.02,
+            corner_sigma_px: 0.3,
             ambiguity_ratio: 3.0,
             track_max_age_s: 0.5,
             max_reproj_rms_px: 3.0,
@@ -411,6 +415,13 @@ impl DetectorConfig {
             return Err(invalid(
                 &k("corner_sigma_px"),
                 self.corner_sigma_px,
+                "a standard deviation > 0 px",
+            ));
+        }
+        if !(self.corner_sigma_floor_px > 0.0 && self.corner_sigma_floor_px.is_finite()) {
+            return Err(invalid(
+                &k("corner_sigma_floor_px"),
+                self.corner_sigma_floor_px,
                 "a standard deviation > 0 px",
             ));
         }

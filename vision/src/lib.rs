@@ -12,6 +12,7 @@
 
 mod calib;
 mod config;
+mod corners;
 mod dict;
 mod error;
 pub mod pose;
@@ -21,6 +22,7 @@ mod yaml;
 
 pub use calib::CameraCalibration;
 pub use config::{DetectorConfig, MarkerConfig, MarkerFamily};
+pub use corners::CornerCov;
 pub use dict::{marker_bitmap, MarkerBitmap};
 pub use error::VisionError;
 pub use pose::{cov_in_frame, cov_of_inverse};

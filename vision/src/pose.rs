@@ -93,22 +93,26 @@ impl CameraCalibration {
 #[derive(Debug, Clone, Copy)]
 pub struct RefinedPose {
     pub t_cam_marker: Isometry3<f64>,
-    /// RMS over the 8 residual coordinates... reported per corner: sqrt(mean |r_i|^2).
+    /// sqrt(mean over the four corners of |observed - projected|^2), pixels.
     pub reproj_rms_px: f64,
-    /// J^T J of the reprojection residuals at the solution (pixels^2 per parameter^2).
-    pub jtj: Matrix6<f64>,
+    /// Fisher information J^T Sigma^-1 J of (t, dtheta) at the solution.
+    pub info: Matrix6<f64>,
 }
 
 impl RefinedPose {
-    /// Covariance of (t, dtheta) in the camera frame for independent corner noise of
-    /// `sigma_px` per axis: `sigma^2 (J^T J)^-1`. `None` when the geometry is degenerate.
-    pub fn covariance(&self, sigma_px: f64) -> Option<Matrix6<f64>> {
-        let inv = self.jtj.try_inverse()?;
-        let cov = inv * (sigma_px * sigma_px);
+    /// Covariance of (t, dtheta) in the camera frame: the inverse of the information
+    /// (first-order propagation of the corner covariance). `None` when degenerate.
+    pub fn covariance(&self) -> Option<Matrix6<f64>> {
+        let cov = self.info.try_inverse()?;
         // Symmetrise against round-off.
         let cov = (cov + cov.transpose()) * 0.5;
-        cov.iter().all(|v| v.is_finite()).then_some(cov)
+        (cov.iter().all(|v| v.is_finite()) && (0..6).all(|i| cov[(i, i)] > 0.0)).then_some(cov)
     }
+}
+
+/// Covariance of four corners with independent noise of `sigma_px` per axis.
+pub fn isotropic_corner_cov(sigma_px: f64) -> SMatrix<f64, 8, 8> {
+    SMatrix::<f64, 8, 8>::identity() * (sigma_px * sigma_px)
 }
 
 /// Residuals (observed - projected) and their Jacobian w.r.t. (dt, dtheta).
@@ -154,16 +158,24 @@ fn apply(pose: &Isometry3<f64>, delta: &Vector6<f64>) -> Isometry3<f64> {
     Isometry3::from_parts(Translation3::from(pose.translation.vector + dt), rot)
 }
 
-/// Levenberg-Marquardt on the reprojection error of the four corners, from `init`.
+/// Levenberg-Marquardt on the reprojection error of the four corners weighted by
+/// the inverse of `corner_cov` (8x8, order u0 v0 u1 v1 ...), from `init`.
 /// Returns `None` when a point falls behind the camera or the system is degenerate.
 pub fn refine_pose(
     calib: &CameraCalibration,
     obj: &[Point3<f64>; 4],
     img: &[Vector2<f64>; 4],
     init: &Isometry3<f64>,
+    corner_cov: &SMatrix<f64, 8, 8>,
 ) -> Option<RefinedPose> {
+    // Whitening: with Sigma = C C^T, C^-1 r has identity covariance.
+    let chol = corner_cov.cholesky()?;
+    let white = chol.l().try_inverse()?;
+    let residuals = |pose: &Isometry3<f64>| {
+        residuals(calib, obj, img, pose).map(|(r, j)| (white * r, white * j, r))
+    };
     let mut pose = *init;
-    let (mut r, mut j) = residuals(calib, obj, img, &pose)?;
+    let (mut r, mut j, mut raw) = residuals(&pose)?;
     let mut cost = r.norm_squared();
     let mut lambda = 1e-6;
     for _ in 0..30 {
@@ -179,13 +191,14 @@ pub fn refine_pose(
             continue;
         };
         let cand = apply(&pose, &delta);
-        match residuals(calib, obj, img, &cand) {
-            Some((r2, j2)) if r2.norm_squared() <= cost => {
+        match residuals(&cand) {
+            Some((r2, j2, raw2)) if r2.norm_squared() <= cost => {
                 let done =
                     delta.norm() < 1e-12 || cost - r2.norm_squared() < 1e-14 * cost.max(1e-30);
                 pose = cand;
                 r = r2;
                 j = j2;
+                raw = raw2;
                 cost = r.norm_squared();
                 lambda = (lambda * 0.1).max(1e-12);
                 if done {
@@ -200,11 +213,10 @@ pub fn refine_pose(
             }
         }
     }
-    let jtj = j.transpose() * j;
     Some(RefinedPose {
         t_cam_marker: pose,
-        reproj_rms_px: (cost / 4.0).sqrt(),
-        jtj,
+        reproj_rms_px: (raw.norm_squared() / 4.0).sqrt(),
+        info: j.transpose() * j,
     })
 }
 
@@ -312,11 +324,11 @@ mod tests {
         let truth = Isometry3::new(Vector3::new(-0.2, 0.1, 2.0), Vector3::new(0.2, 0.7, -0.3));
         let img = obj.map(|p| c.project(&(truth * p)).unwrap());
         let init = apply(&truth, &Vector6::new(0.03, -0.02, 0.1, 0.05, -0.04, 0.03));
-        let sol = refine_pose(&c, &obj, &img, &init).unwrap();
+        let sol = refine_pose(&c, &obj, &img, &init, &isotropic_corner_cov(0.1)).unwrap();
         assert!(sol.reproj_rms_px < 1e-6, "{}", sol.reproj_rms_px);
         assert!((sol.t_cam_marker.translation.vector - truth.translation.vector).norm() < 1e-7);
         assert!(sol.t_cam_marker.rotation.angle_to(&truth.rotation) < 1e-7);
-        assert!(sol.covariance(0.1).is_some());
+        assert!(sol.covariance().is_some());
     }
 
     #[test]

@@ -18,7 +18,8 @@ pub struct SceneParams {
     pub background: f64,
     /// White paper around the black border, in modules, each side.
     pub margin_cells: f64,
-    /// Rays per pixel side (area anti-aliasing).
+    /// Rays per pixel side (area anti-aliasing); edges are placed to 1/supersample^2
+    /// px.
     pub supersample: u32,
 }
 
@@ -29,7 +30,7 @@ impl Default for SceneParams {
             white: 200.0,
             background: 90.0,
             margin_cells: 1.5,
-            supersample: 4,
+            supersample: 6,
         }
     }
 }
@@ -87,60 +88,118 @@ pub fn render_marker(
     let ss = scene.supersample.max(1);
     let inv = 1.0 / (ss * ss) as f64;
     let rot = t_marker_cam.rotation;
-    for py in py0..py1 {
-        for px in px0..px1 {
-            let mut acc = 0.0;
-            for sy in 0..ss {
-                for sx in 0..ss {
-                    // Pixel centres are at integer coordinates (OpenCV convention).
-                    let u = px as f64 - 0.5 + (sx as f64 + 0.5) / ss as f64;
-                    let v = py as f64 - 0.5 + (sy as f64 + 0.5) / ss as f64;
-                    let n = calib.undistort_pixel(u, v);
-                    let d = rot * Vector3::new(n.x, n.y, 1.0);
-                    acc += if d.z.abs() < 1e-12 {
-                        scene.background
-                    } else {
-                        let lambda = -origin.z / d.z;
-                        if lambda <= 0.0 {
-                            scene.background
-                        } else {
-                            let x = origin.x + lambda * d.x;
-                            let y = origin.y + lambda * d.y;
-                            shade(x, y, size_m, half_paper, cell_m, bitmap, scene)
-                        }
-                    };
-                }
-            }
-            frame.data[py * w + px] = (acc * inv).round().clamp(0.0, 255.0) as u8;
+    let geo = Geometry {
+        size_m,
+        half_paper,
+        cell_m,
+        cells: bitmap.cells,
+    };
+    // Marker-plane point hit by the ray through pixel position (u, v).
+    let hit = |u: f64, v: f64| -> Option<(f64, f64)> {
+        let n = calib.undistort_pixel(u, v);
+        let d = rot * Vector3::new(n.x, n.y, 1.0);
+        if d.z.abs() < 1e-12 {
+            return None;
         }
+        let lambda = -origin.z / d.z;
+        (lambda > 0.0).then(|| (origin.x + lambda * d.x, origin.y + lambda * d.y))
+    };
+    let region_at =
+        |u: f64, v: f64| hit(u, v).map_or(Region::Background(9), |(x, y)| geo.region(x, y));
+    // Regions of the pixel corners of two consecutive rows: a pixel whose four corners
+    // fall in the same convex region is uniform and needs no rays.
+    let ncols = px1.saturating_sub(px0) + 1;
+    let mut top: Vec<Region> = (0..ncols)
+        .map(|i| region_at((px0 + i) as f64 - 0.5, py0 as f64 - 0.5))
+        .collect();
+    let mut bottom = vec![Region::Background(9); ncols];
+    for py in py0..py1 {
+        for (i, r) in bottom.iter_mut().enumerate() {
+            *r = region_at((px0 + i) as f64 - 0.5, py as f64 + 0.5);
+        }
+        for px in px0..px1 {
+            let i = px - px0;
+            let r = top[i];
+            let value = if r == top[i + 1] && r == bottom[i] && r == bottom[i + 1] {
+                r.shade(bitmap, scene)
+            } else {
+                let mut acc = 0.0;
+                for sy in 0..ss {
+                    for sx in 0..ss {
+                        // Pixel centres are at integer coordinates (OpenCV convention).
+                        // Sheared grid: all ss^2 rays have distinct x and distinct y,
+                        // so an axis-aligned edge is placed to 1/ss^2 px, not 1/ss.
+                        let ox = (sx as f64 + (sy as f64 + 0.5) / ss as f64) / ss as f64;
+                        let oy = (sy as f64 + (sx as f64 + 0.5) / ss as f64) / ss as f64;
+                        acc += region_at(px as f64 - 0.5 + ox, py as f64 - 0.5 + oy)
+                            .shade(bitmap, scene);
+                    }
+                }
+                acc * inv
+            };
+            frame.data[py * w + px] = value.round().clamp(0.0, 255.0) as u8;
+        }
+        std::mem::swap(&mut top, &mut bottom);
     }
     crate::pose::marker_object_points(size_m)
         .map(|p| calib.project(&(t_cam_marker * p)).map(|uv| [uv.x, uv.y]))
 }
 
-fn shade(
-    x: f64,
-    y: f64,
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Region {
+    /// Beyond the paper, with its sector around the paper (8 convex pieces; 9 = the
+    /// ray misses the plane).
+    Background(u8),
+    /// The white paper around the marker, with its sector (8 convex pieces).
+    Paper(u8),
+    /// Module (row, col), top-left first.
+    Cell(usize, usize),
+}
+
+impl Region {
+    fn shade(self, bitmap: &MarkerBitmap, scene: &SceneParams) -> f64 {
+        match self {
+            Region::Background(_) => scene.background,
+            Region::Paper(_) => scene.white,
+            Region::Cell(r, c) if bitmap.is_white(r, c) => scene.white,
+            Region::Cell(..) => scene.black,
+        }
+    }
+}
+
+struct Geometry {
     size_m: f64,
     half_paper: f64,
     cell_m: f64,
-    bitmap: &MarkerBitmap,
-    scene: &SceneParams,
-) -> f64 {
-    if x.abs() > half_paper || y.abs() > half_paper {
-        return scene.background;
-    }
-    let h = size_m / 2.0;
-    if x.abs() >= h || y.abs() >= h {
-        return scene.white;
-    }
-    // Column from the left edge, row from the top edge (marker y is up).
-    let col = ((x + h) / cell_m).floor() as usize;
-    let row = ((h - y) / cell_m).floor() as usize;
-    if bitmap.is_white(row, col) {
-        scene.white
-    } else {
-        scene.black
+    cells: usize,
+}
+
+impl Geometry {
+    fn region(&self, x: f64, y: f64) -> Region {
+        // Sector of the 3x3 partition around a centred square of half-side `a`.
+        let sector = |a: f64| {
+            let s = |v: f64| {
+                if v < -a {
+                    0u8
+                } else if v > a {
+                    2
+                } else {
+                    1
+                }
+            };
+            3 * s(y) + s(x)
+        };
+        if x.abs() > self.half_paper || y.abs() > self.half_paper {
+            return Region::Background(sector(self.half_paper));
+        }
+        let h = self.size_m / 2.0;
+        if x.abs() >= h || y.abs() >= h {
+            return Region::Paper(sector(h));
+        }
+        // Column from the left edge, row from the top edge (marker y is up).
+        let col = (((x + h) / self.cell_m).floor() as usize).min(self.cells - 1);
+        let row = (((h - y) / self.cell_m).floor() as usize).min(self.cells - 1);
+        Region::Cell(row, col)
     }
 }
 

@@ -2,9 +2,12 @@
 //! IPPE_SQUARE pose with ambiguity resolution, LM refinement and covariance.
 
 use crate::config::{DetectorConfig, MarkerConfig};
+use crate::corners::{CornerCov, EdgeRefiner};
 use crate::dict::dictionary;
 use crate::error::CvContext;
-use crate::pose::{cov_of_inverse, marker_object_points, refine_pose, RefinedPose};
+use crate::pose::{
+    cov_of_inverse, isotropic_corner_cov, marker_object_points, refine_pose, RefinedPose,
+};
 use crate::{CameraCalibration, VisionError};
 use markhold_exposure::{Corners, Frame, Roi};
 use nalgebra::{Isometry3, Matrix6, Point3, Translation3, UnitQuaternion, Vector2, Vector3};
@@ -53,6 +56,8 @@ pub struct TrackerStats {
     pub ambiguous: u64,
     /// Detections rejected for their reprojection error.
     pub rejected: u64,
+    /// Detections whose edges could not be fitted (cornerSubPix corners used).
+    pub subpix_fallbacks: u64,
 }
 
 #[derive(Debug, Clone, Copy)]
@@ -79,6 +84,7 @@ pub struct MarkerTracker {
     tvecs: core::Vector<core::Mat>,
     reproj: core::Mat,
     small: core::Mat,
+    edges: EdgeRefiner,
     track: Option<TrackState>,
     frames_since_full: u32,
     last_search: Option<Roi>,
@@ -152,6 +158,7 @@ impl MarkerTracker {
             tvecs: core::Vector::new(),
             reproj: core::Mat::default(),
             small: core::Mat::default(),
+            edges: EdgeRefiner::new(),
             track: None,
             frames_since_full: 0,
             last_search: None,
@@ -244,13 +251,13 @@ impl MarkerTracker {
             self.track = None;
             return Ok(None);
         };
-        self.refine_corners(&image, &mut corners)?;
-        let Some(sol) = self.estimate_pose(&corners)? else {
+        let corner_cov = self.refine_corners(frame, &image, &mut corners)?;
+        let Some(sol) = self.estimate_pose(&corners, &corner_cov)? else {
             self.stats.rejected += 1;
             self.track = None;
             return Ok(None);
         };
-        let Some(cov_cam) = sol.covariance(self.cfg.corner_sigma_px) else {
+        let Some(cov_cam) = sol.covariance() else {
             self.stats.rejected += 1;
             self.track = None;
             return Ok(None);
@@ -398,13 +405,15 @@ impl MarkerTracker {
             .detect_in(&view, (roi.x as f64, roi.y as f64), min_rate)
     }
 
-    /// Sub-pixel corners (cv::cornerSubPix) with a window that stays inside the
-    /// black border module: half-size at most 0.4 of the smallest module side.
+    /// Sub-pixel corners and their 8x8 covariance: edge-line fit (see `corners`),
+    /// plus the floor of independent corner noise; cv::cornerSubPix with
+    /// `corner_sigma_px` when an edge cannot be measured.
     fn refine_corners(
         &mut self,
+        frame: &Frame,
         image: &impl core::ToInputArray,
         corners: &mut Corners,
-    ) -> Result<(), VisionError> {
+    ) -> Result<CornerCov, VisionError> {
         let cells = (self.marker.family.data_bits() + 2) as f64;
         let min_side = (0..4)
             .map(|i| {
@@ -412,6 +421,13 @@ impl MarkerTracker {
                 ((a[0] - b[0]) as f64).hypot((a[1] - b[1]) as f64)
             })
             .fold(f64::MAX, f64::min);
+        if let Some(cov) = self
+            .edges
+            .refine(&frame.view(), &self.calib, corners, min_side / cells)
+        {
+            return Ok(cov + isotropic_corner_cov(self.cfg.corner_sigma_floor_px));
+        }
+        self.stats.subpix_fallbacks += 1;
         let half = ((0.4 * min_side / cells).floor() as i32).clamp(2, self.cfg.subpix_window_px);
         self.img_cv.clear();
         for c in corners.iter() {
@@ -440,12 +456,16 @@ impl MarkerTracker {
                 *c = [p.x, p.y];
             }
         }
-        Ok(())
+        Ok(isotropic_corner_cov(self.cfg.corner_sigma_px))
     }
 
     /// Both IPPE solutions refined by LM; the better fit wins unless the two are
     /// ambiguous, when the one closer to the previous pose wins.
-    fn estimate_pose(&mut self, corners: &Corners) -> Result<Option<RefinedPose>, VisionError> {
+    fn estimate_pose(
+        &mut self,
+        corners: &Corners,
+        corner_cov: &CornerCov,
+    ) -> Result<Option<RefinedPose>, VisionError> {
         self.img_cv.clear();
         for c in corners {
             self.img_cv.push(core::Point2f::new(c[0], c[1]));
@@ -477,7 +497,7 @@ impl MarkerTracker {
             let t = mat3(&t)?;
             let init =
                 Isometry3::from_parts(Translation3::from(t), UnitQuaternion::from_scaled_axis(r));
-            *cand = refine_pose(&self.calib, &self.obj, &img, &init);
+            *cand = refine_pose(&self.calib, &self.obj, &img, &init, corner_cov);
         }
         let [a, b] = cands;
         let (best, other) = match (a, b) {
@@ -488,7 +508,10 @@ impl MarkerTracker {
         };
         let mut chosen = best;
         if let (Some(other), Some(prev)) = (other, self.track.as_ref()) {
-            let floor = best.reproj_rms_px.max(self.cfg.corner_sigma_px);
+            let floor = best
+                .reproj_rms_px
+                .max(self.cfg.corner_sigma_floor_px)
+                .max(0.05);
             let distinct = best
                 .t_cam_marker
                 .rotation

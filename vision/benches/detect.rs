@@ -1,0 +1,114 @@
+//! Detect + pose at 1440x1080: full-frame search and RoI-tracked, beside OpenCV's
+//! default full-frame `detect_markers` (default parameters, no refinement, no pose).
+
+use criterion::{criterion_group, criterion_main, BenchmarkId, Criterion, Throughput};
+use markhold_exposure::Frame;
+use markhold_vision::synth::{render_marker, SceneParams};
+use markhold_vision::{
+    marker_bitmap, CameraCalibration, DetectorConfig, MarkerConfig, MarkerFamily, MarkerTracker,
+};
+use nalgebra::{Isometry3, Translation3, UnitQuaternion, Vector3};
+use opencv::{aruco, core};
+use rand::{Rng, SeedableRng};
+
+fn scene(range_m: f64) -> (CameraCalibration, MarkerConfig, Frame) {
+    let calib = CameraCalibration::pinhole(1440, 1080, 1000.0, 1000.0, 719.5, 539.5);
+    let marker = MarkerConfig {
+        family: MarkerFamily::AprilTag36h11,
+        id: 7,
+        size_m: 0.2,
+    };
+    let bm = marker_bitmap(marker.family, marker.id).unwrap();
+    let pose = Isometry3::from_parts(
+        Translation3::new(0.1 * range_m, -0.05 * range_m, range_m),
+        UnitQuaternion::from_axis_angle(&Vector3::x_axis(), std::f64::consts::PI)
+            * UnitQuaternion::from_axis_angle(&Vector3::y_axis(), 0.4),
+    );
+    let mut frame = Frame::default();
+    render_marker(
+        &mut frame,
+        &calib,
+        &bm,
+        marker.size_m,
+        &pose,
+        &SceneParams::default(),
+    );
+    // Texture everywhere (a flat background is unrealistically cheap to threshold).
+    let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(1);
+    for p in frame.data.iter_mut() {
+        *p = (*p as i32 + rng.random_range(-6..=6)).clamp(0, 255) as u8;
+    }
+    (calib, marker, frame)
+}
+
+fn bench(c: &mut Criterion) {
+    let threads: i32 = std::env::var("MARKHOLD_CV_THREADS")
+        .ok()
+        .and_then(|s| s.parse().ok())
+        .unwrap_or(1);
+    let mut g = c.benchmark_group(format!("detect_pose_1440x1080_threads{threads}"));
+    g.throughput(Throughput::Elements(1440 * 1080));
+    for range in [1.0, 3.0] {
+        let (calib, marker, mut frame) = scene(range);
+        let id = format!("{range}m");
+
+        // Baseline: OpenCV's default full-frame detection (no sub-pixel, no pose).
+        core::set_num_threads(threads).unwrap();
+        let dict = aruco::get_predefined_dictionary(
+            aruco::PREDEFINED_DICTIONARY_NAME::DICT_APRILTAG_36h11,
+        )
+        .unwrap();
+        let params = aruco::DetectorParameters::create().unwrap();
+        let img = core::Mat::new_rows_cols_with_data::<u8>(1080, 1440, &frame.data).unwrap();
+        let (mut corners, mut ids, mut rej) = (
+            core::Vector::<core::Vector<core::Point2f>>::new(),
+            core::Vector::<i32>::new(),
+            core::Vector::<core::Vector<core::Point2f>>::new(),
+        );
+        g.bench_function(BenchmarkId::new("opencv_default_full", &id), |b| {
+            b.iter(|| {
+                aruco::detect_markers(&img, &dict, &mut corners, &mut ids, &params, &mut rej)
+                    .unwrap();
+                assert!(ids.iter().any(|i| i == 7));
+            })
+        });
+        drop(img);
+
+        for (name, downscale) in [("full_search", 1u32), ("full_search_downscale2", 2)] {
+            let cfg = DetectorConfig {
+                full_search_period_frames: 1,
+                full_search_downscale: downscale,
+                opencv_threads: threads,
+                ..Default::default()
+            };
+            let mut t = MarkerTracker::new(&marker, &cfg, calib.clone()).unwrap();
+            g.bench_function(BenchmarkId::new(name, &id), |b| {
+                b.iter(|| {
+                    let o = t.process(&frame).unwrap().unwrap();
+                    assert!(!o.tracked);
+                })
+            });
+        }
+
+        let cfg = DetectorConfig {
+            full_search_period_frames: 0,
+            opencv_threads: threads,
+            ..Default::default()
+        };
+        let mut t = MarkerTracker::new(&marker, &cfg, calib.clone()).unwrap();
+        let mut stamp = 0.0;
+        t.process(&frame).unwrap().unwrap();
+        g.bench_function(BenchmarkId::new("tracked", &id), |b| {
+            b.iter(|| {
+                stamp += 0.033;
+                frame.meta.stamp_s = stamp;
+                let o = t.process(&frame).unwrap().unwrap();
+                assert!(o.tracked);
+            })
+        });
+    }
+    g.finish();
+}
+
+criterion_group!(benches, bench);
+criterion_main!(benches);
