@@ -184,8 +184,10 @@ pub enum MarkerLostAction {
 }
 
 /// `[controller]`: the station keeper's six PID axes, filter and marker-loss behaviour.
+/// Keys left out keep their defaults, also inside a partly given axis table (so
+/// `[controller.yaw] kp = 0.8` keeps yaw's own limits).
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
-#[serde(deny_unknown_fields, default)]
+#[serde(from = "ControllerConfigToml")]
 pub struct ControllerConfig {
     /// Forward (body x) axis, per metre.
     pub surge: AxisConfig,
@@ -239,6 +241,87 @@ impl Default for ControllerConfig {
             filter_q_rot_rad2_per_s: 0.02,
             max_gap_s: 1.0,
             vision_stall_s: 0.5,
+        }
+    }
+}
+
+/// One axis as written in the site file: every key optional.
+#[derive(Clone, Copy, Debug, Default, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+struct AxisToml {
+    kp: Option<f64>,
+    ki: Option<f64>,
+    kd: Option<f64>,
+    p_limit: Option<f64>,
+    i_limit: Option<f64>,
+    d_limit: Option<f64>,
+    output_limit: Option<f64>,
+}
+
+impl AxisToml {
+    fn over(self, mut a: AxisConfig) -> AxisConfig {
+        let set = |dst: &mut f64, v: Option<f64>| {
+            if let Some(v) = v {
+                *dst = v;
+            }
+        };
+        set(&mut a.kp, self.kp);
+        set(&mut a.ki, self.ki);
+        set(&mut a.kd, self.kd);
+        set(&mut a.p_limit, self.p_limit);
+        set(&mut a.i_limit, self.i_limit);
+        set(&mut a.d_limit, self.d_limit);
+        set(&mut a.output_limit, self.output_limit);
+        a
+    }
+}
+
+/// `[controller]` as written: merged over the defaults key by key.
+#[derive(Clone, Debug, Default, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+struct ControllerConfigToml {
+    surge: AxisToml,
+    sway: AxisToml,
+    heave: AxisToml,
+    roll: AxisToml,
+    pitch: AxisToml,
+    yaw: AxisToml,
+    rate_hz: Option<f64>,
+    derivative_filter_hz: Option<f64>,
+    marker_lost_hold_s: Option<f64>,
+    marker_lost_action_after_s: Option<f64>,
+    marker_lost_action: Option<MarkerLostAction>,
+    filter_q_trans_m2_per_s: Option<f64>,
+    filter_q_rot_rad2_per_s: Option<f64>,
+    max_gap_s: Option<f64>,
+    vision_stall_s: Option<f64>,
+}
+
+impl From<ControllerConfigToml> for ControllerConfig {
+    fn from(t: ControllerConfigToml) -> Self {
+        let d = ControllerConfig::default();
+        ControllerConfig {
+            surge: t.surge.over(d.surge),
+            sway: t.sway.over(d.sway),
+            heave: t.heave.over(d.heave),
+            roll: t.roll.over(d.roll),
+            pitch: t.pitch.over(d.pitch),
+            yaw: t.yaw.over(d.yaw),
+            rate_hz: t.rate_hz.unwrap_or(d.rate_hz),
+            derivative_filter_hz: t.derivative_filter_hz.unwrap_or(d.derivative_filter_hz),
+            marker_lost_hold_s: t.marker_lost_hold_s.unwrap_or(d.marker_lost_hold_s),
+            marker_lost_action_after_s: t
+                .marker_lost_action_after_s
+                .unwrap_or(d.marker_lost_action_after_s),
+            marker_lost_action: t.marker_lost_action.unwrap_or(d.marker_lost_action),
+            filter_q_trans_m2_per_s: t
+                .filter_q_trans_m2_per_s
+                .unwrap_or(d.filter_q_trans_m2_per_s),
+            filter_q_rot_rad2_per_s: t
+                .filter_q_rot_rad2_per_s
+                .unwrap_or(d.filter_q_rot_rad2_per_s),
+            max_gap_s: t.max_gap_s.unwrap_or(d.max_gap_s),
+            vision_stall_s: t.vision_stall_s.unwrap_or(d.vision_stall_s),
         }
     }
 }
@@ -611,6 +694,61 @@ mod tests {
             .unwrap_err()
             .to_string()
             .contains("station.distance_m"));
+    }
+
+    #[test]
+    fn site_file_sections_parse_with_defaults_and_reject_unknown_keys() {
+        #[derive(Deserialize)]
+        #[serde(deny_unknown_fields)]
+        struct Site {
+            station: StationConfig,
+            controller: ControllerConfig,
+            link: LinkConfig,
+        }
+        let text = r#"
+            [station]
+            distance_m = 1.5
+            yaw_deg = 10.0
+
+            [controller]
+            rate_hz = 40.0
+            marker_lost_action = "alt_hold"
+
+            [controller.yaw]
+            kp = 0.9
+
+            [link]
+            url = "tcpout:127.0.0.1:5760"
+            command = "effort"
+            pilot_input = "manual_control"
+            mode = "alt_hold"
+            signing_key_file = "/etc/markhold/key"
+        "#;
+        let s: Site = toml::from_str(text).unwrap();
+        assert_eq!(s.station.distance_m, 1.5);
+        assert_eq!(s.station.lateral_m, 0.0);
+        assert_eq!(s.controller.rate_hz, 40.0);
+        assert_eq!(s.controller.marker_lost_action, MarkerLostAction::AltHold);
+        // A partly given axis keeps that axis' own defaults for the other keys.
+        let d = ControllerConfig::default();
+        assert_eq!(s.controller.yaw.kp, 0.9);
+        assert_eq!(s.controller.yaw.output_limit, d.yaw.output_limit);
+        assert_eq!(s.controller.yaw.ki, d.yaw.ki);
+        assert_eq!(s.controller.surge, d.surge);
+        assert_eq!(s.link.pilot_input, PilotInput::ManualControl);
+        assert_eq!(s.link.mode, LinkMode::AltHold);
+        assert_eq!(s.link.gcs_system_id, 255);
+        s.link.validate().unwrap();
+        s.controller.validate().unwrap();
+
+        for bad in [
+            "[station]\ndistance = 1.0\n[controller]\n[link]\n",
+            "[station]\n[controller.yaw]\nkp_gain = 1\n[link]\n",
+            "[station]\n[controller]\nrate = 5\n[link]\n",
+            "[station]\n[controller]\n[link]\nmode = \"acro\"\n",
+        ] {
+            assert!(toml::from_str::<Site>(bad).is_err(), "accepted: {bad}");
+        }
     }
 
     #[test]
