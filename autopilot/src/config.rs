@@ -447,7 +447,7 @@ pub struct LinkConfig {
     pub gcs_component_id: u8,
     /// Vehicle system id used until its heartbeat is seen.
     pub vehicle_system_id: u8,
-    /// Vehicle component id (1 = autopilot).
+    /// Vehicle (autopilot) component id: only its heartbeats count (1 = MAV_COMP_ID_AUTOPILOT1).
     pub vehicle_component_id: u8,
     /// `effort` or `setpoint`.
     pub command: CommandKind,

@@ -465,17 +465,17 @@ impl VehicleLink {
         self.state.counters.received += 1;
         if let MavMessage::HEARTBEAT(hb) = msg {
             // GCSes and companions on the same link also heartbeat: only a vehicle counts.
+            // Cameras, gimbals and routers heartbeat too: only the autopilot component counts.
             if hb.mavtype == MavType::MAV_TYPE_GCS
                 || hb.autopilot == MavAutopilot::MAV_AUTOPILOT_INVALID
+                || h.component_id != self.cfg.vehicle_component_id
             {
                 return;
             }
             let Ok(sysid) = u8::try_from(h.system_id) else {
                 return;
             };
-            if !self.state.discovered
-                || (sysid == self.state.system_id && h.component_id == self.state.component_id)
-            {
+            if !self.state.discovered || sysid == self.state.system_id {
                 if !self.state.discovered {
                     tracing::info!(sysid, compid = h.component_id, "vehicle discovered");
                 }
