@@ -27,10 +27,12 @@ pub enum ParamsError {
         file: PathBuf,
         source: std::io::Error,
     },
-    #[error("{file}:{line}: {message}")]
+    #[error("{file}:{line}: {key}{message}")]
     Parse {
         file: PathBuf,
         line: usize,
+        /// `section.key = value: ` of the offending line, when the error points at one.
+        key: String,
         message: String,
     },
     #[error("{file}:{line}: {key} = {value}: expected {expected}")]
@@ -224,6 +226,29 @@ pub fn line_of_key(text: &str, dotted: &str) -> usize {
     header_line.unwrap_or(1)
 }
 
+/// The dotted key and raw value of a `key = value` line (1-based), with the table it is in.
+pub fn key_at_line(text: &str, line: usize) -> Option<(String, String)> {
+    let mut table = String::new();
+    for (i, raw) in text.lines().enumerate() {
+        let l = raw.trim();
+        if l.starts_with('[') {
+            table = l.trim_matches(|c| c == '[' || c == ']').trim().to_string();
+        }
+        if i + 1 == line {
+            let (k, v) = l.split_once('=')?;
+            let v = v.split(" #").next().unwrap_or(v).trim();
+            let k = k.trim();
+            let key = if table.is_empty() {
+                k.to_string()
+            } else {
+                format!("{table}.{k}")
+            };
+            return Some((key, v.to_string()));
+        }
+    }
+    None
+}
+
 fn line_of_offset(text: &str, offset: usize) -> usize {
     text[..offset.min(text.len())].matches('\n').count() + 1
 }
@@ -237,7 +262,7 @@ fn invalid_from(
     value: String,
     expected: String,
 ) -> ParamsError {
-    let key = if key.starts_with(&format!("{section}.")) {
+    let key = if section.is_empty() || key.starts_with(&format!("{section}.")) {
         key
     } else {
         format!("{section}.{key}")
@@ -262,10 +287,16 @@ pub fn load(path: &Path) -> Result<LoadedSite, ParamsError> {
 
 /// Parse and validate site text read from `path` (relative files resolve against it).
 pub fn parse(path: &Path, text: &str) -> Result<LoadedSite, ParamsError> {
-    let mut site: Site = toml::from_str(text).map_err(|e| ParamsError::Parse {
-        file: path.to_path_buf(),
-        line: e.span().map(|s| line_of_offset(text, s.start)).unwrap_or(1),
-        message: e.message().trim().to_string(),
+    let mut site: Site = toml::from_str(text).map_err(|e| {
+        let line = e.span().map(|s| line_of_offset(text, s.start)).unwrap_or(1);
+        ParamsError::Parse {
+            file: path.to_path_buf(),
+            line,
+            key: key_at_line(text, line)
+                .map(|(k, v)| format!("{k} = {v}: "))
+                .unwrap_or_default(),
+            message: e.message().trim().to_string(),
+        }
     })?;
     let inv = |section: &str, key: String, value: String, expected: String| {
         invalid_from(path, text, section, key, value, expected)

@@ -51,7 +51,9 @@ fn vision(section: &'static str, e: VisionError) -> Bad {
 fn autopilot(section: &'static str, e: AutopilotError) -> Bad {
     match e {
         AutopilotError::InvalidConfig { key, value, reason } => {
-            (section, key, value, reason.to_string())
+            // autopilot phrases it "must be ...": keep one style, "expected ...".
+            let expected = reason.strip_prefix("must be ").unwrap_or(reason);
+            (section, key, value, expected.to_string())
         }
         other => (section, section.into(), String::new(), other.to_string()),
     }
