@@ -1,0 +1,150 @@
+//! `markhold params check`: every shipped site is valid; each kind of bad file exits 78
+//! with a message that names the file, line, key and value. The messages are compared
+//! with snapshots in tests/snapshots/params/ (refresh: UPDATE_SNAPSHOTS=1 cargo test).
+
+use std::path::{Path, PathBuf};
+use std::process::Command;
+
+fn repo(p: &str) -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join(p)
+}
+
+fn check(path: &Path) -> (i32, String, String) {
+    let o = Command::new(env!("CARGO_BIN_EXE_markhold"))
+        .args(["params", "check"])
+        .arg(path)
+        .output()
+        .expect("run markhold");
+    (
+        o.status.code().unwrap_or(-1),
+        String::from_utf8_lossy(&o.stdout).into_owned(),
+        String::from_utf8_lossy(&o.stderr).into_owned(),
+    )
+}
+
+#[test]
+fn every_shipped_site_is_valid() {
+    let mut n = 0;
+    for entry in std::fs::read_dir(repo("params")).unwrap() {
+        let path = entry.unwrap().path();
+        if path.extension().and_then(|e| e.to_str()) != Some("toml") {
+            continue;
+        }
+        let (code, out, err) = check(&path);
+        assert_eq!(code, 0, "{}: {err}", path.display());
+        // Defaults are filled in: sections the file leaves out are printed too.
+        for section in ["[controller", "[vision]", "[exposure.aaec]", "[link]"] {
+            assert!(
+                out.contains(section),
+                "{}: no {section} in\n{out}",
+                path.display()
+            );
+        }
+        n += 1;
+    }
+    assert!(n >= 4, "expected the four shipped sites, found {n}");
+}
+
+/// Apply `edit` to pool.toml, check it, and compare the message with its snapshot.
+fn bad_case(name: &str, edit: impl Fn(&str) -> String) {
+    let dir = std::env::temp_dir().join(format!("markhold-params-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let pool = std::fs::read_to_string(repo("params/pool.toml")).unwrap();
+    let text = edit(&pool);
+    assert_ne!(text, pool, "{name}: the edit changed nothing");
+    let path = dir.join(format!("{name}.toml"));
+    std::fs::write(&path, &text).unwrap();
+    let (code, _, err) = check(&path);
+    assert_eq!(code, 78, "{name}: {err}");
+    assert!(!err.contains("panicked"), "{name}: {err}");
+    // The temp dir differs per run: the snapshot holds the message after the file name.
+    let msg = err.replace(&dir.display().to_string(), "<dir>");
+    snapshot(name, &msg);
+}
+
+fn snapshot(name: &str, actual: &str) {
+    let path = repo(&format!("tests/snapshots/params/{name}.txt"));
+    if std::env::var_os("UPDATE_SNAPSHOTS").is_some() {
+        std::fs::write(&path, actual).unwrap();
+        return;
+    }
+    let expected = std::fs::read_to_string(&path).unwrap_or_else(|_| {
+        panic!(
+            "no snapshot {}: run with UPDATE_SNAPSHOTS=1",
+            path.display()
+        )
+    });
+    assert_eq!(
+        actual, expected,
+        "message of {name} changed (UPDATE_SNAPSHOTS=1 to accept)"
+    );
+}
+
+#[test]
+fn unknown_key() {
+    bad_case("unknown_key", |t| {
+        t.replacen("[marker]\n", "[marker]\ncolour = \"red\"\n", 1)
+    });
+}
+
+#[test]
+fn wrong_type() {
+    bad_case("wrong_type", |t| {
+        t.replacen("fps = 30.0", "fps = \"thirty\"", 1)
+    });
+}
+
+#[test]
+fn out_of_range() {
+    bad_case("out_of_range", |t| {
+        t.replacen("exposure_max_us = 30000.0", "exposure_max_us = 5.0", 1)
+    });
+}
+
+#[test]
+fn unknown_method() {
+    bad_case("unknown_method", |t| {
+        t.replacen("method = \"aaec\"", "method = \"magic\"", 1)
+    });
+}
+
+#[test]
+fn unknown_marker_family() {
+    bad_case("unknown_family", |t| {
+        t.replacen("apriltag_36h11", "qr_code", 1)
+    });
+}
+
+#[test]
+fn crate_section_out_of_range() {
+    bad_case("station_distance", |t| {
+        t.replacen("distance_m = 1.0", "distance_m = -1.0", 1)
+    });
+}
+
+#[test]
+fn missing_section() {
+    bad_case("missing_camera", |t| {
+        let start = t.find("[camera]").unwrap();
+        let end = t.find("[exposure]").unwrap();
+        format!("{}{}", &t[..start], &t[end..])
+    });
+}
+
+#[test]
+fn missing_calibration_file() {
+    bad_case("missing_calibration", |t| {
+        t.replacen(
+            "[camera]\n",
+            "[camera]\ncalibration_file = \"no-such-calib.yaml\"\n",
+            1,
+        )
+    });
+}
+
+#[test]
+fn missing_file() {
+    let (code, _, err) = check(Path::new("/nonexistent/dir/site.toml"));
+    assert_eq!(code, 78, "{err}");
+    assert!(err.contains("/nonexistent/dir/site.toml"), "{err}");
+}
