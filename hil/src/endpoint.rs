@@ -241,8 +241,17 @@ pub(crate) fn scan_datagram(
     }
 }
 
+/// A TCP stream as the frame decoder's byte source.
+struct TcpSource(TcpStream);
+
+impl std::io::Read for TcpSource {
+    fn read(&mut self, buf: &mut [u8]) -> std::io::Result<usize> {
+        self.0.read(buf)
+    }
+}
+
 struct TcpClient {
-    reader: MavlinkReader<TcpStream>,
+    reader: MavlinkReader<TcpSource>,
     peer: SocketAddr,
 }
 
@@ -495,7 +504,7 @@ impl VehicleEndpoint {
                             let _ = stream.set_nodelay(true);
                             tracing::info!(%peer, "tcp client connected");
                             self.tcp_clients.push(TcpClient {
-                                reader: MavlinkReader::new(stream),
+                                reader: MavlinkReader::new(TcpSource(stream)),
                                 peer,
                             });
                         }
@@ -1122,7 +1131,7 @@ impl VehicleEndpoint {
         }
         for c in &mut self.tcp_clients {
             use std::io::Write;
-            if let Err(e) = c.reader.get_mut().write_all(bytes) {
+            if let Err(e) = c.reader.get_mut().0.write_all(bytes) {
                 tracing::debug!(peer = %c.peer, error = %e, "tcp send failed");
             }
         }

@@ -295,4 +295,61 @@ mod tests {
         // Raw vertical (throttle 1, roll 1): m5 = 1 - 1 = 0, m6 = -2, m7 = 0, m8 = -2.
         assert_eq!(&out[4..], &[0.0, -1.0, 0.0, -1.0]);
     }
+
+    mod laws {
+        use super::*;
+        use nalgebra::{DMatrix, DVector};
+        use proptest::prelude::*;
+
+        proptest! {
+            #[test]
+            fn outputs_and_pwm_stay_in_range(e in proptest::array::uniform6(-3.0f64..3.0)) {
+                for frame in [Frame6Dof::Heavy, Frame6Dof::Standard] {
+                    let m = Mixer::new(frame);
+                    for o in m.mix_outputs(&e) {
+                        prop_assert!((-1.0..=1.0).contains(&o));
+                    }
+                    for (i, p) in m.mix_pwm(&e, true).into_iter().enumerate() {
+                        if i < m.motor_count() {
+                            prop_assert!((1100..=1900).contains(&p));
+                        } else {
+                            prop_assert_eq!(p, 0);
+                        }
+                    }
+                }
+            }
+
+            /// Below saturation the mixer is linear: the pseudo-inverse of its factor
+            /// matrix recovers the efforts (all six on the Heavy, all but pitch on the
+            /// standard frame).
+            #[test]
+            fn mixer_inverse_round_trips(e in proptest::array::uniform6(-0.15f64..0.15)) {
+                for frame in [Frame6Dof::Heavy, Frame6Dof::Standard] {
+                    let m = Mixer::new(frame);
+                    let n = m.motor_count();
+                    // Column j = outputs for a unit effort on axis j (linear part).
+                    let mut a = DMatrix::<f64>::zeros(n, 6);
+                    for j in 0..6 {
+                        let mut u = [0.0; 6];
+                        u[j] = 0.1;
+                        let out = m.mix_outputs(&u);
+                        for i in 0..n {
+                            a[(i, j)] = out[i] / 0.1;
+                        }
+                    }
+                    let out = m.mix_outputs(&e);
+                    let y = DVector::from_iterator(n, out[..n].iter().copied());
+                    let pinv = a.clone().pseudo_inverse(1e-9).unwrap();
+                    let back = pinv * y;
+                    for j in 0..6 {
+                        if frame == Frame6Dof::Standard && j == 4 {
+                            prop_assert!(back[j].abs() < 1e-9);
+                            continue;
+                        }
+                        prop_assert!((back[j] - e[j]).abs() < 1e-9, "{frame} axis {j}: {} vs {}", back[j], e[j]);
+                    }
+                }
+            }
+        }
+    }
 }
