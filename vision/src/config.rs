@@ -295,7 +295,7 @@ impl Default for DetectorConfig {
             track_motion_gain: 2.0,
             full_search_period_frames: 30,
             full_search_downscale: 1,
-            corner_sigma_floor_px: 0.02,
+            corner_sigma_floor_px: 0.005,
             corner_sigma_px: 0.3,
             ambiguity_ratio: 3.0,
             track_max_age_s: 0.5,

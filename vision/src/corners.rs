@@ -266,7 +266,10 @@ impl EdgeRefiner {
             ss += q.dot(&nrm).powi(2);
             stt += q.dot(&d).powi(2);
         }
-        let var = ss / (n - 2.0);
+        // Edge points are 1 px apart and each reads a 2 px bilinear footprint, so
+        // neighbours correlate (lag-1 autocorrelation of the triangle kernel: 1/4):
+        // the line's variance is (1 + 2 * 1/4) = 1.5 times the independent value.
+        let var = 1.5 * ss / (n - 2.0);
         if stt <= 0.0 {
             return None;
         }

@@ -87,3 +87,16 @@ pub fn position_error(a: &Isometry3<f64>, b: &Isometry3<f64>) -> f64 {
 pub fn rotation_error_deg(a: &Isometry3<f64>, b: &Isometry3<f64>) -> f64 {
     a.rotation.angle_to(&b.rotation).to_degrees()
 }
+
+/// Additive Gaussian noise of `sigma` grey levels. Box-Muller per pixel costs more
+/// than the render: draw from a fresh table of 4096 samples with random indices.
+pub fn add_noise(frame: &mut Frame, sigma: f64, rng: &mut impl Rng) {
+    if sigma <= 0.0 {
+        return;
+    }
+    let table: Vec<f64> = (0..4096).map(|_| sigma * gauss(rng)).collect();
+    for p in frame.data.iter_mut() {
+        let n = table[(rng.next_u32() & 4095) as usize];
+        *p = (*p as f64 + n).round().clamp(0.0, 255.0) as u8;
+    }
+}
