@@ -1,0 +1,186 @@
+//! RoI tracking: same pose as a full search on a moving sequence, periodic full
+//! searches, and recovery after the marker leaves and re-enters the view.
+
+mod common;
+
+use common::*;
+use markhold_exposure::Frame;
+use markhold_vision::synth::{render_marker, SceneParams};
+use markhold_vision::{CameraCalibration, DetectorConfig, MarkerTracker};
+use nalgebra::Isometry3;
+use rand::SeedableRng;
+use rand_chacha::ChaCha8Rng;
+
+fn small_calib() -> CameraCalibration {
+    CameraCalibration {
+        dist: vec![-0.1, 0.02, 0.0, 0.0, 0.0],
+        ..CameraCalibration::pinhole(800, 600, 600.0, 600.0, 399.5, 299.5)
+    }
+}
+
+/// Frame `k` of a sweep: the marker slides left to right at 1.2 m, turning.
+fn sweep(k: usize) -> Isometry3<f64> {
+    let s = k as f64 / 40.0;
+    pose(
+        [-0.35 + 0.7 * s, 0.1 - 0.2 * s, 1.2 + 0.3 * s],
+        15.0 + 25.0 * s,
+        -10.0 + 5.0 * s,
+    )
+}
+
+fn render(
+    frame: &mut Frame,
+    calib: &CameraCalibration,
+    t: &Isometry3<f64>,
+    k: usize,
+    rng: &mut ChaCha8Rng,
+) {
+    let m = marker();
+    render_marker(
+        frame,
+        calib,
+        &bitmap(&m),
+        m.size_m,
+        t,
+        &SceneParams::default(),
+    );
+    add_noise(frame, 2.0, rng);
+    frame.meta.seq = k as u64;
+    frame.meta.stamp_s = k as f64 / 30.0;
+}
+
+#[test]
+fn tracked_search_matches_full_search_on_a_moving_sequence() {
+    let calib = small_calib();
+    let m = marker();
+    let tracked_cfg = DetectorConfig {
+        full_search_period_frames: 15,
+        ..Default::default()
+    };
+    let full_cfg = DetectorConfig {
+        full_search_period_frames: 1,
+        ..Default::default()
+    };
+    let mut tracker = MarkerTracker::new(&m, &tracked_cfg, calib.clone()).unwrap();
+    let mut full = MarkerTracker::new(&m, &full_cfg, calib.clone()).unwrap();
+    let mut rng = ChaCha8Rng::seed_from_u64(21);
+    let mut frame = Frame::default();
+    let mut n_tracked = 0;
+    let frames = 41;
+    for k in 0..frames {
+        let truth = sweep(k);
+        render(&mut frame, &calib, &truth, k, &mut rng);
+        let a = tracker
+            .process(&frame)
+            .unwrap()
+            .expect("tracker sees the marker");
+        let b = full
+            .process(&frame)
+            .unwrap()
+            .expect("full search sees the marker");
+        assert!(!b.tracked);
+        if a.tracked {
+            n_tracked += 1;
+            // The window is a small part of the frame, and holds the marker.
+            let roi = tracker
+                .last_search_roi()
+                .expect("tracked frames have a window");
+            assert!(roi.area() * 4 < 800 * 600, "window {roi:?} is not small");
+            for c in &a.corners {
+                assert!(c[0] >= roi.x as f32 && c[0] <= (roi.x + roi.width) as f32);
+                assert!(c[1] >= roi.y as f32 && c[1] <= (roi.y + roi.height) as f32);
+            }
+        }
+        let range = truth.translation.vector.norm();
+        let dp = position_error(&a.t_cam_marker, &b.t_cam_marker);
+        let dr = rotation_error_deg(&a.t_cam_marker, &b.t_cam_marker);
+        assert!(
+            dp < 1e-3 * range,
+            "frame {k}: tracked and full poses differ by {dp} m"
+        );
+        assert!(
+            dr < 0.05,
+            "frame {k}: tracked and full rotations differ by {dr} deg"
+        );
+        let max_corner = a
+            .corners
+            .iter()
+            .zip(&b.corners)
+            .map(|(p, q)| ((p[0] - q[0]).powi(2) + (p[1] - q[1]).powi(2)).sqrt())
+            .fold(0.0f32, f32::max);
+        assert!(
+            max_corner < 0.05,
+            "frame {k}: corners differ by {max_corner} px"
+        );
+        assert!(position_error(&a.t_cam_marker, &truth) < 0.01 * range);
+    }
+    // Frames 0, 15 and 30 are full searches (first frame and the period); the rest
+    // are tracked.
+    let stats = tracker.stats();
+    assert_eq!(stats.full_searches, 3, "{stats:?}");
+    assert_eq!(n_tracked, frames - 3, "{stats:?}");
+    assert_eq!(stats.tracked_hits as usize, n_tracked);
+}
+
+#[test]
+fn recovers_after_the_marker_leaves_and_reenters() {
+    let calib = small_calib();
+    let m = marker();
+    let mut tracker = MarkerTracker::new(&m, &DetectorConfig::default(), calib.clone()).unwrap();
+    let mut rng = ChaCha8Rng::seed_from_u64(22);
+    let mut frame = Frame::default();
+    // In view (x = 0), out to the right (x = 2 m at 1.2 m range is far outside the
+    // 67 degree field of view), and back.
+    let xs: Vec<f64> = (0..10)
+        .map(|k| k as f64 * 0.02)
+        .chain([2.0; 5])
+        .chain((0..10).map(|k| 0.2 - k as f64 * 0.02))
+        .collect();
+    let mut seen = Vec::new();
+    for (k, x) in xs.iter().enumerate() {
+        let truth = pose([*x, 0.0, 1.2], 25.0, 0.0);
+        render(&mut frame, &calib, &truth, k, &mut rng);
+        let obs = tracker.process(&frame).unwrap();
+        if let Some(o) = &obs {
+            assert!(
+                position_error(&o.t_cam_marker, &truth) < 0.01 * 1.2,
+                "frame {k}"
+            );
+        }
+        seen.push(obs.map(|o| o.tracked));
+    }
+    // Seen in the first part (tracked after the first frame), lost while away.
+    assert_eq!(seen[0], Some(false));
+    assert!(seen[1..10].iter().all(|s| *s == Some(true)), "{seen:?}");
+    assert!(seen[10..15].iter().all(|s| s.is_none()), "{seen:?}");
+    // Found by the full search on its first frame back, then tracked again.
+    assert_eq!(seen[15], Some(false), "{seen:?}");
+    assert!(seen[16..].iter().all(|s| *s == Some(true)), "{seen:?}");
+}
+
+#[test]
+fn a_jump_beyond_the_window_falls_back_to_a_full_search_in_the_same_frame() {
+    let calib = small_calib();
+    let m = marker();
+    let mut tracker = MarkerTracker::new(&m, &DetectorConfig::default(), calib.clone()).unwrap();
+    let mut rng = ChaCha8Rng::seed_from_u64(23);
+    let mut frame = Frame::default();
+    let a = pose([-0.3, 0.0, 1.2], 20.0, 0.0);
+    render(&mut frame, &calib, &a, 0, &mut rng);
+    assert!(tracker.process(&frame).unwrap().is_some());
+    // Next frame: the marker is on the other side of the image.
+    let b = pose([0.35, 0.1, 1.2], 20.0, 0.0);
+    render(&mut frame, &calib, &b, 1, &mut rng);
+    let o = tracker
+        .process(&frame)
+        .unwrap()
+        .expect("found by the fallback search");
+    assert!(!o.tracked);
+    assert!(position_error(&o.t_cam_marker, &b) < 0.012);
+    let s = tracker.stats();
+    assert_eq!(
+        (s.tracked_searches, s.tracked_hits, s.full_searches),
+        (1, 0, 2),
+        "{s:?}"
+    );
+}
