@@ -32,6 +32,31 @@ enum Command {
         #[command(subcommand)]
         command: ParamsCommand,
     },
+    /// Serve ArduPilot's SITL JSON physics interface with the simulated vehicle, for
+    /// `sim_vehicle.py -v ArduSub -f vectored_6dof --model JSON`.
+    Sitl(SitlArgs),
+}
+
+#[derive(clap::Args)]
+struct SitlArgs {
+    /// Dive-site file (the vehicle and its start pose come from it).
+    #[arg(long, default_value = "params/pool.toml")]
+    site: PathBuf,
+    /// UDP port ArduPilot sends servo packets to (9002, +10 per extra instance).
+    #[arg(long, default_value_t = 9002)]
+    port: u16,
+    /// Address to bind: loopback unless ArduPilot runs on another machine.
+    #[arg(long, default_value = "127.0.0.1")]
+    bind: std::net::IpAddr,
+    /// Seed of the gusts and waves.
+    #[arg(long, default_value_t = 1)]
+    seed: u64,
+    /// Stop after this many servo packets (default: serve until killed).
+    #[arg(long)]
+    max_packets: Option<u64>,
+    /// With --max-packets: stop after this many wall seconds at most.
+    #[arg(long, default_value_t = 60.0)]
+    max_seconds: f64,
 }
 
 #[derive(Subcommand)]
@@ -102,6 +127,7 @@ fn run(cli: Cli) -> anyhow::Result<()> {
         Command::Params {
             command: ParamsCommand::Check { file },
         } => params_check(&file),
+        Command::Sitl(args) => sitl(args),
     }
 }
 
@@ -113,6 +139,45 @@ fn params_check(file: &Path) -> anyhow::Result<()> {
         file.display()
     );
     println!("{text}");
+    Ok(())
+}
+
+fn sitl(args: SitlArgs) -> anyhow::Result<()> {
+    let site = params::load(&args.site)?;
+    let cfg = markhold_hil::SitlConfig {
+        bind_ip: args.bind,
+        port: args.port,
+    };
+    if let Err(e) = cfg.validate() {
+        anyhow::bail!("--port {}: {e}", args.port);
+    }
+    // The vehicle starts on station, in front of the marker.
+    let start = site.t_world_marker() * site.site.station.t_marker_vehicle();
+    let mut server = markhold_hil::SitlServer::bind(&cfg, &site.site.vehicle, &start, args.seed)
+        .with_context(|| {
+            format!(
+                "binding the SITL JSON server on {}:{}",
+                args.bind, args.port
+            )
+        })?;
+    eprintln!(
+        "markhold sitl: ArduPilot JSON physics for site {} on udp {}\n  start ArduSub with: sim_vehicle.py -v ArduSub -f vectored_6dof --model JSON",
+        site.site.site.name,
+        server.local_addr()?
+    );
+    match args.max_packets {
+        Some(n) => {
+            let stats = server.run_bounded(
+                n,
+                std::time::Duration::from_secs_f64(args.max_seconds.clamp(0.0, 86_400.0)),
+            )?;
+            println!(
+                "markhold sitl: {} packets, {} replies, {} steps, {} repeated, {} resets, {} rejected",
+                stats.packets, stats.replies, stats.steps, stats.repeated, stats.resets, stats.rejected
+            );
+        }
+        None => server.run()?,
+    }
     Ok(())
 }
 
