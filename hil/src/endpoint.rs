@@ -1138,3 +1138,59 @@ impl VehicleEndpoint {
         Ok(())
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn config_errors_name_the_key_and_unknown_keys_are_refused() {
+        let c = EndpointConfig {
+            joystick_gain: 2.0,
+            ..Default::default()
+        };
+        assert!(c
+            .validate()
+            .unwrap_err()
+            .to_string()
+            .contains("endpoint.joystick_gain"));
+        let c = EndpointConfig {
+            initial_mode: 9,
+            ..Default::default()
+        };
+        assert!(c
+            .validate()
+            .unwrap_err()
+            .to_string()
+            .contains("endpoint.initial_mode"));
+        let mut c = EndpointConfig::default();
+        c.gains.depth_kp = f64::NAN;
+        assert!(c
+            .validate()
+            .unwrap_err()
+            .to_string()
+            .contains("endpoint.gains.depth_kp"));
+        assert!(serde_json::from_str::<EndpointConfig>(r#"{"gcs_sysid":255}"#).is_err());
+        let c: EndpointConfig = serde_json::from_str(r#"{"gcs_system_id":254}"#).unwrap();
+        assert_eq!((c.gcs_system_id, c.system_id), (254, 1));
+    }
+
+    #[test]
+    fn datagram_scanner_resyncs_after_a_bogus_start() {
+        let mut bytes = vec![0xFEu8, 0xFD, 0x00];
+        let msg = MavMessage::HEARTBEAT(HEARTBEAT_DATA::default());
+        let h = MavHeader {
+            system_id: 255,
+            component_id: 0,
+            sequence: 7,
+        };
+        let mut one = Vec::new();
+        mavlink::write_versioned_msg(&mut one, MavlinkVersion::V2, h, &msg).unwrap();
+        bytes.extend_from_slice(&one);
+        mavlink::write_versioned_msg(&mut bytes, MavlinkVersion::V1, h, &msg).unwrap();
+        bytes.extend_from_slice(&one[..5]); // truncated tail
+        let mut seen = Vec::new();
+        scan_datagram(&bytes, |h, m| seen.push((h.sequence, m.is_ok())));
+        assert_eq!(seen, vec![(7, true), (7, true)]);
+    }
+}

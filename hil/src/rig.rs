@@ -43,7 +43,7 @@ pub struct HilSetup {
 }
 
 /// Ground truth at the last grabbed frame (or now, before the first).
-#[derive(Debug, Clone, Copy, PartialEq)]
+#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct Truth {
     pub time_s: f64,
     pub t_world_vehicle: Isometry3<f64>,
