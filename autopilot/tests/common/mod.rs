@@ -227,6 +227,9 @@ fn run(
         let mut broken = false;
         match cur {
             Io::Udp(s, peer) => {
+                // Block briefly for the first datagram, then drain without waiting (socket
+                // timeouts are rounded up to the kernel tick).
+                s.set_nonblocking(false).unwrap();
                 s.set_read_timeout(Some(Duration::from_millis(2))).unwrap();
                 while let Ok((n, from)) = s.recv_from(&mut buf) {
                     *peer = Some(from);
@@ -234,8 +237,7 @@ fn run(
                     while let Ok(m) = r.read_any_message::<MavMessage>() {
                         msgs.push(m);
                     }
-                    s.set_read_timeout(Some(Duration::from_micros(200)))
-                        .unwrap();
+                    s.set_nonblocking(true).unwrap();
                 }
             }
             Io::Tcp(s) => {
