@@ -29,7 +29,7 @@ impl Run {
     /// estimate from the truth each frame, like markhold's marker pose would give.
     fn fly(&mut self, frames: usize, rc: [u16; 6], vision: bool) {
         for _ in 0..frames {
-            if self.rig.frames() % 30 == 0 {
+            if self.rig.frames().is_multiple_of(30) {
                 self.c.heartbeat();
             }
             self.c.rc(rc);
