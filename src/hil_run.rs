@@ -58,23 +58,61 @@ pub struct HilRun {
     pub t_marker_station: Isometry3<f64>,
 }
 
+/// The site's initial offset from the station, in the station (vehicle body) frame.
+///
+/// 0.3 m by default, split equally over surge (back), sway and heave so every axis has
+/// to act, with the yaw turned toward the marker: the camera sits 0.2 m ahead of the
+/// centre of gravity, 0.8 m from the marker, and a sideways offset with the yaw turned
+/// away would start with the marker outside a 62-degree field of view.
+pub fn start_offset(v: &markhold_hil::VehicleConfig) -> Isometry3<f64> {
+    let d = v.initial_offset_m / 3f64.sqrt();
+    Isometry3::from_parts(
+        Translation3::from(Vector3::new(-d, d, d)),
+        UnitQuaternion::from_euler_angles(0.0, 0.0, -v.initial_offset_deg.to_radians()),
+    )
+}
+
 /// The vehicle's start pose: the station, displaced by the site's initial offset.
 fn start_pose(site: &LoadedSite, station: &Isometry3<f64>, on_station: bool) -> Isometry3<f64> {
     let t_world_station = site.t_world_marker() * station;
     if on_station {
         return t_world_station;
     }
-    let v = &site.site.vehicle;
-    // 0.3 m split equally over surge (back), sway and heave, so every axis has to act,
-    // and the yaw turned toward the marker: the camera sits 0.2 m ahead of the centre of
-    // gravity, 0.8 m from the marker, and a 0.3 m sideways offset with the yaw turned away
-    // would start with the marker outside a 62-degree field of view.
-    let d = v.initial_offset_m / 3f64.sqrt();
-    let off = Isometry3::from_parts(
-        Translation3::from(Vector3::new(-d, d, d)),
-        UnitQuaternion::from_euler_angles(0.0, 0.0, -v.initial_offset_deg.to_radians()),
-    );
-    t_world_station * off
+    t_world_station * start_offset(&site.site.vehicle)
+}
+
+/// The simulated camera of a site: its calibration, limits, response and sensor.
+pub fn camera_model(site: &LoadedSite, limits: markhold_exposure::ExposureLimits) -> CameraModel {
+    let s = &site.site;
+    let calib = &site.calibration;
+    CameraModel {
+        width: calib.width,
+        height: calib.height,
+        fx: calib.fx,
+        fy: calib.fy,
+        cx: calib.cx,
+        cy: calib.cy,
+        dist: dist5(&calib.dist),
+        fps: s.camera.fps,
+        limits,
+        gain_db: s.camera.gain_db,
+        delay_frames: s.camera.actuation_delay_frames,
+        response: s.exposure.response.clone(),
+        sensor: s.camera.sensor.clone(),
+    }
+}
+
+/// The site's marker as printed (from the dictionary), for rendering.
+pub fn marker_spec(site: &LoadedSite) -> anyhow::Result<MarkerSpec> {
+    let m = &site.site.marker;
+    let bitmap = marker_bitmap(m.family, m.id)
+        .with_context(|| format!("marker {} id {}", m.family, m.id))?;
+    Ok(MarkerSpec {
+        cells: bitmap.cells,
+        white: bitmap.white,
+        size_m: m.size_m,
+        plate_margin_m: m.size_m * 0.25,
+    })
 }
 
 impl HilRun {
@@ -92,24 +130,8 @@ impl HilRun {
                 .unwrap_or(s.camera.initial_exposure_us),
         );
 
-        let bitmap = marker_bitmap(s.marker.family, s.marker.id)
-            .with_context(|| format!("marker {} id {}", s.marker.family, s.marker.id))?;
         let calib = &site.calibration;
-        let model = CameraModel {
-            width: calib.width,
-            height: calib.height,
-            fx: calib.fx,
-            fy: calib.fy,
-            cx: calib.cx,
-            cy: calib.cy,
-            dist: dist5(&calib.dist),
-            fps: s.camera.fps,
-            limits,
-            gain_db: s.camera.gain_db,
-            delay_frames: s.camera.actuation_delay_frames,
-            response: s.exposure.response.clone(),
-            sensor: s.camera.sensor.clone(),
-        };
+        let model = camera_model(site, limits);
         let t_marker_station = s.station.t_marker_vehicle();
         let t_world_marker = site.t_world_marker();
         let setup = HilSetup {
@@ -122,12 +144,7 @@ impl HilRun {
             lighting: lighting_cfg,
             camera: model,
             t_vehicle_cam: site.t_vehicle_cam(),
-            marker: MarkerSpec {
-                cells: bitmap.cells,
-                white: bitmap.white,
-                size_m: s.marker.size_m,
-                plate_margin_m: s.marker.size_m * 0.25,
-            },
+            marker: marker_spec(site)?,
             t_world_marker,
             t_world_vehicle_start: start_pose(site, &t_marker_station, opts.start_on_station),
             motion: opts.motion,

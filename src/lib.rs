@@ -3,6 +3,7 @@
 //! This crate wires the member crates into one loop ([`pipeline`]) and runs it against
 //! the simulated world ([`hil_run`]); `params` reads dive-site files.
 
+pub mod external;
 pub mod hil_run;
 pub mod params;
 mod params_validate;

@@ -97,6 +97,10 @@ struct HilArgs {
     /// No progress bar.
     #[arg(long)]
     quiet: bool,
+    /// Camera-in-the-loop on an external MAVLink vehicle (e.g. ArduSub SITL:
+    /// tcpout:127.0.0.1:5760): its telemetry places the camera, markhold controls it.
+    #[arg(long, value_name = "MAVLINK_URL")]
+    vehicle: Option<String>,
 }
 
 fn main() -> ExitCode {
@@ -217,25 +221,34 @@ fn hil(args: HilArgs) -> anyhow::Result<()> {
         b
     };
     let mut snap_err = None;
-    let summary = run_hil(&site, &opts, &mut |rec, truth, frame| {
-        bar.inc(1);
-        if rec.seq % 15 == 0 {
-            bar.set_message(format!(
-                "t={:.1}s exp={:.0}us {}",
-                truth.time_s,
-                rec.exposure.exposure_us,
-                if rec.detected { "marker" } else { "no marker" }
-            ));
-        }
-        if let Some(dir) = &opts.snapshot_dir {
-            if rec.seq % opts.snapshot_every == 0 && snap_err.is_none() {
-                let path = dir.join(format!("frame-{:06}.png", rec.seq));
-                if let Err(e) = markhold::snapshot::save_png(frame, &path) {
-                    snap_err = Some(e);
+    let mut on_frame =
+        |rec: &markhold::pipeline::FrameRecord, time_s: f64, frame: &markhold_exposure::Frame| {
+            bar.inc(1);
+            if rec.seq % 15 == 0 {
+                bar.set_message(format!(
+                    "t={:.1}s exp={:.0}us {}",
+                    time_s,
+                    rec.exposure.exposure_us,
+                    if rec.detected { "marker" } else { "no marker" }
+                ));
+            }
+            if let Some(dir) = &opts.snapshot_dir {
+                if rec.seq % opts.snapshot_every == 0 && snap_err.is_none() {
+                    let path = dir.join(format!("frame-{:06}.png", rec.seq));
+                    if let Err(e) = markhold::snapshot::save_png(frame, &path) {
+                        snap_err = Some(e);
+                    }
                 }
             }
-        }
-    })?;
+        };
+    let summary = match &args.vehicle {
+        Some(url) => markhold::external::run_external(&site, url, &opts, &mut |rec, frame| {
+            on_frame(rec, rec.stamp_s, frame)
+        })?,
+        None => run_hil(&site, &opts, &mut |rec, truth, frame| {
+            on_frame(rec, truth.time_s, frame)
+        })?,
+    };
     bar.finish_and_clear();
     if let Some(e) = snap_err {
         return Err(e.context("saving snapshots"));

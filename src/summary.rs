@@ -91,6 +91,28 @@ impl RunStats {
         self.last_time_s = truth.time_s;
     }
 
+    /// A frame of a run whose truth is an external vehicle's telemetry.
+    pub fn push_external(
+        &mut self,
+        rec: &FrameRecord,
+        t_world_vehicle: &Isometry3<f64>,
+        t_vehicle_cam: &Isometry3<f64>,
+    ) {
+        let t_cam_marker = (t_world_vehicle * t_vehicle_cam).inverse() * self.t_world_marker;
+        let truth = Truth {
+            time_s: rec.stamp_s,
+            t_world_vehicle: *t_world_vehicle,
+            t_world_cam: t_world_vehicle * t_vehicle_cam,
+            t_cam_marker,
+            velocity_world_mps: [0.0; 3],
+            armed: true,
+            mode: 0,
+            pwm: [1500; 8],
+            lockstep_timeouts: 0,
+        };
+        self.push(rec, &truth);
+    }
+
     pub fn summary(
         &self,
         method: ExposureMethod,

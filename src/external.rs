@@ -1,0 +1,210 @@
+//! `markhold hil --vehicle URL`: camera-in-the-loop on an external MAVLink vehicle.
+//!
+//! The vehicle (ArduSub SITL with its own physics, or any MAVLink simulator) flies
+//! itself; markhold renders what its camera would see from the vehicle's
+//! LOCAL_POSITION_NED + ATTITUDE telemetry with hil's underwater camera, and controls the
+//! vehicle over the same link. The marker is placed so that the vehicle's first reported
+//! pose is the site's start pose (the station, displaced by the site's initial offset).
+
+use std::time::{Duration, Instant};
+
+use anyhow::Context;
+use markhold_autopilot::{StationKeeper, Supervisor, VehicleLink, VehicleState};
+use markhold_exposure::{build_controller, Camera, CameraError, ExposureLimits, Frame};
+use markhold_hil::camera::UnderwaterCamera;
+use markhold_hil::scene::Scene;
+use markhold_vision::MarkerTracker;
+use nalgebra::{Isometry3, Translation3, UnitQuaternion};
+
+use crate::hil_run::{camera_model, marker_spec, start_offset, HilOptions};
+use crate::params::LoadedSite;
+use crate::pipeline::Pipeline;
+use crate::summary::{RunStats, Summary};
+
+/// The vehicle's pose from its telemetry (world = its local NED frame).
+pub fn pose_from_telemetry(state: &VehicleState) -> Option<Isometry3<f64>> {
+    let p = state.local_position?;
+    let a = state.attitude?;
+    Some(Isometry3::from_parts(
+        Translation3::new(p.position[0], p.position[1], p.position[2]),
+        UnitQuaternion::from_euler_angles(a.roll, a.pitch, a.yaw),
+    ))
+}
+
+/// hil's underwater camera, rendering from a pose set before each frame, paced at the
+/// camera's frame rate against the external vehicle's real time.
+pub struct ExternalCamera {
+    scene: Scene,
+    camera: UnderwaterCamera,
+    t_vehicle_cam: Isometry3<f64>,
+    t_world_vehicle: Isometry3<f64>,
+    limits: ExposureLimits,
+    period: Duration,
+    started: Instant,
+    frames: u64,
+}
+
+impl ExternalCamera {
+    pub fn set_vehicle_pose(&mut self, t_world_vehicle: Isometry3<f64>) {
+        self.t_world_vehicle = t_world_vehicle;
+    }
+
+    pub fn t_world_marker(&self) -> Isometry3<f64> {
+        *self.scene.t_world_marker()
+    }
+}
+
+impl Camera for ExternalCamera {
+    fn name(&self) -> &str {
+        "hil-external"
+    }
+
+    fn exposure_limits(&self) -> ExposureLimits {
+        self.limits
+    }
+
+    fn set_exposure_us(&mut self, exposure_us: f64) -> Result<f64, CameraError> {
+        Ok(self.camera.set_exposure_us(exposure_us))
+    }
+
+    fn grab(&mut self, frame: &mut Frame) -> Result<(), CameraError> {
+        // A real camera delivers frames at its own rate: so does this one.
+        let due = self.started + self.period * self.frames as u32;
+        if let Some(wait) = due.checked_duration_since(Instant::now()) {
+            std::thread::sleep(wait);
+        }
+        let time_s = self.frames as f64 * self.period.as_secs_f64();
+        let t_world_cam = self.t_world_vehicle * self.t_vehicle_cam;
+        self.camera.render(
+            &self.scene,
+            &t_world_cam,
+            &self.t_world_vehicle,
+            time_s,
+            frame,
+        );
+        self.frames += 1;
+        Ok(())
+    }
+}
+
+/// Wait (bounded) for the vehicle's heartbeat, position and attitude.
+fn wait_for_pose(link: &mut VehicleLink, started: Instant) -> anyhow::Result<Isometry3<f64>> {
+    let deadline = started + Duration::from_secs(15);
+    while Instant::now() < deadline {
+        link.tick(started.elapsed().as_secs_f64())?;
+        if let Some(p) = pose_from_telemetry(link.state()) {
+            if link.state().discovered {
+                return Ok(p);
+            }
+        }
+        std::thread::sleep(Duration::from_millis(10));
+    }
+    let s = link.state();
+    anyhow::bail!(
+        "no pose from the vehicle within 15 s (heartbeat: {}, LOCAL_POSITION_NED: {}, ATTITUDE: {}): \
+         is it running, and does it have a position estimate?",
+        s.discovered,
+        s.local_position.is_some(),
+        s.attitude.is_some()
+    )
+}
+
+/// Run the loop against an external vehicle for `opts.seconds` of its real time.
+pub fn run_external(
+    site: &LoadedSite,
+    url: &str,
+    opts: &HilOptions,
+    on_frame: &mut dyn FnMut(&crate::pipeline::FrameRecord, &Frame),
+) -> anyhow::Result<Summary> {
+    let s = &site.site;
+    let started = Instant::now();
+    let mut link_cfg = s.link.clone();
+    link_cfg.url = url.to_string();
+    let mut link = VehicleLink::connect(&link_cfg)
+        .with_context(|| format!("connecting to the vehicle at {url}"))?;
+    let t_world_vehicle0 = wait_for_pose(&mut link, started)?;
+
+    let t_marker_station = s.station.t_marker_vehicle();
+    let offset = if opts.start_on_station {
+        Isometry3::identity()
+    } else {
+        start_offset(&s.vehicle)
+    };
+    let t_world_marker = t_world_vehicle0 * offset.inverse() * t_marker_station.inverse();
+    let method = opts.exposure.unwrap_or(s.exposure.method);
+    let mut lighting = s.lighting.clone();
+    if let Some(l) = opts.lighting {
+        lighting.scenario = l;
+    }
+    let scenario = lighting.scenario;
+    let limits = site.limits();
+    let initial_us = limits.clamp(
+        opts.initial_exposure_us
+            .unwrap_or(s.camera.initial_exposure_us),
+    );
+    let scene = Scene::new(
+        &s.water,
+        &lighting,
+        marker_spec(site)?,
+        t_world_marker,
+        opts.seed,
+    )?;
+    let mut camera = UnderwaterCamera::new(camera_model(site, limits), opts.seed)?;
+    camera.set_exposure_us(initial_us);
+    let fps = s.camera.fps;
+    let mut cam = ExternalCamera {
+        scene,
+        camera,
+        t_vehicle_cam: site.t_vehicle_cam(),
+        t_world_vehicle: t_world_vehicle0,
+        limits,
+        period: Duration::from_secs_f64(1.0 / fps),
+        started: Instant::now(),
+        frames: 0,
+    };
+
+    let mode = s.link.mode.ardusub();
+    let now = started.elapsed().as_secs_f64();
+    link.request_mode(mode, now)?;
+    link.request_arm(true, now)?;
+    let deadline = Instant::now() + Duration::from_secs(10);
+    while !(link.state().armed && link.state().mode == Some(mode)) {
+        anyhow::ensure!(
+            Instant::now() < deadline,
+            "the vehicle at {url} did not arm in {mode:?} within 10 s"
+        );
+        link.tick(started.elapsed().as_secs_f64())?;
+        std::thread::sleep(Duration::from_millis(10));
+    }
+
+    let mut pipeline = Pipeline {
+        tracker: MarkerTracker::new(&s.marker, &s.vision, site.calibration.clone())?,
+        exposure: build_controller(&s.exposure, method, limits, initial_us)?,
+        keeper: StationKeeper::new(&s.station, &s.controller, site.t_vehicle_cam())?,
+        supervisor: Supervisor::new(&s.controller, &s.link),
+        link,
+        frame: Frame::new(site.calibration.width, site.calibration.height),
+        events: Vec::with_capacity(8),
+        marker_seen_s: None,
+        shutdown: false,
+    };
+    let frames = (opts.seconds * fps).round().max(1.0) as u64;
+    let mut stats = RunStats::new(frames as usize, t_world_marker, t_marker_station);
+    for _ in 0..frames {
+        if let Some(p) = pose_from_telemetry(pipeline.link.state()) {
+            cam.set_vehicle_pose(p);
+        }
+        let rec = pipeline.step(&mut cam)?;
+        stats.push_external(&rec, &cam.t_world_vehicle, &cam.t_vehicle_cam);
+        on_frame(&rec, &pipeline.frame);
+    }
+    let now = cam.frames as f64 / fps;
+    pipeline.link.send_neutral(now)?;
+    Ok(stats.summary(
+        method,
+        scenario,
+        opts.seed,
+        started.elapsed().as_secs_f64(),
+        0,
+    ))
+}
