@@ -11,6 +11,7 @@
 //! order (tx, ty, tz, rx, ry, rz)).
 
 mod calib;
+mod camera;
 mod config;
 mod corners;
 mod dict;
@@ -21,6 +22,7 @@ mod tracker;
 mod yaml;
 
 pub use calib::CameraCalibration;
+pub use camera::{FrameRecorder, RecordedCamera, V4l2Camera, SIDECAR};
 pub use config::{DetectorConfig, MarkerConfig, MarkerFamily};
 pub use corners::CornerCov;
 pub use dict::{marker_bitmap, MarkerBitmap};

@@ -1,0 +1,606 @@
+//! Cameras behind `markhold_exposure::Camera`: a V4L2 device through OpenCV's videoio
+//! with manual exposure, and recorded frames (a folder of PNGs with a sidecar).
+
+use crate::error::CvContext;
+use crate::VisionError;
+use markhold_exposure::{Camera, CameraError, ExposureLimits, Frame, FrameMeta};
+use opencv::{core, imgcodecs, imgproc, prelude::*, videoio};
+use std::io::Read;
+use std::path::{Path, PathBuf};
+
+/// Name of the sidecar in a recording folder.
+pub const SIDECAR: &str = "frames.csv";
+const HEADER: &str = "file,seq,stamp_s,exposure_us,gain_db";
+
+/// Copy an 8-bit grey or BGR image into `frame` (grey).
+fn mat_to_frame(
+    img: &core::Mat,
+    grey: &mut core::Mat,
+    frame: &mut Frame,
+) -> Result<(), opencv::Error> {
+    let src = match img.channels() {
+        1 => img,
+        3 => {
+            imgproc::cvt_color(img, grey, imgproc::COLOR_BGR2GRAY, 0)?;
+            &*grey
+        }
+        4 => {
+            imgproc::cvt_color(img, grey, imgproc::COLOR_BGRA2GRAY, 0)?;
+            &*grey
+        }
+        n => {
+            return Err(opencv::Error::new(
+                core::StsBadArg,
+                format!("{n} channels: expected grey or BGR"),
+            ))
+        }
+    };
+    if src.depth() != core::CV_8U {
+        return Err(opencv::Error::new(
+            core::StsBadArg,
+            "pixel depth: expected 8 bits",
+        ));
+    }
+    let (w, h) = (src.cols() as u32, src.rows() as u32);
+    frame.resize(w, h);
+    if src.is_continuous() {
+        frame
+            .data
+            .copy_from_slice(&src.data_bytes()?[..(w * h) as usize]);
+    } else {
+        for y in 0..h as i32 {
+            let row = src.row(y)?;
+            let bytes = row.data_bytes()?;
+            let start = y as usize * w as usize;
+            frame.data[start..start + w as usize].copy_from_slice(&bytes[..w as usize]);
+        }
+    }
+    Ok(())
+}
+
+/// One line of the sidecar.
+#[derive(Debug, Clone, PartialEq)]
+struct Entry {
+    file: PathBuf,
+    meta: FrameMeta,
+}
+
+/// Frames recorded to a folder: PNG files and `frames.csv` with, per frame, the file
+/// name, sequence number, stamp (s), exposure (us) and gain (dB). The exposure cannot
+/// be changed: `set_exposure_us` reports the recorded exposure of the next frame.
+pub struct RecordedCamera {
+    name: String,
+    dir: PathBuf,
+    entries: Vec<Entry>,
+    next: usize,
+    limits: ExposureLimits,
+    bytes: Vec<u8>,
+    img: core::Mat,
+    grey: core::Mat,
+}
+
+impl RecordedCamera {
+    /// Open a recording folder; the sidecar is read and every listed file checked.
+    pub fn open(dir: &Path) -> Result<Self, VisionError> {
+        let sidecar = dir.join(SIDECAR);
+        let text = std::fs::read_to_string(&sidecar).map_err(|source| VisionError::Io {
+            path: sidecar.clone(),
+            source,
+        })?;
+        let bad = |line: usize, reason: String| VisionError::Recording {
+            path: sidecar.clone(),
+            line,
+            reason,
+        };
+        let mut lines = text
+            .lines()
+            .enumerate()
+            .filter(|(_, l)| !l.trim().is_empty());
+        match lines.next() {
+            Some((_, h)) if h.trim() == HEADER => {}
+            Some((i, h)) => return Err(bad(i + 1, format!("header '{h}': expected '{HEADER}'"))),
+            None => return Err(bad(1, "empty sidecar".into())),
+        }
+        let mut entries: Vec<Entry> = Vec::new();
+        for (i, line) in lines {
+            let no = i + 1;
+            let f: Vec<&str> = line.split(',').map(str::trim).collect();
+            if f.len() != 5 {
+                return Err(bad(
+                    no,
+                    format!("{} fields: expected 5 ({HEADER})", f.len()),
+                ));
+            }
+            let num = |k: usize, name: &str| -> Result<f64, VisionError> {
+                f[k].parse::<f64>()
+                    .ok()
+                    .filter(|v| v.is_finite())
+                    .ok_or_else(|| bad(no, format!("{name} '{}' is not a finite number", f[k])))
+            };
+            let seq = f[1]
+                .parse::<u64>()
+                .map_err(|_| bad(no, format!("seq '{}' is not an integer", f[1])))?;
+            let meta = FrameMeta {
+                seq,
+                stamp_s: num(2, "stamp_s")?,
+                exposure_us: num(3, "exposure_us")?,
+                gain_db: num(4, "gain_db")?,
+            };
+            if meta.exposure_us <= 0.0 {
+                return Err(bad(
+                    no,
+                    format!("exposure_us {} must be > 0", meta.exposure_us),
+                ));
+            }
+            if let Some(prev) = entries.last() {
+                if meta.stamp_s <= prev.meta.stamp_s {
+                    return Err(bad(
+                        no,
+                        format!("stamp_s {} does not increase", meta.stamp_s),
+                    ));
+                }
+            }
+            let file = PathBuf::from(f[0]);
+            if file.is_absolute()
+                || file
+                    .components()
+                    .any(|c| matches!(c, std::path::Component::ParentDir))
+            {
+                return Err(bad(
+                    no,
+                    format!("file '{}' must be inside the folder", f[0]),
+                ));
+            }
+            if !dir.join(&file).is_file() {
+                return Err(bad(no, format!("file '{}' not found", f[0])));
+            }
+            entries.push(Entry { file, meta });
+        }
+        if entries.is_empty() {
+            return Err(bad(1, "no frames listed".into()));
+        }
+        let min_us = entries
+            .iter()
+            .map(|e| e.meta.exposure_us)
+            .fold(f64::MAX, f64::min);
+        let max_us = entries
+            .iter()
+            .map(|e| e.meta.exposure_us)
+            .fold(0.0, f64::max);
+        let fps = if entries.len() > 1 {
+            let span = entries[entries.len() - 1].meta.stamp_s - entries[0].meta.stamp_s;
+            (entries.len() - 1) as f64 / span
+        } else {
+            0.0
+        };
+        Ok(Self {
+            name: format!("recorded:{}", dir.display()),
+            dir: dir.to_path_buf(),
+            entries,
+            next: 0,
+            limits: ExposureLimits {
+                min_us,
+                max_us,
+                fps,
+            },
+            bytes: Vec::new(),
+            img: core::Mat::default(),
+            grey: core::Mat::default(),
+        })
+    }
+
+    /// Number of frames in the recording.
+    pub fn len(&self) -> usize {
+        self.entries.len()
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.entries.is_empty()
+    }
+
+    /// Go back to the first frame.
+    pub fn rewind(&mut self) {
+        self.next = 0;
+    }
+}
+
+impl Camera for RecordedCamera {
+    fn name(&self) -> &str {
+        &self.name
+    }
+
+    fn exposure_limits(&self) -> ExposureLimits {
+        self.limits
+    }
+
+    fn set_exposure_us(&mut self, _exposure_us: f64) -> Result<f64, CameraError> {
+        let e = self.entries.get(self.next).or(self.entries.last());
+        Ok(e.map_or(0.0, |e| e.meta.exposure_us))
+    }
+
+    fn grab(&mut self, frame: &mut Frame) -> Result<(), CameraError> {
+        let Some(entry) = self.entries.get(self.next) else {
+            return Err(CameraError::EndOfStream {
+                device: self.name.clone(),
+            });
+        };
+        let path = self.dir.join(&entry.file);
+        let read_err = |reason: String| CameraError::Read {
+            device: self.name.clone(),
+            seq: entry.meta.seq,
+            reason,
+        };
+        self.bytes.clear();
+        std::fs::File::open(&path)
+            .and_then(|mut f| f.read_to_end(&mut self.bytes))
+            .map_err(|e| read_err(format!("{}: {e}", path.display())))?;
+        let buf = core::Mat::from_slice(&self.bytes).map_err(|e| read_err(e.to_string()))?;
+        imgcodecs::imdecode_to(&buf, imgcodecs::IMREAD_GRAYSCALE, &mut self.img)
+            .map_err(|e| read_err(format!("{}: {e}", path.display())))?;
+        if self.img.empty() {
+            return Err(read_err(format!(
+                "{}: not a readable image",
+                path.display()
+            )));
+        }
+        mat_to_frame(&self.img, &mut self.grey, frame)
+            .map_err(|e| read_err(format!("{}: {e}", path.display())))?;
+        frame.meta = entry.meta;
+        self.next += 1;
+        Ok(())
+    }
+}
+
+/// Writes frames as a recording `RecordedCamera` can replay.
+pub struct FrameRecorder {
+    dir: PathBuf,
+    sidecar: std::io::BufWriter<std::fs::File>,
+    written: u64,
+}
+
+impl FrameRecorder {
+    /// Create `dir` (if needed) and a fresh sidecar in it.
+    pub fn create(dir: &Path) -> Result<Self, VisionError> {
+        let io = |path: &Path| {
+            let path = path.to_path_buf();
+            move |source| VisionError::Io { path, source }
+        };
+        std::fs::create_dir_all(dir).map_err(io(dir))?;
+        let path = dir.join(SIDECAR);
+        let file = std::fs::File::create(&path).map_err(io(&path))?;
+        let mut sidecar = std::io::BufWriter::new(file);
+        use std::io::Write;
+        writeln!(sidecar, "{HEADER}").map_err(io(&path))?;
+        Ok(Self {
+            dir: dir.to_path_buf(),
+            sidecar,
+            written: 0,
+        })
+    }
+
+    /// Write one frame (PNG, lossless) and its line of the sidecar.
+    pub fn write(&mut self, frame: &Frame) -> Result<(), VisionError> {
+        use std::io::Write;
+        let name = format!("frame_{:06}.png", self.written);
+        let path = self.dir.join(&name);
+        let (w, h) = (frame.width as usize, frame.height as usize);
+        let data = frame.data.get(..w * h).ok_or(VisionError::FrameSize {
+            what: "its pixel buffer",
+            width: frame.width,
+            height: frame.height,
+            expected_width: frame.width,
+            expected_height: (frame.data.len() / w.max(1)) as u32,
+        })?;
+        let img =
+            core::Mat::new_rows_cols_with_data::<u8>(h as i32, w as i32, data).cv("wrap frame")?;
+        let ok = imgcodecs::imwrite(&path, &img, &core::Vector::new()).cv("imwrite")?;
+        if !ok {
+            return Err(VisionError::Io {
+                path,
+                source: std::io::Error::other("OpenCV could not write the PNG"),
+            });
+        }
+        let m = frame.meta;
+        let sidecar = self.dir.join(SIDECAR);
+        writeln!(
+            self.sidecar,
+            "{name},{},{},{},{}",
+            m.seq, m.stamp_s, m.exposure_us, m.gain_db
+        )
+        .and_then(|_| self.sidecar.flush())
+        .map_err(|source| VisionError::Io {
+            path: sidecar,
+            source,
+        })?;
+        self.written += 1;
+        Ok(())
+    }
+}
+
+/// A V4L2 camera through OpenCV's videoio, with the driver's auto exposure off.
+///
+/// Exposure goes through `CAP_PROP_EXPOSURE`, which the V4L2 backend maps to
+/// `V4L2_CID_EXPOSURE_ABSOLUTE` in units of 100 us (`exposure_unit_us`). Each frame
+/// carries the exposure read back from the driver when it was grabbed, and the
+/// buffer's timestamp as its stamp.
+pub struct V4l2Camera {
+    name: String,
+    cap: videoio::VideoCapture,
+    limits: ExposureLimits,
+    exposure_unit_us: f64,
+    seq: u64,
+    img: core::Mat,
+    grey: core::Mat,
+}
+
+impl V4l2Camera {
+    /// Open `device` (`/dev/video0`, or an index such as `0`) at `width` x `height`
+    /// and `fps`, with manual exposure. A missing device, or a mode the driver does
+    /// not deliver, is an error naming the device.
+    pub fn open(device: &str, width: u32, height: u32, fps: f64) -> Result<Self, VisionError> {
+        let name = format!("v4l2:{device}");
+        let not_found = |reason: String| {
+            VisionError::Camera(CameraError::NotFound {
+                device: device.to_string(),
+                reason,
+            })
+        };
+        let rejected = |control: &str, reason: String| {
+            VisionError::Camera(CameraError::ControlRejected {
+                device: device.to_string(),
+                control: control.to_string(),
+                reason,
+            })
+        };
+        if !(fps.is_finite() && fps > 0.0) || width == 0 || height == 0 {
+            return Err(rejected(
+                "mode",
+                format!("{width}x{height} at {fps} fps is not a valid mode"),
+            ));
+        }
+        let cap = if let Ok(index) = device.parse::<i32>() {
+            if !Path::new(&format!("/dev/video{index}")).exists() {
+                return Err(not_found(format!("/dev/video{index} does not exist")));
+            }
+            videoio::VideoCapture::new(index, videoio::CAP_V4L2)
+        } else {
+            if !Path::new(device).exists() {
+                return Err(not_found("no such device file".into()));
+            }
+            videoio::VideoCapture::from_file(device, videoio::CAP_V4L2)
+        };
+        let mut cap = cap.map_err(|e| not_found(e.to_string()))?;
+        if !cap.is_opened().unwrap_or(false) {
+            return Err(not_found("OpenCV's V4L2 backend could not open it".into()));
+        }
+        let set =
+            |cap: &mut videoio::VideoCapture, prop: i32, v: f64| cap.set(prop, v).unwrap_or(false);
+        set(&mut cap, videoio::CAP_PROP_FRAME_WIDTH, width as f64);
+        set(&mut cap, videoio::CAP_PROP_FRAME_HEIGHT, height as f64);
+        set(&mut cap, videoio::CAP_PROP_FPS, fps);
+        let got_w = cap.get(videoio::CAP_PROP_FRAME_WIDTH).unwrap_or(0.0) as u32;
+        let got_h = cap.get(videoio::CAP_PROP_FRAME_HEIGHT).unwrap_or(0.0) as u32;
+        if (got_w, got_h) != (width, height) {
+            return Err(rejected(
+                "resolution",
+                format!("asked {width}x{height}, the driver delivers {got_w}x{got_h}"),
+            ));
+        }
+        // V4L2_EXPOSURE_MANUAL is 1; backends that normalise controls use 0.25.
+        if !set(&mut cap, videoio::CAP_PROP_AUTO_EXPOSURE, 1.0)
+            && !set(&mut cap, videoio::CAP_PROP_AUTO_EXPOSURE, 0.25)
+        {
+            return Err(rejected(
+                "auto_exposure",
+                "the driver did not accept manual exposure".into(),
+            ));
+        }
+        let frame_us = 1e6 / fps;
+        Ok(Self {
+            name,
+            cap,
+            limits: ExposureLimits {
+                min_us: 100.0,
+                max_us: frame_us,
+                fps,
+            },
+            exposure_unit_us: 100.0,
+            seq: 0,
+            img: core::Mat::default(),
+            grey: core::Mat::default(),
+        })
+    }
+
+    /// Override the exposure range (the V4L2 backend of OpenCV cannot query it).
+    pub fn with_exposure_limits(mut self, limits: ExposureLimits) -> Self {
+        self.limits = limits;
+        self
+    }
+
+    /// Microseconds per unit of the driver's exposure control (100 for
+    /// `V4L2_CID_EXPOSURE_ABSOLUTE`).
+    pub fn with_exposure_unit_us(mut self, unit_us: f64) -> Self {
+        if unit_us > 0.0 && unit_us.is_finite() {
+            self.exposure_unit_us = unit_us;
+        }
+        self
+    }
+
+    fn read_back_us(&self) -> f64 {
+        self.cap.get(videoio::CAP_PROP_EXPOSURE).unwrap_or(f64::NAN) * self.exposure_unit_us
+    }
+}
+
+impl Camera for V4l2Camera {
+    fn name(&self) -> &str {
+        &self.name
+    }
+
+    fn exposure_limits(&self) -> ExposureLimits {
+        self.limits
+    }
+
+    fn set_exposure_us(&mut self, exposure_us: f64) -> Result<f64, CameraError> {
+        let t = self.limits.clamp(exposure_us);
+        let units = (t / self.exposure_unit_us).round().max(1.0);
+        let ok = self
+            .cap
+            .set(videoio::CAP_PROP_EXPOSURE, units)
+            .map_err(|e| CameraError::ControlRejected {
+                device: self.name.clone(),
+                control: "exposure".into(),
+                reason: e.to_string(),
+            })?;
+        if !ok {
+            return Err(CameraError::ControlRejected {
+                device: self.name.clone(),
+                control: "exposure".into(),
+                reason: format!("{units} units of {} us refused", self.exposure_unit_us),
+            });
+        }
+        let back = self.read_back_us();
+        Ok(if back.is_finite() && back > 0.0 {
+            back
+        } else {
+            units * self.exposure_unit_us
+        })
+    }
+
+    fn grab(&mut self, frame: &mut Frame) -> Result<(), CameraError> {
+        let read_err = |seq: u64, reason: String| CameraError::Read {
+            device: self.name.clone(),
+            seq,
+            reason,
+        };
+        let ok = self
+            .cap
+            .read(&mut self.img)
+            .map_err(|e| read_err(self.seq, e.to_string()))?;
+        if !ok || self.img.empty() {
+            return Err(read_err(self.seq, "no frame from the driver".into()));
+        }
+        mat_to_frame(&self.img, &mut self.grey, frame)
+            .map_err(|e| read_err(self.seq, e.to_string()))?;
+        let stamp_ms = self.cap.get(videoio::CAP_PROP_POS_MSEC).unwrap_or(f64::NAN);
+        frame.meta = FrameMeta {
+            seq: self.seq,
+            stamp_s: stamp_ms / 1e3,
+            exposure_us: self.read_back_us(),
+            gain_db: 0.0,
+        };
+        self.seq += 1;
+        Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn tmp(name: &str) -> PathBuf {
+        let d = std::env::temp_dir().join(format!("markhold-vision-{name}-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&d);
+        d
+    }
+
+    #[test]
+    fn missing_v4l2_device_is_a_clear_error() {
+        for dev in ["/dev/video97", "97"] {
+            let e = V4l2Camera::open(dev, 640, 480, 30.0)
+                .err()
+                .expect("no such device");
+            let s = e.to_string();
+            assert!(
+                matches!(e, VisionError::Camera(CameraError::NotFound { .. })),
+                "{s}"
+            );
+            assert!(s.contains(dev) && s.contains("video97"), "{s}");
+        }
+        let e = V4l2Camera::open("/dev/video97", 640, 480, 0.0)
+            .err()
+            .unwrap()
+            .to_string();
+        assert!(e.contains("mode"), "{e}");
+    }
+
+    #[test]
+    fn recording_round_trips_pixels_and_metadata() {
+        let dir = tmp("rec");
+        let mut rec = FrameRecorder::create(&dir).unwrap();
+        let mut f = Frame::new(37, 21);
+        for k in 0..3u64 {
+            for (i, p) in f.data.iter_mut().enumerate() {
+                *p = ((i as u64 * 7 + k * 31) % 256) as u8;
+            }
+            f.meta = FrameMeta {
+                seq: 10 + k,
+                stamp_s: 1.5 + k as f64 / 30.0,
+                exposure_us: 1000.0 * (k + 1) as f64,
+                gain_db: 0.5,
+            };
+            rec.write(&f).unwrap();
+        }
+        drop(rec);
+        let mut cam = RecordedCamera::open(&dir).unwrap();
+        assert_eq!(cam.len(), 3);
+        let lim = cam.exposure_limits();
+        assert_eq!((lim.min_us, lim.max_us), (1000.0, 3000.0));
+        assert!((lim.fps - 30.0).abs() < 1e-6, "{}", lim.fps);
+        assert_eq!(cam.set_exposure_us(5.0).unwrap(), 1000.0);
+        let mut g = Frame::default();
+        for k in 0..3u64 {
+            cam.grab(&mut g).unwrap();
+            assert_eq!((g.width, g.height), (37, 21));
+            assert_eq!(g.meta.seq, 10 + k);
+            assert_eq!(g.meta.exposure_us, 1000.0 * (k + 1) as f64);
+            assert!((g.meta.stamp_s - (1.5 + k as f64 / 30.0)).abs() < 1e-12);
+            assert_eq!(g.data[5], ((5 * 7 + k * 31) % 256) as u8);
+            assert_eq!(g.data[700], ((700 * 7 + k * 31) % 256) as u8);
+        }
+        assert!(matches!(
+            cam.grab(&mut g),
+            Err(CameraError::EndOfStream { .. })
+        ));
+        cam.rewind();
+        cam.grab(&mut g).unwrap();
+        assert_eq!(g.meta.seq, 10);
+        std::fs::remove_dir_all(&dir).ok();
+    }
+
+    #[test]
+    fn malformed_sidecars_name_file_and_line() {
+        let dir = tmp("bad");
+        std::fs::create_dir_all(&dir).unwrap();
+        let e = RecordedCamera::open(&dir).err().unwrap().to_string();
+        assert!(e.contains("frames.csv"), "{e}");
+        let write = |body: &str| std::fs::write(dir.join(SIDECAR), body).unwrap();
+        write("file,stamp\n");
+        let e = RecordedCamera::open(&dir).err().unwrap().to_string();
+        assert!(e.contains("line 1") && e.contains("header"), "{e}");
+        write(&format!("{HEADER}\nmissing.png,0,0.0,100,0\n"));
+        let e = RecordedCamera::open(&dir).err().unwrap().to_string();
+        assert!(e.contains("line 2") && e.contains("missing.png"), "{e}");
+        std::fs::write(dir.join("a.png"), b"not a png").unwrap();
+        write(&format!("{HEADER}\na.png,0,0.0,abc,0\n"));
+        let e = RecordedCamera::open(&dir).err().unwrap().to_string();
+        assert!(
+            e.contains("line 2") && e.contains("exposure_us 'abc'"),
+            "{e}"
+        );
+        write(&format!("{HEADER}\na.png,0,1.0,100,0\na.png,1,0.5,100,0\n"));
+        let e = RecordedCamera::open(&dir).err().unwrap().to_string();
+        assert!(
+            e.contains("line 3") && e.contains("does not increase"),
+            "{e}"
+        );
+        write(&format!("{HEADER}\n../a.png,0,1.0,100,0\n"));
+        let e = RecordedCamera::open(&dir).err().unwrap().to_string();
+        assert!(e.contains("inside the folder"), "{e}");
+        // A listed file that is not an image fails at grab, naming the file.
+        write(&format!("{HEADER}\na.png,4,1.0,100,0\n"));
+        let mut cam = RecordedCamera::open(&dir).unwrap();
+        let e = cam.grab(&mut Frame::default()).err().unwrap().to_string();
+        assert!(e.contains("a.png") && e.contains("frame 4"), "{e}");
+        std::fs::remove_dir_all(&dir).ok();
+    }
+}
