@@ -3,6 +3,7 @@
 //! noise, full well, gain, the camera response, 8-bit output). A new exposure takes
 //! effect `delay_frames` frames late and every frame carries the exposure it really had.
 
+mod fast;
 mod reference;
 mod sensor;
 
@@ -14,7 +15,7 @@ use serde::{Deserialize, Serialize};
 
 use crate::scene::{Scene, WorldLamp};
 use crate::{invalid, HilError};
-use sensor::{Exposure, SensorTables, XorShift64Star};
+use sensor::{electrons_per_unit, SensorTables, XorShift64Star};
 
 /// `[camera.sensor]`: how the sensor turns light into electrons and electrons into noise.
 /// Defaults are those of a Sony IMX273 (FLIR Blackfly S BFS-U3-16S2M, the paper's camera).
@@ -227,6 +228,7 @@ pub struct UnderwaterCamera {
     /// Requests not yet in effect: (first seq exposed with it, value).
     pending: VecDeque<(u64, f64)>,
     lamps: Vec<WorldLamp>,
+    fast: fast::FastRenderer,
 }
 
 impl UnderwaterCamera {
@@ -236,7 +238,7 @@ impl UnderwaterCamera {
             .response
             .load()
             .map_err(|source| HilError::CameraResponse { source })?;
-        let tables = SensorTables::new(seed, &response);
+        let tables = SensorTables::new(seed, &model, &response);
         let current_us = model.limits.clamp(
             model
                 .limits
@@ -251,6 +253,7 @@ impl UnderwaterCamera {
             current_us,
             pending: VecDeque::with_capacity(model.delay_frames as usize + 2),
             lamps: Vec::with_capacity(8),
+            fast: fast::FastRenderer::new(&model),
             model,
         })
     }
@@ -308,14 +311,14 @@ impl UnderwaterCamera {
         let exposure_us = self.begin_frame();
         out.resize(self.model.width, self.model.height);
         scene.lamps_for(t_world_vehicle, &mut self.lamps);
-        let exposure = Exposure::new(&self.model, exposure_us);
-        reference::render(
+        let e_per_unit = electrons_per_unit(&self.model, exposure_us);
+        self.fast.render(
             &self.model,
             scene,
             t_world_cam,
             &self.lamps,
             time_s,
-            &exposure,
+            e_per_unit,
             &self.tables,
             &mut self.rng,
             out,
@@ -337,14 +340,14 @@ impl UnderwaterCamera {
         let exposure_us = self.begin_frame();
         out.resize(self.model.width, self.model.height);
         scene.lamps_for(t_world_vehicle, &mut self.lamps);
-        let exposure = Exposure::new(&self.model, exposure_us);
+        let e_per_unit = electrons_per_unit(&self.model, exposure_us);
         reference::render(
             &self.model,
             scene,
             t_world_cam,
             &self.lamps,
             time_s,
-            &exposure,
+            e_per_unit,
             &self.tables,
             &mut self.rng,
             out,

@@ -614,6 +614,18 @@ const ROCK_LOG2: u32 = 10;
 /// Side of the caustic texture (texels, power of two) and its cells per side.
 const CAUSTIC_LOG2: u32 = 9;
 const CAUSTIC_CELLS: usize = 8;
+/// The second caustic layer is scaled (so the two never tile in step) and shifted.
+pub(crate) const CAUSTIC_LAYER2_SCALE: f32 = 0.73;
+pub(crate) const CAUSTIC_LAYER2_SHIFT: (f32, f32) = (97.0, 31.0);
+
+/// The caustic layers' placement for one instant.
+#[derive(Debug, Clone, Copy)]
+pub(crate) struct CausticParams {
+    pub(crate) strength: f64,
+    pub(crate) texels_per_m: f64,
+    pub(crate) off0: (f64, f64),
+    pub(crate) off1: (f64, f64),
+}
 
 impl Scene {
     /// A scene with the default background (a rock wall 5 cm behind the plate on a seabed
@@ -806,27 +818,37 @@ impl Scene {
         }
     }
 
-    /// Caustic factor (mean 1) at surface coordinates (u, v) metres at time `t`, for a
-    /// surface. Two layers of the web drift in different directions; their mean
-    /// keeps changing shape like a real caustic network.
+    /// Where the two drifting layers of the caustic web are at time `t`.
+    pub(crate) fn caustic_params(&self, t: f64) -> CausticParams {
+        let l = &self.lighting;
+        let d = l.caustics_speed_mps * t;
+        let [(a, b), (c, e)] = self.caustic_dirs;
+        CausticParams {
+            strength: l.caustics_strength,
+            texels_per_m: self.caustic.side() as f64 / CAUSTIC_CELLS as f64 / l.caustics_scale_m,
+            off0: (a * d, b * d),
+            off1: (c * d, e * d),
+        }
+    }
+
+    /// Caustic factor (mean 1) at surface coordinates (u, v) metres at time `t`. Two
+    /// layers of the web drift in different directions; their mean keeps changing shape
+    /// like a real caustic network.
     pub(crate) fn caustic(&self, u: f64, v: f64, t: f64) -> f64 {
-        let s = self.lighting.caustics_strength;
-        if s <= 0.0 {
+        let p = self.caustic_params(t);
+        if p.strength <= 0.0 {
             return 1.0;
         }
-        let texels =
-            self.caustic.side() as f64 / CAUSTIC_CELLS as f64 / self.lighting.caustics_scale_m;
-        let d = self.lighting.caustics_speed_mps * t;
-        let [(a, b), (c, e)] = self.caustic_dirs;
+        let k = p.texels_per_m;
         let l0 = self
             .caustic
-            .bilinear((u + a * d) * texels, (v + b * d) * texels);
-        // The second layer is scaled by an irrational-ish factor to avoid visible tiling.
+            .bilinear((u + p.off0.0) * k, (v + p.off0.1) * k);
+        let s = CAUSTIC_LAYER2_SCALE as f64;
         let l1 = self.caustic.bilinear(
-            (u * 0.73 + c * d) * texels + 97.0,
-            (v * 0.73 + e * d) * texels + 31.0,
+            (u * s + p.off1.0) * k + CAUSTIC_LAYER2_SHIFT.0 as f64,
+            (v * s + p.off1.1) * k + CAUSTIC_LAYER2_SHIFT.1 as f64,
         );
-        1.0 + s * (0.5 * (l0 + l1) - 1.0)
+        1.0 + p.strength * (0.5 * (l0 + l1) - 1.0)
     }
 
     /// Rock / seabed albedo at surface coordinates (u, v) metres.

@@ -5,7 +5,7 @@
 use markhold_exposure::Frame;
 use nalgebra::{Isometry3, Point3, Vector3};
 
-use super::sensor::{Exposure, SensorTables, XorShift64Star};
+use super::sensor::{SensorTables, XorShift64Star};
 use super::CameraModel;
 use crate::scene::{Scene, Surface, WorldLamp, ALBEDO_BLACK, ALBEDO_WHITE};
 
@@ -196,7 +196,7 @@ pub(crate) fn render(
     t_wc: &Isometry3<f64>,
     lamps: &[WorldLamp],
     time_s: f64,
-    exposure: &Exposure,
+    e_per_unit: f64,
     tables: &SensorTables,
     rng: &mut XorShift64Star,
     out: &mut Frame,
@@ -206,12 +206,8 @@ pub(crate) fn render(
     for (y, row) in out.data.chunks_exact_mut(w).enumerate() {
         for (x, px) in row.iter_mut().enumerate() {
             let light = pixel_light(model, scene, t_wc, lamps, time_s, x as f64, y as f64);
-            let g = tables.gauss[(rng.next_u64() >> 32) as usize & mask];
-            *px = exposure.grey(
-                (light * exposure.e_per_unit) as f32,
-                g,
-                &tables.response_lut,
-            );
+            let g = tables.half_gauss[(rng.next_u64() >> 32) as usize & mask];
+            *px = tables.grey((light * e_per_unit) as f32, g);
         }
     }
 }

@@ -1,12 +1,20 @@
 //! The sensor: electrons with shot and read noise, full-well clip, analog gain, the
 //! camera response and 8-bit quantization.
+//!
+//! Noise is added in the square-root domain: for a mean of `m` electrons and read noise
+//! `sigma_r`, `s = sqrt(m + sigma_r^2) + g / 2` with `g` standard normal has, back in
+//! electrons (`e = s^2 - sigma_r^2`), mean about `m` and variance about `m + sigma_r^2`:
+//! shot noise (Poisson, Gaussian approximation) plus read noise, in one square root. The
+//! response table is indexed by `s` directly, so a pixel costs one square root, one
+//! multiply-add and two table reads.
 
 use markhold_exposure::Response;
 
-/// Entries of the response lookup table over the normalized signal [0, 1].
-pub(crate) const RESPONSE_LUT_LEN: usize = 1 << 14;
-/// Entries of the Gaussian table (power of two: indexed with a mask).
-const GAUSS_LOG2: u32 = 16;
+/// Entries of the response table over `s` in [0, sqrt(full scale + sigma_r^2)].
+pub(crate) const RESPONSE_LUT_LEN: usize = 1 << 12;
+/// Entries of the Gaussian table (power of two: indexed with a mask). 16 KB: it stays in
+/// L1 beside the response table while a frame renders.
+const GAUSS_LOG2: u32 = 12;
 
 /// xorshift64*: fast, seeded, good enough to pick Gaussian table entries.
 #[derive(Debug, Clone)]
@@ -15,7 +23,7 @@ pub(crate) struct XorShift64Star(u64);
 impl XorShift64Star {
     pub(crate) fn new(seed: u64) -> Self {
         // The state must not be zero.
-        Self(seed ^ 0x2545_F491_4F6C_DD1D | 1)
+        Self((seed ^ 0x2545_F491_4F6C_DD1D) | 1)
     }
 
     #[inline(always)]
@@ -32,14 +40,20 @@ impl XorShift64Star {
 /// Precomputed noise and response tables, built once per camera.
 #[derive(Debug, Clone)]
 pub(crate) struct SensorTables {
-    /// Standard normal samples, normalized to exact mean 0 and variance 1.
-    pub(crate) gauss: Vec<f32>,
-    /// Grey level for normalized signal `i / (RESPONSE_LUT_LEN - 1)`, rounded.
+    /// Halves of standard normal samples (`g / 2`), normalized to exact mean 0 and
+    /// variance 1/4.
+    pub(crate) half_gauss: Vec<f32>,
+    /// Grey level for `s = i * s_step` (see the module doc), rounded.
     pub(crate) response_lut: Vec<u8>,
+    /// Table index per unit of `s`.
+    pub(crate) lut_per_s: f32,
+    /// Read noise variance, electrons^2.
+    pub(crate) read_var_e2: f32,
+    pub(crate) noise: bool,
 }
 
 impl SensorTables {
-    pub(crate) fn new(seed: u64, response: &Response) -> Self {
+    pub(crate) fn new(seed: u64, model: &super::CameraModel, response: &Response) -> Self {
         let mut rng = super::super::scene::SplitMix64::new(seed ^ 0x6A55_0000_0000_0003);
         let n = 1usize << GAUSS_LOG2;
         let mut gauss = Vec::with_capacity(n);
@@ -55,64 +69,100 @@ impl SensorTables {
         let mean = gauss.iter().sum::<f64>() / n as f64;
         let var = gauss.iter().map(|g| (g - mean).powi(2)).sum::<f64>() / n as f64;
         let sd = var.sqrt().max(1e-12);
-        let gauss = gauss.iter().map(|g| ((g - mean) / sd) as f32).collect();
+        let half_gauss = gauss
+            .iter()
+            .map(|g| (0.5 * (g - mean) / sd) as f32)
+            .collect();
+
+        let s = &model.sensor;
+        let gain = 10f64.powf(model.gain_db / 20.0);
+        let read_var = s.read_noise_e * s.read_noise_e;
+        // Electrons that reach the converter's full scale (the full well at 0 dB).
+        let full_scale_e = s.full_well_e / gain;
+        let s_max = (full_scale_e + read_var).sqrt() + 1.0;
+        let s_step = s_max / (RESPONSE_LUT_LEN - 1) as f64;
         let response_lut = (0..RESPONSE_LUT_LEN)
             .map(|i| {
-                let x = i as f64 / (RESPONSE_LUT_LEN - 1) as f64;
+                let sv = i as f64 * s_step;
+                // Full-well clip, then gain and the converter's full scale.
+                let e = (sv * sv - read_var).clamp(0.0, s.full_well_e);
+                let x = e * gain / s.full_well_e;
                 response.grey(x).round().clamp(0.0, 255.0) as u8
             })
             .collect();
         Self {
-            gauss,
+            half_gauss,
             response_lut,
+            lut_per_s: (1.0 / s_step) as f32,
+            read_var_e2: read_var as f32,
+            noise: s.noise,
         }
     }
 
     #[inline(always)]
     pub(crate) fn gauss_mask(&self) -> usize {
-        self.gauss.len() - 1
-    }
-}
-
-/// How one frame turns light into grey levels: the per-frame constants of the sensor.
-#[derive(Debug, Clone, Copy)]
-pub(crate) struct Exposure {
-    /// Electrons per unit of exitance (W/m2) during this exposure, at 0 dB.
-    pub(crate) e_per_unit: f64,
-    pub(crate) full_well_e: f32,
-    pub(crate) read_var_e2: f32,
-    /// Scale from electrons to response-table index (gain and full scale folded in).
-    pub(crate) lut_per_e: f32,
-    pub(crate) noise: bool,
-}
-
-impl Exposure {
-    pub(crate) fn new(model: &super::CameraModel, exposure_us: f64) -> Self {
-        let s = &model.sensor;
-        let gain = 10f64.powf(model.gain_db / 20.0);
-        Self {
-            e_per_unit: s.electrons_per_w_m2_us * exposure_us,
-            full_well_e: s.full_well_e as f32,
-            read_var_e2: (s.read_noise_e * s.read_noise_e) as f32,
-            // x = e * gain / full_well; LUT index = x * (len - 1).
-            lut_per_e: (gain / s.full_well_e * (RESPONSE_LUT_LEN - 1) as f64) as f32,
-            noise: s.noise,
-        }
+        self.half_gauss.len() - 1
     }
 
-    /// Grey level of a pixel whose mean signal is `mean_e` electrons; `g` is a standard
-    /// normal sample.
+    /// Grey level of a pixel whose mean signal is `mean_e` electrons; `half_g` is half
+    /// a standard normal sample (ignored when noise is off).
     #[inline(always)]
-    pub(crate) fn grey(&self, mean_e: f32, g: f32, lut: &[u8]) -> u8 {
-        let e = if self.noise {
-            // Shot noise (Poisson, Gaussian approximation) plus read noise.
-            mean_e + (mean_e + self.read_var_e2).sqrt() * g
-        } else {
-            mean_e
-        };
-        // Full-well clip, then gain and full scale of the converter.
-        let e = e.clamp(0.0, self.full_well_e);
-        let idx = ((e * self.lut_per_e + 0.5) as usize).min(RESPONSE_LUT_LEN - 1);
-        lut[idx]
+    pub(crate) fn grey(&self, mean_e: f32, half_g: f32) -> u8 {
+        let g = if self.noise { half_g } else { 0.0 };
+        let s = (mean_e.max(0.0) + self.read_var_e2).sqrt() + g;
+        let idx = (s * self.lut_per_s + 0.5).clamp(0.0, (RESPONSE_LUT_LEN - 1) as f32) as usize;
+        self.response_lut[idx]
+    }
+}
+
+/// Electrons per unit of exitance (W/m2) during an exposure of `exposure_us`.
+pub(crate) fn electrons_per_unit(model: &super::CameraModel, exposure_us: f64) -> f64 {
+    model.sensor.electrons_per_w_m2_us * exposure_us
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use markhold_exposure::ResponseModel;
+
+    fn tables(noise: bool) -> SensorTables {
+        let mut m = crate::camera::CameraModel::blackfly_s(ResponseModel::Linear);
+        m.sensor.noise = noise;
+        SensorTables::new(1, &m, &Response::linear())
+    }
+
+    #[test]
+    fn noise_free_levels_follow_the_signal() {
+        let t = tables(false);
+        // Linear response: 255 at the full well (10 500 e).
+        for e in [0.0f32, 100.0, 2000.0, 5250.0, 10_000.0] {
+            let want = 255.0 * e / 10_500.0;
+            let got = t.grey(e, 1.0) as f32;
+            assert!((got - want).abs() <= 0.6, "{e} e: {got} vs {want}");
+        }
+        assert_eq!(t.grey(20_000.0, 0.0), 255);
+        assert_eq!(t.grey(-5.0, 0.0), 0);
+    }
+
+    #[test]
+    fn noise_has_the_shot_plus_read_variance() {
+        let t = tables(true);
+        let mut rng = XorShift64Star::new(3);
+        // 4000 e: shot sd 63 e = 1.53 grey levels (linear, 255 per 10 500 e).
+        let n = 200_000;
+        let (mut sum, mut sum2) = (0.0f64, 0.0f64);
+        for _ in 0..n {
+            let g = t.half_gauss[(rng.next_u64() >> 40) as usize & t.gauss_mask()];
+            let v = t.grey(4000.0, g) as f64;
+            sum += v;
+            sum2 += v * v;
+        }
+        let mean = sum / n as f64;
+        let sd = (sum2 / n as f64 - mean * mean).sqrt();
+        let want_sd = (4000.0f64 + 2.3 * 2.3).sqrt() * 255.0 / 10_500.0;
+        assert!((mean - 4000.0 * 255.0 / 10_500.0).abs() < 0.1, "{mean}");
+        // Quantization to integer levels adds 1/12 level^2.
+        let want = (want_sd * want_sd + 1.0 / 12.0).sqrt();
+        assert!((sd - want).abs() < 0.05 * want, "sd {sd} vs {want}");
     }
 }

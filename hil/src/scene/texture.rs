@@ -25,14 +25,34 @@ impl SplitMix64 {
     }
 }
 
-/// A square tileable texture of `f32` values, side `1 << log2`.
+/// A square tileable texture stored as bytes (`value = offset + scale * byte`), side
+/// `1 << log2`: small enough to stay in cache while a frame renders.
 #[derive(Debug, Clone)]
 pub(crate) struct Texture {
     pub(crate) log2: u32,
-    pub(crate) data: Vec<f32>,
+    pub(crate) data: Vec<u8>,
+    pub(crate) scale: f32,
+    pub(crate) offset: f32,
 }
 
 impl Texture {
+    /// Quantize `values` to bytes over their range.
+    fn from_values(log2: u32, values: &[f32]) -> Self {
+        let lo = values.iter().cloned().fold(f32::MAX, f32::min);
+        let hi = values.iter().cloned().fold(f32::MIN, f32::max);
+        let scale = ((hi - lo) / 255.0).max(1e-12);
+        let data = values
+            .iter()
+            .map(|v| ((v - lo) / scale).round().clamp(0.0, 255.0) as u8)
+            .collect();
+        Self {
+            log2,
+            data,
+            scale,
+            offset: lo,
+        }
+    }
+
     pub(crate) fn side(&self) -> usize {
         1 << self.log2
     }
@@ -41,11 +61,17 @@ impl Texture {
         self.side() - 1
     }
 
+    /// Raw byte at texel coordinates (wraps).
+    #[inline(always)]
+    pub(crate) fn byte(&self, tx: i32, ty: i32) -> u8 {
+        let m = self.mask();
+        self.data[((ty as usize & m) << self.log2) | (tx as usize & m)]
+    }
+
     /// Nearest texel at texel coordinates (wraps).
     #[inline(always)]
     pub(crate) fn at(&self, tx: i32, ty: i32) -> f32 {
-        let m = self.mask();
-        self.data[((ty as usize & m) << self.log2) | (tx as usize & m)]
+        self.offset + self.scale * self.byte(tx, ty) as f32
     }
 
     /// Bilinear lookup at texel coordinates (wraps).
@@ -55,11 +81,12 @@ impl Texture {
         let fx = tx - x0;
         let fy = ty - y0;
         let (x0, y0) = (x0 as i64 as i32, y0 as i64 as i32);
-        let a = self.at(x0, y0) as f64;
-        let b = self.at(x0.wrapping_add(1), y0) as f64;
-        let c = self.at(x0, y0.wrapping_add(1)) as f64;
-        let d = self.at(x0.wrapping_add(1), y0.wrapping_add(1)) as f64;
-        (a * (1.0 - fx) + b * fx) * (1.0 - fy) + (c * (1.0 - fx) + d * fx) * fy
+        let a = self.byte(x0, y0) as f64;
+        let b = self.byte(x0.wrapping_add(1), y0) as f64;
+        let c = self.byte(x0, y0.wrapping_add(1)) as f64;
+        let d = self.byte(x0.wrapping_add(1), y0.wrapping_add(1)) as f64;
+        let raw = (a * (1.0 - fx) + b * fx) * (1.0 - fy) + (c * (1.0 - fx) + d * fx) * fy;
+        self.offset as f64 + self.scale as f64 * raw
     }
 }
 
@@ -105,7 +132,7 @@ pub(crate) fn rock_texture(seed: u64, log2: u32, mean: f32, spread: f32) -> Text
     for v in acc.iter_mut() {
         *v = (mean + spread * (*v - m) / max_dev).clamp(0.01, 0.99);
     }
-    Texture { log2, data: acc }
+    Texture::from_values(log2, &acc)
 }
 
 /// Caustic web: bright thin lines along the borders of a jittered (tileable) Voronoi
@@ -152,11 +179,12 @@ pub(crate) fn caustic_texture(seed: u64, log2: u32, cells_per_side: usize) -> Te
             data[y * side + x] = (-edge * 9.0).exp();
         }
     }
-    let mean = data.iter().sum::<f32>() / data.len() as f32;
-    for v in data.iter_mut() {
-        *v /= mean.max(1e-6);
-    }
-    Texture { log2, data }
+    // Bytes from 0 with a scale that makes the mean exactly 1 after quantization.
+    let mut t = Texture::from_values(log2, &data);
+    let mean_byte = t.data.iter().map(|&b| b as f64).sum::<f64>() / t.data.len() as f64;
+    t.offset = 0.0;
+    t.scale = (1.0 / mean_byte.max(1e-6)) as f32;
+    t
 }
 
 #[cfg(test)]
@@ -170,18 +198,29 @@ mod tests {
         let c = rock_texture(8, 6, 0.25, 0.15);
         assert_eq!(a.data, b.data);
         assert_ne!(a.data, c.data);
-        assert!(a.data.iter().all(|v| (0.09..=0.41).contains(v)));
-        let mean = a.data.iter().sum::<f32>() / a.data.len() as f32;
+        let vals = |t: &Texture| -> Vec<f32> {
+            (0..t.data.len())
+                .map(|i| t.at((i % t.side()) as i32, (i / t.side()) as i32))
+                .collect()
+        };
+        let v = vals(&a);
+        assert!(v.iter().all(|v| (0.09..=0.41).contains(v)));
+        let mean = v.iter().sum::<f32>() / v.len() as f32;
         assert!((mean - 0.25).abs() < 0.03, "{mean}");
     }
 
     #[test]
     fn caustics_have_unit_mean_and_contrast() {
         let t = caustic_texture(3, 7, 6);
-        let mean = t.data.iter().sum::<f32>() / t.data.len() as f32;
+        let v: Vec<f32> = t
+            .data
+            .iter()
+            .map(|&b| t.offset + t.scale * b as f32)
+            .collect();
+        let mean = v.iter().sum::<f32>() / v.len() as f32;
         assert!((mean - 1.0).abs() < 1e-3);
-        let max = t.data.iter().cloned().fold(0f32, f32::max);
-        let min = t.data.iter().cloned().fold(f32::MAX, f32::min);
+        let max = v.iter().cloned().fold(0f32, f32::max);
+        let min = v.iter().cloned().fold(f32::MAX, f32::min);
         assert!(max > 2.0 * mean && min < 0.5 * mean, "{min} {max}");
     }
 
@@ -193,9 +232,10 @@ mod tests {
         let mut border = 0f32;
         let mut inner = 0f32;
         for y in 0..s {
-            border += (t.data[y * s + s - 1] - t.data[y * s]).abs();
+            let at = |x: usize| t.data[y * s + x] as f32;
+            border += (at(s - 1) - at(0)).abs();
             for x in 1..s {
-                inner += (t.data[y * s + x] - t.data[y * s + x - 1]).abs();
+                inner += (at(x) - at(x - 1)).abs();
             }
         }
         // Mean jump between neighbouring columns inside.

@@ -1,0 +1,637 @@
+//! The fast renderer. The scene is planar (plate, wall, seabed) so, per pixel:
+//! - the ray's normalized coordinates come from a grid of undistorted rays made once
+//!   (distortion folded in), interpolated linearly along 16-pixel spans;
+//! - every plane's `n . r` and surface coordinates are linear forms in those coordinates,
+//!   so they advance by one add per pixel, and one division gives (u, v);
+//! - the light model (daylight, lamps, glare, backscatter: the exponentials) is smooth on
+//!   each plane, so it is evaluated with [`Scene::shade`] only at grid nodes, lazily and
+//!   per plane, and interpolated; only the albedo (marker cells, rock), the caustics and
+//!   the noise are per pixel;
+//! - f32 arithmetic, table lookups for noise and response, no allocation per frame.
+
+use markhold_exposure::Frame;
+use nalgebra::{Isometry3, Point3, Vector3};
+
+use super::sensor::{SensorTables, XorShift64Star};
+use super::CameraModel;
+use crate::scene::{Scene, WorldLamp, ALBEDO_BLACK, ALBEDO_WHITE};
+
+/// Pixels between grid nodes.
+const GRID: usize = 16;
+/// Surfaces with their own light fields: plate, wall, seabed, open water.
+const PLATE: usize = 0;
+const WALL: usize = 1;
+const SEABED: usize = 2;
+const WATER: usize = 3;
+const NSURF: usize = 4;
+
+/// A plane seen from the camera: `n . P = h` (h > 0) in camera coordinates, and the
+/// linear forms whose ratios to `n . r` give surface coordinates.
+#[derive(Debug, Clone, Copy, Default)]
+struct PlaneForms {
+    /// `[a, b, c]` of `a x + b y + c` for D = n . r, u numerator, v numerator.
+    d: [f32; 3],
+    u: [f32; 3],
+    v: [f32; 3],
+    h: f32,
+    valid: bool,
+}
+
+/// The geometry of one plane for the frame, in f64 for shading the nodes.
+#[derive(Debug, Clone, Copy)]
+struct PlaneGeo {
+    n_c: Vector3<f64>,
+    h: f64,
+    /// World normal on the side the camera sees.
+    n_face_w: Vector3<f64>,
+    glossy: bool,
+    valid: bool,
+}
+
+impl PlaneGeo {
+    /// Plane through `p0_c` with normal `n_c` and surface axes `eu_c`, `ev_c` (camera
+    /// frame), `n_face_w` its world normal toward the camera.
+    fn new(
+        p0_c: Vector3<f64>,
+        n_c: Vector3<f64>,
+        eu_c: Vector3<f64>,
+        ev_c: Vector3<f64>,
+        n_face_w: Vector3<f64>,
+        glossy: bool,
+    ) -> (Self, PlaneForms) {
+        let mut n = n_c;
+        let mut h = n.dot(&p0_c);
+        if h < 0.0 {
+            n = -n;
+            h = -h;
+        }
+        let valid = h > 1e-9;
+        // u = eu . (s r - p0), s = h / (n . r)  =>  u = ((h eu - (eu . p0) n) . r) / (n . r)
+        let au = eu_c * h - n * eu_c.dot(&p0_c);
+        let av = ev_c * h - n * ev_c.dot(&p0_c);
+        let f = |v: Vector3<f64>| [v.x as f32, v.y as f32, v.z as f32];
+        (
+            Self {
+                n_c: n,
+                h,
+                n_face_w,
+                glossy,
+                valid,
+            },
+            PlaneForms {
+                d: f(n),
+                u: f(au),
+                v: f(av),
+                h: h as f32,
+                valid,
+            },
+        )
+    }
+}
+
+/// floor() without a libm call (baseline x86-64 has no rounding instruction).
+#[inline(always)]
+fn floor_i32(x: f32) -> i32 {
+    let i = x as i32;
+    i - ((i as f32) > x) as i32
+}
+
+#[inline(always)]
+fn form(f: &[f32; 3], x: f32, y: f32) -> f32 {
+    f[0] * x + f[1] * y + f[2]
+}
+
+/// Buffers and tables of the fast renderer, made once per camera.
+pub(crate) struct FastRenderer {
+    width: usize,
+    height: usize,
+    /// Nodes per row.
+    nx: usize,
+    /// Undistorted normalized coordinates of the nodes, row-major.
+    node_x: Vec<f32>,
+    node_y: Vec<f32>,
+    /// Light fields per node and surface: ambient, lamp, additive (glare + backscatter),
+    /// already in electrons for this frame's exposure.
+    fields: Vec<[f32; 3]>,
+    /// Frame id for which `fields[i]` is valid.
+    stamp: Vec<u32>,
+    frame_id: u32,
+    /// Row-interpolated node coordinates of the current row.
+    row_x: Vec<f32>,
+    row_y: Vec<f32>,
+    /// Mean electrons of the current row's pixels (the sensor runs as a second pass).
+    row_mean: Vec<f32>,
+}
+
+/// Everything the per-pixel loop needs for one frame.
+struct FrameCtx<'a> {
+    scene: &'a Scene,
+    t_wc: &'a Isometry3<f64>,
+    lamps: &'a [WorldLamp],
+    geo: [PlaneGeo; 3],
+    forms: [PlaneForms; 3],
+    e_per_unit: f64,
+}
+
+impl FastRenderer {
+    pub(crate) fn new(model: &CameraModel) -> Self {
+        let (w, h) = (model.width as usize, model.height as usize);
+        let nx = (w - 1) / GRID + 2;
+        let ny = (h - 1) / GRID + 2;
+        let mut node_x = Vec::with_capacity(nx * ny);
+        let mut node_y = Vec::with_capacity(nx * ny);
+        for j in 0..ny {
+            for i in 0..nx {
+                let (x, y) = model.undistort_pixel((i * GRID) as f64, (j * GRID) as f64);
+                node_x.push(x as f32);
+                node_y.push(y as f32);
+            }
+        }
+        Self {
+            width: w,
+            height: h,
+            nx,
+            node_x,
+            node_y,
+            fields: vec![[0.0; 3]; nx * ny * NSURF],
+            stamp: vec![u32::MAX; nx * ny * NSURF],
+            frame_id: 0,
+            row_x: vec![0.0; nx],
+            row_y: vec![0.0; nx],
+            row_mean: vec![0.0; w],
+        }
+    }
+
+    /// The light fields of `surf` at node `node`, computed on first use this frame.
+    #[inline]
+    fn node_fields(&mut self, ctx: &FrameCtx, node: usize, surf: usize) -> [f32; 3] {
+        let idx = node * NSURF + surf;
+        if self.stamp[idx] == self.frame_id {
+            return self.fields[idx];
+        }
+        let x = self.node_x[node] as f64;
+        let y = self.node_y[node] as f64;
+        let r_c = Vector3::new(x, y, 1.0);
+        let norm = r_c.norm();
+        let ray_w = ctx.t_wc.rotation * (r_c / norm);
+        let cam_w = ctx.t_wc.translation.vector;
+        let scene = ctx.scene;
+        let f = if surf == WATER {
+            let b = scene.backscatter(&cam_w, &ray_w, f64::INFINITY, ctx.lamps);
+            [0.0, 0.0, b]
+        } else {
+            let g = &ctx.geo[surf];
+            let d = g.n_c.dot(&r_c);
+            if !g.valid || d <= 1e-9 {
+                // Never reached along this ray: the limit at infinite distance.
+                let b = scene.backscatter(&cam_w, &ray_w, f64::INFINITY, ctx.lamps);
+                [0.0, 0.0, b]
+            } else {
+                let s = g.h / d;
+                let p_w = (ctx.t_wc * Point3::from(r_c * s)).coords;
+                let sh = scene.shade(
+                    &p_w,
+                    &g.n_face_w,
+                    &cam_w,
+                    &ray_w,
+                    s * norm,
+                    ctx.lamps,
+                    g.glossy,
+                );
+                [sh.ambient, sh.lamp, sh.glare + sh.backscatter]
+            }
+        };
+        let k = ctx.e_per_unit;
+        let f = [(f[0] * k) as f32, (f[1] * k) as f32, (f[2] * k) as f32];
+        self.fields[idx] = f;
+        self.stamp[idx] = self.frame_id;
+        f
+    }
+
+    /// Fields of `surf` at the left end of span `i` of row-cell `j` (vertical weight
+    /// `fy`) and their step per pixel.
+    #[inline]
+    fn span_fields(
+        &mut self,
+        ctx: &FrameCtx,
+        i: usize,
+        j: usize,
+        fy: f32,
+        surf: usize,
+    ) -> ([f32; 3], [f32; 3]) {
+        let n00 = self.node_fields(ctx, j * self.nx + i, surf);
+        let n10 = self.node_fields(ctx, j * self.nx + i + 1, surf);
+        let n01 = self.node_fields(ctx, (j + 1) * self.nx + i, surf);
+        let n11 = self.node_fields(ctx, (j + 1) * self.nx + i + 1, surf);
+        let mut f0 = [0f32; 3];
+        let mut df = [0f32; 3];
+        for c in 0..3 {
+            let l = n00[c] + (n01[c] - n00[c]) * fy;
+            let r = n10[c] + (n11[c] - n10[c]) * fy;
+            f0[c] = l;
+            df[c] = (r - l) * (1.0 / GRID as f32);
+        }
+        (f0, df)
+    }
+
+    #[allow(clippy::too_many_arguments)]
+    pub(crate) fn render(
+        &mut self,
+        model: &CameraModel,
+        scene: &Scene,
+        t_wc: &Isometry3<f64>,
+        lamps: &[WorldLamp],
+        time_s: f64,
+        e_per_unit: f64,
+        tables: &SensorTables,
+        rng: &mut XorShift64Star,
+        out: &mut Frame,
+    ) {
+        self.frame_id = self.frame_id.wrapping_add(1);
+        if self.frame_id == u32::MAX {
+            self.stamp.fill(u32::MAX - 1);
+            self.frame_id = 0;
+        }
+        let (geo, forms) = frame_planes(scene, t_wc);
+        let ctx = FrameCtx {
+            scene,
+            t_wc,
+            lamps,
+            geo,
+            forms,
+            e_per_unit,
+        };
+        let plate_front = geo[PLATE].glossy;
+        let footprint = plate_footprint(model, scene, t_wc, &forms[PLATE]);
+
+        // Per-frame constants of the per-pixel work, in f32.
+        let m = scene.marker();
+        let half = scene.plate_half_m() as f32;
+        let cells = m.cells;
+        let cell_per_m = cells as f32 / m.size_m as f32;
+        let half_marker = 0.5 * m.size_m as f32;
+        // Footprint in cells: the width of the box filter over the cell grid.
+        let inv_wu = 1.0 / (footprint.0 as f32 * cell_per_m).max(1e-6);
+        let inv_wv = 1.0 / (footprint.1 as f32 * cell_per_m).max(1e-6);
+        let albedo_white = ALBEDO_WHITE as f32;
+        let albedo_black = ALBEDO_BLACK as f32;
+        let albedo_back = scene.plate_back_albedo() as f32;
+        let texel_per_m = (1.0 / scene.background.texel_m) as f32;
+        let rock = &scene.rock;
+        let caustics = CausticFrame::new(scene, time_s);
+        let gauss = &tables.half_gauss;
+        let gmask = tables.gauss_mask();
+
+        let (w, h, nx) = (self.width, self.height, self.nx);
+        let cell_albedo = |ci: i32, cj: i32| -> f32 {
+            // Outside the printed square is the white plate.
+            let outside = ci < 0 || cj < 0 || ci >= cells as i32 || cj >= cells as i32;
+            if outside || m.white[cj as usize * cells + ci as usize] {
+                albedo_white
+            } else {
+                albedo_black
+            }
+        };
+
+        for (py, row) in out.data.chunks_exact_mut(w).enumerate().take(h) {
+            let j = py / GRID;
+            let fy = (py - j * GRID) as f32 * (1.0 / GRID as f32);
+            for i in 0..nx {
+                let a = j * nx + i;
+                let b = a + nx;
+                self.row_x[i] = self.node_x[a] + (self.node_x[b] - self.node_x[a]) * fy;
+                self.row_y[i] = self.node_y[a] + (self.node_y[b] - self.node_y[a]) * fy;
+            }
+            let mut row_mean = std::mem::take(&mut self.row_mean);
+            for i in 0..nx - 1 {
+                let x0 = i * GRID;
+                if x0 >= w {
+                    break;
+                }
+                let x1 = (x0 + GRID).min(w);
+                let n = x1 - x0;
+                let (xa, ya) = (self.row_x[i], self.row_y[i]);
+                let (xb, yb) = (self.row_x[i + 1], self.row_y[i + 1]);
+                // Linear forms of every plane at the span start and their step per pixel.
+                let mut sp = Span::default();
+                for k in 0..3 {
+                    let fm = &ctx.forms[k];
+                    for (c, coef) in [&fm.d, &fm.u, &fm.v].into_iter().enumerate() {
+                        let s = form(coef, xa, ya);
+                        sp.f0[k][c] = s;
+                        sp.df[k][c] = (form(coef, xb, yb) - s) * (1.0 / GRID as f32);
+                    }
+                }
+                // Every test that picks the surface is the sign of a linear function of
+                // the pixel (u = Nu / D is monotonic while D > 0): between their roots
+                // the surface is the same, so the span splits into runs of one surface.
+                let mut cuts = Cuts::default();
+                let (p0, pd) = (sp.f0[PLATE], sp.df[PLATE]);
+                cuts.root(p0[0], pd[0]);
+                for c in 1..3 {
+                    cuts.root(p0[c] - half * p0[0], pd[c] - half * pd[0]);
+                    cuts.root(p0[c] + half * p0[0], pd[c] + half * pd[0]);
+                }
+                cuts.root(sp.f0[WALL][0], sp.df[WALL][0]);
+                cuts.root(sp.f0[SEABED][0], sp.df[SEABED][0]);
+                let (hw, hs) = (ctx.forms[WALL].h, ctx.forms[SEABED].h);
+                cuts.root(
+                    hw * sp.f0[SEABED][0] - hs * sp.f0[WALL][0],
+                    hw * sp.df[SEABED][0] - hs * sp.df[WALL][0],
+                );
+                cuts.sort(n);
+                let mut ready = [false; NSURF];
+                let mut lf = [([0f32; 3], [0f32; 3]); NSURF];
+                let out = &mut row_mean[x0..x1];
+                let mut start = 0usize;
+                for c in 0..=cuts.n {
+                    let end = if c < cuts.n { cuts.at[c] } else { n };
+                    if end <= start {
+                        continue;
+                    }
+                    let surf = classify(&sp, &ctx.forms, half, ((start + end - 1) / 2) as f32);
+                    if !ready[surf] {
+                        lf[surf] = self.span_fields(&ctx, i, j, fy, surf);
+                        ready[surf] = true;
+                    }
+                    let (a0, ad) = lf[surf];
+                    let run = &mut out[start..end];
+                    let first = start as f32;
+                    match surf {
+                        WATER => {
+                            for (t, m) in run.iter_mut().enumerate() {
+                                *m = a0[2] + ad[2] * (first + t as f32);
+                            }
+                        }
+                        PLATE if plate_front => {
+                            let (d0, dd) = (p0[0], pd[0]);
+                            for (t, m) in run.iter_mut().enumerate() {
+                                let t = first + t as f32;
+                                let inv = 1.0 / (d0 + dd * t);
+                                let u = (p0[1] + pd[1] * t) * inv;
+                                let v = (p0[2] + pd[2] * t) * inv;
+                                // Box filter of the cells over the pixel footprint.
+                                let cu = (u + half_marker) * cell_per_m;
+                                let cv = (half_marker - v) * cell_per_m;
+                                let (iu, iv) = (floor_i32(cu + 0.5), floor_i32(cv + 0.5));
+                                let au = ((iu as f32 - cu) * inv_wu + 0.5).clamp(0.0, 1.0);
+                                let av = ((iv as f32 - cv) * inv_wv + 0.5).clamp(0.0, 1.0);
+                                let albedo = au
+                                    * (av * cell_albedo(iu - 1, iv - 1)
+                                        + (1.0 - av) * cell_albedo(iu - 1, iv))
+                                    + (1.0 - au)
+                                        * (av * cell_albedo(iu, iv - 1)
+                                            + (1.0 - av) * cell_albedo(iu, iv));
+                                let c = if caustics.on {
+                                    caustics.at(scene, u, v)
+                                } else {
+                                    1.0
+                                };
+                                *m = albedo * ((a0[0] + ad[0] * t) * c + a0[1] + ad[1] * t)
+                                    + a0[2]
+                                    + ad[2] * t;
+                            }
+                        }
+                        PLATE => {
+                            for (t, m) in run.iter_mut().enumerate() {
+                                let t = first + t as f32;
+                                *m = albedo_back * (a0[0] + ad[0] * t + a0[1] + ad[1] * t)
+                                    + a0[2]
+                                    + ad[2] * t;
+                            }
+                        }
+                        k => {
+                            let (f0, fd) = (sp.f0[k], sp.df[k]);
+                            let tk = texel_per_m;
+                            if caustics.on {
+                                for (t, m) in run.iter_mut().enumerate() {
+                                    let t = first + t as f32;
+                                    let inv = 1.0 / (f0[0] + fd[0] * t);
+                                    let u = (f0[1] + fd[1] * t) * inv;
+                                    let v = (f0[2] + fd[2] * t) * inv;
+                                    let albedo = rock.at(floor_i32(u * tk), floor_i32(v * tk));
+                                    let c = caustics.at(scene, u, v);
+                                    *m = albedo * ((a0[0] + ad[0] * t) * c + a0[1] + ad[1] * t)
+                                        + a0[2]
+                                        + ad[2] * t;
+                                }
+                            } else {
+                                // Daylight and lamps add up before the albedo.
+                                let (l0, ld) = (a0[0] + a0[1], ad[0] + ad[1]);
+                                let (u0, ud) = (f0[1] * tk, fd[1] * tk);
+                                let (v0, vd) = (f0[2] * tk, fd[2] * tk);
+                                for (t, m) in run.iter_mut().enumerate() {
+                                    let t = first + t as f32;
+                                    let inv = 1.0 / (f0[0] + fd[0] * t);
+                                    let tu = floor_i32((u0 + ud * t) * inv);
+                                    let tv = floor_i32((v0 + vd * t) * inv);
+                                    *m = rock.at(tu, tv) * (l0 + ld * t) + a0[2] + ad[2] * t;
+                                }
+                            }
+                        }
+                    }
+                    start = end;
+                }
+            }
+            // The sensor: independent per pixel, no branches.
+            let mut bits = 0u64;
+            for (k, (px, &mean_e)) in row.iter_mut().zip(&row_mean).enumerate() {
+                if k % 4 == 0 {
+                    bits = rng.next_u64();
+                }
+                let g = gauss[(bits as usize) & gmask];
+                bits >>= 16;
+                *px = tables.grey(mean_e, g);
+            }
+            self.row_mean = row_mean;
+        }
+    }
+}
+
+/// The linear forms (D, Nu, Nv) of the three planes along one span: value at the span
+/// start and step per pixel.
+#[derive(Debug, Clone, Copy, Default)]
+struct Span {
+    f0: [[f32; 3]; 3],
+    df: [[f32; 3]; 3],
+}
+
+/// Pixel offsets in a span where a surface test changes sign, sorted.
+#[derive(Debug, Default)]
+struct Cuts {
+    raw: [f32; 8],
+    at: [usize; 8],
+    n: usize,
+}
+
+impl Cuts {
+    /// The root of `a + b t`, if it lies inside the span.
+    #[inline]
+    fn root(&mut self, a: f32, b: f32) {
+        if b != 0.0 {
+            let r = -a / b;
+            if r > 0.0 && r < GRID as f32 && self.n < self.raw.len() {
+                self.raw[self.n] = r;
+                self.n += 1;
+            }
+        }
+    }
+
+    /// Sort and turn into the first pixel of each new run (pixel t lies past root r
+    /// when t > r).
+    fn sort(&mut self, len: usize) {
+        let raw = &mut self.raw[..self.n];
+        raw.sort_unstable_by(|a, b| a.total_cmp(b));
+        for (a, r) in self.at.iter_mut().zip(raw.iter()) {
+            *a = ((floor_i32(*r) + 1) as usize).min(len);
+        }
+    }
+}
+
+/// The surface pixel `t` of a span sees (the per-pixel test the runs stand for).
+#[inline]
+fn classify(sp: &Span, forms: &[PlaneForms; 3], half: f32, t: f32) -> usize {
+    let at = |k: usize, c: usize| sp.f0[k][c] + sp.df[k][c] * t;
+    // Plate first: it stands in front of the wall.
+    let dp = at(PLATE, 0);
+    if forms[PLATE].valid && dp > 1e-9 {
+        let (nu, nv) = (at(PLATE, 1), at(PLATE, 2));
+        if nu.abs() <= half * dp && nv.abs() <= half * dp {
+            return PLATE;
+        }
+    }
+    let dw = at(WALL, 0);
+    let ds = at(SEABED, 0);
+    let wall_ok = forms[WALL].valid && dw > 1e-9;
+    let sea_ok = forms[SEABED].valid && ds > 1e-9;
+    // The nearer plane: h_w / dw < h_s / ds.
+    if wall_ok && (!sea_ok || forms[WALL].h * ds < forms[SEABED].h * dw) {
+        WALL
+    } else if sea_ok {
+        SEABED
+    } else {
+        WATER
+    }
+}
+
+/// Caustic lookups for one frame (same model as [`Scene::caustic`], in f32).
+struct CausticFrame {
+    on: bool,
+    strength: f32,
+    texels_per_m: f32,
+    off0: (f32, f32),
+    off1: (f32, f32),
+}
+
+impl CausticFrame {
+    fn new(scene: &Scene, t: f64) -> Self {
+        let p = scene.caustic_params(t);
+        Self {
+            on: p.strength > 0.0,
+            strength: p.strength as f32,
+            texels_per_m: p.texels_per_m as f32,
+            off0: (p.off0.0 as f32, p.off0.1 as f32),
+            off1: (p.off1.0 as f32, p.off1.1 as f32),
+        }
+    }
+
+    #[inline(always)]
+    fn at(&self, scene: &Scene, u: f32, v: f32) -> f32 {
+        let k = self.texels_per_m;
+        let l0 = bilinear_f32(&scene.caustic, (u + self.off0.0) * k, (v + self.off0.1) * k);
+        let l1 = bilinear_f32(
+            &scene.caustic,
+            (u * crate::scene::CAUSTIC_LAYER2_SCALE + self.off1.0) * k
+                + crate::scene::CAUSTIC_LAYER2_SHIFT.0,
+            (v * crate::scene::CAUSTIC_LAYER2_SCALE + self.off1.1) * k
+                + crate::scene::CAUSTIC_LAYER2_SHIFT.1,
+        );
+        1.0 + self.strength * (0.5 * (l0 + l1) - 1.0)
+    }
+}
+
+#[inline(always)]
+fn bilinear_f32(t: &crate::scene::Texture, x: f32, y: f32) -> f32 {
+    let (ix, iy) = (floor_i32(x), floor_i32(y));
+    let (fx, fy) = (x - ix as f32, y - iy as f32);
+    let a = t.byte(ix, iy) as f32;
+    let b = t.byte(ix.wrapping_add(1), iy) as f32;
+    let c = t.byte(ix, iy.wrapping_add(1)) as f32;
+    let d = t.byte(ix.wrapping_add(1), iy.wrapping_add(1)) as f32;
+    let top = a + (b - a) * fx;
+    t.offset + t.scale * (top + ((c + (d - c) * fx) - top) * fy)
+}
+
+/// The three planes in the camera frame for this frame.
+fn frame_planes(scene: &Scene, t_wc: &Isometry3<f64>) -> ([PlaneGeo; 3], [PlaneForms; 3]) {
+    let t_cw = t_wc.inverse();
+    let t_wm = scene.t_world_marker();
+    let t_cm = t_cw * t_wm;
+    let xm = t_cm.rotation * Vector3::x();
+    let ym = t_cm.rotation * Vector3::y();
+    let zm = t_cm.rotation * Vector3::z();
+    let om = t_cm.translation.vector;
+    let nm_w = t_wm.rotation * Vector3::z();
+    let cam_w = t_wc.translation.vector;
+    let om_w = t_wm.translation.vector;
+    let bg = &scene.background;
+
+    let front = nm_w.dot(&(cam_w - om_w)) > 0.0;
+    let plate = PlaneGeo::new(om, zm, xm, ym, if front { nm_w } else { -nm_w }, front);
+
+    let wall_w = om_w - nm_w * bg.wall_behind_marker_m;
+    let wall_front = nm_w.dot(&(cam_w - wall_w)) > 0.0;
+    let wall = PlaneGeo::new(
+        om - zm * bg.wall_behind_marker_m,
+        zm,
+        xm,
+        ym,
+        if wall_front { nm_w } else { -nm_w },
+        false,
+    );
+
+    let seabed_z = om_w.z + bg.seabed_below_marker_m;
+    let p0 = t_cw * Point3::new(0.0, 0.0, seabed_z);
+    let up_w = Vector3::new(0.0, 0.0, -1.0);
+    let seabed = PlaneGeo::new(
+        p0.coords,
+        t_cw.rotation * Vector3::z(),
+        t_cw.rotation * Vector3::x(),
+        t_cw.rotation * Vector3::y(),
+        if cam_w.z < seabed_z { up_w } else { -up_w },
+        false,
+    );
+    ([plate.0, wall.0, seabed.0], [plate.1, wall.1, seabed.1])
+}
+
+/// Width and height (metres, marker frame) of one pixel's footprint on the plate near
+/// its centre: the bounding box of the pixel's image on the plate.
+fn plate_footprint(
+    model: &CameraModel,
+    scene: &Scene,
+    t_wc: &Isometry3<f64>,
+    forms: &PlaneForms,
+) -> (f64, f64) {
+    let p_c = t_wc.inverse_transform_point(&scene.t_world_marker().translation.vector.into());
+    let Some(px) = model.project(&p_c) else {
+        return (1e-6, 1e-6);
+    };
+    let uv = |du: f64, dv: f64| -> Option<(f64, f64)> {
+        let (x, y) = model.undistort_pixel(px[0] + du, px[1] + dv);
+        let d = form(&forms.d, x as f32, y as f32) as f64;
+        if d <= 1e-9 {
+            return None;
+        }
+        Some((
+            form(&forms.u, x as f32, y as f32) as f64 / d,
+            form(&forms.v, x as f32, y as f32) as f64 / d,
+        ))
+    };
+    match (uv(0.0, 0.0), uv(1.0, 0.0), uv(0.0, 1.0)) {
+        (Some(a), Some(b), Some(c)) => (
+            (b.0 - a.0).abs() + (c.0 - a.0).abs(),
+            (b.1 - a.1).abs() + (c.1 - a.1).abs(),
+        ),
+        _ => (1e-6, 1e-6),
+    }
+}
