@@ -38,7 +38,6 @@ impl Run {
             }
             self.rig.grab(&mut self.f).unwrap();
         }
-        self.c.drain();
     }
 
     fn send_vision(&mut self) {
