@@ -455,6 +455,9 @@ pub struct LinkConfig {
     pub pilot_input: PilotInput,
     /// `manual`, `stabilize`, `alt_hold` (effort) or `guided` (setpoint).
     pub mode: LinkMode,
+    /// UDP only: read datagrams in `tick` on the caller's thread (true: what arrived before
+    /// the tick is applied in it, deterministic in HIL) or in a tokio task (false).
+    pub udp_receive_on_tick: bool,
     /// 32-byte MAVLink 2 signing key: raw 32 bytes, or 64 hex digits.
     pub signing_key_file: Option<PathBuf>,
     /// Signing link id.
@@ -509,6 +512,7 @@ impl Default for LinkConfig {
             command: CommandKind::Effort,
             pilot_input: PilotInput::RcOverride,
             mode: LinkMode::Manual,
+            udp_receive_on_tick: true,
             signing_key_file: None,
             signing_link_id: 0,
             heartbeat_hz: 1.0,

@@ -335,7 +335,7 @@ impl VehicleLink {
             }
             None => None,
         };
-        let transport = Transport::open(&cfg.url, signing.clone())?;
+        let transport = Transport::open(&cfg.url, signing.clone(), cfg.udp_receive_on_tick)?;
         let mut state = VehicleState::new(cfg);
         state.transport_connected = transport.always_connected;
         tracing::info!(url = %cfg.url, gcs_sysid = cfg.gcs_system_id, "vehicle link open");
@@ -665,6 +665,9 @@ impl VehicleLink {
         let prev_tick = self.last_tick_s;
         self.last_tick_s = Some(now_s);
         self.transport.writer.flush();
+        while let Some((h, m)) = self.transport.poll_tick() {
+            self.apply(&h, &m, now_s);
+        }
         while let Ok(inc) = self.transport.rx.try_recv() {
             match inc {
                 Incoming::Msg(h, m) => self.apply(&h, &m, now_s),

@@ -11,7 +11,7 @@ use std::task::{Context, Poll};
 use std::time::Duration;
 
 use mavlink::dialects::ardupilotmega::MavMessage;
-use mavlink::{AsyncMavlinkReader, MavHeader, SigningData};
+use mavlink::{AsyncMavlinkReader, MavHeader, MavlinkReader, SigningData};
 use tokio::io::{AsyncRead, AsyncWriteExt, ReadBuf};
 use tokio::sync::Notify;
 
@@ -270,6 +270,42 @@ pub(crate) struct Transport {
     local_addr: Option<SocketAddr>,
     /// UDP is connectionless: it is "connected" from the start.
     pub(crate) always_connected: bool,
+    /// UDP read on the caller's thread by `tick` (instead of a task).
+    tick_rx: Option<TickReceiver>,
+}
+
+/// Read-ahead for datagrams read in `tick`: several full datagrams.
+const TICK_READ_CAPACITY: usize = 64 * 1024;
+
+/// Non-blocking datagram source for the frame reader; remembers the udpin peer.
+struct UdpSrc {
+    sock: std::net::UdpSocket,
+    peer: Option<Arc<Mutex<Option<SocketAddr>>>>,
+}
+
+impl std::io::Read for UdpSrc {
+    fn read(&mut self, buf: &mut [u8]) -> std::io::Result<usize> {
+        loop {
+            match self.sock.recv_from(buf) {
+                Ok((n, addr)) => {
+                    if let Some(p) = &self.peer {
+                        if let Ok(mut g) = p.lock() {
+                            *g = Some(addr);
+                        }
+                    }
+                    return Ok(n);
+                }
+                // ICMP port unreachable from an earlier send: not a receive error.
+                Err(e) if e.kind() == std::io::ErrorKind::ConnectionRefused => continue,
+                Err(e) => return Err(e),
+            }
+        }
+    }
+}
+
+struct TickReceiver {
+    reader: MavlinkReader<UdpSrc>,
+    signing: Option<Arc<SigningData>>,
 }
 
 impl Drop for Transport {
@@ -348,6 +384,7 @@ impl Transport {
     pub(crate) fn open(
         url: &str,
         signing: Option<Arc<SigningData>>,
+        receive_on_tick: bool,
     ) -> Result<Self, AutopilotError> {
         let ep = Endpoint::parse(url)?;
         let rt = tokio::runtime::Builder::new_multi_thread()
@@ -395,22 +432,37 @@ impl Transport {
                 let wsock = sock.try_clone().map_err(open_err("udp socket", &hp))?;
                 let dest = Arc::new(Mutex::new(dest));
                 let peer = udpin.then(|| dest.clone());
-                let asock = {
-                    let _g = rt.enter();
-                    tokio::net::UdpSocket::from_std(sock).map_err(open_err("udp socket", &hp))?
-                };
-                let c = counters.clone();
-                rt.spawn(async move {
-                    let mut reader = AsyncMavlinkReader::new(UdpRead {
-                        sock: Arc::new(asock),
-                        peer,
+                let tick_rx = if receive_on_tick {
+                    // Datagrams are read by `tick` on the caller's thread: on loopback (HIL)
+                    // everything the vehicle sent before the tick is seen in that tick, so
+                    // the link state does not depend on thread scheduling.
+                    Some(TickReceiver {
+                        reader: MavlinkReader::with_capacity(
+                            TICK_READ_CAPACITY,
+                            UdpSrc { sock, peer },
+                        ),
+                        signing: signing.clone(),
+                    })
+                } else {
+                    let asock = {
+                        let _g = rt.enter();
+                        tokio::net::UdpSocket::from_std(sock)
+                            .map_err(open_err("udp socket", &hp))?
+                    };
+                    let c = counters.clone();
+                    rt.spawn(async move {
+                        let mut reader = AsyncMavlinkReader::new(UdpRead {
+                            sock: Arc::new(asock),
+                            peer,
+                        });
+                        loop {
+                            let why = pump(&mut reader, signing.as_deref(), &tx, &c).await;
+                            tracing::warn!(%why, "udp receive error");
+                            tokio::time::sleep(RECONNECT_BACKOFF).await;
+                        }
                     });
-                    loop {
-                        let why = pump(&mut reader, signing.as_deref(), &tx, &c).await;
-                        tracing::warn!(%why, "udp receive error");
-                        tokio::time::sleep(RECONNECT_BACKOFF).await;
-                    }
-                });
+                    None
+                };
                 Ok(Self {
                     rt: Some(rt),
                     writer: Writer::Udp {
@@ -423,6 +475,7 @@ impl Transport {
                     reconnect,
                     local_addr: local,
                     always_connected: true,
+                    tick_rx,
                 })
             }
             Endpoint::TcpOut(hp) => {
@@ -460,6 +513,7 @@ impl Transport {
                     reconnect,
                     local_addr: None,
                     always_connected: false,
+                    tick_rx: None,
                 })
             }
             Endpoint::TcpIn(hp) => {
@@ -502,6 +556,7 @@ impl Transport {
                     reconnect,
                     local_addr: local,
                     always_connected: false,
+                    tick_rx: None,
                 })
             }
             Endpoint::Serial { path, baud } => {
@@ -546,7 +601,32 @@ impl Transport {
                     reconnect,
                     local_addr: None,
                     always_connected: false,
+                    tick_rx: None,
                 })
+            }
+        }
+    }
+
+    /// Next message read on the caller's thread (UDP with `receive_on_tick`); None when
+    /// the socket has nothing more now.
+    pub(crate) fn poll_tick(&mut self) -> Option<(MavHeader, MavMessage)> {
+        let rx = self.tick_rx.as_mut()?;
+        loop {
+            match rx
+                .reader
+                .read_any_message_signed::<MavMessage>(rx.signing.as_deref())
+            {
+                Ok(m) => return Some(m),
+                Err(mavlink::error::MessageReadError::Parse(e)) => {
+                    self.counters.parse_errors.fetch_add(1, Ordering::Relaxed);
+                    tracing::debug!(error = %e, "mavlink parse error");
+                }
+                Err(mavlink::error::MessageReadError::Io(e)) => {
+                    if e.kind() != std::io::ErrorKind::WouldBlock {
+                        tracing::warn!(error = %e, "udp receive error");
+                    }
+                    return None;
+                }
             }
         }
     }

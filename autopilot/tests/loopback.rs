@@ -270,6 +270,23 @@ fn tcpout_hold_and_reconnect() {
 }
 
 #[test]
+fn udp_receive_in_a_task_works_too() {
+    let fake = FakeVehicle::start(Kind::UdpServer);
+    let addr = fake.addr.unwrap();
+    let cfg = LinkConfig {
+        udp_receive_on_tick: false,
+        ..link_cfg(format!("udpout:{addr}"))
+    };
+    let mut h = Harness {
+        link: VehicleLink::connect(&cfg).unwrap(),
+        fake,
+        now: 0.0,
+    };
+    h.arm_manual();
+    h.tick_until("telemetry", |l, _| l.state().depth.is_some());
+}
+
+#[test]
 fn tcpin_accepts_vehicle_and_arms() {
     let link = VehicleLink::connect(&link_cfg("tcpin:127.0.0.1:0".into())).unwrap();
     let addr = link.local_addr().unwrap();
@@ -481,4 +498,44 @@ fn setpoint_mode_sends_guided_targets_vision_and_origin_once() {
     assert_eq!((sp.target_system, sp.target_component), (1, 1));
     // Origin exactly once, from the GCS id.
     assert_eq!(r.origins, vec![(255, 475_000_000, -1_222_500_000, -3000)]);
+}
+
+#[test]
+fn udp_datagrams_sent_before_a_tick_are_applied_in_that_tick() {
+    // The HIL determinism property: no sleeping, no polling; what the vehicle wrote to
+    // loopback before `tick` is in the state after it.
+    use mavlink::dialects::ardupilotmega::*;
+    let vehicle = std::net::UdpSocket::bind("127.0.0.1:0").unwrap();
+    let cfg = link_cfg(format!("udpout:{}", vehicle.local_addr().unwrap()));
+    let mut link = VehicleLink::connect(&cfg).unwrap();
+    let to = ("127.0.0.1", link.local_addr().unwrap().port());
+    let h = mavlink::MavHeader {
+        system_id: 1,
+        component_id: 1,
+        sequence: 0,
+    };
+    for step in 0..50u32 {
+        let mut buf = Vec::new();
+        let hb = MavMessage::HEARTBEAT(HEARTBEAT_DATA {
+            custom_mode: 19,
+            mavtype: MavType::MAV_TYPE_SUBMARINE,
+            autopilot: MavAutopilot::MAV_AUTOPILOT_ARDUPILOTMEGA,
+            base_mode: MavModeFlag::MAV_MODE_FLAG_CUSTOM_MODE_ENABLED,
+            system_status: MavState::MAV_STATE_ACTIVE,
+            mavlink_version: 3,
+        });
+        let att = MavMessage::ATTITUDE(ATTITUDE_DATA {
+            time_boot_ms: step,
+            yaw: step as f32 * 0.01,
+            ..Default::default()
+        });
+        mavlink::write_v2_msg(&mut buf, h, &hb).unwrap();
+        mavlink::write_v2_msg(&mut buf, h, &att).unwrap();
+        vehicle.send_to(&buf, to).unwrap();
+        link.tick(f64::from(step) * STEP_S).unwrap();
+        let s = link.state();
+        assert!(s.discovered);
+        assert_eq!(s.attitude.unwrap().time_boot_ms, step);
+        assert_eq!(s.heartbeats, u64::from(step) + 1);
+    }
 }
