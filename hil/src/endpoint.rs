@@ -304,6 +304,9 @@ pub struct EndpointStats {
     pub pilot_inputs_dropped: u64,
     /// Guided position / velocity targets accepted.
     pub guided_targets: u64,
+    /// Inputs a lock-step client sends once per frame that arrived addressed to us,
+    /// accepted or not: RC_CHANNELS_OVERRIDE, MANUAL_CONTROL, SET_POSITION_TARGET_*.
+    pub lockstep_inputs: u64,
     /// Frames that failed to decode (bad CRC is skipped silently by the decoder; this
     /// counts payloads that did not parse).
     pub parse_errors: u64,
@@ -566,6 +569,9 @@ impl VehicleEndpoint {
                 self.last_gcs_heartbeat_s = Some(self.now_s);
             }
             MavMessage::MANUAL_CONTROL(m) => {
+                if m.target == self.cfg.system_id {
+                    self.stats.lockstep_inputs += 1;
+                }
                 if !from_gcs || m.target != self.cfg.system_id {
                     self.stats.pilot_inputs_dropped += 1;
                     return;
@@ -574,6 +580,9 @@ impl VehicleEndpoint {
                 self.pilot_input_accepted();
             }
             MavMessage::RC_CHANNELS_OVERRIDE(m) => {
+                if self.is_for_us(m.target_system) {
+                    self.stats.lockstep_inputs += 1;
+                }
                 if !from_gcs || !self.is_for_us(m.target_system) {
                     self.stats.pilot_inputs_dropped += 1;
                     return;
@@ -596,7 +605,19 @@ impl VehicleEndpoint {
                 self.set_mode(m.custom_mode);
             }
             MavMessage::SET_POSITION_TARGET_LOCAL_NED(t) if self.is_for_us(t.target_system) => {
+                self.stats.lockstep_inputs += 1;
                 self.guided_target(&t);
+            }
+            MavMessage::SET_POSITION_TARGET_GLOBAL_INT(t) if self.is_for_us(t.target_system) => {
+                self.stats.lockstep_inputs += 1;
+                // ArduSub's ALT_HOLD takes its depth target from here (alt is negative
+                // under water); the horizontal part needs a global position we lack.
+                let ignore_z = t
+                    .type_mask
+                    .contains(PositionTargetTypemask::POSITION_TARGET_TYPEMASK_Z_IGNORE);
+                if self.mode == mode::ALT_HOLD && !ignore_z && t.alt.is_finite() && t.alt <= 0.0 {
+                    self.controller.set_depth_target(-(t.alt as f64));
+                }
             }
             MavMessage::VISION_POSITION_ESTIMATE(v) => self.vision_estimate(&v),
             _ => {}

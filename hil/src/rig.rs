@@ -202,8 +202,7 @@ impl HilRig {
     }
 
     fn lockstep_inputs(&self) -> u64 {
-        let s = self.endpoint.stats();
-        s.pilot_inputs + s.guided_targets
+        self.endpoint.stats().lockstep_inputs
     }
 
     /// Wait (bounded) until the client sent input for this frame, handling MAVLink meanwhile.

@@ -205,3 +205,25 @@ fn poshold_resists_a_current_that_carries_a_manual_vehicle_away() {
     );
     assert!((p.z - DEPTH_M).abs() < 0.1, "{p:?}");
 }
+
+#[test]
+fn alt_hold_takes_a_depth_target_from_set_position_target_global_int() {
+    let mut r = Run::new(VehicleConfig::default());
+    r.arm();
+    assert_eq!(r.mode(mode::ALT_HOLD), MavResult::MAV_RESULT_ACCEPTED);
+    r.c.send(&MavMessage::SET_POSITION_TARGET_GLOBAL_INT(
+        SET_POSITION_TARGET_GLOBAL_INT_DATA {
+            alt: -(DEPTH_M as f32 + 0.5),
+            type_mask: PositionTargetTypemask::POSITION_TARGET_TYPEMASK_X_IGNORE
+                | PositionTargetTypemask::POSITION_TARGET_TYPEMASK_Y_IGNORE,
+            target_system: 1,
+            target_component: 1,
+            coordinate_frame: MavFrame::MAV_FRAME_GLOBAL_RELATIVE_ALT_INT,
+            ..Default::default()
+        },
+    ));
+    r.fly(240, NEUTRAL, false);
+    let z = r.pos().z;
+    assert!((z - (DEPTH_M + 0.5)).abs() < 0.06, "depth {z}");
+    assert_eq!(r.rig.endpoint_stats().lockstep_inputs, 241);
+}

@@ -155,6 +155,12 @@ impl Controller {
         self.climbing = false;
     }
 
+    /// A depth target from the client (ALT_HOLD via SET_POSITION_TARGET_GLOBAL_INT).
+    pub fn set_depth_target(&mut self, depth_m: f64) {
+        self.depth_target = Some(depth_m);
+        self.climbing = false;
+    }
+
     pub fn last_nav(&self) -> Option<NavEstimate> {
         self.last_nav
     }
