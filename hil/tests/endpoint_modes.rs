@@ -218,7 +218,7 @@ fn alt_hold_takes_a_depth_target_from_set_position_target_global_int() {
                 | PositionTargetTypemask::POSITION_TARGET_TYPEMASK_Y_IGNORE,
             target_system: 1,
             target_component: 1,
-            coordinate_frame: MavFrame::MAV_FRAME_GLOBAL_RELATIVE_ALT_INT,
+            coordinate_frame: MavFrame::MAV_FRAME_GLOBAL_RELATIVE_ALT,
             ..Default::default()
         },
     ));
