@@ -25,3 +25,16 @@ pub use keeper::{wrap_pi, Effort, KeeperStatus, PoseMeasurement, StationKeeper};
 pub use link::{ArduSubMode, CommandStatus, VehicleLink, VehicleState};
 pub use pilot::PilotMap;
 pub use supervisor::{Directive, FailsafeEvent, Supervisor, SupervisorInput};
+
+#[cfg(test)]
+mod tests {
+    /// The integrator may move the loop (and so these) to another thread.
+    #[test]
+    fn loop_parts_are_send() {
+        fn send<T: Send>() {}
+        send::<crate::VehicleLink>();
+        send::<crate::StationKeeper>();
+        send::<crate::Supervisor>();
+        send::<crate::VehicleState>();
+    }
+}
