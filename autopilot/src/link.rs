@@ -166,6 +166,8 @@ pub struct LinkCounters {
     pub received: u64,
     /// Frames not written (no peer yet, buffers full).
     pub send_dropped: u64,
+    /// Frames not written because the socket reported an error (network down).
+    pub send_errors: u64,
     /// Pilot-input frames written (RC override / MANUAL_CONTROL).
     pub pilot_inputs: u64,
     /// GCS heartbeats written.
@@ -282,6 +284,8 @@ pub struct VehicleLink {
     last_tick_s: Option<f64>,
     /// Keep-alive neutral pilot input while the vehicle's heartbeat is current.
     pilot_keepalive: bool,
+    /// The last write failed (logged once per failing stretch).
+    send_failing: bool,
 }
 
 fn read_key(path: &std::path::Path) -> Result<[u8; 32], AutopilotError> {
@@ -357,6 +361,7 @@ impl VehicleLink {
             origin_sent: false,
             last_tick_s: None,
             pilot_keepalive: true,
+            send_failing: false,
         })
     }
 
@@ -399,16 +404,26 @@ impl VehicleLink {
         match self.transport.writer.write(&buf[..n]) {
             Ok(WriteOutcome::Sent) => {
                 self.state.counters.sent += 1;
+                if self.send_failing {
+                    self.send_failing = false;
+                    tracing::info!("vehicle link sends again");
+                }
                 Ok(true)
             }
             Ok(WriteOutcome::NoPeer | WriteOutcome::Dropped) => {
                 self.state.counters.send_dropped += 1;
                 Ok(false)
             }
-            Err(e) => Err(AutopilotError::Send {
-                message: msg.message_name(),
-                source: e,
-            }),
+            // A network that goes away (tether unplugged, interface down) must not stop the
+            // loop: count it, log the first, and let heartbeat loss drive the failsafes.
+            Err(e) => {
+                self.state.counters.send_errors += 1;
+                if !self.send_failing {
+                    self.send_failing = true;
+                    tracing::warn!(message = msg.message_name(), error = %e, "vehicle link send failed");
+                }
+                Ok(false)
+            }
         }
     }
 
@@ -648,6 +663,9 @@ impl VehicleLink {
     /// Drive the session at loop time `now_s`: receive and apply incoming messages, GCS
     /// heartbeat, stream requests (and re-requests), command retries, link-loss detection,
     /// reconnect, pilot-input keep-alive. Call every frame.
+    ///
+    /// Network errors never fail this or the `send_*`/`request_*` calls: they are counted in
+    /// `state().counters` (`send_errors`, `send_dropped`) and show up as heartbeat loss.
     pub fn tick(&mut self, now_s: f64) -> Result<(), AutopilotError> {
         if !now_s.is_finite() {
             return Ok(());
