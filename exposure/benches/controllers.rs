@@ -4,7 +4,8 @@ use criterion::{criterion_group, criterion_main, BenchmarkId, Criterion, Through
 use markhold_exposure::*;
 use std::hint::black_box;
 
-/// A textured frame with a bright marker-like block pattern around (cx, cy).
+/// A textured, slightly noisy frame with a bright marker-like block pattern in the
+/// middle.
 fn frame(w: u32, h: u32, marker_side: u32) -> (Frame, Corners) {
     let mut f = Frame::new(w, h);
     let (cx, cy) = (w as f64 / 2.0, h as f64 / 2.0);
@@ -26,7 +27,10 @@ fn frame(w: u32, h: u32, marker_side: u32) -> (Frame, Corners) {
                 60.0 + 30.0 * (fx * 0.11).sin() * (fy * 0.07).cos()
                     + 10.0 * (fx * 0.5 + fy * 0.3).sin()
             };
-            f.data[y * w as usize + x] = g as u8;
+            // Sensor noise of a few grey levels (a fixed hash, so runs repeat).
+            let hsh = (x as u32).wrapping_mul(2_654_435_761) ^ (y as u32).wrapping_mul(40_503);
+            let noise = (hsh.wrapping_mul(2_246_822_519) >> 29) as f64 - 3.5;
+            f.data[y * w as usize + x] = (g + noise).clamp(0.0, 255.0) as u8;
         }
     }
     let c = [

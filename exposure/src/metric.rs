@@ -54,13 +54,7 @@ pub struct MetricValue {
     pub mean_grey: f64,
     /// Fraction of scored pixels at or above the saturation level.
     pub saturated_frac: f64,
-    /// Grey level at the 99th percentile of the scored pixels (the bright end that a
-    /// longer exposure would saturate first).
-    pub bright_grey: u8,
 }
-
-/// Percentile of the grey histogram reported as [`MetricValue::bright_grey`].
-pub const BRIGHT_PERCENTILE: f64 = 0.99;
 
 /// Closed-form partial sums of the soft-percentile weights
 /// `w_i = sin(pi/2 * i/n)^k` (i <= n), `sin(pi/2 - pi/2 (i-n)/(S-n))^k` (i > n), with
@@ -73,8 +67,13 @@ pub struct RankWeights {
     c1: f64,
     c2: f64,
     k: u32,
-    /// Fourier coefficients of sin^k / cos^k: harmonic (k - 2j) has coefficient coef[j].
-    coef: [f64; 5],
+    /// Per odd harmonic h = 1, 3, 5, 7, 9: Fourier coefficient of sin^k (signed) over
+    /// sin(h c1 / 2), and of cos^k over sin(h c2 / 2); 0 for harmonics above k.
+    head_coef: [f64; 5],
+    tail_coef: [f64; 5],
+    /// e^{-i c1/2} and e^{+i c2/2}: shift the base angle by half a step.
+    head_shift: (f64, f64),
+    tail_shift: (f64, f64),
     /// Sum of the first branch, i = 0..=n.
     head: f64,
     total: f64,
@@ -88,6 +87,27 @@ fn binomial(n: u32, k: u32) -> f64 {
     r
 }
 
+#[inline(always)]
+fn cmul(a: (f64, f64), b: (f64, f64)) -> (f64, f64) {
+    (a.0 * b.0 - a.1 * b.1, a.0 * b.1 + a.1 * b.0)
+}
+
+/// z, z^3, z^5, z^7, z^9 as (re, im).
+#[inline(always)]
+fn odd_powers(z: (f64, f64)) -> [(f64, f64); 5] {
+    let z2 = cmul(z, z);
+    let z3 = cmul(z2, z);
+    let z5 = cmul(z3, z2);
+    let z7 = cmul(z5, z2);
+    let z9 = cmul(z7, z2);
+    [z, z3, z5, z7, z9]
+}
+
+fn unit(angle: f64) -> (f64, f64) {
+    let (s, c) = angle.sin_cos();
+    (c, s)
+}
+
 impl RankWeights {
     /// Weights over `s` ranks. `k` must be odd in 1..=9 and `p` in (0, 1); callers
     /// validate both (other values are clamped here so nothing panics).
@@ -99,25 +119,37 @@ impl RankWeights {
             0.7
         };
         let n = ((p * s as f64).floor() as usize).min(s.saturating_sub(1));
-        let m = (k - 1) / 2;
-        let mut coef = [0.0; 5];
-        let scale = 1.0 / 4f64.powi(m as i32);
-        for (j, c) in coef.iter_mut().enumerate().take(m as usize + 1) {
-            *c = scale * binomial(k, j as u32);
-        }
         let c1 = if n > 0 {
             std::f64::consts::FRAC_PI_2 / n as f64
         } else {
             0.0
         };
         let c2 = std::f64::consts::FRAC_PI_2 / (s - n).max(1) as f64;
+        // sin^k x = 4^-m sum_j (-1)^(m-j) C(k, j) sin((k-2j) x),
+        // cos^k x = 4^-m sum_j C(k, j) cos((k-2j) x), k = 2m + 1.
+        let m = (k - 1) / 2;
+        let scale = 1.0 / 4f64.powi(m as i32);
+        let (mut head_coef, mut tail_coef) = ([0.0; 5], [0.0; 5]);
+        for j in 0..=m {
+            let h = k - 2 * j;
+            let idx = ((h - 1) / 2) as usize;
+            let c = scale * binomial(k, j);
+            let sign = if (m - j).is_multiple_of(2) { 1.0 } else { -1.0 };
+            if n > 0 {
+                head_coef[idx] = sign * c / (0.5 * h as f64 * c1).sin();
+            }
+            tail_coef[idx] = c / (0.5 * h as f64 * c2).sin();
+        }
         let mut w = Self {
             s,
             n,
             c1,
             c2,
             k,
-            coef,
+            head_coef,
+            tail_coef,
+            head_shift: unit(-0.5 * c1),
+            tail_shift: unit(0.5 * c2),
             head: 0.0,
             total: 0.0,
         };
@@ -147,7 +179,9 @@ impl RankWeights {
         }
     }
 
-    /// `sum_{i=0}^{r-1} sin(c1 i)^k`, for r <= n + 1.
+    /// `sum_{i=0}^{r-1} sin(c1 i)^k`, for r <= n + 1, with
+    /// `sum_{i=0}^{r-1} sin(a i) = sin(a r/2) sin(a (r-1)/2) / sin(a/2)` per harmonic;
+    /// one sin_cos, the harmonics by complex powers.
     fn head_sum(&self, r: usize) -> f64 {
         if r == 0 {
             return 0.0;
@@ -155,34 +189,28 @@ impl RankWeights {
         if self.n == 0 {
             return 1.0;
         }
-        let m = (self.k - 1) / 2;
+        let z = unit(0.5 * self.c1 * r as f64);
+        let zp = cmul(z, self.head_shift);
+        let (a, b) = (odd_powers(z), odd_powers(zp));
         let mut acc = 0.0;
-        for j in 0..=m {
-            let h = (self.k - 2 * j) as f64;
-            let a = h * self.c1;
-            // sum_{i=0}^{r-1} sin(a i) = sin(a r/2) sin(a (r-1)/2) / sin(a/2)
-            let r = r as f64;
-            let s = (0.5 * a * r).sin() * (0.5 * a * (r - 1.0)).sin() / (0.5 * a).sin();
-            let sign = if (m - j).is_multiple_of(2) { 1.0 } else { -1.0 };
-            acc += sign * self.coef[j as usize] * s;
+        for i in 0..5 {
+            acc += self.head_coef[i] * a[i].1 * b[i].1;
         }
         acc
     }
 
-    /// `sum_{q=1}^{j} cos(c2 q)^k`.
+    /// `sum_{q=1}^{j} cos(c2 q)^k`, with
+    /// `sum_{q=1}^{j} cos(a q) = sin(a j/2) cos(a (j+1)/2) / sin(a/2)` per harmonic.
     fn tail_sum(&self, j: usize) -> f64 {
         if j == 0 {
             return 0.0;
         }
-        let m = (self.k - 1) / 2;
-        let jf = j as f64;
+        let z = unit(0.5 * self.c2 * j as f64);
+        let zp = cmul(z, self.tail_shift);
+        let (a, b) = (odd_powers(z), odd_powers(zp));
         let mut acc = 0.0;
-        for jj in 0..=m {
-            let h = (self.k - 2 * jj) as f64;
-            let a = h * self.c2;
-            // sum_{q=1}^{j} cos(a q) = sin(a j/2) cos(a (j+1)/2) / sin(a/2)
-            let s = (0.5 * a * jf).sin() * (0.5 * a * (jf + 1.0)).cos() / (0.5 * a).sin();
-            acc += self.coef[jj as usize] * s;
+        for i in 0..5 {
+            acc += self.tail_coef[i] * a[i].1 * b[i].0;
         }
         acc
     }
@@ -215,14 +243,35 @@ const KEY_MANTISSA_BITS: u32 = 7;
 const KEY_EXPONENTS: usize = 21;
 const N_BINS: usize = KEY_EXPONENTS * (1 << KEY_MANTISSA_BITS) + 1;
 
-/// Histogram key of an integer `g64 = 64 G`: monotone in `g64`, 0 only for 0.
+/// Bins allocated: a power of two above `N_BINS`, so that a masked key needs no
+/// bounds check.
+const BIN_SLOTS: usize = 4096;
+const _: () = assert!(N_BINS <= BIN_SLOTS);
+
+/// Histogram key of an integer `g64 = 64 G` (given as an exact f32): monotone in
+/// `g64`, 0 only for 0.
 #[inline(always)]
-fn key(g64: u32) -> usize {
-    if g64 == 0 {
-        return 0;
+fn key_f32(g64: f32) -> u32 {
+    let bits = g64.to_bits() >> (23 - KEY_MANTISSA_BITS);
+    // For g64 = 0 the bits are 0 and the subtraction wraps: select 0 instead.
+    if g64 == 0.0 {
+        0
+    } else {
+        bits.wrapping_sub((127 << KEY_MANTISSA_BITS) - 1)
     }
-    let bits = (g64 as f32).to_bits() >> (23 - KEY_MANTISSA_BITS);
-    (bits - (127 << KEY_MANTISSA_BITS) + 1) as usize
+}
+
+#[cfg(test)]
+fn key(g64: u32) -> u32 {
+    key_f32(g64 as f32)
+}
+
+/// One histogram bin: pixel count, sum of `64 G`, sum of fixed-point `dG/d(ln t)`.
+#[derive(Debug, Clone, Copy, Default)]
+struct Bin {
+    cnt: u32,
+    sum_g64: f64,
+    sum_dg: f64,
 }
 
 /// Reusable evaluator of the metric: buffers are sized at the first use (or by
@@ -231,40 +280,53 @@ fn key(g64: u32) -> usize {
 #[derive(Debug, Clone)]
 pub struct GradientMetric {
     params: MetricParams,
-    /// `D` per grey level (0 at saturation), f32 for speed.
-    d_lut: [f32; 256],
+    /// `D` per grey level (0 at saturation) in fixed point: `D * d_scale`, at most
+    /// `D_Q_MAX`, so that a Sobel sum of `D` fits an i16.
+    d_lut: [i16; 256],
+    d_scale: f64,
     /// `D` for three consecutive rows.
-    d_rows: [Vec<f32>; 3],
-    gx: Vec<i32>,
-    gy: Vec<i32>,
-    g64: Vec<u32>,
+    d_rows: [Vec<i16>; 3],
+    /// `64 G` per pixel of a row (an exact integer held in an f32).
+    g64: Vec<f32>,
+    /// `dG/d(ln t)` in units of `1 / (32 d_scale)`.
     dg: Vec<f32>,
-    cnt: Vec<u32>,
-    sum_g64: Vec<u64>,
-    sum_dg: Vec<f64>,
-    grey_hist: [u32; 256],
+    keys: Vec<u32>,
+    bins: Box<[Bin; BIN_SLOTS]>,
 }
+
+/// Largest fixed-point `D`: 4 * 8160 = 32640 fits an i16.
+const D_Q_MAX: f64 = 8160.0;
 
 impl GradientMetric {
     pub fn new(response: &Response, params: MetricParams) -> Self {
-        let mut d_lut = [0f32; 256];
-        for (i, d) in d_lut.iter_mut().enumerate() {
+        let d_of = |i: usize| {
             if i < params.saturation_grey as usize {
-                *d = response.di_dlnt(i as u8) as f32;
+                response.di_dlnt(i as u8)
+            } else {
+                0.0
             }
+        };
+        let d_max = (0..256).map(d_of).fold(0.0, f64::max);
+        // Finest power-of-two fixed point that keeps every Sobel sum of D inside an
+        // i16 (a power of two keeps a linear camera's D = I exact).
+        let d_scale = if d_max > 0.0 {
+            2f64.powi((D_Q_MAX / d_max).log2().floor() as i32)
+        } else {
+            1.0
+        };
+        let mut d_lut = [0i16; 256];
+        for (i, d) in d_lut.iter_mut().enumerate() {
+            *d = (d_of(i) * d_scale).round().min(D_Q_MAX) as i16;
         }
         Self {
             params,
             d_lut,
+            d_scale,
             d_rows: [Vec::new(), Vec::new(), Vec::new()],
-            gx: Vec::new(),
-            gy: Vec::new(),
             g64: Vec::new(),
             dg: Vec::new(),
-            cnt: vec![0; N_BINS],
-            sum_g64: vec![0; N_BINS],
-            sum_dg: vec![0.0; N_BINS],
-            grey_hist: [0; 256],
+            keys: Vec::new(),
+            bins: Box::new([Bin::default(); BIN_SLOTS]),
         }
     }
 
@@ -274,14 +336,13 @@ impl GradientMetric {
 
     /// Size the row buffers for images up to `width` pixels wide.
     pub fn reserve(&mut self, width: usize) {
-        if self.gx.len() < width {
+        if self.g64.len() < width {
             for r in &mut self.d_rows {
-                r.resize(width, 0.0);
+                r.resize(width, 0);
             }
-            self.gx.resize(width, 0);
-            self.gy.resize(width, 0);
-            self.g64.resize(width, 0);
+            self.g64.resize(width, 0.0);
             self.dg.resize(width, 0.0);
+            self.keys.resize(width, 0);
         }
     }
 
@@ -294,18 +355,22 @@ impl GradientMetric {
         }
         self.reserve(w);
         let sat = self.params.saturation_grey;
+        // The clipped-pixel rule in the fixed point of dG: penalty in 1/256.
+        let unit = 32.0 * self.d_scale;
         let pen = self.params.saturation_penalty as f32;
-        let floor = self.params.saturation_floor as f32;
+        let floor = (self.params.saturation_floor * unit) as f32;
         let lut = &self.d_lut;
         for (r, y) in self.d_rows.iter_mut().zip(0..2) {
             for (d, &p) in r[..w].iter_mut().zip(view.row(y)) {
                 *d = lut[p as usize];
             }
         }
+        let m = w - 2;
         let (mut sum_grey, mut n_sat) = (0u64, 0u64);
+        // Pixels with G = 0 (flat areas) all land in bin 0: count them in registers.
+        let (mut zero_cnt, mut zero_dg) = (0u32, 0f64);
         for y in 1..h - 1 {
             let (r0, r1, r2) = (view.row(y - 1), view.row(y), view.row(y + 1));
-            // Ring of D rows: slot (y+1) % 3 receives row y+1.
             {
                 let slot = &mut self.d_rows[(y + 1) % 3];
                 for (d, &p) in slot[..w].iter_mut().zip(r2) {
@@ -315,65 +380,46 @@ impl GradientMetric {
             let d0 = &self.d_rows[(y - 1) % 3][..w];
             let d1 = &self.d_rows[y % 3][..w];
             let d2 = &self.d_rows[(y + 1) % 3][..w];
-            let m = w - 2;
-            let (gx, gy) = (&mut self.gx[..m], &mut self.gy[..m]);
-            let (g64, dg) = (&mut self.g64[..m], &mut self.dg[..m]);
-            for x in 0..m {
-                let a = |r: &[u8], i: usize| r[i] as i32;
-                let sx = (a(r0, x + 2) - a(r0, x))
-                    + 2 * (a(r1, x + 2) - a(r1, x))
-                    + (a(r2, x + 2) - a(r2, x));
-                let sy = (a(r2, x) + 2 * a(r2, x + 1) + a(r2, x + 2))
-                    - (a(r0, x) + 2 * a(r0, x + 1) + a(r0, x + 2));
-                gx[x] = sx;
-                gy[x] = sy;
-                g64[x] = (sx * sx + sy * sy) as u32;
-                let dx = (d0[x + 2] - d0[x]) + 2.0 * (d1[x + 2] - d1[x]) + (d2[x + 2] - d2[x]);
-                let dy =
-                    (d2[x] + 2.0 * d2[x + 1] + d2[x + 2]) - (d0[x] + 2.0 * d0[x + 1] + d0[x + 2]);
-                // 2 (Ix Dx + Iy Dy) with Ix = sx/8, Dx = dx/8.
-                dg[x] = (sx as f32 * dx + sy as f32 * dy) * (1.0 / 32.0);
+            sobel_row(
+                [r0, r1, r2],
+                [d0, d1, d2],
+                &mut self.g64[..m],
+                &mut self.dg[..m],
+                &mut self.keys[..m],
+            );
+            // Grey statistics: branch-free, vectorizes.
+            let (g64, dg, keys) = (&self.g64[..m], &mut self.dg[..m], &self.keys[..m]);
+            let centre = &r1[1..m + 1];
+            let (mut row_grey, mut row_sat) = (0u32, 0u32);
+            for &p in centre {
+                row_sat += (p >= sat) as u32;
+                row_grey += p as u32;
             }
-            for x in 0..m {
-                let p = r1[x + 1];
-                sum_grey += p as u64;
-                self.grey_hist[p as usize] += 1;
-                let mut d = dg[x];
-                if p >= sat {
-                    n_sat += 1;
-                    d = -pen * d.abs().max(floor);
+            if row_sat > 0 {
+                // The clipped-pixel rule, only on rows that have clipped pixels.
+                for x in 0..m {
+                    if centre[x] >= sat {
+                        dg[x] = -pen * dg[x].abs().max(floor);
+                    }
                 }
-                let k = key(g64[x]);
-                self.cnt[k] += 1;
-                self.sum_g64[k] += g64[x] as u64;
-                self.sum_dg[k] += d as f64;
             }
+            sum_grey += row_grey as u64;
+            n_sat += row_sat as u64;
+            let (zc, zd) = scatter(&mut self.bins, keys, g64, dg);
+            zero_cnt += zc;
+            zero_dg += zd;
         }
-        let s = (w - 2) * (h - 2);
-        let (m, dm) = self.collect(s);
-        let bright_grey = self.bright_grey(s);
+        self.bins[0].cnt += zero_cnt;
+        self.bins[0].sum_dg += zero_dg;
+        let s = m * (h - 2);
+        let (mm, dm) = self.collect(s);
         Some(MetricValue {
-            m,
+            m: mm,
             dm_dlnt: dm,
             pixels: s,
             mean_grey: sum_grey as f64 / s as f64,
             saturated_frac: n_sat as f64 / s as f64,
-            bright_grey,
         })
-    }
-
-    /// The grey at [`BRIGHT_PERCENTILE`] of the histogram, which it clears.
-    fn bright_grey(&mut self, s: usize) -> u8 {
-        let target = (BRIGHT_PERCENTILE * s as f64).ceil() as u64;
-        let (mut acc, mut found) = (0u64, None);
-        for (g, c) in self.grey_hist.iter_mut().enumerate() {
-            acc += *c as u64;
-            if found.is_none() && acc >= target {
-                found = Some(g as u8);
-            }
-            *c = 0;
-        }
-        found.unwrap_or(255)
     }
 
     /// Walk the bins in ascending `G`, weight each by the mean weight of its ranks, and
@@ -382,23 +428,73 @@ impl GradientMetric {
         let rw = RankWeights::new(s, self.params.percentile, self.params.weight_power);
         let (mut rank, mut w_prev) = (0usize, 0.0f64);
         let (mut m, mut dm) = (0.0f64, 0.0f64);
-        for b in 0..N_BINS {
-            let c = self.cnt[b];
-            if c == 0 {
+        for b in self.bins.iter_mut() {
+            if b.cnt == 0 {
                 continue;
             }
-            rank += c as usize;
+            rank += b.cnt as usize;
             let w_now = rw.cumulative(rank);
-            let wbar = (w_now - w_prev) / c as f64;
+            let wbar = (w_now - w_prev) / b.cnt as f64;
             w_prev = w_now;
-            m += wbar * self.sum_g64[b] as f64;
-            dm += wbar * self.sum_dg[b];
-            self.cnt[b] = 0;
-            self.sum_g64[b] = 0;
-            self.sum_dg[b] = 0.0;
+            m += wbar * b.sum_g64;
+            dm += wbar * b.sum_dg;
+            *b = Bin::default();
         }
         let n = rw.total();
-        (m / (64.0 * n), dm / n)
+        (m / (64.0 * n), dm / (n * 32.0 * self.d_scale))
+    }
+}
+
+/// Add one row's pixels to the histogram; pixels with `G = 0` (flat areas, which
+/// would all hit bin 0 one after the other) are summed in registers and returned.
+#[inline(never)]
+fn scatter(bins: &mut [Bin; BIN_SLOTS], keys: &[u32], g64: &[f32], dg: &[f32]) -> (u32, f64) {
+    let m = keys.len();
+    let (g64, dg) = (&g64[..m], &dg[..m]);
+    let (mut zc, mut zd) = (0u32, 0f64);
+    for x in 0..m {
+        let k = keys[x] as usize;
+        if k == 0 {
+            zc += 1;
+            zd += dg[x] as f64;
+        } else {
+            let b = &mut bins[k & (BIN_SLOTS - 1)];
+            b.cnt += 1;
+            b.sum_g64 += g64[x] as f64;
+            b.sum_dg += dg[x] as f64;
+        }
+    }
+    (zc, zd)
+}
+
+/// Sobel of one row: `g64 = sx^2 + sy^2` (integer Sobel on the grey rows) and
+/// `sx Dx + sy Dy` on the fixed-point `D` rows (= `dG/d(ln t)` times `32 d_scale`).
+/// i16 lanes throughout (|sx| <= 1020, |Dx| <= 32640); all slices are cut to the output
+/// length so the loop runs without bounds checks and vectorizes.
+#[inline(always)]
+fn sobel_row(r: [&[u8]; 3], d: [&[i16]; 3], g64: &mut [f32], dg: &mut [f32], keys: &mut [u32]) {
+    let m = g64.len();
+    let keys = &mut keys[..m];
+    let (a0, b0, c0) = (&r[0][..m], &r[0][1..m + 1], &r[0][2..m + 2]);
+    let (a1, c1) = (&r[1][..m], &r[1][2..m + 2]);
+    let (a2, b2, c2) = (&r[2][..m], &r[2][1..m + 1], &r[2][2..m + 2]);
+    let (e0, f0, h0) = (&d[0][..m], &d[0][1..m + 1], &d[0][2..m + 2]);
+    let (e1, h1) = (&d[1][..m], &d[1][2..m + 2]);
+    let (e2, f2, h2) = (&d[2][..m], &d[2][1..m + 1], &d[2][2..m + 2]);
+    let dg = &mut dg[..m];
+    for x in 0..m {
+        let i = |v: u8| v as i16;
+        let sx = (i(c0[x]) - i(a0[x])) + 2 * (i(c1[x]) - i(a1[x])) + (i(c2[x]) - i(a2[x]));
+        let sy = (i(a2[x]) + 2 * i(b2[x]) + i(c2[x])) - (i(a0[x]) + 2 * i(b0[x]) + i(c0[x]));
+        // f32 products: exact for g64 (< 2^22), within 2^-24 for dG; SSE2 has no
+        // 32-bit integer multiply, so this is the fast path on baseline x86-64.
+        let (sx, sy) = (sx as f32, sy as f32);
+        let g = sx * sx + sy * sy;
+        g64[x] = g;
+        keys[x] = key_f32(g);
+        let dx = (h0[x] - e0[x]) + 2 * (h1[x] - e1[x]) + (h2[x] - e2[x]);
+        let dy = (e2[x] + 2 * f2[x] + h2[x]) - (e0[x] + 2 * f0[x] + h0[x]);
+        dg[x] = sx * dx as f32 + sy * dy as f32;
     }
 }
 
@@ -453,7 +549,7 @@ mod tests {
     fn keys_are_monotone_and_exact_below_256() {
         let mut prev = 0;
         for g in 1..(1u32 << 21) {
-            let k = key(g);
+            let k = key(g) as usize;
             assert!(k >= prev && k < N_BINS);
             if g < 256 {
                 assert!(k > prev, "{g}");

@@ -35,7 +35,6 @@ pub fn metric_full_sort(
         (gx / 8.0, gy / 8.0)
     };
     let mut pixels: Vec<(f64, f64)> = Vec::new();
-    let mut greys: Vec<u8> = Vec::new();
     let (mut sum_grey, mut n_sat) = (0.0, 0usize);
     for y in 1..h - 1 {
         for x in 1..w - 1 {
@@ -45,7 +44,6 @@ pub fn metric_full_sort(
             let mut dg = 2.0 * (ix * dx + iy * dy);
             let p = view.row(y)[x];
             sum_grey += p as f64;
-            greys.push(p);
             if p >= params.saturation_grey {
                 n_sat += 1;
                 dg = -params.saturation_penalty * dg.abs().max(params.saturation_floor);
@@ -77,11 +75,6 @@ pub fn metric_full_sort(
         pixels: s,
         mean_grey: sum_grey / s as f64,
         saturated_frac: n_sat as f64 / s as f64,
-        bright_grey: {
-            greys.sort_unstable();
-            let k = (crate::metric::BRIGHT_PERCENTILE * s as f64).ceil() as usize;
-            greys[k.clamp(1, s) - 1]
-        },
     })
 }
 

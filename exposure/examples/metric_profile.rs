@@ -1,0 +1,44 @@
+//! Time (min over batches) of one metric evaluation on a noisy 300x300 RoI; under
+//! `valgrind --tool=cachegrind` with REPS=1 and REPS=3 the difference / 10 is the
+//! instruction count of one evaluation, a figure that does not depend on machine load.
+use markhold_exposure::*;
+use std::time::Instant;
+fn main() {
+    let (w, h) = (300usize, 300usize);
+    let mut data = vec![0u8; w * h];
+    for y in 0..h {
+        for x in 0..w {
+            let (fx, fy) = (x as f64, y as f64);
+            let cell = ((x / 42) * 7 + (y / 42) * 3) % 2;
+            let base = if (25..275).contains(&x) && (25..275).contains(&y) {
+                if cell == 1 {
+                    220.0
+                } else {
+                    30.0
+                }
+            } else {
+                60.0 + 30.0 * (fx * 0.11).sin() * (fy * 0.07).cos()
+                    + 10.0 * (fx * 0.5 + fy * 0.3).sin()
+            };
+            let hsh = (x as u32).wrapping_mul(2_654_435_761) ^ (y as u32).wrapping_mul(40_503);
+            let noise = (hsh.wrapping_mul(2_246_822_519) >> 29) as f64 - 3.5;
+            data[y * w + x] = (base + noise).clamp(0.0, 255.0) as u8;
+        }
+    }
+    let v = ImageView::new(w, h, &data).unwrap();
+    let mut gm = GradientMetric::new(&Response::linear(), AaecConfig::default().metric_params());
+    let reps: usize = std::env::var("REPS")
+        .ok()
+        .and_then(|v| v.parse().ok())
+        .unwrap_or(300);
+    let mut best = f64::MAX;
+    let mut acc = 0.0;
+    for _ in 0..reps {
+        let t = Instant::now();
+        for _ in 0..5 {
+            acc += gm.evaluate(v).unwrap().m;
+        }
+        best = best.min(t.elapsed().as_secs_f64() * 1e6 / 5.0);
+    }
+    println!("evaluate min {best:.1} us ({acc})");
+}
