@@ -140,12 +140,21 @@ pub(crate) enum Writer {
         connected: bool,
     },
     Tcp {
-        stream: Arc<Mutex<Option<std::net::TcpStream>>>,
+        stream: Arc<Mutex<TcpSlot>>,
+        /// Connection generation the pending remainder belongs to.
+        gen: u64,
         pending: Vec<u8>,
     },
     Serial {
         tx: tokio::sync::mpsc::Sender<([u8; MAX_FRAME], usize)>,
     },
+}
+
+/// The current TCP connection, replaced by the task on every (re)connect.
+#[derive(Debug, Default)]
+pub(crate) struct TcpSlot {
+    stream: Option<std::net::TcpStream>,
+    gen: u64,
 }
 
 /// Outcome of one write.
@@ -194,12 +203,21 @@ impl Writer {
                     Err(e) => Err(e),
                 }
             }
-            Writer::Tcp { stream, pending } => {
+            Writer::Tcp {
+                stream,
+                gen,
+                pending,
+            } => {
                 let mut g = match stream.lock() {
                     Ok(g) => g,
                     Err(p) => p.into_inner(),
                 };
-                let Some(s) = g.as_mut() else {
+                if g.gen != *gen {
+                    // A new connection: half a frame from the old one would only be noise.
+                    pending.clear();
+                    *gen = g.gen;
+                }
+                let Some(s) = g.stream.as_mut() else {
                     pending.clear();
                     return Ok(WriteOutcome::NoPeer);
                 };
@@ -480,7 +498,7 @@ impl Transport {
             }
             Endpoint::TcpOut(hp) => {
                 let addr = resolve(url, &hp)?;
-                let slot: Arc<Mutex<Option<std::net::TcpStream>>> = Arc::new(Mutex::new(None));
+                let slot: Arc<Mutex<TcpSlot>> = Arc::default();
                 let s2 = slot.clone();
                 let c = counters.clone();
                 let rc = reconnect.clone();
@@ -506,6 +524,7 @@ impl Transport {
                     rt: Some(rt),
                     writer: Writer::Tcp {
                         stream: slot,
+                        gen: 0,
                         pending: Vec::with_capacity(TCP_PENDING_CAP),
                     },
                     rx,
@@ -526,7 +545,7 @@ impl Transport {
                     let _g = rt.enter();
                     tokio::net::TcpListener::from_std(l).map_err(open_err("tcp listener", &hp))?
                 };
-                let slot: Arc<Mutex<Option<std::net::TcpStream>>> = Arc::new(Mutex::new(None));
+                let slot: Arc<Mutex<TcpSlot>> = Arc::default();
                 let s2 = slot.clone();
                 let c = counters.clone();
                 let rc = reconnect.clone();
@@ -549,6 +568,7 @@ impl Transport {
                     rt: Some(rt),
                     writer: Writer::Tcp {
                         stream: slot,
+                        gen: 0,
                         pending: Vec::with_capacity(TCP_PENDING_CAP),
                     },
                     rx,
@@ -646,7 +666,7 @@ impl Transport {
 
 async fn serve_tcp(
     s: tokio::net::TcpStream,
-    slot: &Mutex<Option<std::net::TcpStream>>,
+    slot: &Mutex<TcpSlot>,
     signing: Option<&SigningData>,
     tx: &SyncSender<Incoming>,
     c: &TaskCounters,
@@ -680,7 +700,8 @@ async fn serve_tcp(
         }
     };
     if let Ok(mut g) = slot.lock() {
-        *g = Some(w);
+        g.stream = Some(w);
+        g.gen += 1;
     }
     push(tx, c, Incoming::Connected(peer.clone()));
     let mut reader = AsyncMavlinkReader::new(s);
@@ -689,7 +710,7 @@ async fn serve_tcp(
         _ = reconnect.notified() => "reconnect requested".to_string(),
     };
     if let Ok(mut g) = slot.lock() {
-        if let Some(w) = g.take() {
+        if let Some(w) = g.stream.take() {
             let _ = w.shutdown(std::net::Shutdown::Both);
         }
     }
