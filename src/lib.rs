@@ -10,3 +10,4 @@ mod params_validate;
 pub mod pipeline;
 pub mod snapshot;
 pub mod summary;
+pub mod trace;

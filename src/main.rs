@@ -94,6 +94,9 @@ struct HilArgs {
     /// With --snapshot: save every n-th frame.
     #[arg(long, default_value_t = 30)]
     snapshot_every: u64,
+    /// Write one CSV row per frame (time, exposure, metric, detection, pose, effort).
+    #[arg(long, value_name = "FILE.csv")]
+    trace: Option<PathBuf>,
     /// No progress bar.
     #[arg(long)]
     quiet: bool,
@@ -221,9 +224,16 @@ fn hil(args: HilArgs) -> anyhow::Result<()> {
         b
     };
     let mut snap_err = None;
+    let mut trace = match &args.trace {
+        Some(p) => Some(markhold::trace::TraceWriter::create(p)?),
+        None => None,
+    };
     let mut on_frame =
         |rec: &markhold::pipeline::FrameRecord, time_s: f64, frame: &markhold_exposure::Frame| {
             bar.inc(1);
+            if let Some(t) = trace.as_mut() {
+                t.row(rec);
+            }
             if rec.seq % 15 == 0 {
                 bar.set_message(format!(
                     "t={:.1}s exp={:.0}us {}",
@@ -250,6 +260,9 @@ fn hil(args: HilArgs) -> anyhow::Result<()> {
         })?,
     };
     bar.finish_and_clear();
+    if let Some(t) = trace {
+        t.finish()?;
+    }
     if let Some(e) = snap_err {
         return Err(e.context("saving snapshots"));
     }
