@@ -612,7 +612,7 @@ pub struct Scene {
 /// Side of the rock texture (texels, power of two).
 const ROCK_LOG2: u32 = 10;
 /// Side of the caustic texture (texels, power of two) and its cells per side.
-const CAUSTIC_LOG2: u32 = 9;
+const CAUSTIC_LOG2: u32 = 10;
 const CAUSTIC_CELLS: usize = 8;
 /// The second caustic layer is scaled (so the two never tile in step) and shifted.
 pub(crate) const CAUSTIC_LAYER2_SCALE: f32 = 0.73;
@@ -840,11 +840,14 @@ impl Scene {
             return 1.0;
         }
         let k = p.texels_per_m;
-        let l0 = self
-            .caustic
-            .bilinear((u + p.off0.0) * k, (v + p.off0.1) * k);
+        // Nearest texel (the texture is fine enough; the fast renderer does the same).
+        let near = |x: f64, y: f64| {
+            self.caustic
+                .at(x.floor() as i64 as i32, y.floor() as i64 as i32) as f64
+        };
+        let l0 = near((u + p.off0.0) * k, (v + p.off0.1) * k);
         let s = CAUSTIC_LAYER2_SCALE as f64;
-        let l1 = self.caustic.bilinear(
+        let l1 = near(
             (u * s + p.off1.0) * k + CAUSTIC_LAYER2_SHIFT.0 as f64,
             (v * s + p.off1.1) * k + CAUSTIC_LAYER2_SHIFT.1 as f64,
         );

@@ -14,7 +14,9 @@ use nalgebra::{Isometry3, Point3, Vector3};
 
 use super::sensor::{SensorTables, XorShift64Star};
 use super::CameraModel;
-use crate::scene::{Scene, WorldLamp, ALBEDO_BLACK, ALBEDO_WHITE};
+use crate::scene::{
+    Scene, WorldLamp, ALBEDO_BLACK, ALBEDO_WHITE, CAUSTIC_LAYER2_SCALE, CAUSTIC_LAYER2_SHIFT,
+};
 
 /// Pixels between grid nodes.
 const GRID: usize = 16;
@@ -121,6 +123,9 @@ pub(crate) struct FastRenderer {
     row_y: Vec<f32>,
     /// Mean electrons of the current row's pixels (the sensor runs as a second pass).
     row_mean: Vec<f32>,
+    /// Half Gaussian samples and response-table indices of the current row.
+    row_g: Vec<f32>,
+    row_idx: Vec<u32>,
 }
 
 /// Everything the per-pixel loop needs for one frame.
@@ -159,6 +164,8 @@ impl FastRenderer {
             row_x: vec![0.0; nx],
             row_y: vec![0.0; nx],
             row_mean: vec![0.0; w],
+            row_g: vec![0.0; w],
+            row_idx: vec![0; w],
         }
     }
 
@@ -281,6 +288,11 @@ impl FastRenderer {
         let caustics = CausticFrame::new(scene, time_s);
         let gauss = &tables.half_gauss;
         let gmask = tables.gauss_mask();
+        let lut = &tables.response_lut[..];
+        let lut_top = (lut.len() - 1) as f32;
+        if !tables.noise {
+            self.row_g.fill(0.0);
+        }
 
         let (w, h, nx) = (self.width, self.height, self.nx);
         let cell_albedo = |ci: i32, cj: i32| -> f32 {
@@ -402,30 +414,59 @@ impl FastRenderer {
                         }
                         k => {
                             let (f0, fd) = (sp.f0[k], sp.df[k]);
-                            let tk = texel_per_m;
-                            if caustics.on {
-                                for (t, m) in run.iter_mut().enumerate() {
-                                    let t = first + t as f32;
-                                    let inv = 1.0 / (f0[0] + fd[0] * t);
-                                    let u = (f0[1] + fd[1] * t) * inv;
-                                    let v = (f0[2] + fd[2] * t) * inv;
-                                    let albedo = rock.at(floor_i32(u * tk), floor_i32(v * tk));
-                                    let c = caustics.at(scene, u, v);
-                                    *m = albedo * ((a0[0] + ad[0] * t) * c + a0[1] + ad[1] * t)
-                                        + a0[2]
-                                        + ad[2] * t;
+                            // Surface coordinates are affine along a 16-pixel span to well
+                            // under a texel (the division would cost more than the rest):
+                            // exact at both ends, stepped in 16.16 fixed point.
+                            let d_end = f0[0] + fd[0] * GRID as f32;
+                            let affine = (f0[0] > 1e-6 && d_end > 1e-6).then(|| {
+                                let (u0, v0) = (f0[1] / f0[0], f0[2] / f0[0]);
+                                let u1 = (f0[1] + fd[1] * GRID as f32) / d_end;
+                                let v1 = (f0[2] + fd[2] * GRID as f32) / d_end;
+                                let g = 1.0 / GRID as f32;
+                                (u0, (u1 - u0) * g, v0, (v1 - v0) * g)
+                            });
+                            let mut fields = Stepper::new(a0, ad, first);
+                            match affine.and_then(|(u0, du, v0, dv)| {
+                                RockSteps::new(u0, du, v0, dv, first, texel_per_m, &caustics)
+                            }) {
+                                Some(mut st) if !caustics.on => {
+                                    for m in run.iter_mut() {
+                                        let albedo = rock.at(st.ru.get(), st.rv.get());
+                                        *m = albedo * (fields.v[0] + fields.v[1]) + fields.v[2];
+                                        st.step();
+                                        fields.step();
+                                    }
                                 }
-                            } else {
-                                // Daylight and lamps add up before the albedo.
-                                let (l0, ld) = (a0[0] + a0[1], ad[0] + ad[1]);
-                                let (u0, ud) = (f0[1] * tk, fd[1] * tk);
-                                let (v0, vd) = (f0[2] * tk, fd[2] * tk);
-                                for (t, m) in run.iter_mut().enumerate() {
-                                    let t = first + t as f32;
-                                    let inv = 1.0 / (f0[0] + fd[0] * t);
-                                    let tu = floor_i32((u0 + ud * t) * inv);
-                                    let tv = floor_i32((v0 + vd * t) * inv);
-                                    *m = rock.at(tu, tv) * (l0 + ld * t) + a0[2] + ad[2] * t;
+                                Some(mut st) => {
+                                    let ct = &scene.caustic;
+                                    for m in run.iter_mut() {
+                                        let albedo = rock.at(st.ru.get(), st.rv.get());
+                                        let c = caustics.combine(
+                                            ct.at(st.c0u.get(), st.c0v.get()),
+                                            ct.at(st.c1u.get(), st.c1v.get()),
+                                        );
+                                        *m = albedo * (fields.v[0] * c + fields.v[1]) + fields.v[2];
+                                        st.step();
+                                        fields.step();
+                                    }
+                                }
+                                None => {
+                                    // Near the horizon: exact per pixel.
+                                    for (t, m) in run.iter_mut().enumerate() {
+                                        let t = first + t as f32;
+                                        let inv = 1.0 / (f0[0] + fd[0] * t);
+                                        let u = (f0[1] + fd[1] * t) * inv;
+                                        let v = (f0[2] + fd[2] * t) * inv;
+                                        let tk = texel_per_m;
+                                        let albedo = rock.at(floor_i32(u * tk), floor_i32(v * tk));
+                                        let c = if caustics.on {
+                                            caustics.at(scene, u, v)
+                                        } else {
+                                            1.0
+                                        };
+                                        *m = albedo * (fields.v[0] * c + fields.v[1]) + fields.v[2];
+                                        fields.step();
+                                    }
                                 }
                             }
                         }
@@ -433,15 +474,24 @@ impl FastRenderer {
                     start = end;
                 }
             }
-            // The sensor: independent per pixel, no branches.
-            let mut bits = 0u64;
-            for (k, (px, &mean_e)) in row.iter_mut().zip(&row_mean).enumerate() {
-                if k % 4 == 0 {
-                    bits = rng.next_u64();
+            // The sensor, in three passes so the arithmetic one vectorizes.
+            if tables.noise {
+                let mut bits = 0u64;
+                for (k, g) in self.row_g.iter_mut().enumerate() {
+                    if k % 4 == 0 {
+                        bits = rng.next_u64();
+                    }
+                    *g = gauss[(bits as usize) & gmask];
+                    bits >>= 16;
                 }
-                let g = gauss[(bits as usize) & gmask];
-                bits >>= 16;
-                *px = tables.grey(mean_e, g);
+            }
+            let (r2, per_s, top) = (tables.read_var_e2, tables.lut_per_s, lut_top);
+            for ((ix, &m), &g) in self.row_idx.iter_mut().zip(&row_mean).zip(&self.row_g) {
+                let s = (m.max(0.0) + r2).sqrt() + g;
+                *ix = (s * per_s + 0.5).clamp(0.0, top) as u32;
+            }
+            for (px, &ix) in row.iter_mut().zip(&self.row_idx) {
+                *px = lut[(ix as usize).min(lut.len() - 1)];
             }
             self.row_mean = row_mean;
         }
@@ -535,31 +585,127 @@ impl CausticFrame {
         }
     }
 
+    /// Caustic factor at surface coordinates (u, v), metres.
     #[inline(always)]
     fn at(&self, scene: &Scene, u: f32, v: f32) -> f32 {
         let k = self.texels_per_m;
-        let l0 = bilinear_f32(&scene.caustic, (u + self.off0.0) * k, (v + self.off0.1) * k);
-        let l1 = bilinear_f32(
-            &scene.caustic,
-            (u * crate::scene::CAUSTIC_LAYER2_SCALE + self.off1.0) * k
-                + crate::scene::CAUSTIC_LAYER2_SHIFT.0,
-            (v * crate::scene::CAUSTIC_LAYER2_SCALE + self.off1.1) * k
-                + crate::scene::CAUSTIC_LAYER2_SHIFT.1,
-        );
+        let (s2, sh) = (CAUSTIC_LAYER2_SCALE, CAUSTIC_LAYER2_SHIFT);
+        let t = &scene.caustic;
+        self.combine(
+            t.at(
+                floor_i32((u + self.off0.0) * k),
+                floor_i32((v + self.off0.1) * k),
+            ),
+            t.at(
+                floor_i32((u * s2 + self.off1.0) * k + sh.0),
+                floor_i32((v * s2 + self.off1.1) * k + sh.1),
+            ),
+        )
+    }
+
+    #[inline(always)]
+    fn combine(&self, l0: f32, l1: f32) -> f32 {
         1.0 + self.strength * (0.5 * (l0 + l1) - 1.0)
     }
 }
 
-#[inline(always)]
-fn bilinear_f32(t: &crate::scene::Texture, x: f32, y: f32) -> f32 {
-    let (ix, iy) = (floor_i32(x), floor_i32(y));
-    let (fx, fy) = (x - ix as f32, y - iy as f32);
-    let a = t.byte(ix, iy) as f32;
-    let b = t.byte(ix.wrapping_add(1), iy) as f32;
-    let c = t.byte(ix, iy.wrapping_add(1)) as f32;
-    let d = t.byte(ix.wrapping_add(1), iy.wrapping_add(1)) as f32;
-    let top = a + (b - a) * fx;
-    t.offset + t.scale * (top + ((c + (d - c) * fx) - top) * fy)
+/// A texel coordinate stepped along a run in 16.16 fixed point.
+#[derive(Debug, Clone, Copy)]
+struct Fixed {
+    at: i64,
+    step: i64,
+}
+
+impl Fixed {
+    /// `start + step * t` texels; `None` when out of the exactly representable range.
+    fn new(start: f32, step: f32) -> Option<Self> {
+        let ok = start.is_finite() && step.is_finite() && start.abs() < 1e9 && step.abs() < 1e7;
+        ok.then(|| Self {
+            at: (start as f64 * 65536.0).floor() as i64,
+            step: (step as f64 * 65536.0).round() as i64,
+        })
+    }
+
+    #[inline(always)]
+    fn get(&self) -> i32 {
+        // Arithmetic shift: floor for negative coordinates too.
+        (self.at >> 16) as i32
+    }
+}
+
+/// The texel coordinates a rock run walks: the rock itself and both caustic layers.
+struct RockSteps {
+    ru: Fixed,
+    rv: Fixed,
+    c0u: Fixed,
+    c0v: Fixed,
+    c1u: Fixed,
+    c1v: Fixed,
+}
+
+impl RockSteps {
+    /// From affine surface coordinates `u0 + du t`, `v0 + dv t` (metres), at pixel `first`.
+    fn new(
+        u0: f32,
+        du: f32,
+        v0: f32,
+        dv: f32,
+        first: f32,
+        rock_per_m: f32,
+        c: &CausticFrame,
+    ) -> Option<Self> {
+        let (u, v) = (u0 + du * first, v0 + dv * first);
+        let k = c.texels_per_m;
+        let (s2, sh) = (CAUSTIC_LAYER2_SCALE, CAUSTIC_LAYER2_SHIFT);
+        Some(Self {
+            ru: Fixed::new(u * rock_per_m, du * rock_per_m)?,
+            rv: Fixed::new(v * rock_per_m, dv * rock_per_m)?,
+            c0u: Fixed::new((u + c.off0.0) * k, du * k)?,
+            c0v: Fixed::new((v + c.off0.1) * k, dv * k)?,
+            c1u: Fixed::new((u * s2 + c.off1.0) * k + sh.0, du * s2 * k)?,
+            c1v: Fixed::new((v * s2 + c.off1.1) * k + sh.1, dv * s2 * k)?,
+        })
+    }
+
+    #[inline(always)]
+    fn step(&mut self) {
+        for f in [
+            &mut self.ru,
+            &mut self.rv,
+            &mut self.c0u,
+            &mut self.c0v,
+            &mut self.c1u,
+            &mut self.c1v,
+        ] {
+            f.at += f.step;
+        }
+    }
+}
+
+/// Light fields stepped along a run.
+struct Stepper {
+    v: [f32; 3],
+    d: [f32; 3],
+}
+
+impl Stepper {
+    fn new(a0: [f32; 3], ad: [f32; 3], first: f32) -> Self {
+        Self {
+            v: [
+                a0[0] + ad[0] * first,
+                a0[1] + ad[1] * first,
+                a0[2] + ad[2] * first,
+            ],
+            d: ad,
+        }
+    }
+
+    #[inline(always)]
+    fn step(&mut self) {
+        for c in 0..3 {
+            self.v[c] += self.d[c];
+        }
+    }
 }
 
 /// The three planes in the camera frame for this frame.

@@ -73,21 +73,6 @@ impl Texture {
     pub(crate) fn at(&self, tx: i32, ty: i32) -> f32 {
         self.offset + self.scale * self.byte(tx, ty) as f32
     }
-
-    /// Bilinear lookup at texel coordinates (wraps).
-    pub(crate) fn bilinear(&self, tx: f64, ty: f64) -> f64 {
-        let x0 = tx.floor();
-        let y0 = ty.floor();
-        let fx = tx - x0;
-        let fy = ty - y0;
-        let (x0, y0) = (x0 as i64 as i32, y0 as i64 as i32);
-        let a = self.byte(x0, y0) as f64;
-        let b = self.byte(x0.wrapping_add(1), y0) as f64;
-        let c = self.byte(x0, y0.wrapping_add(1)) as f64;
-        let d = self.byte(x0.wrapping_add(1), y0.wrapping_add(1)) as f64;
-        let raw = (a * (1.0 - fx) + b * fx) * (1.0 - fy) + (c * (1.0 - fx) + d * fx) * fy;
-        self.offset as f64 + self.scale as f64 * raw
-    }
 }
 
 /// Value noise lattice of side `cells` (tileable), smoothly interpolated.
