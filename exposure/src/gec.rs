@@ -173,15 +173,45 @@ pub fn best_gamma(c: &[f64; 6]) -> f64 {
 pub struct GecScorer {
     /// Gamma-mapped grey for each anchor.
     maps: [[u8; 256]; 7],
-    /// `m_bar` by `sx^2 + sy^2` quantized through sqrt (index = round(4 sqrt)).
-    info: Vec<f32>,
+    /// `m_bar` in 1/65536 by a key of `sx^2 + sy^2` (its f32 bits: exact below 512,
+    /// 1/256 relative above), so the inner loop has no sqrt, no log and an integer sum.
+    info: Vec<u32>,
     rows: [Vec<u8>; 3],
 }
 
-/// Resolution of the information table in units of the Sobel magnitude.
-const INFO_STEPS: f64 = 4.0;
-/// Largest Sobel magnitude on 8-bit images: sqrt(2) * 1020.
-const SOBEL_MAX: f64 = 1442.5;
+const INFO_MANTISSA_BITS: u32 = 8;
+/// Keys of `sx^2 + sy^2 <= 2 * 1020^2 < 2^21`.
+const INFO_SLOTS: usize = 8192;
+const _: () = assert!(21 * (1 << INFO_MANTISSA_BITS) + 1 <= INFO_SLOTS);
+const INFO_ONE: f64 = 65536.0;
+
+#[inline(always)]
+fn info_key(g: f32) -> usize {
+    let bits = g.to_bits() >> (23 - INFO_MANTISSA_BITS);
+    let k = if g == 0.0 {
+        0
+    } else {
+        bits.wrapping_sub((127 << INFO_MANTISSA_BITS) - 1)
+    };
+    k as usize & (INFO_SLOTS - 1)
+}
+
+/// The squared Sobel magnitude a key stands for (the middle of its range).
+fn info_key_value(k: usize) -> f64 {
+    if k == 0 {
+        return 0.0;
+    }
+    let base = |k: usize| {
+        f32::from_bits(((k as u32 - 1) + (127 << INFO_MANTISSA_BITS)) << (23 - INFO_MANTISSA_BITS))
+            as f64
+    };
+    let (lo, hi) = (base(k), base(k + 1));
+    if hi - lo <= 1.0 {
+        lo
+    } else {
+        0.5 * (lo + hi)
+    }
+}
 
 impl GecScorer {
     pub fn new(cfg: &GecConfig) -> Self {
@@ -191,15 +221,14 @@ impl GecScorer {
                 *v = (255.0 * (i as f64 / 255.0).powf(g)).round() as u8;
             }
         }
-        let n = (SOBEL_MAX * INFO_STEPS) as usize + 2;
         let norm = (cfg.lambda * (1.0 - cfg.delta) + 1.0).ln();
-        let info = (0..n)
-            .map(|i| {
-                let m = (i as f64 / INFO_STEPS / 1020.0).min(1.0);
+        let info = (0..INFO_SLOTS)
+            .map(|k| {
+                let m = (info_key_value(k).sqrt() / 1020.0).min(1.0);
                 if m < cfg.delta {
-                    0.0
+                    0
                 } else {
-                    ((cfg.lambda * (m - cfg.delta) + 1.0).ln() / norm) as f32
+                    ((cfg.lambda * (m - cfg.delta) + 1.0).ln() / norm * INFO_ONE).round() as u32
                 }
             })
             .collect();
@@ -228,7 +257,7 @@ impl GecScorer {
                     *d = map[p as usize];
                 }
             }
-            let mut acc = 0.0f64;
+            let mut acc = 0u64;
             for y in 1..h - 1 {
                 {
                     let slot = &mut self.rows[(y + 1) % 3];
@@ -239,24 +268,30 @@ impl GecScorer {
                 let r0 = &self.rows[(y - 1) % 3][..w];
                 let r1 = &self.rows[y % 3][..w];
                 let r2 = &self.rows[(y + 1) % 3][..w];
-                let mut row_acc = 0.0f32;
-                for x in 0..w - 2 {
-                    let a = |r: &[u8], i: usize| r[i] as i32;
-                    let sx = (a(r0, x + 2) - a(r0, x))
-                        + 2 * (a(r1, x + 2) - a(r1, x))
-                        + (a(r2, x + 2) - a(r2, x));
-                    let sy = (a(r2, x) + 2 * a(r2, x + 1) + a(r2, x + 2))
-                        - (a(r0, x) + 2 * a(r0, x + 1) + a(r0, x + 2));
-                    let mag = ((sx * sx + sy * sy) as f32).sqrt();
-                    let idx = (mag * INFO_STEPS as f32 + 0.5) as usize;
-                    row_acc += self.info[idx.min(self.info.len() - 1)];
-                }
-                acc += row_acc as f64;
+                acc += info_row(r0, r1, r2, &self.info);
             }
-            out[gi] = acc;
+            out[gi] = acc as f64 / INFO_ONE;
         }
         Some(out)
     }
+}
+
+/// Sum of the information table over one row's interior pixels (fixed point).
+#[inline(always)]
+fn info_row(r0: &[u8], r1: &[u8], r2: &[u8], info: &[u32]) -> u64 {
+    let m = r0.len() - 2;
+    let (a0, b0, c0) = (&r0[..m], &r0[1..m + 1], &r0[2..m + 2]);
+    let (a1, c1) = (&r1[..m], &r1[2..m + 2]);
+    let (a2, b2, c2) = (&r2[..m], &r2[1..m + 1], &r2[2..m + 2]);
+    let mut acc = 0u64;
+    for x in 0..m {
+        let i = |v: u8| v as i16;
+        let sx = (i(c0[x]) - i(a0[x])) + 2 * (i(c1[x]) - i(a1[x])) + (i(c2[x]) - i(a2[x]));
+        let sy = (i(a2[x]) + 2 * i(b2[x]) + i(c2[x])) - (i(a0[x]) + 2 * i(b0[x]) + i(c0[x]));
+        let (sx, sy) = (sx as f32, sy as f32);
+        acc += info[info_key(sx * sx + sy * sy)] as u64;
+    }
+    acc
 }
 
 pub struct Gec {

@@ -5,7 +5,8 @@ use crate::ImageView;
 /// Reusable buffers for [`Downsampler::run`].
 #[derive(Debug, Clone, Default)]
 pub struct Downsampler {
-    acc: Vec<u32>,
+    /// Column sums of the `factor` rows of one block row (at most 32 * 255).
+    acc: Vec<u16>,
     out: Vec<u8>,
     width: usize,
     height: usize,
@@ -19,12 +20,14 @@ impl Downsampler {
     /// Average `factor` x `factor` blocks of `view` (a partial block at the right or
     /// bottom edge is dropped, as a pyramid level would). Returns the reduced image.
     pub fn run(&mut self, view: ImageView<'_>, factor: usize) -> ImageView<'_> {
-        let f = factor.max(1);
+        // u16 column sums hold up to 257 rows of 255.
+        let f = factor.clamp(1, 257);
         let (w, h) = (view.width / f, view.height / f);
         self.width = w;
         self.height = h;
-        if self.acc.len() < w {
-            self.acc.resize(w, 0);
+        let wf = w * f;
+        if self.acc.len() < wf {
+            self.acc.resize(wf, 0);
         }
         if self.out.len() < w * h {
             self.out.resize(w * h, 0);
@@ -32,16 +35,20 @@ impl Downsampler {
         let area = (f * f) as u32;
         let half = area / 2;
         for oy in 0..h {
-            let acc = &mut self.acc[..w];
+            // Vertical sums first (u8 -> u16 lanes, vectorizes), then each block.
+            let acc = &mut self.acc[..wf];
             acc.fill(0);
             for y in oy * f..oy * f + f {
-                let row = &view.row(y)[..w * f];
-                for (a, block) in acc.iter_mut().zip(row.chunks_exact(f)) {
-                    *a += block.iter().map(|&p| p as u32).sum::<u32>();
+                for (a, &p) in acc.iter_mut().zip(&view.row(y)[..wf]) {
+                    *a += p as u16;
                 }
             }
-            for (o, a) in self.out[oy * w..oy * w + w].iter_mut().zip(acc.iter()) {
-                *o = ((a + half) / area) as u8;
+            for (o, block) in self.out[oy * w..oy * w + w]
+                .iter_mut()
+                .zip(acc.chunks_exact(f))
+            {
+                let sum: u32 = block.iter().map(|&a| a as u32).sum();
+                *o = ((sum + half) / area) as u8;
             }
         }
         ImageView {
