@@ -182,7 +182,7 @@ pub struct GecScorer {
 const INFO_MANTISSA_BITS: u32 = 8;
 /// Keys of `sx^2 + sy^2 <= 2 * 1020^2 < 2^21`.
 const INFO_SLOTS: usize = 8192;
-const _: () = assert!(21 * (1 << INFO_MANTISSA_BITS) + 1 <= INFO_SLOTS);
+const _: () = assert!(21 * (1 << INFO_MANTISSA_BITS) < INFO_SLOTS);
 const INFO_ONE: f64 = 65536.0;
 
 #[inline(always)]
