@@ -1,6 +1,7 @@
 //! Pilot input from effort to the wire: the link's direct write on the caller's thread
 //! against rust-mavlink's own connections (sync, and async driven with block_on), all to a
-//! loopback UDP socket drained by a thread. Plus one station-keeper update.
+//! loopback UDP socket drained by a thread. One station-keeper update. Telemetry from the
+//! vehicle's socket write to the link state: read in `tick` vs a reader task.
 
 use std::hint::black_box;
 use std::net::UdpSocket;
@@ -128,5 +129,68 @@ fn keeper(c: &mut Criterion) {
     });
 }
 
-criterion_group!(benches, pilot_input, keeper);
+/// Telemetry datagram written by the vehicle to the state updated by `tick`: read on the
+/// caller's thread in `tick` (default) against a tokio reader task plus queue.
+fn telemetry(c: &mut Criterion) {
+    use mavlink::dialects::ardupilotmega::*;
+    let mut g = c.benchmark_group("telemetry_to_state");
+    for (name, on_tick) in [("tick_receive", true), ("task_receive", false)] {
+        let vehicle = UdpSocket::bind("127.0.0.1:0").unwrap();
+        let cfg = LinkConfig {
+            url: format!("udpout:{}", vehicle.local_addr().unwrap()),
+            udp_receive_on_tick: on_tick,
+            ..Default::default()
+        };
+        let mut link = VehicleLink::connect(&cfg).unwrap();
+        let to = ("127.0.0.1", link.local_addr().unwrap().port());
+        let h = MavHeader {
+            system_id: 1,
+            component_id: 1,
+            sequence: 0,
+        };
+        let mut hb = Vec::new();
+        mavlink::write_v2_msg(
+            &mut hb,
+            h,
+            &MavMessage::HEARTBEAT(HEARTBEAT_DATA {
+                custom_mode: 19,
+                mavtype: MavType::MAV_TYPE_SUBMARINE,
+                autopilot: MavAutopilot::MAV_AUTOPILOT_ARDUPILOTMEGA,
+                base_mode: MavModeFlag::MAV_MODE_FLAG_CUSTOM_MODE_ENABLED,
+                system_status: MavState::MAV_STATE_ACTIVE,
+                mavlink_version: 3,
+            }),
+        )
+        .unwrap();
+        vehicle.send_to(&hb, to).unwrap();
+        let t0 = std::time::Instant::now();
+        while !link.state().discovered {
+            link.tick(0.0).unwrap();
+            assert!(t0.elapsed() < Duration::from_secs(5), "no discovery");
+        }
+        let mut k = 0u32;
+        let mut buf = Vec::with_capacity(64);
+        g.bench_function(name, |b| {
+            b.iter(|| {
+                k = k.wrapping_add(1);
+                buf.clear();
+                let att = MavMessage::ATTITUDE(ATTITUDE_DATA {
+                    time_boot_ms: k,
+                    ..Default::default()
+                });
+                mavlink::write_v2_msg(&mut buf, h, &att).unwrap();
+                vehicle.send_to(&buf, to).unwrap();
+                let mut spins = 0u64;
+                while link.state().attitude.map(|a| a.time_boot_ms) != Some(k) {
+                    link.tick(0.0).unwrap();
+                    spins += 1;
+                    assert!(spins < 50_000_000, "attitude never applied");
+                }
+            })
+        });
+    }
+    g.finish();
+}
+
+criterion_group!(benches, pilot_input, keeper, telemetry);
 criterion_main!(benches);
