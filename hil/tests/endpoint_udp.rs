@@ -269,3 +269,26 @@ fn unsupported_mode_is_denied_and_guided_needs_a_position() {
     );
     assert_eq!(rig.truth().mode, mode::ALT_HOLD);
 }
+
+#[test]
+fn standard_frame_drives_six_motors() {
+    let vehicle = VehicleConfig {
+        frame: markhold_hil::Frame6Dof::Standard,
+        ..Default::default()
+    };
+    let mut rig = HilRig::new(setup(vehicle, EndpointConfig::default(), false)).unwrap();
+    let mut c = Client::new(rig.mavlink_udp_addr());
+    c.arm(true);
+    for _ in 0..45 {
+        // Forward and down (throttle below neutral).
+        c.rc([1500, 1500, 1300, 1500, 1800, 1500]);
+        frames(&mut rig, 1);
+    }
+    let t = rig.truth();
+    assert_eq!(&t.pwm[..4], &[1200, 1200, 1800, 1800]);
+    // Throttle down: both verticals push down (positive command).
+    assert_eq!(&t.pwm[4..6], &[1700, 1700]);
+    assert_eq!(&t.pwm[6..], &[0, 0]);
+    assert!(t.velocity_world_mps[0] > 0.2, "{t:?}");
+    assert!(t.velocity_world_mps[2] > 0.05, "{t:?}");
+}
