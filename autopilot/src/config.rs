@@ -215,6 +215,9 @@ pub struct ControllerConfig {
     pub filter_q_trans_m2_per_s: f64,
     /// Pose filter process noise for rotation, rad^2 per second (random walk).
     pub filter_q_rot_rad2_per_s: f64,
+    /// Innovation gate in standard deviations (0 = off): a measurement this far from the
+    /// prediction on any axis is ignored; three in a row restart the filter.
+    pub filter_gate_sigma: f64,
     /// A frame gap longer than this resets the controller (stale state), seconds.
     pub max_gap_s: f64,
     /// The camera frames stop arriving for this long: vision stalled, seconds.
@@ -239,6 +242,7 @@ impl Default for ControllerConfig {
             marker_lost_action: MarkerLostAction::None,
             filter_q_trans_m2_per_s: 0.02,
             filter_q_rot_rad2_per_s: 0.02,
+            filter_gate_sigma: 6.0,
             max_gap_s: 1.0,
             vision_stall_s: 0.5,
         }
@@ -293,6 +297,7 @@ struct ControllerConfigToml {
     marker_lost_action: Option<MarkerLostAction>,
     filter_q_trans_m2_per_s: Option<f64>,
     filter_q_rot_rad2_per_s: Option<f64>,
+    filter_gate_sigma: Option<f64>,
     max_gap_s: Option<f64>,
     vision_stall_s: Option<f64>,
 }
@@ -320,6 +325,7 @@ impl From<ControllerConfigToml> for ControllerConfig {
             filter_q_rot_rad2_per_s: t
                 .filter_q_rot_rad2_per_s
                 .unwrap_or(d.filter_q_rot_rad2_per_s),
+            filter_gate_sigma: t.filter_gate_sigma.unwrap_or(d.filter_gate_sigma),
             max_gap_s: t.max_gap_s.unwrap_or(d.max_gap_s),
             vision_stall_s: t.vision_stall_s.unwrap_or(d.vision_stall_s),
         }
@@ -354,6 +360,7 @@ impl ControllerConfig {
             "controller.filter_q_rot_rad2_per_s",
             self.filter_q_rot_rad2_per_s,
         )?;
+        check_non_negative("controller.filter_gate_sigma", self.filter_gate_sigma)?;
         check_positive("controller.max_gap_s", self.max_gap_s)?;
         check_positive("controller.vision_stall_s", self.vision_stall_s)?;
         Ok(())

@@ -162,22 +162,28 @@ struct PoseFilter {
     p: [f64; 6],
     q: [f64; 6],
     init: bool,
+    gate_sigma: f64,
+    rejects: u32,
 }
 
 impl PoseFilter {
     const MIN_VAR: f64 = 1e-10;
+    const REJECTS_BEFORE_RESET: u32 = 3;
 
-    fn new(q_trans: f64, q_rot: f64) -> Self {
+    fn new(q_trans: f64, q_rot: f64, gate_sigma: f64) -> Self {
         Self {
             x: [0.0; 6],
             p: [0.0; 6],
             q: [q_trans, q_trans, q_trans, q_rot, q_rot, q_rot],
             init: false,
+            gate_sigma,
+            rejects: 0,
         }
     }
 
     fn reset(&mut self) {
         self.init = false;
+        self.rejects = 0;
     }
 
     fn predict(&mut self, dt: f64) {
@@ -188,30 +194,69 @@ impl PoseFilter {
         }
     }
 
-    fn update(&mut self, z: &[f64; 6], var: &[f64; 6]) {
-        if !self.init {
-            self.x = *z;
-            for (p, v) in self.p.iter_mut().zip(var) {
-                *p = v.max(Self::MIN_VAR);
-            }
-            self.init = true;
-            return;
+    fn init_from(&mut self, z: &[f64; 6], var: &[f64; 6]) {
+        self.x = *z;
+        for (p, v) in self.p.iter_mut().zip(var) {
+            *p = v.max(Self::MIN_VAR);
         }
+        self.init = true;
+        self.rejects = 0;
+    }
+
+    fn innovation(&self, z: &[f64; 6], i: usize) -> f64 {
+        if i >= 3 {
+            wrap_pi(z[i] - self.x[i])
+        } else {
+            z[i] - self.x[i]
+        }
+    }
+
+    // Six parallel per-axis arrays: an index reads clearer than a four-way zip.
+    #[allow(clippy::needless_range_loop)]
+    fn update(&mut self, z: &[f64; 6], var: &[f64; 6]) -> Gate {
+        if !self.init {
+            self.init_from(z, var);
+            return Gate::Accepted;
+        }
+        // Innovation gate per axis: a pose flip (IPPE's second solution) or a misdetection
+        // jumps far outside what the prediction allows; a few in a row mean the vehicle
+        // really is elsewhere, so start over from the measurement.
+        if self.gate_sigma > 0.0 {
+            let outside = (0..6).any(|i| {
+                let s = self.p[i] + var[i].max(Self::MIN_VAR);
+                let v = self.innovation(z, i);
+                v * v > self.gate_sigma * self.gate_sigma * s
+            });
+            if outside {
+                self.rejects += 1;
+                if self.rejects >= Self::REJECTS_BEFORE_RESET {
+                    self.init_from(z, var);
+                    return Gate::Reinitialized;
+                }
+                return Gate::Rejected;
+            }
+        }
+        self.rejects = 0;
         for i in 0..6 {
             let r = var[i].max(Self::MIN_VAR);
             let k = self.p[i] / (self.p[i] + r);
-            let innov = if i >= 3 {
-                wrap_pi(z[i] - self.x[i])
-            } else {
-                z[i] - self.x[i]
-            };
+            let innov = self.innovation(z, i);
             self.x[i] += k * innov;
             if i >= 3 {
                 self.x[i] = wrap_pi(self.x[i]);
             }
             self.p[i] *= 1.0 - k;
         }
+        Gate::Accepted
     }
+}
+
+/// What the filter did with a measurement.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+enum Gate {
+    Accepted,
+    Rejected,
+    Reinitialized,
 }
 
 /// One PID axis: P and I (with its clamp) from the pid crate stepped at a fixed rate, the
@@ -307,6 +352,7 @@ pub struct StationKeeper {
     status: KeeperStatus,
     att_now: Option<UnitQuaternion<f64>>,
     att_prev: Option<UnitQuaternion<f64>>,
+    rejected: u64,
 }
 
 impl StationKeeper {
@@ -339,7 +385,11 @@ impl StationKeeper {
         ];
         Ok(Self {
             axes,
-            filter: PoseFilter::new(ctl.filter_q_trans_m2_per_s, ctl.filter_q_rot_rad2_per_s),
+            filter: PoseFilter::new(
+                ctl.filter_q_trans_m2_per_s,
+                ctl.filter_q_rot_rad2_per_s,
+                ctl.filter_gate_sigma,
+            ),
             t_vehicle_cam,
             t_marker_goal: station.t_marker_vehicle(),
             dt_step,
@@ -355,6 +405,7 @@ impl StationKeeper {
             status: KeeperStatus::NoFix,
             att_now: None,
             att_prev: None,
+            rejected: 0,
         })
     }
 
@@ -396,57 +447,73 @@ impl StationKeeper {
         let bridged = self.propagate_attitude();
 
         let meas = meas.filter(|m| Self::usable(m));
-        match meas {
-            Some(m) => {
-                let reacquired =
-                    !matches!(self.status, KeeperStatus::Tracking | KeeperStatus::Holding);
-                if reacquired {
-                    // Fresh start: old integrals and rates belong to another situation.
+        let mut seen = false;
+        if let Some(m) = meas {
+            let reacquired = !matches!(self.status, KeeperStatus::Tracking | KeeperStatus::Holding);
+            if reacquired {
+                // Fresh start: old integrals and rates belong to another situation.
+                for a in &mut self.axes {
+                    a.reset();
+                }
+                self.filter.reset();
+            }
+            let z = body_error(&self.t_marker_vehicle(&m.t_cam_marker), &self.t_marker_goal);
+            let var = body_error_variances(
+                self.t_vehicle_cam.rotation.to_rotation_matrix().matrix(),
+                &m.t_cam_marker,
+                &self.t_marker_goal.translation.vector,
+                &m.cov_cam,
+            );
+            self.raw_error = Some(z);
+            match self.filter.update(&z, &var) {
+                Gate::Accepted => seen = true,
+                Gate::Reinitialized => {
+                    // The world really moved: restart the rates so the jump is no kick.
                     for a in &mut self.axes {
-                        a.reset();
+                        a.prev_err = None;
+                        a.rate = 0.0;
                     }
-                    self.filter.reset();
+                    seen = true;
+                }
+                Gate::Rejected => {
+                    self.rejected += 1;
+                    tracing::debug!(stamp_s, "station keeper: measurement outside the gate");
+                }
+            }
+            if seen {
+                if reacquired {
                     // Run one step right away instead of waiting a controller period.
                     self.acc = self.dt_step;
                 } else {
                     self.acc += dt;
                 }
-                let z = body_error(&self.t_marker_vehicle(&m.t_cam_marker), &self.t_marker_goal);
-                let var = body_error_variances(
-                    self.t_vehicle_cam.rotation.to_rotation_matrix().matrix(),
-                    &m.t_cam_marker,
-                    &self.t_marker_goal.translation.vector,
-                    &m.cov_cam,
-                );
-                self.filter.update(&z, &var);
-                self.raw_error = Some(z);
                 self.last_seen = Some(stamp_s);
                 self.status = KeeperStatus::Tracking;
-
                 self.run_pids(dt);
             }
-            None => {
-                let age = self.last_seen.map(|t| stamp_s - t);
-                match age {
-                    Some(a) if a <= self.hold_s && self.status != KeeperStatus::Lost => {
-                        self.status = KeeperStatus::Holding;
-                        if bridged {
-                            // The attitude-propagated error keeps the loop closed.
-                            self.acc += dt;
-                            self.run_pids(dt);
-                        }
+        }
+        if !seen {
+            // Missed, or rejected by the gate: hold (or bridge), then neutral.
+            let age = self.last_seen.map(|t| stamp_s - t);
+            match age {
+                Some(a) if a <= self.hold_s && self.status != KeeperStatus::Lost => {
+                    self.status = KeeperStatus::Holding;
+                    if bridged {
+                        // The attitude-propagated error keeps the loop closed.
+                        self.acc += dt;
+                        self.run_pids(dt);
                     }
-                    Some(_) => {
-                        if self.status != KeeperStatus::Lost {
-                            tracing::info!(stamp_s, "station keeper: marker lost, neutral");
-                        }
-                        self.status = KeeperStatus::Lost;
-                        self.out = Effort::NEUTRAL;
+                }
+                Some(_) => {
+                    if self.status != KeeperStatus::Lost {
+                        tracing::info!(stamp_s, "station keeper: marker lost, neutral");
                     }
-                    None => {
-                        self.status = KeeperStatus::NoFix;
-                        self.out = Effort::NEUTRAL;
-                    }
+                    self.status = KeeperStatus::Lost;
+                    self.out = Effort::NEUTRAL;
+                }
+                None => {
+                    self.status = KeeperStatus::NoFix;
+                    self.out = Effort::NEUTRAL;
                 }
             }
         }
@@ -525,6 +592,11 @@ impl StationKeeper {
     /// Last unfiltered body-frame error from a measurement.
     pub fn raw_error(&self) -> Option<[f64; 6]> {
         self.raw_error
+    }
+
+    /// Measurements the filter's innovation gate has rejected so far.
+    pub fn rejected_measurements(&self) -> u64 {
+        self.rejected
     }
 
     /// Tracking, holding, lost, or no fix yet.
@@ -712,7 +784,12 @@ mod tests {
         let goal = StationConfig::default().t_marker_vehicle();
         let off = Isometry3::from_parts(Translation3::new(0.0, 0.0, 1.2), goal.rotation);
         let run = |var: f64| {
-            let mut k = keeper();
+            // Gate off: this is about the weighting, not about outliers.
+            let ctl = ControllerConfig {
+                filter_gate_sigma: 0.0,
+                ..Default::default()
+            };
+            let mut k = StationKeeper::new(&StationConfig::default(), &ctl, forward_cam()).unwrap();
             let mut m = meas_for(0.0, &goal);
             m.cov_cam = Matrix6::identity() * 1e-6;
             k.update(0.0, Some(&m));
@@ -797,6 +874,47 @@ mod tests {
         for i in 0..6 {
             assert!((err[i] - raw[i]).abs() < 1e-6, "{err:?} vs {raw:?}");
         }
+    }
+
+    #[test]
+    fn gate_rejects_a_flipped_pose_then_follows_a_real_jump() {
+        let goal = StationConfig::default().t_marker_vehicle();
+        let mut k = keeper();
+        let mut t = 0.0;
+        let mut last = Effort::NEUTRAL;
+        for _ in 0..30 {
+            last = k.update(t, Some(&meas_for(t, &goal)));
+            t += 1.0 / 30.0;
+        }
+        // One frame with a 30 degree pitch flip (a planar-pose ambiguity): ignored.
+        let flip = Isometry3::from_parts(
+            goal.translation,
+            goal.rotation * UnitQuaternion::from_axis_angle(&Vector3::y_axis(), 0.5),
+        );
+        let e = k.update(t, Some(&meas_for(t, &flip)));
+        assert_eq!(k.rejected_measurements(), 1);
+        assert_eq!(e, last, "held through the outlier");
+        assert_eq!(k.status(), KeeperStatus::Holding);
+        assert!(k.error().unwrap()[4].abs() < 1e-6);
+        t += 1.0 / 30.0;
+        let e = k.update(t, Some(&meas_for(t, &goal)));
+        assert_eq!(k.status(), KeeperStatus::Tracking);
+        assert!(e.pitch.abs() < 1e-9);
+        // The vehicle really is 0.5 m further: after a few rejections the filter follows.
+        let moved = Isometry3::from_parts(Translation3::new(0.0, 0.0, 1.5), goal.rotation);
+        for _ in 0..3 {
+            t += 1.0 / 30.0;
+            k.update(t, Some(&meas_for(t, &moved)));
+        }
+        assert!(
+            (k.error().unwrap()[0] - 0.5).abs() < 1e-6,
+            "{:?}",
+            k.error()
+        );
+        assert_eq!(k.rejected_measurements(), 3);
+        t += 1.0 / 30.0;
+        let e = k.update(t, Some(&meas_for(t, &moved)));
+        assert!(e.surge > 0.3, "{e:?}");
     }
 
     mod props {
