@@ -227,3 +227,43 @@ fn alt_hold_takes_a_depth_target_from_set_position_target_global_int() {
     assert!((z - (DEPTH_M + 0.5)).abs() < 0.06, "depth {z}");
     assert_eq!(r.rig.endpoint_stats().lockstep_inputs, 241);
 }
+
+#[test]
+fn guided_velocity_targets_then_hold_after_the_target_times_out() {
+    let mut r = Run::new(VehicleConfig::default());
+    r.arm();
+    r.fly(5, NEUTRAL, true);
+    assert_eq!(r.mode(mode::GUIDED), MavResult::MAV_RESULT_ACCEPTED);
+    let start = r.pos();
+    // 0.2 m/s east in the body frame of a vehicle facing north = sway right.
+    for _ in 0..150 {
+        r.c.send(&MavMessage::SET_POSITION_TARGET_LOCAL_NED(
+            SET_POSITION_TARGET_LOCAL_NED_DATA {
+                vy: 0.2,
+                type_mask: PositionTargetTypemask::POSITION_TARGET_TYPEMASK_X_IGNORE
+                    | PositionTargetTypemask::POSITION_TARGET_TYPEMASK_Y_IGNORE
+                    | PositionTargetTypemask::POSITION_TARGET_TYPEMASK_Z_IGNORE
+                    | PositionTargetTypemask::POSITION_TARGET_TYPEMASK_AX_IGNORE
+                    | PositionTargetTypemask::POSITION_TARGET_TYPEMASK_AY_IGNORE
+                    | PositionTargetTypemask::POSITION_TARGET_TYPEMASK_AZ_IGNORE
+                    | PositionTargetTypemask::POSITION_TARGET_TYPEMASK_YAW_IGNORE
+                    | PositionTargetTypemask::POSITION_TARGET_TYPEMASK_YAW_RATE_IGNORE,
+                target_system: 1,
+                target_component: 1,
+                coordinate_frame: MavFrame::MAV_FRAME_LOCAL_NED,
+                ..Default::default()
+            },
+        ));
+        r.fly(1, NEUTRAL, true);
+    }
+    let v = r.rig.truth().velocity_world_mps;
+    assert!((v[1] - 0.2).abs() < 0.04 && v[0].abs() < 0.04, "{v:?}");
+    let moved = r.pos() - start;
+    assert!((0.7..1.1).contains(&moved.y), "{moved:?}");
+    assert!(moved.z.abs() < 0.05, "depth held: {moved:?}");
+    // No more targets: after the 3 s timeout the vehicle holds where it is.
+    r.fly(120, NEUTRAL, true);
+    let p1 = r.pos();
+    r.fly(90, NEUTRAL, true);
+    assert!((r.pos() - p1).norm() < 0.05, "{p1:?} -> {:?}", r.pos());
+}

@@ -131,6 +131,8 @@ pub(crate) struct Controller {
     last_nav: Option<NavEstimate>,
     /// The throttle stick was out of its dead zone on the last update.
     climbing: bool,
+    /// GUIDED followed a velocity-only target on the last update.
+    guided_moving: bool,
 }
 
 impl Controller {
@@ -143,6 +145,7 @@ impl Controller {
             hold_position: None,
             last_nav: None,
             climbing: false,
+            guided_moving: false,
         }
     }
 
@@ -153,6 +156,7 @@ impl Controller {
         self.depth_i = 0.0;
         self.hold_position = None;
         self.climbing = false;
+        self.guided_moving = false;
     }
 
     /// A depth target from the client (ALT_HOLD via SET_POSITION_TARGET_GLOBAL_INT).
@@ -287,27 +291,34 @@ impl Controller {
         let p = nav.pose.translation.vector;
         let target = match (guided_pos, guided_vel) {
             (Some(pos), _) => pos,
-            (None, Some(_)) => {
-                // Velocity only: the hold point follows the vehicle.
-                self.hold_position = Some(p);
-                p
+            (None, Some(v)) => {
+                // Velocity only: a set-point moving at the target velocity, so that the
+                // position loop removes the velocity loop's lag; kept within 0.5 m.
+                let h = self.hold_position.get_or_insert(p);
+                *h += v * dt;
+                let lead = *h - p;
+                if lead.norm() > 0.5 {
+                    *h = p + lead * (0.5 / lead.norm());
+                }
+                *h
             }
-            (None, None) => *self.hold_position.get_or_insert(p),
+            (None, None) => {
+                if self.guided_moving {
+                    // A velocity target just ended (timed out): stop where the vehicle is.
+                    self.hold_position = Some(p);
+                }
+                *self.hold_position.get_or_insert(p)
+            }
         };
+        self.guided_moving = guided_pos.is_none() && guided_vel.is_some();
         let ff = guided_vel.unwrap_or_else(Vector3::zeros);
         let e = self.horizontal_effort(&nav, &target, &ff);
         // Vertical: position error to a climb rate, then depth PID on it. The nav frame's
         // z is the vision frame's; its offset to true depth is fixed between updates.
         let z_off = depth - p.z;
-        let heave = if guided_vel.is_some() && guided_pos.is_none() {
-            let t = depth + ff.z * dt;
-            self.depth_target = Some(t);
-            self.depth_pid(t, ff.z, depth, vz, dt)
-        } else {
-            let t = target.z + z_off;
-            self.depth_target = Some(t);
-            self.depth_pid(t, ff.z, depth, vz, dt)
-        };
+        let t = target.z + z_off;
+        self.depth_target = Some(t);
+        let heave = self.depth_pid(t, ff.z, depth, vz, dt);
         [e.x, e.y, heave, e_roll, e_pitch, e_yaw]
     }
 
