@@ -252,12 +252,18 @@ pub struct DetectorConfig {
     pub track_window_scale: f64,
     /// RoI tracking: extra padding per pixel of predicted inter-frame motion.
     pub track_motion_gain: f64,
+    /// RoI tracking: the window is downscaled (by up to 4) so that the marker's side
+    /// is about this many pixels, bounding the cost for a close marker.
+    pub track_target_side_px: f64,
     /// Full-frame search every this many frames even while tracking (0 = never
     /// unless tracking fails).
     pub full_search_period_frames: u32,
     /// Full-frame search on an image downscaled by this factor (1 = full resolution),
     /// followed by a full-resolution RoI search for sub-pixel corners.
     pub full_search_downscale: u32,
+    /// When the downscaled full search finds nothing, search again at full
+    /// resolution (finds small markers; doubles the cost of frames without one).
+    pub full_search_fallback_full_res: bool,
     /// Independent noise added to each corner's edge-fit covariance, pixels per
     /// axis (what the fit residuals cannot see: blur asymmetry, model error).
     pub corner_sigma_floor_px: f64,
@@ -293,8 +299,10 @@ impl Default for DetectorConfig {
             subpix_min_accuracy_px: 0.01,
             track_window_scale: 0.75,
             track_motion_gain: 2.0,
+            track_target_side_px: 64.0,
             full_search_period_frames: 30,
-            full_search_downscale: 1,
+            full_search_downscale: 2,
+            full_search_fallback_full_res: true,
             corner_sigma_floor_px: 0.005,
             corner_sigma_px: 0.3,
             ambiguity_ratio: 3.0,
@@ -402,6 +410,13 @@ impl DetectorConfig {
                 &k("track_motion_gain"),
                 self.track_motion_gain,
                 "a gain in [0, 20]",
+            ));
+        }
+        if !(self.track_target_side_px >= 24.0 && self.track_target_side_px <= 10_000.0) {
+            return Err(invalid(
+                &k("track_target_side_px"),
+                self.track_target_side_px,
+                "a marker side in [24, 10000] px",
             ));
         }
         if !(1..=8).contains(&self.full_search_downscale) {

@@ -55,7 +55,15 @@ impl Line {
 pub(crate) struct EdgeRefiner {
     pts: Vec<Vector2<f64>>,
     resid: Vec<f64>,
+    /// Distance between edge points along the side being fitted, pixels.
+    spacing_px: f64,
 }
+
+/// Edge points per side at most (beyond this the line is already far more precise
+/// than the model; the cost is linear in it).
+const MAX_EDGE_POINTS: usize = 80;
+/// Step of the intensity profile across the edge, pixels.
+const PROFILE_STEP_PX: f64 = 0.5;
 
 /// Bilinear sample; `None` outside the image.
 fn sample(img: &ImageView<'_>, x: f64, y: f64) -> Option<f64> {
@@ -77,8 +85,9 @@ fn sample(img: &ImageView<'_>, x: f64, y: f64) -> Option<f64> {
 impl EdgeRefiner {
     pub(crate) fn new() -> Self {
         Self {
-            pts: Vec::with_capacity(256),
-            resid: Vec::with_capacity(256),
+            pts: Vec::with_capacity(MAX_EDGE_POINTS),
+            resid: Vec::with_capacity(MAX_EDGE_POINTS),
+            spacing_px: 1.0,
         }
     }
 
@@ -146,8 +155,11 @@ impl EdgeRefiner {
         if t0 >= 0.45 {
             return None;
         }
-        let n_samples = ((len * (1.0 - 2.0 * t0)) / 1.0).clamp(6.0, 120.0) as usize;
-        let step = 0.25;
+        // One edge point per pixel of edge, at most MAX_EDGE_POINTS per side.
+        let usable = len * (1.0 - 2.0 * t0);
+        let n_samples = usable.clamp(6.0, MAX_EDGE_POINTS as f64) as usize;
+        self.spacing_px = usable / n_samples as f64;
+        let step = PROFILE_STEP_PX;
         let n_steps = (band / step).ceil() as i32;
         self.pts.clear();
         for k in 0..n_samples {
@@ -266,10 +278,12 @@ impl EdgeRefiner {
             ss += q.dot(&nrm).powi(2);
             stt += q.dot(&d).powi(2);
         }
-        // Edge points are 1 px apart and each reads a 2 px bilinear footprint, so
-        // neighbours correlate (lag-1 autocorrelation of the triangle kernel: 1/4):
-        // the line's variance is (1 + 2 * 1/4) = 1.5 times the independent value.
-        let var = 1.5 * ss / (n - 2.0);
+        // Each edge point reads a 2 px bilinear footprint along the edge, so points
+        // closer than 2 px correlate: the autocorrelation of the triangle kernel at
+        // lag d < 2 is (2 - d)^3 / 4 (1/4 at 1 px), and the line's variance is
+        // (1 + 2 rho) times the independent value.
+        let rho = (2.0 - self.spacing_px).max(0.0).powi(3) / 4.0;
+        let var = (1.0 + 2.0 * rho) * ss / (n - 2.0);
         if stt <= 0.0 {
             return None;
         }

@@ -233,7 +233,7 @@ impl MarkerTracker {
             if let Some(roi) = self.predicted_window(stamp) {
                 self.stats.tracked_searches += 1;
                 self.last_search = Some(roi);
-                found = self.detect_window(&image, roi)?;
+                found = self.detect_window(&image, roi, self.track_scale())?;
                 tracked = found.is_some();
                 if tracked {
                     self.stats.tracked_hits += 1;
@@ -292,6 +292,15 @@ impl MarkerTracker {
         });
     }
 
+    /// Downscale of the tracked search: about `track_target_side_px` pixels of
+    /// marker side are enough to find and decode it; the edge fit then works at full
+    /// resolution. Bounds the cost of tracking a close marker.
+    fn track_scale(&self) -> u32 {
+        let Some(t) = &self.track else { return 1 };
+        let s = (side_px(&t.corners) / self.cfg.track_target_side_px).floor();
+        (s as u32).clamp(1, 4)
+    }
+
     /// Search window for this frame: the last corners moved by the predicted motion,
     /// padded by a fraction of the marker's side and by the motion itself.
     fn predicted_window(&self, stamp_s: f64) -> Option<Roi> {
@@ -338,7 +347,7 @@ impl MarkerTracker {
                 width: self.calib.width,
                 height: self.calib.height,
             };
-            return self.detect_window(image, full);
+            return self.detect_window(image, full, 1);
         }
         let size = core::Size::new(
             (self.calib.width / s) as i32,
@@ -350,6 +359,16 @@ impl MarkerTracker {
             self.det
                 .detect_in(&self.small, (0.0, 0.0), self.cfg.min_marker_perimeter_rate)?;
         let Some(coarse) = coarse else {
+            // Too small to be found at the reduced scale? Look at full resolution.
+            if self.cfg.full_search_fallback_full_res {
+                let full = Roi {
+                    x: 0,
+                    y: 0,
+                    width: self.calib.width,
+                    height: self.calib.height,
+                };
+                return self.detect_window(image, full, 1);
+            }
             return Ok(None);
         };
         // Small pixel i covers full pixels [s i, s i + s): its centre is s i + (s-1)/2.
@@ -375,16 +394,19 @@ impl MarkerTracker {
             self.calib.width,
             self.calib.height,
         ) {
-            Some(roi) => self.detect_window(image, roi),
+            Some(roi) => self.detect_window(image, roi, 1),
             None => Ok(None),
         }
     }
 
     /// Detect in `roi` of the full-resolution image; corners in full-image pixels.
+    /// Detect in `roi`, on the window downscaled by `scale` when > 1 (corners are
+    /// only coarse here: the edge fit refines them at full resolution).
     fn detect_window(
         &mut self,
         image: &impl core::MatTraitConst,
         roi: Roi,
+        scale: u32,
     ) -> Result<Option<Corners>, VisionError> {
         let rect = core::Rect::new(
             roi.x as i32,
@@ -401,8 +423,27 @@ impl MarkerTracker {
         if min_rate >= 4.0 {
             return Ok(None);
         }
-        self.det
-            .detect_in(&view, (roi.x as f64, roi.y as f64), min_rate)
+        if scale <= 1 {
+            return self
+                .det
+                .detect_in(&view, (roi.x as f64, roi.y as f64), min_rate);
+        }
+        let size = core::Size::new(
+            (roi.width / scale).max(1) as i32,
+            (roi.height / scale).max(1) as i32,
+        );
+        imgproc::resize(&view, &mut self.small, size, 0.0, 0.0, imgproc::INTER_AREA)
+            .cv("resize window")?;
+        let found = self.det.detect_in(&self.small, (0.0, 0.0), min_rate)?;
+        // Small pixel i covers full pixels [s i, s i + s): its centre is s i + (s-1)/2.
+        let sf = scale as f64;
+        Ok(found.map(|mut c| {
+            for p in &mut c {
+                p[0] = (roi.x as f64 + p[0] as f64 * sf + (sf - 1.0) / 2.0) as f32;
+                p[1] = (roi.y as f64 + p[1] as f64 * sf + (sf - 1.0) / 2.0) as f32;
+            }
+            c
+        }))
     }
 
     /// Sub-pixel corners and their 8x8 covariance: edge-line fit (see `corners`),

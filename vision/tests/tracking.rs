@@ -184,3 +184,42 @@ fn a_jump_beyond_the_window_falls_back_to_a_full_search_in_the_same_frame() {
         "{s:?}"
     );
 }
+
+#[test]
+fn close_marker_is_tracked_in_a_downscaled_window_with_full_search_accuracy() {
+    // At 0.45 m the marker side is about 270 px: the tracked window is searched at
+    // 1/4 scale and the corners refined at full resolution.
+    let calib = small_calib();
+    let m = marker();
+    let cfg = DetectorConfig {
+        full_search_period_frames: 0,
+        ..Default::default()
+    };
+    let full_cfg = DetectorConfig {
+        full_search_period_frames: 1,
+        full_search_downscale: 1,
+        ..Default::default()
+    };
+    let mut tracker = MarkerTracker::new(&m, &cfg, calib.clone()).unwrap();
+    let mut full = MarkerTracker::new(&m, &full_cfg, calib.clone()).unwrap();
+    let mut rng = ChaCha8Rng::seed_from_u64(24);
+    let mut frame = Frame::default();
+    for k in 0..8 {
+        let truth = pose([-0.02 + 0.005 * k as f64, 0.01, 0.45], 30.0 - k as f64, 8.0);
+        render(&mut frame, &calib, &truth, k, &mut rng);
+        let a = tracker.process(&frame).unwrap().expect("tracked");
+        let b = full.process(&frame).unwrap().expect("full");
+        assert_eq!(a.tracked, k > 0);
+        let max_corner = a
+            .corners
+            .iter()
+            .zip(&b.corners)
+            .map(|(p, q)| ((p[0] - q[0]).powi(2) + (p[1] - q[1]).powi(2)).sqrt())
+            .fold(0.0f32, f32::max);
+        assert!(
+            max_corner < 0.05,
+            "frame {k}: corners differ by {max_corner} px"
+        );
+        assert!(position_error(&a.t_cam_marker, &truth) < 0.01 * 0.45);
+    }
+}
