@@ -3,9 +3,10 @@
 //! pose estimates, and telemetry parsing into `VehicleState`.
 //!
 //! Synchronous facade: every call is non-blocking. Bytes go on the wire from the caller's
-//! thread at the call; a tokio task decodes incoming frames into a bounded queue that
-//! `tick` drains. All session timing (heartbeat, retries, timeouts) runs on the caller's
-//! loop time `now_s`, never the wall clock.
+//! thread at the call. UDP is read by `tick` on the caller's thread (by default); TCP and
+//! serial by a tokio task into a bounded queue that `tick` drains. All session timing
+//! (heartbeat, retries, timeouts) runs on the caller's loop time `now_s`, never the wall
+//! clock.
 
 use std::io::Cursor;
 use std::net::SocketAddr;

@@ -1,5 +1,6 @@
-//! Byte transports for the vehicle link: URL parsing, tokio reader tasks that decode frames
-//! into a bounded queue, and writers that put bytes on the wire from the caller's thread.
+//! Byte transports for the vehicle link: URL parsing, writers that put bytes on the wire
+//! from the caller's thread, UDP read in `tick` on the caller's thread, and tokio reader
+//! tasks (TCP, serial, optionally UDP) that decode frames into a bounded queue.
 
 use std::io::Write;
 use std::net::{SocketAddr, ToSocketAddrs};
