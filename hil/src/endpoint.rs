@@ -620,6 +620,26 @@ impl VehicleEndpoint {
                 }
             }
             MavMessage::VISION_POSITION_ESTIMATE(v) => self.vision_estimate(&v),
+            MavMessage::ODOMETRY(o) => {
+                // ArduSub takes ODOMETRY (frame LOCAL_FRD, child BODY_FRD) as a vision
+                // position source too; q is w, x, y, z.
+                let vals = [o.x, o.y, o.z, o.q[0], o.q[1], o.q[2], o.q[3]];
+                if vals.iter().all(|v| v.is_finite()) {
+                    let q = nalgebra::Quaternion::new(
+                        o.q[0] as f64,
+                        o.q[1] as f64,
+                        o.q[2] as f64,
+                        o.q[3] as f64,
+                    );
+                    if q.norm() > 0.5 {
+                        let pose = Isometry3::from_parts(
+                            Translation3::new(o.x as f64, o.y as f64, o.z as f64),
+                            UnitQuaternion::from_quaternion(q),
+                        );
+                        self.vision = Some((self.now_s, pose));
+                    }
+                }
+            }
             _ => {}
         }
     }

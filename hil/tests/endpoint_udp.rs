@@ -292,3 +292,42 @@ fn standard_frame_drives_six_motors() {
     assert!(t.velocity_world_mps[0] > 0.2, "{t:?}");
     assert!(t.velocity_world_mps[2] > 0.05, "{t:?}");
 }
+
+#[test]
+fn odometry_is_a_position_source_for_guided() {
+    let (mut rig, mut c) = rig();
+    c.set_mode(mode::GUIDED);
+    rig.pump().unwrap();
+    c.send(&MavMessage::ODOMETRY(ODOMETRY_DATA {
+        x: 1.0,
+        y: 2.0,
+        z: 3.0,
+        q: [1.0, 0.0, 0.0, 0.0],
+        frame_id: MavFrame::MAV_FRAME_LOCAL_FRD,
+        child_frame_id: MavFrame::MAV_FRAME_BODY_FRD,
+        ..Default::default()
+    }));
+    c.set_mode(mode::GUIDED);
+    rig.pump().unwrap();
+    let msgs = c.drain();
+    assert_eq!(
+        acks(&msgs, MavCmd::MAV_CMD_DO_SET_MODE),
+        vec![MavResult::MAV_RESULT_DENIED, MavResult::MAV_RESULT_ACCEPTED]
+    );
+    // LOCAL_POSITION_NED is then reported in the odometry's frame.
+    c.command(MavCmd::MAV_CMD_SET_MESSAGE_INTERVAL, 32.0, 100_000.0);
+    frames(&mut rig, 6);
+    let msgs = c.drain();
+    let p = msgs
+        .iter()
+        .rev()
+        .find_map(|(_, m)| match m {
+            MavMessage::LOCAL_POSITION_NED(p) => Some([p.x, p.y, p.z]),
+            _ => None,
+        })
+        .expect("LOCAL_POSITION_NED");
+    assert!(
+        (p[0] - 1.0).abs() < 0.01 && (p[1] - 2.0).abs() < 0.01,
+        "{p:?}"
+    );
+}
