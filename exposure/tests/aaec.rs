@@ -34,6 +34,10 @@ fn aaec_converges_to_argmax_of_m_within_8_frames() {
         let mut c = aaec(cfg.clone(), t0);
         let tr = run(&scene, &mut c, t0, 60, 1, true);
         let at = settled_at(&tr, best, 0.05);
+        eprintln!(
+            "aaec from {t0:.0}: within 5% of {best:.0} from frame {at:?}: {:?}",
+            &short(&tr, best)[..12]
+        );
         assert!(
             matches!(at, Some(k) if k <= 8),
             "from {t0:.0} (best {best:.0}): settled at {at:?}: {:?}",
