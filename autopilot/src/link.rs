@@ -196,6 +196,8 @@ pub struct VehicleState {
     pub mode: Option<ArduSubMode>,
     /// Raw custom_mode of the last heartbeat.
     pub custom_mode: u32,
+    /// Mode changes seen in heartbeats (compare between frames to reset the keeper).
+    pub mode_changes: u64,
     /// MAV_TYPE of the vehicle's heartbeat.
     pub vehicle_type: u8,
     /// Loop time of the last vehicle heartbeat.
@@ -231,6 +233,7 @@ impl VehicleState {
             armed: false,
             mode: None,
             custom_mode: 0,
+            mode_changes: 0,
             vehicle_type: 0,
             last_heartbeat_s: None,
             heartbeats: 0,
@@ -510,6 +513,9 @@ impl VehicleLink {
                 let mode = ArduSubMode::from_custom_mode(hb.custom_mode);
                 if mode != self.state.mode {
                     tracing::info!(?mode, "vehicle mode changed");
+                    if self.state.mode.is_some() {
+                        self.state.mode_changes += 1;
+                    }
                 }
                 self.state.mode = mode;
                 self.state.custom_mode = hb.custom_mode;

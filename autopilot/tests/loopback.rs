@@ -310,8 +310,11 @@ fn udpin_replies_to_the_vehicle_that_spoke() {
         fake,
         now: 0.0,
     };
+    let before = h.link.state().mode_changes;
     h.arm_manual();
     assert_eq!(h.fake.rec().mode, 19);
+    // The fake boots in STABILIZE (0): one change to MANUAL.
+    assert_eq!(h.link.state().mode_changes, before + 1);
 }
 
 #[test]
