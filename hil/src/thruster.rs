@@ -158,4 +158,36 @@ mod tests {
         }
         assert!((t.thrust_n() - 51.4).abs() < 0.01);
     }
+
+    mod laws {
+        use super::*;
+        use proptest::prelude::*;
+
+        proptest! {
+            /// More pulse width never gives less thrust, and thrust stays within the
+            /// published forward / reverse limits.
+            #[test]
+            fn thrust_is_monotone_and_bounded(a in 900.0f64..2100.0, b in 900.0f64..2100.0) {
+                let c = ThrusterConfig::default();
+                let (lo, hi) = if a <= b { (a, b) } else { (b, a) };
+                prop_assert!(c.steady_thrust_n(lo) <= c.steady_thrust_n(hi));
+                let t = c.steady_thrust_n(a);
+                prop_assert!((-c.reverse_max_n..=c.forward_max_n).contains(&t));
+            }
+
+            /// The lag never overshoots: delivered thrust stays between the start and the
+            /// target.
+            #[test]
+            fn lag_never_overshoots(pwm in 1100.0f64..1900.0, dt in 1e-4f64..0.5) {
+                let c = ThrusterConfig::default();
+                let mut t = Thruster::default();
+                let target = c.steady_thrust_n(pwm);
+                for _ in 0..50 {
+                    let v = t.step(&c, pwm, dt);
+                    prop_assert!(v.abs() <= target.abs() + 1e-12);
+                    prop_assert!(v * target >= 0.0);
+                }
+            }
+        }
+    }
 }
