@@ -208,6 +208,45 @@ mod tests {
     }
 
     #[test]
+    fn meter_roi_meters_the_marker_box() {
+        // 20x20 frame, grey 20, with a 10x10 square of 200 at (5, 5); corners on the
+        // square (padded 10% -> 12x12 box at (4, 4), 100 px of 200 and 44 of 20).
+        let mut f = flat(20, 1000.0);
+        f.resize(20, 20);
+        f.data.fill(20);
+        for y in 5..15 {
+            for x in 5..15 {
+                f.data[y * 20 + x] = 200;
+            }
+        }
+        f.meta.exposure_us = 1000.0;
+        let corners = [[5.0, 5.0], [15.0, 5.0], [15.0, 15.0], [5.0, 15.0]];
+        let cfg = MeanAeConfig {
+            meter_roi: true,
+            subsample: 1,
+            ..Default::default()
+        };
+        let mut ae = MeanAe::new(cfg.clone(), limits(), 1000.0).unwrap();
+        let s = ae.update(&f, Some(&corners));
+        let expect = (100.0 * 200.0 + 44.0 * 20.0) / 144.0;
+        assert_eq!(
+            s.roi,
+            Some(Roi {
+                x: 4,
+                y: 4,
+                width: 12,
+                height: 12
+            })
+        );
+        assert!((s.metric - expect).abs() < 1e-9, "{}", s.metric);
+        // Without the marker it meters the whole frame: (100*200 + 300*20) / 400 = 65.
+        let mut ae = MeanAe::new(cfg, limits(), 1000.0).unwrap();
+        let s = ae.update(&f, None);
+        assert_eq!(s.roi, None);
+        assert!((s.metric - 65.0).abs() < 1e-9);
+    }
+
+    #[test]
     fn bad_config_names_key() {
         let cfg = MeanAeConfig {
             kappa: 0.0,

@@ -144,3 +144,27 @@ fn marker_loss_holds_roi_then_falls_back_and_resets() {
     assert_eq!(s.exposure_us, e.exposure_us);
     assert_eq!(s.metric, e.metric);
 }
+
+/// The same convergence through a gamma-2.2 camera (the controller told so through its
+/// response): the slope is scale free, so the same learning rate works.
+#[test]
+fn aaec_converges_through_a_gamma_camera() {
+    let response = Response::gamma(2.2).unwrap();
+    let scene = Scene::marker(response.clone(), 3.0, 0.15);
+    let cfg = AaecConfig::default();
+    let roi = scene.roi();
+    let best = Scene::argmax(20.0, 30_000.0, |t| {
+        scene.metric_at(t, roi, cfg.metric_params())
+    });
+    for t0 in [best / 10.0, best * 10.0] {
+        let fallback = Box::new(MeanAe::new(MeanAeConfig::default(), limits(), t0).unwrap());
+        let mut c = Aaec::new(cfg.clone(), response.clone(), limits(), t0, fallback).unwrap();
+        let tr = run(&scene, &mut c, t0, 60, 1, true);
+        let at = settled_at(&tr, best, 0.05);
+        eprintln!(
+            "gamma 2.2, from {t0:.0}: within 5% of {best:.0} from frame {at:?}: {:?}",
+            &short(&tr, best)[..14]
+        );
+        assert!(matches!(at, Some(k) if k <= 12), "settled at {at:?}");
+    }
+}
