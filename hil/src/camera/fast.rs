@@ -12,7 +12,7 @@
 use markhold_exposure::Frame;
 use nalgebra::{Isometry3, Point3, Vector3};
 
-use super::sensor::{SensorTables, XorShift64Star};
+use super::sensor::{SensorTables, XorShift64Star, RESPONSE_LUT_LEN};
 use super::CameraModel;
 use crate::scene::{
     Scene, WorldLamp, ALBEDO_BLACK, ALBEDO_WHITE, CAUSTIC_LAYER2_SCALE, CAUSTIC_LAYER2_SHIFT,
@@ -288,7 +288,7 @@ impl FastRenderer {
         let caustics = CausticFrame::new(scene, time_s);
         let gauss = &tables.half_gauss;
         let gmask = tables.gauss_mask();
-        let lut = &tables.response_lut[..];
+        let lut: &[u8; RESPONSE_LUT_LEN] = &tables.response_lut;
         let lut_top = (lut.len() - 1) as f32;
         if !tables.noise {
             self.row_g.fill(0.0);
@@ -337,7 +337,7 @@ impl FastRenderer {
                 // Every test that picks the surface is the sign of a linear function of
                 // the pixel (u = Nu / D is monotonic while D > 0): between their roots
                 // the surface is the same, so the span splits into runs of one surface.
-                let mut cuts = Cuts::default();
+                let mut cuts = Cuts::new(n);
                 let (p0, pd) = (sp.f0[PLATE], sp.df[PLATE]);
                 cuts.root(p0[0], pd[0]);
                 for c in 1..3 {
@@ -430,11 +430,15 @@ impl FastRenderer {
                                 RockSteps::new(u0, du, v0, dv, first, texel_per_m, &caustics)
                             }) {
                                 Some(mut st) if !caustics.on => {
+                                    // Daylight and lamps add up before the albedo.
+                                    let (mut l, ld) =
+                                        (fields.v[0] + fields.v[1], fields.d[0] + fields.d[1]);
+                                    let (mut a, ad) = (fields.v[2], fields.d[2]);
                                     for m in run.iter_mut() {
-                                        let albedo = rock.at(st.ru.get(), st.rv.get());
-                                        *m = albedo * (fields.v[0] + fields.v[1]) + fields.v[2];
-                                        st.step();
-                                        fields.step();
+                                        *m = rock.at(st.ru.get(), st.rv.get()) * l + a;
+                                        st.step_rock();
+                                        l += ld;
+                                        a += ad;
                                     }
                                 }
                                 Some(mut st) => {
@@ -486,12 +490,15 @@ impl FastRenderer {
                 }
             }
             let (r2, per_s, top) = (tables.read_var_e2, tables.lut_per_s, lut_top);
+            // Float only, so it runs on packed registers: the square root, then the table
+            // index made an integer by the 2^23 trick (adding 2^23 to a float in
+            // [0, 2^23) leaves the rounded integer in its mantissa bits).
             for ((ix, &m), &g) in self.row_idx.iter_mut().zip(&row_mean).zip(&self.row_g) {
                 let s = (m.max(0.0) + r2).sqrt() + g;
-                *ix = (s * per_s + 0.5).clamp(0.0, top) as u32;
+                *ix = ((s * per_s).clamp(0.0, top) + 8_388_608.0).to_bits() & 0x7F_FFFF;
             }
             for (px, &ix) in row.iter_mut().zip(&self.row_idx) {
-                *px = lut[(ix as usize).min(lut.len() - 1)];
+                *px = lut[ix as usize & (RESPONSE_LUT_LEN - 1)];
             }
             self.row_mean = row_mean;
         }
@@ -512,28 +519,44 @@ struct Cuts {
     raw: [f32; 8],
     at: [usize; 8],
     n: usize,
+    /// Offset of the span's last pixel.
+    last: f32,
 }
 
 impl Cuts {
-    /// The root of `a + b t`, if it lies inside the span.
-    #[inline]
+    fn new(len: usize) -> Self {
+        Self {
+            last: len as f32 - 1.0,
+            ..Self::default()
+        }
+    }
+
+    /// The root of `a + b t`, when the sign changes between the span's first and last
+    /// pixels (most spans see no change: no division, one run).
+    #[inline(always)]
     fn root(&mut self, a: f32, b: f32) {
-        if b != 0.0 {
-            let r = -a / b;
-            if r > 0.0 && r < GRID as f32 && self.n < self.raw.len() {
-                self.raw[self.n] = r;
-                self.n += 1;
-            }
+        let e = a + b * self.last;
+        if (a > 0.0) != (e > 0.0) && self.n < self.raw.len() {
+            self.raw[self.n] = -a / b;
+            self.n += 1;
         }
     }
 
     /// Sort and turn into the first pixel of each new run (pixel t lies past root r
     /// when t > r).
+    #[inline]
     fn sort(&mut self, len: usize) {
         let raw = &mut self.raw[..self.n];
-        raw.sort_unstable_by(|a, b| a.total_cmp(b));
+        // Insertion sort: a handful of values at most.
+        for k in 1..raw.len() {
+            let mut m = k;
+            while m > 0 && raw[m - 1] > raw[m] {
+                raw.swap(m - 1, m);
+                m -= 1;
+            }
+        }
         for (a, r) in self.at.iter_mut().zip(raw.iter()) {
-            *a = ((floor_i32(*r) + 1) as usize).min(len);
+            *a = ((floor_i32(*r) + 1).max(0) as usize).min(len);
         }
     }
 }
@@ -620,9 +643,14 @@ impl Fixed {
     /// `start + step * t` texels; `None` when out of the exactly representable range.
     fn new(start: f32, step: f32) -> Option<Self> {
         let ok = start.is_finite() && step.is_finite() && start.abs() < 1e9 && step.abs() < 1e7;
-        ok.then(|| Self {
-            at: (start as f64 * 65536.0).floor() as i64,
-            step: (step as f64 * 65536.0).round() as i64,
+        ok.then(|| {
+            let at = start as f64 * 65536.0;
+            // floor() without a libm call; the step's truncation errs by 2^-16 texel.
+            let i = at as i64;
+            Self {
+                at: i - ((i as f64) > at) as i64,
+                step: (step as f64 * 65536.0) as i64,
+            }
         })
     }
 
@@ -645,6 +673,7 @@ struct RockSteps {
 
 impl RockSteps {
     /// From affine surface coordinates `u0 + du t`, `v0 + dv t` (metres), at pixel `first`.
+    /// The caustic layers are stepped only when caustics are on.
     fn new(
         u0: f32,
         du: f32,
@@ -657,28 +686,40 @@ impl RockSteps {
         let (u, v) = (u0 + du * first, v0 + dv * first);
         let k = c.texels_per_m;
         let (s2, sh) = (CAUSTIC_LAYER2_SCALE, CAUSTIC_LAYER2_SHIFT);
+        let none = Fixed { at: 0, step: 0 };
+        let caustic = if c.on {
+            [
+                Fixed::new((u + c.off0.0) * k, du * k)?,
+                Fixed::new((v + c.off0.1) * k, dv * k)?,
+                Fixed::new((u * s2 + c.off1.0) * k + sh.0, du * s2 * k)?,
+                Fixed::new((v * s2 + c.off1.1) * k + sh.1, dv * s2 * k)?,
+            ]
+        } else {
+            [none; 4]
+        };
         Some(Self {
             ru: Fixed::new(u * rock_per_m, du * rock_per_m)?,
             rv: Fixed::new(v * rock_per_m, dv * rock_per_m)?,
-            c0u: Fixed::new((u + c.off0.0) * k, du * k)?,
-            c0v: Fixed::new((v + c.off0.1) * k, dv * k)?,
-            c1u: Fixed::new((u * s2 + c.off1.0) * k + sh.0, du * s2 * k)?,
-            c1v: Fixed::new((v * s2 + c.off1.1) * k + sh.1, dv * s2 * k)?,
+            c0u: caustic[0],
+            c0v: caustic[1],
+            c1u: caustic[2],
+            c1v: caustic[3],
         })
     }
 
     #[inline(always)]
+    fn step_rock(&mut self) {
+        self.ru.at += self.ru.step;
+        self.rv.at += self.rv.step;
+    }
+
+    #[inline(always)]
     fn step(&mut self) {
-        for f in [
-            &mut self.ru,
-            &mut self.rv,
-            &mut self.c0u,
-            &mut self.c0v,
-            &mut self.c1u,
-            &mut self.c1v,
-        ] {
-            f.at += f.step;
-        }
+        self.step_rock();
+        self.c0u.at += self.c0u.step;
+        self.c0v.at += self.c0v.step;
+        self.c1u.at += self.c1u.step;
+        self.c1v.at += self.c1v.step;
     }
 }
 

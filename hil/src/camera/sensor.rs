@@ -44,7 +44,7 @@ pub(crate) struct SensorTables {
     /// variance 1/4.
     pub(crate) half_gauss: Vec<f32>,
     /// Grey level for `s = i * s_step` (see the module doc), rounded.
-    pub(crate) response_lut: Vec<u8>,
+    pub(crate) response_lut: Box<[u8; RESPONSE_LUT_LEN]>,
     /// Table index per unit of `s`.
     pub(crate) lut_per_s: f32,
     /// Read noise variance, electrons^2.
@@ -81,15 +81,14 @@ impl SensorTables {
         let full_scale_e = s.full_well_e / gain;
         let s_max = (full_scale_e + read_var).sqrt() + 1.0;
         let s_step = s_max / (RESPONSE_LUT_LEN - 1) as f64;
-        let response_lut = (0..RESPONSE_LUT_LEN)
-            .map(|i| {
-                let sv = i as f64 * s_step;
-                // Full-well clip, then gain and the converter's full scale.
-                let e = (sv * sv - read_var).clamp(0.0, s.full_well_e);
-                let x = e * gain / s.full_well_e;
-                response.grey(x).round().clamp(0.0, 255.0) as u8
-            })
-            .collect();
+        let mut response_lut = Box::new([0u8; RESPONSE_LUT_LEN]);
+        for (i, level) in response_lut.iter_mut().enumerate() {
+            let sv = i as f64 * s_step;
+            // Full-well clip, then gain and the converter's full scale.
+            let e = (sv * sv - read_var).clamp(0.0, s.full_well_e);
+            let x = e * gain / s.full_well_e;
+            *level = response.grey(x).round().clamp(0.0, 255.0) as u8;
+        }
         Self {
             half_gauss,
             response_lut,
