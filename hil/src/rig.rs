@@ -282,3 +282,11 @@ impl Camera for HilRig {
         self.step_frame(frame).map_err(|e| cam_err(seq, e))
     }
 }
+
+// The rig and the SITL server can be moved to another thread.
+const _: () = {
+    const fn assert_send<T: Send>() {}
+    assert_send::<HilRig>();
+    assert_send::<crate::sitl::SitlServer>();
+    assert_send::<crate::endpoint::VehicleEndpoint>();
+};
