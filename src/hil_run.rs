@@ -12,6 +12,10 @@ use markhold_hil::{EndpointConfig, HilRig, HilSetup, Truth, VehicleMotion};
 use markhold_vision::{marker_bitmap, MarkerTracker};
 use nalgebra::{Isometry3, Translation3, UnitQuaternion, Vector3};
 
+use crate::faults::{
+    CameraFaults, FaultKind, FaultMonitor, FaultPlan, FaultRig, FaultSpec, FaultyCamera, LinkRelay,
+    Projection,
+};
 use crate::params::LoadedSite;
 use crate::pipeline::{FrameRecord, Pipeline};
 use crate::summary::{RunStats, Summary};
@@ -30,6 +34,8 @@ pub struct HilOptions {
     pub snapshot_dir: Option<PathBuf>,
     /// Save every n-th frame when `snapshot_dir` is set.
     pub snapshot_every: u64,
+    /// Faults to inject (`--fault`), seeded with `seed`.
+    pub faults: Vec<FaultSpec>,
 }
 
 impl Default for HilOptions {
@@ -44,6 +50,7 @@ impl Default for HilOptions {
             start_on_station: false,
             snapshot_dir: None,
             snapshot_every: 30,
+            faults: Vec::new(),
         }
     }
 }
@@ -56,6 +63,8 @@ pub struct HilRun {
     pub lighting: LightingScenario,
     pub t_world_marker: Isometry3<f64>,
     pub t_marker_station: Isometry3<f64>,
+    /// Fault injection, when `HilOptions::faults` is not empty.
+    pub faults: Option<FaultRig>,
 }
 
 /// The site's initial offset from the station, in the station (vehicle body) frame.
@@ -153,9 +162,30 @@ impl HilRun {
         };
         let mut rig = HilRig::new(setup).context("building the HIL world")?;
         rig.set_exposure_us(initial_us)?;
+        let faults = if opts.faults.is_empty() {
+            None
+        } else {
+            Some(fault_rig(
+                site,
+                opts,
+                &rig,
+                initial_us,
+                t_world_marker,
+                t_marker_station,
+            )?)
+        };
+        if faults.is_some() {
+            // Dropped frames and a silent link leave frames without input; every datagram
+            // is on loopback before the grab, so waiting the full lock-step time is waste.
+            rig.set_lockstep_wait(Duration::from_millis(20));
+        }
+        let vehicle_addr = match faults.as_ref().and_then(|f| f.relay.as_ref()) {
+            Some(r) => r.addr()?,
+            None => rig.mavlink_udp_addr(),
+        };
 
         let mut link_cfg = s.link.clone();
-        link_cfg.url = format!("udpout:{}", rig.mavlink_udp_addr());
+        link_cfg.url = format!("udpout:{vehicle_addr}");
         let link = VehicleLink::connect(&link_cfg).context("connecting to the HIL vehicle")?;
         let exposure = build_controller(&s.exposure, method, limits, initial_us)?;
         let tracker = MarkerTracker::new(&s.marker, &s.vision, site.calibration.clone())?;
@@ -178,6 +208,7 @@ impl HilRun {
             lighting,
             t_world_marker,
             t_marker_station,
+            faults,
         })
     }
 
@@ -189,7 +220,13 @@ impl HilRun {
         link.request_arm(true, 0.0)?;
         let deadline = Instant::now() + Duration::from_secs(5);
         while Instant::now() < deadline {
+            if let Some(f) = self.faults.as_mut() {
+                f.pump_relay(0.0)?;
+            }
             self.rig.pump()?;
+            if let Some(f) = self.faults.as_mut() {
+                f.pump_relay(0.0)?;
+            }
             link.tick(0.0)?;
             if link.state().armed && self.rig.truth().armed {
                 return Ok(());
@@ -201,9 +238,63 @@ impl HilRun {
 
     /// One frame of the loop, with the world's truth after it.
     pub fn step(&mut self) -> anyhow::Result<(FrameRecord, Truth)> {
-        let rec = self.pipeline.step(&mut self.rig)?;
-        Ok((rec, self.rig.truth()))
+        let Some(f) = self.faults.as_mut() else {
+            let rec = self.pipeline.step(&mut self.rig)?;
+            return Ok((rec, self.rig.truth()));
+        };
+        let now_s = self.rig.sim_time_s();
+        let mut cam = FaultyCamera {
+            inner: &mut self.rig,
+            faults: &mut f.camera,
+            relay: f.relay.as_mut(),
+            now_s,
+        };
+        let rec = self.pipeline.step(&mut cam)?;
+        let truth = self.rig.truth();
+        let link = self.pipeline.link.state();
+        f.monitor.observe(
+            &rec,
+            &truth,
+            &self.pipeline.events,
+            link.armed,
+            link.heartbeat_ok,
+        );
+        Ok((rec, truth))
     }
+}
+
+/// The fault machinery of a run: the relay exists only for a link cut.
+fn fault_rig(
+    site: &LoadedSite,
+    opts: &HilOptions,
+    rig: &HilRig,
+    initial_us: f64,
+    t_world_marker: Isometry3<f64>,
+    t_marker_station: Isometry3<f64>,
+) -> anyhow::Result<FaultRig> {
+    let plan = FaultPlan {
+        specs: opts.faults.clone(),
+        seed: opts.seed,
+    };
+    let relay = if plan.has(FaultKind::LinkCut) {
+        Some(LinkRelay::bind(rig.mavlink_udp_addr())?)
+    } else {
+        None
+    };
+    let m = marker_spec(site)?;
+    let cam = rig.camera_model();
+    Ok(FaultRig {
+        monitor: FaultMonitor::new(&plan, t_world_marker, t_marker_station),
+        camera: CameraFaults::new(
+            plan,
+            Projection::of(cam),
+            0.5 * m.size_m + m.plate_margin_m,
+            cam.width,
+            cam.height,
+            initial_us,
+        ),
+        relay,
+    })
 }
 
 fn dist5(d: &[f64]) -> [f64; 5] {
@@ -234,11 +325,18 @@ pub fn run_hil(
     // Leave the vehicle with neutral pilot input.
     let now = run.rig.truth().time_s;
     run.pipeline.link.send_neutral(now)?;
-    Ok(stats.summary(
+    if let Some(f) = run.faults.as_mut() {
+        f.pump_relay(now)?;
+    }
+    let mut summary = stats.summary(
         run.method,
         run.lighting,
         opts.seed,
         wall.elapsed().as_secs_f64(),
         run.rig.truth().lockstep_timeouts,
-    ))
+    );
+    if let Some(f) = run.faults.take() {
+        summary.faults = f.monitor.into_reports();
+    }
+    Ok(summary)
 }

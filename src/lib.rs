@@ -4,6 +4,7 @@
 //! the simulated world ([`hil_run`]); `params` reads dive-site files.
 
 pub mod external;
+pub mod faults;
 pub mod hil_run;
 pub mod params;
 mod params_validate;

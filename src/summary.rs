@@ -33,6 +33,8 @@ pub struct Summary {
     pub measured_position_cov_det: f64,
     /// Frames the HIL vehicle stepped without having received that frame's command.
     pub lockstep_timeouts: u64,
+    /// Injected faults (`--fault`) with their timings and what the loop did.
+    pub faults: Vec<crate::faults::FaultReport>,
 }
 
 /// Per-frame series kept during a run (allocated once at the start).
@@ -145,6 +147,7 @@ impl RunStats {
             loop_latency_p99_ms: percentile(&self.latency_s, 0.99) * 1e3,
             measured_position_cov_det: cov_det(&self.measured),
             lockstep_timeouts,
+            faults: Vec::new(),
         }
     }
 }

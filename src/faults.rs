@@ -1,0 +1,975 @@
+//! Fault injection for HIL runs: what the field does to a station keeper, on simulation
+//! time and seeded, so a faulty run is as repeatable as a clean one.
+//!
+//! - Camera faults wrap the camera seam ([`FaultyCamera`]): dropped frames, late frames,
+//!   an exposure command ignored or applied 3 frames late, the marker occluded or out of
+//!   view (painted over from the world's truth, after rendering).
+//! - The link cut is a UDP relay on 127.0.0.1 between markhold's `VehicleLink` and the
+//!   simulated vehicle's endpoint ([`LinkRelay`]); it is pumped from the loop, so a cut
+//!   starts and ends on simulation time.
+//! - [`FaultMonitor`] watches every frame and writes what the loop did during and after
+//!   each fault (silent at, regained station at, ...) into the summary.
+
+use std::fmt;
+use std::io::ErrorKind;
+use std::net::{SocketAddr, UdpSocket};
+use std::str::FromStr;
+
+use markhold_autopilot::{Directive, FailsafeEvent};
+use markhold_exposure::{Camera, CameraError, ExposureLimits, Frame};
+use markhold_hil::camera::CameraModel;
+use markhold_hil::{HilRig, Truth};
+use nalgebra::{Isometry3, Point3};
+use serde::Serialize;
+
+use crate::pipeline::FrameRecord;
+
+/// Errors of fault specifications and the link relay.
+#[derive(Debug, thiserror::Error)]
+pub enum FaultError {
+    #[error("--fault {spec:?}: expected KIND@START[+DURATION], e.g. link_cut@10+3")]
+    Syntax { spec: String },
+    #[error("--fault {spec:?}: unknown kind {kind:?} (expected one of {known})")]
+    UnknownKind {
+        spec: String,
+        kind: String,
+        known: &'static str,
+    },
+    #[error("--fault {spec:?}: {field} {value:?} is not a {expected}")]
+    BadNumber {
+        spec: String,
+        field: &'static str,
+        value: String,
+        expected: &'static str,
+    },
+    #[error("link relay: {op} on {addr}: {source}")]
+    Relay {
+        op: &'static str,
+        addr: SocketAddr,
+        #[source]
+        source: std::io::Error,
+    },
+}
+
+/// What goes wrong.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
+#[serde(rename_all = "snake_case")]
+pub enum FaultKind {
+    /// The vehicle's endpoint stops answering (all traffic both ways dropped), then returns.
+    LinkCut,
+    /// The marker (and its white plate) painted over with the surrounding grey.
+    Occlude,
+    /// The marker out of view: the whole frame painted with its mean grey.
+    OutOfView,
+    /// Frames dropped (about one in two, seeded): the loop gets the next one instead.
+    DropFrames,
+    /// Every frame delivered one frame late (with its own, older stamp).
+    LateFrames,
+    /// The camera acknowledges exposure commands but does not apply them.
+    ExposureIgnored,
+    /// The camera applies each exposure command 3 frames later than it would.
+    ExposureLate,
+}
+
+const KINDS: &str =
+    "link_cut, occlude, out_of_view, drop_frames, late_frames, exposure_ignored, exposure_late";
+
+impl FaultKind {
+    pub fn name(self) -> &'static str {
+        match self {
+            FaultKind::LinkCut => "link_cut",
+            FaultKind::Occlude => "occlude",
+            FaultKind::OutOfView => "out_of_view",
+            FaultKind::DropFrames => "drop_frames",
+            FaultKind::LateFrames => "late_frames",
+            FaultKind::ExposureIgnored => "exposure_ignored",
+            FaultKind::ExposureLate => "exposure_late",
+        }
+    }
+
+    fn parse(s: &str) -> Option<Self> {
+        Some(match s {
+            "link_cut" => FaultKind::LinkCut,
+            "occlude" => FaultKind::Occlude,
+            "out_of_view" => FaultKind::OutOfView,
+            "drop_frames" => FaultKind::DropFrames,
+            "late_frames" => FaultKind::LateFrames,
+            "exposure_ignored" => FaultKind::ExposureIgnored,
+            "exposure_late" => FaultKind::ExposureLate,
+            _ => return None,
+        })
+    }
+}
+
+impl fmt::Display for FaultKind {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.write_str(self.name())
+    }
+}
+
+/// One fault: a kind active on `[start_s, start_s + duration_s)` of simulation time.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
+pub struct FaultSpec {
+    pub kind: FaultKind,
+    pub start_s: f64,
+    /// Infinite: until the end of the run.
+    pub duration_s: f64,
+}
+
+impl FaultSpec {
+    pub fn end_s(&self) -> f64 {
+        self.start_s + self.duration_s
+    }
+
+    pub fn active(&self, t_s: f64) -> bool {
+        t_s >= self.start_s && t_s < self.end_s()
+    }
+}
+
+impl FromStr for FaultSpec {
+    type Err = FaultError;
+
+    /// `KIND@START[+DURATION]`, seconds of simulation time.
+    fn from_str(s: &str) -> Result<Self, Self::Err> {
+        let syntax = || FaultError::Syntax {
+            spec: s.to_string(),
+        };
+        let (kind, when) = s.split_once('@').ok_or_else(syntax)?;
+        let kind = FaultKind::parse(kind.trim()).ok_or_else(|| FaultError::UnknownKind {
+            spec: s.to_string(),
+            kind: kind.to_string(),
+            known: KINDS,
+        })?;
+        let (start, dur) = match when.split_once('+') {
+            Some((a, b)) => (a, Some(b)),
+            None => (when, None),
+        };
+        let num = |field: &'static str, v: &str, positive: bool| -> Result<f64, FaultError> {
+            let bad = || FaultError::BadNumber {
+                spec: s.to_string(),
+                field,
+                value: v.to_string(),
+                expected: if positive {
+                    "positive number of seconds"
+                } else {
+                    "number of seconds >= 0"
+                },
+            };
+            let x: f64 = v.trim().parse().map_err(|_| bad())?;
+            let ok = x.is_finite() && if positive { x > 0.0 } else { x >= 0.0 };
+            if ok {
+                Ok(x)
+            } else {
+                Err(bad())
+            }
+        };
+        let start_s = num("START", start, false)?;
+        let duration_s = match dur {
+            Some(d) => num("DURATION", d, true)?,
+            None => f64::INFINITY,
+        };
+        Ok(Self {
+            kind,
+            start_s,
+            duration_s,
+        })
+    }
+}
+
+/// The faults of a run and the seed of their random parts.
+#[derive(Debug, Clone, Default)]
+pub struct FaultPlan {
+    pub specs: Vec<FaultSpec>,
+    pub seed: u64,
+}
+
+impl FaultPlan {
+    pub fn active(&self, kind: FaultKind, t_s: f64) -> bool {
+        self.specs.iter().any(|f| f.kind == kind && f.active(t_s))
+    }
+
+    pub fn has(&self, kind: FaultKind) -> bool {
+        self.specs.iter().any(|f| f.kind == kind)
+    }
+}
+
+/// SplitMix64 of (seed, n): a per-frame coin that does not depend on how many coins were
+/// drawn before (a fault window moved by one frame changes no other frame's draw).
+fn coin(seed: u64, n: u64) -> u64 {
+    let mut z = seed ^ n.wrapping_mul(0x9E37_79B9_7F4A_7C15);
+    z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
+    z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
+    z ^ (z >> 31)
+}
+
+/// A UDP relay on 127.0.0.1 between markhold's link (which sends to [`LinkRelay::addr`])
+/// and the vehicle's endpoint. While cut, every datagram both ways is read and dropped,
+/// as a tether that went dead would.
+pub struct LinkRelay {
+    /// The side markhold's link talks to.
+    front: UdpSocket,
+    /// The side that talks to the vehicle (the vehicle answers to its address).
+    back: UdpSocket,
+    vehicle: SocketAddr,
+    /// Where markhold's link sends from (learnt from its first datagram).
+    client: Option<SocketAddr>,
+    buf: Vec<u8>,
+    pub stats: RelayStats,
+}
+
+/// What the relay did.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize)]
+pub struct RelayStats {
+    pub to_vehicle: u64,
+    pub to_markhold: u64,
+    pub dropped: u64,
+}
+
+impl LinkRelay {
+    /// Bind both sides on 127.0.0.1 (ephemeral ports) in front of `vehicle`.
+    pub fn bind(vehicle: SocketAddr) -> Result<Self, FaultError> {
+        let any = SocketAddr::from(([127, 0, 0, 1], 0));
+        let rel = |op, source| FaultError::Relay {
+            op,
+            addr: any,
+            source,
+        };
+        let front = UdpSocket::bind(any).map_err(|e| rel("bind", e))?;
+        let back = UdpSocket::bind(any).map_err(|e| rel("bind", e))?;
+        front
+            .set_nonblocking(true)
+            .map_err(|e| rel("set_nonblocking", e))?;
+        back.set_nonblocking(true)
+            .map_err(|e| rel("set_nonblocking", e))?;
+        Ok(Self {
+            front,
+            back,
+            vehicle,
+            client: None,
+            // Larger than any MAVLink frame (280 bytes) and than most garbage.
+            buf: vec![0; 4096],
+            stats: RelayStats::default(),
+        })
+    }
+
+    /// The address markhold's link must send to.
+    pub fn addr(&self) -> Result<SocketAddr, FaultError> {
+        self.front.local_addr().map_err(|e| FaultError::Relay {
+            op: "local_addr",
+            addr: self.vehicle,
+            source: e,
+        })
+    }
+
+    /// Move every waiting datagram across, or drop it when `cut`. Never blocks.
+    pub fn pump(&mut self, cut: bool) -> Result<(), FaultError> {
+        loop {
+            match self.front.recv_from(&mut self.buf) {
+                Ok((n, from)) => {
+                    self.client = Some(from);
+                    if cut {
+                        self.stats.dropped += 1;
+                    } else {
+                        self.send_back(n)?;
+                    }
+                }
+                Err(e) if e.kind() == ErrorKind::WouldBlock => break,
+                // ICMP port unreachable from an earlier send shows up here on Linux.
+                Err(e) if e.kind() == ErrorKind::ConnectionRefused => continue,
+                Err(e) => {
+                    return Err(FaultError::Relay {
+                        op: "recv (markhold side)",
+                        addr: self.vehicle,
+                        source: e,
+                    })
+                }
+            }
+        }
+        loop {
+            match self.back.recv_from(&mut self.buf) {
+                Ok((n, from)) => {
+                    // Only the vehicle talks to the back socket.
+                    if from != self.vehicle {
+                        continue;
+                    }
+                    match (cut, self.client) {
+                        (false, Some(client)) => {
+                            self.send_front(n, client)?;
+                        }
+                        _ => self.stats.dropped += 1,
+                    }
+                }
+                Err(e) if e.kind() == ErrorKind::WouldBlock => break,
+                Err(e) if e.kind() == ErrorKind::ConnectionRefused => continue,
+                Err(e) => {
+                    return Err(FaultError::Relay {
+                        op: "recv (vehicle side)",
+                        addr: self.vehicle,
+                        source: e,
+                    })
+                }
+            }
+        }
+        Ok(())
+    }
+
+    fn send_back(&mut self, n: usize) -> Result<(), FaultError> {
+        match self.back.send_to(&self.buf[..n], self.vehicle) {
+            Ok(_) => {
+                self.stats.to_vehicle += 1;
+                Ok(())
+            }
+            // A full buffer or a vehicle not listening is a lost datagram, as on a wire.
+            Err(e)
+                if matches!(
+                    e.kind(),
+                    ErrorKind::WouldBlock | ErrorKind::ConnectionRefused
+                ) =>
+            {
+                self.stats.dropped += 1;
+                Ok(())
+            }
+            Err(e) => Err(FaultError::Relay {
+                op: "send to vehicle",
+                addr: self.vehicle,
+                source: e,
+            }),
+        }
+    }
+
+    fn send_front(&mut self, n: usize, client: SocketAddr) -> Result<(), FaultError> {
+        match self.front.send_to(&self.buf[..n], client) {
+            Ok(_) => {
+                self.stats.to_markhold += 1;
+                Ok(())
+            }
+            Err(e)
+                if matches!(
+                    e.kind(),
+                    ErrorKind::WouldBlock | ErrorKind::ConnectionRefused
+                ) =>
+            {
+                self.stats.dropped += 1;
+                Ok(())
+            }
+            Err(e) => Err(FaultError::Relay {
+                op: "send to markhold",
+                addr: client,
+                source: e,
+            }),
+        }
+    }
+}
+
+/// What a camera fault needs from the world: where the marker really is.
+pub trait MarkerTruth {
+    /// Pose of the marker in the camera frame at the last grabbed frame.
+    fn true_t_cam_marker(&self) -> Isometry3<f64>;
+}
+
+impl MarkerTruth for HilRig {
+    fn true_t_cam_marker(&self) -> Isometry3<f64> {
+        self.truth().t_cam_marker
+    }
+}
+
+/// Pinhole + OpenCV distortion, for painting the marker's true projection.
+#[derive(Debug, Clone, Copy)]
+pub struct Projection {
+    pub fx: f64,
+    pub fy: f64,
+    pub cx: f64,
+    pub cy: f64,
+    /// k1, k2, p1, p2, k3.
+    pub dist: [f64; 5],
+}
+
+impl Projection {
+    pub fn of(model: &CameraModel) -> Self {
+        Self {
+            fx: model.fx,
+            fy: model.fy,
+            cx: model.cx,
+            cy: model.cy,
+            dist: model.dist,
+        }
+    }
+
+    /// Pixel of a camera-frame point in front of the camera.
+    pub fn project(&self, p: &Point3<f64>) -> Option<(f64, f64)> {
+        if p.z <= 1e-3 {
+            return None;
+        }
+        let (x, y) = (p.x / p.z, p.y / p.z);
+        let [k1, k2, p1, p2, k3] = self.dist;
+        let r2 = x * x + y * y;
+        let radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3));
+        let xd = x * radial + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x);
+        let yd = y * radial + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y;
+        Some((self.fx * xd + self.cx, self.fy * yd + self.cy))
+    }
+}
+
+/// State of the camera faults across frames (buffers allocated once, at build).
+pub struct CameraFaults {
+    plan: FaultPlan,
+    proj: Projection,
+    /// Half the edge of what is painted over: the marker and its white plate, with a
+    /// small rim so no white edge is left for the detector.
+    cover_half_m: f64,
+    /// The frame held back by `late_frames`.
+    held: Frame,
+    held_valid: bool,
+    /// Exposure commands waiting to be applied (`exposure_late`): (frames left, value).
+    pending: [(u32, f64); 8],
+    pending_len: usize,
+    /// Exposure the camera reported last (what an ignored command gets back).
+    applied_us: f64,
+    /// Frames grabbed from the inner camera.
+    grabs: u64,
+    pub stats: CameraFaultStats,
+}
+
+/// What the camera faults did.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize)]
+pub struct CameraFaultStats {
+    pub frames_dropped: u64,
+    pub frames_late: u64,
+    pub frames_occluded: u64,
+    pub frames_out_of_view: u64,
+    pub exposure_ignored: u64,
+    pub exposure_delayed: u64,
+}
+
+/// How many frames `exposure_late` holds a command back.
+pub const EXPOSURE_LATE_FRAMES: u32 = 3;
+
+impl CameraFaults {
+    /// `marker_half_m`: half the marker's edge plus its plate margin.
+    pub fn new(
+        plan: FaultPlan,
+        proj: Projection,
+        marker_half_m: f64,
+        width: u32,
+        height: u32,
+        initial_exposure_us: f64,
+    ) -> Self {
+        Self {
+            plan,
+            proj,
+            cover_half_m: marker_half_m * 1.1,
+            held: Frame::new(width, height),
+            held_valid: false,
+            pending: [(0, 0.0); 8],
+            pending_len: 0,
+            applied_us: initial_exposure_us,
+            grabs: 0,
+            stats: CameraFaultStats::default(),
+        }
+    }
+
+    pub fn plan(&self) -> &FaultPlan {
+        &self.plan
+    }
+}
+
+/// A camera with faults injected, wrapping the real one for one frame at a time (the
+/// state lives in [`CameraFaults`]). The relay, when there is one, is pumped around the
+/// inner grab so the vehicle's lock-step sees markhold's command and markhold's link
+/// sees the telemetry of the step.
+pub struct FaultyCamera<'a, C: Camera + MarkerTruth> {
+    pub inner: &'a mut C,
+    pub faults: &'a mut CameraFaults,
+    pub relay: Option<&'a mut LinkRelay>,
+    /// Simulation time now (before the grab), for the link-cut window.
+    pub now_s: f64,
+}
+
+impl<C: Camera + MarkerTruth> FaultyCamera<'_, C> {
+    fn pump(&mut self, t_s: f64) -> Result<(), CameraError> {
+        if let Some(r) = self.relay.as_deref_mut() {
+            let cut = self.faults.plan.active(FaultKind::LinkCut, t_s);
+            r.pump(cut).map_err(|e| CameraError::Read {
+                device: "hil+faults".to_string(),
+                seq: self.faults.grabs,
+                reason: e.to_string(),
+            })?;
+        }
+        Ok(())
+    }
+
+    fn grab_inner(&mut self, frame: &mut Frame) -> Result<(), CameraError> {
+        self.pump(self.now_s)?;
+        self.inner.grab(frame)?;
+        self.faults.grabs += 1;
+        self.now_s = frame.meta.stamp_s;
+        self.pump(self.now_s)?;
+        self.tick_exposure()
+    }
+
+    /// One frame passed: apply the delayed exposure commands that are due.
+    fn tick_exposure(&mut self) -> Result<(), CameraError> {
+        let f = &mut *self.faults;
+        let mut i = 0;
+        while i < f.pending_len {
+            f.pending[i].0 = f.pending[i].0.saturating_sub(1);
+            if f.pending[i].0 == 0 {
+                let v = f.pending[i].1;
+                f.applied_us = self.inner.set_exposure_us(v)?;
+                f.pending.copy_within(i + 1..f.pending_len, i);
+                f.pending_len -= 1;
+            } else {
+                i += 1;
+            }
+        }
+        Ok(())
+    }
+}
+
+impl<C: Camera + MarkerTruth> Camera for FaultyCamera<'_, C> {
+    fn name(&self) -> &str {
+        "hil+faults"
+    }
+
+    fn exposure_limits(&self) -> ExposureLimits {
+        self.inner.exposure_limits()
+    }
+
+    fn set_exposure_us(&mut self, exposure_us: f64) -> Result<f64, CameraError> {
+        let t = self.now_s;
+        let plan = &self.faults.plan;
+        if plan.active(FaultKind::ExposureIgnored, t) {
+            self.faults.stats.exposure_ignored += 1;
+            // The driver says yes and keeps what it had.
+            return Ok(self.faults.applied_us);
+        }
+        if plan.active(FaultKind::ExposureLate, t) {
+            let f = &mut *self.faults;
+            if f.pending_len == f.pending.len() {
+                // Never more than 3 are in flight at one a frame; keep the newest anyway.
+                f.pending.copy_within(1.., 0);
+                f.pending_len -= 1;
+            }
+            f.pending[f.pending_len] = (EXPOSURE_LATE_FRAMES, exposure_us);
+            f.pending_len += 1;
+            f.stats.exposure_delayed += 1;
+            return Ok(self.inner.exposure_limits().clamp(exposure_us));
+        }
+        let v = self.inner.set_exposure_us(exposure_us)?;
+        self.faults.applied_us = v;
+        Ok(v)
+    }
+
+    fn grab(&mut self, frame: &mut Frame) -> Result<(), CameraError> {
+        self.grab_inner(frame)?;
+        // Dropped: the frame never reaches the loop, the next one does (at most 4 in a
+        // row, so a 30 fps loop still sees a frame every 1/6 s).
+        let mut dropped = 0;
+        while dropped < 4
+            && self
+                .faults
+                .plan
+                .active(FaultKind::DropFrames, frame.meta.stamp_s)
+            && coin(self.faults.plan.seed, self.faults.grabs) & 1 == 0
+        {
+            self.faults.stats.frames_dropped += 1;
+            dropped += 1;
+            self.grab_inner(frame)?;
+        }
+        let t = frame.meta.stamp_s;
+        if self.faults.plan.active(FaultKind::Occlude, t) {
+            let t_cam_marker = self.inner.true_t_cam_marker();
+            if paint_marker(
+                frame,
+                &self.faults.proj,
+                &t_cam_marker,
+                self.faults.cover_half_m,
+            ) {
+                self.faults.stats.frames_occluded += 1;
+            }
+        }
+        if self.faults.plan.active(FaultKind::OutOfView, t) {
+            fill_mean(frame);
+            self.faults.stats.frames_out_of_view += 1;
+        }
+        if self.faults.plan.active(FaultKind::LateFrames, t) {
+            // The loop gets the previous frame now; this one waits for the next grab.
+            let f = &mut *self.faults;
+            if f.held_valid {
+                std::mem::swap(&mut f.held, frame);
+                f.stats.frames_late += 1;
+            } else {
+                copy_frame(frame, &mut f.held);
+                f.held_valid = true;
+            }
+        } else {
+            self.faults.held_valid = false;
+        }
+        Ok(())
+    }
+}
+
+fn copy_frame(src: &Frame, dst: &mut Frame) {
+    dst.resize(src.width, src.height);
+    dst.data.copy_from_slice(&src.data);
+    dst.meta = src.meta;
+}
+
+/// Paint the whole frame with its mean grey (a featureless view of open water).
+fn fill_mean(frame: &mut Frame) {
+    let n = frame.data.len().max(1) as u64;
+    let mean = (frame.data.iter().map(|&v| u64::from(v)).sum::<u64>() / n) as u8;
+    frame.data.fill(mean);
+}
+
+/// Paint the marker's true projected square (half edge `half_m` in the marker plane) with
+/// the mean grey of a ring just outside it. False when it is not in front of the camera.
+pub fn paint_marker(
+    frame: &mut Frame,
+    proj: &Projection,
+    t_cam_marker: &Isometry3<f64>,
+    half_m: f64,
+) -> bool {
+    let h = half_m;
+    let mut quad = [(0.0, 0.0); 4];
+    for (q, (x, y)) in quad.iter_mut().zip([(-h, h), (h, h), (h, -h), (-h, -h)]) {
+        match proj.project(&(t_cam_marker * Point3::new(x, y, 0.0))) {
+            Some(p) => *q = p,
+            None => return false,
+        }
+    }
+    let (w, hgt) = (frame.width as i64, frame.height as i64);
+    let (min_x, max_x) = quad
+        .iter()
+        .fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), p| {
+            (a.min(p.0), b.max(p.0))
+        });
+    let (min_y, max_y) = quad
+        .iter()
+        .fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), p| {
+            (a.min(p.1), b.max(p.1))
+        });
+    if max_x < 0.0 || max_y < 0.0 || min_x >= w as f64 || min_y >= hgt as f64 {
+        return false;
+    }
+    // The surrounding grey: the mean over a ring a tenth of the size outside the box.
+    let pad = 0.1 * (max_x - min_x).max(max_y - min_y) + 2.0;
+    let (rx0, rx1) = (
+        ((min_x - pad).floor() as i64).clamp(0, w - 1),
+        ((max_x + pad).ceil() as i64).clamp(0, w - 1),
+    );
+    let (ry0, ry1) = (
+        ((min_y - pad).floor() as i64).clamp(0, hgt - 1),
+        ((max_y + pad).ceil() as i64).clamp(0, hgt - 1),
+    );
+    let (mut sum, mut cnt) = (0u64, 0u64);
+    let stride = frame.width as usize;
+    for y in [ry0, ry1] {
+        for x in rx0..=rx1 {
+            sum += u64::from(frame.data[y as usize * stride + x as usize]);
+            cnt += 1;
+        }
+    }
+    for x in [rx0, rx1] {
+        for y in ry0..=ry1 {
+            sum += u64::from(frame.data[y as usize * stride + x as usize]);
+            cnt += 1;
+        }
+    }
+    let grey = (sum / cnt.max(1)) as u8;
+    // Scanline fill of the convex quad (pixel centres at +0.5).
+    let y0 = (min_y.floor() as i64).max(0);
+    let y1 = (max_y.ceil() as i64).min(hgt - 1);
+    for y in y0..=y1 {
+        let yc = y as f64 + 0.5;
+        let (mut lo, mut hi) = (f64::INFINITY, f64::NEG_INFINITY);
+        for i in 0..4 {
+            let (a, b) = (quad[i], quad[(i + 1) % 4]);
+            if (a.1 <= yc && b.1 > yc) || (b.1 <= yc && a.1 > yc) {
+                let x = a.0 + (yc - a.1) * (b.0 - a.0) / (b.1 - a.1);
+                lo = lo.min(x);
+                hi = hi.max(x);
+            }
+        }
+        if lo > hi {
+            continue;
+        }
+        // One pixel of margin each side against anti-aliased edges.
+        let xa = ((lo - 1.0).floor() as i64).max(0);
+        let xb = ((hi + 1.0).ceil() as i64).min(w - 1);
+        if xa > xb {
+            continue;
+        }
+        let row = y as usize * stride;
+        frame.data[row + xa as usize..=row + xb as usize].fill(grey);
+    }
+    true
+}
+
+/// What the loop did around one fault, on simulation time (seconds).
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct FaultReport {
+    pub kind: FaultKind,
+    pub start_s: f64,
+    /// `null` in JSON for a fault that lasts to the end of the run.
+    pub end_s: Option<f64>,
+    /// First frame in the window the loop stopped sending pilot input (no vehicle heard).
+    pub silent_at_s: Option<f64>,
+    /// First frame in the window the loop sent neutral input.
+    pub neutral_at_s: Option<f64>,
+    /// The vehicle's heartbeat declared lost.
+    pub heartbeat_lost_at_s: Option<f64>,
+    /// The vehicle's heartbeat back after it was lost.
+    pub heartbeat_restored_at_s: Option<f64>,
+    /// First frame from the start without a detection.
+    pub marker_missed_at_s: Option<f64>,
+    /// The supervisor's marker-lost and marker-lost-action times.
+    pub marker_lost_at_s: Option<f64>,
+    pub marker_lost_action_at_s: Option<f64>,
+    /// First detection at or after the end.
+    pub marker_detected_again_at_s: Option<f64>,
+    /// First time after the end the vehicle was within the station tolerance and stayed
+    /// there for `STATION_HOLD_S`.
+    pub station_regained_at_s: Option<f64>,
+    /// Largest station error (truth) from the start to station regained (or the end).
+    pub max_position_error_m: f64,
+    /// Exposure range commanded from the start to the end of the window.
+    pub exposure_min_us: f64,
+    pub exposure_max_us: f64,
+    /// The vehicle disarmed (its own failsafe) after the fault started, per the link.
+    pub vehicle_disarmed_at_s: Option<f64>,
+    /// Pilot-input frames sent (Command directive) while the vehicle was not heard.
+    pub commands_while_unheard: u64,
+}
+
+/// Within this of the station (truth) counts as on station.
+pub const STATION_TOL_M: f64 = 0.10;
+/// ... for this long.
+pub const STATION_HOLD_S: f64 = 1.0;
+
+/// Watches the frames of a faulty run and fills one [`FaultReport`] per fault.
+pub struct FaultMonitor {
+    reports: Vec<FaultReport>,
+    /// Per report: since when the vehicle has been within tolerance after the end.
+    in_tol_since: Vec<Option<f64>>,
+    t_world_marker: Isometry3<f64>,
+    t_marker_station: Isometry3<f64>,
+    was_armed: bool,
+}
+
+impl FaultMonitor {
+    pub fn new(
+        plan: &FaultPlan,
+        t_world_marker: Isometry3<f64>,
+        t_marker_station: Isometry3<f64>,
+    ) -> Self {
+        let reports = plan
+            .specs
+            .iter()
+            .map(|f| FaultReport {
+                kind: f.kind,
+                start_s: f.start_s,
+                end_s: f.duration_s.is_finite().then(|| f.end_s()),
+                silent_at_s: None,
+                neutral_at_s: None,
+                heartbeat_lost_at_s: None,
+                heartbeat_restored_at_s: None,
+                marker_missed_at_s: None,
+                marker_lost_at_s: None,
+                marker_lost_action_at_s: None,
+                marker_detected_again_at_s: None,
+                station_regained_at_s: None,
+                max_position_error_m: 0.0,
+                exposure_min_us: f64::INFINITY,
+                exposure_max_us: 0.0,
+                vehicle_disarmed_at_s: None,
+                commands_while_unheard: 0,
+            })
+            .collect::<Vec<_>>();
+        let n = reports.len();
+        Self {
+            reports,
+            in_tol_since: vec![None; n],
+            t_world_marker,
+            t_marker_station,
+            was_armed: true,
+        }
+    }
+
+    /// One frame: its record, the world's truth after it, the supervisor's events and
+    /// the vehicle's armed state and heartbeat health as markhold's link knows them.
+    pub fn observe(
+        &mut self,
+        rec: &FrameRecord,
+        truth: &Truth,
+        events: &[FailsafeEvent],
+        link_armed: bool,
+        heartbeat_ok: bool,
+    ) {
+        let t = rec.stamp_s;
+        let err = (self.t_marker_station.inverse()
+            * self.t_world_marker.inverse()
+            * truth.t_world_vehicle)
+            .translation
+            .vector
+            .norm();
+        let disarmed_now = self.was_armed && !link_armed;
+        self.was_armed = link_armed;
+        for (r, tol) in self.reports.iter_mut().zip(self.in_tol_since.iter_mut()) {
+            if t < r.start_s {
+                continue;
+            }
+            let end = r.end_s.unwrap_or(f64::INFINITY);
+            let in_window = t < end;
+            if in_window {
+                r.exposure_min_us = r.exposure_min_us.min(rec.exposure.exposure_us);
+                r.exposure_max_us = r.exposure_max_us.max(rec.exposure.exposure_us);
+                match rec.directive {
+                    Directive::Silent if r.silent_at_s.is_none() => r.silent_at_s = Some(t),
+                    Directive::Neutral if r.neutral_at_s.is_none() => r.neutral_at_s = Some(t),
+                    _ => {}
+                }
+            }
+            if r.station_regained_at_s.is_none() {
+                r.max_position_error_m = r.max_position_error_m.max(err);
+            }
+            if rec.directive == Directive::Command && !heartbeat_ok {
+                r.commands_while_unheard += 1;
+            }
+            if disarmed_now && r.vehicle_disarmed_at_s.is_none() {
+                r.vehicle_disarmed_at_s = Some(t);
+            }
+            if !rec.detected && r.marker_missed_at_s.is_none() {
+                r.marker_missed_at_s = Some(t);
+            }
+            if rec.detected && t >= end && r.marker_detected_again_at_s.is_none() {
+                r.marker_detected_again_at_s = Some(t);
+            }
+            for e in events {
+                match *e {
+                    FailsafeEvent::VehicleHeartbeatLost { at_s, .. }
+                        if r.heartbeat_lost_at_s.is_none() =>
+                    {
+                        r.heartbeat_lost_at_s = Some(at_s)
+                    }
+                    FailsafeEvent::VehicleHeartbeatRestored { at_s, .. }
+                        if r.heartbeat_lost_at_s.is_some()
+                            && r.heartbeat_restored_at_s.is_none() =>
+                    {
+                        r.heartbeat_restored_at_s = Some(at_s)
+                    }
+                    FailsafeEvent::MarkerLost { at_s, .. } if r.marker_lost_at_s.is_none() => {
+                        r.marker_lost_at_s = Some(at_s)
+                    }
+                    FailsafeEvent::MarkerLostActionDue { at_s, .. }
+                        if r.marker_lost_action_at_s.is_none() =>
+                    {
+                        r.marker_lost_action_at_s = Some(at_s)
+                    }
+                    _ => {}
+                }
+            }
+            if t >= end && r.station_regained_at_s.is_none() {
+                if err <= STATION_TOL_M {
+                    let since = *tol.get_or_insert(t);
+                    if t - since >= STATION_HOLD_S {
+                        r.station_regained_at_s = Some(since);
+                    }
+                } else {
+                    *tol = None;
+                }
+            }
+        }
+    }
+
+    pub fn reports(&self) -> &[FaultReport] {
+        &self.reports
+    }
+
+    pub fn into_reports(self) -> Vec<FaultReport> {
+        self.reports
+    }
+}
+
+/// The fault machinery of one HIL run: camera faults, the relay (with a link cut), and
+/// the monitor that reports.
+pub struct FaultRig {
+    pub camera: CameraFaults,
+    pub relay: Option<LinkRelay>,
+    pub monitor: FaultMonitor,
+}
+
+impl FaultRig {
+    /// Pump the relay outside a frame (arming handshake): traffic passes unless cut at `t_s`.
+    pub fn pump_relay(&mut self, t_s: f64) -> Result<(), FaultError> {
+        let cut = self.camera.plan.active(FaultKind::LinkCut, t_s);
+        match self.relay.as_mut() {
+            Some(r) => r.pump(cut),
+            None => Ok(()),
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn parses_specs() {
+        let f: FaultSpec = "link_cut@10+3".parse().unwrap();
+        assert_eq!(f.kind, FaultKind::LinkCut);
+        assert_eq!((f.start_s, f.duration_s), (10.0, 3.0));
+        assert!(f.active(10.0) && f.active(12.9) && !f.active(13.0) && !f.active(9.9));
+        let g: FaultSpec = "occlude@2.5".parse().unwrap();
+        assert!(g.duration_s.is_infinite() && g.active(1e6));
+        for bad in [
+            "link_cut",
+            "nope@1",
+            "occlude@-1",
+            "occlude@1+0",
+            "occlude@x",
+            "occlude@1+inf",
+        ] {
+            assert!(bad.parse::<FaultSpec>().is_err(), "{bad} parsed");
+        }
+        let e = "occlude@1+0".parse::<FaultSpec>().unwrap_err().to_string();
+        assert!(e.contains("DURATION") && e.contains("\"0\""), "{e}");
+    }
+
+    #[test]
+    fn coin_is_fair_and_seeded() {
+        let heads = (0..10_000).filter(|&n| coin(7, n) & 1 == 0).count();
+        assert!((4_700..5_300).contains(&heads), "{heads}");
+        assert_ne!(
+            (0..64).map(|n| coin(1, n) & 1).collect::<Vec<_>>(),
+            (0..64).map(|n| coin(2, n) & 1).collect::<Vec<_>>()
+        );
+    }
+
+    #[test]
+    fn paints_a_facing_marker_and_nothing_else() {
+        let mut f = Frame::new(64, 48);
+        f.data.fill(100);
+        // A white square 0.2 m at 1 m in front of a 50 px focal camera: 10 px wide.
+        for y in 19..29 {
+            for x in 27..37 {
+                f.data[y * 64 + x] = 250;
+            }
+        }
+        let proj = Projection {
+            fx: 50.0,
+            fy: 50.0,
+            cx: 32.0,
+            cy: 24.0,
+            dist: [0.0; 5],
+        };
+        let pose = Isometry3::translation(0.0, 0.0, 1.0);
+        assert!(paint_marker(&mut f, &proj, &pose, 0.1));
+        assert!(f.data.iter().all(|&v| v == 100), "marker left visible");
+        // Behind the camera: nothing painted.
+        let behind = Isometry3::translation(0.0, 0.0, -1.0);
+        f.data[0] = 7;
+        assert!(!paint_marker(&mut f, &proj, &behind, 0.1));
+        assert_eq!(f.data[0], 7);
+    }
+}
