@@ -34,6 +34,17 @@ impl ResponseModel {
         Ok(())
     }
 
+    /// The same model with a relative table path taken relative to `base` (the folder
+    /// of the site file that named it); other models are returned unchanged.
+    pub fn relative_to(&self, base: &Path) -> ResponseModel {
+        match self {
+            ResponseModel::Table { file } if file.is_relative() => ResponseModel::Table {
+                file: base.join(file),
+            },
+            other => other.clone(),
+        }
+    }
+
     /// Build the response (reads the table file for `model = "table"`).
     pub fn load(&self) -> Result<Response, ExposureError> {
         self.validate()?;
@@ -290,6 +301,33 @@ mod tests {
         .unwrap_err()
         .to_string();
         assert!(e.contains("/nonexistent/crf.txt"), "{e}");
+    }
+
+    #[test]
+    fn relative_table_paths_resolve_against_the_site_folder() {
+        let dir = std::env::temp_dir().join(format!("markhold-crf-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let text: String = Response::gamma(2.0)
+            .unwrap()
+            .g_prime_table()
+            .iter()
+            .map(|v| format!("{v}\n"))
+            .collect();
+        std::fs::write(dir.join("crf.txt"), text).unwrap();
+        let m = ResponseModel::Table {
+            file: "crf.txt".into(),
+        };
+        let r = m.relative_to(&dir).load().unwrap();
+        assert!((r.grey(0.25) - 127.5).abs() < 0.6, "{}", r.grey(0.25));
+        let abs = ResponseModel::Table {
+            file: "/abs/crf.txt".into(),
+        };
+        assert_eq!(abs.relative_to(&dir), abs);
+        assert_eq!(
+            ResponseModel::Linear.relative_to(&dir),
+            ResponseModel::Linear
+        );
+        std::fs::remove_dir_all(&dir).unwrap();
     }
 
     #[test]
