@@ -74,7 +74,7 @@ fn bench(c: &mut Criterion) {
         });
         drop(img);
 
-        for (name, downscale) in [("full_search", 1u32), ("full_search_downscale2", 2)] {
+        for (name, downscale) in [("full_search_fullres", 1u32), ("full_search", 2)] {
             let cfg = DetectorConfig {
                 full_search_period_frames: 1,
                 full_search_downscale: downscale,
@@ -107,6 +107,23 @@ fn bench(c: &mut Criterion) {
             })
         });
     }
+    // No marker in view: every frame is a full search (half resolution, then the
+    // full-resolution fallback), the worst case of the loop.
+    let (calib, marker, mut frame) = scene(1.0);
+    let blank = frame.data[0];
+    frame.data.iter_mut().for_each(|p| *p = blank);
+    let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(2);
+    for p in frame.data.iter_mut() {
+        *p = (*p as i32 + rng.random_range(-6..=6)).clamp(0, 255) as u8;
+    }
+    let cfg = DetectorConfig {
+        opencv_threads: threads,
+        ..Default::default()
+    };
+    let mut t = MarkerTracker::new(&marker, &cfg, calib).unwrap();
+    g.bench_function(BenchmarkId::new("full_search", "absent"), |b| {
+        b.iter(|| assert!(t.process(&frame).unwrap().is_none()))
+    });
     g.finish();
 }
 
