@@ -421,7 +421,7 @@ impl ExposureController for Aaec {
             used_frame: false,
             roi: Some(roi),
         };
-        if !exposed_as_commanded(frame, self.commanded_us) {
+        if !exposed_as_commanded(frame, self.commanded_us) || !frame.is_consistent() {
             return hold;
         }
         let Some(mv) = self.metric.evaluate(frame.view().crop(roi)) else {

@@ -288,7 +288,7 @@ impl ExposureController for Aec {
             used_frame: false,
             roi: None,
         };
-        if !exposed_as_commanded(frame, self.commanded_us) {
+        if !exposed_as_commanded(frame, self.commanded_us) || !frame.is_consistent() {
             return hold;
         }
         let small = self

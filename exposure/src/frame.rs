@@ -47,6 +47,12 @@ impl Frame {
         self.data.resize(width as usize * height as usize, 0);
     }
 
+    /// True when the buffer holds `width * height` bytes (the fields are public, so a
+    /// caller can break this; controllers skip such frames instead of panicking).
+    pub fn is_consistent(&self) -> bool {
+        self.data.len() >= self.width as usize * self.height as usize
+    }
+
     pub fn view(&self) -> ImageView<'_> {
         ImageView {
             width: self.width as usize,

@@ -331,7 +331,7 @@ impl ExposureController for Gec {
             used_frame: false,
             roi: None,
         };
-        if !exposed_as_commanded(frame, self.commanded_us) {
+        if !exposed_as_commanded(frame, self.commanded_us) || !frame.is_consistent() {
             return hold;
         }
         let small = self.down.run(frame.view(), self.cfg.downsample as usize);

@@ -108,7 +108,7 @@ impl ExposureController for MeanAe {
             _ => None,
         };
         let metered = roi.unwrap_or_else(|| frame.full_roi());
-        if !exposed_as_commanded(frame, self.commanded_us) {
+        if !exposed_as_commanded(frame, self.commanded_us) || !frame.is_consistent() {
             return ExposureStep {
                 exposure_us: self.commanded_us,
                 metric: f64::NAN,

@@ -95,6 +95,12 @@ proptest! {
                     prop_assert!(!step.used_frame, "{} used a frame not at its command", c.method());
                 }
             }
+            // A frame whose buffer is shorter than its size is skipped, not a panic.
+            let mut broken = Frame::new(16, 16);
+            broken.data.truncate(10);
+            broken.meta.exposure_us = c.commanded_us();
+            let s = c.update(&broken, Some(&[[2.0, 2.0], [12.0, 2.0], [12.0, 12.0], [2.0, 12.0]]));
+            prop_assert!(!s.used_frame);
             c.reset(f64::NAN);
             prop_assert!(c.commanded_us() >= lo && c.commanded_us() <= hi);
         }
