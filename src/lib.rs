@@ -9,6 +9,8 @@ pub mod hil_run;
 pub mod params;
 mod params_validate;
 pub mod pipeline;
+pub mod record;
+pub mod replay;
 pub mod snapshot;
 pub mod summary;
 pub mod trace;

@@ -35,6 +35,8 @@ enum Command {
     /// Serve ArduPilot's SITL JSON physics interface with the simulated vehicle, for
     /// `sim_vehicle.py -v ArduSub -f vectored_6dof --model JSON`.
     Sitl(SitlArgs),
+    /// Feed a recording (`--record`) through the loop again and compare its commands.
+    Replay(ReplayArgs),
 }
 
 #[derive(clap::Args)]
@@ -109,6 +111,19 @@ struct HilArgs {
     /// exposure_late (e.g. --fault link_cut@10+3 --fault occlude@20+0.5).
     #[arg(long = "fault", value_name = "KIND@START[+DURATION]")]
     faults: Vec<markhold::faults::FaultSpec>,
+    /// Record the run to this MCAP file (must not exist): frames, exposure, detections,
+    /// pose, commands, vehicle state, failsafe events; `markhold replay` reads it.
+    #[arg(long, value_name = "FILE.mcap")]
+    record: Option<PathBuf>,
+}
+
+#[derive(clap::Args)]
+struct ReplayArgs {
+    /// A recording made with --record.
+    file: PathBuf,
+    /// Write the replay summary (commands_match, first mismatch) here as JSON.
+    #[arg(long)]
+    summary: Option<PathBuf>,
 }
 
 fn main() -> ExitCode {
@@ -140,6 +155,7 @@ fn run(cli: Cli) -> anyhow::Result<()> {
             command: ParamsCommand::Check { file },
         } => params_check(&file),
         Command::Sitl(args) => sitl(args),
+        Command::Replay(args) => replay(args),
     }
 }
 
@@ -257,15 +273,31 @@ fn hil(args: HilArgs) -> anyhow::Result<()> {
                 }
             }
         };
+    anyhow::ensure!(
+        args.record.is_none() || args.vehicle.is_none(),
+        "--record with --vehicle is not supported: record a simulated run, or use `markhold run`"
+    );
+    let mut recorder = match &args.record {
+        Some(p) => Some(markhold::record::open_hil_recorder(&site, &opts, p)?),
+        None => None,
+    };
     let summary = match &args.vehicle {
         Some(url) => markhold::external::run_external(&site, url, &opts, &mut |rec, frame| {
             on_frame(rec, rec.stamp_s, frame)
         })?,
-        None => run_hil(&site, &opts, &mut |rec, truth, frame| {
-            on_frame(rec, truth.time_s, frame)
-        })?,
+        None => match recorder.as_mut() {
+            Some(r) => markhold::record::run_hil_recorded(&site, &opts, r, &mut |rec, truth, frame| {
+                on_frame(rec, truth.time_s, frame)
+            })?,
+            None => run_hil(&site, &opts, &mut |rec, truth, frame| {
+                on_frame(rec, truth.time_s, frame)
+            })?,
+        },
     };
     bar.finish_and_clear();
+    if let (Some(r), Some(p)) = (recorder, &args.record) {
+        markhold::record::finish_and_report(r, p)?;
+    }
     if let Some(t) = trace {
         t.finish()?;
     }
@@ -355,4 +387,32 @@ fn print_faults(faults: &[markhold::faults::FaultReport]) {
             println!("    {k:<24} {v}");
         }
     }
+}
+
+fn replay(args: ReplayArgs) -> anyhow::Result<()> {
+    let out = markhold::replay::replay(&args.file)?;
+    println!(
+        "markhold replay {}: {} frames replayed of {}, {} commands compared, commands_match: {}",
+        args.file.display(),
+        out.frames_replayed,
+        out.frames_recorded,
+        out.commands_compared,
+        out.commands_match
+    );
+    if let Some(m) = &out.first_mismatch {
+        println!(
+            "  first mismatch: frame {} at {:.3} s, {}: recorded {}, replayed {}",
+            m.seq, m.stamp_s, m.field, m.recorded, m.replayed
+        );
+    }
+    if let Some(path) = &args.summary {
+        let json = serde_json::to_string_pretty(&out)?;
+        std::fs::write(path, json + "\n")
+            .with_context(|| format!("writing --summary {}", path.display()))?;
+    }
+    if !out.commands_match {
+        // Not an error of the tool: the recording and this build disagree.
+        std::process::exit(1);
+    }
+    Ok(())
 }

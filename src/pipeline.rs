@@ -6,11 +6,11 @@ use std::time::Instant;
 
 use markhold_autopilot::{
     Directive, Effort, FailsafeEvent, PoseMeasurement, StationKeeper, Supervisor, SupervisorInput,
-    VehicleLink,
+    VehicleLink, VehicleState,
 };
 use markhold_exposure::{Camera, Corners, ExposureController, ExposureStep, Frame};
 use markhold_vision::{MarkerObservation, MarkerTracker};
-use nalgebra::Isometry3;
+use nalgebra::{Isometry3, Matrix6};
 
 /// What happened on one frame, for the summary, the recorder and tests.
 #[derive(Debug, Clone, Copy)]
@@ -24,6 +24,8 @@ pub struct FrameRecord {
     pub detected: bool,
     pub corners: Option<Corners>,
     pub t_cam_marker: Option<Isometry3<f64>>,
+    /// Covariance of `t_cam_marker` (docs/frames.md order), for the recorder.
+    pub cov_cam: Option<Matrix6<f64>>,
     pub reproj_rms_px: f64,
     /// The station keeper's effort.
     pub effort: Effort,
@@ -44,6 +46,10 @@ pub trait CommandLink {
     fn send_neutral(&mut self, now_s: f64) -> anyhow::Result<()>;
     /// Loop time of the vehicle's last heartbeat, if one was heard.
     fn vehicle_heartbeat_s(&self) -> Option<f64>;
+    /// The vehicle's state as the link knows it (for the recorder); none for a sink.
+    fn vehicle_state(&self) -> Option<&VehicleState> {
+        None
+    }
 }
 
 impl CommandLink for VehicleLink {
@@ -58,6 +64,9 @@ impl CommandLink for VehicleLink {
     }
     fn vehicle_heartbeat_s(&self) -> Option<f64> {
         self.state().last_heartbeat_s
+    }
+    fn vehicle_state(&self) -> Option<&VehicleState> {
+        Some(self.state())
     }
 }
 
@@ -124,6 +133,7 @@ impl<L: CommandLink> Pipeline<L> {
             detected: obs.is_some(),
             corners,
             t_cam_marker: obs.as_ref().map(|o| o.t_cam_marker),
+            cov_cam: obs.as_ref().map(|o| o.cov_cam),
             reproj_rms_px: obs.as_ref().map_or(f64::NAN, |o| o.reproj_rms_px),
             effort,
             directive,

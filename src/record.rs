@@ -1,0 +1,937 @@
+//! Recording a run to MCAP (`--record FILE.mcap`), written by the foxglove crate.
+//!
+//! The control thread only copies the frame into a pooled buffer and hands a fixed-size
+//! item to a bounded channel; a writer thread encodes the image (PNG, lossless so replay
+//! sees the same pixels) and writes every channel. When the pool or the channel is full
+//! the image (or the whole item) is dropped and counted: the loop never waits on the disk.
+//! A write error is reported once and the loop goes on.
+//!
+//! Channels (Foxglove well-known schemas where one fits, JSON otherwise):
+//! - [`TOPIC_IMAGE`] `foxglove.CompressedImage` (png), one per frame unless dropped;
+//! - [`TOPIC_FRAME`] JSON: frame metadata, the vehicle heartbeat the supervisor saw and
+//!   the shutdown flag, with exact f64 bit patterns for replay;
+//! - [`TOPIC_EXPOSURE`] JSON: exposure used and commanded, metric, metered RoI;
+//! - [`TOPIC_DETECTION`] JSON: detected, corners, pose, 6x6 covariance, reprojection RMS;
+//! - [`TOPIC_POSE`] `foxglove.PoseInFrame` (marker in the camera frame), when detected;
+//! - [`TOPIC_COMMAND`] JSON: directive and effort (with bits);
+//! - [`TOPIC_VEHICLE`] JSON: the link's vehicle state (mode, armed, telemetry, counters);
+//! - [`TOPIC_FAILSAFE`] `foxglove.Log`: supervisor transitions.
+//!
+//! Metadata record [`METADATA_NAME`] holds the effective site, its calibration and the
+//! run options, so `replay` needs nothing but the file.
+
+use std::collections::BTreeMap;
+use std::fs::File;
+use std::io::{BufWriter, Seek, SeekFrom, Write};
+use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::mpsc::{sync_channel, Receiver, SyncSender, TrySendError};
+use std::sync::{Arc, Mutex};
+use std::thread::JoinHandle;
+
+use foxglove::schemas::{CompressedImage, Log, Pose, PoseInFrame, Quaternion, Timestamp, Vector3};
+use foxglove::{ChannelBuilder, Context, McapWriter, PartialMetadata, RawChannel, Schema};
+use markhold_autopilot::{Directive, FailsafeEvent, VehicleState};
+use markhold_exposure::{Frame, FrameMeta};
+use serde::{Deserialize, Serialize};
+
+use crate::params::LoadedSite;
+use crate::pipeline::{CommandLink, FrameRecord, Pipeline};
+
+pub const TOPIC_IMAGE: &str = "/camera/image";
+pub const TOPIC_FRAME: &str = "/markhold/frame";
+pub const TOPIC_EXPOSURE: &str = "/markhold/exposure";
+pub const TOPIC_DETECTION: &str = "/markhold/detection";
+pub const TOPIC_POSE: &str = "/markhold/marker_pose";
+pub const TOPIC_COMMAND: &str = "/markhold/command";
+pub const TOPIC_VEHICLE: &str = "/markhold/vehicle";
+pub const TOPIC_FAILSAFE: &str = "/markhold/failsafe";
+/// Every topic a recording has channels for.
+pub const TOPICS: [&str; 8] = [
+    TOPIC_IMAGE,
+    TOPIC_FRAME,
+    TOPIC_EXPOSURE,
+    TOPIC_DETECTION,
+    TOPIC_POSE,
+    TOPIC_COMMAND,
+    TOPIC_VEHICLE,
+    TOPIC_FAILSAFE,
+];
+/// Name of the MCAP metadata record describing the run.
+pub const METADATA_NAME: &str = "markhold.run";
+/// Failsafe events kept per frame (the supervisor makes at most a few per frame).
+const EVENTS_PER_FRAME: usize = 4;
+
+#[derive(Debug, thiserror::Error)]
+pub enum RecordError {
+    #[error("record file {path}: {source}")]
+    Create {
+        path: PathBuf,
+        source: std::io::Error,
+    },
+    #[error("starting the MCAP writer: {source}")]
+    Writer { source: foxglove::FoxgloveError },
+    #[error("recording options: {key} = {value}: {expected}")]
+    Options {
+        key: &'static str,
+        value: String,
+        expected: &'static str,
+    },
+    #[error("serializing the run description: {source}")]
+    Describe { source: toml::ser::Error },
+    #[error("the recorder's writer thread failed")]
+    WriterThread,
+    #[error("writing the recording: {reason}")]
+    Write { reason: String },
+}
+
+/// How a run was started: stored in the recording so `replay` rebuilds the same loop.
+#[derive(Debug, Clone, PartialEq)]
+pub struct RunInfo {
+    /// `hil` or `run`.
+    pub command: String,
+    /// The site as loaded (defaults filled in), TOML.
+    pub site_toml: String,
+    /// Its camera calibration, TOML.
+    pub calibration_toml: String,
+    /// The site file as written by the user (for people; replay uses `site_toml`).
+    pub site_source: String,
+    /// Exposure method the loop ran.
+    pub exposure_method: String,
+    /// Exposure the controller started from, microseconds.
+    pub initial_exposure_us: f64,
+    /// The command line's options, for people.
+    pub options: String,
+}
+
+impl RunInfo {
+    pub fn new(
+        command: &str,
+        site: &LoadedSite,
+        exposure_method: markhold_exposure::ExposureMethod,
+        initial_exposure_us: f64,
+        options: String,
+    ) -> Result<Self, RecordError> {
+        Ok(Self {
+            command: command.to_string(),
+            site_toml: toml::to_string(&site.site)
+                .map_err(|source| RecordError::Describe { source })?,
+            calibration_toml: toml::to_string(&site.calibration)
+                .map_err(|source| RecordError::Describe { source })?,
+            site_source: std::fs::read_to_string(&site.path).unwrap_or_default(),
+            exposure_method: exposure_method.to_string(),
+            initial_exposure_us,
+            options,
+        })
+    }
+
+    fn to_metadata(&self) -> BTreeMap<String, String> {
+        let mut m = BTreeMap::new();
+        m.insert("format".into(), "markhold-recording-1".into());
+        m.insert("command".into(), self.command.clone());
+        m.insert("site_toml".into(), self.site_toml.clone());
+        m.insert("calibration_toml".into(), self.calibration_toml.clone());
+        m.insert("site_source".into(), self.site_source.clone());
+        m.insert("exposure_method".into(), self.exposure_method.clone());
+        // Bits, so replay starts the controller from exactly this value.
+        m.insert(
+            "initial_exposure_bits".into(),
+            format!("{:016x}", self.initial_exposure_us.to_bits()),
+        );
+        m.insert(
+            "initial_exposure_us".into(),
+            self.initial_exposure_us.to_string(),
+        );
+        m.insert("options".into(), self.options.clone());
+        m
+    }
+
+    /// Read back what [`RunInfo::to_metadata`] wrote; `None` names the missing key.
+    pub fn from_metadata(m: &BTreeMap<String, String>) -> Result<Self, String> {
+        let get = |k: &str| m.get(k).cloned().ok_or_else(|| k.to_string());
+        let bits = get("initial_exposure_bits")?;
+        let bits = u64::from_str_radix(&bits, 16)
+            .map_err(|_| format!("initial_exposure_bits = {bits}"))?;
+        Ok(Self {
+            command: get("command")?,
+            site_toml: get("site_toml")?,
+            calibration_toml: get("calibration_toml")?,
+            site_source: m.get("site_source").cloned().unwrap_or_default(),
+            exposure_method: get("exposure_method")?,
+            initial_exposure_us: f64::from_bits(bits),
+            options: m.get("options").cloned().unwrap_or_default(),
+        })
+    }
+}
+
+/// Recorder sizing.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct RecordConfig {
+    /// Frames whose image may wait for the writer; beyond, images are dropped.
+    pub image_queue_frames: usize,
+    /// Items (per-frame records) that may wait; beyond, whole frames are dropped.
+    pub queue_frames: usize,
+    /// PNG compression level 0..9 (lossless at every level; higher is smaller, slower).
+    pub png_level: i32,
+    /// Wait for the writer instead of dropping: for simulated time (`hil`), where the
+    /// loop's clock waits too and a lossless recording keeps replay exact.
+    pub wait_when_full: bool,
+}
+
+impl Default for RecordConfig {
+    fn default() -> Self {
+        Self {
+            image_queue_frames: 8,
+            queue_frames: 64,
+            png_level: 1,
+            wait_when_full: false,
+        }
+    }
+}
+
+impl RecordConfig {
+    pub fn validate(&self) -> Result<(), RecordError> {
+        if self.image_queue_frames == 0 || self.image_queue_frames > self.queue_frames {
+            return Err(RecordError::Options {
+                key: "image_queue_frames",
+                value: self.image_queue_frames.to_string(),
+                expected: "between 1 and queue_frames",
+            });
+        }
+        if !(0..=9).contains(&self.png_level) {
+            return Err(RecordError::Options {
+                key: "png_level",
+                value: self.png_level.to_string(),
+                expected: "0..9",
+            });
+        }
+        Ok(())
+    }
+}
+
+/// What a recording holds and what it lost.
+#[derive(Debug, Clone, Default, PartialEq, Serialize)]
+pub struct RecordStats {
+    /// Frames handed to the recorder.
+    pub frames: u64,
+    /// Frames recorded without their image (pool or queue full).
+    pub images_dropped: u64,
+    /// Frames not recorded at all (queue full).
+    pub frames_dropped: u64,
+    /// The first write error, if any (later ones are not reported again).
+    pub write_error: Option<String>,
+}
+
+#[derive(Default)]
+struct Shared {
+    frames: AtomicU64,
+    images_dropped: AtomicU64,
+    frames_dropped: AtomicU64,
+    write_error: Mutex<Option<String>>,
+}
+
+impl Shared {
+    fn report_error(&self, e: &dyn std::fmt::Display) {
+        if let Ok(mut slot) = self.write_error.lock() {
+            if slot.is_none() {
+                tracing::error!("recording: write failed, the loop goes on without it: {e}");
+                *slot = Some(e.to_string());
+            }
+        }
+    }
+    fn failed(&self) -> bool {
+        self.write_error.lock().map(|s| s.is_some()).unwrap_or(true)
+    }
+}
+
+/// A writer that remembers its first error (the MCAP sink only logs them).
+struct Tracked<W> {
+    inner: W,
+    shared: Arc<Shared>,
+}
+
+impl<W: Write> Write for Tracked<W> {
+    fn write(&mut self, buf: &[u8]) -> std::io::Result<usize> {
+        self.inner
+            .write(buf)
+            .inspect_err(|e| self.shared.report_error(e))
+    }
+    fn flush(&mut self) -> std::io::Result<()> {
+        self.inner
+            .flush()
+            .inspect_err(|e| self.shared.report_error(e))
+    }
+}
+
+impl<W: Seek> Seek for Tracked<W> {
+    fn seek(&mut self, pos: SeekFrom) -> std::io::Result<u64> {
+        self.inner
+            .seek(pos)
+            .inspect_err(|e| self.shared.report_error(e))
+    }
+}
+
+/// What the link knew when a frame was decided.
+#[derive(Debug, Clone)]
+pub struct LinkSnapshot {
+    /// Loop time of the vehicle heartbeat the supervisor saw.
+    pub heartbeat_s: Option<f64>,
+    /// The vehicle's state, when the link is a real one.
+    pub vehicle: Option<VehicleState>,
+}
+
+/// One frame's worth of recording: fixed size, no heap except the pooled image.
+struct Item {
+    rec: FrameRecord,
+    meta: FrameMeta,
+    width: u32,
+    height: u32,
+    image: Option<Vec<u8>>,
+    heartbeat_s: Option<f64>,
+    shutdown: bool,
+    vehicle: Option<VehicleState>,
+    events: [Option<FailsafeEvent>; EVENTS_PER_FRAME],
+}
+
+/// Records a run to MCAP from the control thread without blocking it.
+pub struct Recorder {
+    tx: Option<SyncSender<Item>>,
+    free: Receiver<Vec<u8>>,
+    shared: Arc<Shared>,
+    thread: Option<JoinHandle<Result<(), RecordError>>>,
+    path: Option<PathBuf>,
+    spare: Option<Vec<u8>>,
+    wait_when_full: bool,
+    /// The recorder's foxglove context: a live view can attach to the same channels.
+    context: Arc<Context>,
+}
+
+impl Recorder {
+    /// Create `path` (it must not exist: a recording is never overwritten) and start
+    /// the writer thread.
+    pub fn create(path: &Path, info: &RunInfo, cfg: RecordConfig) -> Result<Self, RecordError> {
+        cfg.validate()?;
+        let file = File::create_new(path).map_err(|source| RecordError::Create {
+            path: path.to_path_buf(),
+            source,
+        })?;
+        match Self::to_writer(BufWriter::with_capacity(1 << 20, file), info, cfg) {
+            Ok(mut r) => {
+                r.path = Some(path.to_path_buf());
+                Ok(r)
+            }
+            Err(e) => {
+                // Nothing half-written left behind.
+                let _ = std::fs::remove_file(path);
+                Err(e)
+            }
+        }
+    }
+
+    /// Record into any seekable writer (tests use failing writers).
+    pub fn to_writer<W: Write + Seek + Send + 'static>(
+        writer: W,
+        info: &RunInfo,
+        cfg: RecordConfig,
+    ) -> Result<Self, RecordError> {
+        cfg.validate()?;
+        let shared = Arc::new(Shared::default());
+        let context = Context::new();
+        let handle = McapWriter::new()
+            .context(&context)
+            .create(Tracked {
+                inner: writer,
+                shared: shared.clone(),
+            })
+            .map_err(|source| RecordError::Writer { source })?;
+        handle
+            .write_metadata(METADATA_NAME, info.to_metadata())
+            .map_err(|source| RecordError::Writer { source })?;
+        let channels = Channels::new(&context)?;
+        let (tx, rx) = sync_channel::<Item>(cfg.queue_frames);
+        let (free_tx, free) = sync_channel::<Vec<u8>>(cfg.image_queue_frames);
+        for _ in 0..cfg.image_queue_frames {
+            let _ = free_tx.try_send(Vec::new());
+        }
+        let shared_w = shared.clone();
+        let png_level = cfg.png_level;
+        let thread = std::thread::Builder::new()
+            .name("markhold-recorder".into())
+            .spawn(move || {
+                let mut w = WriterThread {
+                    channels,
+                    shared: shared_w,
+                    png: opencv::core::Vector::new(),
+                    png_params: opencv::core::Vector::from_slice(&[
+                        opencv::imgcodecs::IMWRITE_PNG_COMPRESSION,
+                        png_level,
+                    ]),
+                    json: Vec::with_capacity(4096),
+                };
+                while let Ok(mut item) = rx.recv() {
+                    if !w.shared.failed() {
+                        w.write(&item);
+                    }
+                    if let Some(buf) = item.image.take() {
+                        let _ = free_tx.try_send(buf);
+                    }
+                }
+                // Finalize: summary section and footer.
+                match handle.close() {
+                    Ok(mut inner) => inner.flush().map_err(|e| RecordError::Write {
+                        reason: e.to_string(),
+                    }),
+                    Err(e) => Err(RecordError::Write {
+                        reason: e.to_string(),
+                    }),
+                }
+            })
+            .map_err(|source| RecordError::Create {
+                path: PathBuf::from("<recorder thread>"),
+                source,
+            })?;
+        Ok(Self {
+            tx: Some(tx),
+            free,
+            shared,
+            thread: Some(thread),
+            path: None,
+            spare: None,
+            wait_when_full: cfg.wait_when_full,
+            context,
+        })
+    }
+
+    /// The foxglove context the recording's channels live in.
+    pub fn context(&self) -> &Arc<Context> {
+        &self.context
+    }
+
+    /// Record one frame. Never blocks and never fails: losses are counted.
+    pub fn record(
+        &mut self,
+        rec: &FrameRecord,
+        frame: &Frame,
+        link: &LinkSnapshot,
+        shutdown: bool,
+        events: &[FailsafeEvent],
+    ) {
+        let Some(tx) = &self.tx else { return };
+        self.shared.frames.fetch_add(1, Ordering::Relaxed);
+        let wait = self.wait_when_full;
+        let image = match self.spare.take().ok_or(()).or_else(|_| {
+            if wait {
+                self.free.recv().map_err(|_| ())
+            } else {
+                self.free.try_recv().map_err(|_| ())
+            }
+        }) {
+            Ok(mut buf) => {
+                buf.clear();
+                buf.extend_from_slice(&frame.data);
+                Some(buf)
+            }
+            Err(_) => {
+                self.shared.images_dropped.fetch_add(1, Ordering::Relaxed);
+                None
+            }
+        };
+        let mut ev = [None; EVENTS_PER_FRAME];
+        for (slot, e) in ev.iter_mut().zip(events) {
+            *slot = Some(*e);
+        }
+        let item = Item {
+            rec: *rec,
+            meta: frame.meta,
+            width: frame.width,
+            height: frame.height,
+            image,
+            heartbeat_s: link.heartbeat_s,
+            shutdown,
+            vehicle: link.vehicle.clone(),
+            events: ev,
+        };
+        if wait {
+            if tx.send(item).is_err() {
+                self.shared.frames_dropped.fetch_add(1, Ordering::Relaxed);
+            }
+            return;
+        }
+        match tx.try_send(item) {
+            Ok(()) => {}
+            Err(TrySendError::Full(item)) | Err(TrySendError::Disconnected(item)) => {
+                self.shared.frames_dropped.fetch_add(1, Ordering::Relaxed);
+                if let Some(buf) = item.image {
+                    // Back to the pool; the image of a dropped frame was never written.
+                    self.shared.images_dropped.fetch_add(1, Ordering::Relaxed);
+                    self.recycle(buf);
+                }
+            }
+        }
+    }
+
+    fn recycle(&mut self, buf: Vec<u8>) {
+        // The pool's sender belongs to the writer thread: a buffer that never left
+        // waits here for the next frame.
+        self.spare = Some(buf);
+    }
+
+    /// Counters so far.
+    pub fn stats(&self) -> RecordStats {
+        RecordStats {
+            frames: self.shared.frames.load(Ordering::Relaxed),
+            images_dropped: self.shared.images_dropped.load(Ordering::Relaxed),
+            frames_dropped: self.shared.frames_dropped.load(Ordering::Relaxed),
+            write_error: self.shared.write_error.lock().ok().and_then(|s| s.clone()),
+        }
+    }
+
+    /// Write what is queued, finalize the file and return what was recorded.
+    pub fn finish(mut self) -> Result<RecordStats, RecordError> {
+        self.tx = None;
+        let joined = match self.thread.take() {
+            Some(t) => t.join().map_err(|_| RecordError::WriterThread)?,
+            None => Ok(()),
+        };
+        if let Err(e) = joined {
+            self.shared.report_error(&e);
+        }
+        Ok(self.stats())
+    }
+
+    /// Stop and delete the file (start-up failed after the recorder was created).
+    pub fn abort(mut self) {
+        self.tx = None;
+        if let Some(t) = self.thread.take() {
+            let _ = t.join();
+        }
+        if let Some(p) = self.path.take() {
+            let _ = std::fs::remove_file(p);
+        }
+    }
+}
+
+impl Drop for Recorder {
+    fn drop(&mut self) {
+        // Finalize on every exit path (an error or a panic unwinding the loop).
+        self.tx = None;
+        if let Some(t) = self.thread.take() {
+            let _ = t.join();
+        }
+    }
+}
+
+/// `/markhold/frame`: what replay needs to feed a frame through the loop again.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct FrameMsg {
+    pub seq: u64,
+    pub stamp_s: f64,
+    pub exposure_us: f64,
+    pub gain_db: f64,
+    pub width: u32,
+    pub height: u32,
+    /// False when the image was dropped (recorder queue full).
+    pub image: bool,
+    /// Vehicle heartbeat the supervisor saw on this frame (loop time).
+    pub heartbeat_s: Option<f64>,
+    pub shutdown: bool,
+    /// Exact f64 bit patterns of stamp, exposure, gain and heartbeat (JSON numbers are
+    /// for people and plots; replay must not depend on decimal round trips).
+    pub bits: FrameBits,
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct FrameBits {
+    pub stamp: u64,
+    pub exposure: u64,
+    pub gain: u64,
+    pub heartbeat: Option<u64>,
+}
+
+/// `/markhold/command`: the frame's directive and the keeper's effort.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct CommandMsg {
+    pub seq: u64,
+    pub stamp_s: f64,
+    /// `command`, `neutral`, `silent`, `shutdown` or `shutdown_disarm`.
+    pub directive: String,
+    /// surge, sway, heave, roll, pitch, yaw (docs/frames.md).
+    pub effort: [f64; 6],
+    pub effort_bits: [u64; 6],
+}
+
+impl CommandMsg {
+    pub fn from_record(rec: &FrameRecord) -> Self {
+        let e = &rec.effort;
+        let effort = [e.surge, e.sway, e.heave, e.roll, e.pitch, e.yaw];
+        Self {
+            seq: rec.seq,
+            stamp_s: rec.stamp_s,
+            directive: directive_name(rec.directive).to_string(),
+            effort,
+            effort_bits: effort.map(f64::to_bits),
+        }
+    }
+}
+
+pub fn directive_name(d: Directive) -> &'static str {
+    match d {
+        Directive::Command => "command",
+        Directive::Neutral => "neutral",
+        Directive::Silent => "silent",
+        Directive::Shutdown { disarm: false } => "shutdown",
+        Directive::Shutdown { disarm: true } => "shutdown_disarm",
+    }
+}
+
+#[derive(Serialize)]
+struct ExposureMsg {
+    seq: u64,
+    stamp_s: f64,
+    exposure_used_us: f64,
+    exposure_next_us: f64,
+    gain_db: f64,
+    metric: Option<f64>,
+    used_frame: bool,
+    roi: Option<markhold_exposure::Roi>,
+}
+
+#[derive(Serialize)]
+struct DetectionMsg {
+    seq: u64,
+    stamp_s: f64,
+    detected: bool,
+    corners_px: Option<[[f32; 2]; 4]>,
+    /// Marker position in the camera frame, metres.
+    translation_m: Option<[f64; 3]>,
+    /// Marker orientation in the camera frame, quaternion x, y, z, w.
+    rotation_xyzw: Option<[f64; 4]>,
+    /// 6x6 covariance of the pose, row-major (docs/frames.md order).
+    covariance: Option<Vec<f64>>,
+    reproj_rms_px: Option<f64>,
+}
+
+#[derive(Serialize)]
+struct VehicleMsg<'a> {
+    seq: u64,
+    stamp_s: f64,
+    state: &'a VehicleState,
+}
+
+fn finite(v: f64) -> Option<f64> {
+    v.is_finite().then_some(v)
+}
+
+/// Loop seconds to MCAP nanoseconds (negative or non-finite stamps to 0).
+pub fn stamp_ns(stamp_s: f64) -> u64 {
+    if stamp_s.is_finite() && stamp_s > 0.0 {
+        (stamp_s * 1e9).round().min(u64::MAX as f64) as u64
+    } else {
+        0
+    }
+}
+
+fn timestamp(stamp_s: f64) -> Timestamp {
+    let ns = stamp_ns(stamp_s);
+    let sec = u32::try_from(ns / 1_000_000_000).unwrap_or(u32::MAX);
+    Timestamp::new_checked(sec, (ns % 1_000_000_000) as u32).unwrap_or(Timestamp::MAX)
+}
+
+struct Channels {
+    image: foxglove::Channel<CompressedImage>,
+    pose: foxglove::Channel<PoseInFrame>,
+    failsafe: foxglove::Channel<Log>,
+    frame: Arc<RawChannel>,
+    exposure: Arc<RawChannel>,
+    detection: Arc<RawChannel>,
+    command: Arc<RawChannel>,
+    vehicle: Arc<RawChannel>,
+}
+
+fn json_channel(
+    ctx: &Arc<Context>,
+    topic: &str,
+    name: &str,
+) -> Result<Arc<RawChannel>, RecordError> {
+    ChannelBuilder::new(topic)
+        .context(ctx)
+        .message_encoding("json")
+        .schema(Schema::new(
+            name,
+            "jsonschema",
+            br#"{"type":"object"}"#.as_slice(),
+        ))
+        .build_raw()
+        .map_err(|source| RecordError::Writer { source })
+}
+
+impl Channels {
+    fn new(ctx: &Arc<Context>) -> Result<Self, RecordError> {
+        Ok(Self {
+            image: ChannelBuilder::new(TOPIC_IMAGE).context(ctx).build(),
+            pose: ChannelBuilder::new(TOPIC_POSE).context(ctx).build(),
+            failsafe: ChannelBuilder::new(TOPIC_FAILSAFE).context(ctx).build(),
+            frame: json_channel(ctx, TOPIC_FRAME, "markhold.Frame")?,
+            exposure: json_channel(ctx, TOPIC_EXPOSURE, "markhold.Exposure")?,
+            detection: json_channel(ctx, TOPIC_DETECTION, "markhold.Detection")?,
+            command: json_channel(ctx, TOPIC_COMMAND, "markhold.Command")?,
+            vehicle: json_channel(ctx, TOPIC_VEHICLE, "markhold.Vehicle")?,
+        })
+    }
+}
+
+struct WriterThread {
+    channels: Channels,
+    shared: Arc<Shared>,
+    png: opencv::core::Vector<u8>,
+    png_params: opencv::core::Vector<i32>,
+    json: Vec<u8>,
+}
+
+impl WriterThread {
+    fn json<T: Serialize>(&mut self, ch: &RawChannel, log_time: u64, msg: &T) {
+        self.json.clear();
+        match serde_json::to_writer(&mut self.json, msg) {
+            Ok(()) => ch.log_with_meta(
+                &self.json,
+                PartialMetadata {
+                    log_time: Some(log_time),
+                },
+            ),
+            Err(e) => self.shared.report_error(&e),
+        }
+    }
+
+    fn encode_png(&mut self, width: u32, height: u32, data: &[u8]) -> Result<(), opencv::Error> {
+        use opencv::prelude::*;
+        let n = width as usize * height as usize;
+        let pixels = data.get(..n).ok_or_else(|| {
+            opencv::Error::new(
+                opencv::core::StsBadArg,
+                "frame buffer shorter than its size",
+            )
+        })?;
+        let img =
+            opencv::core::Mat::new_rows_cols_with_data::<u8>(height as i32, width as i32, pixels)?;
+        self.png.clear();
+        opencv::imgcodecs::imencode(".png", &img, &mut self.png, &self.png_params)?;
+        let _ = img.typ();
+        Ok(())
+    }
+
+    fn write(&mut self, it: &Item) {
+        let r = &it.rec;
+        let t = stamp_ns(it.meta.stamp_s);
+        let meta = PartialMetadata { log_time: Some(t) };
+        let mut image_written = false;
+        if let Some(img) = &it.image {
+            match self.encode_png(it.width, it.height, img) {
+                Ok(()) => {
+                    let msg = CompressedImage {
+                        timestamp: Some(timestamp(it.meta.stamp_s)),
+                        frame_id: "camera".into(),
+                        data: foxglove::bytes::Bytes::copy_from_slice(self.png.as_slice()),
+                        format: "png".into(),
+                    };
+                    self.channels.image.log_with_meta(&msg, meta);
+                    image_written = true;
+                }
+                Err(e) => self.shared.report_error(&e),
+            }
+        }
+        let m = it.meta;
+        let frame = FrameMsg {
+            seq: m.seq,
+            stamp_s: m.stamp_s,
+            exposure_us: m.exposure_us,
+            gain_db: m.gain_db,
+            width: it.width,
+            height: it.height,
+            image: image_written,
+            heartbeat_s: it.heartbeat_s,
+            shutdown: it.shutdown,
+            bits: FrameBits {
+                stamp: m.stamp_s.to_bits(),
+                exposure: m.exposure_us.to_bits(),
+                gain: m.gain_db.to_bits(),
+                heartbeat: it.heartbeat_s.map(f64::to_bits),
+            },
+        };
+        let ch = self.channels.frame.clone();
+        self.json(&ch, t, &frame);
+        let exposure = ExposureMsg {
+            seq: m.seq,
+            stamp_s: m.stamp_s,
+            exposure_used_us: r.exposure_used_us,
+            exposure_next_us: r.exposure.exposure_us,
+            gain_db: m.gain_db,
+            metric: finite(r.exposure.metric),
+            used_frame: r.exposure.used_frame,
+            roi: r.exposure.roi,
+        };
+        let ch = self.channels.exposure.clone();
+        self.json(&ch, t, &exposure);
+        let q = r.t_cam_marker.map(|p| p.rotation.into_inner().coords);
+        let detection = DetectionMsg {
+            seq: m.seq,
+            stamp_s: m.stamp_s,
+            detected: r.detected,
+            corners_px: r.corners,
+            translation_m: r.t_cam_marker.map(|p| p.translation.vector.into()),
+            rotation_xyzw: q.map(|c| [c.x, c.y, c.z, c.w]),
+            covariance: r.cov_cam.map(|c| c.transpose().as_slice().to_vec()),
+            reproj_rms_px: finite(r.reproj_rms_px),
+        };
+        let ch = self.channels.detection.clone();
+        self.json(&ch, t, &detection);
+        if let Some(p) = r.t_cam_marker {
+            let v = p.translation.vector;
+            let q = p.rotation.into_inner().coords;
+            let msg = PoseInFrame {
+                timestamp: Some(timestamp(m.stamp_s)),
+                frame_id: "camera".into(),
+                pose: Some(Pose {
+                    position: Some(Vector3 {
+                        x: v.x,
+                        y: v.y,
+                        z: v.z,
+                    }),
+                    orientation: Some(Quaternion {
+                        x: q.x,
+                        y: q.y,
+                        z: q.z,
+                        w: q.w,
+                    }),
+                }),
+            };
+            self.channels.pose.log_with_meta(&msg, meta);
+        }
+        let ch = self.channels.command.clone();
+        self.json(&ch, t, &CommandMsg::from_record(r));
+        if let Some(state) = &it.vehicle {
+            let ch = self.channels.vehicle.clone();
+            self.json(
+                &ch,
+                t,
+                &VehicleMsg {
+                    seq: m.seq,
+                    stamp_s: m.stamp_s,
+                    state,
+                },
+            );
+        }
+        for e in it.events.iter().flatten() {
+            let msg = Log {
+                timestamp: Some(timestamp(m.stamp_s)),
+                level: foxglove::schemas::log::Level::Warning as i32,
+                message: format!("{e:?}"),
+                name: "supervisor".into(),
+                file: String::new(),
+                line: 0,
+            };
+            self.channels.failsafe.log_with_meta(&msg, meta);
+        }
+    }
+}
+
+/// Record the frame `pipeline` just stepped (what its link knew, its events).
+pub fn record_step<L: CommandLink>(rec: &mut Recorder, pipeline: &Pipeline<L>, fr: &FrameRecord) {
+    let snap = LinkSnapshot {
+        heartbeat_s: pipeline.link.vehicle_heartbeat_s(),
+        vehicle: pipeline.link.vehicle_state().cloned(),
+    };
+    rec.record(
+        fr,
+        &pipeline.frame,
+        &snap,
+        pipeline.shutdown,
+        &pipeline.events,
+    );
+}
+
+/// `run_hil` with every frame recorded. The recorder is finished by the caller, also
+/// when this returns an error.
+pub fn run_hil_recorded(
+    site: &LoadedSite,
+    opts: &crate::hil_run::HilOptions,
+    recorder: &mut Recorder,
+    on_frame: &mut dyn FnMut(&FrameRecord, &markhold_hil::Truth, &Frame),
+) -> anyhow::Result<crate::summary::Summary> {
+    use crate::hil_run::HilRun;
+    let wall = std::time::Instant::now();
+    let mut run = HilRun::build(site, opts)?;
+    run.arm(site.site.link.mode.ardusub())?;
+    let frames = (opts.seconds * site.site.camera.fps).round().max(1.0) as u64;
+    let mut stats =
+        crate::summary::RunStats::new(frames as usize, run.t_world_marker, run.t_marker_station);
+    for _ in 0..frames {
+        let (rec, truth) = run.step()?;
+        record_step(recorder, &run.pipeline, &rec);
+        stats.push(&rec, &truth);
+        on_frame(&rec, &truth, &run.pipeline.frame);
+    }
+    let now = run.rig.truth().time_s;
+    run.pipeline.link.send_neutral(now)?;
+    Ok(stats.summary(
+        run.method,
+        run.lighting,
+        opts.seed,
+        wall.elapsed().as_secs_f64(),
+        run.rig.truth().lockstep_timeouts,
+    ))
+}
+
+/// The exposure method and initial exposure a HIL run with `opts` uses (as `HilRun`).
+pub fn hil_exposure_start(
+    site: &LoadedSite,
+    opts: &crate::hil_run::HilOptions,
+) -> (markhold_exposure::ExposureMethod, f64) {
+    let s = &site.site;
+    let method = opts.exposure.unwrap_or(s.exposure.method);
+    let initial = site.limits().clamp(
+        opts.initial_exposure_us
+            .unwrap_or(s.camera.initial_exposure_us),
+    );
+    (method, initial)
+}
+
+/// Open `--record FILE` for a HIL run with `opts`.
+pub fn open_hil_recorder(
+    site: &LoadedSite,
+    opts: &crate::hil_run::HilOptions,
+    path: &Path,
+) -> Result<Recorder, RecordError> {
+    let (method, initial) = hil_exposure_start(site, opts);
+    let options = format!(
+        "hil --site {} --seconds {} --seed {} --exposure {method} --initial-exposure-us {initial}",
+        site.path.display(),
+        opts.seconds,
+        opts.seed
+    );
+    let info = RunInfo::new("hil", site, method, initial, options)?;
+    let cfg = RecordConfig {
+        wait_when_full: true,
+        ..RecordConfig::default()
+    };
+    Recorder::create(path, &info, cfg)
+}
+
+/// Finish a recording and say what it holds; a write error during the run is an
+/// error here (the run itself went on).
+pub fn finish_and_report(recorder: Recorder, path: &Path) -> Result<RecordStats, RecordError> {
+    let stats = recorder.finish()?;
+    eprintln!(
+        "markhold: recorded {} frames to {} ({} images dropped, {} frames dropped)",
+        stats.frames,
+        path.display(),
+        stats.images_dropped,
+        stats.frames_dropped
+    );
+    if let Some(reason) = &stats.write_error {
+        return Err(RecordError::Write {
+            reason: format!("{}: {reason}", path.display()),
+        });
+    }
+    Ok(stats)
+}

@@ -1,0 +1,346 @@
+//! `markhold replay FILE.mcap`: the recorded frames through the same [`Pipeline`], on
+//! the recorded clock, with a link that only keeps the commands; each command is
+//! compared bit for bit with the recorded one.
+
+use std::path::{Path, PathBuf};
+
+use anyhow::{bail, Context as _};
+use foxglove::schemas::CompressedImage;
+use foxglove::Decode;
+use markhold_autopilot::{Effort, StationKeeper, Supervisor};
+use markhold_exposure::{
+    build_controller, Camera, CameraError, ExposureLimits, ExposureMethod, Frame, FrameMeta,
+};
+use markhold_vision::{CameraCalibration, MarkerTracker};
+use opencv::prelude::*;
+use serde::Serialize;
+
+use crate::params::{LoadedSite, Site};
+use crate::pipeline::{CommandLink, Pipeline};
+use crate::record::{
+    CommandMsg, FrameMsg, RunInfo, METADATA_NAME, TOPIC_COMMAND, TOPIC_FRAME, TOPIC_IMAGE,
+};
+
+/// A loop built from a site, for any link: the same construction as `hil`.
+pub fn build_pipeline<L: CommandLink>(
+    site: &LoadedSite,
+    method: ExposureMethod,
+    initial_exposure_us: f64,
+    link: L,
+) -> anyhow::Result<Pipeline<L>> {
+    let s = &site.site;
+    let calib = &site.calibration;
+    Ok(Pipeline {
+        tracker: MarkerTracker::new(&s.marker, &s.vision, calib.clone())?,
+        exposure: build_controller(&s.exposure, method, site.limits(), initial_exposure_us)?,
+        keeper: StationKeeper::new(&s.station, &s.controller, site.t_vehicle_cam())?,
+        supervisor: Supervisor::new(&s.controller, &s.link),
+        link,
+        frame: Frame::new(calib.width, calib.height),
+        events: Vec::with_capacity(8),
+        marker_seen_s: None,
+        shutdown: false,
+    })
+}
+
+/// What replay sent: per frame, the effort, or `None` for neutral input.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct SentCommand {
+    pub stamp_s: f64,
+    pub effort: Option<Effort>,
+}
+
+/// A link that keeps the commands and reports the recorded heartbeat.
+#[derive(Debug, Default)]
+pub struct SinkLink {
+    /// The vehicle heartbeat to report on the coming frame (from the recording).
+    pub heartbeat_s: Option<f64>,
+    pub sent: Vec<SentCommand>,
+}
+
+impl CommandLink for SinkLink {
+    fn tick(&mut self, _now_s: f64) -> anyhow::Result<()> {
+        Ok(())
+    }
+    fn send_effort(&mut self, effort: &Effort, now_s: f64) -> anyhow::Result<()> {
+        self.sent.push(SentCommand {
+            stamp_s: now_s,
+            effort: Some(*effort),
+        });
+        Ok(())
+    }
+    fn send_neutral(&mut self, now_s: f64) -> anyhow::Result<()> {
+        self.sent.push(SentCommand {
+            stamp_s: now_s,
+            effort: None,
+        });
+        Ok(())
+    }
+    fn vehicle_heartbeat_s(&self) -> Option<f64> {
+        self.heartbeat_s
+    }
+}
+
+/// Hands out the one frame replay loaded; exposure requests are only noted.
+struct ReplayCamera {
+    frame: Frame,
+    ready: bool,
+    limits: ExposureLimits,
+    requested_us: f64,
+}
+
+impl Camera for ReplayCamera {
+    fn name(&self) -> &str {
+        "replay"
+    }
+    fn exposure_limits(&self) -> ExposureLimits {
+        self.limits
+    }
+    fn set_exposure_us(&mut self, exposure_us: f64) -> Result<f64, CameraError> {
+        self.requested_us = exposure_us;
+        Ok(exposure_us)
+    }
+    fn grab(&mut self, frame: &mut Frame) -> Result<(), CameraError> {
+        if !self.ready {
+            return Err(CameraError::EndOfStream {
+                device: "replay".into(),
+            });
+        }
+        self.ready = false;
+        frame.resize(self.frame.width, self.frame.height);
+        frame.data.copy_from_slice(&self.frame.data);
+        frame.meta = self.frame.meta;
+        Ok(())
+    }
+}
+
+/// The first command that differs.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct Mismatch {
+    pub seq: u64,
+    pub stamp_s: f64,
+    /// `directive`, `effort.surge` .. `effort.yaw`, `seq`, `image` (dropped when
+    /// recording: replay cannot go past it) or `count`.
+    pub field: String,
+    pub recorded: String,
+    pub replayed: String,
+}
+
+/// `--summary` of a replay.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct ReplaySummary {
+    pub file: PathBuf,
+    /// The command that recorded the file (`hil`, `run`).
+    pub recorded_by: String,
+    pub exposure_method: String,
+    pub frames_recorded: u64,
+    pub frames_replayed: u64,
+    pub commands_compared: u64,
+    pub commands_match: bool,
+    pub first_mismatch: Option<Mismatch>,
+}
+
+fn mcap_err(path: &Path) -> impl Fn(mcap::McapError) -> anyhow::Error + '_ {
+    move |e| anyhow::anyhow!("{}: not a readable MCAP file: {e}", path.display())
+}
+
+/// Read the run description and rebuild its site.
+pub fn read_run_info(path: &Path, buf: &[u8]) -> anyhow::Result<(RunInfo, LoadedSite)> {
+    let summary = mcap::Summary::read(buf)
+        .map_err(mcap_err(path))?
+        .with_context(|| {
+            format!(
+                "{}: no MCAP summary (was the recording finalized?)",
+                path.display()
+            )
+        })?;
+    let idx = summary
+        .metadata_indexes
+        .iter()
+        .find(|i| i.name == METADATA_NAME)
+        .with_context(|| {
+            format!(
+                "{}: no `{METADATA_NAME}` metadata: not a markhold recording",
+                path.display()
+            )
+        })?;
+    let meta = mcap::read::metadata(buf, idx).map_err(mcap_err(path))?;
+    let info = RunInfo::from_metadata(&meta.metadata)
+        .map_err(|k| anyhow::anyhow!("{}: run metadata key {k} missing or bad", path.display()))?;
+    let site: Site = toml::from_str(&info.site_toml)
+        .with_context(|| format!("{}: the recorded site", path.display()))?;
+    let calibration: CameraCalibration = toml::from_str(&info.calibration_toml)
+        .with_context(|| format!("{}: the recorded calibration", path.display()))?;
+    Ok((
+        info,
+        LoadedSite {
+            path: path.to_path_buf(),
+            site,
+            calibration,
+        },
+    ))
+}
+
+fn decode_png(png: &[u8], out: &mut Frame) -> anyhow::Result<()> {
+    let buf = opencv::core::Mat::from_slice(png)?;
+    let img = opencv::imgcodecs::imdecode(&buf, opencv::imgcodecs::IMREAD_UNCHANGED)?;
+    if img.empty() || img.channels() != 1 || img.depth() != opencv::core::CV_8U {
+        bail!("not an 8-bit grey PNG");
+    }
+    let (w, h) = (img.cols() as u32, img.rows() as u32);
+    out.resize(w, h);
+    let bytes = img.data_bytes()?;
+    let n = (w * h) as usize;
+    if !img.is_continuous() || bytes.len() < n {
+        bail!("decoded image is not contiguous");
+    }
+    out.data.copy_from_slice(&bytes[..n]);
+    Ok(())
+}
+
+fn compare(recorded: &CommandMsg, replayed: &CommandMsg) -> Option<Mismatch> {
+    let mm = |field: &str, a: String, b: String| Mismatch {
+        seq: recorded.seq,
+        stamp_s: recorded.stamp_s,
+        field: field.to_string(),
+        recorded: a,
+        replayed: b,
+    };
+    if recorded.seq != replayed.seq {
+        return Some(mm(
+            "seq",
+            recorded.seq.to_string(),
+            replayed.seq.to_string(),
+        ));
+    }
+    if recorded.directive != replayed.directive {
+        return Some(mm(
+            "directive",
+            recorded.directive.clone(),
+            replayed.directive.clone(),
+        ));
+    }
+    const AXES: [&str; 6] = ["surge", "sway", "heave", "roll", "pitch", "yaw"];
+    for (i, axis) in AXES.iter().enumerate() {
+        if recorded.effort_bits[i] != replayed.effort_bits[i] {
+            let v = |b: u64| format!("{:e} (bits {b:016x})", f64::from_bits(b));
+            return Some(mm(
+                &format!("effort.{axis}"),
+                v(recorded.effort_bits[i]),
+                v(replayed.effort_bits[i]),
+            ));
+        }
+    }
+    None
+}
+
+/// Replay a recording and compare its commands.
+pub fn replay(path: &Path) -> anyhow::Result<ReplaySummary> {
+    let buf = std::fs::read(path).with_context(|| format!("reading {}", path.display()))?;
+    let (info, site) = read_run_info(path, &buf)?;
+    let method: ExposureMethod = info.exposure_method.parse().map_err(|e| {
+        anyhow::anyhow!(
+            "{}: exposure_method {}: {e}",
+            path.display(),
+            info.exposure_method
+        )
+    })?;
+    let mut pipeline = build_pipeline(&site, method, info.initial_exposure_us, SinkLink::default())
+        .context("rebuilding the recorded loop")?;
+    let mut camera = ReplayCamera {
+        frame: Frame::new(site.calibration.width, site.calibration.height),
+        ready: false,
+        limits: site.limits(),
+        requested_us: info.initial_exposure_us,
+    };
+    let mut out = ReplaySummary {
+        file: path.to_path_buf(),
+        recorded_by: info.command.clone(),
+        exposure_method: info.exposure_method.clone(),
+        frames_recorded: 0,
+        frames_replayed: 0,
+        commands_compared: 0,
+        commands_match: true,
+        first_mismatch: None,
+    };
+    let mut image: Option<(u64, Vec<u8>)> = None;
+    let mut replayed: Option<CommandMsg> = None;
+    let mut stopped = false;
+    for msg in mcap::MessageStream::new(&buf).map_err(mcap_err(path))? {
+        let msg = msg.map_err(mcap_err(path))?;
+        match msg.channel.topic.as_str() {
+            TOPIC_IMAGE => {
+                let img = CompressedImage::decode(&*msg.data).map_err(|e| {
+                    anyhow::anyhow!("{}: image at {} ns: {e}", path.display(), msg.log_time)
+                })?;
+                image = Some((msg.log_time, img.data.to_vec()));
+            }
+            TOPIC_FRAME => {
+                out.frames_recorded += 1;
+                if stopped {
+                    continue;
+                }
+                let f: FrameMsg = serde_json::from_slice(&msg.data)
+                    .with_context(|| format!("{}: frame message", path.display()))?;
+                let png = match image.take() {
+                    Some((t, png)) if t == msg.log_time && f.image => png,
+                    _ => {
+                        // Without the pixels the loop's state diverges: stop here.
+                        stopped = true;
+                        if out.first_mismatch.is_none() {
+                            out.first_mismatch = Some(Mismatch {
+                                seq: f.seq,
+                                stamp_s: f.stamp_s,
+                                field: "image".into(),
+                                recorded: "dropped while recording".into(),
+                                replayed: "not replayed".into(),
+                            });
+                        }
+                        continue;
+                    }
+                };
+                decode_png(&png, &mut camera.frame)
+                    .with_context(|| format!("{}: image of frame {}", path.display(), f.seq))?;
+                camera.frame.meta = FrameMeta {
+                    seq: f.seq,
+                    stamp_s: f64::from_bits(f.bits.stamp),
+                    exposure_us: f64::from_bits(f.bits.exposure),
+                    gain_db: f64::from_bits(f.bits.gain),
+                };
+                camera.ready = true;
+                pipeline.link.heartbeat_s = f.bits.heartbeat.map(f64::from_bits);
+                pipeline.shutdown = f.shutdown;
+                let rec = pipeline.step(&mut camera)?;
+                out.frames_replayed += 1;
+                replayed = Some(CommandMsg::from_record(&rec));
+            }
+            TOPIC_COMMAND => {
+                if stopped {
+                    continue;
+                }
+                let recorded: CommandMsg = serde_json::from_slice(&msg.data)
+                    .with_context(|| format!("{}: command message", path.display()))?;
+                let Some(mine) = replayed.take() else {
+                    continue;
+                };
+                out.commands_compared += 1;
+                if out.first_mismatch.is_none() {
+                    out.first_mismatch = compare(&recorded, &mine);
+                }
+            }
+            _ => {}
+        }
+    }
+    if out.commands_compared != out.frames_replayed && out.first_mismatch.is_none() {
+        out.first_mismatch = Some(Mismatch {
+            seq: 0,
+            stamp_s: 0.0,
+            field: "count".into(),
+            recorded: format!("{} commands", out.commands_compared),
+            replayed: format!("{} frames", out.frames_replayed),
+        });
+    }
+    out.commands_match = out.first_mismatch.is_none() && out.frames_replayed > 0;
+    let _ = camera.requested_us;
+    Ok(out)
+}
