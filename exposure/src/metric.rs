@@ -284,6 +284,9 @@ pub struct GradientMetric {
     /// `D_Q_MAX`, so that a Sobel sum of `D` fits an i16.
     d_lut: [i16; 256],
     d_scale: f64,
+    /// `Some(k)` when the table is `k * I` for 0 < I < saturation (a linear camera):
+    /// rows are then filled by arithmetic, which vectorizes, instead of a lookup.
+    linear_step: Option<i16>,
     /// `D` for three consecutive rows.
     d_rows: [Vec<i16>; 3],
     /// `64 G` per pixel of a row (an exact integer held in an f32).
@@ -318,10 +321,22 @@ impl GradientMetric {
         for (i, d) in d_lut.iter_mut().enumerate() {
             *d = (d_of(i) * d_scale).round().min(D_Q_MAX) as i16;
         }
+        let k = d_lut[1];
+        let linear_step = (1..256)
+            .all(|i| {
+                let want = if i < params.saturation_grey as usize {
+                    i as i32 * k as i32
+                } else {
+                    0
+                };
+                d_lut[i] as i32 == want
+            })
+            .then_some(k);
         Self {
             params,
             d_lut,
             d_scale,
+            linear_step,
             d_rows: [Vec::new(), Vec::new(), Vec::new()],
             g64: Vec::new(),
             dg: Vec::new(),
@@ -359,11 +374,9 @@ impl GradientMetric {
         let unit = 32.0 * self.d_scale;
         let pen = self.params.saturation_penalty as f32;
         let floor = (self.params.saturation_floor * unit) as f32;
-        let lut = &self.d_lut;
+        let (lut, linear) = (&self.d_lut, self.linear_step);
         for (r, y) in self.d_rows.iter_mut().zip(0..2) {
-            for (d, &p) in r[..w].iter_mut().zip(view.row(y)) {
-                *d = lut[p as usize];
-            }
+            fill_d_row(&mut r[..w], view.row(y), lut, linear, sat);
         }
         let m = w - 2;
         let (mut sum_grey, mut n_sat) = (0u64, 0u64);
@@ -373,9 +386,7 @@ impl GradientMetric {
             let (r0, r1, r2) = (view.row(y - 1), view.row(y), view.row(y + 1));
             {
                 let slot = &mut self.d_rows[(y + 1) % 3];
-                for (d, &p) in slot[..w].iter_mut().zip(r2) {
-                    *d = lut[p as usize];
-                }
+                fill_d_row(&mut slot[..w], r2, lut, linear, sat);
             }
             let d0 = &self.d_rows[(y - 1) % 3][..w];
             let d1 = &self.d_rows[y % 3][..w];
@@ -390,10 +401,16 @@ impl GradientMetric {
             // Grey statistics: branch-free, vectorizes.
             let (g64, dg, keys) = (&self.g64[..m], &mut self.dg[..m], &self.keys[..m]);
             let centre = &r1[1..m + 1];
+            // Sums in u16 lanes over chunks of 128 (128 * 255 < 2^16), so they vectorize.
             let (mut row_grey, mut row_sat) = (0u32, 0u32);
-            for &p in centre {
-                row_sat += (p >= sat) as u32;
-                row_grey += p as u32;
+            for chunk in centre.chunks(128) {
+                let (mut g, mut n) = (0u16, 0u16);
+                for &p in chunk {
+                    g += p as u16;
+                    n += (p >= sat) as u16;
+                }
+                row_grey += g as u32;
+                row_sat += n as u32;
             }
             if row_sat > 0 {
                 // The clipped-pixel rule, only on rows that have clipped pixels.
@@ -442,6 +459,32 @@ impl GradientMetric {
         }
         let n = rw.total();
         (m / (64.0 * n), dm / (n * 32.0 * self.d_scale))
+    }
+}
+
+/// `D` of one row in fixed point: by arithmetic for a linear table, else by lookup.
+#[inline(always)]
+fn fill_d_row(out: &mut [i16], row: &[u8], lut: &[i16; 256], linear: Option<i16>, sat: u8) {
+    match linear {
+        Some(k) => {
+            let d0 = lut[0];
+            for (d, &p) in out.iter_mut().zip(row) {
+                // Used only below saturation, where it cannot overflow.
+                let v = (p as i16).wrapping_mul(k);
+                *d = if p == 0 {
+                    d0
+                } else if p >= sat {
+                    0
+                } else {
+                    v
+                };
+            }
+        }
+        None => {
+            for (d, &p) in out.iter_mut().zip(row) {
+                *d = lut[p as usize];
+            }
+        }
     }
 }
 
