@@ -187,6 +187,7 @@ pub fn run_external(
         events: Vec::with_capacity(8),
         marker_seen_s: None,
         shutdown: false,
+        mode_changes_seen: 0,
     };
     let frames = (opts.seconds * fps).round().max(1.0) as u64;
     let mut stats = RunStats::new(frames as usize, t_world_marker, t_marker_station);

@@ -200,6 +200,7 @@ impl HilRun {
             events: Vec::with_capacity(8),
             marker_seen_s: None,
             shutdown: false,
+            mode_changes_seen: 0,
         };
         Ok(Self {
             rig,

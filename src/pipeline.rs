@@ -83,9 +83,34 @@ pub struct Pipeline<L: CommandLink = VehicleLink> {
     pub marker_seen_s: Option<f64>,
     /// Set by a signal handler: the next frame sends neutral and the loop ends.
     pub shutdown: bool,
+    /// The vehicle's mode changes seen so far: a change resets the station keeper.
+    pub mode_changes_seen: u64,
 }
 
 impl<L: CommandLink> Pipeline<L> {
+    /// A loop over these parts, with empty per-frame state.
+    pub fn new(
+        tracker: MarkerTracker,
+        exposure: Box<dyn ExposureController>,
+        keeper: StationKeeper,
+        supervisor: Supervisor,
+        link: L,
+        frame: Frame,
+    ) -> Self {
+        Self {
+            tracker,
+            exposure,
+            keeper,
+            link,
+            supervisor,
+            frame,
+            events: Vec::with_capacity(8),
+            marker_seen_s: None,
+            shutdown: false,
+            mode_changes_seen: 0,
+        }
+    }
+
     /// Run one frame through the loop.
     pub fn step(&mut self, camera: &mut dyn Camera) -> anyhow::Result<FrameRecord> {
         camera.grab(&mut self.frame)?;
@@ -97,11 +122,18 @@ impl<L: CommandLink> Pipeline<L> {
             t_cam_marker: o.t_cam_marker,
             cov_cam: o.cov_cam,
         });
+        self.link.tick(stamp)?;
+        // A mode change (by the pilot, a failsafe or us) invalidates the integrators.
+        if let Some(changes) = self.link.vehicle_state().map(|v| v.mode_changes) {
+            if changes != self.mode_changes_seen {
+                self.mode_changes_seen = changes;
+                self.keeper.reset();
+            }
+        }
         let effort = self.keeper.update(stamp, meas.as_ref());
         if obs.is_some() {
             self.marker_seen_s = Some(stamp);
         }
-        self.link.tick(stamp)?;
         self.events.clear();
         let directive = self.supervisor.update(
             &SupervisorInput {

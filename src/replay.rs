@@ -40,6 +40,7 @@ pub fn build_pipeline<L: CommandLink>(
         events: Vec::with_capacity(8),
         marker_seen_s: None,
         shutdown: false,
+        mode_changes_seen: 0,
     })
 }
 
