@@ -1,0 +1,309 @@
+//! A HIL run recorded to MCAP, read back with the mcap crate, and replayed: the same
+//! build and frames give bit-identical commands. Plus the recorder's loss accounting
+//! and its write-error path.
+
+use std::collections::BTreeMap;
+use std::io::{Cursor, Seek, SeekFrom, Write};
+use std::path::{Path, PathBuf};
+
+use markhold::hil_run::{HilOptions, HilRun};
+use markhold::params;
+use markhold::pipeline::FrameRecord;
+use markhold::record::{
+    self, CommandMsg, LinkSnapshot, RecordConfig, Recorder, RunInfo, TOPICS, TOPIC_COMMAND,
+    TOPIC_DETECTION, TOPIC_EXPOSURE, TOPIC_FAILSAFE, TOPIC_FRAME, TOPIC_IMAGE, TOPIC_POSE,
+    TOPIC_VEHICLE,
+};
+use markhold::replay::replay;
+
+const SITE: &str = "tests/fixtures/pool-640.toml";
+
+fn temp_path(name: &str) -> PathBuf {
+    let dir = std::env::temp_dir().join(format!("markhold-record-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let p = dir.join(name);
+    let _ = std::fs::remove_file(&p);
+    p
+}
+
+fn counts(path: &Path) -> BTreeMap<String, u64> {
+    let buf = std::fs::read(path).unwrap();
+    let summary = mcap::Summary::read(&buf)
+        .unwrap()
+        .expect("finalized file has a summary");
+    let mut out: BTreeMap<String, u64> = summary
+        .channels
+        .values()
+        .map(|c| (c.topic.clone(), 0))
+        .collect();
+    for m in mcap::MessageStream::new(&buf).unwrap() {
+        *out.entry(m.unwrap().channel.topic.clone()).or_default() += 1;
+    }
+    out
+}
+
+struct Recorded {
+    frames: u64,
+    detected: u64,
+    events: u64,
+    records: Vec<FrameRecord>,
+}
+
+/// Record `seconds` of HIL; `tamper` may change a frame's record before it is written.
+fn record_hil(path: &Path, seconds: f64, tamper: &dyn Fn(&mut FrameRecord)) -> Recorded {
+    let site = params::load(Path::new(SITE)).unwrap();
+    let opts = HilOptions {
+        seconds,
+        ..HilOptions::default()
+    };
+    let mut rec = record::open_hil_recorder(&site, &opts, path).unwrap();
+    let mut run = HilRun::build(&site, &opts).unwrap();
+    run.arm(site.site.link.mode.ardusub()).unwrap();
+    let n = (seconds * site.site.camera.fps).round() as u64;
+    let mut out = Recorded {
+        frames: n,
+        detected: 0,
+        events: 0,
+        records: Vec::new(),
+    };
+    for _ in 0..n {
+        let (mut fr, _) = run.step().unwrap();
+        tamper(&mut fr);
+        record::record_step(&mut rec, &run.pipeline, &fr);
+        out.detected += fr.detected as u64;
+        out.events += run.pipeline.events.len() as u64;
+        out.records.push(fr);
+    }
+    let stats = rec.finish().unwrap();
+    assert_eq!(stats.frames, n);
+    assert_eq!(
+        stats.images_dropped, 0,
+        "hil recording waits, it never drops"
+    );
+    assert_eq!(stats.write_error, None);
+    out
+}
+
+#[test]
+fn hil_recording_has_every_channel_and_replays_bit_identical() {
+    let path = temp_path("hil.mcap");
+    let r = record_hil(&path, 1.5, &|_| {});
+    assert!(r.detected > 0, "the marker is seen on station");
+    assert!(
+        r.events > 0,
+        "the supervisor reports the vehicle connecting"
+    );
+
+    let c = counts(&path);
+    for topic in TOPICS {
+        assert!(c.contains_key(topic), "channel {topic} missing: {c:?}");
+    }
+    for topic in [
+        TOPIC_IMAGE,
+        TOPIC_FRAME,
+        TOPIC_EXPOSURE,
+        TOPIC_DETECTION,
+        TOPIC_COMMAND,
+        TOPIC_VEHICLE,
+    ] {
+        assert_eq!(c[topic], r.frames, "{topic}");
+    }
+    assert_eq!(c[TOPIC_POSE], r.detected);
+    assert_eq!(c[TOPIC_FAILSAFE], r.events);
+
+    // The recorded commands are the loop's, bit for bit.
+    let buf = std::fs::read(&path).unwrap();
+    let recorded: Vec<CommandMsg> = mcap::MessageStream::new(&buf)
+        .unwrap()
+        .map(|m| m.unwrap())
+        .filter(|m| m.channel.topic == TOPIC_COMMAND)
+        .map(|m| serde_json::from_slice(&m.data).unwrap())
+        .collect();
+    let expected: Vec<CommandMsg> = r.records.iter().map(CommandMsg::from_record).collect();
+    // Bits, not the decimal numbers: serde_json's default float parsing may be one ulp
+    // off, which is why the recording carries the bit patterns.
+    let key = |c: &CommandMsg| (c.seq, c.directive.clone(), c.effort_bits);
+    assert_eq!(recorded.len(), expected.len());
+    for (a, b) in recorded.iter().zip(&expected) {
+        assert!(
+            key(a) == key(b),
+            "frame {}: recorded {a:?} != loop {b:?}",
+            b.seq
+        );
+    }
+
+    let out = replay(&path).unwrap();
+    assert_eq!(out.frames_recorded, r.frames);
+    assert_eq!(out.frames_replayed, r.frames);
+    assert_eq!(out.commands_compared, r.frames);
+    assert_eq!(out.first_mismatch, None);
+    assert!(out.commands_match);
+    assert_eq!(out.recorded_by, "hil");
+}
+
+#[test]
+fn replay_reports_the_first_differing_command() {
+    let path = temp_path("tampered.mcap");
+    // One frame's recorded surge differs by one ulp from what the loop computed.
+    let r = record_hil(&path, 0.5, &|fr| {
+        if fr.seq == 7 {
+            fr.effort.surge = f64::from_bits(fr.effort.surge.to_bits() ^ 1);
+        }
+    });
+    let out = replay(&path).unwrap();
+    assert!(!out.commands_match);
+    let m = out.first_mismatch.expect("a mismatch");
+    assert_eq!(m.seq, 7);
+    assert_eq!(m.field, "effort.surge");
+    assert_eq!(out.frames_replayed, r.frames);
+}
+
+fn site_info() -> RunInfo {
+    let site = params::load(Path::new(SITE)).unwrap();
+    RunInfo::new(
+        "test",
+        &site,
+        markhold_exposure::ExposureMethod::Aaec,
+        2000.0,
+        String::new(),
+    )
+    .unwrap()
+}
+
+fn dummy_record(seq: u64) -> FrameRecord {
+    FrameRecord {
+        seq,
+        stamp_s: seq as f64 / 30.0,
+        exposure_used_us: 2000.0,
+        exposure: markhold_exposure::ExposureStep {
+            exposure_us: 2000.0,
+            metric: 0.5,
+            used_frame: true,
+            roi: None,
+        },
+        detected: false,
+        corners: None,
+        t_cam_marker: None,
+        cov_cam: None,
+        reproj_rms_px: f64::NAN,
+        effort: Default::default(),
+        directive: markhold_autopilot::Directive::Silent,
+        latency_s: 0.0,
+    }
+}
+
+fn noisy_frame(seq: u64) -> markhold_exposure::Frame {
+    let mut f = markhold_exposure::Frame::new(640, 480);
+    let mut x = seq.wrapping_mul(6364136223846793005).wrapping_add(1);
+    for p in f.data.iter_mut() {
+        x = x
+            .wrapping_mul(6364136223846793005)
+            .wrapping_add(1442695040888963407);
+        *p = (x >> 56) as u8;
+    }
+    f.meta.seq = seq;
+    f.meta.stamp_s = seq as f64 / 30.0;
+    f.meta.exposure_us = 2000.0;
+    f
+}
+
+#[test]
+fn a_slow_writer_drops_images_and_counts_them_without_blocking() {
+    let path = temp_path("drops.mcap");
+    let cfg = RecordConfig {
+        image_queue_frames: 1,
+        queue_frames: 4,
+        png_level: 9,
+        wait_when_full: false,
+    };
+    let mut rec = Recorder::create(&path, &site_info(), cfg).unwrap();
+    let frame = noisy_frame(0);
+    let link = LinkSnapshot {
+        heartbeat_s: None,
+        vehicle: None,
+    };
+    let n = 60;
+    for seq in 0..n {
+        let mut f = frame.clone();
+        f.meta.seq = seq;
+        f.meta.stamp_s = seq as f64 / 30.0;
+        rec.record(&dummy_record(seq), &f, &link, false, &[]);
+    }
+    let stats = rec.finish().unwrap();
+    assert_eq!(stats.frames, n);
+    // A 640x480 noise PNG at level 9 takes far longer than handing 60 frames over.
+    assert!(stats.images_dropped > 0, "{stats:?}");
+    let c = counts(&path);
+    assert_eq!(c[TOPIC_IMAGE], n - stats.images_dropped);
+    assert_eq!(c[TOPIC_FRAME], n - stats.frames_dropped);
+    // Replay stops at the first frame without its image and says so.
+    let out = replay(&path).unwrap();
+    assert!(!out.commands_match);
+    assert_eq!(out.first_mismatch.unwrap().field, "image");
+}
+
+/// Accepts `budget` bytes, then fails like a full disk.
+struct FullDisk {
+    inner: Cursor<Vec<u8>>,
+    budget: usize,
+}
+
+impl Write for FullDisk {
+    fn write(&mut self, buf: &[u8]) -> std::io::Result<usize> {
+        if self.inner.get_ref().len() + buf.len() > self.budget {
+            return Err(std::io::Error::from_raw_os_error(28)); // ENOSPC
+        }
+        self.inner.write(buf)
+    }
+    fn flush(&mut self) -> std::io::Result<()> {
+        Ok(())
+    }
+}
+
+impl Seek for FullDisk {
+    fn seek(&mut self, pos: SeekFrom) -> std::io::Result<u64> {
+        self.inner.seek(pos)
+    }
+}
+
+#[test]
+fn a_full_disk_is_reported_once_and_recording_goes_on() {
+    let cfg = RecordConfig {
+        wait_when_full: true,
+        ..RecordConfig::default()
+    };
+    let disk = FullDisk {
+        inner: Cursor::new(Vec::new()),
+        budget: 200_000,
+    };
+    let mut rec = Recorder::to_writer(disk, &site_info(), cfg).unwrap();
+    let link = LinkSnapshot {
+        heartbeat_s: None,
+        vehicle: None,
+    };
+    for seq in 0..20 {
+        rec.record(&dummy_record(seq), &noisy_frame(seq), &link, false, &[]);
+    }
+    let stats = rec.finish().unwrap();
+    assert_eq!(stats.frames, 20, "every frame was handed over");
+    let err = stats.write_error.expect("the write error is reported");
+    assert!(err.contains("No space left"), "{err}");
+}
+
+#[test]
+fn an_existing_or_unwritable_record_path_is_refused_and_left_alone() {
+    let path = temp_path("exists.mcap");
+    std::fs::write(&path, b"keep me").unwrap();
+    let e = Recorder::create(&path, &site_info(), RecordConfig::default())
+        .err()
+        .expect("refused");
+    assert!(e.to_string().contains("exists"), "{e}");
+    assert_eq!(std::fs::read(&path).unwrap(), b"keep me");
+
+    let missing = temp_path("no-such-dir").join("x.mcap");
+    let e = Recorder::create(&missing, &site_info(), RecordConfig::default())
+        .err()
+        .expect("refused");
+    assert!(e.to_string().contains("x.mcap"), "{e}");
+    assert!(!missing.exists());
+}
