@@ -866,3 +866,117 @@ impl Scene {
         ALBEDO_PLATE_BACK
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn scenarios_round_trip_through_text_and_serde() {
+        for s in LightingScenario::ALL {
+            assert_eq!(s.to_string().parse::<LightingScenario>(), Ok(s));
+            let json = serde_json::to_string(&s).unwrap();
+            assert_eq!(json, format!("\"{s}\""));
+            assert_eq!(serde_json::from_str::<LightingScenario>(&json).unwrap(), s);
+        }
+        assert_eq!(
+            "ADVERSARIAL".parse::<LightingScenario>(),
+            Ok(LightingScenario::Adversarial)
+        );
+        let e = "bright".parse::<LightingScenario>().unwrap_err();
+        assert!(e.contains("bright") && e.contains("adversarial"), "{e}");
+    }
+
+    #[test]
+    fn configs_reject_unknown_keys_and_name_bad_values() {
+        let w: WaterConfig =
+            serde_json::from_str(r#"{"type": "river", "attenuation_per_m": 2.0}"#).unwrap();
+        assert_eq!(w.optics().attenuation_per_m, 2.0);
+        assert_eq!(w.optics().backscatter_per_m, 1.10);
+        assert!(serde_json::from_str::<WaterConfig>(r#"{"turbidity": 1}"#).is_err());
+        assert!(serde_json::from_str::<LightingConfig>(r#"{"scenario": "dusk"}"#).is_err());
+
+        let bad = WaterConfig {
+            backscatter_per_m: Some(-1.0),
+            ..WaterConfig::default()
+        };
+        let e = bad.validate().unwrap_err().to_string();
+        assert!(
+            e.contains("water.backscatter_per_m") && e.contains("-1"),
+            "{e}"
+        );
+
+        let bad = LightingConfig {
+            marker_lamp: Some(LampConfig {
+                direction: [0.0; 3],
+                ..LampConfig::default()
+            }),
+            ..LightingConfig::default()
+        };
+        let e = bad.validate().unwrap_err().to_string();
+        assert!(e.contains("lighting.marker_lamp.direction"), "{e}");
+
+        let bad = MarkerSpec {
+            cells: 6,
+            white: vec![true; 35],
+            size_m: 0.1,
+            plate_margin_m: 0.02,
+        };
+        let e = bad.validate().unwrap_err().to_string();
+        assert!(e.contains("marker.white") && e.contains("35"), "{e}");
+    }
+
+    #[test]
+    fn overrides_replace_the_scenario_values() {
+        let cfg = LightingConfig {
+            scenario: LightingScenario::Adversarial,
+            ambient_surface_w_m2: Some(50.0),
+            caustics_strength: Some(0.5),
+            ..LightingConfig::default()
+        };
+        let r = cfg.resolve();
+        assert_eq!(r.ambient_surface_w_m2, 50.0);
+        assert_eq!(r.caustics_strength, 0.5);
+        // The scenario's marker lamp stays.
+        assert!(r
+            .marker_lamp
+            .as_ref()
+            .is_some_and(|l| l.intensity_w_sr > 100.0));
+        let normal = LightingConfig::default().resolve();
+        assert!(normal.marker_lamp.is_none());
+        let low = LightingConfig {
+            scenario: LightingScenario::Low,
+            ..LightingConfig::default()
+        }
+        .resolve();
+        assert!(normal.ambient_surface_w_m2 > 10.0 * low.ambient_surface_w_m2);
+    }
+
+    #[test]
+    fn daylight_and_water_attenuate_with_path_length() {
+        let lighting = LightingConfig::default();
+        let water = WaterConfig::default();
+        let marker = MarkerSpec {
+            cells: 4,
+            white: vec![false; 16],
+            size_m: 0.1,
+            plate_margin_m: 0.02,
+        };
+        let scene = Scene::new(&water, &lighting, marker, Isometry3::identity(), 1).unwrap();
+        let kd = water.optics().daylight_attenuation_per_m;
+        let ratio = scene.daylight(5.0) / scene.daylight(2.0);
+        assert!((ratio - (-3.0 * kd).exp()).abs() < 1e-12);
+        let n = Vector3::new(-1.0, 0.0, 0.0);
+        let cam = Vector3::new(-1.0, 0.0, 3.0);
+        let ray = Vector3::new(1.0, 0.0, 0.0);
+        let p = Vector3::new(0.0, 0.0, 3.0);
+        let near = scene.shade(&p, &n, &cam, &ray, 1.0, &[], false);
+        let far = scene.shade(&p, &n, &cam, &ray, 3.0, &[], false);
+        let c = water.optics().attenuation_per_m;
+        assert!((far.ambient / near.ambient - (-2.0 * c).exp()).abs() < 1e-12);
+        // Backscatter grows with the path and saturates.
+        assert!(far.backscatter > near.backscatter);
+        let inf = scene.backscatter(&cam, &ray, f64::INFINITY, &[]);
+        assert!(inf > far.backscatter && inf.is_finite());
+    }
+}
