@@ -501,6 +501,43 @@ mod tests {
     }
 
     #[test]
+    fn site_file_sections_parse_and_reject_unknown_keys() {
+        #[derive(Deserialize)]
+        #[serde(deny_unknown_fields)]
+        struct Site {
+            marker: MarkerConfig,
+            #[serde(default)]
+            vision: DetectorConfig,
+        }
+        let site: Site = toml::from_str(
+            "[marker]\nfamily = \"aruco_5x5_100\"\nid = 42\nsize_m = 0.15\n\
+             [vision]\ncorner_sigma_floor_px = 0.01\nfull_search_period_frames = 10\n",
+        )
+        .unwrap();
+        assert_eq!(site.marker.family, MarkerFamily::Aruco5x5_100);
+        assert_eq!(site.marker.id, 42);
+        assert_eq!(site.vision.corner_sigma_floor_px, 0.01);
+        assert_eq!(site.vision.full_search_period_frames, 10);
+        // Unset keys keep their defaults.
+        assert_eq!(
+            site.vision.subpix_window_px,
+            DetectorConfig::default().subpix_window_px
+        );
+        let e = toml::from_str::<Site>(
+            "[marker]\nfamily = \"apriltag_36h11\"\nid = 1\nsize_m = 0.1\n[vision]\nsigma = 1\n",
+        )
+        .err()
+        .unwrap()
+        .to_string();
+        assert!(e.contains("sigma"), "{e}");
+        let e = toml::from_str::<Site>("[marker]\nfamily = \"qr\"\nid = 1\nsize_m = 0.1\n")
+            .err()
+            .unwrap()
+            .to_string();
+        assert!(e.contains("qr"), "{e}");
+    }
+
+    #[test]
     fn unknown_family_lists_choices() {
         let e = "apriltag_99"
             .parse::<MarkerFamily>()
