@@ -375,8 +375,10 @@ impl GradientMetric {
         let pen = self.params.saturation_penalty as f32;
         let floor = (self.params.saturation_floor * unit) as f32;
         let (lut, linear) = (&self.d_lut, self.linear_step);
-        for (r, y) in self.d_rows.iter_mut().zip(0..2) {
-            fill_d_row(&mut r[..w], view.row(y), lut, linear, sat);
+        // Per row of the ring: holds a pixel where D is not k * I (black or clipped).
+        let mut special = [true; 3];
+        for ((r, y), sp) in self.d_rows.iter_mut().zip(0..2).zip(special.iter_mut()) {
+            *sp = fill_d_row(&mut r[..w], view.row(y), lut, linear, sat);
         }
         let m = w - 2;
         let (mut sum_grey, mut n_sat) = (0u64, 0u64);
@@ -386,18 +388,31 @@ impl GradientMetric {
             let (r0, r1, r2) = (view.row(y - 1), view.row(y), view.row(y + 1));
             {
                 let slot = &mut self.d_rows[(y + 1) % 3];
-                fill_d_row(&mut slot[..w], r2, lut, linear, sat);
+                special[(y + 1) % 3] = fill_d_row(&mut slot[..w], r2, lut, linear, sat);
             }
-            let d0 = &self.d_rows[(y - 1) % 3][..w];
-            let d1 = &self.d_rows[y % 3][..w];
-            let d2 = &self.d_rows[(y + 1) % 3][..w];
-            sobel_row(
-                [r0, r1, r2],
-                [d0, d1, d2],
-                &mut self.g64[..m],
-                &mut self.dg[..m],
-                &mut self.keys[..m],
-            );
+            match linear {
+                // Linear table and no black or clipped pixel in the window: D = k I, so
+                // the Sobel of D is k times the Sobel of I and dG = k * 64 G exactly.
+                Some(k) if !special.iter().any(|&s| s) => sobel_row_linear(
+                    [r0, r1, r2],
+                    k as f32,
+                    &mut self.g64[..m],
+                    &mut self.dg[..m],
+                    &mut self.keys[..m],
+                ),
+                _ => {
+                    let d0 = &self.d_rows[(y - 1) % 3][..w];
+                    let d1 = &self.d_rows[y % 3][..w];
+                    let d2 = &self.d_rows[(y + 1) % 3][..w];
+                    sobel_row(
+                        [r0, r1, r2],
+                        [d0, d1, d2],
+                        &mut self.g64[..m],
+                        &mut self.dg[..m],
+                        &mut self.keys[..m],
+                    );
+                }
+            }
             // Grey statistics: branch-free, vectorizes.
             let (g64, dg, keys) = (&self.g64[..m], &mut self.dg[..m], &self.keys[..m]);
             let centre = &r1[1..m + 1];
@@ -463,11 +478,21 @@ impl GradientMetric {
 }
 
 /// `D` of one row in fixed point: by arithmetic for a linear table, else by lookup.
+/// Returns whether the row holds a pixel where `D` is not `k * I` (always true for a
+/// non-linear table).
 #[inline(always)]
-fn fill_d_row(out: &mut [i16], row: &[u8], lut: &[i16; 256], linear: Option<i16>, sat: u8) {
+fn fill_d_row(out: &mut [i16], row: &[u8], lut: &[i16; 256], linear: Option<i16>, sat: u8) -> bool {
     match linear {
         Some(k) => {
             let d0 = lut[0];
+            let mut special = 0u32;
+            for chunk in row.chunks(128) {
+                let mut n = 0u16;
+                for &p in chunk {
+                    n += (p == 0 || p >= sat) as u16;
+                }
+                special += n as u32;
+            }
             for (d, &p) in out.iter_mut().zip(row) {
                 // Used only below saturation, where it cannot overflow.
                 let v = (p as i16).wrapping_mul(k);
@@ -479,12 +504,35 @@ fn fill_d_row(out: &mut [i16], row: &[u8], lut: &[i16; 256], linear: Option<i16>
                     v
                 };
             }
+            special > 0
         }
         None => {
             for (d, &p) in out.iter_mut().zip(row) {
                 *d = lut[p as usize];
             }
+            true
         }
+    }
+}
+
+/// [`sobel_row`] for a linear table away from black and clipped pixels: the Sobel of
+/// `D = k I` is `k` times that of `I`, so `sx Dx + sy Dy = k g64`.
+#[inline(always)]
+fn sobel_row_linear(r: [&[u8]; 3], k: f32, g64: &mut [f32], dg: &mut [f32], keys: &mut [u32]) {
+    let m = g64.len();
+    let (keys, dg) = (&mut keys[..m], &mut dg[..m]);
+    let (a0, b0, c0) = (&r[0][..m], &r[0][1..m + 1], &r[0][2..m + 2]);
+    let (a1, c1) = (&r[1][..m], &r[1][2..m + 2]);
+    let (a2, b2, c2) = (&r[2][..m], &r[2][1..m + 1], &r[2][2..m + 2]);
+    for x in 0..m {
+        let i = |v: u8| v as i16;
+        let sx = (i(c0[x]) - i(a0[x])) + 2 * (i(c1[x]) - i(a1[x])) + (i(c2[x]) - i(a2[x]));
+        let sy = (i(a2[x]) + 2 * i(b2[x]) + i(c2[x])) - (i(a0[x]) + 2 * i(b0[x]) + i(c0[x]));
+        let (sx, sy) = (sx as f32, sy as f32);
+        let g = sx * sx + sy * sy;
+        g64[x] = g;
+        keys[x] = key_f32(g);
+        dg[x] = k * g;
     }
 }
 
