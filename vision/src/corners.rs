@@ -312,13 +312,11 @@ fn undistorted_to_pixel(calib: &CameraCalibration, q: &Vector2<f64>) -> Vector2<
 fn corner_covariance(calib: &CameraCalibration, lines: &[Line; 4]) -> CornerCov {
     let mut cov = CornerCov::zeros();
     // Jacobian of the distorted pixel w.r.t. the undistorted pixel, per corner.
-    let mut corner_u = [Vector2::zeros(); 4];
     let mut dist_j = [Matrix2::identity(); 4];
     for i in 0..4 {
         let p = lines[(i + 3) % 4]
             .intersect(&lines[i])
             .unwrap_or_else(Vector2::zeros);
-        corner_u[i] = p;
         let (x, y) = ((p.x - calib.cx) / calib.fx, (p.y - calib.cy) / calib.fy);
         let j = calib.distort_with_jacobian(x, y).1;
         dist_j[i] = j * Matrix2::new(1.0 / calib.fx, 0.0, 0.0, 1.0 / calib.fy);
@@ -346,7 +344,6 @@ fn corner_covariance(calib: &CameraCalibration, lines: &[Line; 4]) -> CornerCov 
         let s = Matrix2::new(lines[l].var_rho, 0.0, 0.0, lines[l].var_theta);
         cov += jac * s * jac.transpose();
     }
-    let _ = corner_u;
     cov
 }
 

@@ -220,11 +220,6 @@ pub fn refine_pose(
     })
 }
 
-/// Angle between two rotations, radians.
-pub fn rotation_distance(a: &UnitQuaternion<f64>, b: &UnitQuaternion<f64>) -> f64 {
-    a.angle_to(b)
-}
-
 /// A pose covariance in the camera frame, rotated into frame `f`: the pose itself is
 /// unchanged, only the axes its errors are expressed on (`t_frame_cam` is taken as
 /// exact). Order (tx, ty, tz, rx, ry, rz).

@@ -28,7 +28,7 @@ fn check_grid(calib: markhold_vision::CameraCalibration, ranges: &[f64], seed: u
             // Off-centre so that the marker is not always on the optical axis.
             let pos = [0.12 * range, -0.08 * range, range];
             let truth = pose(pos, yaw, pitch);
-            let _c = render_noisy(&mut frame, &calib, &m, &bm, &truth, 2.0, &mut rng);
+            let exact = render_noisy(&mut frame, &calib, &m, &bm, &truth, 2.0, &mut rng);
             // A fresh tracker each time: no continuity to lean on.
             let mut tracker =
                 MarkerTracker::new(&m, &DetectorConfig::default(), calib.clone()).unwrap();
@@ -49,7 +49,7 @@ fn check_grid(calib: markhold_vision::CameraCalibration, ranges: &[f64], seed: u
             let cerr: f64 = obs
                 .corners
                 .iter()
-                .zip(&_c)
+                .zip(&exact)
                 .map(|(a, b)| ((a[0] as f64 - b[0]).powi(2) + (a[1] as f64 - b[1]).powi(2)).sqrt())
                 .fold(0.0, f64::max);
             println!("{range} {yaw} {pitch}: pos {:.3}% (sd {:.3}%) rot {re:.3} (sd {sd_r:.3}) rms {:.3} max corner err {cerr:.3}", pe * 100.0, sd_t * 100.0, obs.reproj_rms_px);
