@@ -6,11 +6,13 @@
 pub mod external;
 pub mod faults;
 pub mod hil_run;
+pub mod live;
 pub mod params;
 mod params_validate;
 pub mod pipeline;
 pub mod record;
 pub mod replay;
+pub mod signal;
 pub mod snapshot;
 pub mod summary;
 pub mod trace;

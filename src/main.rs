@@ -37,6 +37,8 @@ enum Command {
     Sitl(SitlArgs),
     /// Feed a recording (`--record`) through the loop again and compare its commands.
     Replay(ReplayArgs),
+    /// Hold station on a real vehicle with a real camera (Ctrl-C: neutral input, exit 0).
+    Run(RunArgs),
 }
 
 #[derive(clap::Args)]
@@ -118,6 +120,44 @@ struct HilArgs {
 }
 
 #[derive(clap::Args)]
+struct RunArgs {
+    /// Dive-site file.
+    #[arg(long)]
+    site: PathBuf,
+    /// MAVLink URL of the vehicle (default: the site's [link] url, e.g. BlueOS on
+    /// udpout:192.168.2.2:14550; or serial:/dev/ttyACM0:115200).
+    #[arg(long, value_name = "URL")]
+    link: Option<String>,
+    /// Camera: v4l2:/dev/videoN, or frames:DIR (a recorded-frames folder).
+    #[arg(long, value_name = "URL")]
+    camera: markhold::live::CameraUrl,
+    /// Record the run to this MCAP file (must not exist).
+    #[arg(long, value_name = "FILE.mcap")]
+    record: Option<PathBuf>,
+    /// Serve a Foxglove WebSocket live view on 127.0.0.1.
+    #[arg(long)]
+    foxglove: bool,
+    /// Port of the live view (0: any free port).
+    #[arg(long, default_value_t = 8765)]
+    foxglove_port: u16,
+    /// Wall seconds to wait for the vehicle's heartbeat at start-up.
+    #[arg(long, default_value_t = 5.0)]
+    heartbeat_timeout_s: f64,
+    /// Request the site's flight mode and arm before the first frame.
+    #[arg(long)]
+    arm: bool,
+    /// Stop after this many seconds of camera time.
+    #[arg(long)]
+    seconds: Option<f64>,
+    /// With frames:, run as fast as possible instead of at the recorded pace.
+    #[arg(long)]
+    no_pace: bool,
+    /// Write a JSON report (frames, detections, why it stopped, recording losses).
+    #[arg(long)]
+    summary: Option<PathBuf>,
+}
+
+#[derive(clap::Args)]
 struct ReplayArgs {
     /// A recording made with --record.
     file: PathBuf,
@@ -156,6 +196,7 @@ fn run(cli: Cli) -> anyhow::Result<()> {
         } => params_check(&file),
         Command::Sitl(args) => sitl(args),
         Command::Replay(args) => replay(args),
+        Command::Run(args) => run_cmd(args),
     }
 }
 
@@ -413,6 +454,48 @@ fn replay(args: ReplayArgs) -> anyhow::Result<()> {
     if !out.commands_match {
         // Not an error of the tool: the recording and this build disagree.
         std::process::exit(1);
+    }
+    Ok(())
+}
+
+fn run_cmd(args: RunArgs) -> anyhow::Result<()> {
+    let site = params::load(&args.site)?;
+    anyhow::ensure!(
+        args.heartbeat_timeout_s.is_finite() && args.heartbeat_timeout_s >= 0.0,
+        "--heartbeat-timeout-s {}: expected a non-negative number of seconds",
+        args.heartbeat_timeout_s
+    );
+    let stop = markhold::signal::install()?;
+    let opts = markhold::live::RunOptions {
+        link_url: args.link.clone(),
+        camera: args.camera.clone(),
+        record: args.record.clone(),
+        foxglove_port: args.foxglove.then_some(args.foxglove_port),
+        heartbeat_timeout_s: args.heartbeat_timeout_s,
+        arm: args.arm,
+        max_seconds: args.seconds,
+        pace_frames: !args.no_pace,
+    };
+    let report = markhold::live::run_live(&site, &opts, &stop)?;
+    println!(
+        "markhold run: {} frames, marker in {}, {:.1} s of camera time, stopped by {:?}",
+        report.frames, report.detected, report.loop_seconds, report.stopped_by
+    );
+    if let (Some(r), Some(p)) = (&report.record, &args.record) {
+        println!(
+            "  recorded to {} ({} images dropped, {} frames dropped)",
+            p.display(),
+            r.images_dropped,
+            r.frames_dropped
+        );
+        if let Some(e) = &r.write_error {
+            eprintln!("markhold: the recording is incomplete: {e}");
+        }
+    }
+    if let Some(path) = &args.summary {
+        let json = serde_json::to_string_pretty(&report)?;
+        std::fs::write(path, json + "\n")
+            .with_context(|| format!("writing --summary {}", path.display()))?;
     }
     Ok(())
 }

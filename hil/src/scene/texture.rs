@@ -97,8 +97,54 @@ fn value_noise_octave(rng: &mut SplitMix64, side: usize, cells: usize, out: &mut
     }
 }
 
-/// Rock / seabed albedo: fractal value noise (pebbles, grain) with a few dark cracks,
-/// mapped to albedo `mean +- spread`.
+/// Per texel of a tileable jittered Voronoi diagram with `n` x `n` cells: the distance
+/// to the nearest cell border (in cell sizes) and the nearest cell's index.
+fn voronoi(rng: &mut SplitMix64, side: usize, n: usize) -> Vec<(f32, u32)> {
+    let n = n.max(2);
+    let cell = side as f32 / n as f32;
+    let pts: Vec<(f32, f32)> = (0..n * n)
+        .map(|i| {
+            let (cx, cy) = ((i % n) as f32, (i / n) as f32);
+            (
+                (cx + 0.15 + 0.7 * rng.next_f64() as f32) * cell,
+                (cy + 0.15 + 0.7 * rng.next_f64() as f32) * cell,
+            )
+        })
+        .collect();
+    let mut out = Vec::with_capacity(side * side);
+    for y in 0..side {
+        for x in 0..side {
+            let (px, py) = (x as f32 + 0.5, y as f32 + 0.5);
+            let (gx, gy) = ((px / cell) as i64, (py / cell) as i64);
+            let (mut d1, mut d2, mut id) = (f32::MAX, f32::MAX, 0u32);
+            for dy in -1..=1i64 {
+                for dx in -1..=1i64 {
+                    let (cx, cy) = (gx + dx, gy + dy);
+                    let (wx, wy) = (cx.rem_euclid(n as i64), cy.rem_euclid(n as i64));
+                    let k = wy as usize * n + wx as usize;
+                    let (qx, qy) = pts[k];
+                    // Shift the wrapped point next to this cell (tileable).
+                    let qx = qx + (cx - wx) as f32 * cell;
+                    let qy = qy + (cy - wy) as f32 * cell;
+                    let d = ((qx - px).powi(2) + (qy - py).powi(2)).sqrt();
+                    if d < d1 {
+                        d2 = d1;
+                        d1 = d;
+                        id = k as u32;
+                    } else if d < d2 {
+                        d2 = d;
+                    }
+                }
+            }
+            out.push(((d2 - d1) / cell, id));
+        }
+    }
+    out
+}
+
+/// Rock / seabed albedo: fractal value noise (stains, grain), mapped to albedo
+/// `mean +- spread`. (Gravel with sharp pebble borders was tried: sampled one texel per
+/// pixel it aliases at low resolutions, so the smooth noise stays.)
 pub(crate) fn rock_texture(seed: u64, log2: u32, mean: f32, spread: f32) -> Texture {
     let side = 1usize << log2;
     let mut rng = SplitMix64::new(seed ^ 0x0B5E_ED00_0000_0001);
@@ -125,45 +171,11 @@ pub(crate) fn rock_texture(seed: u64, log2: u32, mean: f32, spread: f32) -> Text
 pub(crate) fn caustic_texture(seed: u64, log2: u32, cells_per_side: usize) -> Texture {
     let side = 1usize << log2;
     let mut rng = SplitMix64::new(seed ^ 0xCA05_71C5_0000_0002);
-    let n = cells_per_side.max(2);
-    let cell = side as f32 / n as f32;
-    let pts: Vec<(f32, f32)> = (0..n * n)
-        .map(|i| {
-            let (cx, cy) = ((i % n) as f32, (i / n) as f32);
-            (
-                (cx + 0.15 + 0.7 * rng.next_f64() as f32) * cell,
-                (cy + 0.15 + 0.7 * rng.next_f64() as f32) * cell,
-            )
-        })
+    // Bright near the border (distance in cell sizes).
+    let data: Vec<f32> = voronoi(&mut rng, side, cells_per_side)
+        .into_iter()
+        .map(|(edge, _)| (-edge * 9.0).exp())
         .collect();
-    let mut data = vec![0f32; side * side];
-    for y in 0..side {
-        for x in 0..side {
-            let (px, py) = (x as f32 + 0.5, y as f32 + 0.5);
-            let (gx, gy) = ((px / cell) as i64, (py / cell) as i64);
-            let (mut d1, mut d2) = (f32::MAX, f32::MAX);
-            for dy in -1..=1i64 {
-                for dx in -1..=1i64 {
-                    let (cx, cy) = (gx + dx, gy + dy);
-                    let (wx, wy) = (cx.rem_euclid(n as i64), cy.rem_euclid(n as i64));
-                    let (qx, qy) = pts[(wy as usize) * n + wx as usize];
-                    // Shift the wrapped point next to this cell (tileable).
-                    let qx = qx + (cx - wx) as f32 * cell;
-                    let qy = qy + (cy - wy) as f32 * cell;
-                    let d = ((qx - px).powi(2) + (qy - py).powi(2)).sqrt();
-                    if d < d1 {
-                        d2 = d1;
-                        d1 = d;
-                    } else if d < d2 {
-                        d2 = d;
-                    }
-                }
-            }
-            // Distance to the cell border, in cell units; bright near the border.
-            let edge = (d2 - d1) / cell;
-            data[y * side + x] = (-edge * 9.0).exp();
-        }
-    }
     // Bytes from 0 with a scale that makes the mean exactly 1 after quantization.
     let mut t = Texture::from_values(log2, &data);
     let mean_byte = t.data.iter().map(|&b| b as f64).sum::<f64>() / t.data.len() as f64;
