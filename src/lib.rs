@@ -3,6 +3,7 @@
 //! This crate wires the member crates into one loop ([`pipeline`]) and runs it against
 //! the simulated world ([`hil_run`]); `params` reads dive-site files.
 
+pub mod compare;
 pub mod external;
 pub mod faults;
 pub mod hil_run;
@@ -10,6 +11,7 @@ pub mod live;
 pub mod params;
 mod params_validate;
 pub mod pipeline;
+pub mod plots;
 pub mod record;
 pub mod replay;
 pub mod signal;

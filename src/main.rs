@@ -327,9 +327,11 @@ fn hil(args: HilArgs) -> anyhow::Result<()> {
             on_frame(rec, rec.stamp_s, frame)
         })?,
         None => match recorder.as_mut() {
-            Some(r) => markhold::record::run_hil_recorded(&site, &opts, r, &mut |rec, truth, frame| {
-                on_frame(rec, truth.time_s, frame)
-            })?,
+            Some(r) => {
+                markhold::record::run_hil_recorded(&site, &opts, r, &mut |rec, truth, frame| {
+                    on_frame(rec, truth.time_s, frame)
+                })?
+            }
             None => run_hil(&site, &opts, &mut |rec, truth, frame| {
                 on_frame(rec, truth.time_s, frame)
             })?,

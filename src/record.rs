@@ -81,6 +81,11 @@ pub enum RecordError {
     Describe { source: toml::ser::Error },
     #[error("the recorder's writer thread failed")]
     WriterThread,
+    #[error("starting the live view on 127.0.0.1:{port}: {source}")]
+    Live {
+        port: u16,
+        source: foxglove::FoxgloveError,
+    },
     #[error("writing the recording: {reason}")]
     Write { reason: String },
 }
@@ -272,6 +277,24 @@ impl<W: Seek> Seek for Tracked<W> {
     }
 }
 
+/// The writer type of a recorder without a file (never written to).
+struct NoFile;
+
+impl Write for NoFile {
+    fn write(&mut self, buf: &[u8]) -> std::io::Result<usize> {
+        Ok(buf.len())
+    }
+    fn flush(&mut self) -> std::io::Result<()> {
+        Ok(())
+    }
+}
+
+impl Seek for NoFile {
+    fn seek(&mut self, _pos: SeekFrom) -> std::io::Result<u64> {
+        Ok(0)
+    }
+}
+
 /// What the link knew when a frame was decided.
 #[derive(Debug, Clone)]
 pub struct LinkSnapshot {
@@ -303,6 +326,7 @@ pub struct Recorder {
     path: Option<PathBuf>,
     spare: Option<Vec<u8>>,
     wait_when_full: bool,
+    live: Option<foxglove::WebSocketServerHandle>,
     /// The recorder's foxglove context: a live view can attach to the same channels.
     context: Arc<Context>,
 }
@@ -348,6 +372,35 @@ impl Recorder {
         handle
             .write_metadata(METADATA_NAME, info.to_metadata())
             .map_err(|source| RecordError::Writer { source })?;
+        Self::spawn(Some(handle), context, shared, cfg)
+    }
+
+    /// No file: the channels only feed a live view ([`Recorder::serve_live`]).
+    pub fn live_only(cfg: RecordConfig) -> Result<Self, RecordError> {
+        cfg.validate()?;
+        Self::spawn::<NoFile>(None, Context::new(), Arc::new(Shared::default()), cfg)
+    }
+
+    /// Serve the channels to Foxglove over WebSocket on 127.0.0.1 (`port` 0: any free
+    /// port); returns the port. The server stops with the recorder.
+    pub fn serve_live(&mut self, port: u16) -> Result<u16, RecordError> {
+        let handle = foxglove::WebSocketServer::new()
+            .name("markhold")
+            .bind("127.0.0.1", port)
+            .context(&self.context)
+            .start_blocking()
+            .map_err(|source| RecordError::Live { port, source })?;
+        let port = handle.port();
+        self.live = Some(handle);
+        Ok(port)
+    }
+
+    fn spawn<W: Write + Seek + Send + 'static>(
+        handle: Option<foxglove::McapWriterHandle<Tracked<W>>>,
+        context: Arc<Context>,
+        shared: Arc<Shared>,
+        cfg: RecordConfig,
+    ) -> Result<Self, RecordError> {
         let channels = Channels::new(&context)?;
         let (tx, rx) = sync_channel::<Item>(cfg.queue_frames);
         let (free_tx, free) = sync_channel::<Vec<u8>>(cfg.image_queue_frames);
@@ -378,6 +431,7 @@ impl Recorder {
                     }
                 }
                 // Finalize: summary section and footer.
+                let Some(handle) = handle else { return Ok(()) };
                 match handle.close() {
                     Ok(mut inner) => inner.flush().map_err(|e| RecordError::Write {
                         reason: e.to_string(),
@@ -400,6 +454,7 @@ impl Recorder {
             spare: None,
             wait_when_full: cfg.wait_when_full,
             context,
+            live: None,
         })
     }
 
@@ -490,6 +545,9 @@ impl Recorder {
     /// Write what is queued, finalize the file and return what was recorded.
     pub fn finish(mut self) -> Result<RecordStats, RecordError> {
         self.tx = None;
+        if let Some(live) = self.live.take() {
+            drop(live.stop());
+        }
         let joined = match self.thread.take() {
             Some(t) => t.join().map_err(|_| RecordError::WriterThread)?,
             None => Ok(()),

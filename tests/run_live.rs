@@ -1,0 +1,291 @@
+//! `markhold run` end to end: the recorded-frames camera, hil's vehicle endpoint as the
+//! vehicle (free-running on its own thread, like ArduSub would be), a recording that
+//! replays; SIGTERM stops it cleanly; start-up failures exit 2 and leave nothing behind.
+
+use std::io::{BufRead, BufReader};
+use std::path::{Path, PathBuf};
+use std::process::{Command, Stdio};
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::{Arc, OnceLock};
+use std::time::{Duration, Instant};
+
+use markhold::hil_run::{camera_model, marker_spec};
+use markhold::params;
+use markhold::record::{CommandMsg, TOPIC_COMMAND};
+use markhold_exposure::{Camera, Frame};
+use markhold_hil::endpoint::EndpointStats;
+use markhold_hil::{EndpointConfig, HilRig, HilSetup, VehicleMotion};
+use markhold_vision::FrameRecorder;
+
+fn site_path() -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/fixtures/pool-640.toml")
+}
+
+fn tmp(name: &str) -> PathBuf {
+    let dir = std::env::temp_dir().join(format!("markhold-run-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    dir.join(name)
+}
+
+fn rig(lock_step: bool) -> HilRig {
+    let site = params::load(&site_path()).unwrap();
+    let s = &site.site;
+    let t_world_marker = site.t_world_marker();
+    HilRig::new(HilSetup {
+        vehicle: s.vehicle.clone(),
+        endpoint: EndpointConfig::default(),
+        water: s.water.clone(),
+        lighting: s.lighting.clone(),
+        camera: camera_model(&site, site.limits()),
+        t_vehicle_cam: site.t_vehicle_cam(),
+        marker: marker_spec(&site).unwrap(),
+        t_world_marker,
+        t_world_vehicle_start: t_world_marker * s.station.t_marker_vehicle(),
+        motion: VehicleMotion::Free,
+        seed: 5,
+        lock_step,
+    })
+    .unwrap()
+}
+
+/// 90 frames (3 s) rendered on station, as a recorded-frames folder; made once.
+fn frames_dir() -> &'static Path {
+    static DIR: OnceLock<PathBuf> = OnceLock::new();
+    DIR.get_or_init(|| {
+        let dir = tmp("frames");
+        let mut rig = rig(false);
+        rig.set_exposure_us(3000.0).unwrap();
+        let mut rec = FrameRecorder::create(&dir).unwrap();
+        let mut f = Frame::default();
+        for _ in 0..90 {
+            rig.grab(&mut f).unwrap();
+            rec.write(&f).unwrap();
+        }
+        dir
+    })
+}
+
+/// hil's vehicle on its own thread in real time; returns its address and a stopper.
+struct Vehicle {
+    addr: std::net::SocketAddr,
+    stop: Arc<AtomicBool>,
+    thread: std::thread::JoinHandle<EndpointStats>,
+}
+
+fn vehicle() -> Vehicle {
+    let mut rig = rig(false);
+    let addr = rig.mavlink_udp_addr();
+    let stop = Arc::new(AtomicBool::new(false));
+    let stop2 = stop.clone();
+    let thread = std::thread::spawn(move || {
+        let mut frame = Frame::default();
+        let t0 = Instant::now();
+        let period = Duration::from_secs_f64(1.0 / 30.0);
+        let mut k = 0u32;
+        while !stop2.load(Ordering::Relaxed) && t0.elapsed() < Duration::from_secs(60) {
+            rig.grab(&mut frame).unwrap();
+            k += 1;
+            if let Some(w) = (t0 + period * k).checked_duration_since(Instant::now()) {
+                std::thread::sleep(w);
+            }
+        }
+        // Take in what arrived after the last frame.
+        rig.pump().unwrap();
+        rig.endpoint_stats()
+    });
+    Vehicle { addr, stop, thread }
+}
+
+impl Vehicle {
+    fn finish(self) -> EndpointStats {
+        self.stop.store(true, Ordering::Relaxed);
+        self.thread.join().unwrap()
+    }
+}
+
+fn markhold() -> Command {
+    Command::new(env!("CARGO_BIN_EXE_markhold"))
+}
+
+fn commands(path: &Path) -> Vec<CommandMsg> {
+    let buf = std::fs::read(path).unwrap();
+    mcap::Summary::read(&buf)
+        .unwrap()
+        .expect("a finalized recording");
+    mcap::MessageStream::new(&buf)
+        .unwrap()
+        .map(|m| m.unwrap())
+        .filter(|m| m.channel.topic == TOPIC_COMMAND)
+        .map(|m| serde_json::from_slice(&m.data).unwrap())
+        .collect()
+}
+
+#[test]
+fn run_on_hil_vehicle_with_recorded_frames_end_to_end() {
+    let frames = frames_dir();
+    let v = vehicle();
+    let rec = tmp("e2e.mcap");
+    let summary = tmp("e2e.json");
+    let o = markhold()
+        .args(["run", "--no-pace", "--site"])
+        .arg(site_path())
+        .arg("--camera")
+        .arg(format!("frames:{}", frames.display()))
+        .arg("--link")
+        .arg(format!("udpout:{}", v.addr))
+        .arg("--record")
+        .arg(&rec)
+        .arg("--summary")
+        .arg(&summary)
+        .output()
+        .unwrap();
+    // Let the vehicle take in the last inputs before stopping it.
+    std::thread::sleep(Duration::from_millis(100));
+    let stats = v.finish();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let report: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&summary).unwrap()).unwrap();
+    assert_eq!(report["frames"], 90, "{report}");
+    assert_eq!(report["stopped_by"], "end_of_stream");
+    assert!(report["detected"].as_u64().unwrap() >= 85, "{report}");
+    // The vehicle heard markhold's pilot input on (nearly) every frame, plus the final
+    // neutral one.
+    assert!(stats.pilot_inputs >= 80, "{stats:?}");
+    assert_eq!(stats.pilot_inputs_dropped, 0, "{stats:?}");
+
+    let cmds = commands(&rec);
+    assert_eq!(cmds.len(), 90);
+    assert!(cmds.iter().filter(|c| c.directive == "command").count() >= 85);
+
+    // The dive replays to the same commands (unless the recorder had to drop images).
+    let out = markhold::replay::replay(&rec).unwrap();
+    if report["record"]["images_dropped"] == 0 {
+        assert!(out.commands_match, "{out:?}");
+        assert_eq!(out.frames_replayed, 90);
+    } else {
+        assert_eq!(out.first_mismatch.unwrap().field, "image");
+    }
+}
+
+#[test]
+fn sigterm_sends_neutral_closes_the_recording_and_exits_0() {
+    let frames = frames_dir();
+    let v = vehicle();
+    let rec = tmp("sigterm.mcap");
+    let mut child = markhold()
+        .args(["run", "--site"])
+        .arg(site_path())
+        .arg("--camera")
+        .arg(format!("frames:{}", frames.display()))
+        .arg("--link")
+        .arg(format!("udpout:{}", v.addr))
+        .arg("--record")
+        .arg(&rec)
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    // Paced at 30 fps the 90 frames last 3 s: stop it once it runs.
+    let mut err = BufReader::new(child.stderr.take().unwrap());
+    let mut line = String::new();
+    let deadline = Instant::now() + Duration::from_secs(20);
+    while !line.contains("running") {
+        line.clear();
+        assert!(
+            err.read_line(&mut line).unwrap() > 0,
+            "exited before running"
+        );
+        assert!(Instant::now() < deadline);
+    }
+    std::thread::sleep(Duration::from_millis(300));
+    let killed = Command::new("kill")
+        .args(["-TERM", &child.id().to_string()])
+        .status()
+        .unwrap();
+    assert!(killed.success());
+    let status = loop {
+        if let Some(s) = child.try_wait().unwrap() {
+            break s;
+        }
+        assert!(Instant::now() < deadline, "did not stop after SIGTERM");
+        std::thread::sleep(Duration::from_millis(20));
+    };
+    let _ = v.finish();
+    let mut out = String::new();
+    std::io::Read::read_to_string(&mut child.stdout.take().unwrap(), &mut out).unwrap();
+    assert_eq!(status.code(), Some(0), "{out}");
+    assert!(out.contains("stopped by Signal"), "{out}");
+    let cmds = commands(&rec);
+    assert!(cmds.len() < 85, "stopped early: {} frames", cmds.len());
+    let last = cmds.last().unwrap();
+    assert!(last.directive.starts_with("shutdown"), "{last:?}");
+}
+
+fn assert_exit_2(o: &std::process::Output, needle: &str) {
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(2), "{err}");
+    assert!(err.contains(needle), "expected '{needle}' in: {err}");
+}
+
+#[test]
+fn missing_camera_unreachable_link_and_bad_record_path_exit_2_leaving_nothing() {
+    let frames = frames_dir();
+    let rec = tmp("never.mcap");
+
+    let o = markhold()
+        .args(["run", "--site"])
+        .arg(site_path())
+        .args(["--camera", "frames:/no/such/folder", "--record"])
+        .arg(&rec)
+        .output()
+        .unwrap();
+    assert_exit_2(&o, "camera frames:/no/such/folder");
+    assert!(!rec.exists(), "half-written recording left behind");
+
+    // Nobody listens on this port (bound, then released).
+    let port = std::net::UdpSocket::bind("127.0.0.1:0")
+        .unwrap()
+        .local_addr()
+        .unwrap()
+        .port();
+    let o = markhold()
+        .args(["run", "--heartbeat-timeout-s", "0.5", "--site"])
+        .arg(site_path())
+        .arg("--camera")
+        .arg(format!("frames:{}", frames.display()))
+        .arg("--link")
+        .arg(format!("udpout:127.0.0.1:{port}"))
+        .arg("--record")
+        .arg(&rec)
+        .output()
+        .unwrap();
+    assert_exit_2(&o, "no vehicle heartbeat");
+    assert!(!rec.exists(), "half-written recording left behind");
+
+    let bad = tmp("no-such-dir").join("x.mcap");
+    let o = markhold()
+        .args(["run", "--site"])
+        .arg(site_path())
+        .arg("--camera")
+        .arg(format!("frames:{}", frames.display()))
+        .arg("--record")
+        .arg(&bad)
+        .output()
+        .unwrap();
+    assert_exit_2(&o, "x.mcap");
+    assert!(!bad.exists());
+
+    // 640x480 frames against a site calibrated for 1440x1080.
+    let pool = Path::new(env!("CARGO_MANIFEST_DIR")).join("params/pool.toml");
+    let o = markhold()
+        .args(["run", "--site"])
+        .arg(pool)
+        .arg("--camera")
+        .arg(format!("frames:{}", frames.display()))
+        .output()
+        .unwrap();
+    assert_exit_2(
+        &o,
+        "640x480 frames but the site's calibration is for 1440x1080",
+    );
+}
