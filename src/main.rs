@@ -39,6 +39,9 @@ enum Command {
     Replay(ReplayArgs),
     /// Hold station on a real vehicle with a real camera (Ctrl-C: neutral input, exit 0).
     Run(RunArgs),
+    /// The paper's four experiments for every exposure method x lighting x seed, in HIL:
+    /// report.md, results.json and plots.
+    Compare(markhold::compare::CompareArgs),
 }
 
 #[derive(clap::Args)]
@@ -197,6 +200,7 @@ fn run(cli: Cli) -> anyhow::Result<()> {
         Command::Sitl(args) => sitl(args),
         Command::Replay(args) => replay(args),
         Command::Run(args) => run_cmd(args),
+        Command::Compare(args) => markhold::compare::cli(args),
     }
 }
 

@@ -1,0 +1,1193 @@
+//! `markhold compare`: the paper's four experiments (static precision, motion tracking,
+//! convergence, station keeping) in HIL, for every exposure method x lighting x seed.
+//!
+//! Every run is single-threaded and deterministic (lock-step HIL, seeded world); runs are
+//! spread over threads with a shared work index, so the numbers do not depend on `jobs`.
+
+use std::sync::atomic::{AtomicUsize, Ordering};
+use std::sync::Mutex;
+use std::time::Instant;
+
+use anyhow::Context;
+use indicatif::ProgressBar;
+use markhold_exposure::ExposureMethod;
+use markhold_hil::scene::LightingScenario;
+use markhold_hil::VehicleMotion;
+use nalgebra::Vector3;
+use serde::{Deserialize, Serialize};
+
+use crate::hil_run::{HilOptions, HilRun};
+use crate::params::LoadedSite;
+use crate::summary::{convergence_frames, cov_det, rms};
+
+/// Relative band of "converged" (the issue's 5%).
+pub const CONVERGENCE_TOL: f64 = 0.05;
+/// Factor of the too-long and too-short starts of the convergence experiment.
+pub const CONVERGENCE_FACTOR: f64 = 10.0;
+
+/// What to run.
+#[derive(Debug, Clone)]
+pub struct CompareOptions {
+    pub seeds: Vec<u64>,
+    /// Simulated seconds of each experiment run.
+    pub seconds: f64,
+    pub methods: Vec<ExposureMethod>,
+    pub lightings: Vec<LightingScenario>,
+    /// Worker threads (at least 1).
+    pub jobs: usize,
+}
+
+impl Default for CompareOptions {
+    fn default() -> Self {
+        Self {
+            seeds: vec![1],
+            seconds: 60.0,
+            methods: ExposureMethod::ALL.to_vec(),
+            lightings: vec![
+                LightingScenario::Adversarial,
+                LightingScenario::Normal,
+                LightingScenario::Low,
+                LightingScenario::Caustics,
+            ],
+            jobs: std::thread::available_parallelism().map_or(1, |n| n.get()),
+        }
+    }
+}
+
+impl CompareOptions {
+    pub fn validate(&self) -> anyhow::Result<()> {
+        anyhow::ensure!(
+            self.seconds > 0.0 && self.seconds.is_finite(),
+            "--seconds {}: expected a positive number of simulated seconds",
+            self.seconds
+        );
+        anyhow::ensure!(!self.seeds.is_empty(), "--seeds 0: expected at least 1");
+        anyhow::ensure!(!self.methods.is_empty(), "--methods: expected at least one");
+        anyhow::ensure!(
+            !self.lightings.is_empty(),
+            "--lightings: expected at least one"
+        );
+        Ok(())
+    }
+}
+
+/// The five HIL runs behind the four experiments.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum RunKind {
+    /// Vehicle fixed on station.
+    Static,
+    /// Camera moved sideways at constant speed past the marker.
+    Motion,
+    /// Fixed on station, starting at 10x the static run's final exposure.
+    ConvergenceLong,
+    /// Fixed on station, starting at 1/10 of it.
+    ConvergenceShort,
+    /// The full loop from the site's initial offset.
+    Station,
+}
+
+/// One frame of a run, as the experiments need it.
+#[derive(Debug, Clone, Copy, Serialize, Deserialize)]
+pub struct Sample {
+    pub time_s: f64,
+    /// Exposure commanded after this frame.
+    pub exposure_us: f64,
+    pub detected: bool,
+    /// Measured marker position in the camera frame, metres.
+    pub measured_m: Option<[f64; 3]>,
+    /// True marker position in the camera frame, metres.
+    pub truth_m: [f64; 3],
+    /// True vehicle position in the marker frame, metres.
+    pub vehicle_marker_m: [f64; 3],
+    /// True vehicle-to-station distance, metres.
+    pub station_error_m: f64,
+}
+
+/// The per-frame series of one run (kept for the plots, not written to JSON).
+#[derive(Debug, Clone)]
+pub struct RunSeries {
+    pub method: ExposureMethod,
+    pub lighting: LightingScenario,
+    pub seed: u64,
+    pub kind: RunKind,
+    pub initial_exposure_us: f64,
+    pub samples: Vec<Sample>,
+    pub wall_seconds: f64,
+    pub lockstep_timeouts: u64,
+}
+
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+pub struct StaticResult {
+    pub frames: u64,
+    pub detection_rate: f64,
+    /// Determinant of the 3x3 covariance of the measured positions, m^6.
+    pub position_cov_det_m6: Option<f64>,
+    /// Largest distance between two measured positions.
+    pub max_distance_m: Option<f64>,
+    /// Mean measured minus true position, norm (bias of the pose estimate).
+    pub mean_bias_m: Option<f64>,
+    pub final_exposure_us: f64,
+}
+
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+pub struct MotionResult {
+    pub frames: u64,
+    pub speed_mps: f64,
+    pub span_m: f64,
+    pub detection_rate: f64,
+    /// Mean distance from each measured position to the true trajectory (the polyline of
+    /// true positions): the paper's metric.
+    pub mean_distance_to_trajectory_m: Option<f64>,
+    /// Mean distance to the true position at the same frame (stricter: includes lag).
+    pub mean_error_m: Option<f64>,
+}
+
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+pub struct ConvergenceStart {
+    pub initial_exposure_us: f64,
+    pub final_exposure_us: f64,
+    /// Frames until the exposure stays within 5% of its final value.
+    pub frames: u64,
+    pub seconds: f64,
+    /// Stayed in the band for at least the last second of the run.
+    pub settled: bool,
+    /// Crossed from above the band to below it (or back) at least twice.
+    pub oscillates: bool,
+    pub band_crossings: u64,
+    pub detection_rate: f64,
+}
+
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+pub struct ConvergenceResult {
+    /// The static run's final exposure: the reference the starts are 10x off.
+    pub reference_exposure_us: f64,
+    pub from_long: ConvergenceStart,
+    pub from_short: ConvergenceStart,
+}
+
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+pub struct StationResult {
+    pub frames: u64,
+    pub detection_rate: f64,
+    /// Determinant of the covariance of the true vehicle positions (marker frame) over
+    /// the last half of the run, m^6.
+    pub position_cov_det_m6: Option<f64>,
+    /// The same of the measured marker positions (camera frame), last half.
+    pub measured_position_cov_det_m6: Option<f64>,
+    /// Vehicle vs station, RMS over the last half.
+    pub position_rms_m: f64,
+    pub final_position_error_m: f64,
+}
+
+/// The four experiments for one method x lighting x seed.
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+pub struct CaseResult {
+    pub method: ExposureMethod,
+    pub lighting: LightingScenario,
+    pub seed: u64,
+    pub static_precision: StaticResult,
+    pub motion_tracking: MotionResult,
+    pub convergence: ConvergenceResult,
+    pub station_keeping: StationResult,
+    /// Frames the HIL vehicle stepped without its command (0 in a healthy run).
+    pub lockstep_timeouts: u64,
+}
+
+/// Mean and sample standard deviation of a metric over seeds (defined values only).
+#[derive(Debug, Clone, Copy, Serialize, Deserialize, PartialEq)]
+pub struct Stat {
+    pub mean: Option<f64>,
+    pub sd: Option<f64>,
+    /// Seeds where the metric was defined.
+    pub n: usize,
+}
+
+impl Stat {
+    pub fn of(values: &[Option<f64>]) -> Self {
+        let v: Vec<f64> = values.iter().flatten().copied().collect();
+        if v.is_empty() {
+            return Self {
+                mean: None,
+                sd: None,
+                n: 0,
+            };
+        }
+        let n = v.len() as f64;
+        let mean = v.iter().sum::<f64>() / n;
+        let sd = if v.len() > 1 {
+            Some((v.iter().map(|x| (x - mean).powi(2)).sum::<f64>() / (n - 1.0)).sqrt())
+        } else {
+            None
+        };
+        Self {
+            mean: Some(mean),
+            sd,
+            n: v.len(),
+        }
+    }
+}
+
+/// Every metric of a method x lighting, over seeds, keyed `experiment.metric`.
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+pub struct CaseStats {
+    pub method: ExposureMethod,
+    pub lighting: LightingScenario,
+    pub metrics: std::collections::BTreeMap<String, Stat>,
+}
+
+/// Wall time of one run (excluded from the determinism promise).
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+pub struct RunTiming {
+    pub method: ExposureMethod,
+    pub lighting: LightingScenario,
+    pub seed: u64,
+    pub kind: RunKind,
+    pub wall_seconds: f64,
+}
+
+/// `results.json`.
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+pub struct CompareResults {
+    pub site: String,
+    pub site_file: String,
+    pub width_px: u32,
+    pub height_px: u32,
+    pub fps: f64,
+    pub seconds: f64,
+    pub seeds: Vec<u64>,
+    pub methods: Vec<ExposureMethod>,
+    pub lightings: Vec<LightingScenario>,
+    pub cases: Vec<CaseResult>,
+    pub stats: Vec<CaseStats>,
+    pub timings: Vec<RunTiming>,
+}
+
+impl CompareResults {
+    pub fn case_stats(&self, m: ExposureMethod, l: LightingScenario) -> Option<&CaseStats> {
+        self.stats.iter().find(|s| s.method == m && s.lighting == l)
+    }
+}
+
+/// Everything `compare` produced: the numbers and the series for the plots.
+pub struct CompareOutput {
+    pub results: CompareResults,
+    pub series: Vec<RunSeries>,
+}
+
+/// One queued run.
+#[derive(Debug, Clone, Copy)]
+struct Job {
+    method: ExposureMethod,
+    lighting: LightingScenario,
+    seed: u64,
+    kind: RunKind,
+    initial_exposure_us: Option<f64>,
+}
+
+/// Sideways traverse of the motion experiment: the marker centre crosses the middle 80%
+/// of the image width at the station distance. Returns (span, speed).
+pub fn motion_traverse(site: &LoadedSite, seconds: f64) -> (f64, f64) {
+    let c = &site.calibration;
+    let cam_x = site.t_vehicle_cam().translation.vector.x;
+    let dist = (site.site.station.distance_m - cam_x).max(0.1);
+    let half_w = dist * (c.cx.min(c.width as f64 - c.cx) / c.fx);
+    let span = (2.0 * (0.8 * half_w - 0.5 * site.site.marker.size_m)).max(0.05);
+    (span, span / seconds)
+}
+
+/// Run every experiment; `progress` counts frames.
+pub fn run_compare(
+    site: &LoadedSite,
+    opts: &CompareOptions,
+    progress: &ProgressBar,
+) -> anyhow::Result<CompareOutput> {
+    opts.validate()?;
+    let fps = site.site.camera.fps;
+    let frames = (opts.seconds * fps).round().max(1.0) as u64;
+    let mut first = Vec::new();
+    for &method in &opts.methods {
+        for &lighting in &opts.lightings {
+            for &seed in &opts.seeds {
+                for kind in [RunKind::Static, RunKind::Motion, RunKind::Station] {
+                    first.push(Job {
+                        method,
+                        lighting,
+                        seed,
+                        kind,
+                        initial_exposure_us: None,
+                    });
+                }
+            }
+        }
+    }
+    progress.set_length(frames * first.len() as u64 * 5 / 3);
+    let mut series = run_jobs(site, opts, &first, frames, progress)?;
+
+    // Convergence starts 10x off the exposure each method settled on in the static run.
+    let limits = site.limits();
+    let mut second = Vec::new();
+    for s in series.iter().filter(|s| s.kind == RunKind::Static) {
+        let reference = s.samples.last().map_or(f64::NAN, |x| x.exposure_us);
+        for (kind, f) in [
+            (RunKind::ConvergenceLong, CONVERGENCE_FACTOR),
+            (RunKind::ConvergenceShort, 1.0 / CONVERGENCE_FACTOR),
+        ] {
+            second.push(Job {
+                method: s.method,
+                lighting: s.lighting,
+                seed: s.seed,
+                kind,
+                initial_exposure_us: Some(limits.clamp(reference * f)),
+            });
+        }
+    }
+    series.extend(run_jobs(site, opts, &second, frames, progress)?);
+
+    let results = summarize(site, opts, &series)?;
+    Ok(CompareOutput { results, series })
+}
+
+/// Run jobs on `opts.jobs` threads; results come back in job order.
+fn run_jobs(
+    site: &LoadedSite,
+    opts: &CompareOptions,
+    jobs: &[Job],
+    frames: u64,
+    progress: &ProgressBar,
+) -> anyhow::Result<Vec<RunSeries>> {
+    let next = AtomicUsize::new(0);
+    let out: Mutex<Vec<Option<anyhow::Result<RunSeries>>>> =
+        Mutex::new((0..jobs.len()).map(|_| None).collect());
+    let workers = opts.jobs.clamp(1, jobs.len().max(1));
+    std::thread::scope(|scope| {
+        for _ in 0..workers {
+            scope.spawn(|| loop {
+                let i = next.fetch_add(1, Ordering::Relaxed);
+                let Some(job) = jobs.get(i) else { break };
+                let r = run_one(site, opts, job, frames, progress);
+                let failed = r.is_err();
+                if let Ok(mut o) = out.lock() {
+                    o[i] = Some(r);
+                }
+                if failed {
+                    // Stop handing out work: the first error is reported.
+                    next.store(jobs.len(), Ordering::Relaxed);
+                }
+            });
+        }
+    });
+    let out = out
+        .into_inner()
+        .map_err(|_| anyhow::anyhow!("a compare worker panicked"))?;
+    let mut series = Vec::with_capacity(jobs.len());
+    for (r, job) in out.into_iter().zip(jobs) {
+        match r {
+            Some(r) => series.push(r.with_context(|| {
+                format!(
+                    "{:?} run, method {}, lighting {}, seed {}",
+                    job.kind, job.method, job.lighting, job.seed
+                )
+            })?),
+            None => anyhow::bail!("a compare run was not executed (an earlier run failed)"),
+        }
+    }
+    Ok(series)
+}
+
+fn run_one(
+    site: &LoadedSite,
+    opts: &CompareOptions,
+    job: &Job,
+    frames: u64,
+    progress: &ProgressBar,
+) -> anyhow::Result<RunSeries> {
+    let wall = Instant::now();
+    let mut site = site.clone();
+    let mut hil = HilOptions {
+        seconds: opts.seconds,
+        seed: job.seed,
+        exposure: Some(job.method),
+        lighting: Some(job.lighting),
+        initial_exposure_us: job.initial_exposure_us,
+        ..HilOptions::default()
+    };
+    match job.kind {
+        RunKind::Static | RunKind::ConvergenceLong | RunKind::ConvergenceShort => {
+            hil.motion = VehicleMotion::Fixed;
+            hil.start_on_station = true;
+        }
+        RunKind::Motion => {
+            // Start half a span to the marker's left (the vehicle's left), move east: the
+            // vehicle faces north, so its right is world +y (docs/frames.md).
+            let (span, speed) = motion_traverse(&site, opts.seconds);
+            site.site.station.lateral_m -= 0.5 * span;
+            hil.motion = VehicleMotion::Kinematic {
+                velocity_world_mps: [0.0, speed, 0.0],
+            };
+            hil.start_on_station = true;
+        }
+        RunKind::Station => {
+            hil.motion = VehicleMotion::Free;
+            hil.start_on_station = false;
+        }
+    }
+    let mut run = HilRun::build(&site, &hil)?;
+    // What `HilRun::build` set the camera to.
+    let initial_exposure_us = site.limits().clamp(
+        hil.initial_exposure_us
+            .unwrap_or(site.site.camera.initial_exposure_us),
+    );
+    run.arm(site.site.link.mode.ardusub())?;
+    let t_marker_world = run.t_world_marker.inverse();
+    let t_station_marker = run.t_marker_station.inverse();
+    let mut samples = Vec::with_capacity(frames as usize);
+    for _ in 0..frames {
+        let (rec, truth) = run.step()?;
+        let t_marker_vehicle = t_marker_world * truth.t_world_vehicle;
+        let err = t_station_marker * t_marker_vehicle;
+        samples.push(Sample {
+            time_s: truth.time_s,
+            exposure_us: rec.exposure.exposure_us,
+            detected: rec.detected,
+            measured_m: rec.t_cam_marker.map(|t| t.translation.vector.into()),
+            truth_m: truth.t_cam_marker.translation.vector.into(),
+            vehicle_marker_m: t_marker_vehicle.translation.vector.into(),
+            station_error_m: err.translation.vector.norm(),
+        });
+        progress.inc(1);
+    }
+    let now = run.rig.truth().time_s;
+    run.pipeline.link.send_neutral(now)?;
+    Ok(RunSeries {
+        method: job.method,
+        lighting: job.lighting,
+        seed: job.seed,
+        kind: job.kind,
+        initial_exposure_us,
+        samples,
+        wall_seconds: wall.elapsed().as_secs_f64(),
+        lockstep_timeouts: run.rig.truth().lockstep_timeouts,
+    })
+}
+
+fn v3(a: &[f64; 3]) -> Vector3<f64> {
+    Vector3::new(a[0], a[1], a[2])
+}
+
+fn finite(x: f64) -> Option<f64> {
+    x.is_finite().then_some(x)
+}
+
+fn detection_rate(s: &[Sample]) -> f64 {
+    s.iter().filter(|x| x.detected).count() as f64 / s.len().max(1) as f64
+}
+
+fn measured(s: &[Sample]) -> Vec<Vector3<f64>> {
+    s.iter()
+        .filter_map(|x| x.measured_m.as_ref().map(v3))
+        .collect()
+}
+
+/// Largest distance between two points (exact, O(n^2): a minute is 1800 points).
+pub fn max_pairwise_distance(p: &[Vector3<f64>]) -> Option<f64> {
+    if p.len() < 2 {
+        return None;
+    }
+    let mut best = 0.0f64;
+    for (i, a) in p.iter().enumerate() {
+        for b in &p[i + 1..] {
+            best = best.max((a - b).norm_squared());
+        }
+    }
+    Some(best.sqrt())
+}
+
+/// Distance from a point to a polyline.
+pub fn distance_to_polyline(p: &Vector3<f64>, line: &[Vector3<f64>]) -> f64 {
+    match line {
+        [] => f64::NAN,
+        [only] => (p - only).norm(),
+        _ => line
+            .windows(2)
+            .map(|w| {
+                let d = w[1] - w[0];
+                let len2 = d.norm_squared();
+                let t = if len2 > 0.0 {
+                    ((p - w[0]).dot(&d) / len2).clamp(0.0, 1.0)
+                } else {
+                    0.0
+                };
+                (p - (w[0] + t * d)).norm()
+            })
+            .fold(f64::INFINITY, f64::min),
+    }
+}
+
+/// Times the series goes from above the band around `last` to below it, or back.
+pub fn band_crossings(series: &[f64], last: f64, tol: f64) -> u64 {
+    let band = tol * last.abs();
+    let mut side = 0i8;
+    let mut n = 0;
+    for v in series {
+        let s = if *v > last + band {
+            1
+        } else if *v < last - band {
+            -1
+        } else {
+            0
+        };
+        if s != 0 {
+            if side != 0 && s != side {
+                n += 1;
+            }
+            side = s;
+        }
+    }
+    n
+}
+
+fn static_result(s: &[Sample]) -> StaticResult {
+    let m = measured(s);
+    let bias = if m.is_empty() {
+        None
+    } else {
+        let mut sum = Vector3::zeros();
+        let mut n = 0.0;
+        for x in s {
+            if let Some(p) = &x.measured_m {
+                sum += v3(p) - v3(&x.truth_m);
+                n += 1.0;
+            }
+        }
+        Some((sum / n).norm())
+    };
+    StaticResult {
+        frames: s.len() as u64,
+        detection_rate: detection_rate(s),
+        position_cov_det_m6: finite(cov_det(&m)),
+        max_distance_m: max_pairwise_distance(&m),
+        mean_bias_m: bias,
+        final_exposure_us: s.last().map_or(f64::NAN, |x| x.exposure_us),
+    }
+}
+
+fn motion_result(s: &[Sample], span_m: f64, speed_mps: f64) -> MotionResult {
+    let truth: Vec<Vector3<f64>> = s.iter().map(|x| v3(&x.truth_m)).collect();
+    let mut to_line = Vec::new();
+    let mut same_time = Vec::new();
+    for x in s {
+        if let Some(p) = &x.measured_m {
+            let p = v3(p);
+            to_line.push(distance_to_polyline(&p, &truth));
+            same_time.push((p - v3(&x.truth_m)).norm());
+        }
+    }
+    let mean = |v: &[f64]| (!v.is_empty()).then(|| v.iter().sum::<f64>() / v.len() as f64);
+    MotionResult {
+        frames: s.len() as u64,
+        speed_mps,
+        span_m,
+        detection_rate: detection_rate(s),
+        mean_distance_to_trajectory_m: mean(&to_line),
+        mean_error_m: mean(&same_time),
+    }
+}
+
+fn convergence_start(r: &RunSeries, fps: f64) -> ConvergenceStart {
+    let e: Vec<f64> = r.samples.iter().map(|x| x.exposure_us).collect();
+    let last = e.last().copied().unwrap_or(f64::NAN);
+    let frames = convergence_frames(&e, CONVERGENCE_TOL);
+    let crossings = band_crossings(&e, last, CONVERGENCE_TOL);
+    ConvergenceStart {
+        initial_exposure_us: r.initial_exposure_us,
+        final_exposure_us: last,
+        frames,
+        seconds: frames as f64 / fps,
+        settled: (e.len() as u64).saturating_sub(frames) as f64 >= fps,
+        oscillates: crossings >= 2,
+        band_crossings: crossings,
+        detection_rate: detection_rate(&r.samples),
+    }
+}
+
+fn station_result(s: &[Sample]) -> StationResult {
+    let half = &s[s.len() / 2..];
+    let pos: Vec<Vector3<f64>> = half.iter().map(|x| v3(&x.vehicle_marker_m)).collect();
+    let err: Vec<f64> = half.iter().map(|x| x.station_error_m).collect();
+    StationResult {
+        frames: s.len() as u64,
+        detection_rate: detection_rate(s),
+        position_cov_det_m6: finite(cov_det(&pos)),
+        measured_position_cov_det_m6: finite(cov_det(&measured(half))),
+        position_rms_m: rms(&err),
+        final_position_error_m: s.last().map_or(f64::NAN, |x| x.station_error_m),
+    }
+}
+
+/// Every metric of a case, keyed `experiment.metric` (the report's and the stats' keys).
+pub fn metrics(c: &CaseResult) -> Vec<(&'static str, Option<f64>)> {
+    let s = &c.static_precision;
+    let m = &c.motion_tracking;
+    let cv = &c.convergence;
+    let st = &c.station_keeping;
+    let b = |x: bool| Some(if x { 1.0 } else { 0.0 });
+    vec![
+        ("static.detection_rate", Some(s.detection_rate)),
+        ("static.position_cov_det_m6", s.position_cov_det_m6),
+        ("static.max_distance_m", s.max_distance_m),
+        ("static.mean_bias_m", s.mean_bias_m),
+        ("static.final_exposure_us", finite(s.final_exposure_us)),
+        ("motion.detection_rate", Some(m.detection_rate)),
+        (
+            "motion.mean_distance_to_trajectory_m",
+            m.mean_distance_to_trajectory_m,
+        ),
+        ("motion.mean_error_m", m.mean_error_m),
+        ("convergence.long.seconds", Some(cv.from_long.seconds)),
+        ("convergence.long.frames", Some(cv.from_long.frames as f64)),
+        ("convergence.long.settled", b(cv.from_long.settled)),
+        ("convergence.long.oscillates", b(cv.from_long.oscillates)),
+        ("convergence.short.seconds", Some(cv.from_short.seconds)),
+        (
+            "convergence.short.frames",
+            Some(cv.from_short.frames as f64),
+        ),
+        ("convergence.short.settled", b(cv.from_short.settled)),
+        ("convergence.short.oscillates", b(cv.from_short.oscillates)),
+        ("station.detection_rate", Some(st.detection_rate)),
+        ("station.position_cov_det_m6", st.position_cov_det_m6),
+        (
+            "station.measured_position_cov_det_m6",
+            st.measured_position_cov_det_m6,
+        ),
+        ("station.position_rms_m", finite(st.position_rms_m)),
+        (
+            "station.final_position_error_m",
+            finite(st.final_position_error_m),
+        ),
+    ]
+}
+
+fn summarize(
+    site: &LoadedSite,
+    opts: &CompareOptions,
+    series: &[RunSeries],
+) -> anyhow::Result<CompareResults> {
+    let fps = site.site.camera.fps;
+    let (span, speed) = motion_traverse(site, opts.seconds);
+    let find = |m, l, seed, kind| {
+        series
+            .iter()
+            .find(|s| s.method == m && s.lighting == l && s.seed == seed && s.kind == kind)
+            .with_context(|| format!("missing {kind:?} run for {m} / {l} / seed {seed}"))
+    };
+    let mut cases = Vec::new();
+    let mut stats = Vec::new();
+    for &m in &opts.methods {
+        for &l in &opts.lightings {
+            let mut per_seed = Vec::new();
+            for &seed in &opts.seeds {
+                let st = find(m, l, seed, RunKind::Static)?;
+                let long = find(m, l, seed, RunKind::ConvergenceLong)?;
+                let short = find(m, l, seed, RunKind::ConvergenceShort)?;
+                let static_precision = static_result(&st.samples);
+                let case = CaseResult {
+                    method: m,
+                    lighting: l,
+                    seed,
+                    convergence: ConvergenceResult {
+                        reference_exposure_us: static_precision.final_exposure_us,
+                        from_long: convergence_start(long, fps),
+                        from_short: convergence_start(short, fps),
+                    },
+                    static_precision,
+                    motion_tracking: motion_result(
+                        &find(m, l, seed, RunKind::Motion)?.samples,
+                        span,
+                        speed,
+                    ),
+                    station_keeping: station_result(&find(m, l, seed, RunKind::Station)?.samples),
+                    lockstep_timeouts: series
+                        .iter()
+                        .filter(|s| s.method == m && s.lighting == l && s.seed == seed)
+                        .map(|s| s.lockstep_timeouts)
+                        .sum(),
+                };
+                per_seed.push(case);
+            }
+            let mut map = std::collections::BTreeMap::new();
+            let all: Vec<Vec<(&'static str, Option<f64>)>> = per_seed.iter().map(metrics).collect();
+            if let Some(firstm) = all.first() {
+                for (k, (key, _)) in firstm.iter().enumerate() {
+                    let vals: Vec<Option<f64>> = all.iter().map(|v| v[k].1).collect();
+                    map.insert((*key).to_string(), Stat::of(&vals));
+                }
+            }
+            stats.push(CaseStats {
+                method: m,
+                lighting: l,
+                metrics: map,
+            });
+            cases.extend(per_seed);
+        }
+    }
+    Ok(CompareResults {
+        site: site.site.site.name.clone(),
+        site_file: site.path.display().to_string(),
+        width_px: site.calibration.width,
+        height_px: site.calibration.height,
+        fps,
+        seconds: opts.seconds,
+        seeds: opts.seeds.clone(),
+        methods: opts.methods.clone(),
+        lightings: opts.lightings.clone(),
+        cases,
+        stats,
+        timings: series
+            .iter()
+            .map(|s| RunTiming {
+                method: s.method,
+                lighting: s.lighting,
+                seed: s.seed,
+                kind: s.kind,
+                wall_seconds: s.wall_seconds,
+            })
+            .collect(),
+    })
+}
+
+/// The paper's numbers (docs/exposure.md, "What the paper measured"), for the report.
+mod paper {
+    use markhold_exposure::ExposureMethod;
+    use markhold_hil::scene::LightingScenario;
+
+    /// Static marker in a river, 1 minute: det(cov) m^6, detection %, max distance m.
+    pub fn static_precision(m: ExposureMethod) -> (f64, f64, f64) {
+        match m {
+            ExposureMethod::Aaec => (1.65e-23, 100.0, 0.0040),
+            ExposureMethod::Gec => (1.02e-20, 100.0, 0.0273),
+            ExposureMethod::Aec => (1.38e-20, 100.0, 0.0598),
+            ExposureMethod::Default => (3.82e-20, 99.6, 0.0462),
+        }
+    }
+
+    /// Moving camera, adversarial light only: mean distance m, detection %.
+    pub fn motion(m: ExposureMethod, l: LightingScenario) -> Option<String> {
+        if l != LightingScenario::Adversarial {
+            return None;
+        }
+        Some(
+            match m {
+                ExposureMethod::Aaec => "0.0058 m / 99.32 %",
+                ExposureMethod::Gec => "0.0490 m / 29.29 %",
+                ExposureMethod::Aec | ExposureMethod::Default => "no detection",
+            }
+            .to_string(),
+        )
+    }
+
+    /// Convergence seconds (the paper's AAEC is momentum + RoI; no GEC or Default row).
+    pub fn convergence_s(m: ExposureMethod, l: LightingScenario) -> Option<f64> {
+        let row = match m {
+            ExposureMethod::Aaec => [4.0, 3.0, 6.0],
+            ExposureMethod::Aec => [63.0, 43.0, 72.0],
+            ExposureMethod::Gec | ExposureMethod::Default => return None,
+        };
+        match l {
+            LightingScenario::Adversarial => Some(row[0]),
+            LightingScenario::Normal => Some(row[1]),
+            LightingScenario::Low => Some(row[2]),
+            LightingScenario::Caustics => None,
+        }
+    }
+}
+
+/// How a metric is printed.
+#[derive(Clone, Copy)]
+enum Fmt {
+    Percent,
+    Sci,
+    Metres,
+    Seconds,
+    Micros,
+    /// A 0/1 flag: the fraction of seeds where it was set.
+    Flag,
+}
+
+fn fmt_value(v: f64, f: Fmt) -> String {
+    match f {
+        Fmt::Percent => format!("{:.1} %", 100.0 * v),
+        Fmt::Sci => format!("{v:.2e}"),
+        Fmt::Metres => format!("{v:.4}"),
+        Fmt::Seconds => format!("{v:.2}"),
+        Fmt::Micros => format!("{v:.0}"),
+        Fmt::Flag => {
+            if v == 0.0 {
+                "no".to_string()
+            } else if v == 1.0 {
+                "yes".to_string()
+            } else {
+                format!("{:.0} % of seeds", 100.0 * v)
+            }
+        }
+    }
+}
+
+/// `mean ± sd` over seeds; `-` where the metric is undefined (e.g. no detection).
+fn fmt_stat(s: Option<&Stat>, f: Fmt) -> String {
+    let Some(s) = s else { return "-".to_string() };
+    match (s.mean, s.sd, f) {
+        (None, _, _) => "-".to_string(),
+        (Some(m), _, Fmt::Flag) => fmt_value(m, f),
+        (Some(m), Some(sd), _) => format!("{} ± {}", fmt_value(m, f), fmt_value(sd, f)),
+        (Some(m), None, _) => fmt_value(m, f),
+    }
+}
+
+/// The paper's cell for a method, if it has one.
+type PaperColumn<'a> = &'a dyn Fn(ExposureMethod) -> Option<String>;
+
+/// One table: a row per method, the given metric columns, and an optional paper column.
+fn table(
+    out: &mut String,
+    r: &CompareResults,
+    l: LightingScenario,
+    cols: &[(&str, &str, Fmt)],
+    paper: Option<(&str, PaperColumn)>,
+) {
+    use std::fmt::Write as _;
+    let mut head = String::from("| Method |");
+    let mut rule = String::from("|---|");
+    for (title, _, _) in cols {
+        let _ = write!(head, " {title} |");
+        rule.push_str("---|");
+    }
+    if let Some((title, _)) = &paper {
+        let _ = write!(head, " {title} |");
+        rule.push_str("---|");
+    }
+    let _ = writeln!(out, "{head}\n{rule}");
+    for &m in &r.methods {
+        let stats = r.case_stats(m, l);
+        let _ = write!(out, "| {} |", method_name(m));
+        for (_, key, f) in cols {
+            let _ = write!(
+                out,
+                " {} |",
+                fmt_stat(stats.and_then(|s| s.metrics.get(*key)), *f)
+            );
+        }
+        if let Some((_, p)) = &paper {
+            let _ = write!(out, " {} |", p(m).unwrap_or_else(|| "-".to_string()));
+        }
+        out.push('\n');
+    }
+    out.push('\n');
+}
+
+/// The paper's spelling of the method names.
+pub fn method_name(m: ExposureMethod) -> &'static str {
+    match m {
+        ExposureMethod::Aaec => "AAEC",
+        ExposureMethod::Gec => "GEC",
+        ExposureMethod::Aec => "AEC",
+        ExposureMethod::Default => "Default",
+    }
+}
+
+/// `report.md`: the four experiments laid out like the paper's tables, one block per
+/// lighting, mean ± sample sd over seeds, the paper's numbers beside ours where it has them.
+pub fn report_markdown(r: &CompareResults, plots: &[String]) -> String {
+    use std::fmt::Write as _;
+    let mut o = String::new();
+    let seeds = r.seeds.len();
+    let _ = writeln!(o, "# markhold compare: {}\n", r.site);
+    let _ = writeln!(
+        o,
+        "Site file `{}`, {}x{} px at {} fps, {} simulated seconds per run, seeds {:?}. \
+         Cells are mean ± sample standard deviation over {} seed(s) (no spread with one \
+         seed); `-` where the metric is undefined (no detection). The paper's numbers are \
+         from its own camera and water; ours are from the HIL world.\n",
+        r.site_file, r.width_px, r.height_px, r.fps, r.seconds, r.seeds, seeds
+    );
+
+    let _ = writeln!(
+        o,
+        "## 1. Static precision\n\nVehicle held fixed on station for {} s. det(cov): \
+         determinant of the 3x3 covariance of the measured marker positions (camera frame, \
+         m^6). Paper: a static marker in a river, 1 minute.\n",
+        r.seconds
+    );
+    for &l in &r.lightings {
+        let _ = writeln!(o, "### Static precision, {l} lighting\n");
+        let p = |m| {
+            let (d, rate, max) = paper::static_precision(m);
+            Some(format!("{d:.2e} / {rate} % / {max:.4} m"))
+        };
+        table(
+            &mut o,
+            r,
+            l,
+            &[
+                ("det(cov) [m^6]", "static.position_cov_det_m6", Fmt::Sci),
+                ("Detection", "static.detection_rate", Fmt::Percent),
+                ("Max distance [m]", "static.max_distance_m", Fmt::Metres),
+                ("Mean bias [m]", "static.mean_bias_m", Fmt::Metres),
+                (
+                    "Final exposure [us]",
+                    "static.final_exposure_us",
+                    Fmt::Micros,
+                ),
+            ],
+            Some(("Paper det / detection / max", &p)),
+        );
+    }
+
+    let _ = writeln!(
+        o,
+        "## 2. Motion tracking\n\nCamera moved sideways at constant speed so the marker \
+         crosses the middle of the view. Distance to trajectory: mean distance from each \
+         measured position to the polyline of true positions (the paper's metric); error: \
+         to the true position of the same frame.\n"
+    );
+    if let Some(c) = r.cases.first() {
+        let _ = writeln!(
+            o,
+            "Traverse {:.3} m at {:.4} m/s.\n",
+            c.motion_tracking.span_m, c.motion_tracking.speed_mps
+        );
+    }
+    for &l in &r.lightings {
+        let _ = writeln!(o, "### Motion tracking, {l} lighting\n");
+        let p = move |m| paper::motion(m, l);
+        table(
+            &mut o,
+            r,
+            l,
+            &[
+                (
+                    "Distance to trajectory [m]",
+                    "motion.mean_distance_to_trajectory_m",
+                    Fmt::Metres,
+                ),
+                ("Detection", "motion.detection_rate", Fmt::Percent),
+                ("Same-frame error [m]", "motion.mean_error_m", Fmt::Metres),
+            ],
+            Some(("Paper distance / detection", &p)),
+        );
+    }
+
+    let _ = writeln!(
+        o,
+        "## 3. Convergence\n\nVehicle fixed on station; exposure started at 10x and 1/10 of \
+         the exposure the method settled on in the static run (clamped to the camera's \
+         limits). Seconds until the exposure stays within 5% of the run's final value; \
+         settled: it stayed there for at least the last second; oscillates: it crossed the \
+         band from one side to the other at least twice. Paper: AAEC with momentum and RoI, \
+         AEC; it has no GEC or Default convergence numbers.\n"
+    );
+    for &l in &r.lightings {
+        let _ = writeln!(o, "### Convergence, {l} lighting\n");
+        let p = move |m| paper::convergence_s(m, l).map(|s| format!("{s} s"));
+        table(
+            &mut o,
+            r,
+            l,
+            &[
+                (
+                    "From 10x long [s]",
+                    "convergence.long.seconds",
+                    Fmt::Seconds,
+                ),
+                ("Settled", "convergence.long.settled", Fmt::Flag),
+                ("Oscillates", "convergence.long.oscillates", Fmt::Flag),
+                (
+                    "From 10x short [s]",
+                    "convergence.short.seconds",
+                    Fmt::Seconds,
+                ),
+                ("Settled", "convergence.short.settled", Fmt::Flag),
+                ("Oscillates", "convergence.short.oscillates", Fmt::Flag),
+            ],
+            Some(("Paper [s]", &p)),
+        );
+    }
+
+    let _ = writeln!(
+        o,
+        "## 4. Station keeping\n\nThe full loop from the site's initial offset for {} s. \
+         det(cov): determinant of the covariance of the true vehicle position (marker \
+         frame) over the last half; position RMS: vehicle to station, last half. Paper: \
+         AAEC had the smallest determinant in all three lightings (no numbers quoted here).\n",
+        r.seconds
+    );
+    for &l in &r.lightings {
+        let _ = writeln!(o, "### Station keeping, {l} lighting\n");
+        table(
+            &mut o,
+            r,
+            l,
+            &[
+                ("det(cov) [m^6]", "station.position_cov_det_m6", Fmt::Sci),
+                ("Detection", "station.detection_rate", Fmt::Percent),
+                ("Position RMS [m]", "station.position_rms_m", Fmt::Metres),
+                (
+                    "Measured det(cov) [m^6]",
+                    "station.measured_position_cov_det_m6",
+                    Fmt::Sci,
+                ),
+            ],
+            None,
+        );
+    }
+
+    let timeouts: u64 = r.cases.iter().map(|c| c.lockstep_timeouts).sum();
+    let _ = writeln!(
+        o,
+        "Lock-step timeouts over all runs: {timeouts} (frames the simulated vehicle stepped \
+         without its command; 0 in a healthy run).\n"
+    );
+    if !plots.is_empty() {
+        let _ = writeln!(o, "## Plots\n");
+        for p in plots {
+            let _ = writeln!(o, "- [{p}]({p})");
+        }
+    }
+    o
+}
+
+/// Write `results.json`, the plots and `report.md` into `dir` (created if missing).
+/// Returns the files written, relative to `dir`.
+pub fn write_outputs(out: &CompareOutput, dir: &std::path::Path) -> anyhow::Result<Vec<String>> {
+    std::fs::create_dir_all(dir).with_context(|| format!("creating --out {}", dir.display()))?;
+    let json = serde_json::to_string_pretty(&out.results)?;
+    let p = dir.join("results.json");
+    std::fs::write(&p, json + "\n").with_context(|| format!("writing {}", p.display()))?;
+    let mut files = vec!["results.json".to_string()];
+    let plots = crate::plots::write_plots(out, dir)?;
+    let md = report_markdown(&out.results, &plots);
+    let p = dir.join("report.md");
+    std::fs::write(&p, md).with_context(|| format!("writing {}", p.display()))?;
+    files.push("report.md".to_string());
+    files.extend(plots);
+    Ok(files)
+}
+
+/// `markhold compare` on the command line.
+#[derive(Debug, Clone, clap::Args)]
+pub struct CompareArgs {
+    /// Dive-site file.
+    #[arg(long, default_value = "params/pool.toml")]
+    pub site: std::path::PathBuf,
+    /// Number of seeds (1..=N) per method and lighting.
+    #[arg(long, default_value_t = 1)]
+    pub seeds: u64,
+    /// Output folder: report.md, results.json, plots (PNG and SVG).
+    #[arg(long)]
+    pub out: std::path::PathBuf,
+    /// Simulated seconds of each experiment run.
+    #[arg(long, default_value_t = 60.0)]
+    pub seconds: f64,
+    /// Exposure methods, comma-separated (default all: aaec,gec,aec,default).
+    #[arg(long, value_delimiter = ',')]
+    pub methods: Vec<ExposureMethod>,
+    /// Lightings, comma-separated (default all: adversarial,normal,low,caustics).
+    #[arg(long, value_delimiter = ',')]
+    pub lightings: Vec<LightingScenario>,
+    /// Parallel runs (default: the number of cores).
+    #[arg(long)]
+    pub jobs: Option<usize>,
+    /// No progress bar.
+    #[arg(long)]
+    pub quiet: bool,
+}
+
+/// Run `markhold compare` and print where the outputs went.
+pub fn cli(args: CompareArgs) -> anyhow::Result<()> {
+    let site = crate::params::load(&args.site)?;
+    let mut opts = CompareOptions {
+        seeds: (1..=args.seeds).collect(),
+        seconds: args.seconds,
+        ..CompareOptions::default()
+    };
+    if !args.methods.is_empty() {
+        opts.methods = args.methods.clone();
+    }
+    if !args.lightings.is_empty() {
+        opts.lightings = args.lightings.clone();
+    }
+    if let Some(j) = args.jobs {
+        anyhow::ensure!(j > 0, "--jobs 0: expected at least 1");
+        opts.jobs = j;
+    }
+    opts.validate()?;
+    let bar = if args.quiet {
+        ProgressBar::hidden()
+    } else {
+        let b = ProgressBar::new(0);
+        b.set_style(
+            indicatif::ProgressStyle::with_template(
+                "{spinner} {elapsed_precise} [{bar:30}] {pos}/{len} frames, eta {eta}",
+            )
+            .unwrap_or_else(|_| indicatif::ProgressStyle::default_bar())
+            .progress_chars("=> "),
+        );
+        b
+    };
+    let out = run_compare(&site, &opts, &bar)?;
+    bar.finish_and_clear();
+    let files = write_outputs(&out, &args.out)?;
+    println!(
+        "markhold compare: {} runs of {} s on {}; wrote {} files to {}",
+        out.series.len(),
+        opts.seconds,
+        site.site.site.name,
+        files.len(),
+        args.out.display()
+    );
+    for f in files {
+        println!("  {}", args.out.join(f).display());
+    }
+    Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn crossings_count_overshoots() {
+        // Monotone approach: no crossing.
+        assert_eq!(band_crossings(&[10.0, 5.0, 2.0, 1.0, 1.0], 1.0, 0.05), 0);
+        // One overshoot below, then back into the band.
+        assert_eq!(band_crossings(&[10.0, 0.5, 1.0, 1.0], 1.0, 0.05), 1);
+        // Ringing.
+        assert_eq!(band_crossings(&[2.0, 0.5, 1.5, 0.8, 1.0], 1.0, 0.05), 3);
+    }
+
+    #[test]
+    fn polyline_and_pairwise_distances() {
+        let line = [Vector3::new(0.0, 0.0, 0.0), Vector3::new(1.0, 0.0, 0.0)];
+        let d = distance_to_polyline(&Vector3::new(0.5, 0.3, 0.4), &line);
+        assert!((d - 0.5).abs() < 1e-12);
+        let d = distance_to_polyline(&Vector3::new(2.0, 0.0, 0.0), &line);
+        assert!((d - 1.0).abs() < 1e-12);
+        let p = [
+            Vector3::new(0.0, 0.0, 0.0),
+            Vector3::new(0.0, 3.0, 0.0),
+            Vector3::new(0.0, 0.0, 4.0),
+        ];
+        assert_eq!(max_pairwise_distance(&p), Some(5.0));
+        assert_eq!(max_pairwise_distance(&p[..1]), None);
+    }
+
+    #[test]
+    fn stats_over_seeds() {
+        let s = Stat::of(&[Some(1.0), None, Some(3.0)]);
+        assert_eq!(s.n, 2);
+        assert_eq!(s.mean, Some(2.0));
+        assert!((s.sd.unwrap_or(0.0) - 2f64.sqrt()).abs() < 1e-12);
+        assert_eq!(Stat::of(&[None]).mean, None);
+    }
+}
