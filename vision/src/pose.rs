@@ -82,8 +82,13 @@ impl CameraCalibration {
             let radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3));
             let dx = 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x);
             let dy = p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y;
-            x = (xd - dx) / radial;
-            y = (yd - dy) / radial;
+            let (nx, ny) = ((xd - dx) / radial, (yd - dy) / radial);
+            let step = (nx - x).abs() + (ny - y).abs();
+            (x, y) = (nx, ny);
+            // 1e-12 in normalised units is ~1e-9 px.
+            if step < 1e-12 {
+                break;
+            }
         }
         Vector2::new(x, y)
     }
