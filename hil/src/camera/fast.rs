@@ -431,14 +431,24 @@ impl FastRenderer {
                             }) {
                                 Some(mut st) if !caustics.on => {
                                     // Daylight and lamps add up before the albedo.
-                                    let (mut l, ld) =
+                                    let (l, ld) =
                                         (fields.v[0] + fields.v[1], fields.d[0] + fields.d[1]);
-                                    let (mut a, ad) = (fields.v[2], fields.d[2]);
+                                    let (a, ad) = (fields.v[2], fields.d[2]);
+                                    // albedo = offset + scale * byte: fold both into the
+                                    // light terms so a pixel is one multiply-add.
+                                    let (ts, to) = (rock.scale, rock.offset);
+                                    let (mut ls, lds) = (l * ts, ld * ts);
+                                    let (mut ao, aod) = (a + l * to, ad + ld * to);
+                                    let (tex, mask, shift) =
+                                        (&rock.data[..], rock.mask(), rock.log2);
                                     for m in run.iter_mut() {
-                                        *m = rock.at(st.ru.get(), st.rv.get()) * l + a;
+                                        let tx = (st.ru.at >> 16) as usize & mask;
+                                        let ty = (st.rv.at >> 16) as usize & mask;
+                                        let b = tex.get((ty << shift) | tx).copied().unwrap_or(0);
+                                        *m = b as f32 * ls + ao;
                                         st.step_rock();
-                                        l += ld;
-                                        a += ad;
+                                        ls += lds;
+                                        ao += aod;
                                     }
                                 }
                                 Some(mut st) => {
@@ -480,13 +490,13 @@ impl FastRenderer {
             }
             // The sensor, in three passes so the arithmetic one vectorizes.
             if tables.noise {
-                let mut bits = 0u64;
-                for (k, g) in self.row_g.iter_mut().enumerate() {
-                    if k % 4 == 0 {
-                        bits = rng.next_u64();
+                // Four 16-bit picks per 64-bit draw.
+                for quad in self.row_g.chunks_mut(4) {
+                    let mut bits = rng.next_u64();
+                    for g in quad {
+                        *g = gauss[(bits as usize) & gmask];
+                        bits >>= 16;
                     }
-                    *g = gauss[(bits as usize) & gmask];
-                    bits >>= 16;
                 }
             }
             let (r2, per_s, top) = (tables.read_var_e2, tables.lut_per_s, lut_top);
