@@ -307,3 +307,48 @@ fn an_existing_or_unwritable_record_path_is_refused_and_left_alone() {
     assert!(e.to_string().contains("x.mcap"), "{e}");
     assert!(!missing.exists());
 }
+
+#[test]
+fn cli_hil_record_then_replay_summary() {
+    let bin = env!("CARGO_BIN_EXE_markhold");
+    let rec = temp_path("cli.mcap");
+    let summary = temp_path("cli-replay.json");
+    let o = std::process::Command::new(bin)
+        .args([
+            "hil",
+            "--quiet",
+            "--seconds",
+            "1",
+            "--site",
+            SITE,
+            "--record",
+        ])
+        .arg(&rec)
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let o = std::process::Command::new(bin)
+        .arg("replay")
+        .arg(&rec)
+        .arg("--summary")
+        .arg(&summary)
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let s: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&summary).unwrap()).unwrap();
+    assert_eq!(s["commands_match"], true, "{s}");
+    assert_eq!(s["frames_replayed"], 30, "{s}");
+    assert!(s["first_mismatch"].is_null());
+
+    // Not a recording: a clear error, exit 2.
+    let junk = temp_path("junk.mcap");
+    std::fs::write(&junk, b"not an mcap file").unwrap();
+    let o = std::process::Command::new(bin)
+        .arg("replay")
+        .arg(&junk)
+        .output()
+        .unwrap();
+    assert_eq!(o.status.code(), Some(2));
+    assert!(String::from_utf8_lossy(&o.stderr).contains("junk.mcap"));
+}

@@ -289,3 +289,67 @@ fn missing_camera_unreachable_link_and_bad_record_path_exit_2_leaving_nothing() 
         "640x480 frames but the site's calibration is for 1440x1080",
     );
 }
+
+/// Read one unmasked server frame (text or binary) from a WebSocket stream.
+fn ws_frame(s: &mut std::net::TcpStream) -> (u8, Vec<u8>) {
+    use std::io::Read;
+    let mut h = [0u8; 2];
+    s.read_exact(&mut h).unwrap();
+    let mut len = (h[1] & 0x7f) as u64;
+    if len == 126 {
+        let mut b = [0u8; 2];
+        s.read_exact(&mut b).unwrap();
+        len = u16::from_be_bytes(b) as u64;
+    } else if len == 127 {
+        let mut b = [0u8; 8];
+        s.read_exact(&mut b).unwrap();
+        len = u64::from_be_bytes(b);
+    }
+    let mut data = vec![0u8; len as usize];
+    s.read_exact(&mut data).unwrap();
+    (h[0] & 0x0f, data)
+}
+
+#[test]
+fn live_view_advertises_every_channel_over_foxglove_websocket() {
+    use std::io::Write;
+    let mut rec =
+        markhold::record::Recorder::live_only(markhold::record::RecordConfig::default()).unwrap();
+    let port = rec.serve_live(0).unwrap();
+    assert_ne!(port, 0);
+    let mut s = std::net::TcpStream::connect(("127.0.0.1", port)).unwrap();
+    s.set_read_timeout(Some(Duration::from_secs(5))).unwrap();
+    write!(
+        s,
+        "GET / HTTP/1.1\r\nHost: 127.0.0.1:{port}\r\nUpgrade: websocket\r\nConnection: Upgrade\r\n\
+         Sec-WebSocket-Key: dGhlIHNhbXBsZSBub25jZQ==\r\nSec-WebSocket-Version: 13\r\n\
+         Sec-WebSocket-Protocol: foxglove.sdk.v1\r\n\r\n"
+    )
+    .unwrap();
+    // The HTTP answer ends with an empty line.
+    let mut head = Vec::new();
+    let mut b = [0u8; 1];
+    while !head.ends_with(b"\r\n\r\n") {
+        std::io::Read::read_exact(&mut s, &mut b).unwrap();
+        head.push(b[0]);
+    }
+    let head = String::from_utf8_lossy(&head);
+    assert!(head.starts_with("HTTP/1.1 101"), "{head}");
+    // serverInfo, then the channel advertisement.
+    let mut advertised = String::new();
+    for _ in 0..4 {
+        let (op, data) = ws_frame(&mut s);
+        if op == 1 {
+            let text = String::from_utf8(data).unwrap();
+            if text.contains("\"op\":\"advertise\"") {
+                advertised = text;
+                break;
+            }
+        }
+    }
+    for topic in markhold::record::TOPICS {
+        assert!(advertised.contains(topic), "{topic} not in {advertised}");
+    }
+    drop(s);
+    rec.finish().unwrap();
+}
