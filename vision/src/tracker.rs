@@ -42,6 +42,12 @@ impl MarkerObservation {
     pub fn cov_marker(&self) -> Matrix6<f64> {
         cov_of_inverse(&self.t_cam_marker, &self.cov_cam)
     }
+
+    /// The exposure controller's region: the corners' bounding box padded by
+    /// `pad_frac` of its size, clamped to a `width` x `height` frame.
+    pub fn exposure_roi(&self, pad_frac: f32, width: u32, height: u32) -> Option<Roi> {
+        Roi::from_corners_padded(&self.corners, pad_frac, width, height)
+    }
 }
 
 /// Counters of what the tracker did (for logs and tests).
@@ -213,6 +219,7 @@ impl MarkerTracker {
             });
         }
         self.stats.frames += 1;
+        let _span = tracing::trace_span!("marker_tracker", seq = frame.meta.seq).entered();
         let stamp = frame.meta.stamp_s;
         if let Some(t) = &self.track {
             let age = stamp - t.stamp_s;
@@ -248,7 +255,9 @@ impl MarkerTracker {
             self.frames_since_full += 1;
         }
         let Some(mut corners) = found else {
-            self.track = None;
+            if self.track.take().is_some() {
+                tracing::debug!(seq = frame.meta.seq, "marker lost");
+            }
             return Ok(None);
         };
         let corner_cov = self.refine_corners(frame, &image, &mut corners)?;

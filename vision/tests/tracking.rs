@@ -49,6 +49,15 @@ fn render(
     frame.meta.stamp_s = k as f64 / 30.0;
 }
 
+/// Area of the corners' bounding box, pixels.
+fn roi_area_of(c: &markhold_exposure::Corners) -> u64 {
+    let xs = c.iter().map(|p| p[0]);
+    let ys = c.iter().map(|p| p[1]);
+    let w = xs.clone().fold(f32::MIN, f32::max) - xs.fold(f32::MAX, f32::min);
+    let h = ys.clone().fold(f32::MIN, f32::max) - ys.fold(f32::MAX, f32::min);
+    (w * h) as u64
+}
+
 #[test]
 fn tracked_search_matches_full_search_on_a_moving_sequence() {
     let calib = small_calib();
@@ -113,6 +122,9 @@ fn tracked_search_matches_full_search_on_a_moving_sequence() {
             "frame {k}: corners differ by {max_corner} px"
         );
         assert!(position_error(&a.t_cam_marker, &truth) < 0.01 * range);
+        // The exposure region holds the marker and little else.
+        let er = a.exposure_roi(0.1, 800, 600).expect("marker in view");
+        assert!(er.area() < 2 * roi_area_of(&a.corners), "{er:?}");
     }
     // Frames 0, 15 and 30 are full searches (first frame and the period); the rest
     // are tracked.
