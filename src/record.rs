@@ -8,6 +8,8 @@
 //!
 //! Channels (Foxglove well-known schemas where one fits, JSON otherwise):
 //! - [`TOPIC_IMAGE`] `foxglove.CompressedImage` (png), one per frame unless dropped;
+//! - [`TOPIC_ANNOTATIONS`] `foxglove.ImageAnnotations`: marker corners and the metered
+//!   RoI drawn over the image, one per frame;
 //! - [`TOPIC_FRAME`] JSON: frame metadata, the vehicle heartbeat the supervisor saw and
 //!   the shutdown flag, with exact f64 bit patterns for replay;
 //! - [`TOPIC_EXPOSURE`] JSON: exposure used and commanded, metric, metered RoI;
@@ -29,6 +31,8 @@ use std::sync::mpsc::{sync_channel, Receiver, SyncSender, TrySendError};
 use std::sync::{Arc, Mutex};
 use std::thread::JoinHandle;
 
+use foxglove::schemas::points_annotation::Type as PointsType;
+use foxglove::schemas::{Color, ImageAnnotations, Point2, PointsAnnotation};
 use foxglove::schemas::{CompressedImage, Log, Pose, PoseInFrame, Quaternion, Timestamp, Vector3};
 use foxglove::{ChannelBuilder, Context, McapWriter, PartialMetadata, RawChannel, Schema};
 use markhold_autopilot::{Directive, FailsafeEvent, VehicleState};
@@ -39,6 +43,7 @@ use crate::params::LoadedSite;
 use crate::pipeline::{CommandLink, FrameRecord, Pipeline};
 
 pub const TOPIC_IMAGE: &str = "/camera/image";
+pub const TOPIC_ANNOTATIONS: &str = "/camera/annotations";
 pub const TOPIC_FRAME: &str = "/markhold/frame";
 pub const TOPIC_EXPOSURE: &str = "/markhold/exposure";
 pub const TOPIC_DETECTION: &str = "/markhold/detection";
@@ -47,8 +52,9 @@ pub const TOPIC_COMMAND: &str = "/markhold/command";
 pub const TOPIC_VEHICLE: &str = "/markhold/vehicle";
 pub const TOPIC_FAILSAFE: &str = "/markhold/failsafe";
 /// Every topic a recording has channels for.
-pub const TOPICS: [&str; 8] = [
+pub const TOPICS: [&str; 9] = [
     TOPIC_IMAGE,
+    TOPIC_ANNOTATIONS,
     TOPIC_FRAME,
     TOPIC_EXPOSURE,
     TOPIC_DETECTION,
@@ -698,6 +704,7 @@ fn timestamp(stamp_s: f64) -> Timestamp {
 
 struct Channels {
     image: foxglove::Channel<CompressedImage>,
+    annotations: foxglove::Channel<ImageAnnotations>,
     pose: foxglove::Channel<PoseInFrame>,
     failsafe: foxglove::Channel<Log>,
     frame: Arc<RawChannel>,
@@ -728,6 +735,7 @@ impl Channels {
     fn new(ctx: &Arc<Context>) -> Result<Self, RecordError> {
         Ok(Self {
             image: ChannelBuilder::new(TOPIC_IMAGE).context(ctx).build(),
+            annotations: ChannelBuilder::new(TOPIC_ANNOTATIONS).context(ctx).build(),
             pose: ChannelBuilder::new(TOPIC_POSE).context(ctx).build(),
             failsafe: ChannelBuilder::new(TOPIC_FAILSAFE).context(ctx).build(),
             frame: json_channel(ctx, TOPIC_FRAME, "markhold.Frame")?,
@@ -778,6 +786,71 @@ impl WriterThread {
         Ok(())
     }
 
+    /// Corners (green) and the metered RoI (yellow) for Foxglove's Image panel.
+    fn annotate(&mut self, it: &Item) {
+        let r = &it.rec;
+        let ts = timestamp(it.meta.stamp_s);
+        let outline = |points: Vec<Point2>, color: Color| PointsAnnotation {
+            timestamp: Some(ts),
+            r#type: PointsType::LineLoop as i32,
+            points,
+            outline_color: Some(color),
+            outline_colors: Vec::new(),
+            fill_color: None,
+            thickness: 2.0,
+            metadata: Vec::new(),
+        };
+        let mut points = Vec::with_capacity(2);
+        if let Some(c) = &r.corners {
+            let p = c
+                .iter()
+                .map(|[x, y]| Point2 {
+                    x: *x as f64,
+                    y: *y as f64,
+                })
+                .collect();
+            points.push(outline(
+                p,
+                Color {
+                    r: 0.1,
+                    g: 0.9,
+                    b: 0.2,
+                    a: 1.0,
+                },
+            ));
+        }
+        if let Some(roi) = r.exposure.roi {
+            let (x0, y0) = (roi.x as f64, roi.y as f64);
+            let (x1, y1) = (x0 + roi.width as f64, y0 + roi.height as f64);
+            let p = [(x0, y0), (x1, y0), (x1, y1), (x0, y1)]
+                .into_iter()
+                .map(|(x, y)| Point2 { x, y })
+                .collect();
+            points.push(outline(
+                p,
+                Color {
+                    r: 1.0,
+                    g: 0.85,
+                    b: 0.0,
+                    a: 1.0,
+                },
+            ));
+        }
+        let msg = ImageAnnotations {
+            timestamp: Some(ts),
+            circles: Vec::new(),
+            points,
+            texts: Vec::new(),
+            metadata: Vec::new(),
+        };
+        self.channels.annotations.log_with_meta(
+            &msg,
+            PartialMetadata {
+                log_time: Some(stamp_ns(it.meta.stamp_s)),
+            },
+        );
+    }
+
     fn write(&mut self, it: &Item) {
         let r = &it.rec;
         let t = stamp_ns(it.meta.stamp_s);
@@ -799,6 +872,7 @@ impl WriterThread {
             }
         }
         let m = it.meta;
+        self.annotate(it);
         let frame = FrameMsg {
             seq: m.seq,
             stamp_s: m.stamp_s,

@@ -10,9 +10,9 @@ use markhold::hil_run::{HilOptions, HilRun};
 use markhold::params;
 use markhold::pipeline::FrameRecord;
 use markhold::record::{
-    self, CommandMsg, LinkSnapshot, RecordConfig, Recorder, RunInfo, TOPICS, TOPIC_COMMAND,
-    TOPIC_DETECTION, TOPIC_EXPOSURE, TOPIC_FAILSAFE, TOPIC_FRAME, TOPIC_IMAGE, TOPIC_POSE,
-    TOPIC_VEHICLE,
+    self, CommandMsg, LinkSnapshot, RecordConfig, Recorder, RunInfo, TOPICS, TOPIC_ANNOTATIONS,
+    TOPIC_COMMAND, TOPIC_DETECTION, TOPIC_EXPOSURE, TOPIC_FAILSAFE, TOPIC_FRAME, TOPIC_IMAGE,
+    TOPIC_POSE, TOPIC_VEHICLE,
 };
 use markhold::replay::replay;
 
@@ -100,6 +100,7 @@ fn hil_recording_has_every_channel_and_replays_bit_identical() {
     }
     for topic in [
         TOPIC_IMAGE,
+        TOPIC_ANNOTATIONS,
         TOPIC_FRAME,
         TOPIC_EXPOSURE,
         TOPIC_DETECTION,
