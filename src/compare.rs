@@ -155,6 +155,9 @@ pub struct ConvergenceStart {
     /// Crossed from above the band to below it (or back) at least twice.
     pub oscillates: bool,
     pub band_crossings: u64,
+    /// Final exposure over the static run's final exposure: far from 1 when the method
+    /// settled somewhere else (e.g. ran to a limit) instead of back where it belongs.
+    pub final_over_reference: f64,
     pub detection_rate: f64,
 }
 
@@ -594,7 +597,7 @@ fn motion_result(s: &[Sample], span_m: f64, speed_mps: f64) -> MotionResult {
     }
 }
 
-fn convergence_start(r: &RunSeries, fps: f64) -> ConvergenceStart {
+fn convergence_start(r: &RunSeries, fps: f64, reference_us: f64) -> ConvergenceStart {
     let e: Vec<f64> = r.samples.iter().map(|x| x.exposure_us).collect();
     let last = e.last().copied().unwrap_or(f64::NAN);
     let frames = convergence_frames(&e, CONVERGENCE_TOL);
@@ -607,6 +610,7 @@ fn convergence_start(r: &RunSeries, fps: f64) -> ConvergenceStart {
         settled: (e.len() as u64).saturating_sub(frames) as f64 >= fps,
         oscillates: crossings >= 2,
         band_crossings: crossings,
+        final_over_reference: last / reference_us,
         detection_rate: detection_rate(&r.samples),
     }
 }
@@ -648,6 +652,10 @@ pub fn metrics(c: &CaseResult) -> Vec<(&'static str, Option<f64>)> {
         ("convergence.long.frames", Some(cv.from_long.frames as f64)),
         ("convergence.long.settled", b(cv.from_long.settled)),
         ("convergence.long.oscillates", b(cv.from_long.oscillates)),
+        (
+            "convergence.long.final_over_reference",
+            finite(cv.from_long.final_over_reference),
+        ),
         ("convergence.short.seconds", Some(cv.from_short.seconds)),
         (
             "convergence.short.frames",
@@ -655,6 +663,10 @@ pub fn metrics(c: &CaseResult) -> Vec<(&'static str, Option<f64>)> {
         ),
         ("convergence.short.settled", b(cv.from_short.settled)),
         ("convergence.short.oscillates", b(cv.from_short.oscillates)),
+        (
+            "convergence.short.final_over_reference",
+            finite(cv.from_short.final_over_reference),
+        ),
         ("station.detection_rate", Some(st.detection_rate)),
         ("station.position_cov_det_m6", st.position_cov_det_m6),
         (
@@ -698,8 +710,12 @@ fn summarize(
                     seed,
                     convergence: ConvergenceResult {
                         reference_exposure_us: static_precision.final_exposure_us,
-                        from_long: convergence_start(long, fps),
-                        from_short: convergence_start(short, fps),
+                        from_long: convergence_start(long, fps, static_precision.final_exposure_us),
+                        from_short: convergence_start(
+                            short,
+                            fps,
+                            static_precision.final_exposure_us,
+                        ),
                     },
                     static_precision,
                     motion_tracking: motion_result(
@@ -811,6 +827,7 @@ enum Fmt {
     Metres,
     Seconds,
     Micros,
+    Ratio,
     /// A 0/1 flag: the fraction of seeds where it was set.
     Flag,
 }
@@ -822,6 +839,7 @@ fn fmt_value(v: f64, f: Fmt) -> String {
         Fmt::Metres => format!("{v:.4}"),
         Fmt::Seconds => format!("{v:.2}"),
         Fmt::Micros => format!("{v:.0}"),
+        Fmt::Ratio => format!("{v:.2}"),
         Fmt::Flag => {
             if v == 0.0 {
                 "no".to_string()
@@ -984,7 +1002,9 @@ pub fn report_markdown(r: &CompareResults, plots: &[String]) -> String {
          the exposure the method settled on in the static run (clamped to the camera's \
          limits). Seconds until the exposure stays within 5% of the run's final value; \
          settled: it stayed there for at least the last second; oscillates: it crossed the \
-         band from one side to the other at least twice. Paper: AAEC with momentum and RoI, \
+         band from one side to the other at least twice; final / reference: where it ended over \
+         where the static run settled (1.00: back where it belongs; a method can also \
+         settle, within 5%, at a camera limit). Paper: AAEC with momentum and RoI, \
          AEC; it has no GEC or Default convergence numbers.\n"
     );
     for &l in &r.lightings {
@@ -1003,12 +1023,22 @@ pub fn report_markdown(r: &CompareResults, plots: &[String]) -> String {
                 ("Settled", "convergence.long.settled", Fmt::Flag),
                 ("Oscillates", "convergence.long.oscillates", Fmt::Flag),
                 (
+                    "Final / reference",
+                    "convergence.long.final_over_reference",
+                    Fmt::Ratio,
+                ),
+                (
                     "From 10x short [s]",
                     "convergence.short.seconds",
                     Fmt::Seconds,
                 ),
                 ("Settled", "convergence.short.settled", Fmt::Flag),
                 ("Oscillates", "convergence.short.oscillates", Fmt::Flag),
+                (
+                    "Final / reference",
+                    "convergence.short.final_over_reference",
+                    Fmt::Ratio,
+                ),
             ],
             Some(("Paper [s]", &p)),
         );

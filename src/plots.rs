@@ -55,9 +55,13 @@ fn cv(e: opencv::Error) -> DErr {
     DrawingErrorKind::DrawingError(MatBackendError::OpenCv { source: e })
 }
 
+/// OpenCV draws opaque: a translucent colour (plotters' light grid) is blended with the
+/// white background instead.
 fn bgr(c: BackendColor) -> Scalar {
+    let a = c.alpha.clamp(0.0, 1.0);
+    let ch = |v: u8| f64::from(v) * a + 255.0 * (1.0 - a);
     let (r, g, b) = c.rgb;
-    Scalar::new(f64::from(b), f64::from(g), f64::from(r), 0.0)
+    Scalar::new(ch(b), ch(g), ch(r), 0.0)
 }
 
 impl MatBackend {
