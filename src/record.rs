@@ -1003,15 +1003,23 @@ pub fn run_hil_recorded(
         stats.push(&rec, &truth);
         on_frame(&rec, &truth, &run.pipeline.frame);
     }
+    // As `run_hil`: neutral input, then the fault reports.
     let now = run.rig.truth().time_s;
     run.pipeline.link.send_neutral(now)?;
-    Ok(stats.summary(
+    if let Some(f) = run.faults.as_mut() {
+        f.pump_relay(now)?;
+    }
+    let mut summary = stats.summary(
         run.method,
         run.lighting,
         opts.seed,
         wall.elapsed().as_secs_f64(),
         run.rig.truth().lockstep_timeouts,
-    ))
+    );
+    if let Some(f) = run.faults.take() {
+        summary.faults = f.monitor.into_reports();
+    }
+    Ok(summary)
 }
 
 /// The exposure method and initial exposure a HIL run with `opts` uses (as `HilRun`).
