@@ -3,7 +3,7 @@
 #![no_main]
 
 use libfuzzer_sys::fuzz_target;
-use mavlink::ardupilotmega::MavMessage;
+use mavlink::dialects::ardupilotmega::MavMessage;
 use mavlink::error::MessageReadError;
 
 fuzz_target!(|data: &[u8]| {
