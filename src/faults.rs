@@ -313,6 +313,24 @@ impl LinkRelay {
         Ok(())
     }
 
+    /// Send `bytes` to markhold's link as if from the vehicle (the link's UDP socket is
+    /// connected to the relay, so only this address reaches it): garbage and flood tests.
+    /// False before markhold has sent anything (its address is not known yet).
+    pub fn inject_to_markhold(&mut self, bytes: &[u8]) -> Result<bool, FaultError> {
+        let Some(client) = self.client else {
+            return Ok(false);
+        };
+        match self.front.send_to(bytes, client) {
+            Ok(_) => Ok(true),
+            Err(e) if e.kind() == ErrorKind::WouldBlock => Ok(false),
+            Err(e) => Err(FaultError::Relay {
+                op: "inject to markhold",
+                addr: client,
+                source: e,
+            }),
+        }
+    }
+
     fn send_back(&mut self, n: usize) -> Result<(), FaultError> {
         match self.back.send_to(&self.buf[..n], self.vehicle) {
             Ok(_) => {

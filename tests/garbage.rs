@@ -72,20 +72,23 @@ fn garbage_on_the_link_socket_does_not_break_the_link() {
 fn garbage_run(to_vehicle: bool, to_link: bool) {
     let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/fixtures/pool-640.toml");
     let site = params::load(&path).unwrap();
+    // markhold's UDP link is connected to its peer: the kernel drops datagrams from any
+    // other address. Garbage for the link therefore comes from the vehicle's side,
+    // through the relay of a link cut that never starts.
     let opts = HilOptions {
         seconds: 6.0,
         seed: 5,
         start_on_station: true,
+        faults: if to_link {
+            vec!["link_cut@100000".parse().unwrap()]
+        } else {
+            Vec::new()
+        },
         ..HilOptions::default()
     };
     let mut hil = HilRun::build(&site, &opts).unwrap();
     hil.arm(site.site.link.mode.ardusub()).unwrap();
     let vehicle = hil.rig.mavlink_udp_addr();
-    let link = hil
-        .pipeline
-        .link
-        .local_addr()
-        .expect("the UDP link has a local address");
     let attacker = UdpSocket::bind("127.0.0.1:0").unwrap();
     attacker
         .set_read_timeout(Some(Duration::from_millis(1)))
@@ -101,7 +104,10 @@ fn garbage_run(to_vehicle: bool, to_link: bool) {
                 sent += spray(&attacker, vehicle, i);
             }
             if to_link {
-                sent += spray(&attacker, link, i + 1);
+                let relay = hil.faults.as_mut().unwrap().relay.as_mut().unwrap();
+                for d in garbage(i + 1) {
+                    sent += usize::from(relay.inject_to_markhold(&d).unwrap());
+                }
             }
         }
         let (rec, _) = hil.step().unwrap();
