@@ -301,7 +301,7 @@ fn hil(args: HilArgs) -> anyhow::Result<()> {
             if let Some(t) = trace.as_mut() {
                 t.row(rec);
             }
-            if rec.seq % 15 == 0 {
+            if rec.seq.is_multiple_of(15) {
                 bar.set_message(format!(
                     "t={:.1}s exp={:.0}us {}",
                     time_s,
@@ -310,7 +310,7 @@ fn hil(args: HilArgs) -> anyhow::Result<()> {
                 ));
             }
             if let Some(dir) = &opts.snapshot_dir {
-                if rec.seq % opts.snapshot_every == 0 && snap_err.is_none() {
+                if rec.seq.is_multiple_of(opts.snapshot_every) && snap_err.is_none() {
                     let path = dir.join(format!("frame-{:06}.png", rec.seq));
                     if let Err(e) = markhold::snapshot::save_png(frame, &path) {
                         snap_err = Some(e);

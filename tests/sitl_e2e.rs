@@ -50,7 +50,7 @@ fn num_after(json: &str, key: &str) -> f64 {
 fn sitl_json_server_answers_lock_step_at_rest() {
     let port = free_udp_port();
     let packets = 40u32;
-    let mut child = Command::new(env!("CARGO_BIN_EXE_markhold"))
+    let child = Command::new(env!("CARGO_BIN_EXE_markhold"))
         .args([
             "sitl",
             "--port",
