@@ -478,7 +478,14 @@ pub struct LinkConfig {
     /// Neutral pilot input is sent at this rate when nothing is commanded, Hz (>= 5 keeps
     /// FS_PILOT_INPUT quiet; ArduSub wants >= 20 for smooth control).
     pub pilot_input_hz: f64,
-    /// Vehicle heartbeat older than this: link lost, seconds.
+    /// The vehicle not heard for this long (no message from its autopilot): link lost,
+    /// no pilot input until it is heard again, seconds. Telemetry streams (ATTITUDE at
+    /// `stream_hz`) are what keep it fresh: `vehicle_timeout_s x stream_hz` must be >= 4.
+    /// Loss is seen on the first frame after the timeout, so 0.9 s (the default) keeps
+    /// "silent within 1 s of the cut" at >= 15 frames/s.
+    pub vehicle_timeout_s: f64,
+    /// Other messages stop counting as liveness once the vehicle's last HEARTBEAT is
+    /// older than this, seconds (an autopilot whose heartbeat stopped is not trusted).
     pub vehicle_heartbeat_timeout_s: f64,
     /// Wait for COMMAND_ACK this long before retrying, seconds.
     pub command_timeout_s: f64,
@@ -526,6 +533,7 @@ impl Default for LinkConfig {
             stream_hz: 10.0,
             stream_rerequest_s: 10.0,
             pilot_input_hz: 20.0,
+            vehicle_timeout_s: 0.9,
             vehicle_heartbeat_timeout_s: 2.0,
             command_timeout_s: 1.0,
             disarm_on_exit: false,
@@ -594,6 +602,15 @@ impl LinkConfig {
             "link.vehicle_heartbeat_timeout_s",
             self.vehicle_heartbeat_timeout_s,
         )?;
+        check_positive("link.vehicle_timeout_s", self.vehicle_timeout_s)?;
+        if self.vehicle_timeout_s * self.stream_hz < 4.0 {
+            return Err(AutopilotError::config(
+                "link.vehicle_timeout_s",
+                self.vehicle_timeout_s,
+                "must cover at least 4 telemetry messages at link.stream_hz \
+                 (vehicle_timeout_s x stream_hz >= 4)",
+            ));
+        }
         check_positive("link.command_timeout_s", self.command_timeout_s)?;
         for (k, v) in [
             ("link.thruster_deadband_us", self.thruster_deadband_us),

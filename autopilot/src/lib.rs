@@ -23,6 +23,9 @@ pub use config::{
 pub use error::AutopilotError;
 pub use keeper::{wrap_pi, Effort, KeeperStatus, PoseMeasurement, StationKeeper};
 pub use link::{ArduSubMode, CommandStatus, VehicleLink, VehicleState};
+/// The mavlink crate the link is built on (same version and features), for callers that
+/// build or check frames themselves (tests, tools).
+pub use mavlink;
 pub use pilot::PilotMap;
 pub use supervisor::{Directive, FailsafeEvent, Supervisor, SupervisorInput};
 

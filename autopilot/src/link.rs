@@ -32,6 +32,11 @@ use crate::keeper::{wrap_pi, Effort};
 use crate::pilot::PilotMap;
 use crate::transport::{Incoming, Transport, WriteOutcome, MAX_FRAME};
 
+/// At most this many incoming messages are applied per `tick` (socket and queue each):
+/// a sender that floods faster than the loop reads cannot keep one tick spinning. What
+/// is left stays in the socket buffer for the next tick.
+pub const MAX_MESSAGES_PER_TICK: usize = 4096;
+
 /// ArduSub flight modes (HEARTBEAT.custom_mode).
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, Serialize)]
 #[repr(u32)]
@@ -175,8 +180,14 @@ pub struct LinkCounters {
     pub heartbeats: u64,
     /// Incoming frames dropped because the queue was full.
     pub receive_dropped: u64,
-    /// Frames that failed to parse (CRC, unknown id, bad signature).
+    /// Frames that failed to parse (unknown id, bad payload).
     pub parse_errors: u64,
+    /// Frames dropped by signing: signed with a key that is not ours, or replayed.
+    pub rejected_bad_signature: u64,
+    /// Frames dropped by signing: unsigned (or MAVLink 1) while signing is on.
+    pub rejected_unsigned: u64,
+    /// Ticks that stopped reading at `MAX_MESSAGES_PER_TICK` with input still waiting.
+    pub receive_batch_full: u64,
     /// Stream transport reconnections.
     pub reconnects: u64,
 }
@@ -200,11 +211,16 @@ pub struct VehicleState {
     pub mode_changes: u64,
     /// MAV_TYPE of the vehicle's heartbeat.
     pub vehicle_type: u8,
-    /// Loop time of the last vehicle heartbeat.
+    /// Loop time the vehicle was last heard: the link-loss clock (the name is from when
+    /// only heartbeats counted). Any message from the vehicle's autopilot (its system and
+    /// component id, once a heartbeat discovered it) counts, while its last HEARTBEAT is
+    /// within `vehicle_heartbeat_timeout_s`; ATTITUDE at `stream_hz` keeps it fresh.
     pub last_heartbeat_s: Option<f64>,
+    /// Loop time of the last HEARTBEAT message from the vehicle.
+    pub last_vehicle_heartbeat_s: Option<f64>,
     /// Vehicle heartbeats seen.
     pub heartbeats: u64,
-    /// Vehicle heartbeat is current (within `vehicle_heartbeat_timeout_s`).
+    /// The vehicle is heard: `last_heartbeat_s` within `vehicle_timeout_s`.
     pub heartbeat_ok: bool,
     /// Stream transport up (always true for UDP).
     pub transport_connected: bool,
@@ -236,6 +252,7 @@ impl VehicleState {
             mode_changes: 0,
             vehicle_type: 0,
             last_heartbeat_s: None,
+            last_vehicle_heartbeat_s: None,
             heartbeats: 0,
             heartbeat_ok: false,
             transport_connected: false,
@@ -290,6 +307,8 @@ pub struct VehicleLink {
     pilot_keepalive: bool,
     /// The last write failed (logged once per failing stretch).
     send_failing: bool,
+    /// Signing rejections already reported in the log.
+    signing_reported: u64,
 }
 
 fn read_key(path: &std::path::Path) -> Result<[u8; 32], AutopilotError> {
@@ -366,7 +385,34 @@ impl VehicleLink {
             last_tick_s: None,
             pilot_keepalive: true,
             send_failing: false,
+            signing_reported: 0,
         })
+    }
+
+    /// The receive buffer (SO_RCVBUF) the kernel granted the UDP socket, bytes.
+    pub fn udp_recv_buffer(&self) -> Option<usize> {
+        self.transport.udp_recv_buffer
+    }
+
+    /// Why the vehicle is not heard, when the link can tell: frames dropped by signing
+    /// (another key, or a vehicle that does not sign). None when nothing was rejected.
+    pub fn signing_diagnosis(&self) -> Option<String> {
+        let c = &self.state.counters;
+        if c.rejected_bad_signature > 0 {
+            return Some(format!(
+                "{} MAVLink frames dropped for a signature made with another key: the vehicle \
+                 signs with a key that is not link.signing_key_file's",
+                c.rejected_bad_signature
+            ));
+        }
+        if c.rejected_unsigned > 0 {
+            return Some(format!(
+                "{} unsigned MAVLink frames dropped: link.signing_key_file is set but the \
+                 vehicle does not sign",
+                c.rejected_unsigned
+            ));
+        }
+        None
     }
 
     /// Local socket address for `udpin:`/`udpout:`/`tcpin:` (handy with port 0).
@@ -480,6 +526,17 @@ impl VehicleLink {
         Ok(())
     }
 
+    /// The vehicle was heard at `now_s` (liveness).
+    fn heard(&mut self, was_ok: bool, now_s: f64) {
+        self.state.last_heartbeat_s = Some(now_s);
+        self.state.heartbeat_ok = true;
+        if !was_ok {
+            // A returning (maybe rebooted) vehicle forgets its streams.
+            self.last_streams_s = None;
+            self.origin_sent = false;
+        }
+    }
+
     fn apply(&mut self, h: &MavHeader, msg: &MavMessage, now_s: f64) {
         self.state.counters.received += 1;
         if let MavMessage::HEARTBEAT(hb) = msg {
@@ -519,14 +576,9 @@ impl VehicleLink {
                 }
                 self.state.mode = mode;
                 self.state.custom_mode = hb.custom_mode;
-                self.state.last_heartbeat_s = Some(now_s);
+                self.state.last_vehicle_heartbeat_s = Some(now_s);
                 self.state.heartbeats += 1;
-                self.state.heartbeat_ok = true;
-                if !was_ok {
-                    // A returning (maybe rebooted) vehicle forgets its streams.
-                    self.last_streams_s = None;
-                    self.origin_sent = false;
-                }
+                self.heard(was_ok, now_s);
                 // The heartbeat confirms a pending request even if its ACK was lost.
                 if self.mode_pending.is_some() && mode.is_some() && mode == self.requested_mode {
                     self.mode_pending = None;
@@ -541,6 +593,16 @@ impl VehicleLink {
         }
         if !self.state.discovered || h.system_id != u32::from(self.state.system_id) {
             return;
+        }
+        // Liveness: anything from the autopilot, while its heartbeat is not stale.
+        if h.component_id == self.state.component_id
+            && self
+                .state
+                .last_vehicle_heartbeat_s
+                .is_some_and(|t| now_s - t <= self.cfg.vehicle_heartbeat_timeout_s)
+        {
+            let was_ok = self.state.heartbeat_ok;
+            self.heard(was_ok, now_s);
         }
         match msg {
             MavMessage::ATTITUDE(a) => {
@@ -685,15 +747,28 @@ impl VehicleLink {
                 self.last_commanded_s = None;
                 self.last_streams_s = None;
                 self.state.last_heartbeat_s = None;
+                self.state.last_vehicle_heartbeat_s = None;
             }
         }
         let prev_tick = self.last_tick_s;
         self.last_tick_s = Some(now_s);
         self.transport.writer.flush();
+        // Drain the socket until it would block, at most a batch per tick.
+        let mut n = 0;
         while let Some((h, m)) = self.transport.poll_tick() {
             self.apply(&h, &m, now_s);
+            n += 1;
+            if n == MAX_MESSAGES_PER_TICK {
+                self.state.counters.receive_batch_full += 1;
+                break;
+            }
         }
+        let mut n = 0;
         while let Ok(inc) = self.transport.rx.try_recv() {
+            n += 1;
+            if n == MAX_MESSAGES_PER_TICK {
+                self.state.counters.receive_batch_full += 1;
+            }
             match inc {
                 Incoming::Msg(h, m) => self.apply(&h, &m, now_s),
                 Incoming::Connected(peer) => {
@@ -707,17 +782,31 @@ impl VehicleLink {
                     self.state.transport_connected = self.transport.always_connected;
                 }
             }
+            if n >= MAX_MESSAGES_PER_TICK {
+                break;
+            }
         }
         let c = &self.transport.counters;
         self.state.counters.receive_dropped = c.dropped_rx.load(Ordering::Relaxed);
         self.state.counters.parse_errors = c.parse_errors.load(Ordering::Relaxed);
         self.state.counters.reconnects = c.reconnects.load(Ordering::Relaxed);
+        self.state.counters.rejected_bad_signature = c.bad_signature.load(Ordering::Relaxed);
+        self.state.counters.rejected_unsigned = c.unsigned.load(Ordering::Relaxed);
+        let rejected =
+            self.state.counters.rejected_bad_signature + self.state.counters.rejected_unsigned;
+        if rejected > 0 && self.signing_reported == 0 {
+            // Once: a wrong key shows up as a vehicle that is never heard.
+            if let Some(why) = self.signing_diagnosis() {
+                tracing::warn!("{why}");
+            }
+            self.signing_reported = rejected;
+        }
 
-        // Link loss: vehicle heartbeat too old.
+        // Link loss: the vehicle not heard for `vehicle_timeout_s`.
         if let Some(t) = self.state.last_heartbeat_s {
-            let ok = now_s - t <= self.cfg.vehicle_heartbeat_timeout_s;
+            let ok = now_s - t <= self.cfg.vehicle_timeout_s;
             if self.state.heartbeat_ok && !ok {
-                tracing::warn!(age_s = now_s - t, "vehicle heartbeat lost");
+                tracing::warn!(age_s = now_s - t, "vehicle not heard: link lost");
                 // A half-open TCP connection never errors: make a new one.
                 self.transport.request_reconnect();
             }

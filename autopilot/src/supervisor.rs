@@ -91,7 +91,8 @@ pub enum FailsafeEvent {
 pub struct SupervisorInput {
     /// Loop time now.
     pub now_s: f64,
-    /// Loop time of the last vehicle heartbeat (`VehicleState::last_heartbeat_s`).
+    /// Loop time the vehicle was last heard (`VehicleState::last_heartbeat_s`: any message
+    /// from its autopilot, not only heartbeats).
     pub vehicle_heartbeat_s: Option<f64>,
     /// Loop time of the last camera frame.
     pub last_frame_s: Option<f64>,
@@ -121,10 +122,10 @@ pub struct Supervisor {
 
 impl Supervisor {
     /// Thresholds from `[controller]` (vision stall, marker hold and action) and `[link]`
-    /// (vehicle heartbeat timeout, disarm on exit).
+    /// (`vehicle_timeout_s`: the vehicle unheard this long is lost; disarm on exit).
     pub fn new(ctl: &ControllerConfig, link: &LinkConfig) -> Self {
         Self {
-            heartbeat_timeout_s: link.vehicle_heartbeat_timeout_s,
+            heartbeat_timeout_s: link.vehicle_timeout_s,
             vision_stall_s: ctl.vision_stall_s,
             hold_s: ctl.marker_lost_hold_s,
             action_after_s: ctl.marker_lost_action_after_s,
@@ -301,7 +302,7 @@ mod tests {
             ..Default::default()
         };
         let link = LinkConfig {
-            vehicle_heartbeat_timeout_s: 2.0,
+            vehicle_timeout_s: 2.0,
             disarm_on_exit: true,
             ..Default::default()
         };

@@ -12,7 +12,10 @@ use std::task::{Context, Poll};
 use std::time::Duration;
 
 use mavlink::dialects::ardupilotmega::MavMessage;
-use mavlink::{AsyncMavlinkReader, MavHeader, MavlinkReader, SigningData};
+use mavlink::error::MessageReadError;
+use mavlink::{
+    AsyncMavlinkReader, MAVLinkMessageRaw, MavHeader, MavlinkReader, Message, SigningData,
+};
 use tokio::io::{AsyncRead, AsyncWriteExt, ReadBuf};
 use tokio::sync::Notify;
 
@@ -25,6 +28,12 @@ const CONNECT_TIMEOUT: Duration = Duration::from_secs(2);
 const QUEUE_LEN: usize = 1024;
 /// Largest MAVLink 2 frame with signature.
 pub(crate) const MAX_FRAME: usize = 280;
+/// Receive buffer asked for on UDP sockets (SO_RCVBUF). The kernel's default (about
+/// 200 kB) holds some 160 small datagrams on loopback: a burst of traffic between two
+/// ticks (10 000 messages/s at 30 frames/s is 333 per tick) overflowed it and took the
+/// vehicle's heartbeats with it. Linux caps the request at `net.core.rmem_max` (and
+/// doubles it for bookkeeping); the size obtained is logged and kept.
+pub const UDP_RECV_BUFFER_BYTES: usize = 4 << 20;
 
 /// A parsed link URL.
 #[derive(Clone, Debug, PartialEq, Eq)]
@@ -129,6 +138,60 @@ pub(crate) struct TaskCounters {
     pub(crate) dropped_rx: AtomicU64,
     pub(crate) parse_errors: AtomicU64,
     pub(crate) reconnects: AtomicU64,
+    /// Frames dropped by signing: signed with another key, or replayed.
+    pub(crate) bad_signature: AtomicU64,
+    /// Frames dropped by signing: unsigned (or MAVLink 1) while signing is on.
+    pub(crate) unsigned: AtomicU64,
+}
+
+/// Verify (with signing on) and parse one CRC-valid raw frame; rejections are counted.
+/// MAVLink 1 and unsigned MAVLink 2 follow the config's `allow_unsigned` (false here).
+fn accept(
+    raw: &MAVLinkMessageRaw,
+    signing: Option<&SigningData>,
+    counters: &TaskCounters,
+) -> Option<(MavHeader, MavMessage)> {
+    if let Some(sd) = signing {
+        let ok = match raw {
+            MAVLinkMessageRaw::V1(_) => false,
+            MAVLinkMessageRaw::V2(r) => sd.verify_signature(r),
+        };
+        if !ok {
+            let signed =
+                matches!(raw, MAVLinkMessageRaw::V2(r) if r.incompatibility_flags() & 0x01 != 0);
+            let c = if signed {
+                &counters.bad_signature
+            } else {
+                &counters.unsigned
+            };
+            c.fetch_add(1, Ordering::Relaxed);
+            return None;
+        }
+    }
+    let h = MavHeader {
+        system_id: raw.system_id(),
+        component_id: raw.component_id(),
+        sequence: raw.sequence(),
+    };
+    match MavMessage::parse(raw.version(), raw.message_id(), raw.payload()) {
+        Ok(m) => Some((h, m)),
+        Err(e) => {
+            counters.parse_errors.fetch_add(1, Ordering::Relaxed);
+            tracing::debug!(error = %e, "mavlink parse error");
+            None
+        }
+    }
+}
+
+/// Ask for a larger receive buffer on a UDP socket; returns the size the kernel granted.
+fn grow_recv_buffer(sock: &std::net::UdpSocket) -> Option<usize> {
+    let s = socket2::SockRef::from(sock);
+    if let Err(e) = s.set_recv_buffer_size(UDP_RECV_BUFFER_BYTES) {
+        tracing::warn!(error = %e, "SO_RCVBUF not set");
+    }
+    let got = s.recv_buffer_size().ok();
+    tracing::debug!(asked = UDP_RECV_BUFFER_BYTES, ?got, "udp receive buffer");
+    got
 }
 
 /// Where outgoing bytes go.
@@ -291,6 +354,8 @@ pub(crate) struct Transport {
     pub(crate) always_connected: bool,
     /// UDP read on the caller's thread by `tick` (instead of a task).
     tick_rx: Option<TickReceiver>,
+    /// SO_RCVBUF the kernel granted the UDP socket.
+    pub(crate) udp_recv_buffer: Option<usize>,
 }
 
 /// Read-ahead for datagrams read in `tick`: several full datagrams.
@@ -354,10 +419,14 @@ async fn pump<R: AsyncRead + Unpin>(
     counters: &TaskCounters,
 ) -> String {
     loop {
-        match reader.read_any_message_signed::<MavMessage>(signing).await {
-            Ok((h, m)) => push(tx, counters, Incoming::Msg(h, m)),
-            Err(mavlink::error::MessageReadError::Io(e)) => return e.to_string(),
-            Err(mavlink::error::MessageReadError::Parse(e)) => {
+        match reader.read_any_raw_message::<MavMessage>().await {
+            Ok(raw) => {
+                if let Some((h, m)) = accept(&raw, signing, counters) {
+                    push(tx, counters, Incoming::Msg(h, m));
+                }
+            }
+            Err(MessageReadError::Io(e)) => return e.to_string(),
+            Err(MessageReadError::Parse(e)) => {
                 counters.parse_errors.fetch_add(1, Ordering::Relaxed);
                 tracing::debug!(error = %e, "mavlink parse error");
             }
@@ -447,6 +516,7 @@ impl Transport {
                 }
                 sock.set_nonblocking(true)
                     .map_err(open_err("udp socket", &hp))?;
+                let udp_recv_buffer = grow_recv_buffer(&sock);
                 let local = sock.local_addr().ok();
                 let wsock = sock.try_clone().map_err(open_err("udp socket", &hp))?;
                 let dest = Arc::new(Mutex::new(dest));
@@ -495,6 +565,7 @@ impl Transport {
                     local_addr: local,
                     always_connected: true,
                     tick_rx,
+                    udp_recv_buffer,
                 })
             }
             Endpoint::TcpOut(hp) => {
@@ -534,6 +605,7 @@ impl Transport {
                     local_addr: None,
                     always_connected: false,
                     tick_rx: None,
+                    udp_recv_buffer: None,
                 })
             }
             Endpoint::TcpIn(hp) => {
@@ -578,6 +650,7 @@ impl Transport {
                     local_addr: local,
                     always_connected: false,
                     tick_rx: None,
+                    udp_recv_buffer: None,
                 })
             }
             Endpoint::Serial { path, baud } => {
@@ -623,6 +696,7 @@ impl Transport {
                     local_addr: None,
                     always_connected: false,
                     tick_rx: None,
+                    udp_recv_buffer: None,
                 })
             }
         }
@@ -633,16 +707,17 @@ impl Transport {
     pub(crate) fn poll_tick(&mut self) -> Option<(MavHeader, MavMessage)> {
         let rx = self.tick_rx.as_mut()?;
         loop {
-            match rx
-                .reader
-                .read_any_message_signed::<MavMessage>(rx.signing.as_deref())
-            {
-                Ok(m) => return Some(m),
-                Err(mavlink::error::MessageReadError::Parse(e)) => {
+            match rx.reader.read_any_raw_message::<MavMessage>() {
+                Ok(raw) => {
+                    if let Some(m) = accept(&raw, rx.signing.as_deref(), &self.counters) {
+                        return Some(m);
+                    }
+                }
+                Err(MessageReadError::Parse(e)) => {
                     self.counters.parse_errors.fetch_add(1, Ordering::Relaxed);
                     tracing::debug!(error = %e, "mavlink parse error");
                 }
-                Err(mavlink::error::MessageReadError::Io(e)) => {
+                Err(MessageReadError::Io(e)) => {
                     if e.kind() != std::io::ErrorKind::WouldBlock {
                         tracing::warn!(error = %e, "udp receive error");
                     }

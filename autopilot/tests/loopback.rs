@@ -349,11 +349,12 @@ fn heartbeat_loss_stops_commanding_until_it_returns() {
         .iter()
         .all(|rc| rc.ch[..6] == [1500; 6]));
 
-    // Heartbeats stop.
+    // Heartbeats and telemetry stop: lost after `vehicle_timeout_s` (0.9 s) of silence.
     h.fake.rec().heartbeats_on = false;
     let lost_at = h.now;
     h.tick_until("heartbeat loss", |l, _| !l.state().heartbeat_ok);
-    assert!(h.now - lost_at >= 2.0 - 0.5, "lost too early");
+    let timeout = h.link.config().vehicle_timeout_s;
+    assert!(h.now - lost_at >= timeout - 0.5, "lost too early");
     let d = sup.update(
         &SupervisorInput {
             now_s: h.now,

@@ -10,9 +10,11 @@
 //! heartbeat was lost.
 
 mod control;
+pub mod signing;
 
 use std::io::ErrorKind;
-use std::net::{SocketAddr, TcpListener, TcpStream, UdpSocket};
+use std::net::{IpAddr, SocketAddr, TcpListener, TcpStream, UdpSocket};
+use std::path::PathBuf;
 
 use mavlink::dialects::ardupilotmega::{
     MavAutopilot, MavCmd, MavFrame, MavMessage, MavModeFlag, MavResult, MavState, MavType,
@@ -22,12 +24,13 @@ use mavlink::dialects::ardupilotmega::{
     SET_POSITION_TARGET_LOCAL_NED_DATA, VISION_POSITION_ESTIMATE_DATA,
 };
 use mavlink::error::MessageReadError;
-use mavlink::{MavHeader, MavlinkReader, MavlinkVersion};
+use mavlink::{MAVLinkMessageRaw, MavHeader, MavlinkReader, MavlinkVersion};
 use nalgebra::{Isometry3, Translation3, UnitQuaternion, Vector3};
 use serde::{Deserialize, Serialize};
 
 pub use control::ControlGains;
 use control::{Controller, NavEstimate};
+use signing::{Signing, Verdict};
 
 use crate::invalid;
 use crate::mixer::MAX_MOTORS;
@@ -69,12 +72,22 @@ pub struct EndpointConfig {
     pub component_id: u8,
     /// Only pilot input from this system id is used (SYSID_MYGCS / MAV_GCS_SYSID).
     pub gcs_system_id: u8,
-    /// UDP port on 127.0.0.1 (0 = any free port).
+    /// Address the UDP (and TCP) sockets listen on: loopback unless configured.
+    pub bind_ip: IpAddr,
+    /// UDP port on `bind_ip` (0 = any free port).
     pub udp_port: u16,
-    /// Also serve MAVLink over TCP on 127.0.0.1.
+    /// Also serve MAVLink over TCP on `bind_ip`.
     pub tcp_enabled: bool,
-    /// TCP port on 127.0.0.1 (0 = any free port).
+    /// TCP port on `bind_ip` (0 = any free port).
     pub tcp_port: u16,
+    /// MAVLink 2 signing key (32 raw bytes or 64 hex digits, the format of markhold's
+    /// `link.signing_key_file`): everything sent is signed, everything received verified.
+    pub signing_key_file: Option<PathBuf>,
+    /// Signing link id of what we send.
+    pub signing_link_id: u8,
+    /// With a key: also accept unsigned frames (MAVLink 1, unsigned MAVLink 2). False:
+    /// signing is required and unsigned input is dropped.
+    pub signing_accept_unsigned: bool,
     /// MANUAL_CONTROL scaling (ArduSub's joystick gain): full stick = 400 us x gain.
     pub joystick_gain: f64,
     /// Disarm after this long without pilot input (FS_PILOT_TIMEOUT); 0 disables.
@@ -102,9 +115,13 @@ impl Default for EndpointConfig {
             system_id: 1,
             component_id: 1,
             gcs_system_id: 255,
+            bind_ip: IpAddr::from([127, 0, 0, 1]),
             udp_port: 0,
             tcp_enabled: false,
             tcp_port: 0,
+            signing_key_file: None,
+            signing_link_id: 0,
+            signing_accept_unsigned: false,
             joystick_gain: 0.5,
             pilot_timeout_s: 3.0,
             gcs_timeout_s: 5.0,
@@ -122,6 +139,13 @@ impl EndpointConfig {
     pub fn validate(&self) -> Result<(), HilError> {
         if self.system_id == 0 {
             return Err(invalid("endpoint.system_id", 0, "1..=255"));
+        }
+        if self.bind_ip.is_multicast() || self.bind_ip.is_unspecified() {
+            return Err(invalid(
+                "endpoint.bind_ip",
+                self.bind_ip,
+                "one unicast address (127.0.0.1 by default; not 0.0.0.0)",
+            ));
         }
         if !(self.joystick_gain.is_finite()
             && self.joystick_gain > 0.0
@@ -163,7 +187,10 @@ impl EndpointConfig {
 }
 
 /// The UDP side: a non-blocking socket, its receive buffer, and the last peer (a udpin
-/// endpoint answers the last peer that spoke, like ArduPilot and BlueOS).
+/// endpoint answers the last peer that spoke, like ArduPilot and BlueOS). A sender becomes
+/// the peer only with a datagram that holds a CRC-valid MAVLink frame that parses (and,
+/// with signing, carries a valid signature): garbage or unsigned traffic from another
+/// port cannot take the telemetry away.
 struct UdpLink {
     socket: UdpSocket,
     buf: Box<[u8; 65536]>,
@@ -174,10 +201,11 @@ struct UdpLink {
 /// its own (a datagram holds whole frames), so garbage or a truncated frame in one
 /// datagram cannot swallow the next, and a claimed-but-bogus frame is resynchronised
 /// one byte later. Allocation-free (the stream reader of the mavlink crate is used for
-/// TCP, where bytes do flow across reads).
+/// TCP, where bytes do flow across reads). `on_frame` also gets the whole frame's bytes
+/// (magic to signature), for signature checks.
 pub(crate) fn scan_datagram(
     d: &[u8],
-    mut on_frame: impl FnMut(MavHeader, Result<MavMessage, mavlink::error::ParserError>),
+    mut on_frame: impl FnMut(MavHeader, Result<MavMessage, mavlink::error::ParserError>, &[u8]),
 ) {
     use mavlink::Message;
     let mut i = 0;
@@ -236,6 +264,7 @@ pub(crate) fn scan_datagram(
         on_frame(
             header,
             MavMessage::parse(version, msg_id, &rest[header_len..crc_at]),
+            &rest[..total],
         );
         i += total;
     }
@@ -310,6 +339,13 @@ pub struct EndpointStats {
     /// Frames that failed to decode (bad CRC is skipped silently by the decoder; this
     /// counts payloads that did not parse).
     pub parse_errors: u64,
+    /// UDP datagrams with no acceptable frame in them (garbage, truncated, CRC-invalid,
+    /// unsigned or badly signed): their sender never becomes the peer.
+    pub rejected_datagrams: u64,
+    /// Frames dropped because signing is required and they were unsigned (or MAVLink 1).
+    pub rejected_unsigned: u64,
+    /// Frames dropped for a signature that is not ours (wrong key) or a replayed one.
+    pub rejected_signature: u64,
     /// Failsafe disarms.
     pub failsafe_pilot: u64,
     pub failsafe_gcs: u64,
@@ -341,6 +377,8 @@ pub struct VehicleEndpoint {
     outbox: Vec<MavMessage>,
     /// Frames of one datagram, reused.
     rx_frames: Vec<(MavHeader, MavMessage)>,
+    /// MAVLink 2 signing, when a key is configured.
+    signing: Option<Signing>,
     now_s: f64,
     tx: [u8; 300],
 }
@@ -358,16 +396,25 @@ fn socket_err(
 }
 
 impl VehicleEndpoint {
-    /// Bind UDP (and TCP when enabled) on 127.0.0.1.
+    /// Bind UDP (and TCP when enabled) on `cfg.bind_ip` (127.0.0.1 by default); read the
+    /// signing key when one is configured.
     pub fn bind(cfg: &EndpointConfig) -> Result<Self, HilError> {
         cfg.validate()?;
-        let addr = SocketAddr::from(([127, 0, 0, 1], cfg.udp_port));
+        let signing = match &cfg.signing_key_file {
+            Some(path) => Some(Signing::new(
+                signing::read_key(path)?,
+                cfg.signing_link_id,
+                cfg.signing_accept_unsigned,
+            )),
+            None => None,
+        };
+        let addr = SocketAddr::new(cfg.bind_ip, cfg.udp_port);
         let socket = UdpSocket::bind(addr).map_err(|e| socket_err("bind udp", addr, e))?;
         socket
             .set_nonblocking(true)
             .map_err(|e| socket_err("set_nonblocking udp", addr, e))?;
         let tcp = if cfg.tcp_enabled {
-            let addr = SocketAddr::from(([127, 0, 0, 1], cfg.tcp_port));
+            let addr = SocketAddr::new(cfg.bind_ip, cfg.tcp_port);
             let l = TcpListener::bind(addr).map_err(|e| socket_err("bind tcp", addr, e))?;
             l.set_nonblocking(true)
                 .map_err(|e| socket_err("set_nonblocking tcp", addr, e))?;
@@ -401,6 +448,7 @@ impl VehicleEndpoint {
             controller: Controller::new(cfg.gains.clone()),
             outbox: Vec::with_capacity(16),
             rx_frames: Vec::with_capacity(64),
+            signing,
             now_s: 0.0,
             tx: [0; 300],
         })
@@ -415,7 +463,7 @@ impl VehicleEndpoint {
         self.udp
             .socket
             .local_addr()
-            .unwrap_or_else(|_| SocketAddr::from(([127, 0, 0, 1], 0)))
+            .unwrap_or_else(|_| SocketAddr::new(self.cfg.bind_ip, 0))
     }
 
     /// The TCP address (`tcpout:<addr>`), when TCP is enabled.
@@ -433,6 +481,16 @@ impl VehicleEndpoint {
 
     pub fn stats(&self) -> EndpointStats {
         self.stats
+    }
+
+    /// Whether MAVLink 2 signing is on (a key was configured).
+    pub fn signing(&self) -> bool {
+        self.signing.is_some()
+    }
+
+    /// The UDP peer telemetry goes to, once one has spoken acceptably.
+    pub fn udp_peer(&self) -> Option<SocketAddr> {
+        self.udp.peer
     }
 
     /// Whether any client has spoken to us (over UDP or TCP).
@@ -476,17 +534,37 @@ impl VehicleEndpoint {
         loop {
             match self.udp.socket.recv_from(&mut self.udp.buf[..]) {
                 Ok((n, from)) => {
-                    self.udp.peer = Some(from);
                     let mut frames = std::mem::take(&mut self.rx_frames);
-                    let mut parse_errors = 0;
-                    scan_datagram(&self.udp.buf[..n], |h, m| match m {
-                        Ok(m) => frames.push((h, m)),
-                        Err(e) => {
-                            parse_errors += 1;
-                            tracing::debug!(error = %e, "mavlink payload did not parse; skipped");
+                    let stats = &mut self.stats;
+                    let signing = &mut self.signing;
+                    scan_datagram(&self.udp.buf[..n], |h, m, raw| {
+                        if let Some(s) = signing.as_mut() {
+                            match s.verify(raw) {
+                                Verdict::Accepted => {}
+                                Verdict::Unsigned => {
+                                    stats.rejected_unsigned += 1;
+                                    return;
+                                }
+                                Verdict::BadSignature => {
+                                    stats.rejected_signature += 1;
+                                    return;
+                                }
+                            }
+                        }
+                        match m {
+                            Ok(m) => frames.push((h, m)),
+                            Err(e) => {
+                                stats.parse_errors += 1;
+                                tracing::debug!(error = %e, "mavlink payload did not parse; skipped");
+                            }
                         }
                     });
-                    self.stats.parse_errors += parse_errors;
+                    if frames.is_empty() {
+                        self.stats.rejected_datagrams += 1;
+                    } else if self.udp.peer != Some(from) {
+                        tracing::info!(peer = %from, "udp peer");
+                        self.udp.peer = Some(from);
+                    }
                     for (h, m) in frames.drain(..) {
                         self.handle(h, m);
                         handled += 1;
@@ -524,10 +602,47 @@ impl VehicleEndpoint {
         while i < self.tcp_clients.len() {
             let mut closed = false;
             loop {
-                match self.tcp_clients[i].reader.read_any_message::<MavMessage>() {
-                    Ok((h, m)) => {
-                        self.handle(h, m);
-                        handled += 1;
+                match self.tcp_clients[i]
+                    .reader
+                    .read_any_raw_message::<MavMessage>()
+                {
+                    Ok(raw) => {
+                        if let Some(s) = self.signing.as_mut() {
+                            let bytes = match &raw {
+                                MAVLinkMessageRaw::V1(r) => r.raw_bytes(),
+                                MAVLinkMessageRaw::V2(r) => r.raw_bytes(),
+                            };
+                            match s.verify(bytes) {
+                                Verdict::Accepted => {}
+                                Verdict::Unsigned => {
+                                    self.stats.rejected_unsigned += 1;
+                                    continue;
+                                }
+                                Verdict::BadSignature => {
+                                    self.stats.rejected_signature += 1;
+                                    continue;
+                                }
+                            }
+                        }
+                        let h = MavHeader {
+                            system_id: raw.system_id(),
+                            component_id: raw.component_id(),
+                            sequence: raw.sequence(),
+                        };
+                        match <MavMessage as mavlink::Message>::parse(
+                            raw.version(),
+                            raw.message_id(),
+                            raw.payload(),
+                        ) {
+                            Ok(m) => {
+                                self.handle(h, m);
+                                handled += 1;
+                            }
+                            Err(e) => {
+                                self.stats.parse_errors += 1;
+                                tracing::debug!(error = %e, "mavlink payload did not parse; skipped");
+                            }
+                        }
                     }
                     Err(MessageReadError::Io(e)) if e.kind() == ErrorKind::WouldBlock => break,
                     Err(MessageReadError::Parse(e)) => {
@@ -1148,7 +1263,8 @@ impl VehicleEndpoint {
         self.sequence = self.sequence.wrapping_add(1);
         let n = {
             let mut w: &mut [u8] = &mut self.tx[..];
-            match mavlink::write_versioned_msg(&mut w, MavlinkVersion::V2, header, msg) {
+            let signing = self.signing.as_ref().map(Signing::data);
+            match mavlink::write_v2_msg_signed(&mut w, header, msg, signing) {
                 Ok(n) => n,
                 Err(e) => {
                     tracing::warn!(error = %e, "mavlink message did not serialize");
@@ -1231,7 +1347,7 @@ mod tests {
         mavlink::write_versioned_msg(&mut bytes, MavlinkVersion::V1, h, &msg).unwrap();
         bytes.extend_from_slice(&one[..5]); // truncated tail
         let mut seen = Vec::new();
-        scan_datagram(&bytes, |h, m| seen.push((h.sequence, m.is_ok())));
+        scan_datagram(&bytes, |h, m, _| seen.push((h.sequence, m.is_ok())));
         assert_eq!(seen, vec![(7, true), (7, true)]);
     }
 }

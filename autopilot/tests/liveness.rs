@@ -1,0 +1,189 @@
+//! Link loss from any message of the vehicle's autopilot (not only its 1 Hz heartbeat),
+//! the bounded drain of the UDP socket per tick and its enlarged receive buffer. A raw
+//! loopback socket plays the vehicle; loop time is driven by hand.
+
+use std::net::UdpSocket;
+
+use markhold_autopilot::link::MAX_MESSAGES_PER_TICK;
+use markhold_autopilot::mavlink::dialects::ardupilotmega::*;
+use markhold_autopilot::mavlink::{self, MavHeader};
+use markhold_autopilot::{LinkConfig, VehicleLink};
+
+struct FakeVehicle {
+    sock: UdpSocket,
+    seq: u8,
+}
+
+impl FakeVehicle {
+    fn send(&mut self, to: std::net::SocketAddr, sysid: u8, msg: &MavMessage) {
+        let h = MavHeader {
+            system_id: u32::from(sysid),
+            component_id: 1,
+            sequence: self.seq,
+        };
+        self.seq = self.seq.wrapping_add(1);
+        let mut out = Vec::new();
+        mavlink::write_v2_msg_signed(&mut out, h, msg, None).unwrap();
+        self.sock.send_to(&out, to).unwrap();
+    }
+}
+
+fn heartbeat() -> MavMessage {
+    MavMessage::HEARTBEAT(HEARTBEAT_DATA {
+        custom_mode: 0,
+        mavtype: MavType::MAV_TYPE_SUBMARINE,
+        autopilot: MavAutopilot::MAV_AUTOPILOT_ARDUPILOTMEGA,
+        base_mode: MavModeFlag::empty(),
+        system_status: MavState::MAV_STATE_ACTIVE,
+        mavlink_version: 3,
+    })
+}
+
+fn attitude() -> MavMessage {
+    MavMessage::ATTITUDE(ATTITUDE_DATA::default())
+}
+
+fn setup(cfg: LinkConfig) -> (VehicleLink, FakeVehicle) {
+    let sock = UdpSocket::bind("127.0.0.1:0").unwrap();
+    let link = VehicleLink::connect(&LinkConfig {
+        url: format!("udpout:{}", sock.local_addr().unwrap()),
+        ..cfg
+    })
+    .unwrap();
+    (link, FakeVehicle { sock, seq: 0 })
+}
+
+/// Heartbeats at 1 Hz and ATTITUDE at 10 Hz until `stop_all_s` (heartbeats alone stop at
+/// `stop_hb_s`); returns the first loop time the link called the vehicle lost.
+fn lost_at(stop_hb_s: f64, stop_all_s: f64) -> Option<f64> {
+    let (mut link, mut v) = setup(LinkConfig::default());
+    let to = link.local_addr().unwrap();
+    let mut lost = None;
+    for k in 0..=200 {
+        let t = k as f64 * 0.05;
+        if t < stop_all_s {
+            if k % 20 == 0 && t < stop_hb_s {
+                v.send(to, 1, &heartbeat());
+            }
+            if k % 2 == 0 {
+                v.send(to, 1, &attitude());
+            }
+        }
+        link.tick(t).unwrap();
+        let s = link.state();
+        if t < 0.5 {
+            assert!(s.heartbeat_ok, "not heard at {t}");
+        }
+        if !s.heartbeat_ok && lost.is_none() {
+            lost = Some(t);
+        }
+    }
+    lost
+}
+
+/// Lost on the first tick (every 0.05 s) after `vehicle_timeout_s` without a message.
+fn assert_lost_after(last_msg_s: f64, lost: f64) {
+    let timeout = LinkConfig::default().vehicle_timeout_s;
+    assert!(timeout <= 1.0);
+    let age = lost - last_msg_s;
+    assert!(
+        age > timeout && age <= timeout + 0.05 + 1e-9,
+        "lost at {lost}"
+    );
+}
+
+#[test]
+fn silence_is_noticed_within_one_second() {
+    // Everything stops at 5.0 s (last ATTITUDE at 4.9 s): lost a timeout later, not up
+    // to two heartbeat periods later as when only heartbeats counted.
+    let lost = lost_at(100.0, 5.0).expect("never lost");
+    assert_lost_after(4.9, lost);
+    assert!(lost - 4.9 <= 1.0);
+}
+
+#[test]
+fn telemetry_without_heartbeats_is_trusted_only_for_the_heartbeat_timeout() {
+    // Heartbeats stop after the one at 2.0 s, ATTITUDE goes on: it counts while the
+    // heartbeat is at most `vehicle_heartbeat_timeout_s` (2 s) old, until 4.0 s.
+    let lost = lost_at(2.5, 100.0).expect("never lost");
+    assert_lost_after(4.0, lost);
+}
+
+#[test]
+fn another_system_does_not_keep_the_vehicle_alive() {
+    let (mut link, mut v) = setup(LinkConfig::default());
+    let to = link.local_addr().unwrap();
+    v.send(to, 1, &heartbeat());
+    link.tick(0.0).unwrap();
+    assert!(link.state().heartbeat_ok);
+    for k in 1..=30 {
+        let t = k as f64 * 0.05;
+        v.send(to, 42, &heartbeat());
+        v.send(to, 42, &attitude());
+        link.tick(t).unwrap();
+    }
+    assert!(!link.state().heartbeat_ok);
+    assert_eq!(link.state().system_id, 1);
+}
+
+#[test]
+fn timeout_must_cover_four_stream_messages() {
+    let e = VehicleLink::connect(&LinkConfig {
+        vehicle_timeout_s: 0.3,
+        ..Default::default()
+    })
+    .err()
+    .unwrap()
+    .to_string();
+    assert!(e.contains("link.vehicle_timeout_s"), "{e}");
+    let ok = LinkConfig {
+        vehicle_timeout_s: 1.0,
+        stream_hz: 4.0,
+        ..Default::default()
+    };
+    ok.validate().unwrap();
+}
+
+#[test]
+fn a_burst_between_two_ticks_is_read_whole_and_bounded_per_tick() {
+    let (mut link, mut v) = setup(LinkConfig::default());
+    let to = link.local_addr().unwrap();
+    let granted = link.udp_recv_buffer().unwrap();
+    let rmem_max: usize = std::fs::read_to_string("/proc/sys/net/core/rmem_max")
+        .ok()
+        .and_then(|s| s.trim().parse().ok())
+        .unwrap_or(0);
+    println!("SO_RCVBUF granted: {granted} bytes (rmem_max {rmem_max})");
+    // The link asks for 4 MiB; Linux caps it at rmem_max and doubles it.
+    let asked = markhold_autopilot::transport::UDP_RECV_BUFFER_BYTES;
+    assert!(granted >= asked.min(rmem_max), "{granted}");
+    if granted < 6 << 20 {
+        println!("receive buffer below 6 MiB here: burst half skipped");
+        return;
+    }
+    v.send(to, 1, &heartbeat());
+    link.tick(0.0).unwrap();
+    let before = link.messages_received();
+    // 2000 foreign messages and one heartbeat at the end, all before the next tick.
+    for _ in 0..2000 {
+        v.send(to, 42, &attitude());
+    }
+    v.send(to, 1, &heartbeat());
+    link.tick(0.05).unwrap();
+    assert_eq!(link.messages_received() - before, 2001);
+    assert_eq!(link.state().heartbeats, 2);
+    // More than a batch: the tick stops at the bound, the rest waits for the next one.
+    let n = MAX_MESSAGES_PER_TICK + 100;
+    for _ in 0..n {
+        v.send(to, 42, &attitude());
+    }
+    let before = link.messages_received();
+    link.tick(0.1).unwrap();
+    assert_eq!(
+        link.messages_received() - before,
+        MAX_MESSAGES_PER_TICK as u64
+    );
+    assert_eq!(link.state().counters.receive_batch_full, 1);
+    link.tick(0.15).unwrap();
+    assert_eq!(link.messages_received() - before, n as u64);
+}
