@@ -187,7 +187,9 @@ pub fn run_external(
         events: Vec::with_capacity(8),
         marker_seen_s: None,
         shutdown: false,
+        last_frame_s: None,
         mode_changes_seen: 0,
+        failsafe: crate::pipeline::FailsafeActions::new(Some(mode)),
     };
     let frames = (opts.seconds * fps).round().max(1.0) as u64;
     let mut stats = RunStats::new(frames as usize, t_world_marker, t_marker_station);

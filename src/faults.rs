@@ -15,14 +15,15 @@ use std::io::ErrorKind;
 use std::net::{SocketAddr, UdpSocket};
 use std::str::FromStr;
 
-use markhold_autopilot::{Directive, FailsafeEvent};
+use markhold_autopilot::{ArduSubMode, Directive, FailsafeEvent};
 use markhold_exposure::{Camera, CameraError, ExposureLimits, Frame};
 use markhold_hil::camera::CameraModel;
+use markhold_hil::scene::LightingScale;
 use markhold_hil::{HilRig, Truth};
 use nalgebra::{Isometry3, Point3};
 use serde::Serialize;
 
-use crate::pipeline::FrameRecord;
+use crate::pipeline::{FrameRecord, ModeTransition};
 
 /// Errors of fault specifications and the link relay.
 #[derive(Debug, thiserror::Error)]
@@ -69,10 +70,17 @@ pub enum FaultKind {
     ExposureIgnored,
     /// The camera applies each exposure command 3 frames later than it would.
     ExposureLate,
+    /// Every lamp (the vehicle's and the marker's) switched off, then on again at the end.
+    LampOff,
+    /// Daylight (ambient) 10x brighter, back at the end.
+    AmbientStep,
 }
 
-const KINDS: &str =
-    "link_cut, occlude, out_of_view, drop_frames, late_frames, exposure_ignored, exposure_late";
+/// The factor of `ambient_step`.
+pub const AMBIENT_STEP_FACTOR: f64 = 10.0;
+
+const KINDS: &str = "link_cut, occlude, out_of_view, drop_frames, late_frames, exposure_ignored, \
+     exposure_late, lamp_off, ambient_step";
 
 impl FaultKind {
     pub fn name(self) -> &'static str {
@@ -84,6 +92,8 @@ impl FaultKind {
             FaultKind::LateFrames => "late_frames",
             FaultKind::ExposureIgnored => "exposure_ignored",
             FaultKind::ExposureLate => "exposure_late",
+            FaultKind::LampOff => "lamp_off",
+            FaultKind::AmbientStep => "ambient_step",
         }
     }
 
@@ -96,6 +106,8 @@ impl FaultKind {
             "late_frames" => FaultKind::LateFrames,
             "exposure_ignored" => FaultKind::ExposureIgnored,
             "exposure_late" => FaultKind::ExposureLate,
+            "lamp_off" => FaultKind::LampOff,
+            "ambient_step" => FaultKind::AmbientStep,
             _ => return None,
         })
     }
@@ -190,6 +202,18 @@ impl FaultPlan {
 
     pub fn has(&self, kind: FaultKind) -> bool {
         self.specs.iter().any(|f| f.kind == kind)
+    }
+
+    /// The scene's lighting at `t_s`: lamps off and the ambient step while active.
+    pub fn lighting(&self, t_s: f64) -> LightingScale {
+        let mut l = LightingScale::UNCHANGED;
+        if self.active(FaultKind::LampOff, t_s) {
+            l.lamp = 0.0;
+        }
+        if self.active(FaultKind::AmbientStep, t_s) {
+            l.ambient *= AMBIENT_STEP_FACTOR;
+        }
+        l
     }
 }
 
@@ -379,15 +403,30 @@ impl LinkRelay {
     }
 }
 
-/// What a camera fault needs from the world: where the marker really is.
+/// What a camera fault needs from the world: where the marker really is, and the
+/// lights (switched before the frame is rendered, so the sensor sees the new light).
 pub trait MarkerTruth {
     /// Pose of the marker in the camera frame at the last grabbed frame.
     fn true_t_cam_marker(&self) -> Isometry3<f64>;
+    /// Stamp of the next frame the camera will take.
+    fn next_frame_time_s(&self) -> f64;
+    /// Scale the lamps and the daylight from the next frame on.
+    fn set_lighting(&mut self, scale: LightingScale) -> Result<(), CameraError>;
 }
 
 impl MarkerTruth for HilRig {
     fn true_t_cam_marker(&self) -> Isometry3<f64> {
         self.truth().t_cam_marker
+    }
+    fn next_frame_time_s(&self) -> f64 {
+        HilRig::next_frame_time_s(self)
+    }
+    fn set_lighting(&mut self, scale: LightingScale) -> Result<(), CameraError> {
+        HilRig::set_lighting(self, scale).map_err(|e| CameraError::ControlRejected {
+            device: "hil".to_string(),
+            control: "lighting".to_string(),
+            reason: e.to_string(),
+        })
     }
 }
 
@@ -445,6 +484,8 @@ pub struct CameraFaults {
     applied_us: f64,
     /// Frames grabbed from the inner camera.
     grabs: u64,
+    /// Lighting set on the world last.
+    lighting: LightingScale,
     pub stats: CameraFaultStats,
 }
 
@@ -482,6 +523,7 @@ impl CameraFaults {
             pending_len: 0,
             applied_us: initial_exposure_us,
             grabs: 0,
+            lighting: LightingScale::UNCHANGED,
             stats: CameraFaultStats::default(),
         }
     }
@@ -518,6 +560,12 @@ impl<C: Camera + MarkerTruth> FaultyCamera<'_, C> {
 
     fn grab_inner(&mut self, frame: &mut Frame) -> Result<(), CameraError> {
         self.pump(self.now_s)?;
+        // Lights switched on the stamp of the frame about to be rendered.
+        let light = self.faults.plan.lighting(self.inner.next_frame_time_s());
+        if light != self.faults.lighting {
+            self.inner.set_lighting(light)?;
+            self.faults.lighting = light;
+        }
         self.inner.grab(frame)?;
         self.faults.grabs += 1;
         self.now_s = frame.meta.stamp_s;
@@ -758,6 +806,16 @@ pub struct FaultReport {
     pub vehicle_disarmed_at_s: Option<f64>,
     /// Pilot-input frames sent (Command directive) while the vehicle was not heard.
     pub commands_while_unheard: u64,
+    /// Marker-loss action: the mode markhold asked for (SURFACE, or ALT_HOLD) and when.
+    pub loss_action_mode: Option<ArduSubMode>,
+    pub loss_action_requested_at_s: Option<f64>,
+    /// SURFACE refused or unanswered: ALT_HOLD with a climb instead, at this time.
+    pub surface_fallback_at_s: Option<f64>,
+    /// The vehicle's heartbeat showed the action's mode.
+    pub loss_action_in_mode_at_s: Option<f64>,
+    /// Marker back: the site's mode requested, and seen in the heartbeat.
+    pub site_mode_requested_at_s: Option<f64>,
+    pub site_mode_restored_at_s: Option<f64>,
 }
 
 /// Within this of the station (truth) counts as on station.
@@ -802,6 +860,12 @@ impl FaultMonitor {
                 exposure_max_us: 0.0,
                 vehicle_disarmed_at_s: None,
                 commands_while_unheard: 0,
+                loss_action_mode: None,
+                loss_action_requested_at_s: None,
+                surface_fallback_at_s: None,
+                loss_action_in_mode_at_s: None,
+                site_mode_requested_at_s: None,
+                site_mode_restored_at_s: None,
             })
             .collect::<Vec<_>>();
         let n = reports.len();
@@ -814,13 +878,16 @@ impl FaultMonitor {
         }
     }
 
-    /// One frame: its record, the world's truth after it, the supervisor's events and
-    /// the vehicle's armed state and heartbeat health as markhold's link knows them.
+    /// One frame: its record, the world's truth after it, the supervisor's events, the
+    /// loop's own mode transitions and the vehicle's armed state and heartbeat health as
+    /// markhold's link knows them.
+    #[allow(clippy::too_many_arguments)]
     pub fn observe(
         &mut self,
         rec: &FrameRecord,
         truth: &Truth,
         events: &[FailsafeEvent],
+        transitions: &[ModeTransition],
         link_armed: bool,
         heartbeat_ok: bool,
     ) {
@@ -883,6 +950,40 @@ impl FaultMonitor {
                         if r.marker_lost_action_at_s.is_none() =>
                     {
                         r.marker_lost_action_at_s = Some(at_s)
+                    }
+                    _ => {}
+                }
+            }
+            for tr in transitions {
+                match *tr {
+                    ModeTransition::LossActionRequested { at_s, mode, .. }
+                        if r.loss_action_requested_at_s.is_none() =>
+                    {
+                        r.loss_action_requested_at_s = Some(at_s);
+                        r.loss_action_mode = Some(mode);
+                    }
+                    ModeTransition::SurfaceFallback { at_s, .. }
+                        if r.surface_fallback_at_s.is_none() =>
+                    {
+                        r.surface_fallback_at_s = Some(at_s);
+                        r.loss_action_mode = Some(ArduSubMode::AltHold);
+                    }
+                    ModeTransition::LossActionInMode { at_s, .. }
+                        if r.loss_action_in_mode_at_s.is_none() =>
+                    {
+                        r.loss_action_in_mode_at_s = Some(at_s)
+                    }
+                    ModeTransition::SiteModeRequested { at_s, .. }
+                        if r.loss_action_requested_at_s.is_some()
+                            && r.site_mode_requested_at_s.is_none() =>
+                    {
+                        r.site_mode_requested_at_s = Some(at_s)
+                    }
+                    ModeTransition::SiteModeRestored { at_s, .. }
+                        if r.site_mode_requested_at_s.is_some()
+                            && r.site_mode_restored_at_s.is_none() =>
+                    {
+                        r.site_mode_restored_at_s = Some(at_s)
                     }
                     _ => {}
                 }

@@ -17,7 +17,7 @@ use crate::faults::{
     Projection,
 };
 use crate::params::LoadedSite;
-use crate::pipeline::{FrameRecord, Pipeline};
+use crate::pipeline::{FailsafeActions, FrameRecord, Pipeline};
 use crate::summary::{RunStats, Summary};
 
 /// Options of one HIL run (the command line's flags, or an experiment of `compare`).
@@ -200,7 +200,9 @@ impl HilRun {
             events: Vec::with_capacity(8),
             marker_seen_s: None,
             shutdown: false,
+            last_frame_s: None,
             mode_changes_seen: 0,
+            failsafe: FailsafeActions::new(Some(s.link.mode.ardusub())),
         };
         Ok(Self {
             rig,
@@ -257,6 +259,7 @@ impl HilRun {
             &rec,
             &truth,
             &self.pipeline.events,
+            &self.pipeline.failsafe.transitions,
             link.armed,
             link.heartbeat_ok,
         );

@@ -40,7 +40,9 @@ pub fn build_pipeline<L: CommandLink>(
         events: Vec::with_capacity(8),
         marker_seen_s: None,
         shutdown: false,
+        last_frame_s: None,
         mode_changes_seen: 0,
+        failsafe: Default::default(),
     })
 }
 

@@ -16,7 +16,7 @@ use nalgebra::Isometry3;
 use crate::camera::{CameraModel, UnderwaterCamera};
 use crate::endpoint::{EndpointConfig, EndpointStats, VehicleEndpoint};
 use crate::mixer::MAX_MOTORS;
-use crate::scene::{LightingConfig, MarkerSpec, Scene, WaterConfig};
+use crate::scene::{LightingConfig, LightingScale, MarkerSpec, Scene, WaterConfig};
 use crate::vehicle::{Vehicle, VehicleConfig, VehicleMotion, VehicleState};
 use crate::{invalid, HilError};
 
@@ -194,6 +194,19 @@ impl HilRig {
     /// Frames grabbed so far.
     pub fn frames(&self) -> u64 {
         self.frames
+    }
+
+    /// Scale the lamps and the daylight from the next frame on (lamp switched off, a
+    /// change of ambient light). The renderer sees the new light, so noise, clipping and
+    /// the response act on it as on a real sensor.
+    pub fn set_lighting(&mut self, scale: LightingScale) -> Result<(), HilError> {
+        self.scene.set_lighting(scale)
+    }
+
+    /// Simulation time of the next frame `grab` will render (its stamp).
+    pub fn next_frame_time_s(&self) -> f64 {
+        let target = (self.frames as f64 * self.physics_hz / self.fps).round() as u64;
+        target.max(self.steps) as f64 * self.vehicle.dt_s()
     }
 
     /// Change how long lock-step waits for the client (wall clock).

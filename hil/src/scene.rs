@@ -593,6 +593,43 @@ pub(crate) struct Shade {
     pub(crate) backscatter: f64,
 }
 
+/// Multipliers on the scene's light sources, for lights switched on and off or changing
+/// during a run: `lamp` scales every lamp (the vehicle's and the marker's), `ambient` the
+/// daylight (and with it the water's veiling light). Applied to the light the renderer
+/// computes, before the sensor: shot noise, the full well and the response see the new
+/// light as they would on a real camera. 1 and 1 leave the site's lighting as it is.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct LightingScale {
+    pub lamp: f64,
+    pub ambient: f64,
+}
+
+impl Default for LightingScale {
+    fn default() -> Self {
+        Self::UNCHANGED
+    }
+}
+
+impl LightingScale {
+    /// The site's lighting, unscaled.
+    pub const UNCHANGED: Self = Self {
+        lamp: 1.0,
+        ambient: 1.0,
+    };
+
+    pub fn validate(&self) -> Result<(), HilError> {
+        for (k, v) in [
+            ("lighting_scale.lamp", self.lamp),
+            ("lighting_scale.ambient", self.ambient),
+        ] {
+            if !(v.is_finite() && (0.0..=1e4).contains(&v)) {
+                return Err(invalid(k, v, "a factor in [0, 1e4]"));
+            }
+        }
+        Ok(())
+    }
+}
+
 /// The world the camera renders: geometry, materials, water and light.
 #[derive(Debug, Clone)]
 pub struct Scene {
@@ -607,6 +644,8 @@ pub struct Scene {
     pub(crate) caustic: Texture,
     /// Caustic drift directions of the two layers (unit, in surface coordinates).
     pub(crate) caustic_dirs: [(f64, f64); 2],
+    /// Lamps switched off / daylight changed during the run.
+    pub(crate) scale: LightingScale,
 }
 
 /// Side of the rock texture (texels, power of two).
@@ -686,7 +725,20 @@ impl Scene {
             rock,
             caustic,
             caustic_dirs: [(a0.cos(), a0.sin()), (a1.cos(), a1.sin())],
+            scale: LightingScale::UNCHANGED,
         })
+    }
+
+    /// Scale the lamps and the daylight from the next rendered frame on.
+    pub fn set_lighting(&mut self, scale: LightingScale) -> Result<(), HilError> {
+        scale.validate()?;
+        self.scale = scale;
+        Ok(())
+    }
+
+    /// The lighting scale in force.
+    pub fn lighting_scale(&self) -> LightingScale {
+        self.scale
     }
 
     pub fn marker(&self) -> &MarkerSpec {
@@ -714,19 +766,32 @@ impl Scene {
     /// `t_world_vehicle`. Writes into `out` (cleared first).
     pub(crate) fn lamps_for(&self, t_world_vehicle: &Isometry3<f64>, out: &mut Vec<WorldLamp>) {
         out.clear();
-        out.extend_from_slice(&self.world_lamps);
+        let k = self.scale.lamp;
+        if k <= 0.0 {
+            // Switched off: no lamp light, no beam in the water.
+            return;
+        }
+        out.extend(self.world_lamps.iter().map(|l| WorldLamp {
+            intensity: l.intensity * k,
+            ..*l
+        }));
         out.extend(
             self.lighting
                 .vehicle_lamps
                 .iter()
                 .filter(|l| l.intensity_w_sr > 0.0)
-                .map(|l| WorldLamp::place(l, t_world_vehicle)),
+                .map(|l| {
+                    let mut w = WorldLamp::place(l, t_world_vehicle);
+                    w.intensity *= k;
+                    w
+                }),
         );
     }
 
     /// Downwelling daylight at depth `z` (world NED, metres below the surface).
     pub(crate) fn daylight(&self, z: f64) -> f64 {
-        self.lighting.ambient_surface_w_m2
+        self.scale.ambient
+            * self.lighting.ambient_surface_w_m2
             * (-self.water.daylight_attenuation_per_m * z.max(0.0)).exp()
     }
 
