@@ -8,13 +8,13 @@ use std::path::PathBuf;
 use std::str::FromStr;
 use std::time::{Duration, Instant};
 
-use markhold_autopilot::VehicleLink;
+use markhold_autopilot::{CommandStatus, Directive, FailsafeEvent, VehicleLink};
 use markhold_exposure::{Camera, CameraError, ExposureLimits, Frame};
 use markhold_vision::{RecordedCamera, V4l2Camera};
 use serde::Serialize;
 
 use crate::params::LoadedSite;
-use crate::pipeline::Pipeline;
+use crate::pipeline::{FailsafeActions, Pipeline};
 use crate::record::{record_step, RecordConfig, RecordStats, Recorder, RunInfo};
 use crate::replay::build_pipeline;
 use crate::signal::ShutdownFlag;
@@ -144,16 +144,43 @@ pub struct RunReport {
     pub record: Option<RecordStats>,
     /// Where the live view listened, if it was on.
     pub foxglove_addr: Option<String>,
+    /// Times the camera stalled long enough for the vision-stall failsafe (neutral).
+    pub vision_stalls: u64,
+    /// Disarm on exit (`link.disarm_on_exit` and a signal): how the request ended.
+    pub disarm: Option<CommandStatus>,
 }
 
-/// The opened camera with its first frame kept for the loop, paced if recorded.
+/// How long one `grab` waits for a frame before it hands control back to the loop, so
+/// the supervisor sees loop time pass while the camera is stalled.
+pub const NO_FRAME_TICK: Duration = Duration::from_millis(50);
+
+/// The opened camera with its next frame kept for the loop (the first one from the
+/// start-up check), paced if recorded.
 struct LiveCamera {
     inner: Box<dyn Camera>,
-    first: Option<Frame>,
+    /// The next frame, grabbed but not handed out yet (buffer allocated once).
+    next: Frame,
+    next_valid: bool,
     pace: bool,
     /// Wall time and stamp of the first frame.
     t0: Option<(Instant, f64)>,
     stop: ShutdownFlag,
+    /// Wall time the last frame was handed to the loop.
+    delivered_at: Option<Instant>,
+    /// The last `grab` returned because no frame was due within [`NO_FRAME_TICK`].
+    no_frame: bool,
+}
+
+impl LiveCamera {
+    /// True (once) if the last grab failed only because no frame came in time.
+    fn take_no_frame(&mut self) -> bool {
+        std::mem::take(&mut self.no_frame)
+    }
+
+    /// Wall time since the last frame was handed to the loop.
+    fn since_last_frame(&self) -> Duration {
+        self.delivered_at.map_or(Duration::ZERO, |t| t.elapsed())
+    }
 }
 
 impl Camera for LiveCamera {
@@ -167,26 +194,38 @@ impl Camera for LiveCamera {
         self.inner.set_exposure_us(exposure_us)
     }
     fn grab(&mut self, frame: &mut Frame) -> Result<(), CameraError> {
-        if let Some(first) = self.first.take() {
-            frame.resize(first.width, first.height);
-            frame.data.copy_from_slice(&first.data);
-            frame.meta = first.meta;
-        } else {
-            self.inner.grab(frame)?;
+        if !self.next_valid {
+            self.inner.grab(&mut self.next)?;
+            self.next_valid = true;
         }
         if self.pace {
-            let stamp = frame.meta.stamp_s;
+            let stamp = self.next.meta.stamp_s;
             let (w0, s0) = *self.t0.get_or_insert((Instant::now(), stamp));
             let due = w0 + Duration::from_secs_f64((stamp - s0).clamp(0.0, 3600.0));
-            // Short sleeps: a signal must not wait for a long gap in the recording.
+            let give_up = Instant::now() + NO_FRAME_TICK;
+            // Short sleeps: a signal must not wait for a long gap in the recording, and
+            // the loop gets control back every NO_FRAME_TICK while no frame is due.
             while !self.stop.is_set() {
                 let now = Instant::now();
                 if now >= due {
                     break;
                 }
-                std::thread::sleep((due - now).min(Duration::from_millis(20)));
+                if now >= give_up {
+                    self.no_frame = true;
+                    return Err(CameraError::Read {
+                        device: self.inner.name().to_string(),
+                        seq: self.next.meta.seq,
+                        reason: format!("no frame within {} ms", NO_FRAME_TICK.as_millis()),
+                    });
+                }
+                std::thread::sleep((due.min(give_up) - now).min(Duration::from_millis(20)));
             }
         }
+        // Hand the frame over by swapping buffers (no copy, no allocation once both
+        // have the camera's size).
+        std::mem::swap(frame, &mut self.next);
+        self.next_valid = false;
+        self.delivered_at = Some(Instant::now());
         Ok(())
     }
 }
@@ -250,10 +289,13 @@ fn open_camera(
     }
     Ok(LiveCamera {
         inner,
-        first: Some(first),
+        next: first,
+        next_valid: true,
         pace: paced,
         t0: None,
         stop: stop.clone(),
+        delivered_at: None,
+        no_frame: false,
     })
 }
 
@@ -379,7 +421,7 @@ pub fn run_live(
     }
     let started = (|| -> anyhow::Result<(LiveCamera, Pipeline)> {
         let cam = open_camera(site, &opts.camera, initial_us, stop, opts.pace_frames)?;
-        let now0 = cam.first.as_ref().map_or(0.0, |f| f.meta.stamp_s);
+        let now0 = cam.next.meta.stamp_s;
         let link = open_link(site, opts, now0, stop)?;
         let pipeline = build_pipeline(site, method, initial_us, link)?;
         Ok((cam, pipeline))
@@ -399,10 +441,13 @@ pub fn run_live(
         opts.camera
     );
 
+    pipeline.failsafe = FailsafeActions::new(Some(s.link.mode.ardusub()));
     let mut frames = 0u64;
     let mut detected = 0u64;
     let mut first_stamp = None;
-    let mut last_stamp = 0.0;
+    let mut last_stamp = cam.next.meta.stamp_s;
+    let mut vision_stalls = 0u64;
+    let mut disarm_asked = false;
     let stopped_by = loop {
         if stop.is_set() {
             // This frame sends neutral input (the supervisor's shutdown directive).
@@ -410,6 +455,23 @@ pub fn run_live(
         }
         let rec = match pipeline.step(&mut cam) {
             Ok(r) => r,
+            Err(_) if cam.take_no_frame() => {
+                // No frame yet: loop time is the last frame's stamp plus the time waited
+                // (the only place the wall clock enters the loop: without frames there
+                // is no other clock), so the supervisor can call the camera stalled.
+                let now = last_stamp + cam.since_last_frame().as_secs_f64();
+                let d = pipeline.tick_without_frame(now)?;
+                vision_stalls += pipeline
+                    .events
+                    .iter()
+                    .filter(|e| matches!(e, FailsafeEvent::VisionStalled { .. }))
+                    .count() as u64;
+                if let Directive::Shutdown { disarm } = d {
+                    disarm_asked = disarm;
+                    break StopReason::Signal;
+                }
+                continue;
+            }
             Err(e) if is_end_of_stream(&e) => break StopReason::EndOfStream,
             Err(e) => {
                 let _ = pipeline.link.send_neutral(last_stamp);
@@ -426,7 +488,8 @@ pub fn run_live(
         detected += rec.detected as u64;
         last_stamp = rec.stamp_s;
         let t0 = *first_stamp.get_or_insert(rec.stamp_s);
-        if pipeline.shutdown {
+        if let Directive::Shutdown { disarm } = rec.directive {
+            disarm_asked = disarm;
             break StopReason::Signal;
         }
         if opts.max_seconds.is_some_and(|m| rec.stamp_s - t0 >= m) {
@@ -435,6 +498,11 @@ pub fn run_live(
     };
     // Leave the vehicle with neutral pilot input, whatever ended the loop.
     pipeline.link.send_neutral(last_stamp)?;
+    let disarm = if disarm_asked {
+        Some(disarm_on_exit(&mut pipeline.link, last_stamp))
+    } else {
+        None
+    };
     let record = match recorder {
         Some(r) if opts.record.is_some() => Some(r.finish()?),
         Some(r) => {
@@ -450,5 +518,44 @@ pub fn run_live(
         stopped_by,
         record,
         foxglove_addr,
+        vision_stalls,
+        disarm,
     })
+}
+
+/// After the shutdown's neutral input: disarm, acknowledged and retried by the link, on
+/// loop time `t0` plus the time waited (no frames come any more), bounded by the link's
+/// own retries. Neutral input keeps going out (the link's keep-alive) until it settles.
+fn disarm_on_exit(link: &mut VehicleLink, t0: f64) -> CommandStatus {
+    let cfg = link.config().clone();
+    let started = Instant::now();
+    let limit = cfg.command_timeout_s * f64::from(cfg.command_retries + 1) + 0.5;
+    let now = |started: Instant| t0 + started.elapsed().as_secs_f64();
+    if let Err(e) = link.request_arm(false, now(started)) {
+        tracing::warn!(error = %e, "disarm on exit: request not sent");
+        return CommandStatus::TimedOut;
+    }
+    eprintln!("markhold run: disarming (link.disarm_on_exit)");
+    let status = loop {
+        let t = now(started);
+        if let Err(e) = link.tick(t) {
+            tracing::warn!(error = %e, "disarm on exit: link");
+        }
+        let st = link.state();
+        match st.arm_command {
+            CommandStatus::Pending { .. } | CommandStatus::Idle if st.armed => {}
+            CommandStatus::Pending { .. } | CommandStatus::Idle => break CommandStatus::Accepted,
+            other => break other,
+        }
+        if t - t0 > limit {
+            break CommandStatus::TimedOut;
+        }
+        std::thread::sleep(Duration::from_millis(10));
+    };
+    tracing::info!(?status, armed = link.state().armed, "disarm on exit");
+    eprintln!(
+        "markhold run: disarm on exit: {status:?} (vehicle armed: {})",
+        link.state().armed
+    );
+    status
 }

@@ -69,7 +69,7 @@ fn frames_dir() -> &'static Path {
 struct Vehicle {
     addr: std::net::SocketAddr,
     stop: Arc<AtomicBool>,
-    thread: std::thread::JoinHandle<EndpointStats>,
+    thread: std::thread::JoinHandle<(EndpointStats, bool)>,
 }
 
 fn vehicle() -> Vehicle {
@@ -91,13 +91,18 @@ fn vehicle() -> Vehicle {
         }
         // Take in what arrived after the last frame.
         rig.pump().unwrap();
-        rig.endpoint_stats()
+        (rig.endpoint_stats(), rig.truth().armed)
     });
     Vehicle { addr, stop, thread }
 }
 
 impl Vehicle {
     fn finish(self) -> EndpointStats {
+        self.finish_armed().0
+    }
+
+    /// Stop it; its endpoint stats and whether it was still armed.
+    fn finish_armed(self) -> (EndpointStats, bool) {
         self.stop.store(true, Ordering::Relaxed);
         self.thread.join().unwrap()
     }
@@ -352,4 +357,163 @@ fn live_view_advertises_every_channel_over_foxglove_websocket() {
     }
     drop(s);
     rec.finish().unwrap();
+}
+
+/// 60 frames rendered on station with a 2 s hole in their stamps after frame 30: played
+/// at the pace of its stamps, the camera stalls for 2 s.
+fn stalling_frames_dir() -> &'static Path {
+    static DIR: OnceLock<PathBuf> = OnceLock::new();
+    DIR.get_or_init(|| {
+        let dir = tmp("frames-stall");
+        let mut rig = rig(false);
+        rig.set_exposure_us(3000.0).unwrap();
+        let mut rec = FrameRecorder::create(&dir).unwrap();
+        let mut f = Frame::default();
+        for i in 0..60 {
+            rig.grab(&mut f).unwrap();
+            if i >= 30 {
+                f.meta.stamp_s += 2.0;
+            }
+            rec.write(&f).unwrap();
+        }
+        dir
+    })
+}
+
+/// The vehicle states the recording holds, per frame: (stamp, pilot inputs sent so far).
+fn pilot_inputs_per_frame(path: &Path) -> Vec<(f64, u64)> {
+    let buf = std::fs::read(path).unwrap();
+    mcap::MessageStream::new(&buf)
+        .unwrap()
+        .map(|m| m.unwrap())
+        .filter(|m| m.channel.topic == markhold::record::TOPIC_VEHICLE)
+        .map(|m| {
+            let v: serde_json::Value = serde_json::from_slice(&m.data).unwrap();
+            (
+                v["stamp_s"].as_f64().unwrap(),
+                v["state"]["counters"]["pilot_inputs"].as_u64().unwrap(),
+            )
+        })
+        .collect()
+}
+
+#[test]
+fn camera_stall_goes_neutral_on_loop_time_then_resumes() {
+    let frames = stalling_frames_dir();
+    let v = vehicle();
+    let rec = tmp("stall.mcap");
+    let summary = tmp("stall.json");
+    let o = markhold()
+        .args(["run", "--site"])
+        .arg(site_path())
+        .arg("--camera")
+        .arg(format!("frames:{}", frames.display()))
+        .arg("--link")
+        .arg(format!("udpout:{}", v.addr))
+        .arg("--record")
+        .arg(&rec)
+        .arg("--summary")
+        .arg(&summary)
+        .output()
+        .unwrap();
+    let _ = v.finish();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let report: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&summary).unwrap()).unwrap();
+    assert_eq!(report["frames"], 60, "{report}");
+    // One stall (2 s without frames > vision_stall_s = 0.5 s), noticed while it lasted.
+    assert_eq!(report["vision_stalls"], 1, "{report}");
+    // Between the last frame before the hole and the first after it, the loop kept
+    // sending (neutral) pilot input on its ticks: a blocked grab would send none.
+    let per = pilot_inputs_per_frame(&rec);
+    let i = per
+        .windows(2)
+        .position(|w| w[1].0 - w[0].0 > 1.5)
+        .expect("the hole is in the recording");
+    let sent_in_hole = per[i + 1].1 - per[i].1;
+    assert!(
+        sent_in_hole >= 10,
+        "only {sent_in_hole} pilot inputs during the 2 s stall"
+    );
+    // The commands around it: station keeping before, station keeping again after.
+    let cmds = commands(&rec);
+    assert_eq!(cmds[i].directive, "command", "{:?}", cmds[i]);
+    assert!(
+        cmds[i + 1..]
+            .iter()
+            .filter(|c| c.directive == "command")
+            .count()
+            >= 25,
+        "{:?}",
+        &cmds[i + 1..]
+    );
+}
+
+#[test]
+fn sigterm_with_disarm_on_exit_sends_neutral_then_disarms() {
+    let frames = frames_dir();
+    let v = vehicle();
+    let rec = tmp("disarm.mcap");
+    let summary = tmp("disarm.json");
+    let site = tmp("disarm-site.toml");
+    let text = std::fs::read_to_string(site_path()).unwrap().replace(
+        "mode = \"manual\"",
+        "mode = \"manual\"\ndisarm_on_exit = true",
+    );
+    std::fs::write(&site, text).unwrap();
+    let mut child = markhold()
+        .args(["run", "--arm", "--site"])
+        .arg(&site)
+        .arg("--camera")
+        .arg(format!("frames:{}", frames.display()))
+        .arg("--link")
+        .arg(format!("udpout:{}", v.addr))
+        .arg("--record")
+        .arg(&rec)
+        .arg("--summary")
+        .arg(&summary)
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    let mut err = BufReader::new(child.stderr.take().unwrap());
+    let mut line = String::new();
+    let deadline = Instant::now() + Duration::from_secs(20);
+    while !line.contains("running") {
+        line.clear();
+        assert!(
+            err.read_line(&mut line).unwrap() > 0,
+            "exited before running"
+        );
+        assert!(Instant::now() < deadline);
+    }
+    std::thread::sleep(Duration::from_millis(300));
+    let killed = Command::new("kill")
+        .args(["-TERM", &child.id().to_string()])
+        .status()
+        .unwrap();
+    assert!(killed.success());
+    let mut rest = String::new();
+    std::io::Read::read_to_string(&mut err, &mut rest).unwrap();
+    let status = loop {
+        if let Some(s) = child.try_wait().unwrap() {
+            break s;
+        }
+        assert!(Instant::now() < deadline, "did not stop after SIGTERM");
+        std::thread::sleep(Duration::from_millis(20));
+    };
+    let (stats, armed) = v.finish_armed();
+    assert_eq!(status.code(), Some(0), "{rest}");
+    assert!(rest.contains("disarm on exit: Accepted"), "{rest}");
+    // The vehicle is disarmed, by markhold (well before its own 3 s pilot failsafe: the
+    // run lasted 0.3 s after start-up and input went out on every frame).
+    assert!(!armed, "vehicle still armed; {stats:?}");
+    let report: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&summary).unwrap()).unwrap();
+    assert_eq!(report["stopped_by"], "signal", "{report}");
+    assert_eq!(report["disarm"], "Accepted", "{report}");
+    // Recording finalized; its last frame is the shutdown's neutral input.
+    let cmds = commands(&rec);
+    let last = cmds.last().unwrap();
+    assert!(last.directive.starts_with("shutdown"), "{last:?}");
 }
