@@ -82,6 +82,16 @@ pub struct AaecConfig {
     pub lost_hold_frames: u32,
     /// Controller used after that (momentum is reset on the switch).
     pub fallback: AaecFallback,
+    /// Highlight guard of the fallback, [0, 0.5] (0 = off): while the marker is lost, the
+    /// brightest `highlight_frac` of the frame may not be driven above `highlight_grey`,
+    /// and when that many pixels are clipped the exposure shortens by
+    /// `max_ratio_per_frame`. A marker washed out in a lamp's spot (bright blob in a dark
+    /// frame) is then brought back into range instead of being lengthened further by a
+    /// whole-frame fallback metering the dark surround.
+    pub highlight_frac: f64,
+    /// Grey level the fallback may drive the brightest `highlight_frac` of the frame to,
+    /// 128..=250.
+    pub highlight_grey: f64,
 }
 
 impl Default for AaecConfig {
@@ -104,6 +114,8 @@ impl Default for AaecConfig {
             saturation_penalty: 1.0,
             lost_hold_frames: 5,
             fallback: AaecFallback::Mean,
+            highlight_frac: 0.005,
+            highlight_grey: 230.0,
         }
     }
 }
@@ -203,6 +215,20 @@ impl AaecConfig {
         )?;
         let v = self.lost_hold_frames;
         check(v <= 1000, "lost_hold_frames", &v, "frames in 0..=1000")?;
+        let v = self.highlight_frac;
+        check(
+            (0.0..=0.5).contains(&v),
+            "highlight_frac",
+            &v,
+            "a fraction in [0, 0.5]",
+        )?;
+        let v = self.highlight_grey;
+        check(
+            (128.0..=250.0).contains(&v),
+            "highlight_grey",
+            &v,
+            "a grey level in [128, 250]",
+        )?;
         Ok(())
     }
 
@@ -222,6 +248,8 @@ pub struct Aaec {
     cfg: AaecConfig,
     limits: ExposureLimits,
     metric: GradientMetric,
+    /// The camera response (the highlight guard predicts grey levels with it).
+    response: Response,
     fallback: Box<dyn ExposureController>,
     commanded_us: f64,
     /// Momentum, in ln t.
@@ -251,6 +279,7 @@ impl Aaec {
             commanded_us: limits.clamp(initial_us),
             limits,
             metric,
+            response,
             fallback,
             v: 0.0,
             step_scale: 1.0,
@@ -295,6 +324,46 @@ impl Aaec {
                 }
             }
         }
+    }
+
+    /// The highlight guard: the longest exposure the fallback may command after `frame`
+    /// (exposed at `t`), from the grey level reached by the brightest `highlight_frac` of
+    /// the frame. When those pixels are clipped their true brightness is unknown: shorten
+    /// by the per-frame bound. Otherwise the response predicts the exposure that puts
+    /// them at `highlight_grey`. `None` when the guard is off or the frame is empty.
+    fn highlight_cap(&self, frame: &Frame, t: f64) -> Option<f64> {
+        let q = self.cfg.highlight_frac;
+        if q <= 0.0 {
+            return None;
+        }
+        let view = frame.view();
+        let mut hist = [0u32; 256];
+        for y in (0..view.height).step_by(GUARD_STEP) {
+            for &p in view.row(y).iter().step_by(GUARD_STEP) {
+                hist[p as usize] += 1;
+            }
+        }
+        let n: u64 = hist.iter().map(|&c| c as u64).sum();
+        if n == 0 {
+            return None;
+        }
+        let want = ((q * n as f64).ceil() as u64).max(1);
+        let (mut acc, mut level) = (0u64, 0usize);
+        for g in (0..256).rev() {
+            acc += hist[g] as u64;
+            if acc >= want {
+                level = g;
+                break;
+            }
+        }
+        let bound = self.cfg.max_ratio_per_frame;
+        let ratio = if level >= CLIPPED_GREY {
+            1.0 / bound
+        } else {
+            // signal(0) = 0 gives an infinite ratio: the clamp makes it the bound.
+            self.response.signal(self.cfg.highlight_grey) / self.response.signal(level as f64)
+        };
+        Some(t * ratio.clamp(1.0 / bound, bound))
     }
 
     /// One ascent step in ln t from the slope `s` at `x = ln t`.
@@ -384,6 +453,11 @@ impl Aaec {
     }
 }
 
+/// Grey level from which the highlight guard takes a pixel as clipped.
+const CLIPPED_GREY: usize = 254;
+/// Pixel and row step of the highlight guard's histogram.
+const GUARD_STEP: usize = 2;
+
 /// Exposures (ln t) and slopes on both sides of the zero of the slope.
 #[derive(Debug, Clone, Copy)]
 struct Bracket {
@@ -406,9 +480,21 @@ impl ExposureController for Aaec {
                 self.reset_ascent();
                 self.fallback.reset(self.commanded_us);
             }
+            let t = self.commanded_us;
             let mut step = self.fallback.update(frame, None);
-            self.commanded_us = self.limits.clamp(step.exposure_us);
-            step.exposure_us = self.commanded_us;
+            let mut next = self.limits.clamp(step.exposure_us);
+            if step.used_frame {
+                if let Some(cap) = self.highlight_cap(frame, t) {
+                    let cap = self.limits.clamp(cap);
+                    if next > cap {
+                        // Keep the fallback in step with what is really commanded.
+                        next = cap;
+                        self.fallback.reset(cap);
+                    }
+                }
+            }
+            self.commanded_us = next;
+            step.exposure_us = next;
             return step;
         };
         if self.in_fallback {

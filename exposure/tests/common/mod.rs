@@ -92,6 +92,96 @@ impl Scene {
         }
     }
 
+    /// The adversarial picture: a lamp lights a round plate (radius `plate_r` px) holding
+    /// a marker of `side` px in a dark surround lit only by `ambient`. On the plate a
+    /// veiling glare of `glare` (relative to the lamp) lifts black and white cells alike,
+    /// so a long exposure clips the whole plate into one white disc.
+    pub fn lamp_plate(
+        response: Response,
+        side: f64,
+        plate_r: f64,
+        spot: f64,
+        ambient: f64,
+        glare: f64,
+    ) -> Self {
+        let (w, h) = (W as usize, H as usize);
+        let (cx, cy) = (160.0, 120.0);
+        let (mx, my) = (cx - side / 2.0, cy - side / 2.0);
+        let mut irradiance = vec![0.0; w * h];
+        for y in 0..h {
+            for x in 0..w {
+                let mut acc = 0.0;
+                for sy in 0..4 {
+                    for sx in 0..4 {
+                        let px = x as f64 + (sx as f64 + 0.5) / 4.0;
+                        let py = y as f64 + (sy as f64 + 0.5) / 4.0;
+                        let (u, v) = ((px - mx) / side, (py - my) / side);
+                        let on_plate = (px - cx).powi(2) + (py - cy).powi(2) <= plate_r * plate_r;
+                        acc += if on_plate {
+                            let refl = if (0.0..1.0).contains(&u) && (0.0..1.0).contains(&v) {
+                                marker_cell((u * 6.0) as usize, (v * 6.0) as usize)
+                            } else {
+                                0.9
+                            };
+                            (refl + glare) * spot + refl * ambient
+                        } else {
+                            let rock = 0.35
+                                + 0.2 * (px * 0.11).sin() * (py * 0.07).cos()
+                                + 0.1 * (px * 0.023 + py * 0.031).sin();
+                            rock * ambient
+                        };
+                    }
+                }
+                irradiance[y * w + x] = acc / 16.0;
+            }
+        }
+        let corners = [
+            [mx as f32, my as f32],
+            [(mx + side) as f32, my as f32],
+            [(mx + side) as f32, (my + side) as f32],
+            [mx as f32, (my + side) as f32],
+        ];
+        Self {
+            irradiance,
+            corners,
+            response,
+            caustic_amp: 0.0,
+        }
+    }
+
+    /// Mean grey of the white cells minus that of the black cells, each sampled on the
+    /// middle half of the cell: a stand-in for a marker detector.
+    pub fn cell_contrast(&self, frame: &Frame) -> f64 {
+        let [x0, y0] = self.corners[0];
+        let side = (self.corners[1][0] - x0) as f64;
+        let cell = side / 6.0;
+        let (mut wsum, mut wn, mut bsum, mut bn) = (0.0, 0.0, 0.0, 0.0);
+        for cy in 0..6 {
+            for cx in 0..6 {
+                let white = marker_cell(cx, cy) > 0.5;
+                let (ux, uy) = (x0 as f64 + cx as f64 * cell, y0 as f64 + cy as f64 * cell);
+                let (a, b) = (
+                    (0.25 * cell).ceil() as usize,
+                    (0.75 * cell).floor() as usize,
+                );
+                for y in a..b {
+                    for x in a..b {
+                        let (px, py) = (ux as usize + x, uy as usize + y);
+                        let g = frame.data[py * W as usize + px] as f64;
+                        if white {
+                            wsum += g;
+                            wn += 1.0;
+                        } else {
+                            bsum += g;
+                            bn += 1.0;
+                        }
+                    }
+                }
+            }
+        }
+        wsum / wn - bsum / bn
+    }
+
     /// A smooth, gradient-rich pattern (two crossed gratings under a vignette): most
     /// pixels have gradients far above 8-bit rounding, so finite differences of `M` are
     /// clean. The "marker" is the centre 160 x 120 window.
@@ -193,6 +283,33 @@ pub fn run(
     }
     applied.truncate(frames);
     applied
+}
+
+/// As [`run`], with the marker reported only in frames where the cells' contrast is at
+/// least `min_contrast` grey levels (a stand-in for a detector).
+pub fn run_detecting(
+    scene: &Scene,
+    ctrl: &mut dyn ExposureController,
+    t0: f64,
+    frames: usize,
+    delay: usize,
+    min_contrast: f64,
+) -> (Vec<f64>, Vec<bool>) {
+    let mut applied = vec![t0; frames + delay + 2];
+    let mut seen = Vec::with_capacity(frames);
+    let mut frame = Frame::new(W, H);
+    for k in 0..frames {
+        scene.render(applied[k], k as u64, &mut frame);
+        let found = scene.cell_contrast(&frame) >= min_contrast;
+        seen.push(found);
+        let step = ctrl.update(&frame, found.then_some(&scene.corners));
+        assert!(step.exposure_us.is_finite());
+        for a in applied.iter_mut().skip(k + 1 + delay) {
+            *a = step.exposure_us;
+        }
+    }
+    applied.truncate(frames);
+    (applied, seen)
 }
 
 /// First frame index from which every exposure stays within `tol` (relative) of `target`.
