@@ -430,6 +430,11 @@ fn marker_lost_surface_action_climbs_to_the_surface() {
     let z0 = depth(&o.truth[i0]);
     let last = o.truth.last().unwrap();
     assert_eq!(last.mode, 2);
+    eprintln!(
+        "surface: depth {z0:.3} m in ALT_HOLD at {in_mode:.2} s, {:.3} m at {:.2} s: {r:?}",
+        depth(last),
+        last.time_s
+    );
     // Climbed from about 3 m to the surface (truth).
     assert!(z0 > 2.0, "{z0}");
     assert!(depth(last) < 0.3, "still at {} m", depth(last));
