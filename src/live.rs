@@ -19,6 +19,10 @@ use crate::record::{record_step, RecordConfig, RecordStats, Recorder, RunInfo};
 use crate::replay::build_pipeline;
 use crate::signal::ShutdownFlag;
 
+/// `genicam:<device id>` cameras through Aravis.
+#[path = "genicam.rs"]
+pub mod genicam;
+
 /// Where frames come from.
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub enum CameraUrl {
@@ -26,6 +30,9 @@ pub enum CameraUrl {
     V4l2(String),
     /// `frames:DIR`: a recorded-frames folder (PNGs and `frames.csv`).
     Frames(PathBuf),
+    /// `genicam:<device id>` (Aravis id or a GigE camera's IP address; empty: the first
+    /// camera found).
+    Genicam(String),
 }
 
 impl FromStr for CameraUrl {
@@ -34,11 +41,9 @@ impl FromStr for CameraUrl {
         match s.split_once(':') {
             Some(("v4l2", dev)) if !dev.is_empty() => Ok(Self::V4l2(dev.to_string())),
             Some(("frames", dir)) if !dir.is_empty() => Ok(Self::Frames(PathBuf::from(dir))),
-            Some(("genicam", _)) => Err(format!(
-                "{s}: GenICam (Aravis) cameras are not built into this markhold; use v4l2:/dev/videoN or frames:DIR"
-            )),
+            Some(("genicam", id)) => Ok(Self::Genicam(id.to_string())),
             _ => Err(format!(
-                "{s}: expected v4l2:/dev/videoN or frames:DIR"
+                "{s}: expected v4l2:/dev/videoN, frames:DIR or genicam:<device id>"
             )),
         }
     }
@@ -49,6 +54,7 @@ impl std::fmt::Display for CameraUrl {
         match self {
             Self::V4l2(d) => write!(f, "v4l2:{d}"),
             Self::Frames(p) => write!(f, "frames:{}", p.display()),
+            Self::Genicam(id) => write!(f, "genicam:{id}"),
         }
     }
 }
@@ -261,6 +267,23 @@ fn open_camera(
                 });
             }
             (Box::new(c), pace)
+        }
+        CameraUrl::Genicam(id) => {
+            let cfg = genicam::GenicamConfig {
+                width: site.calibration.width,
+                height: site.calibration.height,
+                fps: cam.fps,
+                limits: site.limits(),
+                initial_us,
+                gain_db: cam.gain_db,
+                buffers: genicam::DEFAULT_BUFFERS,
+                frame_timeout_s: (4.0 / cam.fps.max(0.1)).max(1.0),
+            };
+            let c = genicam::GenicamCamera::open(id, &cfg).map_err(|e| StartupError::Camera {
+                url: name.clone(),
+                reason: e.to_string(),
+            })?;
+            (Box::new(c), false)
         }
     };
     inner

@@ -1,0 +1,477 @@
+//! `genicam:` cameras against Aravis's simulated cameras, without hardware:
+//! `arv-fake-gv-camera-0.8` on 127.0.0.1 (GigE Vision over loopback) and Aravis's
+//! in-process "Fake" interface. Every test holds one lock: the GigE fake listens on the
+//! fixed GVCP port 3956 and Aravis's interface switches are process-wide.
+//!
+//! The simulated camera draws a diagonal ramp `((x + y + frame_id) % 255) * s` with
+//! `s = 1 + gain + log10(exposure_us / 10000)` (clamped to 0..255), so an image's mean
+//! tells the exposure it was really taken with.
+
+use std::io::{BufRead, BufReader};
+use std::net::UdpSocket;
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, Stdio};
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::{Arc, Mutex, MutexGuard};
+use std::time::{Duration, Instant};
+
+use markhold::hil_run::{camera_model, marker_spec};
+use markhold::live::genicam::{
+    use_fake_interface, ExposureSource, GenicamCamera, GenicamConfig, GenicamError,
+};
+use markhold::params;
+use markhold::record::{FrameMsg, TOPIC_COMMAND, TOPIC_FRAME};
+use markhold_exposure::{Camera, ExposureLimits, Frame};
+use markhold_hil::endpoint::EndpointStats;
+use markhold_hil::{EndpointConfig, HilRig, HilSetup, VehicleMotion};
+
+const FAKE_GV: &str = "arv-fake-gv-camera-0.8";
+const GVCP: (&str, u16) = ("127.0.0.1", 3956);
+
+static LOCK: Mutex<()> = Mutex::new(());
+
+fn lock() -> MutexGuard<'static, ()> {
+    LOCK.lock().unwrap_or_else(|p| p.into_inner())
+}
+
+fn site_path() -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/fixtures/pool-640.toml")
+}
+
+fn tmp(name: &str) -> PathBuf {
+    let dir = std::env::temp_dir().join(format!("markhold-genicam-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let p = dir.join(name);
+    let _ = std::fs::remove_file(&p);
+    p
+}
+
+/// Whether something answers a GVCP read of register 0 on 127.0.0.1:3956 within `wait`.
+fn gvcp_answers(wait: Duration) -> bool {
+    let sock = UdpSocket::bind("127.0.0.1:0").unwrap();
+    sock.set_read_timeout(Some(Duration::from_millis(100)))
+        .unwrap();
+    // key 0x42, ack wanted, READREG_CMD 0x0080, 4 payload bytes, request 1, address 0.
+    let cmd = [0x42, 0x01, 0x00, 0x80, 0x00, 0x04, 0x00, 0x01, 0, 0, 0, 0];
+    let deadline = Instant::now() + wait;
+    let mut buf = [0u8; 64];
+    loop {
+        let _ = sock.send_to(&cmd, GVCP);
+        if let Ok(n) = sock.recv(&mut buf) {
+            if n >= 8 && buf[2..4] == [0x00, 0x81] {
+                return true;
+            }
+        }
+        if Instant::now() >= deadline {
+            return false;
+        }
+        std::thread::sleep(Duration::from_millis(50));
+    }
+}
+
+/// `arv-fake-gv-camera-0.8 -i 127.0.0.1`, killed when dropped.
+struct FakeGv {
+    child: Child,
+}
+
+impl FakeGv {
+    fn start() -> Self {
+        assert!(
+            !gvcp_answers(Duration::from_millis(200)),
+            "something already answers GVCP on 127.0.0.1:3956 (a stray {FAKE_GV}?)"
+        );
+        let child = Command::new(FAKE_GV)
+            .args(["-i", "127.0.0.1"])
+            .stdout(Stdio::null())
+            .stderr(Stdio::null())
+            .spawn()
+            .unwrap_or_else(|e| {
+                panic!("cannot start {FAKE_GV} ({e}): install aravis-tools (scripts/install-deps)")
+            });
+        let mut me = Self { child };
+        if !gvcp_answers(Duration::from_secs(5)) {
+            let status = me.child.try_wait().ok().flatten();
+            panic!("{FAKE_GV} -i 127.0.0.1 does not answer on port 3956 (exited: {status:?})");
+        }
+        me
+    }
+}
+
+impl Drop for FakeGv {
+    fn drop(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+}
+
+fn config(width: u32, height: u32, initial_us: f64) -> GenicamConfig {
+    GenicamConfig {
+        width,
+        height,
+        fps: 30.0,
+        limits: ExposureLimits {
+            min_us: 100.0,
+            max_us: 30_000.0,
+            fps: 30.0,
+        },
+        initial_us,
+        gain_db: 0.0,
+        buffers: 4,
+        frame_timeout_s: 2.0,
+    }
+}
+
+/// Mean of the simulated camera's ramp for `exposure_us` (gain 0), `w` x `h`.
+fn predicted_mean(exposure_us: f64, w: u32, h: u32) -> f64 {
+    let s = 1.0 + (exposure_us / 10_000.0).log10();
+    let mut sum = 0.0;
+    for y in 0..h {
+        for x in 0..w {
+            sum += ((((x + y) % 255) as f64) * s).clamp(0.0, 255.0).trunc();
+        }
+    }
+    sum / (w as f64 * h as f64)
+}
+
+fn mean(f: &Frame) -> f64 {
+    f.data.iter().map(|&p| p as f64).sum::<f64>() / f.data.len() as f64
+}
+
+/// Set each exposure in turn and grab `per` frames at it; returns (read back by
+/// `set_exposure_us`, frames' meta exposure, frame mean) per frame.
+fn sweep(cam: &mut GenicamCamera, exposures: &[f64], per: usize) -> Vec<(f64, f64, f64)> {
+    let mut f = Frame::default();
+    let mut out = Vec::new();
+    for &e in exposures {
+        let back = cam.set_exposure_us(e).unwrap();
+        for _ in 0..per {
+            cam.grab(&mut f).unwrap();
+            out.push((back, f.meta.exposure_us, mean(&f)));
+        }
+    }
+    out
+}
+
+#[test]
+fn fake_gige_camera_exposure_is_set_per_frame_and_read_back() {
+    let _l = lock();
+    use_fake_interface(false);
+    let _fake = FakeGv::start();
+    let mut cam = GenicamCamera::open("127.0.0.1", &config(640, 480, 3000.0)).unwrap();
+    assert_eq!(cam.name(), "genicam:127.0.0.1");
+    // The simulated camera sends no chunk data: the feature is read after each frame.
+    assert_eq!(cam.exposure_source(), ExposureSource::FeatureAfterFrame);
+    let lim = cam.exposure_limits();
+    assert_eq!((lim.min_us, lim.max_us), (100.0, 30_000.0));
+    // The simulated camera keeps a whole-microsecond frame period (33333 us).
+    assert!((lim.fps - 30.0).abs() < 0.01, "frame rate {}", lim.fps);
+    // Out-of-range requests are clamped to the limits, and the camera says so.
+    assert_eq!(cam.set_exposure_us(1e9).unwrap(), 30_000.0);
+
+    let (lo, hi) = (3000.0, 8000.0);
+    let (m_lo, m_hi) = (predicted_mean(lo, 640, 480), predicted_mean(hi, 640, 480));
+    assert!(m_hi > 1.5 * m_lo, "{m_lo} {m_hi}");
+    let per = 8;
+    let rows = sweep(&mut cam, &[lo, hi, lo, hi], per);
+    let mut f = Frame::default();
+    cam.grab(&mut f).unwrap();
+    assert_eq!((f.width, f.height), (640, 480));
+    assert_eq!(f.meta.seq, rows.len() as u64);
+
+    let mut mislabelled = 0;
+    for (i, &(back, meta, m)) in rows.iter().enumerate() {
+        let asked = [lo, hi][(i / per) % 2];
+        assert_eq!(
+            back, asked,
+            "frame {i}: camera read back {back} for {asked}"
+        );
+        assert!(meta == lo || meta == hi, "frame {i}: exposure {meta}");
+        // The frame's brightness says which exposure it was really taken with.
+        let really = if (m - m_lo).abs() < (m - m_hi).abs() {
+            lo
+        } else {
+            hi
+        };
+        assert!(
+            (m - predicted_mean(really, 640, 480)).abs() < 4.0,
+            "frame {i}: mean {m:.1}, expected {m_lo:.1} or {m_hi:.1}"
+        );
+        if meta != really {
+            mislabelled += 1;
+        }
+        // Settled frames (the last half of each step) carry the asked exposure, and the
+        // image is exposed with it.
+        if i % per >= per / 2 {
+            assert_eq!(meta, asked, "frame {i}");
+            assert_eq!(really, asked, "frame {i}: mean {m:.1}");
+        }
+    }
+    // Read-after-frame lags a change by the frames already in flight: at most the
+    // pool's 4 buffers per change (3 changes).
+    eprintln!(
+        "genicam fake: {mislabelled} of {} frames labelled with the wrong exposure",
+        rows.len()
+    );
+    assert!(mislabelled <= 3 * 4, "{mislabelled} mislabelled");
+}
+
+#[test]
+fn fake_gige_camera_stamps_come_from_the_camera_clock() {
+    let _l = lock();
+    use_fake_interface(false);
+    let _fake = FakeGv::start();
+    let mut cam = GenicamCamera::open("127.0.0.1", &config(320, 240, 2000.0)).unwrap();
+    let mut f = Frame::default();
+    let mut stamps = Vec::new();
+    for k in 0..20u64 {
+        cam.grab(&mut f).unwrap();
+        assert_eq!(f.meta.seq, k);
+        stamps.push(f.meta.stamp_s);
+    }
+    // Half the first exposure after the first frame's timestamp.
+    assert!((stamps[0] - 0.001).abs() < 1e-9, "{}", stamps[0]);
+    let mut dt: Vec<f64> = stamps.windows(2).map(|w| w[1] - w[0]).collect();
+    assert!(dt.iter().all(|&d| d > 0.0), "{dt:?}");
+    dt.sort_by(f64::total_cmp);
+    let median = dt[dt.len() / 2];
+    // 30 fps asked through AcquisitionFrameRate.
+    assert!(
+        (median - 1.0 / 30.0).abs() < 0.005,
+        "median frame interval {median} s"
+    );
+}
+
+#[test]
+fn start_up_checks_name_the_device_and_the_problem() {
+    let _l = lock();
+    use_fake_interface(false);
+    // Nobody on 127.0.0.1:3956 (an IP address: Aravis asks it directly, no broadcast).
+    assert!(!gvcp_answers(Duration::from_millis(200)));
+    let e = GenicamCamera::open("127.0.0.1", &config(640, 480, 3000.0))
+        .err()
+        .expect("no camera there");
+    assert!(matches!(e, GenicamError::NotFound { .. }), "{e}");
+    let s = e.to_string();
+    assert!(
+        s.contains("genicam:127.0.0.1") && s.contains("no such camera"),
+        "{s}"
+    );
+
+    let _fake = FakeGv::start();
+    // The simulated sensor is at most 2048x2048.
+    let e = GenicamCamera::open("127.0.0.1", &config(4000, 3000, 3000.0))
+        .err()
+        .expect("too big");
+    let s = e.to_string();
+    assert!(matches!(e, GenicamError::Resolution { .. }), "{s}");
+    assert!(
+        s.contains("4000x3000") && s.contains("genicam:127.0.0.1"),
+        "{s}"
+    );
+    // The site's exposure range outside the camera's (10 us .. 10 s).
+    let mut cfg = config(640, 480, 3000.0);
+    cfg.limits = ExposureLimits {
+        min_us: 2e7,
+        max_us: 3e7,
+        fps: 30.0,
+    };
+    let e = GenicamCamera::open("127.0.0.1", &cfg).err().expect("range");
+    let s = e.to_string();
+    assert!(
+        matches!(
+            e,
+            GenicamError::Rejected {
+                feature: "ExposureTime",
+                ..
+            }
+        ),
+        "{s}"
+    );
+}
+
+#[test]
+fn fake_interface_first_camera_without_network() {
+    let _l = lock();
+    // Only Aravis's in-process simulated camera: nothing touches USB or the network.
+    use_fake_interface(true);
+    let opened = GenicamCamera::open("", &config(256, 128, 2000.0));
+    use_fake_interface(false);
+    let mut cam = opened.unwrap();
+    assert_eq!(cam.name(), "genicam:");
+    let rows = sweep(&mut cam, &[2000.0, 20_000.0], 6);
+    let (m_lo, m_hi) = (rows[5].2, rows[11].2);
+    assert_eq!((rows[5].1, rows[11].1), (2000.0, 20_000.0));
+    assert!(
+        (m_lo - predicted_mean(2000.0, 256, 128)).abs() < 4.0,
+        "mean {m_lo:.1} at 2 ms"
+    );
+    assert!(
+        (m_hi - predicted_mean(20_000.0, 256, 128)).abs() < 4.0,
+        "mean {m_hi:.1} at 20 ms"
+    );
+}
+
+// ---- markhold run end to end ----
+
+fn rig() -> HilRig {
+    let site = params::load(&site_path()).unwrap();
+    let s = &site.site;
+    let t_world_marker = site.t_world_marker();
+    HilRig::new(HilSetup {
+        vehicle: s.vehicle.clone(),
+        endpoint: EndpointConfig::default(),
+        water: s.water.clone(),
+        lighting: s.lighting.clone(),
+        camera: camera_model(&site, site.limits()),
+        t_vehicle_cam: site.t_vehicle_cam(),
+        marker: marker_spec(&site).unwrap(),
+        t_world_marker,
+        t_world_vehicle_start: t_world_marker * s.station.t_marker_vehicle(),
+        motion: VehicleMotion::Free,
+        seed: 5,
+        lock_step: false,
+    })
+    .unwrap()
+}
+
+/// hil's vehicle on its own thread in real time (as in tests/run_live.rs).
+struct Vehicle {
+    addr: std::net::SocketAddr,
+    stop: Arc<AtomicBool>,
+    thread: std::thread::JoinHandle<EndpointStats>,
+}
+
+fn vehicle() -> Vehicle {
+    let mut rig = rig();
+    let addr = rig.mavlink_udp_addr();
+    let stop = Arc::new(AtomicBool::new(false));
+    let stop2 = stop.clone();
+    let thread = std::thread::spawn(move || {
+        let mut frame = Frame::default();
+        let t0 = Instant::now();
+        let period = Duration::from_secs_f64(1.0 / 30.0);
+        let mut k = 0u32;
+        while !stop2.load(Ordering::Relaxed) && t0.elapsed() < Duration::from_secs(60) {
+            rig.grab(&mut frame).unwrap();
+            k += 1;
+            if let Some(w) = (t0 + period * k).checked_duration_since(Instant::now()) {
+                std::thread::sleep(w);
+            }
+        }
+        rig.pump().unwrap();
+        rig.endpoint_stats()
+    });
+    Vehicle { addr, stop, thread }
+}
+
+impl Vehicle {
+    fn finish(self) -> EndpointStats {
+        self.stop.store(true, Ordering::Relaxed);
+        self.thread.join().unwrap()
+    }
+}
+
+fn markhold() -> Command {
+    Command::new(env!("CARGO_BIN_EXE_markhold"))
+}
+
+#[test]
+fn run_with_fake_genicam_camera_on_hil_vehicle() {
+    let _l = lock();
+    let _fake = FakeGv::start();
+    let v = vehicle();
+    let rec = tmp("run.mcap");
+    let summary = tmp("run.json");
+    let mut child = markhold()
+        .args(["run", "--seconds", "2", "--site"])
+        .arg(site_path())
+        .args(["--camera", "genicam:127.0.0.1", "--link"])
+        .arg(format!("udpout:{}", v.addr))
+        .arg("--record")
+        .arg(&rec)
+        .arg("--summary")
+        .arg(&summary)
+        .stdout(Stdio::null())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    let err = BufReader::new(child.stderr.take().unwrap());
+    let log = std::thread::spawn(move || err.lines().map_while(Result::ok).collect::<Vec<_>>());
+    let deadline = Instant::now() + Duration::from_secs(60);
+    let status = loop {
+        if let Some(s) = child.try_wait().unwrap() {
+            break s;
+        }
+        if Instant::now() >= deadline {
+            let _ = child.kill();
+            let _ = child.wait();
+            panic!("markhold run did not stop after --seconds 2");
+        }
+        std::thread::sleep(Duration::from_millis(20));
+    };
+    let log = log.join().unwrap().join("\n");
+    std::thread::sleep(Duration::from_millis(100));
+    let stats = v.finish();
+    assert!(status.success(), "{log}");
+    let report: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&summary).unwrap()).unwrap();
+    assert_eq!(report["stopped_by"], "max_seconds", "{report}");
+    // 2 s of camera time at 30 fps; frames the loop was too slow for (2 shared cores)
+    // are lost by the stream, the rest come in order.
+    let frames = report["frames"].as_u64().unwrap();
+    assert!((40..=64).contains(&frames), "{report}");
+    let loop_s = report["loop_seconds"].as_f64().unwrap();
+    assert!((2.0..2.2).contains(&loop_s), "{report}");
+    // A ramp, no marker.
+    assert_eq!(report["detected"], 0, "{report}");
+    assert!(stats.pilot_inputs >= 50, "{stats:?}");
+
+    // Every recorded frame carries the exposure read back from the camera, within the
+    // site's limits, and the loop's clock is the camera's.
+    let buf = std::fs::read(&rec).unwrap();
+    let mut exposures = Vec::new();
+    let mut commands = 0;
+    for m in mcap::MessageStream::new(&buf).unwrap() {
+        let m = m.unwrap();
+        if m.channel.topic == TOPIC_FRAME {
+            let v: FrameMsg = serde_json::from_slice(&m.data).unwrap();
+            exposures.push(v.exposure_us);
+        } else if m.channel.topic == TOPIC_COMMAND {
+            commands += 1;
+        }
+    }
+    let dropped = report["record"]["frames_dropped"].as_u64().unwrap();
+    assert_eq!(exposures.len() as u64 + dropped, frames, "{report}");
+    assert_eq!(commands, exposures.len());
+    let site = params::load(&site_path()).unwrap();
+    let lim = site.limits();
+    for e in &exposures {
+        assert!(*e >= lim.min_us && *e <= lim.max_us, "{e}");
+        assert_eq!(
+            e.fract(),
+            0.0,
+            "the simulated camera keeps whole microseconds: {e}"
+        );
+    }
+}
+
+#[test]
+fn run_with_a_missing_genicam_camera_exits_2_naming_it() {
+    let _l = lock();
+    assert!(!gvcp_answers(Duration::from_millis(200)));
+    let rec = tmp("never.mcap");
+    let o = markhold()
+        .args(["run", "--site"])
+        .arg(site_path())
+        .args(["--camera", "genicam:127.0.0.1", "--record"])
+        .arg(&rec)
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(2), "{err}");
+    assert!(
+        err.contains("camera genicam:127.0.0.1") && err.contains("no such camera"),
+        "{err}"
+    );
+    assert!(!rec.exists(), "half-written recording left behind");
+}
