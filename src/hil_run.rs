@@ -36,6 +36,10 @@ pub struct HilOptions {
     pub snapshot_every: u64,
     /// Faults to inject (`--fault`), seeded with `seed`.
     pub faults: Vec<FaultSpec>,
+    /// MAVLink 2 signing key of the simulated vehicle. None: the site's
+    /// `link.signing_key_file`, so a signing markhold meets a vehicle that signs with the
+    /// same key and requires signed input.
+    pub vehicle_signing_key_file: Option<PathBuf>,
 }
 
 impl Default for HilOptions {
@@ -51,6 +55,7 @@ impl Default for HilOptions {
             snapshot_dir: None,
             snapshot_every: 30,
             faults: Vec::new(),
+            vehicle_signing_key_file: None,
         }
     }
 }
@@ -147,6 +152,10 @@ impl HilRun {
             vehicle: s.vehicle.clone(),
             endpoint: EndpointConfig {
                 gcs_system_id: s.link.gcs_system_id,
+                signing_key_file: opts
+                    .vehicle_signing_key_file
+                    .clone()
+                    .or_else(|| s.link.signing_key_file.clone()),
                 ..EndpointConfig::default()
             },
             water: s.water.clone(),
@@ -236,7 +245,12 @@ impl HilRun {
             }
             std::thread::sleep(Duration::from_millis(2));
         }
-        anyhow::bail!("the HIL vehicle did not arm within 5 s (no COMMAND_ACK over loopback UDP)")
+        match link.signing_diagnosis() {
+            Some(why) => anyhow::bail!("the HIL vehicle did not arm within 5 s: {why}"),
+            None => anyhow::bail!(
+                "the HIL vehicle did not arm within 5 s (no COMMAND_ACK over loopback UDP)"
+            ),
+        }
     }
 
     /// One frame of the loop, with the world's truth after it.

@@ -54,12 +54,9 @@ fn spray(sock: &UdpSocket, to: SocketAddr, seed: u64) -> usize {
     g.len()
 }
 
-/// Fails today: the HIL endpoint answers the last UDP peer that sent any datagram, so
-/// garbage from another address takes the telemetry away from markhold (heartbeat lost
-/// after 2 s). Request to hil: adopt a peer only after a CRC-valid frame from it. Run with
-/// `cargo test --release --test garbage -- --ignored`.
+/// Garbage from another loopback port on the vehicle's socket: the endpoint adopts a UDP
+/// peer only on a CRC-valid frame that parses, so its telemetry stays with markhold.
 #[test]
-#[ignore = "hil endpoint adopts any sender as its peer: see src/RELIABILITY_NOTES.md"]
 fn garbage_on_the_vehicle_socket_does_not_break_the_link() {
     garbage_run(true, false);
 }

@@ -231,11 +231,10 @@ fn mavlink_flood_does_not_break_station_keeping_receive_task() {
     flood(true);
 }
 
-/// Fails today: with `udp_receive_on_tick` (the default) the link reads only in `tick`,
-/// 333 datagrams arrive between two ticks, the socket's receive buffer overflows and the
-/// vehicle's heartbeats are lost among them (heartbeat lost, markhold goes silent).
+/// With `udp_receive_on_tick` (the default) the link reads only in `tick`: the 333
+/// datagrams that arrive between two ticks must fit the socket's receive buffer (the link
+/// asks for 4 MiB) and all be read in the next tick.
 #[test]
-#[ignore = "link reads UDP only on tick: 10k msg/s overflow the socket buffer, see src/RELIABILITY_NOTES.md"]
 fn mavlink_flood_does_not_break_station_keeping_read_on_tick() {
     flood(false);
 }

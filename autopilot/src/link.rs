@@ -395,7 +395,9 @@ impl VehicleLink {
     }
 
     /// Why the vehicle is not heard, when the link can tell: frames dropped by signing
-    /// (another key, or a vehicle that does not sign). None when nothing was rejected.
+    /// (another key, or a vehicle that does not sign), or, with signing on, nothing at all
+    /// from a vehicle (one keyed differently drops our frames and, on UDP, never answers
+    /// a sender it could not authenticate). None otherwise.
     pub fn signing_diagnosis(&self) -> Option<String> {
         let c = &self.state.counters;
         if c.rejected_bad_signature > 0 {
@@ -410,6 +412,14 @@ impl VehicleLink {
                 "{} unsigned MAVLink frames dropped: link.signing_key_file is set but the \
                  vehicle does not sign",
                 c.rejected_unsigned
+            ));
+        }
+        if self.signing.is_some() && !self.state.discovered {
+            return Some(format!(
+                "no MAVLink frame accepted from the vehicle ({} sent) with signing on \
+                 (link.signing_key_file): a vehicle with another key drops our frames and \
+                 does not answer them; check that both sides use the same key",
+                c.sent
             ));
         }
         None

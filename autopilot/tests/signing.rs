@@ -101,6 +101,14 @@ fn signed_link_signs_and_checks() {
         !link.state().discovered,
         "accepted an unsigned or badly signed frame"
     );
+    // Counted, and the wrong key is what the diagnosis names.
+    let c = link.state().counters;
+    assert!(
+        c.rejected_unsigned > 0 && c.rejected_bad_signature > 0,
+        "{c:?}"
+    );
+    let why = link.signing_diagnosis().expect("a diagnosis");
+    assert!(why.contains("another key"), "{why}");
 
     // A correctly signed heartbeat is accepted.
     let t0 = Instant::now();

@@ -1,0 +1,393 @@
+//! Security (issue 9): MAVLink 2 signing end to end between markhold and the HIL vehicle,
+//! and listening sockets bound only to the configured address (loopback by default).
+//! Loopback only (127.0.0.1, and the 127.0.0.2 alias of the loopback interface), ports
+//! from the OS, every wait bounded.
+
+use std::net::{IpAddr, Ipv4Addr, SocketAddr, UdpSocket};
+use std::path::{Path, PathBuf};
+use std::time::Duration;
+
+use markhold::hil_run::{HilOptions, HilRun};
+use markhold::params::{self, LoadedSite};
+use markhold_autopilot::mavlink;
+use markhold_autopilot::{LinkConfig, VehicleLink};
+use mavlink::dialects::ardupilotmega::{MavMessage, RC_CHANNELS_OVERRIDE_DATA};
+use mavlink::{MavHeader, SigningConfig, SigningData};
+
+/// A scratch directory for key files, unique per test.
+fn scratch(name: &str) -> PathBuf {
+    let d = std::env::temp_dir().join(format!("markhold-sec-{}-{name}", std::process::id()));
+    std::fs::create_dir_all(&d).unwrap();
+    d
+}
+
+fn key_file(dir: &Path, name: &str, byte: u8) -> PathBuf {
+    let p = dir.join(name);
+    // The hex form (64 digits and a newline), as `openssl rand -hex 32` writes it.
+    let hex: String = (0..32u8)
+        .map(|i| format!("{:02x}", byte.wrapping_add(i)))
+        .collect();
+    std::fs::write(&p, format!("{hex}\n")).unwrap();
+    p
+}
+
+/// The pool fixture at 320x240, STABILIZE, signing with `key` when given.
+fn site(key: Option<&Path>) -> LoadedSite {
+    let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/fixtures/pool-640.toml");
+    let text = std::fs::read_to_string(&path).unwrap();
+    let mut out = String::new();
+    for line in text.lines() {
+        let k = line.split('=').next().unwrap_or("").trim();
+        let v = match k {
+            "width_px" => "width_px = 320".to_string(),
+            "height_px" => "height_px = 240".to_string(),
+            "fx_px" => "fx_px = 266.5".to_string(),
+            "fy_px" => "fy_px = 266.5".to_string(),
+            "cx_px" => "cx_px = 160.0".to_string(),
+            "cy_px" => "cy_px = 120.0".to_string(),
+            "mode" => match key {
+                Some(p) => format!(
+                    "mode = \"stabilize\"\nsigning_key_file = \"{}\"",
+                    p.display()
+                ),
+                None => "mode = \"stabilize\"".to_string(),
+            },
+            _ => line.to_string(),
+        };
+        out.push_str(&v);
+        out.push('\n');
+    }
+    params::parse(&path, &out).unwrap()
+}
+
+fn station_error(hil: &HilRun) -> f64 {
+    let t = hil.rig.truth();
+    (hil.t_marker_station.inverse() * hil.t_world_marker.inverse() * t.t_world_vehicle)
+        .translation
+        .vector
+        .norm()
+}
+
+/// An RC override from the GCS system id that would drive the vehicle forward at full
+/// stick, unsigned or signed with `key`.
+fn rogue_override(seq: u8, key: Option<[u8; 32]>) -> Vec<u8> {
+    let signing = key.map(|k| SigningData::from_config(SigningConfig::new(k, 7, true, false)));
+    let msg = MavMessage::RC_CHANNELS_OVERRIDE(RC_CHANNELS_OVERRIDE_DATA {
+        chan1_raw: 1500,
+        chan2_raw: 1500,
+        chan3_raw: 1500,
+        chan4_raw: 1500,
+        chan5_raw: 1900,
+        chan6_raw: 1500,
+        target_system: 1,
+        target_component: 1,
+        ..Default::default()
+    });
+    let h = MavHeader {
+        system_id: 255,
+        component_id: 190,
+        sequence: seq,
+    };
+    let mut out = Vec::new();
+    mavlink::write_v2_msg_signed(&mut out, h, &msg, signing.as_ref()).unwrap();
+    out
+}
+
+/// Signed both ways: the vehicle requires signed input (unsigned frames dropped) and
+/// markhold drops unsigned frames; the run arms, holds station and nothing is rejected.
+/// A sender without the key (unsigned, and signed with another key) on another port
+/// sends full-forward RC overrides from the GCS system id every frame: all dropped, the
+/// vehicle never answers it, station is held.
+#[test]
+fn signed_run_holds_station_and_unsigned_override_is_ignored() {
+    let dir = scratch("signed");
+    let key = key_file(&dir, "key.hex", 0x40);
+    let site = site(Some(&key));
+    let opts = HilOptions {
+        seconds: 6.0,
+        seed: 6,
+        start_on_station: true,
+        ..HilOptions::default()
+    };
+    let mut hil = HilRun::build(&site, &opts).unwrap();
+    hil.arm(site.site.link.mode.ardusub()).unwrap();
+    let vehicle = hil.rig.mavlink_udp_addr();
+    let rogue = UdpSocket::bind("127.0.0.1:0").unwrap();
+    rogue
+        .set_read_timeout(Some(Duration::from_millis(1)))
+        .unwrap();
+    let fps = site.site.camera.fps;
+    let frames = (opts.seconds * fps) as usize;
+    let mut sent_unsigned = 0u64;
+    let mut sent_bad = 0u64;
+    let mut detected = 0;
+    let mut max_err: f64 = 0.0;
+    let stats0 = hil.rig.endpoint_stats();
+    for i in 0..frames {
+        // From 2 s on: the attacker's overrides, one unsigned and one with a wrong key.
+        if i as f64 >= 2.0 * fps {
+            rogue
+                .send_to(&rogue_override(i as u8, None), vehicle)
+                .unwrap();
+            sent_unsigned += 1;
+            rogue
+                .send_to(&rogue_override(i as u8, Some([0x55; 32])), vehicle)
+                .unwrap();
+            sent_bad += 1;
+        }
+        let (rec, _) = hil.step().unwrap();
+        detected += usize::from(rec.detected);
+        max_err = max_err.max(station_error(&hil));
+    }
+    let st = hil.rig.endpoint_stats();
+    let link = hil.pipeline.link.state();
+    println!(
+        "signed: station error max {max_err:.4} m, final {:.4} m; vehicle: {} pilot inputs \
+         accepted, rejected {} unsigned / {} bad signature / {} datagrams; link: received {}, \
+         rejected {} unsigned / {} bad signature",
+        station_error(&hil),
+        st.pilot_inputs - stats0.pilot_inputs,
+        st.rejected_unsigned,
+        st.rejected_signature,
+        st.rejected_datagrams,
+        link.counters.received,
+        link.counters.rejected_unsigned,
+        link.counters.rejected_bad_signature
+    );
+    // Both ends signed and verified: markhold heard the vehicle, the vehicle obeyed.
+    assert!(link.heartbeat_ok && link.armed, "{link:?}");
+    assert_eq!(link.counters.rejected_unsigned, 0);
+    assert_eq!(link.counters.rejected_bad_signature, 0);
+    assert!(st.pilot_inputs - stats0.pilot_inputs >= frames as u64 - 2);
+    // Every rogue frame was dropped by the vehicle, none became pilot input.
+    assert_eq!(st.rejected_unsigned, sent_unsigned, "{st:?}");
+    assert_eq!(st.rejected_signature, sent_bad, "{st:?}");
+    assert_eq!(st.pilot_inputs_dropped, 0, "{st:?}");
+    // The attacker's port never became the vehicle's peer.
+    let mut buf = [0u8; 512];
+    assert!(
+        rogue.recv_from(&mut buf).is_err(),
+        "telemetry went to the rogue sender"
+    );
+    assert!(hil.rig.truth().armed);
+    assert!(detected as f64 >= 0.95 * frames as f64);
+    // Full forward stick for 4 s would have carried the vehicle well over a metre.
+    assert!(max_err < 0.1, "station error up to {max_err} m");
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
+/// markhold keyed differently from the vehicle: the vehicle drops every frame markhold
+/// sends (arm, mode, pilot input), markhold drops every frame of the vehicle, and the
+/// arming fails with an error that names the cause.
+#[test]
+fn wrongly_keyed_markhold_never_commands_the_vehicle_and_says_why() {
+    let dir = scratch("wrongkey");
+    let ours = key_file(&dir, "markhold.hex", 0x10);
+    let theirs = key_file(&dir, "vehicle.hex", 0x90);
+    let site = site(Some(&ours));
+    let opts = HilOptions {
+        seconds: 1.0,
+        seed: 6,
+        start_on_station: true,
+        vehicle_signing_key_file: Some(theirs),
+        ..HilOptions::default()
+    };
+    let mut hil = HilRun::build(&site, &opts).unwrap();
+    let err = hil
+        .arm(site.site.link.mode.ardusub())
+        .expect_err("armed with the wrong key")
+        .to_string();
+    println!("wrong key: {err}");
+    // The vehicle answers no one it cannot authenticate, so markhold hears nothing: the
+    // error says signing is the likely cause.
+    assert!(
+        err.contains("signing") && err.contains("another key"),
+        "{err}"
+    );
+    let st = hil.rig.endpoint_stats();
+    assert!(st.rejected_signature > 0, "{st:?}");
+    assert_eq!(st.messages, 0, "{st:?}");
+    assert!(!hil.rig.truth().armed);
+    // Frames go on: the link stays silent to a vehicle it cannot hear.
+    for _ in 0..(opts.seconds * site.site.camera.fps) as usize {
+        hil.step().unwrap();
+    }
+    let st = hil.rig.endpoint_stats();
+    assert_eq!((st.messages, st.pilot_inputs), (0, 0), "{st:?}");
+    assert!(!hil.pipeline.link.state().discovered);
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
+/// An unsigned markhold against a vehicle that requires signing: its commands are
+/// dropped, the vehicle never arms.
+#[test]
+fn unsigned_markhold_is_refused_by_a_signing_vehicle() {
+    let dir = scratch("unsigned");
+    let theirs = key_file(&dir, "vehicle.hex", 0x90);
+    let site = site(None);
+    let opts = HilOptions {
+        seconds: 1.0,
+        seed: 6,
+        start_on_station: true,
+        vehicle_signing_key_file: Some(theirs),
+        ..HilOptions::default()
+    };
+    let mut hil = HilRun::build(&site, &opts).unwrap();
+    assert!(hil.arm(site.site.link.mode.ardusub()).is_err());
+    let st = hil.rig.endpoint_stats();
+    assert!(st.rejected_unsigned > 0, "{st:?}");
+    assert_eq!((st.messages, st.pilot_inputs), (0, 0), "{st:?}");
+    assert!(!hil.rig.truth().armed);
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
+/// The local address of the socket on `port` in /proc/net/{udp,tcp} (TCP: listening
+/// sockets only), as the kernel has it.
+fn proc_local(proto: &str, port: u16) -> Vec<Ipv4Addr> {
+    let table = std::fs::read_to_string(format!("/proc/net/{proto}")).unwrap();
+    let want = format!(":{port:04X}");
+    table
+        .lines()
+        .skip(1)
+        .filter_map(|l| {
+            let cols: Vec<&str> = l.split_whitespace().collect();
+            let local = cols.get(1)?;
+            // TCP state 0A = LISTEN.
+            if proto == "tcp" && cols.get(3) != Some(&"0A") {
+                return None;
+            }
+            let (ip, p) = local.split_once(':')?;
+            if format!(":{p}") != want {
+                return None;
+            }
+            let v = u32::from_str_radix(ip, 16).ok()?;
+            Some(Ipv4Addr::from(v.swap_bytes()))
+        })
+        .collect()
+}
+
+fn assert_bound(what: &str, proto: &str, addr: SocketAddr, ip: Ipv4Addr) {
+    assert_eq!(addr.ip(), IpAddr::V4(ip), "{what}: {addr}");
+    assert_eq!(
+        proc_local(proto, addr.port()),
+        vec![ip],
+        "{what}: /proc/net/{proto} for port {}",
+        addr.port()
+    );
+}
+
+/// 127.0.0.2 is on the loopback interface (all of 127/8 is); skip the configured-address
+/// half where it cannot be bound.
+fn alias() -> Option<Ipv4Addr> {
+    let a = Ipv4Addr::new(127, 0, 0, 2);
+    UdpSocket::bind((a, 0)).ok().map(|_| a)
+}
+
+#[test]
+fn every_listener_binds_loopback_by_default_and_the_configured_address_when_given() {
+    let lo = Ipv4Addr::LOCALHOST;
+    // HIL vehicle endpoint, UDP and TCP.
+    let cfg = markhold_hil::EndpointConfig {
+        tcp_enabled: true,
+        ..Default::default()
+    };
+    let ep = markhold_hil::VehicleEndpoint::bind(&cfg).unwrap();
+    assert_bound("endpoint udp", "udp", ep.udp_addr(), lo);
+    assert_bound("endpoint tcp", "tcp", ep.tcp_addr().unwrap(), lo);
+    // A wildcard address is refused, not silently exposed.
+    let any = markhold_hil::EndpointConfig {
+        bind_ip: Ipv4Addr::UNSPECIFIED.into(),
+        ..Default::default()
+    };
+    let e = markhold_hil::VehicleEndpoint::bind(&any).err().unwrap();
+    assert!(e.to_string().contains("endpoint.bind_ip"), "{e}");
+
+    // The HIL rig a `markhold hil` run builds.
+    let site = site(None);
+    let hil = HilRun::build(
+        &site,
+        &HilOptions {
+            seconds: 1.0,
+            ..HilOptions::default()
+        },
+    )
+    .unwrap();
+    assert_bound("hil rig", "udp", hil.rig.mavlink_udp_addr(), lo);
+    // markhold's own udpout link to it: connected, so local address is the route's.
+    assert_bound(
+        "markhold link",
+        "udp",
+        hil.pipeline.link.local_addr().unwrap(),
+        lo,
+    );
+    drop(hil);
+
+    // SITL JSON server.
+    let start = site.t_world_marker() * site.site.station.t_marker_vehicle();
+    let sitl = markhold_hil::SitlServer::bind(
+        &markhold_hil::SitlConfig::default(),
+        &site.site.vehicle,
+        &start,
+        1,
+    );
+    let sitl = sitl.unwrap();
+    let sitl_addr = sitl.local_addr().unwrap();
+    assert_bound("sitl", "udp", sitl_addr, lo);
+    drop(sitl);
+
+    // Foxglove live view.
+    let mut rec = markhold::record::Recorder::live_only(Default::default()).unwrap();
+    let port = rec.serve_live(0).unwrap();
+    assert_bound("foxglove", "tcp", SocketAddr::from((lo, port)), lo);
+    drop(rec);
+
+    // markhold's listening links.
+    for url in ["udpin:127.0.0.1:0", "tcpin:127.0.0.1:0"] {
+        let link = VehicleLink::connect(&LinkConfig {
+            url: url.into(),
+            ..Default::default()
+        })
+        .unwrap();
+        let proto = if url.starts_with("udp") { "udp" } else { "tcp" };
+        assert_bound(url, proto, link.local_addr().unwrap(), lo);
+    }
+
+    // The configured address, on a loopback alias.
+    let Some(a2) = alias() else {
+        println!("127.0.0.2 cannot be bound here: configured-address half skipped");
+        return;
+    };
+    let cfg = markhold_hil::EndpointConfig {
+        bind_ip: a2.into(),
+        tcp_enabled: true,
+        ..Default::default()
+    };
+    let ep = markhold_hil::VehicleEndpoint::bind(&cfg).unwrap();
+    assert_bound("endpoint udp (configured)", "udp", ep.udp_addr(), a2);
+    assert_bound(
+        "endpoint tcp (configured)",
+        "tcp",
+        ep.tcp_addr().unwrap(),
+        a2,
+    );
+    let sitl = markhold_hil::SitlServer::bind(
+        &markhold_hil::SitlConfig {
+            bind_ip: a2.into(),
+            port: 0,
+        },
+        &site.site.vehicle,
+        &start,
+        1,
+    )
+    .unwrap();
+    assert_bound("sitl (configured)", "udp", sitl.local_addr().unwrap(), a2);
+    for url in ["udpin:127.0.0.2:0", "tcpin:127.0.0.2:0"] {
+        let link = VehicleLink::connect(&LinkConfig {
+            url: url.into(),
+            ..Default::default()
+        })
+        .unwrap();
+        let proto = if url.starts_with("udp") { "udp" } else { "tcp" };
+        assert_bound(url, proto, link.local_addr().unwrap(), a2);
+    }
+}
