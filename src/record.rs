@@ -17,7 +17,11 @@
 //! - [`TOPIC_POSE`] `foxglove.PoseInFrame` (marker in the camera frame), when detected;
 //! - [`TOPIC_COMMAND`] JSON: directive and effort (with bits);
 //! - [`TOPIC_VEHICLE`] JSON: the link's vehicle state (mode, armed, telemetry, counters);
-//! - [`TOPIC_FAILSAFE`] `foxglove.Log`: supervisor transitions.
+//! - [`TOPIC_FAILSAFE`] `foxglove.Log`: supervisor transitions;
+//! - [`TOPIC_MAVLINK_RAW`] (when a link is tapped, [`Recorder::mavlink_tap`]): every
+//!   MAVLink frame on the wire, encoding `markhold.mavlink-raw`: one byte direction
+//!   (0 = from the vehicle, 1 = to it) then the frame as sent (magic to signature); log
+//!   time = the loop time of the link's tick.
 //!
 //! Metadata record [`METADATA_NAME`] holds the effective site, its calibration and the
 //! run options, so `replay` needs nothing but the file.
@@ -51,6 +55,13 @@ pub const TOPIC_POSE: &str = "/markhold/marker_pose";
 pub const TOPIC_COMMAND: &str = "/markhold/command";
 pub const TOPIC_VEHICLE: &str = "/markhold/vehicle";
 pub const TOPIC_FAILSAFE: &str = "/markhold/failsafe";
+/// Raw MAVLink traffic (only when a link is tapped: not in [`TOPICS`]).
+pub const TOPIC_MAVLINK_RAW: &str = "/mavlink/raw";
+/// Message encoding of [`TOPIC_MAVLINK_RAW`].
+pub const MAVLINK_RAW_ENCODING: &str = "markhold.mavlink-raw";
+/// Raw frames that may wait for the writer thread; beyond, they are dropped and counted
+/// by the link (`VehicleLink::raw_tap_dropped`).
+pub const MAVLINK_TAP_QUEUE: usize = 8192;
 /// Every topic a recording has channels for.
 pub const TOPICS: [&str; 9] = [
     TOPIC_IMAGE,
@@ -335,6 +346,8 @@ pub struct Recorder {
     live: Option<foxglove::WebSocketServerHandle>,
     /// The recorder's foxglove context: a live view can attach to the same channels.
     context: Arc<Context>,
+    /// Sender side of the raw MAVLink tap (handed to the link).
+    tap: SyncSender<markhold_autopilot::RawFrame>,
 }
 
 impl Recorder {
@@ -409,6 +422,7 @@ impl Recorder {
     ) -> Result<Self, RecordError> {
         let channels = Channels::new(&context)?;
         let (tx, rx) = sync_channel::<Item>(cfg.queue_frames);
+        let (tap, tap_rx) = sync_channel::<markhold_autopilot::RawFrame>(MAVLINK_TAP_QUEUE);
         let (free_tx, free) = sync_channel::<Vec<u8>>(cfg.image_queue_frames);
         for _ in 0..cfg.image_queue_frames {
             let _ = free_tx.try_send(Vec::new());
@@ -427,8 +441,11 @@ impl Recorder {
                         png_level,
                     ]),
                     json: Vec::with_capacity(4096),
+                    raw: Vec::with_capacity(1 + 280),
                 };
                 while let Ok(mut item) = rx.recv() {
+                    // The link's raw frames so far (at most a frame late in the file).
+                    w.raw_frames(&tap_rx);
                     if !w.shared.failed() {
                         w.write(&item);
                     }
@@ -436,6 +453,7 @@ impl Recorder {
                         let _ = free_tx.try_send(buf);
                     }
                 }
+                w.raw_frames(&tap_rx);
                 // Finalize: summary section and footer.
                 let Some(handle) = handle else { return Ok(()) };
                 match handle.close() {
@@ -461,7 +479,15 @@ impl Recorder {
             wait_when_full: cfg.wait_when_full,
             context,
             live: None,
+            tap,
         })
+    }
+
+    /// A sender for `VehicleLink::set_raw_tap`: the link's raw frames go to
+    /// [`TOPIC_MAVLINK_RAW`], written by the writer thread (the control thread only copies
+    /// a fixed-size frame into a bounded channel).
+    pub fn mavlink_tap(&self) -> SyncSender<markhold_autopilot::RawFrame> {
+        self.tap.clone()
     }
 
     /// The foxglove context the recording's channels live in.
@@ -712,6 +738,7 @@ struct Channels {
     detection: Arc<RawChannel>,
     command: Arc<RawChannel>,
     vehicle: Arc<RawChannel>,
+    mavlink_raw: Arc<RawChannel>,
 }
 
 fn json_channel(
@@ -743,6 +770,11 @@ impl Channels {
             detection: json_channel(ctx, TOPIC_DETECTION, "markhold.Detection")?,
             command: json_channel(ctx, TOPIC_COMMAND, "markhold.Command")?,
             vehicle: json_channel(ctx, TOPIC_VEHICLE, "markhold.Vehicle")?,
+            mavlink_raw: ChannelBuilder::new(TOPIC_MAVLINK_RAW)
+                .context(ctx)
+                .message_encoding(MAVLINK_RAW_ENCODING)
+                .build_raw()
+                .map_err(|source| RecordError::Writer { source })?,
         })
     }
 }
@@ -753,9 +785,28 @@ struct WriterThread {
     png: opencv::core::Vector<u8>,
     png_params: opencv::core::Vector<i32>,
     json: Vec<u8>,
+    raw: Vec<u8>,
 }
 
 impl WriterThread {
+    /// Write every raw MAVLink frame waiting in the tap.
+    fn raw_frames(&mut self, tap: &Receiver<markhold_autopilot::RawFrame>) {
+        while let Ok(f) = tap.try_recv() {
+            if self.shared.failed() {
+                continue;
+            }
+            self.raw.clear();
+            self.raw.push(u8::from(f.outgoing));
+            self.raw.extend_from_slice(f.bytes());
+            self.channels.mavlink_raw.log_with_meta(
+                &self.raw,
+                PartialMetadata {
+                    log_time: Some(stamp_ns(f.stamp_s)),
+                },
+            );
+        }
+    }
+
     fn json<T: Serialize>(&mut self, ch: &RawChannel, log_time: u64, msg: &T) {
         self.json.clear();
         match serde_json::to_writer(&mut self.json, msg) {

@@ -484,9 +484,6 @@ pub struct LinkConfig {
     /// Loss is seen on the first frame after the timeout, so 0.9 s (the default) keeps
     /// "silent within 1 s of the cut" at >= 15 frames/s.
     pub vehicle_timeout_s: f64,
-    /// Other messages stop counting as liveness once the vehicle's last HEARTBEAT is
-    /// older than this, seconds (an autopilot whose heartbeat stopped is not trusted).
-    pub vehicle_heartbeat_timeout_s: f64,
     /// Wait for COMMAND_ACK this long before retrying, seconds.
     pub command_timeout_s: f64,
     /// On Ctrl-C / SIGTERM, disarm after sending neutral pilot input.
@@ -534,7 +531,6 @@ impl Default for LinkConfig {
             stream_rerequest_s: 10.0,
             pilot_input_hz: 20.0,
             vehicle_timeout_s: 0.9,
-            vehicle_heartbeat_timeout_s: 2.0,
             command_timeout_s: 1.0,
             disarm_on_exit: false,
             command_retries: 3,
@@ -598,10 +594,6 @@ impl LinkConfig {
                 "must be >= 5 or ArduSub's pilot-input failsafe disarms",
             ));
         }
-        check_positive(
-            "link.vehicle_heartbeat_timeout_s",
-            self.vehicle_heartbeat_timeout_s,
-        )?;
         check_positive("link.vehicle_timeout_s", self.vehicle_timeout_s)?;
         if self.vehicle_timeout_s * self.stream_hz < 4.0 {
             return Err(AutopilotError::config(

@@ -32,6 +32,38 @@ use crate::keeper::{wrap_pi, Effort};
 use crate::pilot::PilotMap;
 use crate::transport::{Incoming, Transport, WriteOutcome, MAX_FRAME};
 
+/// One MAVLink frame as it crossed the wire, for a recorder: fixed size, copied into a
+/// bounded channel (no allocation per message; dropped and counted when the channel is
+/// full, so the loop never waits on the recorder).
+#[derive(Clone, Copy, Debug)]
+pub struct RawFrame {
+    /// Loop time of the tick (incoming) or of the last tick before the write (outgoing).
+    pub stamp_s: f64,
+    /// Written by us (true) or read from the vehicle (false).
+    pub outgoing: bool,
+    len: u16,
+    bytes: [u8; MAX_FRAME],
+}
+
+impl RawFrame {
+    fn new(stamp_s: f64, outgoing: bool, frame: &[u8]) -> Self {
+        let n = frame.len().min(MAX_FRAME);
+        let mut bytes = [0u8; MAX_FRAME];
+        bytes[..n].copy_from_slice(&frame[..n]);
+        Self {
+            stamp_s,
+            outgoing,
+            len: n as u16,
+            bytes,
+        }
+    }
+
+    /// The frame, magic byte to signature.
+    pub fn bytes(&self) -> &[u8] {
+        &self.bytes[..usize::from(self.len)]
+    }
+}
+
 /// At most this many incoming messages are applied per `tick` (socket and queue each):
 /// a sender that floods faster than the loop reads cannot keep one tick spinning. What
 /// is left stays in the socket buffer for the next tick.
@@ -213,8 +245,8 @@ pub struct VehicleState {
     pub vehicle_type: u8,
     /// Loop time the vehicle was last heard: the link-loss clock (the name is from when
     /// only heartbeats counted). Any message from the vehicle's autopilot (its system and
-    /// component id, once a heartbeat discovered it) counts, while its last HEARTBEAT is
-    /// within `vehicle_heartbeat_timeout_s`; ATTITUDE at `stream_hz` keeps it fresh.
+    /// component id, once a heartbeat discovered it) counts; ATTITUDE and the other
+    /// streams at `stream_hz` keep it fresh.
     pub last_heartbeat_s: Option<f64>,
     /// Loop time of the last HEARTBEAT message from the vehicle.
     pub last_vehicle_heartbeat_s: Option<f64>,
@@ -309,6 +341,9 @@ pub struct VehicleLink {
     send_failing: bool,
     /// Signing rejections already reported in the log.
     signing_reported: u64,
+    /// Raw traffic tap (a recorder), and the frames it could not take.
+    tap: Option<std::sync::mpsc::SyncSender<RawFrame>>,
+    tap_dropped: u64,
 }
 
 fn read_key(path: &std::path::Path) -> Result<[u8; 32], AutopilotError> {
@@ -386,7 +421,32 @@ impl VehicleLink {
             pilot_keepalive: true,
             send_failing: false,
             signing_reported: 0,
+            tap: None,
+            tap_dropped: 0,
         })
+    }
+
+    /// Copy every frame written, and every frame read on the caller's thread (UDP with
+    /// `udp_receive_on_tick`, the default), to `tap` (a recorder's bounded channel).
+    /// Frames read by a receive task (TCP, serial) are not tapped.
+    pub fn set_raw_tap(&mut self, tap: Option<std::sync::mpsc::SyncSender<RawFrame>>) {
+        self.tap = tap;
+    }
+
+    /// Frames the tap's channel was too full to take.
+    pub fn raw_tap_dropped(&self) -> u64 {
+        self.tap_dropped
+    }
+
+    fn tap_frame(&mut self, outgoing: bool, frame: &[u8], stamp_s: f64) {
+        if let Some(tx) = &self.tap {
+            if tx
+                .try_send(RawFrame::new(stamp_s, outgoing, frame))
+                .is_err()
+            {
+                self.tap_dropped += 1;
+            }
+        }
     }
 
     /// The receive buffer (SO_RCVBUF) the kernel granted the UDP socket, bytes.
@@ -464,6 +524,10 @@ impl VehicleLink {
         match self.transport.writer.write(&buf[..n]) {
             Ok(WriteOutcome::Sent) => {
                 self.state.counters.sent += 1;
+                if self.tap.is_some() {
+                    let stamp = self.last_tick_s.unwrap_or(0.0);
+                    self.tap_frame(true, &buf[..n], stamp);
+                }
                 if self.send_failing {
                     self.send_failing = false;
                     tracing::info!("vehicle link sends again");
@@ -604,13 +668,9 @@ impl VehicleLink {
         if !self.state.discovered || h.system_id != u32::from(self.state.system_id) {
             return;
         }
-        // Liveness: anything from the autopilot, while its heartbeat is not stale.
-        if h.component_id == self.state.component_id
-            && self
-                .state
-                .last_vehicle_heartbeat_s
-                .is_some_and(|t| now_s - t <= self.cfg.vehicle_heartbeat_timeout_s)
-        {
+        // Liveness: anything from the autopilot (a camera or companion computer on the
+        // same system id has another component id and does not count).
+        if h.component_id == self.state.component_id {
             let was_ok = self.state.heartbeat_ok;
             self.heard(was_ok, now_s);
         }
@@ -766,6 +826,12 @@ impl VehicleLink {
         // Drain the socket until it would block, at most a batch per tick.
         let mut n = 0;
         while let Some((h, m)) = self.transport.poll_tick() {
+            if let Some(tx) = &self.tap {
+                let f = RawFrame::new(now_s, false, self.transport.last_tick_frame());
+                if tx.try_send(f).is_err() {
+                    self.tap_dropped += 1;
+                }
+            }
             self.apply(&h, &m, now_s);
             n += 1;
             if n == MAX_MESSAGES_PER_TICK {

@@ -390,6 +390,9 @@ impl std::io::Read for UdpSrc {
 struct TickReceiver {
     reader: MavlinkReader<UdpSrc>,
     signing: Option<Arc<SigningData>>,
+    /// The bytes of the last frame `poll_tick` returned (for a raw tap).
+    last: [u8; MAX_FRAME],
+    last_len: usize,
 }
 
 impl Drop for Transport {
@@ -531,6 +534,8 @@ impl Transport {
                             UdpSrc { sock, peer },
                         ),
                         signing: signing.clone(),
+                        last: [0; MAX_FRAME],
+                        last_len: 0,
                     })
                 } else {
                     let asock = {
@@ -710,6 +715,13 @@ impl Transport {
             match rx.reader.read_any_raw_message::<MavMessage>() {
                 Ok(raw) => {
                     if let Some(m) = accept(&raw, rx.signing.as_deref(), &self.counters) {
+                        let bytes = match &raw {
+                            MAVLinkMessageRaw::V1(r) => r.raw_bytes(),
+                            MAVLinkMessageRaw::V2(r) => r.raw_bytes(),
+                        };
+                        let n = bytes.len().min(MAX_FRAME);
+                        rx.last[..n].copy_from_slice(&bytes[..n]);
+                        rx.last_len = n;
                         return Some(m);
                     }
                 }
@@ -724,6 +736,14 @@ impl Transport {
                     return None;
                 }
             }
+        }
+    }
+
+    /// The bytes of the frame the last `poll_tick` returned.
+    pub(crate) fn last_tick_frame(&self) -> &[u8] {
+        match &self.tick_rx {
+            Some(rx) => &rx.last[..rx.last_len],
+            None => &[],
         }
     }
 
