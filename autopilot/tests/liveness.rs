@@ -2,6 +2,8 @@
 //! the bounded drain of the UDP socket per tick and its enlarged receive buffer. A raw
 //! loopback socket plays the vehicle; loop time is driven by hand.
 
+use std::alloc::{GlobalAlloc, Layout, System};
+use std::cell::Cell;
 use std::net::UdpSocket;
 
 use markhold_autopilot::link::MAX_MESSAGES_PER_TICK;
@@ -202,4 +204,64 @@ fn a_burst_between_two_ticks_is_read_whole_and_bounded_per_tick() {
     assert_eq!(link.state().counters.receive_batch_full, 1);
     link.tick(0.15).unwrap();
     assert_eq!(link.messages_received() - before, n as u64);
+}
+
+/// Allocations made by the current thread (the link's tokio threads do not count).
+struct Counting;
+
+thread_local! {
+    static ALLOCS: Cell<u64> = const { Cell::new(0) };
+}
+
+unsafe impl GlobalAlloc for Counting {
+    unsafe fn alloc(&self, l: Layout) -> *mut u8 {
+        ALLOCS.with(|c| c.set(c.get() + 1));
+        unsafe { System.alloc(l) }
+    }
+    unsafe fn dealloc(&self, p: *mut u8, l: Layout) {
+        unsafe { System.dealloc(p, l) }
+    }
+    unsafe fn realloc(&self, p: *mut u8, l: Layout, n: usize) -> *mut u8 {
+        ALLOCS.with(|c| c.set(c.get() + 1));
+        unsafe { System.realloc(p, l, n) }
+    }
+}
+
+#[global_allocator]
+static A: Counting = Counting;
+
+fn allocs() -> u64 {
+    ALLOCS.with(|c| c.get())
+}
+
+#[test]
+fn draining_a_burst_with_the_raw_tap_allocates_nothing() {
+    let (mut link, mut v) = setup(LinkConfig::default());
+    let to = link.local_addr().unwrap();
+    let (tx, rx) = std::sync::mpsc::sync_channel(4096);
+    link.set_raw_tap(Some(tx));
+    v.send(to, 1, &heartbeat());
+    link.tick(0.0).unwrap();
+    link.send_effort(&markhold_autopilot::Effort::NEUTRAL, 0.0)
+        .unwrap();
+    let before = allocs();
+    let probe = std::hint::black_box(vec![0u8; 8]);
+    assert!(allocs() > before && probe.len() == 8);
+    let mut total = 0;
+    for k in 1..=20 {
+        for _ in 0..300 {
+            v.send(to, 42, &attitude());
+        }
+        v.send(to, 1, &attitude());
+        let t = k as f64 * 0.05;
+        let before = allocs();
+        link.tick(t).unwrap();
+        link.send_effort(&markhold_autopilot::Effort::NEUTRAL, t)
+            .unwrap();
+        total += allocs() - before;
+        while rx.try_recv().is_ok() {}
+    }
+    assert!(link.state().heartbeat_ok);
+    assert_eq!(link.raw_tap_dropped(), 0);
+    assert_eq!(total, 0, "allocations while reading 6020 messages");
 }
