@@ -426,9 +426,8 @@ impl VehicleLink {
         })
     }
 
-    /// Copy every frame written, and every frame read on the caller's thread (UDP with
-    /// `udp_receive_on_tick`, the default), to `tap` (a recorder's bounded channel).
-    /// Frames read by a receive task (TCP, serial) are not tapped.
+    /// Copy every frame written and every frame read (as `tick` applies it) to `tap` (a
+    /// recorder's bounded channel): fixed-size copies, `try_send`, never waits.
     pub fn set_raw_tap(&mut self, tap: Option<std::sync::mpsc::SyncSender<RawFrame>>) {
         self.tap = tap;
     }
@@ -846,7 +845,17 @@ impl VehicleLink {
                 self.state.counters.receive_batch_full += 1;
             }
             match inc {
-                Incoming::Msg(h, m) => self.apply(&h, &m, now_s),
+                Incoming::Msg(h, m, raw) => {
+                    if let Some(tx) = &self.tap {
+                        if tx
+                            .try_send(RawFrame::new(now_s, false, raw.as_slice()))
+                            .is_err()
+                        {
+                            self.tap_dropped += 1;
+                        }
+                    }
+                    self.apply(&h, &m, now_s)
+                }
                 Incoming::Connected(peer) => {
                     tracing::info!(%peer, "transport connected");
                     self.state.transport_connected = true;

@@ -124,12 +124,45 @@ fn resolve(url: &str, hp: &str) -> Result<SocketAddr, AutopilotError> {
 #[allow(clippy::large_enum_variant)]
 #[derive(Debug)]
 pub(crate) enum Incoming {
-    /// A decoded message.
-    Msg(MavHeader, MavMessage),
+    /// A decoded message, with the frame's bytes (for the raw tap).
+    Msg(MavHeader, MavMessage, FrameBytes),
     /// The byte stream (TCP, serial) came up.
     Connected(String),
     /// The byte stream went down; the task reconnects by itself.
     Disconnected(String),
+}
+
+/// One frame's bytes by value (no allocation), magic to signature.
+#[derive(Clone, Copy)]
+pub(crate) struct FrameBytes {
+    len: u16,
+    bytes: [u8; MAX_FRAME],
+}
+
+impl std::fmt::Debug for FrameBytes {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(f, "FrameBytes({} bytes)", self.len)
+    }
+}
+
+impl FrameBytes {
+    fn of(raw: &MAVLinkMessageRaw) -> Self {
+        let b = match raw {
+            MAVLinkMessageRaw::V1(r) => r.raw_bytes(),
+            MAVLinkMessageRaw::V2(r) => r.raw_bytes(),
+        };
+        let n = b.len().min(MAX_FRAME);
+        let mut bytes = [0u8; MAX_FRAME];
+        bytes[..n].copy_from_slice(&b[..n]);
+        Self {
+            len: n as u16,
+            bytes,
+        }
+    }
+
+    pub(crate) fn as_slice(&self) -> &[u8] {
+        &self.bytes[..usize::from(self.len)]
+    }
 }
 
 /// Counters shared with the tasks.
@@ -425,7 +458,7 @@ async fn pump<R: AsyncRead + Unpin>(
         match reader.read_any_raw_message::<MavMessage>().await {
             Ok(raw) => {
                 if let Some((h, m)) = accept(&raw, signing, counters) {
-                    push(tx, counters, Incoming::Msg(h, m));
+                    push(tx, counters, Incoming::Msg(h, m, FrameBytes::of(&raw)));
                 }
             }
             Err(MessageReadError::Io(e)) => return e.to_string(),

@@ -265,3 +265,44 @@ fn draining_a_burst_with_the_raw_tap_allocates_nothing() {
     assert_eq!(link.raw_tap_dropped(), 0);
     assert_eq!(total, 0, "allocations while reading 6020 messages");
 }
+
+#[test]
+fn the_raw_tap_sees_both_directions_on_the_receive_task_too() {
+    let (mut link, v) = setup(LinkConfig {
+        udp_receive_on_tick: false,
+        ..Default::default()
+    });
+    let to = link.local_addr().unwrap();
+    let (tx, rx) = std::sync::mpsc::sync_channel(64);
+    link.set_raw_tap(Some(tx));
+    let mut sent = Vec::new();
+    let h = MavHeader {
+        system_id: 1,
+        component_id: 1,
+        sequence: 77,
+    };
+    mavlink::write_v2_msg_signed(&mut sent, h, &heartbeat(), None).unwrap();
+    v.sock.send_to(&sent, to).unwrap();
+    let t0 = std::time::Instant::now();
+    let mut t = 0.0;
+    while !link.state().discovered {
+        assert!(
+            t0.elapsed() < std::time::Duration::from_secs(5),
+            "not heard"
+        );
+        link.tick(t).unwrap();
+        t += 0.01;
+        std::thread::sleep(std::time::Duration::from_millis(2));
+    }
+    let frames: Vec<_> = rx.try_iter().collect();
+    let incoming: Vec<_> = frames.iter().filter(|f| !f.outgoing).collect();
+    assert_eq!(incoming.len(), 1);
+    assert_eq!(incoming[0].bytes(), &sent[..]);
+    // Our own heartbeat went out first, tapped as written.
+    let out = frames
+        .iter()
+        .find(|f| f.outgoing)
+        .expect("an outgoing frame");
+    assert_eq!(out.bytes()[0], 0xFD);
+    assert_eq!(out.bytes()[5], 255);
+}
