@@ -27,6 +27,9 @@ pub struct Scene {
     pub response: Response,
     /// Multiplicative light pattern per pixel and frame (caustics), if any.
     pub caustic_amp: f64,
+    /// Standard deviation of a per-pixel, per-frame sensor noise, grey levels (uniform,
+    /// from a hash of pixel and frame index: deterministic).
+    pub noise_grey: f64,
 }
 
 /// Reflectance of the 6x6 cell marker (black border, fixed inner bits).
@@ -89,6 +92,7 @@ impl Scene {
             corners,
             response,
             caustic_amp: 0.0,
+            noise_grey: 0.0,
         }
     }
 
@@ -146,6 +150,7 @@ impl Scene {
             corners,
             response,
             caustic_amp: 0.0,
+            noise_grey: 0.0,
         }
     }
 
@@ -203,6 +208,7 @@ impl Scene {
             corners: [[80.0, 60.0], [240.0, 60.0], [240.0, 180.0], [80.0, 180.0]],
             response,
             caustic_amp: 0.0,
+            noise_grey: 0.0,
         }
     }
 
@@ -222,13 +228,34 @@ impl Scene {
                         / 3.0;
                     e *= 1.0 + self.caustic_amp * c.max(0.0).powi(2) * 3.0;
                 }
-                let g = self.response.grey(e * scale);
+                let mut g = self.response.grey(e * scale);
+                if self.noise_grey > 0.0 && g < 255.0 {
+                    let mut hsh = (x as u64 + 1).wrapping_mul(0x9E37_79B9_7F4A_7C15)
+                        ^ (y as u64 + 1).wrapping_mul(0xC2B2_AE3D_27D4_EB4F)
+                        ^ (k + 1).wrapping_mul(0x1656_67B1_9E37_79F9);
+                    hsh ^= hsh >> 31;
+                    hsh = hsh.wrapping_mul(0xBF58_476D_1CE4_E5B9);
+                    hsh ^= hsh >> 29;
+                    let u = (hsh >> 11) as f64 / (1u64 << 53) as f64;
+                    g += self.noise_grey * 12f64.sqrt() * (u - 0.5);
+                }
                 frame.data[y * W as usize + x] = g.round().clamp(0.0, 255.0) as u8;
             }
         }
         frame.meta.exposure_us = t_us;
         frame.meta.seq = k;
         frame.meta.stamp_s = k as f64 / 30.0;
+    }
+
+    /// The same scene with every irradiance multiplied by `factor` (a change of light).
+    pub fn scaled(&self, factor: f64) -> Scene {
+        Scene {
+            irradiance: self.irradiance.iter().map(|e| e * factor).collect(),
+            corners: self.corners,
+            response: self.response.clone(),
+            caustic_amp: self.caustic_amp,
+            noise_grey: self.noise_grey,
+        }
     }
 
     pub fn roi(&self) -> Roi {
