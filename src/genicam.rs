@@ -358,7 +358,11 @@ impl GenicamCamera {
             max_us: cfg.limits.max_us.min(cam_max),
             fps,
         };
-        if !(limits.min_us <= limits.max_us) {
+        // Empty (or NaN) range: nothing the site allows can be set.
+        if matches!(
+            limits.min_us.partial_cmp(&limits.max_us),
+            None | Some(std::cmp::Ordering::Greater)
+        ) {
             return Err(GenicamError::Rejected {
                 device: dev,
                 feature: "ExposureTime",

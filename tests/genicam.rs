@@ -173,6 +173,16 @@ fn fake_gige_camera_exposure_is_set_per_frame_and_read_back() {
     assert!(m_hi > 1.5 * m_lo, "{m_lo} {m_hi}");
     let per = 8;
     let rows = sweep(&mut cam, &[lo, hi, lo, hi], per);
+    // Figures for the notes (printed, not asserted): one exposure change is a GVCP
+    // write and a read-back; the per-frame read-after-frame is one GVCP read.
+    let t = Instant::now();
+    for k in 0..50 {
+        cam.set_exposure_us(if k % 2 == 0 { 4000.0 } else { 5000.0 })
+            .unwrap();
+    }
+    let per_set_ms = t.elapsed().as_secs_f64() * 1e3 / 50.0;
+    eprintln!("genicam fake: set_exposure_us (write + read back) {per_set_ms:.2} ms per change");
+    cam.set_exposure_us(lo).unwrap();
     let mut f = Frame::default();
     cam.grab(&mut f).unwrap();
     assert_eq!((f.width, f.height), (640, 480));
@@ -415,16 +425,19 @@ fn run_with_fake_genicam_camera_on_hil_vehicle() {
     assert!(status.success(), "{log}");
     let report: serde_json::Value =
         serde_json::from_str(&std::fs::read_to_string(&summary).unwrap()).unwrap();
+    eprintln!("genicam run: {report}");
     assert_eq!(report["stopped_by"], "max_seconds", "{report}");
     // 2 s of camera time at 30 fps; frames the loop was too slow for (2 shared cores)
     // are lost by the stream, the rest come in order.
     let frames = report["frames"].as_u64().unwrap();
-    assert!((40..=64).contains(&frames), "{report}");
+    assert!((30..=64).contains(&frames), "{report}");
     let loop_s = report["loop_seconds"].as_f64().unwrap();
     assert!((2.0..2.2).contains(&loop_s), "{report}");
     // A ramp, no marker.
     assert_eq!(report["detected"], 0, "{report}");
-    assert!(stats.pilot_inputs >= 50, "{stats:?}");
+    // The vehicle heard markhold's pilot input on (nearly) every frame.
+    assert!(stats.pilot_inputs + 5 >= frames, "{stats:?}");
+    assert_eq!(stats.pilot_inputs_dropped, 0, "{stats:?}");
 
     // Every recorded frame carries the exposure read back from the camera, within the
     // site's limits, and the loop's clock is the camera's.
