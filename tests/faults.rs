@@ -557,11 +557,9 @@ fn ambient_light_back_from_10x_exposure_recovers_without_oscillation() {
     light_change(&o, fps, 5.0, 9.0, false, "ambient 10x -> 1x");
 }
 
-/// Known failure (RELIABILITY_NOTES.md, for the exposure owner): after a 10x step UP in
-/// daylight AAEC reaches the new level in 8 frames, then wanders between 0.8x and 1.2x of
-/// where it ends for about 2.5 s (69 frames to within 15 %).
+/// A 10x step up in daylight (this wandered for 2.5 s before AAEC's restart policy of
+/// commit 80becfe; see RELIABILITY_NOTES.md).
 #[test]
-#[ignore = "AAEC wanders for ~2.5 s after a 10x ambient step up; see RELIABILITY_NOTES.md"]
 fn ambient_light_10x_step_up_exposure_recovers_without_oscillation() {
     let s = site("stabilize");
     let o = run(&s, 8.0, &["ambient_step@4"], None);
