@@ -465,6 +465,9 @@ pub fn run_live(
     );
 
     pipeline.failsafe = FailsafeActions::new(Some(s.link.mode.ardusub()));
+    if let Some(r) = recorder.as_ref() {
+        pipeline.link.set_raw_tap(Some(r.mavlink_tap()));
+    }
     let mut frames = 0u64;
     let mut detected = 0u64;
     let mut first_stamp = None;

@@ -113,13 +113,19 @@ struct HilArgs {
     vehicle: Option<String>,
     /// Inject a fault on simulation time, repeatable: KIND@START[+DURATION] seconds, KIND
     /// one of link_cut, occlude, out_of_view, drop_frames, late_frames, exposure_ignored,
-    /// exposure_late (e.g. --fault link_cut@10+3 --fault occlude@20+0.5).
+    /// exposure_late, lamp_off, ambient_step (e.g. --fault link_cut@10+3 --fault occlude@20+0.5).
     #[arg(long = "fault", value_name = "KIND@START[+DURATION]")]
     faults: Vec<markhold::faults::FaultSpec>,
     /// Record the run to this MCAP file (must not exist): frames, exposure, detections,
     /// pose, commands, vehicle state, failsafe events; `markhold replay` reads it.
     #[arg(long, value_name = "FILE.mcap")]
     record: Option<PathBuf>,
+    /// Serve a Foxglove WebSocket live view on 127.0.0.1 (the same channels as --record).
+    #[arg(long)]
+    foxglove: bool,
+    /// Port of the live view (0: any free port).
+    #[arg(long, default_value_t = 8765)]
+    foxglove_port: u16,
 }
 
 #[derive(clap::Args)]
@@ -131,7 +137,8 @@ struct RunArgs {
     /// udpout:192.168.2.2:14550; or serial:/dev/ttyACM0:115200).
     #[arg(long, value_name = "URL")]
     link: Option<String>,
-    /// Camera: v4l2:/dev/videoN, or frames:DIR (a recorded-frames folder).
+    /// Camera: v4l2:/dev/videoN, genicam:<device id> (Aravis; empty: the first camera
+    /// found), or frames:DIR (a recorded-frames folder).
     #[arg(long, value_name = "URL")]
     camera: markhold::live::CameraUrl,
     /// Record the run to this MCAP file (must not exist).
@@ -322,10 +329,25 @@ fn hil(args: HilArgs) -> anyhow::Result<()> {
         args.record.is_none() || args.vehicle.is_none(),
         "--record with --vehicle is not supported: record a simulated run, or use `markhold run`"
     );
+    anyhow::ensure!(
+        !args.foxglove || args.vehicle.is_none(),
+        "--foxglove with --vehicle is not supported: watch a simulated run, or use `markhold run`"
+    );
     let mut recorder = match &args.record {
         Some(p) => Some(markhold::record::open_hil_recorder(&site, &opts, p)?),
+        // A live view alone: frames the viewer cannot keep up with are dropped, the loop
+        // never waits for it.
+        None if args.foxglove => Some(markhold::record::Recorder::live_only(
+            markhold::record::RecordConfig::default(),
+        )?),
         None => None,
     };
+    if let (true, Some(r)) = (args.foxglove, recorder.as_mut()) {
+        let port = r
+            .serve_live(args.foxglove_port)
+            .with_context(|| format!("--foxglove-port {}", args.foxglove_port))?;
+        eprintln!("markhold: Foxglove live view on ws://127.0.0.1:{port}");
+    }
     let summary = match &args.vehicle {
         Some(url) => markhold::external::run_external(&site, url, &opts, &mut |rec, frame| {
             on_frame(rec, rec.stamp_s, frame)
@@ -342,8 +364,14 @@ fn hil(args: HilArgs) -> anyhow::Result<()> {
         },
     };
     bar.finish_and_clear();
-    if let (Some(r), Some(p)) = (recorder, &args.record) {
-        markhold::record::finish_and_report(r, p)?;
+    match (recorder, &args.record) {
+        (Some(r), Some(p)) => {
+            markhold::record::finish_and_report(r, p)?;
+        }
+        (Some(r), None) => {
+            r.finish().context("stopping the live view")?;
+        }
+        _ => {}
     }
     if let Some(t) = trace {
         t.finish()?;

@@ -1044,6 +1044,8 @@ pub fn run_hil_recorded(
     use crate::hil_run::HilRun;
     let wall = std::time::Instant::now();
     let mut run = HilRun::build(site, opts)?;
+    // Every MAVLink frame markhold sends or receives goes to /mavlink/raw.
+    run.pipeline.link.set_raw_tap(Some(recorder.mavlink_tap()));
     run.arm(site.site.link.mode.ardusub())?;
     let frames = (opts.seconds * site.site.camera.fps).round().max(1.0) as u64;
     let mut stats =
