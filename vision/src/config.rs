@@ -256,7 +256,9 @@ pub struct DetectorConfig {
     /// is about this many pixels, bounding the cost for a close marker.
     pub track_target_side_px: f64,
     /// Full-frame search every this many frames even while tracking (0 = never
-    /// unless tracking fails).
+    /// unless tracking fails). 300 (10 s at 30 fps): a full search costs about 3x a
+    /// tracked frame, and at 30 it alone set the loop's latency p99 (pool, 60 s HIL:
+    /// 5.7 ms at 30, 2.9 ms at 300, same detection rate).
     pub full_search_period_frames: u32,
     /// Full-frame search on an image downscaled by this factor (1 = full resolution),
     /// followed by a full-resolution RoI search for sub-pixel corners.
@@ -300,7 +302,7 @@ impl Default for DetectorConfig {
             track_window_scale: 0.75,
             track_motion_gain: 2.0,
             track_target_side_px: 64.0,
-            full_search_period_frames: 30,
+            full_search_period_frames: 300,
             full_search_downscale: 2,
             full_search_fallback_full_res: true,
             corner_sigma_floor_px: 0.005,
