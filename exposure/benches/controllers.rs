@@ -67,6 +67,15 @@ fn bench_aaec(c: &mut Criterion) {
             black_box(ctrl.update(black_box(&f), Some(&corners)))
         })
     });
+    // The metric alone, dispatched (AVX2 where the CPU has it) and portable (SSE2): the
+    // ratio of the two is what the runtime dispatch buys on this machine.
+    let mut metric = GradientMetric::new(&response, params);
+    g.bench_function(BenchmarkId::new("metric_dispatched", "300x300"), |b| {
+        b.iter(|| black_box(metric.evaluate(black_box(f.view().crop(roi)))))
+    });
+    g.bench_function(BenchmarkId::new("metric_portable", "300x300"), |b| {
+        b.iter(|| black_box(metric.evaluate_portable(black_box(f.view().crop(roi)))))
+    });
     g.bench_function(BenchmarkId::new("reference_full_sort", "300x300"), |b| {
         b.iter(|| {
             black_box(reference::metric_full_sort(
