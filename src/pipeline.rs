@@ -9,7 +9,7 @@ use markhold_autopilot::{
     PoseMeasurement, StationKeeper, Supervisor, SupervisorInput, VehicleLink, VehicleState,
 };
 use markhold_exposure::{Camera, Corners, ExposureController, ExposureStep, Frame};
-use markhold_vision::{MarkerObservation, MarkerTracker};
+use markhold_vision::{MarkerObservation, MarkerTracker, Tracked};
 use nalgebra::{Isometry3, Matrix6};
 use serde::Serialize;
 
@@ -403,7 +403,18 @@ impl<L: CommandLink> Pipeline<L> {
         camera.grab(&mut self.frame)?;
         let t0 = Instant::now();
         let stamp = self.frame.meta.stamp_s;
-        let obs: Option<MarkerObservation> = self.tracker.process(&self.frame)?;
+        let (obs, full_search_after_send): (Option<MarkerObservation>, bool) =
+            match self.tracker.process_tracked(&self.frame)? {
+                Tracked::Done(obs) => (obs, false),
+                // Before the first fix there is no command to protect: search first.
+                Tracked::NeedsFullSearch
+                    if self.tracker.detector_config().defer_full_search
+                        && self.marker_seen_s.is_some() =>
+                {
+                    (None, true)
+                }
+                Tracked::NeedsFullSearch => (self.tracker.process_full(&self.frame)?, false),
+            };
         let meas = obs.as_ref().map(|o| PoseMeasurement {
             stamp_s: stamp,
             t_cam_marker: o.t_cam_marker,
@@ -437,6 +448,17 @@ impl<L: CommandLink> Pipeline<L> {
         let (directive, effort) = self.send(directive, effort, stamp)?;
         let latency_s = t0.elapsed().as_secs_f64();
         self.last_frame_s = Some(stamp);
+        // The full-frame search after the command: what it finds re-seeds tracking, the
+        // exposure RoI and the record; the keeper gets the marker from the next frame.
+        let obs = if full_search_after_send {
+            let found = self.tracker.process_full(&self.frame)?;
+            if found.is_some() {
+                self.marker_seen_s = Some(stamp);
+            }
+            found
+        } else {
+            obs
+        };
 
         // Exposure after the command: it does not gate the vehicle.
         let corners = obs.as_ref().map(|o| o.corners);

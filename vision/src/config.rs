@@ -260,6 +260,11 @@ pub struct DetectorConfig {
     /// tracked frame, and at 30 it alone set the loop's latency p99 (pool, 60 s HIL:
     /// 5.7 ms at 30, 2.9 ms at 300, same detection rate).
     pub full_search_period_frames: u32,
+    /// The loop sends a frame's command before that frame's full-frame search (when
+    /// tracking cannot answer), so the search (8 to 37 ms at 1440x1080) does not delay
+    /// the command; the marker found by it serves from the next frame on. `false`:
+    /// search first, then command (one frame sooner after a re-acquisition).
+    pub defer_full_search: bool,
     /// Full-frame search on an image downscaled by this factor (1 = full resolution),
     /// followed by a full-resolution RoI search for sub-pixel corners.
     pub full_search_downscale: u32,
@@ -303,6 +308,7 @@ impl Default for DetectorConfig {
             track_motion_gain: 2.0,
             track_target_side_px: 64.0,
             full_search_period_frames: 300,
+            defer_full_search: true,
             full_search_downscale: 2,
             full_search_fallback_full_res: true,
             corner_sigma_floor_px: 0.005,

@@ -28,4 +28,4 @@ pub use corners::CornerCov;
 pub use dict::{marker_bitmap, MarkerBitmap};
 pub use error::VisionError;
 pub use pose::{cov_in_frame, cov_of_inverse};
-pub use tracker::{MarkerObservation, MarkerTracker, TrackerStats};
+pub use tracker::{MarkerObservation, MarkerTracker, Tracked, TrackerStats};

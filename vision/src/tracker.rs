@@ -180,6 +180,10 @@ impl MarkerTracker {
         &self.marker
     }
 
+    pub fn detector_config(&self) -> &DetectorConfig {
+        &self.cfg
+    }
+
     pub fn stats(&self) -> TrackerStats {
         self.stats
     }
@@ -199,6 +203,18 @@ impl MarkerTracker {
     /// Detect the configured marker id in `frame` and estimate its pose.
     /// `Ok(None)`: not seen (or rejected for its reprojection error).
     pub fn process(&mut self, frame: &Frame) -> Result<Option<MarkerObservation>, VisionError> {
+        match self.process_tracked(frame)? {
+            Tracked::Done(obs) => Ok(obs),
+            Tracked::NeedsFullSearch => self.process_full(frame),
+        }
+    }
+
+    /// The first half of [`Self::process`]: the RoI-tracked search only. When it cannot
+    /// answer (no track, the track lost, or a periodic full search due) it returns
+    /// [`Tracked::NeedsFullSearch`] and [`Self::process_full`] must follow on the same
+    /// frame; the loop can send its command in between, so that a full-frame search
+    /// (8 to 37 ms at 1440x1080) does not sit between the frame and the command.
+    pub fn process_tracked(&mut self, frame: &Frame) -> Result<Tracked, VisionError> {
         self.calib
             .check_resolution(frame.width, frame.height)
             .map_err(|_| VisionError::FrameSize {
@@ -227,40 +243,56 @@ impl MarkerTracker {
                 self.track = None;
             }
         }
-        let image =
-            core::Mat::new_rows_cols_with_data::<u8>(h as i32, w as i32, &frame.data[..w * h])
-                .cv("wrap frame")?;
+        let image = wrap(frame)?;
 
         let period = self.cfg.full_search_period_frames;
         let periodic_full = period > 0 && self.frames_since_full + 1 >= period;
-        let mut found = None;
-        let mut tracked = false;
         self.last_search = None;
-        if !periodic_full {
-            if let Some(roi) = self.predicted_window(stamp) {
-                self.stats.tracked_searches += 1;
-                self.last_search = Some(roi);
-                found = self.detect_window(&image, roi, self.track_scale())?;
-                tracked = found.is_some();
-                if tracked {
-                    self.stats.tracked_hits += 1;
-                }
-            }
+        if periodic_full {
+            return Ok(Tracked::NeedsFullSearch);
         }
-        if found.is_none() {
-            self.stats.full_searches += 1;
-            self.frames_since_full = 0;
-            found = self.full_search(&image)?;
-        } else {
-            self.frames_since_full += 1;
-        }
-        let Some(mut corners) = found else {
+        let Some(roi) = self.predicted_window(stamp) else {
+            return Ok(Tracked::NeedsFullSearch);
+        };
+        self.stats.tracked_searches += 1;
+        self.last_search = Some(roi);
+        let Some(corners) = self.detect_window(&image, roi, self.track_scale())? else {
+            return Ok(Tracked::NeedsFullSearch);
+        };
+        self.stats.tracked_hits += 1;
+        self.frames_since_full += 1;
+        Ok(Tracked::Done(self.finish(frame, &image, corners, true)?))
+    }
+
+    /// The second half of [`Self::process`] after [`Tracked::NeedsFullSearch`]: a
+    /// full-frame search of the same frame.
+    pub fn process_full(
+        &mut self,
+        frame: &Frame,
+    ) -> Result<Option<MarkerObservation>, VisionError> {
+        let _span = tracing::trace_span!("marker_full_search", seq = frame.meta.seq).entered();
+        let image = wrap(frame)?;
+        self.stats.full_searches += 1;
+        self.frames_since_full = 0;
+        let Some(corners) = self.full_search(&image)? else {
             if self.track.take().is_some() {
                 tracing::debug!(seq = frame.meta.seq, "marker lost");
             }
             return Ok(None);
         };
-        let corner_cov = self.refine_corners(frame, &image, &mut corners)?;
+        self.finish(frame, &image, corners, false)
+    }
+
+    /// Sub-pixel corners, pose and covariance of a found marker; updates the track.
+    fn finish(
+        &mut self,
+        frame: &Frame,
+        image: &(impl core::MatTraitConst + core::ToInputArray),
+        mut corners: Corners,
+        tracked: bool,
+    ) -> Result<Option<MarkerObservation>, VisionError> {
+        let stamp = frame.meta.stamp_s;
+        let corner_cov = self.refine_corners(frame, image, &mut corners)?;
         let Some(sol) = self.estimate_pose(&corners, &corner_cov)? else {
             self.stats.rejected += 1;
             self.track = None;
@@ -726,4 +758,23 @@ mod tests {
         assert_eq!(window(70.0, 30.0, 100.0, 50.0, 80, 40), None);
         assert_eq!(window(f64::NAN, 0.0, 10.0, 10.0, 80, 40), None);
     }
+}
+
+/// What [`MarkerTracker::process_tracked`] found.
+// Returned by value once a frame; a Box would allocate on the per-frame path.
+#[allow(clippy::large_enum_variant)]
+#[derive(Debug, Clone)]
+pub enum Tracked {
+    /// The tracked search answered (`None`: found but rejected by the pose checks).
+    Done(Option<MarkerObservation>),
+    /// A full-frame search of this frame is needed: call
+    /// [`MarkerTracker::process_full`].
+    NeedsFullSearch,
+}
+
+/// The frame's pixels as an OpenCV matrix (no copy); its size was checked by the caller.
+fn wrap(frame: &Frame) -> Result<opencv::boxed_ref::BoxedRef<'_, core::Mat>, VisionError> {
+    let (w, h) = (frame.width as usize, frame.height as usize);
+    core::Mat::new_rows_cols_with_data::<u8>(h as i32, w as i32, &frame.data[..w * h])
+        .cv("wrap frame")
 }

@@ -6,7 +6,7 @@ mod common;
 use common::*;
 use markhold_exposure::Frame;
 use markhold_vision::synth::{render_marker, SceneParams};
-use markhold_vision::{CameraCalibration, DetectorConfig, MarkerTracker};
+use markhold_vision::{CameraCalibration, DetectorConfig, MarkerTracker, Tracked};
 use nalgebra::Isometry3;
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
@@ -168,6 +168,68 @@ fn recovers_after_the_marker_leaves_and_reenters() {
     // Found by the full search on its first frame back, then tracked again.
     assert_eq!(seen[15], Some(false), "{seen:?}");
     assert!(seen[16..].iter().all(|s| *s == Some(true)), "{seen:?}");
+}
+
+/// The loop's split (`process_tracked`, then `process_full` only when asked, after the
+/// command is out) sees exactly what `process` sees: same observations, same counters,
+/// over a sequence that tracks, loses the marker, finds it again and tracks again.
+#[test]
+fn split_search_gives_what_process_gives() {
+    let calib = small_calib();
+    let m = marker();
+    let cfg = DetectorConfig {
+        full_search_period_frames: 7,
+        ..Default::default()
+    };
+    let mut whole = MarkerTracker::new(&m, &cfg, calib.clone()).unwrap();
+    let mut split = MarkerTracker::new(&m, &cfg, calib.clone()).unwrap();
+    let mut rng = ChaCha8Rng::seed_from_u64(23);
+    let mut frame = Frame::default();
+    let xs: Vec<f64> = (0..12)
+        .map(|k| k as f64 * 0.02)
+        .chain([2.0; 3])
+        .chain((0..12).map(|k| 0.2 - k as f64 * 0.02))
+        .collect();
+    let (mut asked, mut done) = (0, 0);
+    for (k, x) in xs.iter().enumerate() {
+        render(
+            &mut frame,
+            &calib,
+            &pose([*x, 0.0, 1.2], 25.0, 0.0),
+            k,
+            &mut rng,
+        );
+        let a = whole.process(&frame).unwrap();
+        let b = match split.process_tracked(&frame).unwrap() {
+            Tracked::Done(o) => {
+                done += 1;
+                o
+            }
+            Tracked::NeedsFullSearch => {
+                asked += 1;
+                split.process_full(&frame).unwrap()
+            }
+        };
+        match (&a, &b) {
+            (None, None) => {}
+            (Some(a), Some(b)) => {
+                assert_eq!(a.corners, b.corners, "frame {k}");
+                assert_eq!(a.t_cam_marker, b.t_cam_marker, "frame {k}");
+                assert_eq!(a.tracked, b.tracked, "frame {k}");
+            }
+            _ => panic!(
+                "frame {k}: process {:?}, split {:?}",
+                a.is_some(),
+                b.is_some()
+            ),
+        }
+        assert_eq!(whole.stats(), split.stats(), "frame {k}");
+    }
+    // Both paths ran: the first frame, the periodic searches and the frames away (and
+    // the first one back) asked for a full search; the rest were tracked.
+    assert!(asked >= 1 + 3 + 3, "{asked} full searches asked");
+    assert!(done >= 15, "{done} tracked frames");
+    assert_eq!(whole.stats().full_searches, asked);
 }
 
 #[test]
