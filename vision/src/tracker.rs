@@ -50,6 +50,18 @@ impl MarkerObservation {
     }
 }
 
+/// What [`MarkerTracker::process_tracked`] found.
+// Returned by value once a frame; a Box would allocate on the per-frame path.
+#[allow(clippy::large_enum_variant)]
+#[derive(Debug, Clone)]
+pub enum Tracked {
+    /// The tracked search answered (`None`: found but rejected by the pose checks).
+    Done(Option<MarkerObservation>),
+    /// A full-frame search of this frame is needed: call
+    /// [`MarkerTracker::process_full`].
+    NeedsFullSearch,
+}
+
 /// Counters of what the tracker did (for logs and tests).
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
 pub struct TrackerStats {
@@ -215,25 +227,7 @@ impl MarkerTracker {
     /// frame; the loop can send its command in between, so that a full-frame search
     /// (8 to 37 ms at 1440x1080) does not sit between the frame and the command.
     pub fn process_tracked(&mut self, frame: &Frame) -> Result<Tracked, VisionError> {
-        self.calib
-            .check_resolution(frame.width, frame.height)
-            .map_err(|_| VisionError::FrameSize {
-                what: "the camera calibration",
-                width: frame.width,
-                height: frame.height,
-                expected_width: self.calib.width,
-                expected_height: self.calib.height,
-            })?;
-        let (w, h) = (frame.width as usize, frame.height as usize);
-        if frame.data.len() < w * h {
-            return Err(VisionError::FrameSize {
-                what: "its pixel buffer",
-                width: frame.width,
-                height: frame.height,
-                expected_width: frame.width,
-                expected_height: (frame.data.len() / w.max(1)) as u32,
-            });
-        }
+        let image = self.image_of(frame)?;
         self.stats.frames += 1;
         let _span = tracing::trace_span!("marker_tracker", seq = frame.meta.seq).entered();
         let stamp = frame.meta.stamp_s;
@@ -243,7 +237,6 @@ impl MarkerTracker {
                 self.track = None;
             }
         }
-        let image = wrap(frame)?;
 
         let period = self.cfg.full_search_period_frames;
         let periodic_full = period > 0 && self.frames_since_full + 1 >= period;
@@ -271,7 +264,7 @@ impl MarkerTracker {
         frame: &Frame,
     ) -> Result<Option<MarkerObservation>, VisionError> {
         let _span = tracing::trace_span!("marker_full_search", seq = frame.meta.seq).entered();
-        let image = wrap(frame)?;
+        let image = self.image_of(frame)?;
         self.stats.full_searches += 1;
         self.frames_since_full = 0;
         let Some(corners) = self.full_search(&image)? else {
@@ -281,6 +274,35 @@ impl MarkerTracker {
             return Ok(None);
         };
         self.finish(frame, &image, corners, false)
+    }
+
+    /// The frame's pixels as an OpenCV matrix (no copy), after checking its size against
+    /// the calibration and its buffer: both halves of `process` can be called on their own.
+    fn image_of<'f>(
+        &self,
+        frame: &'f Frame,
+    ) -> Result<opencv::boxed_ref::BoxedRef<'f, core::Mat>, VisionError> {
+        self.calib
+            .check_resolution(frame.width, frame.height)
+            .map_err(|_| VisionError::FrameSize {
+                what: "the camera calibration",
+                width: frame.width,
+                height: frame.height,
+                expected_width: self.calib.width,
+                expected_height: self.calib.height,
+            })?;
+        let (w, h) = (frame.width as usize, frame.height as usize);
+        if frame.data.len() < w * h {
+            return Err(VisionError::FrameSize {
+                what: "its pixel buffer",
+                width: frame.width,
+                height: frame.height,
+                expected_width: frame.width,
+                expected_height: (frame.data.len() / w.max(1)) as u32,
+            });
+        }
+        core::Mat::new_rows_cols_with_data::<u8>(h as i32, w as i32, &frame.data[..w * h])
+            .cv("wrap frame")
     }
 
     /// Sub-pixel corners, pose and covariance of a found marker; updates the track.
@@ -758,23 +780,4 @@ mod tests {
         assert_eq!(window(70.0, 30.0, 100.0, 50.0, 80, 40), None);
         assert_eq!(window(f64::NAN, 0.0, 10.0, 10.0, 80, 40), None);
     }
-}
-
-/// What [`MarkerTracker::process_tracked`] found.
-// Returned by value once a frame; a Box would allocate on the per-frame path.
-#[allow(clippy::large_enum_variant)]
-#[derive(Debug, Clone)]
-pub enum Tracked {
-    /// The tracked search answered (`None`: found but rejected by the pose checks).
-    Done(Option<MarkerObservation>),
-    /// A full-frame search of this frame is needed: call
-    /// [`MarkerTracker::process_full`].
-    NeedsFullSearch,
-}
-
-/// The frame's pixels as an OpenCV matrix (no copy); its size was checked by the caller.
-fn wrap(frame: &Frame) -> Result<opencv::boxed_ref::BoxedRef<'_, core::Mat>, VisionError> {
-    let (w, h) = (frame.width as usize, frame.height as usize);
-    core::Mat::new_rows_cols_with_data::<u8>(h as i32, w as i32, &frame.data[..w * h])
-        .cv("wrap frame")
 }

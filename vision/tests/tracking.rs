@@ -58,6 +58,16 @@ fn roi_area_of(c: &markhold_exposure::Corners) -> u64 {
     (w * h) as u64
 }
 
+/// Lateral marker positions (m): `n` frames sliding right from 0 in 2 cm steps, `away`
+/// frames at 2 m (far outside the view at 1.2 m range), `n` frames back from 0.2 m.
+fn out_and_back(n: usize, away: usize) -> Vec<f64> {
+    (0..n)
+        .map(|k| k as f64 * 0.02)
+        .chain(std::iter::repeat_n(2.0, away))
+        .chain((0..n).map(|k| 0.2 - k as f64 * 0.02))
+        .collect()
+}
+
 #[test]
 fn tracked_search_matches_full_search_on_a_moving_sequence() {
     let calib = small_calib();
@@ -143,11 +153,7 @@ fn recovers_after_the_marker_leaves_and_reenters() {
     let mut frame = Frame::default();
     // In view (x = 0), out to the right (x = 2 m at 1.2 m range is far outside the
     // 67 degree field of view), and back.
-    let xs: Vec<f64> = (0..10)
-        .map(|k| k as f64 * 0.02)
-        .chain([2.0; 5])
-        .chain((0..10).map(|k| 0.2 - k as f64 * 0.02))
-        .collect();
+    let xs = out_and_back(10, 5);
     let mut seen = Vec::new();
     for (k, x) in xs.iter().enumerate() {
         let truth = pose([*x, 0.0, 1.2], 25.0, 0.0);
@@ -185,11 +191,7 @@ fn split_search_gives_what_process_gives() {
     let mut split = MarkerTracker::new(&m, &cfg, calib.clone()).unwrap();
     let mut rng = ChaCha8Rng::seed_from_u64(23);
     let mut frame = Frame::default();
-    let xs: Vec<f64> = (0..12)
-        .map(|k| k as f64 * 0.02)
-        .chain([2.0; 3])
-        .chain((0..12).map(|k| 0.2 - k as f64 * 0.02))
-        .collect();
+    let xs = out_and_back(12, 3);
     let (mut asked, mut done) = (0, 0);
     for (k, x) in xs.iter().enumerate() {
         render(
