@@ -4,6 +4,8 @@
 //! effect `delay_frames` frames late and every frame carries the exposure it really had.
 
 mod fast;
+mod kernels;
+pub(crate) use kernels::TEXTURE_PAD;
 mod reference;
 mod sensor;
 
@@ -291,6 +293,12 @@ impl UnderwaterCamera {
             }
         }
         t
+    }
+
+    /// Render with the portable loops even where the CPU has AVX2 (both give the same
+    /// frames; tests compare them).
+    pub fn set_portable_render(&mut self, portable: bool) {
+        self.fast.set_portable(portable);
     }
 
     pub fn model(&self) -> &CameraModel {

@@ -12,6 +12,10 @@
 use markhold_exposure::Frame;
 use nalgebra::{Isometry3, Point3, Vector3};
 
+use super::kernels::{
+    plate_run, ramp_run, rock_nodes_run, sensor_run, CausticLayers, Isa, PlateRun, Ramp, RockNodes,
+    SensorRow, Tex,
+};
 use super::sensor::{SensorTables, XorShift64Star, RESPONSE_LUT_LEN};
 use super::CameraModel;
 use crate::scene::{
@@ -121,12 +125,28 @@ pub(crate) struct FastRenderer {
     /// Row-interpolated node coordinates of the current row.
     row_x: Vec<f32>,
     row_y: Vec<f32>,
+    /// The current row at its nodes: the planes' forms `(k * 3 + c) * nx + i`, the signs
+    /// of the surface tests, the rock planes' texel walks and whether they are affine.
+    row_forms: Vec<f32>,
+    row_mask: Vec<u8>,
+    row_walks: Vec<i32>,
+    row_affine: Vec<bool>,
+    /// Light fields of the current row at its nodes, per surface (`surf * nx + i`),
+    /// computed on first use in the row.
+    row_fields: Vec<[f32; 3]>,
+    row_stamp: Vec<u32>,
+    row_id: u32,
     /// Mean electrons of the current row's pixels (the sensor runs as a second pass).
     row_mean: Vec<f32>,
-    /// Half Gaussian samples and response-table indices of the current row.
-    row_g: Vec<f32>,
-    row_idx: Vec<u32>,
+    /// A row of zero noise (noise off).
+    zero_noise: Vec<i16>,
+    /// The marker's cell albedos for `PlateRun`, refilled per frame.
+    cell_table: Vec<f32>,
+    isa: Isa,
 }
+
+/// Texel walks per rock plane and node: rock u, v, then both caustic layers' u, v.
+const WALKS: usize = 6;
 
 /// Everything the per-pixel loop needs for one frame.
 struct FrameCtx<'a> {
@@ -136,6 +156,37 @@ struct FrameCtx<'a> {
     geo: [PlaneGeo; 3],
     forms: [PlaneForms; 3],
     e_per_unit: f64,
+}
+
+/// Per-frame constants of the per-pixel work, in f32.
+struct PixelConsts<'a> {
+    scene: &'a Scene,
+    plate_front: bool,
+    half: f32,
+    cells: usize,
+    /// Cell albedos with a one-cell white border (see `PlateRun`).
+    cell_table: &'a [f32],
+    cell_per_m: f32,
+    half_marker: f32,
+    inv_wu: f32,
+    inv_wv: f32,
+    albedo_back: f32,
+    texel_per_m: f32,
+    caustics: CausticFrame,
+    layers: Option<CausticLayers<'a>>,
+    isa: Isa,
+}
+
+/// A texel coordinate (texels) in 16.16 fixed point, wrapping in i32 like the texture
+/// (the clamp only matters beyond 32 000 texels, far past what the water lets through).
+#[allow(clippy::manual_clamp)]
+#[inline(always)]
+fn fix16(t: f32) -> i32 {
+    // max/min (not clamp) so a NaN lands on -2e9; then the value is in range and the
+    // conversion needs no saturation code (it stays packed).
+    let x = (t * 65536.0).max(-2.0e9).min(2.0e9);
+    // SAFETY: x is finite and within i32's range.
+    unsafe { x.to_int_unchecked::<i32>() }
 }
 
 impl FastRenderer {
@@ -163,10 +214,23 @@ impl FastRenderer {
             frame_id: 0,
             row_x: vec![0.0; nx],
             row_y: vec![0.0; nx],
+            row_forms: vec![0.0; 9 * nx],
+            row_mask: vec![0; nx],
+            row_walks: vec![0; 2 * WALKS * nx],
+            row_affine: vec![false; 2 * nx],
+            row_fields: vec![[0.0; 3]; NSURF * nx],
+            row_stamp: vec![u32::MAX; NSURF * nx],
+            row_id: 0,
             row_mean: vec![0.0; w],
-            row_g: vec![0.0; w],
-            row_idx: vec![0; w],
+            zero_noise: vec![0; w],
+            cell_table: Vec::new(),
+            isa: Isa::detect(false),
         }
+    }
+
+    /// Run the portable loops even on a CPU with AVX2 (tests compare the two builds).
+    pub(crate) fn set_portable(&mut self, portable: bool) {
+        self.isa = Isa::detect(portable);
     }
 
     /// The light fields of `surf` at node `node`, computed on first use this frame.
@@ -215,8 +279,27 @@ impl FastRenderer {
         f
     }
 
-    /// Fields of `surf` at the left end of span `i` of row-cell `j` (vertical weight
-    /// `fy`) and their step per pixel.
+    /// Fields of `surf` at node `i` of the current row (row-cell `j`, vertical weight
+    /// `fy`), computed on first use in the row.
+    #[inline]
+    fn row_field(&mut self, ctx: &FrameCtx, i: usize, j: usize, fy: f32, surf: usize) -> [f32; 3] {
+        let idx = surf * self.nx + i;
+        if self.row_stamp[idx] == self.row_id {
+            return self.row_fields[idx];
+        }
+        let n0 = self.node_fields(ctx, j * self.nx + i, surf);
+        let n1 = self.node_fields(ctx, (j + 1) * self.nx + i, surf);
+        let mut f = [0f32; 3];
+        for c in 0..3 {
+            f[c] = n0[c] + (n1[c] - n0[c]) * fy;
+        }
+        self.row_fields[idx] = f;
+        self.row_stamp[idx] = self.row_id;
+        f
+    }
+
+    /// Fields of `surf` at the left end of span `i` of the current row and their step
+    /// per pixel.
     #[inline]
     fn span_fields(
         &mut self,
@@ -226,23 +309,142 @@ impl FastRenderer {
         fy: f32,
         surf: usize,
     ) -> ([f32; 3], [f32; 3]) {
-        let n00 = self.node_fields(ctx, j * self.nx + i, surf);
-        let n10 = self.node_fields(ctx, j * self.nx + i + 1, surf);
-        let n01 = self.node_fields(ctx, (j + 1) * self.nx + i, surf);
-        let n11 = self.node_fields(ctx, (j + 1) * self.nx + i + 1, surf);
-        let mut f0 = [0f32; 3];
+        let l = self.row_field(ctx, i, j, fy, surf);
+        let r = self.row_field(ctx, i + 1, j, fy, surf);
         let mut df = [0f32; 3];
         for c in 0..3 {
-            let l = n00[c] + (n01[c] - n00[c]) * fy;
-            let r = n10[c] + (n11[c] - n10[c]) * fy;
-            f0[c] = l;
-            df[c] = (r - l) * (1.0 / GRID as f32);
+            df[c] = (r[c] - l[c]) * (1.0 / GRID as f32);
         }
-        (f0, df)
+        (l, df)
+    }
+
+    /// The current row at its nodes: forms, test signs, texel walks (plain loops over
+    /// arrays, so they run on packed registers).
+    #[inline(always)]
+    fn row_nodes(&mut self, ctx: &FrameCtx, pc: &PixelConsts) {
+        let nx = self.nx;
+        let (xs, ys) = (&self.row_x[..nx], &self.row_y[..nx]);
+        for k in 0..3 {
+            let fm = &ctx.forms[k];
+            for (c, coef) in [&fm.d, &fm.u, &fm.v].into_iter().enumerate() {
+                let o = &mut self.row_forms[(k * 3 + c) * nx..(k * 3 + c + 1) * nx];
+                for ((f, &x), &y) in o.iter_mut().zip(xs).zip(ys) {
+                    *f = form(coef, x, y);
+                }
+            }
+        }
+        // The signs of the linear tests that pick the surface (see `Cuts`): a span whose
+        // two nodes agree on all of them shows one surface.
+        let half = pc.half;
+        let (hw, hs) = (ctx.forms[WALL].h, ctx.forms[SEABED].h);
+        let f = |k: usize, c: usize| &self.row_forms[(k * 3 + c) * nx..(k * 3 + c + 1) * nx];
+        let (fdp, fup, fvp, fdw, fds) = (
+            f(PLATE, 0),
+            f(PLATE, 1),
+            f(PLATE, 2),
+            f(WALL, 0),
+            f(SEABED, 0),
+        );
+        let masks = self.row_mask[..nx].iter_mut().zip(fdp).zip(fup).zip(fvp);
+        for ((((m, &dp), &up), &vp), (&dw, &ds)) in masks.zip(fdw.iter().zip(fds)) {
+            *m = (dp > 0.0) as u8
+                | ((up - half * dp > 0.0) as u8) << 1
+                | ((up + half * dp > 0.0) as u8) << 2
+                | ((vp - half * dp > 0.0) as u8) << 3
+                | ((vp + half * dp > 0.0) as u8) << 4
+                | ((dw > 0.0) as u8) << 5
+                | ((ds > 0.0) as u8) << 6
+                | ((hw * ds - hs * dw > 0.0) as u8) << 7;
+        }
+        // Texel walks of the rock planes at the nodes.
+        let tk = pc.texel_per_m;
+        let c = &pc.caustics;
+        let (ck, s2, sh) = (c.texels_per_m, CAUSTIC_LAYER2_SCALE, CAUSTIC_LAYER2_SHIFT);
+        for (p, k) in [WALL, SEABED].into_iter().enumerate() {
+            let d = &self.row_forms[k * 3 * nx..(k * 3 + 1) * nx];
+            let nu = &self.row_forms[(k * 3 + 1) * nx..(k * 3 + 2) * nx];
+            let nv = &self.row_forms[(k * 3 + 2) * nx..(k * 3 + 3) * nx];
+            let ok = &mut self.row_affine[p * nx..(p + 1) * nx];
+            let walks = &mut self.row_walks[p * WALKS * nx..(p + 1) * WALKS * nx];
+            let (ru, rest) = walks.split_at_mut(nx);
+            let (rv, rest) = rest.split_at_mut(nx);
+            let (c0u, rest) = rest.split_at_mut(nx);
+            let (c0v, rest) = rest.split_at_mut(nx);
+            let (c1u, c1v) = rest.split_at_mut(nx);
+            let inv = |d: f32| if d > 1e-6 { 1.0 / d } else { 0.0 };
+            let planes = d.iter().zip(nu).zip(nv);
+            for ((((&d, &nu), &nv), ok), (ru, rv)) in planes.zip(ok).zip(ru.iter_mut().zip(rv)) {
+                *ok = d > 1e-6;
+                let k = inv(d);
+                *ru = fix16(nu * k * tk);
+                *rv = fix16(nv * k * tk);
+            }
+            if c.on {
+                let planes = d.iter().zip(nu).zip(nv);
+                let cu = c0u.iter_mut().zip(c0v).zip(c1u.iter_mut().zip(c1v));
+                for (((&d, &nu), &nv), ((c0u, c0v), (c1u, c1v))) in planes.zip(cu) {
+                    let k = inv(d);
+                    let (u, v) = (nu * k, nv * k);
+                    *c0u = fix16((u + c.off0.0) * ck);
+                    *c0v = fix16((v + c.off0.1) * ck);
+                    *c1u = fix16((u * s2 + c.off1.0) * ck + sh.0);
+                    *c1v = fix16((v * s2 + c.off1.1) * ck + sh.1);
+                }
+            }
+        }
     }
 
     #[allow(clippy::too_many_arguments)]
     pub(crate) fn render(
+        &mut self,
+        model: &CameraModel,
+        scene: &Scene,
+        t_wc: &Isometry3<f64>,
+        lamps: &[WorldLamp],
+        time_s: f64,
+        e_per_unit: f64,
+        tables: &SensorTables,
+        rng: &mut XorShift64Star,
+        out: &mut Frame,
+    ) {
+        #[cfg(target_arch = "x86_64")]
+        if self.isa == Isa::Avx2 {
+            // SAFETY: `Isa::Avx2` is only chosen when the CPU has AVX2.
+            unsafe {
+                return self.render_avx2(
+                    model, scene, t_wc, lamps, time_s, e_per_unit, tables, rng, out,
+                );
+            }
+        }
+        self.render_impl(
+            model, scene, t_wc, lamps, time_s, e_per_unit, tables, rng, out,
+        )
+    }
+
+    /// The same code compiled for AVX2, so its plain loops also run eight wide.
+    #[cfg(target_arch = "x86_64")]
+    #[target_feature(enable = "avx2")]
+    #[allow(clippy::too_many_arguments)]
+    unsafe fn render_avx2(
+        &mut self,
+        model: &CameraModel,
+        scene: &Scene,
+        t_wc: &Isometry3<f64>,
+        lamps: &[WorldLamp],
+        time_s: f64,
+        e_per_unit: f64,
+        tables: &SensorTables,
+        rng: &mut XorShift64Star,
+        out: &mut Frame,
+    ) {
+        self.render_impl(
+            model, scene, t_wc, lamps, time_s, e_per_unit, tables, rng, out,
+        )
+    }
+
+    #[inline(always)]
+    #[allow(clippy::too_many_arguments)]
+    fn render_impl(
         &mut self,
         model: &CameraModel,
         scene: &Scene,
@@ -268,249 +470,338 @@ impl FastRenderer {
             forms,
             e_per_unit,
         };
-        let plate_front = geo[PLATE].glossy;
         let footprint = plate_footprint(model, scene, t_wc, &forms[PLATE]);
-
-        // Per-frame constants of the per-pixel work, in f32.
         let m = scene.marker();
-        let half = scene.plate_half_m() as f32;
-        let cells = m.cells;
-        let cell_per_m = cells as f32 / m.size_m as f32;
-        let half_marker = 0.5 * m.size_m as f32;
-        // Footprint in cells: the width of the box filter over the cell grid.
-        let inv_wu = 1.0 / (footprint.0 as f32 * cell_per_m).max(1e-6);
-        let inv_wv = 1.0 / (footprint.1 as f32 * cell_per_m).max(1e-6);
-        let albedo_white = ALBEDO_WHITE as f32;
-        let albedo_black = ALBEDO_BLACK as f32;
-        let albedo_back = scene.plate_back_albedo() as f32;
-        let texel_per_m = (1.0 / scene.background.texel_m) as f32;
-        let rock = &scene.rock;
+        let cell_per_m = m.cells as f32 / m.size_m as f32;
+        // The cell table, bordered by the white plate (refilled each frame: the scene is
+        // the caller's; no allocation once its size is reached).
+        let mut cell_table = std::mem::take(&mut self.cell_table);
+        let side = m.cells + 2;
+        cell_table.clear();
+        cell_table.extend((0..side * side).map(|k| {
+            let (ci, cj) = ((k % side) as isize - 1, (k / side) as isize - 1);
+            let inside = ci >= 0 && cj >= 0 && (ci as usize) < m.cells && (cj as usize) < m.cells;
+            let white = !inside
+                || m.white
+                    .get(cj as usize * m.cells + ci as usize)
+                    .copied()
+                    .unwrap_or(true);
+            if white {
+                ALBEDO_WHITE as f32
+            } else {
+                ALBEDO_BLACK as f32
+            }
+        }));
+        let caustic = Tex {
+            data: &scene.caustic.data,
+            log2: scene.caustic.log2,
+            scale: scene.caustic.scale,
+            offset: scene.caustic.offset,
+        };
         let caustics = CausticFrame::new(scene, time_s);
-        let gauss = &tables.half_gauss;
-        let gmask = tables.gauss_mask();
-        let lut: &[u8; RESPONSE_LUT_LEN] = &tables.response_lut;
-        let lut_top = (lut.len() - 1) as f32;
-        if !tables.noise {
-            self.row_g.fill(0.0);
-        }
+        let layers = caustics.on.then_some(CausticLayers {
+            tex: caustic,
+            strength: caustics.strength,
+            texels_per_m: caustics.texels_per_m,
+            off0: caustics.off0,
+            off1: caustics.off1,
+            scale2: CAUSTIC_LAYER2_SCALE,
+            shift2: CAUSTIC_LAYER2_SHIFT,
+        });
+        let pc = PixelConsts {
+            scene,
+            plate_front: geo[PLATE].glossy,
+            half: scene.plate_half_m() as f32,
+            cells: m.cells,
+            cell_table: &cell_table,
+            cell_per_m,
+            half_marker: 0.5 * m.size_m as f32,
+            // Footprint in cells: the width of the box filter over the cell grid.
+            inv_wu: 1.0 / (footprint.0 as f32 * cell_per_m).max(1e-6),
+            inv_wv: 1.0 / (footprint.1 as f32 * cell_per_m).max(1e-6),
+            albedo_back: scene.plate_back_albedo() as f32,
+            texel_per_m: (1.0 / scene.background.texel_m) as f32,
+            caustics,
+            layers,
+            isa: self.isa,
+        };
+        let rock = Tex {
+            data: &scene.rock.data,
+            log2: scene.rock.log2,
+            scale: scene.rock.scale,
+            offset: scene.rock.offset,
+        };
+        let sensor = SensorRow {
+            read_var: tables.read_var_e2,
+            per_s: tables.lut_per_s,
+            top: (RESPONSE_LUT_LEN - 1) as f32,
+            lut: &tables.response_lut,
+        };
+        let isa = self.isa;
+        let valid = [forms[PLATE].valid, forms[WALL].valid, forms[SEABED].valid];
+        let surf_of_mask: [usize; 256] = std::array::from_fn(|m| surface_of_mask(m as u8, valid));
 
         let (w, h, nx) = (self.width, self.height, self.nx);
-        let cell_albedo = |ci: i32, cj: i32| -> f32 {
-            // Outside the printed square is the white plate.
-            let outside = ci < 0 || cj < 0 || ci >= cells as i32 || cj >= cells as i32;
-            if outside || m.white[cj as usize * cells + ci as usize] {
-                albedo_white
-            } else {
-                albedo_black
-            }
-        };
-
         for (py, row) in out.data.chunks_exact_mut(w).enumerate().take(h) {
+            self.row_id = self.row_id.wrapping_add(1);
+            if self.row_id == u32::MAX {
+                self.row_stamp.fill(u32::MAX - 1);
+                self.row_id = 0;
+            }
             let j = py / GRID;
             let fy = (py - j * GRID) as f32 * (1.0 / GRID as f32);
-            for i in 0..nx {
-                let a = j * nx + i;
-                let b = a + nx;
-                self.row_x[i] = self.node_x[a] + (self.node_x[b] - self.node_x[a]) * fy;
-                self.row_y[i] = self.node_y[a] + (self.node_y[b] - self.node_y[a]) * fy;
+            for (row, nodes) in [
+                (&mut self.row_x, &self.node_x),
+                (&mut self.row_y, &self.node_y),
+            ] {
+                let (top, bottom) = nodes[j * nx..(j + 2) * nx].split_at(nx);
+                for ((r, &a), &b) in row.iter_mut().zip(top).zip(bottom) {
+                    *r = a + (b - a) * fy;
+                }
             }
+            self.row_nodes(&ctx, &pc);
             let mut row_mean = std::mem::take(&mut self.row_mean);
-            for i in 0..nx - 1 {
+            let spans = nx - 1;
+            let mut i = 0;
+            while i < spans && i * GRID < w {
                 let x0 = i * GRID;
-                if x0 >= w {
-                    break;
+                let mk = self.row_mask[i];
+                if mk != self.row_mask[i + 1] {
+                    let x1 = (x0 + GRID).min(w);
+                    self.mixed_span(&ctx, &pc, i, j, fy, &mut row_mean[x0..x1]);
+                    i += 1;
+                    continue;
                 }
-                let x1 = (x0 + GRID).min(w);
-                let n = x1 - x0;
-                let (xa, ya) = (self.row_x[i], self.row_y[i]);
-                let (xb, yb) = (self.row_x[i + 1], self.row_y[i + 1]);
-                // Linear forms of every plane at the span start and their step per pixel.
-                let mut sp = Span::default();
-                for k in 0..3 {
-                    let fm = &ctx.forms[k];
-                    for (c, coef) in [&fm.d, &fm.u, &fm.v].into_iter().enumerate() {
-                        let s = form(coef, xa, ya);
-                        sp.f0[k][c] = s;
-                        sp.df[k][c] = (form(coef, xb, yb) - s) * (1.0 / GRID as f32);
+                // A run of spans whose nodes all agree on every surface test: one
+                // surface over the whole run, shaded by the packed loops.
+                let mut i1 = i + 1;
+                while i1 < spans && i1 * GRID < w && self.row_mask[i1 + 1] == mk {
+                    i1 += 1;
+                }
+                let surf = surf_of_mask[mk as usize];
+                let p = surf.wrapping_sub(WALL);
+                let affine = p < 2 && self.row_affine[p * nx + i..=p * nx + i1].iter().all(|&a| a);
+                if surf == WATER || affine {
+                    for k in i..=i1 {
+                        self.row_field(&ctx, k, j, fy, surf);
                     }
                 }
-                // Every test that picks the surface is the sign of a linear function of
-                // the pixel (u = Nu / D is monotonic while D > 0): between their roots
-                // the surface is the same, so the span splits into runs of one surface.
-                let mut cuts = Cuts::new(n);
-                let (p0, pd) = (sp.f0[PLATE], sp.df[PLATE]);
-                cuts.root(p0[0], pd[0]);
-                for c in 1..3 {
-                    cuts.root(p0[c] - half * p0[0], pd[c] - half * pd[0]);
-                    cuts.root(p0[c] + half * p0[0], pd[c] + half * pd[0]);
+                let out = &mut row_mean[x0..(i1 * GRID).min(w)];
+                if surf == WATER {
+                    let f = &self.row_fields[surf * nx + i..=surf * nx + i1];
+                    for (s, o) in out.chunks_mut(GRID).enumerate() {
+                        let (a, b) = (f[s][2], f[s + 1][2]);
+                        ramp_run(
+                            o,
+                            Ramp {
+                                at: a,
+                                step: (b - a) * (1.0 / GRID as f32),
+                            },
+                        );
+                    }
+                } else if affine {
+                    let wk = |k: usize| {
+                        let base = (p * WALKS + k) * nx;
+                        &self.row_walks[base + i..=base + i1]
+                    };
+                    let nodes = RockNodes {
+                        fields: &self.row_fields[surf * nx + i..=surf * nx + i1],
+                        walks: [wk(0), wk(1), wk(2), wk(3), wk(4), wk(5)],
+                    };
+                    let c = pc.caustics.on.then_some((caustic, pc.caustics.strength));
+                    rock_nodes_run(isa, out, &nodes, rock, c);
+                } else {
+                    for k in i..i1 {
+                        let x1 = ((k + 1) * GRID).min(w);
+                        self.mixed_span(&ctx, &pc, k, j, fy, &mut row_mean[k * GRID..x1]);
+                    }
                 }
-                cuts.root(sp.f0[WALL][0], sp.df[WALL][0]);
-                cuts.root(sp.f0[SEABED][0], sp.df[SEABED][0]);
-                let (hw, hs) = (ctx.forms[WALL].h, ctx.forms[SEABED].h);
-                cuts.root(
-                    hw * sp.f0[SEABED][0] - hs * sp.f0[WALL][0],
-                    hw * sp.df[SEABED][0] - hs * sp.df[WALL][0],
-                );
-                cuts.sort(n);
-                let mut ready = [false; NSURF];
-                let mut lf = [([0f32; 3], [0f32; 3]); NSURF];
-                let out = &mut row_mean[x0..x1];
-                let mut start = 0usize;
-                for c in 0..=cuts.n {
-                    let end = if c < cuts.n { cuts.at[c] } else { n };
-                    if end <= start {
-                        continue;
+                i = i1;
+            }
+            // The sensor: a window of the noise field at a random offset per row.
+            let noise = if tables.noise {
+                let field = &tables.noise_field;
+                let room = field.len().saturating_sub(w) + 1;
+                let off = ((rng.next_u64() >> 32) as usize) % room;
+                &field[off..(off + w).min(field.len())]
+            } else {
+                &self.zero_noise[..]
+            };
+            sensor_run(isa, row, &row_mean, noise, &sensor);
+            self.row_mean = row_mean;
+        }
+        self.cell_table = cell_table;
+    }
+
+    /// A span that may show several surfaces (or the plate, or the horizon): split at
+    /// the roots of the surface tests into runs of one surface, each shaded per pixel.
+    #[inline(always)]
+    fn mixed_span(
+        &mut self,
+        ctx: &FrameCtx,
+        pc: &PixelConsts,
+        i: usize,
+        j: usize,
+        fy: f32,
+        out: &mut [f32],
+    ) {
+        let n = out.len();
+        let nx = self.nx;
+        let half = pc.half;
+        let scene = pc.scene;
+        let caustics = &pc.caustics;
+        let rock = &scene.rock;
+        // Linear forms of every plane at the span start and their step per pixel.
+        let mut sp = Span::default();
+        for k in 0..3 {
+            for c in 0..3 {
+                let a = self.row_forms[(k * 3 + c) * nx + i];
+                let b = self.row_forms[(k * 3 + c) * nx + i + 1];
+                sp.f0[k][c] = a;
+                sp.df[k][c] = (b - a) * (1.0 / GRID as f32);
+            }
+        }
+        // Every test that picks the surface is the sign of a linear function of the
+        // pixel (u = Nu / D is monotonic while D > 0): between their roots the surface
+        // is the same, so the span splits into runs of one surface.
+        let mut cuts = Cuts::new(n);
+        let (p0, pd) = (sp.f0[PLATE], sp.df[PLATE]);
+        cuts.root(p0[0], pd[0]);
+        for c in 1..3 {
+            cuts.root(p0[c] - half * p0[0], pd[c] - half * pd[0]);
+            cuts.root(p0[c] + half * p0[0], pd[c] + half * pd[0]);
+        }
+        cuts.root(sp.f0[WALL][0], sp.df[WALL][0]);
+        cuts.root(sp.f0[SEABED][0], sp.df[SEABED][0]);
+        let (hw, hs) = (ctx.forms[WALL].h, ctx.forms[SEABED].h);
+        cuts.root(
+            hw * sp.f0[SEABED][0] - hs * sp.f0[WALL][0],
+            hw * sp.df[SEABED][0] - hs * sp.df[WALL][0],
+        );
+        cuts.sort(n);
+        let mut ready = [false; NSURF];
+        let mut lf = [([0f32; 3], [0f32; 3]); NSURF];
+        let mut start = 0usize;
+        for c in 0..=cuts.n {
+            let end = if c < cuts.n { cuts.at[c] } else { n };
+            if end <= start {
+                continue;
+            }
+            let surf = classify(&sp, &ctx.forms, half, ((start + end - 1) / 2) as f32);
+            if !ready[surf] {
+                lf[surf] = self.span_fields(ctx, i, j, fy, surf);
+                ready[surf] = true;
+            }
+            let (a0, ad) = lf[surf];
+            let run = &mut out[start..end];
+            let first = start as f32;
+            match surf {
+                WATER => {
+                    for (t, m) in run.iter_mut().enumerate() {
+                        *m = a0[2] + ad[2] * (first + t as f32);
                     }
-                    let surf = classify(&sp, &ctx.forms, half, ((start + end - 1) / 2) as f32);
-                    if !ready[surf] {
-                        lf[surf] = self.span_fields(&ctx, i, j, fy, surf);
-                        ready[surf] = true;
+                }
+                PLATE if pc.plate_front => {
+                    let r = PlateRun {
+                        d: Ramp {
+                            at: p0[0],
+                            step: pd[0],
+                        },
+                        nu: Ramp {
+                            at: p0[1],
+                            step: pd[1],
+                        },
+                        nv: Ramp {
+                            at: p0[2],
+                            step: pd[2],
+                        },
+                        half_marker: pc.half_marker,
+                        cell_per_m: pc.cell_per_m,
+                        inv_wu: pc.inv_wu,
+                        inv_wv: pc.inv_wv,
+                        cells: pc.cell_table,
+                        side: pc.cells as i32 + 2,
+                        caustic: pc.layers,
+                        ambient: Ramp {
+                            at: a0[0],
+                            step: ad[0],
+                        },
+                        lamp: Ramp {
+                            at: a0[1],
+                            step: ad[1],
+                        },
+                        add: Ramp {
+                            at: a0[2],
+                            step: ad[2],
+                        },
+                    };
+                    plate_run(pc.isa, run, start, &r);
+                }
+                PLATE => {
+                    for (t, m) in run.iter_mut().enumerate() {
+                        let t = first + t as f32;
+                        *m = pc.albedo_back * (a0[0] + ad[0] * t + a0[1] + ad[1] * t)
+                            + a0[2]
+                            + ad[2] * t;
                     }
-                    let (a0, ad) = lf[surf];
-                    let run = &mut out[start..end];
-                    let first = start as f32;
-                    match surf {
-                        WATER => {
-                            for (t, m) in run.iter_mut().enumerate() {
-                                *m = a0[2] + ad[2] * (first + t as f32);
+                }
+                k => {
+                    let (f0, fd) = (sp.f0[k], sp.df[k]);
+                    let texel_per_m = pc.texel_per_m;
+                    // Surface coordinates are affine along a 16-pixel span to well under
+                    // a texel (the division would cost more than the rest): exact at
+                    // both ends, stepped in 16.16 fixed point.
+                    let d_end = f0[0] + fd[0] * GRID as f32;
+                    let affine = (f0[0] > 1e-6 && d_end > 1e-6).then(|| {
+                        let (u0, v0) = (f0[1] / f0[0], f0[2] / f0[0]);
+                        let u1 = (f0[1] + fd[1] * GRID as f32) / d_end;
+                        let v1 = (f0[2] + fd[2] * GRID as f32) / d_end;
+                        let g = 1.0 / GRID as f32;
+                        (u0, (u1 - u0) * g, v0, (v1 - v0) * g)
+                    });
+                    let mut fields = Stepper::new(a0, ad, first);
+                    match affine.and_then(|(u0, du, v0, dv)| {
+                        RockSteps::new(u0, du, v0, dv, first, texel_per_m, caustics)
+                    }) {
+                        Some(mut st) => {
+                            let ct = &scene.caustic;
+                            for m in run.iter_mut() {
+                                let albedo = rock.at(st.ru.get(), st.rv.get());
+                                let c = if caustics.on {
+                                    caustics.combine(
+                                        ct.at(st.c0u.get(), st.c0v.get()),
+                                        ct.at(st.c1u.get(), st.c1v.get()),
+                                    )
+                                } else {
+                                    1.0
+                                };
+                                *m = albedo * (fields.v[0] * c + fields.v[1]) + fields.v[2];
+                                st.step();
+                                fields.step();
                             }
                         }
-                        PLATE if plate_front => {
-                            let (d0, dd) = (p0[0], pd[0]);
+                        None => {
+                            // Near the horizon: exact per pixel.
                             for (t, m) in run.iter_mut().enumerate() {
                                 let t = first + t as f32;
-                                let inv = 1.0 / (d0 + dd * t);
-                                let u = (p0[1] + pd[1] * t) * inv;
-                                let v = (p0[2] + pd[2] * t) * inv;
-                                // Box filter of the cells over the pixel footprint.
-                                let cu = (u + half_marker) * cell_per_m;
-                                let cv = (half_marker - v) * cell_per_m;
-                                let (iu, iv) = (floor_i32(cu + 0.5), floor_i32(cv + 0.5));
-                                let au = ((iu as f32 - cu) * inv_wu + 0.5).clamp(0.0, 1.0);
-                                let av = ((iv as f32 - cv) * inv_wv + 0.5).clamp(0.0, 1.0);
-                                let albedo = au
-                                    * (av * cell_albedo(iu - 1, iv - 1)
-                                        + (1.0 - av) * cell_albedo(iu - 1, iv))
-                                    + (1.0 - au)
-                                        * (av * cell_albedo(iu, iv - 1)
-                                            + (1.0 - av) * cell_albedo(iu, iv));
+                                let inv = 1.0 / (f0[0] + fd[0] * t);
+                                let u = (f0[1] + fd[1] * t) * inv;
+                                let v = (f0[2] + fd[2] * t) * inv;
+                                let tk = texel_per_m;
+                                let albedo = rock.at(floor_i32(u * tk), floor_i32(v * tk));
                                 let c = if caustics.on {
                                     caustics.at(scene, u, v)
                                 } else {
                                     1.0
                                 };
-                                *m = albedo * ((a0[0] + ad[0] * t) * c + a0[1] + ad[1] * t)
-                                    + a0[2]
-                                    + ad[2] * t;
-                            }
-                        }
-                        PLATE => {
-                            for (t, m) in run.iter_mut().enumerate() {
-                                let t = first + t as f32;
-                                *m = albedo_back * (a0[0] + ad[0] * t + a0[1] + ad[1] * t)
-                                    + a0[2]
-                                    + ad[2] * t;
-                            }
-                        }
-                        k => {
-                            let (f0, fd) = (sp.f0[k], sp.df[k]);
-                            // Surface coordinates are affine along a 16-pixel span to well
-                            // under a texel (the division would cost more than the rest):
-                            // exact at both ends, stepped in 16.16 fixed point.
-                            let d_end = f0[0] + fd[0] * GRID as f32;
-                            let affine = (f0[0] > 1e-6 && d_end > 1e-6).then(|| {
-                                let (u0, v0) = (f0[1] / f0[0], f0[2] / f0[0]);
-                                let u1 = (f0[1] + fd[1] * GRID as f32) / d_end;
-                                let v1 = (f0[2] + fd[2] * GRID as f32) / d_end;
-                                let g = 1.0 / GRID as f32;
-                                (u0, (u1 - u0) * g, v0, (v1 - v0) * g)
-                            });
-                            let mut fields = Stepper::new(a0, ad, first);
-                            match affine.and_then(|(u0, du, v0, dv)| {
-                                RockSteps::new(u0, du, v0, dv, first, texel_per_m, &caustics)
-                            }) {
-                                Some(mut st) if !caustics.on => {
-                                    // Daylight and lamps add up before the albedo.
-                                    let (l, ld) =
-                                        (fields.v[0] + fields.v[1], fields.d[0] + fields.d[1]);
-                                    let (a, ad) = (fields.v[2], fields.d[2]);
-                                    // albedo = offset + scale * byte: fold both into the
-                                    // light terms so a pixel is one multiply-add.
-                                    let (ts, to) = (rock.scale, rock.offset);
-                                    let (mut ls, lds) = (l * ts, ld * ts);
-                                    let (mut ao, aod) = (a + l * to, ad + ld * to);
-                                    let (tex, mask, shift) =
-                                        (&rock.data[..], rock.mask(), rock.log2);
-                                    for m in run.iter_mut() {
-                                        let tx = (st.ru.at >> 16) as usize & mask;
-                                        let ty = (st.rv.at >> 16) as usize & mask;
-                                        let b = tex.get((ty << shift) | tx).copied().unwrap_or(0);
-                                        *m = b as f32 * ls + ao;
-                                        st.step_rock();
-                                        ls += lds;
-                                        ao += aod;
-                                    }
-                                }
-                                Some(mut st) => {
-                                    let ct = &scene.caustic;
-                                    for m in run.iter_mut() {
-                                        let albedo = rock.at(st.ru.get(), st.rv.get());
-                                        let c = caustics.combine(
-                                            ct.at(st.c0u.get(), st.c0v.get()),
-                                            ct.at(st.c1u.get(), st.c1v.get()),
-                                        );
-                                        *m = albedo * (fields.v[0] * c + fields.v[1]) + fields.v[2];
-                                        st.step();
-                                        fields.step();
-                                    }
-                                }
-                                None => {
-                                    // Near the horizon: exact per pixel.
-                                    for (t, m) in run.iter_mut().enumerate() {
-                                        let t = first + t as f32;
-                                        let inv = 1.0 / (f0[0] + fd[0] * t);
-                                        let u = (f0[1] + fd[1] * t) * inv;
-                                        let v = (f0[2] + fd[2] * t) * inv;
-                                        let tk = texel_per_m;
-                                        let albedo = rock.at(floor_i32(u * tk), floor_i32(v * tk));
-                                        let c = if caustics.on {
-                                            caustics.at(scene, u, v)
-                                        } else {
-                                            1.0
-                                        };
-                                        *m = albedo * (fields.v[0] * c + fields.v[1]) + fields.v[2];
-                                        fields.step();
-                                    }
-                                }
+                                *m = albedo * (fields.v[0] * c + fields.v[1]) + fields.v[2];
+                                fields.step();
                             }
                         }
                     }
-                    start = end;
                 }
             }
-            // The sensor, in three passes so the arithmetic one vectorizes.
-            if tables.noise {
-                // Four 16-bit picks per 64-bit draw.
-                for quad in self.row_g.chunks_mut(4) {
-                    let mut bits = rng.next_u64();
-                    for g in quad {
-                        *g = gauss[(bits as usize) & gmask];
-                        bits >>= 16;
-                    }
-                }
-            }
-            let (r2, per_s, top) = (tables.read_var_e2, tables.lut_per_s, lut_top);
-            // Float only, so it runs on packed registers: the square root, then the table
-            // index made an integer by the 2^23 trick (adding 2^23 to a float in
-            // [0, 2^23) leaves the rounded integer in its mantissa bits).
-            for ((ix, &m), &g) in self.row_idx.iter_mut().zip(&row_mean).zip(&self.row_g) {
-                let s = (m.max(0.0) + r2).sqrt() + g;
-                *ix = ((s * per_s).clamp(0.0, top) + 8_388_608.0).to_bits() & 0x7F_FFFF;
-            }
-            for (px, &ix) in row.iter_mut().zip(&self.row_idx) {
-                *px = lut[ix as usize & (RESPONSE_LUT_LEN - 1)];
-            }
-            self.row_mean = row_mean;
+            start = end;
         }
     }
 }
@@ -568,6 +859,27 @@ impl Cuts {
         for (a, r) in self.at.iter_mut().zip(raw.iter()) {
             *a = ((floor_i32(*r) + 1).max(0) as usize).min(len);
         }
+    }
+}
+
+/// The surface seen where the surface tests have the signs `mask` (bits as in
+/// `FastRenderer::row_nodes`), `valid` the planes that face the camera: what
+/// [`classify`] decides from the same signs.
+fn surface_of_mask(mask: u8, valid: [bool; 3]) -> usize {
+    let bit = |b: u32| mask & (1 << b) != 0;
+    // In front, |Nu| <= half D and |Nv| <= half D.
+    if valid[PLATE] && bit(0) && !bit(1) && bit(2) && !bit(3) && bit(4) {
+        return PLATE;
+    }
+    let wall_ok = valid[WALL] && bit(5);
+    let sea_ok = valid[SEABED] && bit(6);
+    // The wall is nearer when h_w D_s - h_s D_w < 0.
+    if wall_ok && (!sea_ok || !bit(7)) {
+        WALL
+    } else if sea_ok {
+        SEABED
+    } else {
+        WATER
     }
 }
 

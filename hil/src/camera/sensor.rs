@@ -15,6 +15,10 @@ pub(crate) const RESPONSE_LUT_LEN: usize = 1 << 12;
 /// Entries of the Gaussian table (power of two: indexed with a mask). 16 KB: it stays in
 /// L1 beside the response table while a frame renders.
 const GAUSS_LOG2: u32 = 12;
+/// Samples in the noise field the fast renderer reads rows from (512 KB of i16): a row
+/// takes a window at a random offset, so two rows share (shifted) noise with a
+/// probability of about 2 width / NOISE_LEN, 1 % at 1440 pixels.
+const NOISE_LEN: usize = 1 << 18;
 
 /// xorshift64*: fast, seeded, good enough to pick Gaussian table entries.
 #[derive(Debug, Clone)]
@@ -43,6 +47,9 @@ pub(crate) struct SensorTables {
     /// Halves of standard normal samples (`g / 2`), normalized to exact mean 0 and
     /// variance 1/4.
     pub(crate) half_gauss: Vec<f32>,
+    /// Halves of standard normal samples in units of `kernels::NOISE_SCALE`, same
+    /// normalization, at least two rows long.
+    pub(crate) noise_field: Vec<i16>,
     /// Grey level for `s = i * s_step` (see the module doc), rounded.
     pub(crate) response_lut: Box<[u8; RESPONSE_LUT_LEN]>,
     /// Table index per unit of `s`.
@@ -73,6 +80,7 @@ impl SensorTables {
             .iter()
             .map(|g| (0.5 * (g - mean) / sd) as f32)
             .collect();
+        let noise_field = noise_field(&mut rng, NOISE_LEN.max(2 * model.width as usize));
 
         let s = &model.sensor;
         let gain = 10f64.powf(model.gain_db / 20.0);
@@ -91,6 +99,7 @@ impl SensorTables {
         }
         Self {
             half_gauss,
+            noise_field,
             response_lut,
             lut_per_s: (1.0 / s_step) as f32,
             read_var_e2: read_var as f32,
@@ -112,6 +121,28 @@ impl SensorTables {
         let idx = (s * self.lut_per_s + 0.5).clamp(0.0, (RESPONSE_LUT_LEN - 1) as f32) as usize;
         self.response_lut[idx]
     }
+}
+
+/// `n` halves of standard normal samples (Box-Muller, normalized to mean 0 and variance
+/// 1/4) in units of `NOISE_SCALE`.
+fn noise_field(rng: &mut super::super::scene::SplitMix64, n: usize) -> Vec<i16> {
+    let mut g = Vec::with_capacity(n + 1);
+    while g.len() < n {
+        let u1 = rng.next_f64().max(1e-300);
+        let u2 = rng.next_f64();
+        let r = (-2.0 * u1.ln()).sqrt();
+        let a = std::f64::consts::TAU * u2;
+        g.push(r * a.cos());
+        g.push(r * a.sin());
+    }
+    g.truncate(n);
+    let mean = g.iter().sum::<f64>() / n as f64;
+    let var = g.iter().map(|v| (v - mean).powi(2)).sum::<f64>() / n as f64;
+    let sd = var.sqrt().max(1e-12);
+    let k = 0.5 / sd / super::kernels::NOISE_SCALE as f64;
+    g.iter()
+        .map(|v| ((v - mean) * k).round().clamp(-32767.0, 32767.0) as i16)
+        .collect()
 }
 
 /// Electrons per unit of exitance (W/m2) during an exposure of `exposure_us`.

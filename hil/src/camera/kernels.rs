@@ -1,0 +1,695 @@
+//! The per-pixel loops of the fast renderer, each in two builds that give bit-identical
+//! results: a portable one (scalar, what a CPU without AVX2 runs) and an AVX2 one (eight
+//! pixels per instruction, texels fetched with gathers). Both evaluate the same formula
+//! with the same f32 operations in the same order (no FMA: Rust never contracts a
+//! multiply and an add on its own), so a frame does not depend on the CPU it was
+//! rendered on; `tests/camera_fast.rs` checks it.
+
+/// Scale of the stored noise field: `value as f32 * NOISE_SCALE` is half a standard
+/// normal sample (a power of two, so the conversion is exact in both builds).
+pub(crate) const NOISE_SCALE: f32 = 1.0 / 4096.0;
+/// Bytes a texture must hold past its last texel for the gathers (each reads 4 bytes).
+pub(crate) const TEXTURE_PAD: usize = 3;
+
+/// A byte texture for the loops: `value = offset + scale * byte`, side `1 << log2`,
+/// `data` at least `side^2 + TEXTURE_PAD` long.
+#[derive(Clone, Copy)]
+pub(crate) struct Tex<'a> {
+    pub(crate) data: &'a [u8],
+    pub(crate) log2: u32,
+    pub(crate) scale: f32,
+    pub(crate) offset: f32,
+}
+
+impl Tex<'_> {
+    #[inline(always)]
+    fn mask(&self) -> i32 {
+        (1i32 << self.log2) - 1
+    }
+
+    /// Whether the gathers may read this texture (padding present).
+    pub(crate) fn gather_safe(&self) -> bool {
+        self.log2 <= 15 && self.data.len() >= (1usize << (2 * self.log2)) + TEXTURE_PAD
+    }
+
+    /// Byte at 16.16 fixed-point texel coordinates (wrapping).
+    #[inline(always)]
+    fn byte(&self, u: i32, v: i32) -> f32 {
+        let m = self.mask();
+        let i = (((v >> 16) & m) << self.log2) | ((u >> 16) & m);
+        self.data.get(i as usize).copied().unwrap_or(0) as f32
+    }
+}
+
+/// A 16.16 fixed-point texel coordinate along a run: `at + step * t` (wrapping).
+#[derive(Debug, Clone, Copy, Default)]
+pub(crate) struct Walk {
+    pub(crate) at: i32,
+    pub(crate) step: i32,
+}
+
+impl Walk {
+    #[inline(always)]
+    fn get(&self, t: i32) -> i32 {
+        self.at.wrapping_add(self.step.wrapping_mul(t))
+    }
+}
+
+/// A quantity linear along a run: `at + step * t`.
+#[derive(Debug, Clone, Copy, Default)]
+pub(crate) struct Ramp {
+    pub(crate) at: f32,
+    pub(crate) step: f32,
+}
+
+impl Ramp {
+    #[inline(always)]
+    fn get(&self, t: f32) -> f32 {
+        self.at + self.step * t
+    }
+}
+
+/// Rock without caustics: `byte * scaled_light + offset_light` (the rock's albedo scale
+/// and offset folded into the light terms by the caller).
+pub(crate) struct RockRun<'a> {
+    pub(crate) tex: Tex<'a>,
+    pub(crate) u: Walk,
+    pub(crate) v: Walk,
+    pub(crate) light: Ramp,
+    pub(crate) add: Ramp,
+}
+
+/// Rock under caustics: `albedo * (ambient * c + lamp) + add`, with
+/// `c = 1 + strength * (0.5 * (c0 + c1) - 1)` from two caustic layers.
+pub(crate) struct CausticRockRun<'a> {
+    pub(crate) rock: Tex<'a>,
+    pub(crate) caustic: Tex<'a>,
+    pub(crate) u: Walk,
+    pub(crate) v: Walk,
+    pub(crate) c0u: Walk,
+    pub(crate) c0v: Walk,
+    pub(crate) c1u: Walk,
+    pub(crate) c1v: Walk,
+    pub(crate) strength: f32,
+    pub(crate) ambient: Ramp,
+    pub(crate) lamp: Ramp,
+    pub(crate) add: Ramp,
+}
+
+/// The light fields of a rock plane at the nodes of a run of spans (ambient, lamp,
+/// additive; see `fast.rs`), and its texel walks at the same nodes (16.16, wrapping):
+/// rock u, v, then (under caustics) both caustic layers' u, v.
+pub(crate) struct RockNodes<'a> {
+    pub(crate) fields: &'a [[f32; 3]],
+    pub(crate) walks: [&'a [i32]; 6],
+}
+
+impl RockNodes<'_> {
+    /// Walk `w` along span `s` (16 pixels: an arithmetic shift divides the delta).
+    #[inline(always)]
+    fn walk(&self, w: usize, s: usize) -> Walk {
+        let (a, b) = (self.walks[w][s], self.walks[w][s + 1]);
+        Walk {
+            at: a,
+            step: b.wrapping_sub(a) >> 4,
+        }
+    }
+
+    /// Field `c` along span `s`.
+    #[inline(always)]
+    fn ramp(&self, c: usize, s: usize) -> Ramp {
+        let (a, b) = (self.fields[s][c], self.fields[s + 1][c]);
+        Ramp {
+            at: a,
+            step: (b - a) * (1.0 / 16.0),
+        }
+    }
+
+    /// Span `s` without caustics: daylight and lamps add up before the albedo, and the
+    /// albedo's scale and offset fold into the light terms (one multiply-add a pixel).
+    #[inline(always)]
+    fn rock_run<'t>(&self, tex: Tex<'t>, s: usize) -> RockRun<'t> {
+        let (a, l, d) = (self.ramp(0, s), self.ramp(1, s), self.ramp(2, s));
+        let (l0, ld) = (a.at + l.at, a.step + l.step);
+        RockRun {
+            tex,
+            u: self.walk(0, s),
+            v: self.walk(1, s),
+            light: Ramp {
+                at: l0 * tex.scale,
+                step: ld * tex.scale,
+            },
+            add: Ramp {
+                at: d.at + l0 * tex.offset,
+                step: d.step + ld * tex.offset,
+            },
+        }
+    }
+
+    #[inline(always)]
+    fn caustic_run<'t>(
+        &self,
+        rock: Tex<'t>,
+        caustic: Tex<'t>,
+        strength: f32,
+        s: usize,
+    ) -> CausticRockRun<'t> {
+        CausticRockRun {
+            rock,
+            caustic,
+            u: self.walk(0, s),
+            v: self.walk(1, s),
+            c0u: self.walk(2, s),
+            c0v: self.walk(3, s),
+            c1u: self.walk(4, s),
+            c1v: self.walk(5, s),
+            strength,
+            ambient: self.ramp(0, s),
+            lamp: self.ramp(1, s),
+            add: self.ramp(2, s),
+        }
+    }
+}
+
+/// Rock over a run of 16-pixel spans (`out` starts at the run's first node; the last
+/// span may be short). `caustic` is the caustic texture and strength when caustics are on.
+#[inline(always)]
+pub(crate) fn rock_nodes_run(
+    isa: Isa,
+    out: &mut [f32],
+    nodes: &RockNodes,
+    rock: Tex,
+    caustic: Option<(Tex, f32)>,
+) {
+    let gather_ok = rock.gather_safe() && caustic.is_none_or(|(c, _)| c.gather_safe());
+    match isa {
+        #[cfg(target_arch = "x86_64")]
+        // SAFETY: Avx2 is only chosen when the CPU has it; the textures are padded.
+        Isa::Avx2 if gather_ok => unsafe { avx2::rock_nodes_run(out, nodes, rock, caustic) },
+        _ => {
+            let spans = nodes.fields.len().saturating_sub(1);
+            for (s, o) in out.chunks_mut(16).enumerate().take(spans) {
+                match caustic {
+                    None => {
+                        let r = nodes.rock_run(rock, s);
+                        for (t, m) in o.iter_mut().enumerate() {
+                            *m = rock_px(&r, t as i32);
+                        }
+                    }
+                    Some((c, k)) => {
+                        let r = nodes.caustic_run(rock, c, k, s);
+                        for (t, m) in o.iter_mut().enumerate() {
+                            *m = caustic_rock_px(&r, t as i32);
+                        }
+                    }
+                }
+            }
+        }
+    }
+}
+
+/// The caustic layers in texel units for one frame (see `CausticFrame` in `fast.rs`).
+#[derive(Clone, Copy)]
+pub(crate) struct CausticLayers<'a> {
+    pub(crate) tex: Tex<'a>,
+    pub(crate) strength: f32,
+    pub(crate) texels_per_m: f32,
+    pub(crate) off0: (f32, f32),
+    pub(crate) off1: (f32, f32),
+    pub(crate) scale2: f32,
+    pub(crate) shift2: (f32, f32),
+}
+
+/// The front of the marker plate along one run: the cells box-filtered over the pixel
+/// footprint (anti-aliased edges), caustics optional.
+pub(crate) struct PlateRun<'a> {
+    /// `D`, `Nu`, `Nv` of the plate along the run, from its first pixel.
+    pub(crate) d: Ramp,
+    pub(crate) nu: Ramp,
+    pub(crate) nv: Ramp,
+    pub(crate) half_marker: f32,
+    pub(crate) cell_per_m: f32,
+    pub(crate) inv_wu: f32,
+    pub(crate) inv_wv: f32,
+    /// Cell albedos with a one-cell white border, `side` = cells + 2 per row.
+    pub(crate) cells: &'a [f32],
+    pub(crate) side: i32,
+    pub(crate) caustic: Option<CausticLayers<'a>>,
+    pub(crate) ambient: Ramp,
+    pub(crate) lamp: Ramp,
+    pub(crate) add: Ramp,
+}
+
+impl PlateRun<'_> {
+    /// Whether the packed loop may read `cells` at every clamped index.
+    fn gather_safe(&self) -> bool {
+        self.side >= 3
+            && self.cells.len() >= (self.side * self.side) as usize
+            && self.caustic.is_none_or(|c| c.tex.gather_safe())
+    }
+
+    /// Cell (ci, cj) of the printed grid (-1 and `cells` are the white border).
+    #[inline(always)]
+    fn cell(&self, ci: i32, cj: i32) -> f32 {
+        let hi = self.side - 2;
+        let (ci, cj) = (ci.clamp(-1, hi), cj.clamp(-1, hi));
+        let i = (cj + 1) * self.side + ci + 1;
+        self.cells.get(i as usize).copied().unwrap_or(0.0)
+    }
+}
+
+/// floor() as an integer without a libm call (baseline x86-64 has no rounding
+/// instruction); exact, like the packed build's rounding instruction.
+#[inline(always)]
+fn floor_i32(x: f32) -> i32 {
+    let i = x as i32;
+    i - ((i as f32) > x) as i32
+}
+
+// max then min, not clamp: a NaN lands on the bound, as the packed max/min do.
+#[allow(clippy::manual_clamp)]
+#[inline(always)]
+fn plate_px(r: &PlateRun, t: f32) -> f32 {
+    let inv = 1.0 / r.d.get(t);
+    let u = r.nu.get(t) * inv;
+    let v = r.nv.get(t) * inv;
+    let cu = (u + r.half_marker) * r.cell_per_m;
+    let cv = (r.half_marker - v) * r.cell_per_m;
+    let (iu, iv) = (floor_i32(cu + 0.5), floor_i32(cv + 0.5));
+    let au = ((iu as f32 - cu) * r.inv_wu + 0.5).max(0.0).min(1.0);
+    let av = ((iv as f32 - cv) * r.inv_wv + 0.5).max(0.0).min(1.0);
+    let left = av * r.cell(iu - 1, iv - 1) + (1.0 - av) * r.cell(iu - 1, iv);
+    let right = av * r.cell(iu, iv - 1) + (1.0 - av) * r.cell(iu, iv);
+    let albedo = au * left + (1.0 - au) * right;
+    let c = match &r.caustic {
+        Some(l) => {
+            let k = l.texels_per_m;
+            let t0 = l.tex.byte(
+                floor_i32((u + l.off0.0) * k) << 16,
+                floor_i32((v + l.off0.1) * k) << 16,
+            );
+            let t1 = l.tex.byte(
+                floor_i32((u * l.scale2 + l.off1.0) * k + l.shift2.0) << 16,
+                floor_i32((v * l.scale2 + l.off1.1) * k + l.shift2.1) << 16,
+            );
+            let (c0, c1) = (
+                l.tex.offset + l.tex.scale * t0,
+                l.tex.offset + l.tex.scale * t1,
+            );
+            1.0 + l.strength * (0.5 * (c0 + c1) - 1.0)
+        }
+        None => 1.0,
+    };
+    albedo * (r.ambient.get(t) * c + r.lamp.get(t)) + r.add.get(t)
+}
+
+/// The plate's front over `out` (pixel offsets from the ramps' origin: `first`..).
+#[inline(always)]
+pub(crate) fn plate_run(isa: Isa, out: &mut [f32], first: usize, r: &PlateRun) {
+    match isa {
+        #[cfg(target_arch = "x86_64")]
+        // SAFETY: Avx2 is only chosen when the CPU has it; indices are clamped/masked.
+        Isa::Avx2 if r.gather_safe() => unsafe { avx2::plate_run(out, first, r) },
+        _ => {
+            for (t, m) in out.iter_mut().enumerate() {
+                *m = plate_px(r, (first + t) as f32);
+            }
+        }
+    }
+}
+
+/// The sensor's constants for one frame (see `sensor.rs`).
+#[derive(Clone, Copy)]
+pub(crate) struct SensorRow<'a> {
+    pub(crate) read_var: f32,
+    pub(crate) per_s: f32,
+    pub(crate) top: f32,
+    pub(crate) lut: &'a [u8; super::sensor::RESPONSE_LUT_LEN],
+}
+
+#[inline(always)]
+fn rock_px(r: &RockRun, t: i32) -> f32 {
+    let tf = t as f32;
+    r.tex.byte(r.u.get(t), r.v.get(t)) * r.light.get(tf) + r.add.get(tf)
+}
+
+#[inline(always)]
+fn caustic_rock_px(r: &CausticRockRun, t: i32) -> f32 {
+    let tf = t as f32;
+    let albedo = r.rock.offset + r.rock.scale * r.rock.byte(r.u.get(t), r.v.get(t));
+    let c0 = r.caustic.offset + r.caustic.scale * r.caustic.byte(r.c0u.get(t), r.c0v.get(t));
+    let c1 = r.caustic.offset + r.caustic.scale * r.caustic.byte(r.c1u.get(t), r.c1v.get(t));
+    let c = 1.0 + r.strength * (0.5 * (c0 + c1) - 1.0);
+    albedo * (r.ambient.get(tf) * c + r.lamp.get(tf)) + r.add.get(tf)
+}
+
+#[inline(always)]
+fn sensor_px(s: &SensorRow, m: f32, g: i16) -> u8 {
+    let g = g as f32 * NOISE_SCALE;
+    let v = (m.max(0.0) + s.read_var).sqrt() + g;
+    // The 2^23 trick: adding 2^23 to a float in [0, 2^23) leaves the rounded integer in
+    // its mantissa bits (what the packed build does too).
+    let ix = ((v * s.per_s).max(0.0).min(s.top) + 8_388_608.0).to_bits() & 0x7F_FFFF;
+    s.lut[ix as usize & (super::sensor::RESPONSE_LUT_LEN - 1)]
+}
+
+/// Which build the loops run.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub(crate) enum Isa {
+    Portable,
+    #[cfg(target_arch = "x86_64")]
+    Avx2,
+}
+
+impl Isa {
+    /// The best build this CPU runs, unless `portable` forces the scalar one.
+    pub(crate) fn detect(portable: bool) -> Self {
+        #[cfg(target_arch = "x86_64")]
+        if !portable && std::arch::is_x86_feature_detected!("avx2") {
+            return Isa::Avx2;
+        }
+        let _ = portable;
+        Isa::Portable
+    }
+}
+
+/// `out[t] = at + step * t`.
+#[inline(always)]
+pub(crate) fn ramp_run(out: &mut [f32], r: Ramp) {
+    for (t, m) in out.iter_mut().enumerate() {
+        *m = r.get(t as f32);
+    }
+}
+
+/// One row through the sensor: mean electrons and noise in, grey levels out.
+#[inline(always)]
+pub(crate) fn sensor_run(isa: Isa, out: &mut [u8], mean: &[f32], noise: &[i16], s: &SensorRow) {
+    let n = out.len().min(mean.len()).min(noise.len());
+    let (out, mean, noise) = (&mut out[..n], &mean[..n], &noise[..n]);
+    match isa {
+        #[cfg(target_arch = "x86_64")]
+        // SAFETY: Avx2 is only chosen when the CPU has it.
+        Isa::Avx2 => unsafe { avx2::sensor_run(out, mean, noise, s) },
+        Isa::Portable => {
+            for ((px, &m), &g) in out.iter_mut().zip(mean).zip(noise) {
+                *px = sensor_px(s, m, g);
+            }
+        }
+    }
+}
+
+#[cfg(target_arch = "x86_64")]
+mod avx2 {
+    use super::*;
+    use std::arch::x86_64::*;
+
+    #[inline(always)]
+    unsafe fn lanes() -> __m256i {
+        _mm256_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7)
+    }
+
+    #[inline(always)]
+    unsafe fn walk(w: Walk, t: __m256i) -> __m256i {
+        _mm256_add_epi32(
+            _mm256_set1_epi32(w.at),
+            _mm256_mullo_epi32(_mm256_set1_epi32(w.step), t),
+        )
+    }
+
+    #[inline(always)]
+    unsafe fn ramp(r: Ramp, t: __m256) -> __m256 {
+        _mm256_add_ps(
+            _mm256_set1_ps(r.at),
+            _mm256_mul_ps(_mm256_set1_ps(r.step), t),
+        )
+    }
+
+    /// Eight texel bytes as floats. The caller guarantees `gather_safe`.
+    #[inline(always)]
+    unsafe fn fetch(tex: &Tex, u: __m256i, v: __m256i) -> __m256 {
+        let m = _mm256_set1_epi32(tex.mask());
+        let tx = _mm256_and_si256(_mm256_srai_epi32::<16>(u), m);
+        let ty = _mm256_and_si256(_mm256_srai_epi32::<16>(v), m);
+        let shift = _mm_cvtsi32_si128(tex.log2 as i32);
+        let idx = _mm256_or_si256(_mm256_sll_epi32(ty, shift), tx);
+        // Each lane reads 4 bytes from its texel on; the low one is the texel
+        // (`TEXTURE_PAD` bytes follow the last texel).
+        let mut ix = [0i32; 8];
+        _mm256_storeu_si256(ix.as_mut_ptr() as *mut __m256i, idx);
+        let d = tex.data.as_ptr();
+        let b = _mm256_setr_epi32(
+            *d.add(ix[0] as usize) as i32,
+            *d.add(ix[1] as usize) as i32,
+            *d.add(ix[2] as usize) as i32,
+            *d.add(ix[3] as usize) as i32,
+            *d.add(ix[4] as usize) as i32,
+            *d.add(ix[5] as usize) as i32,
+            *d.add(ix[6] as usize) as i32,
+            *d.add(ix[7] as usize) as i32,
+        );
+        _mm256_cvtepi32_ps(b)
+    }
+
+    /// Runs inside `rock_nodes_run` (AVX2 enabled there).
+    #[inline(always)]
+    unsafe fn rock_span(out: &mut [f32], r: &RockRun) {
+        let n = out.len();
+        let mut t0 = 0usize;
+        while t0 + 8 <= n {
+            let ti = _mm256_add_epi32(_mm256_set1_epi32(t0 as i32), lanes());
+            let tf = _mm256_cvtepi32_ps(ti);
+            let b = fetch(&r.tex, walk(r.u, ti), walk(r.v, ti));
+            let m = _mm256_add_ps(_mm256_mul_ps(b, ramp(r.light, tf)), ramp(r.add, tf));
+            _mm256_storeu_ps(out.as_mut_ptr().add(t0), m);
+            t0 += 8;
+        }
+        for (t, m) in out.iter_mut().enumerate().skip(t0) {
+            *m = rock_px(r, t as i32);
+        }
+    }
+
+    #[inline(always)]
+    unsafe fn caustic_rock_span(out: &mut [f32], r: &CausticRockRun) {
+        let n = out.len();
+        let mut t0 = 0usize;
+        let (ro, rs) = (_mm256_set1_ps(r.rock.offset), _mm256_set1_ps(r.rock.scale));
+        let (co, cs) = (
+            _mm256_set1_ps(r.caustic.offset),
+            _mm256_set1_ps(r.caustic.scale),
+        );
+        let (one, half, k) = (
+            _mm256_set1_ps(1.0),
+            _mm256_set1_ps(0.5),
+            _mm256_set1_ps(r.strength),
+        );
+        while t0 + 8 <= n {
+            let ti = _mm256_add_epi32(_mm256_set1_epi32(t0 as i32), lanes());
+            let tf = _mm256_cvtepi32_ps(ti);
+            let albedo = _mm256_add_ps(
+                ro,
+                _mm256_mul_ps(rs, fetch(&r.rock, walk(r.u, ti), walk(r.v, ti))),
+            );
+            let c0 = _mm256_add_ps(
+                co,
+                _mm256_mul_ps(cs, fetch(&r.caustic, walk(r.c0u, ti), walk(r.c0v, ti))),
+            );
+            let c1 = _mm256_add_ps(
+                co,
+                _mm256_mul_ps(cs, fetch(&r.caustic, walk(r.c1u, ti), walk(r.c1v, ti))),
+            );
+            let c = _mm256_add_ps(
+                one,
+                _mm256_mul_ps(
+                    k,
+                    _mm256_sub_ps(_mm256_mul_ps(half, _mm256_add_ps(c0, c1)), one),
+                ),
+            );
+            let light = _mm256_add_ps(_mm256_mul_ps(ramp(r.ambient, tf), c), ramp(r.lamp, tf));
+            let m = _mm256_add_ps(_mm256_mul_ps(albedo, light), ramp(r.add, tf));
+            _mm256_storeu_ps(out.as_mut_ptr().add(t0), m);
+            t0 += 8;
+        }
+        for (t, m) in out.iter_mut().enumerate().skip(t0) {
+            *m = caustic_rock_px(r, t as i32);
+        }
+    }
+
+    #[target_feature(enable = "avx2")]
+    pub(super) unsafe fn rock_nodes_run(
+        out: &mut [f32],
+        nodes: &RockNodes,
+        rock: Tex,
+        caustic: Option<(Tex, f32)>,
+    ) {
+        let spans = nodes.fields.len().saturating_sub(1);
+        for (s, o) in out.chunks_mut(16).enumerate().take(spans) {
+            match caustic {
+                None => rock_span(o, &nodes.rock_run(rock, s)),
+                Some((c, k)) => caustic_rock_span(o, &nodes.caustic_run(rock, c, k, s)),
+            }
+        }
+    }
+
+    #[inline(always)]
+    unsafe fn floor_epi32(x: __m256) -> __m256i {
+        _mm256_cvttps_epi32(_mm256_floor_ps(x))
+    }
+
+    #[inline(always)]
+    unsafe fn cell(r: &PlateRun, ci: __m256i, cj: __m256i) -> __m256 {
+        let (lo, hi) = (_mm256_set1_epi32(-1), _mm256_set1_epi32(r.side - 2));
+        let ci = _mm256_min_epi32(_mm256_max_epi32(ci, lo), hi);
+        let cj = _mm256_min_epi32(_mm256_max_epi32(cj, lo), hi);
+        let one = _mm256_set1_epi32(1);
+        let idx = _mm256_add_epi32(
+            _mm256_mullo_epi32(_mm256_add_epi32(cj, one), _mm256_set1_epi32(r.side)),
+            _mm256_add_epi32(ci, one),
+        );
+        _mm256_i32gather_ps::<4>(r.cells.as_ptr(), idx)
+    }
+
+    #[target_feature(enable = "avx2")]
+    pub(super) unsafe fn plate_run(out: &mut [f32], first: usize, r: &PlateRun) {
+        let n = out.len();
+        let (zero, one, half) = (
+            _mm256_setzero_ps(),
+            _mm256_set1_ps(1.0),
+            _mm256_set1_ps(0.5),
+        );
+        let (hm, cpm) = (_mm256_set1_ps(r.half_marker), _mm256_set1_ps(r.cell_per_m));
+        let (iwu, iwv) = (_mm256_set1_ps(r.inv_wu), _mm256_set1_ps(r.inv_wv));
+        let ione = _mm256_set1_epi32(1);
+        let mut t0 = 0usize;
+        while t0 + 8 <= n {
+            let ti = _mm256_add_epi32(_mm256_set1_epi32((first + t0) as i32), lanes());
+            let t = _mm256_cvtepi32_ps(ti);
+            let inv = _mm256_div_ps(one, ramp(r.d, t));
+            let u = _mm256_mul_ps(ramp(r.nu, t), inv);
+            let v = _mm256_mul_ps(ramp(r.nv, t), inv);
+            let cu = _mm256_mul_ps(_mm256_add_ps(u, hm), cpm);
+            let cv = _mm256_mul_ps(_mm256_sub_ps(hm, v), cpm);
+            let iu = floor_epi32(_mm256_add_ps(cu, half));
+            let iv = floor_epi32(_mm256_add_ps(cv, half));
+            let au = _mm256_min_ps(
+                _mm256_max_ps(
+                    _mm256_add_ps(
+                        _mm256_mul_ps(_mm256_sub_ps(_mm256_cvtepi32_ps(iu), cu), iwu),
+                        half,
+                    ),
+                    zero,
+                ),
+                one,
+            );
+            let av = _mm256_min_ps(
+                _mm256_max_ps(
+                    _mm256_add_ps(
+                        _mm256_mul_ps(_mm256_sub_ps(_mm256_cvtepi32_ps(iv), cv), iwv),
+                        half,
+                    ),
+                    zero,
+                ),
+                one,
+            );
+            let (iu1, iv1) = (_mm256_sub_epi32(iu, ione), _mm256_sub_epi32(iv, ione));
+            let nav = _mm256_sub_ps(one, av);
+            let left = _mm256_add_ps(
+                _mm256_mul_ps(av, cell(r, iu1, iv1)),
+                _mm256_mul_ps(nav, cell(r, iu1, iv)),
+            );
+            let right = _mm256_add_ps(
+                _mm256_mul_ps(av, cell(r, iu, iv1)),
+                _mm256_mul_ps(nav, cell(r, iu, iv)),
+            );
+            let albedo = _mm256_add_ps(
+                _mm256_mul_ps(au, left),
+                _mm256_mul_ps(_mm256_sub_ps(one, au), right),
+            );
+            let c = match &r.caustic {
+                Some(l) => {
+                    let k = _mm256_set1_ps(l.texels_per_m);
+                    let fx = |x: __m256| _mm256_slli_epi32::<16>(floor_epi32(x));
+                    let b0 = fetch(
+                        &l.tex,
+                        fx(_mm256_mul_ps(_mm256_add_ps(u, _mm256_set1_ps(l.off0.0)), k)),
+                        fx(_mm256_mul_ps(_mm256_add_ps(v, _mm256_set1_ps(l.off0.1)), k)),
+                    );
+                    let s2 = _mm256_set1_ps(l.scale2);
+                    let b1 = fetch(
+                        &l.tex,
+                        fx(_mm256_add_ps(
+                            _mm256_mul_ps(
+                                _mm256_add_ps(_mm256_mul_ps(u, s2), _mm256_set1_ps(l.off1.0)),
+                                k,
+                            ),
+                            _mm256_set1_ps(l.shift2.0),
+                        )),
+                        fx(_mm256_add_ps(
+                            _mm256_mul_ps(
+                                _mm256_add_ps(_mm256_mul_ps(v, s2), _mm256_set1_ps(l.off1.1)),
+                                k,
+                            ),
+                            _mm256_set1_ps(l.shift2.1),
+                        )),
+                    );
+                    let (to, ts) = (_mm256_set1_ps(l.tex.offset), _mm256_set1_ps(l.tex.scale));
+                    let c0 = _mm256_add_ps(to, _mm256_mul_ps(ts, b0));
+                    let c1 = _mm256_add_ps(to, _mm256_mul_ps(ts, b1));
+                    _mm256_add_ps(
+                        one,
+                        _mm256_mul_ps(
+                            _mm256_set1_ps(l.strength),
+                            _mm256_sub_ps(_mm256_mul_ps(half, _mm256_add_ps(c0, c1)), one),
+                        ),
+                    )
+                }
+                None => one,
+            };
+            let light = _mm256_add_ps(_mm256_mul_ps(ramp(r.ambient, t), c), ramp(r.lamp, t));
+            let m = _mm256_add_ps(_mm256_mul_ps(albedo, light), ramp(r.add, t));
+            _mm256_storeu_ps(out.as_mut_ptr().add(t0), m);
+            t0 += 8;
+        }
+        for (t, m) in out.iter_mut().enumerate().skip(t0) {
+            *m = plate_px(r, (first + t) as f32);
+        }
+    }
+
+    #[target_feature(enable = "avx2")]
+    pub(super) unsafe fn sensor_run(out: &mut [u8], mean: &[f32], noise: &[i16], s: &SensorRow) {
+        let n = out.len();
+        let zero = _mm256_setzero_ps();
+        let (rv, per_s, top) = (
+            _mm256_set1_ps(s.read_var),
+            _mm256_set1_ps(s.per_s),
+            _mm256_set1_ps(s.top),
+        );
+        let (magic, mant) = (
+            _mm256_set1_ps(8_388_608.0),
+            _mm256_set1_epi32(0x7F_FFFF & (super::super::sensor::RESPONSE_LUT_LEN as i32 - 1)),
+        );
+        let scale = _mm256_set1_ps(NOISE_SCALE);
+        let mut idx = [0u32; 8];
+        let mut t0 = 0usize;
+        while t0 + 8 <= n {
+            let m = _mm256_loadu_ps(mean.as_ptr().add(t0));
+            let g16 = _mm_loadu_si128(noise.as_ptr().add(t0) as *const __m128i);
+            let g = _mm256_mul_ps(_mm256_cvtepi32_ps(_mm256_cvtepi16_epi32(g16)), scale);
+            // max(m, 0) like f32::max: a NaN mean gives 0 (the second operand).
+            let v = _mm256_add_ps(_mm256_sqrt_ps(_mm256_add_ps(_mm256_max_ps(m, zero), rv)), g);
+            let x = _mm256_min_ps(_mm256_max_ps(_mm256_mul_ps(v, per_s), zero), top);
+            let ix = _mm256_and_si256(_mm256_castps_si256(_mm256_add_ps(x, magic)), mant);
+            _mm256_storeu_si256(idx.as_mut_ptr() as *mut __m256i, ix);
+            // Eight table reads into one 8-byte store.
+            let mut word = 0u64;
+            for (k, &i) in idx.iter().enumerate() {
+                let level = s.lut[i as usize & (super::super::sensor::RESPONSE_LUT_LEN - 1)];
+                word |= (level as u64) << (8 * k);
+            }
+            out[t0..t0 + 8].copy_from_slice(&word.to_le_bytes());
+            t0 += 8;
+        }
+        for t in t0..n {
+            out[t] = sensor_px(s, mean[t], noise[t]);
+        }
+    }
+}
