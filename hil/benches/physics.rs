@@ -7,7 +7,7 @@
 use criterion::{criterion_group, criterion_main, BenchmarkId, Criterion, Throughput};
 use markhold_exposure::{Camera, Frame, ResponseModel};
 use markhold_hil::camera::CameraModel;
-use markhold_hil::scene::{LightingConfig, MarkerSpec, WaterConfig};
+use markhold_hil::scene::{LightingConfig, LightingScenario, MarkerSpec, WaterConfig};
 use markhold_hil::vehicle::{Hydrodynamics, GRAVITY_MPS2};
 use markhold_hil::{
     EndpointConfig, HilRig, HilSetup, Mixer, ThrusterConfig, Vehicle, VehicleConfig, VehicleMotion,
@@ -155,14 +155,26 @@ fn rig_frame(c: &mut Criterion) {
         cam.fy *= s;
         cam.cx = (w as f64 - 1.0) / 2.0;
         cam.cy = (h as f64 - 1.0) / 2.0;
-        let mut rig = HilRig::new(setup(cam)).unwrap();
-        let mut f = Frame::default();
-        g.throughput(Throughput::Elements(w as u64 * h as u64));
-        g.bench_with_input(
-            BenchmarkId::new("physics_and_render", format!("{w}x{h}")),
-            &(),
-            |b, _| b.iter(|| rig.grab(&mut f).unwrap()),
-        );
+        let scenarios: &[LightingScenario] = if w == 1440 {
+            &LightingScenario::ALL
+        } else {
+            &[LightingScenario::Normal]
+        };
+        for &sc in scenarios {
+            let mut s = setup(cam.clone());
+            s.lighting = LightingConfig {
+                scenario: sc,
+                ..LightingConfig::default()
+            };
+            let mut rig = HilRig::new(s).unwrap();
+            let mut f = Frame::default();
+            g.throughput(Throughput::Elements(w as u64 * h as u64));
+            g.bench_with_input(
+                BenchmarkId::new("physics_and_render", format!("{w}x{h}/{sc}")),
+                &(),
+                |b, _| b.iter(|| rig.grab(&mut f).unwrap()),
+            );
+        }
     }
     g.finish();
 }

@@ -70,6 +70,19 @@ fn bench_render(c: &mut Criterion) {
             })
         });
     }
+    // The same loops without AVX2 (what a CPU without it runs; same frames).
+    for sc in [LightingScenario::Normal, LightingScenario::Caustics] {
+        let (scene, mut cam, t_wc) = setup(sc);
+        cam.set_portable_render(true);
+        let mut frame = Frame::default();
+        let mut t = 0.0;
+        g.bench_with_input(BenchmarkId::new("portable", sc), &sc, |b, _| {
+            b.iter(|| {
+                t += 1.0 / 30.0;
+                cam.render(&scene, &t_wc, &t_wc, t, &mut frame);
+            })
+        });
+    }
     g.sample_size(10);
     for sc in [LightingScenario::Normal, LightingScenario::Adversarial] {
         let (scene, mut cam, t_wc) = setup(sc);

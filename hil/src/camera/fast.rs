@@ -133,9 +133,14 @@ pub(crate) struct FastRenderer {
     row_affine: Vec<bool>,
     /// Light fields of the current row at its nodes, per surface (`surf * nx + i`),
     /// computed on first use in the row.
-    row_fields: Vec<[f32; 3]>,
-    row_stamp: Vec<u32>,
-    row_id: u32,
+    /// Light fields per surface and node of the current cell row (between grid rows
+    /// `j` and `j + 1`): the top node's three fields and the bottom minus the top
+    /// (`surf * nx + i`), valid where `cell_stamp` equals `cell_id`; `cell_range` is a
+    /// node range per surface known to be valid (skips the stamp checks).
+    cell_fields: Vec<[f32; 6]>,
+    cell_stamp: Vec<u32>,
+    cell_id: u32,
+    cell_range: [(usize, usize); NSURF],
     /// Mean electrons of the current row's pixels (the sensor runs as a second pass).
     row_mean: Vec<f32>,
     /// A row of zero noise (noise off).
@@ -175,6 +180,12 @@ struct PixelConsts<'a> {
     caustics: CausticFrame,
     layers: Option<CausticLayers<'a>>,
     isa: Isa,
+}
+
+/// The three fields of a cell-row node entry at vertical weight `fy`.
+#[inline(always)]
+fn cell_at(c: &[f32; 6], fy: f32) -> [f32; 3] {
+    [c[0] + c[3] * fy, c[1] + c[4] * fy, c[2] + c[5] * fy]
 }
 
 /// A texel coordinate (texels) in 16.16 fixed point, wrapping in i32 like the texture
@@ -218,9 +229,10 @@ impl FastRenderer {
             row_mask: vec![0; nx],
             row_walks: vec![0; 2 * WALKS * nx],
             row_affine: vec![false; 2 * nx],
-            row_fields: vec![[0.0; 3]; NSURF * nx],
-            row_stamp: vec![u32::MAX; NSURF * nx],
-            row_id: 0,
+            cell_fields: vec![[0.0; 6]; NSURF * nx],
+            cell_stamp: vec![u32::MAX; NSURF * nx],
+            cell_id: 0,
+            cell_range: [(1, 0); NSURF],
             row_mean: vec![0.0; w],
             zero_noise: vec![0; w],
             cell_table: Vec::new(),
@@ -279,27 +291,42 @@ impl FastRenderer {
         f
     }
 
-    /// Fields of `surf` at node `i` of the current row (row-cell `j`, vertical weight
-    /// `fy`), computed on first use in the row.
+    /// Make the cell fields of `surf` valid at nodes `i0..=i1` of cell row `j`.
     #[inline]
-    fn row_field(&mut self, ctx: &FrameCtx, i: usize, j: usize, fy: f32, surf: usize) -> [f32; 3] {
-        let idx = surf * self.nx + i;
-        if self.row_stamp[idx] == self.row_id {
-            return self.row_fields[idx];
+    fn ensure_cells(&mut self, ctx: &FrameCtx, surf: usize, i0: usize, i1: usize, j: usize) {
+        let (lo, hi) = self.cell_range[surf];
+        if lo <= i0 && i1 <= hi {
+            return;
         }
-        let n0 = self.node_fields(ctx, j * self.nx + i, surf);
-        let n1 = self.node_fields(ctx, (j + 1) * self.nx + i, surf);
-        let mut f = [0f32; 3];
-        for c in 0..3 {
-            f[c] = n0[c] + (n1[c] - n0[c]) * fy;
+        let nx = self.nx;
+        for i in i0..=i1 {
+            let idx = surf * nx + i;
+            if self.cell_stamp[idx] == self.cell_id {
+                continue;
+            }
+            let n0 = self.node_fields(ctx, j * nx + i, surf);
+            let n1 = self.node_fields(ctx, (j + 1) * nx + i, surf);
+            self.cell_fields[idx] = [
+                n0[0],
+                n0[1],
+                n0[2],
+                n1[0] - n0[0],
+                n1[1] - n0[1],
+                n1[2] - n0[2],
+            ];
+            self.cell_stamp[idx] = self.cell_id;
         }
-        self.row_fields[idx] = f;
-        self.row_stamp[idx] = self.row_id;
-        f
+        // Grow the known range when the runs touch it (the usual case: the same runs
+        // row after row), else start a new one.
+        self.cell_range[surf] = if lo <= hi && i0 <= hi + 1 && lo <= i1 + 1 {
+            (lo.min(i0), hi.max(i1))
+        } else {
+            (i0, i1)
+        };
     }
 
-    /// Fields of `surf` at the left end of span `i` of the current row and their step
-    /// per pixel.
+    /// Fields of `surf` at the left end of span `i` of the current row (vertical weight
+    /// `fy` in cell row `j`) and their step per pixel.
     #[inline]
     fn span_fields(
         &mut self,
@@ -309,8 +336,9 @@ impl FastRenderer {
         fy: f32,
         surf: usize,
     ) -> ([f32; 3], [f32; 3]) {
-        let l = self.row_field(ctx, i, j, fy, surf);
-        let r = self.row_field(ctx, i + 1, j, fy, surf);
+        self.ensure_cells(ctx, surf, i, i + 1, j);
+        let c = &self.cell_fields[surf * self.nx + i..surf * self.nx + i + 2];
+        let (l, r) = (cell_at(&c[0], fy), cell_at(&c[1], fy));
         let mut df = [0f32; 3];
         for c in 0..3 {
             df[c] = (r[c] - l[c]) * (1.0 / GRID as f32);
@@ -543,12 +571,16 @@ impl FastRenderer {
 
         let (w, h, nx) = (self.width, self.height, self.nx);
         for (py, row) in out.data.chunks_exact_mut(w).enumerate().take(h) {
-            self.row_id = self.row_id.wrapping_add(1);
-            if self.row_id == u32::MAX {
-                self.row_stamp.fill(u32::MAX - 1);
-                self.row_id = 0;
-            }
             let j = py / GRID;
+            if py == 0 || j != (py - 1) / GRID {
+                // A new cell row: every cached cell field is stale.
+                self.cell_id = self.cell_id.wrapping_add(1);
+                if self.cell_id == u32::MAX {
+                    self.cell_stamp.fill(u32::MAX - 1);
+                    self.cell_id = 0;
+                }
+                self.cell_range = [(1, 0); NSURF];
+            }
             let fy = (py - j * GRID) as f32 * (1.0 / GRID as f32);
             for (row, nodes) in [
                 (&mut self.row_x, &self.node_x),
@@ -582,15 +614,13 @@ impl FastRenderer {
                 let p = surf.wrapping_sub(WALL);
                 let affine = p < 2 && self.row_affine[p * nx + i..=p * nx + i1].iter().all(|&a| a);
                 if surf == WATER || affine {
-                    for k in i..=i1 {
-                        self.row_field(&ctx, k, j, fy, surf);
-                    }
+                    self.ensure_cells(&ctx, surf, i, i1, j);
                 }
                 let out = &mut row_mean[x0..(i1 * GRID).min(w)];
                 if surf == WATER {
-                    let f = &self.row_fields[surf * nx + i..=surf * nx + i1];
+                    let f = &self.cell_fields[surf * nx + i..=surf * nx + i1];
                     for (s, o) in out.chunks_mut(GRID).enumerate() {
-                        let (a, b) = (f[s][2], f[s + 1][2]);
+                        let (a, b) = (f[s][2] + f[s][5] * fy, f[s + 1][2] + f[s + 1][5] * fy);
                         ramp_run(
                             o,
                             Ramp {
@@ -605,7 +635,8 @@ impl FastRenderer {
                         &self.row_walks[base + i..=base + i1]
                     };
                     let nodes = RockNodes {
-                        fields: &self.row_fields[surf * nx + i..=surf * nx + i1],
+                        cells: &self.cell_fields[surf * nx + i..=surf * nx + i1],
+                        fy,
                         walks: [wk(0), wk(1), wk(2), wk(3), wk(4), wk(5)],
                     };
                     let c = pc.caustics.on.then_some((caustic, pc.caustics.strength));

@@ -100,7 +100,10 @@ pub(crate) struct CausticRockRun<'a> {
 /// additive; see `fast.rs`), and its texel walks at the same nodes (16.16, wrapping):
 /// rock u, v, then (under caustics) both caustic layers' u, v.
 pub(crate) struct RockNodes<'a> {
-    pub(crate) fields: &'a [[f32; 3]],
+    /// Per node: the fields on the grid row above and their change to the one below.
+    pub(crate) cells: &'a [[f32; 6]],
+    /// The row's vertical weight between those grid rows.
+    pub(crate) fy: f32,
     pub(crate) walks: [&'a [i32]; 6],
 }
 
@@ -118,7 +121,8 @@ impl RockNodes<'_> {
     /// Field `c` along span `s`.
     #[inline(always)]
     fn ramp(&self, c: usize, s: usize) -> Ramp {
-        let (a, b) = (self.fields[s][c], self.fields[s + 1][c]);
+        let (l, r) = (&self.cells[s], &self.cells[s + 1]);
+        let (a, b) = (l[c] + l[c + 3] * self.fy, r[c] + r[c + 3] * self.fy);
         Ramp {
             at: a,
             step: (b - a) * (1.0 / 16.0),
@@ -187,7 +191,7 @@ pub(crate) fn rock_nodes_run(
         // SAFETY: Avx2 is only chosen when the CPU has it; the textures are padded.
         Isa::Avx2 if gather_ok => unsafe { avx2::rock_nodes_run(out, nodes, rock, caustic) },
         _ => {
-            let spans = nodes.fields.len().saturating_sub(1);
+            let spans = nodes.cells.len().saturating_sub(1);
             for (s, o) in out.chunks_mut(16).enumerate().take(spans) {
                 match caustic {
                     None => {
@@ -434,20 +438,14 @@ mod avx2 {
         let idx = _mm256_or_si256(_mm256_sll_epi32(ty, shift), tx);
         // Each lane reads 4 bytes from its texel on; the low one is the texel
         // (`TEXTURE_PAD` bytes follow the last texel).
-        let mut ix = [0i32; 8];
+        let mut ix = [0u32; 8];
         _mm256_storeu_si256(ix.as_mut_ptr() as *mut __m256i, idx);
         let d = tex.data.as_ptr();
-        let b = _mm256_setr_epi32(
-            *d.add(ix[0] as usize) as i32,
-            *d.add(ix[1] as usize) as i32,
-            *d.add(ix[2] as usize) as i32,
-            *d.add(ix[3] as usize) as i32,
-            *d.add(ix[4] as usize) as i32,
-            *d.add(ix[5] as usize) as i32,
-            *d.add(ix[6] as usize) as i32,
-            *d.add(ix[7] as usize) as i32,
-        );
-        _mm256_cvtepi32_ps(b)
+        let mut word = 0u64;
+        for (k, &i) in ix.iter().enumerate() {
+            word |= (*d.add(i as usize) as u64) << (8 * k);
+        }
+        _mm256_cvtepi32_ps(_mm256_cvtepu8_epi32(_mm_cvtsi64_si128(word as i64)))
     }
 
     /// Runs inside `rock_nodes_run` (AVX2 enabled there).
@@ -521,7 +519,7 @@ mod avx2 {
         rock: Tex,
         caustic: Option<(Tex, f32)>,
     ) {
-        let spans = nodes.fields.len().saturating_sub(1);
+        let spans = nodes.cells.len().saturating_sub(1);
         for (s, o) in out.chunks_mut(16).enumerate().take(spans) {
             match caustic {
                 None => rock_span(o, &nodes.rock_run(rock, s)),
