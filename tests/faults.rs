@@ -128,6 +128,15 @@ fn vehicle_disarmed_by_its_own_failsafe_is_reported_not_fought() {
     assert!(o.truth.iter().skip_while(|t| t.armed).all(|t| !t.armed));
 }
 
+/// How far from its pre-fault value the exposure may be 1 s after the marker is back.
+/// AAEC's optimum on this scene is flat and where it stops depends on the path: from
+/// above (the start) it settles at 7.0-8.6 ms; after the loss the fallback AE has taken
+/// it down to about 2.1 ms and it climbs back to 4.1-6.2 ms (8.5 ms once). Over seeds 1-6
+/// and both faults the ratio was 0.92-1.86 (`occlude` and `out_of_view`, 2 Dec 2026), so
+/// 1.5 held for some noise fields and not others. A runaway goes to a limit (20 us or
+/// 30 ms) and is caught here and by the limit check.
+const BACK_FACTOR: f64 = 2.0;
+
 /// No runaway: the exposure commanded during the window never goes near the camera's
 /// limits, and at `back_s` it is within `factor` of where it was before the start.
 fn exposure_bounded(s: &LoadedSite, o: &Outcome, start_s: f64, back_s: f64, factor: f64) {
@@ -167,7 +176,7 @@ fn occlusion(seconds_occluded: f64) {
         .expect("marker never detected again");
     assert!(again - end < 0.5, "{r:?}");
     // Back within 1 s of the marker's return (the detection steers it again).
-    exposure_bounded(&s, &o, start, end + 1.0, 1.5);
+    exposure_bounded(&s, &o, start, end + 1.0, BACK_FACTOR);
     if seconds_occluded > s.site.controller.marker_lost_hold_s {
         assert!(
             r.marker_lost_at_s.is_some(),
@@ -226,7 +235,7 @@ fn marker_out_of_view_then_back() {
     let r = &o.reports[0];
     assert!(o.stats.frames_out_of_view > 0);
     assert!(r.marker_detected_again_at_s.unwrap() - 4.5 < 0.5, "{r:?}");
-    exposure_bounded(&s, &o, 3.0, 5.5, 1.5);
+    exposure_bounded(&s, &o, 3.0, 5.5, BACK_FACTOR);
     assert!(r.station_regained_at_s.is_some(), "{r:?}");
 }
 

@@ -649,14 +649,18 @@ impl FastRenderer {
                 }
                 i = i1;
             }
-            // The sensor: a window of the noise field at a random offset per row.
+            // The sensor: windows of the two noise fields at random offsets per row.
             let noise = if tables.noise {
-                let field = &tables.noise_field;
-                let room = field.len().saturating_sub(w) + 1;
-                let off = ((rng.next_u64() >> 32) as usize) % room;
-                &field[off..(off + w).min(field.len())]
+                let bits = rng.next_u64();
+                fn window(field: &[i16], r: u64, w: usize) -> &[i16] {
+                    let room = field.len().saturating_sub(w) + 1;
+                    let off = r as usize % room;
+                    &field[off..(off + w).min(field.len())]
+                }
+                let [a, b] = &tables.noise_fields;
+                [window(a, bits >> 32, w), window(b, bits & 0xFFFF_FFFF, w)]
             } else {
-                &self.zero_noise[..]
+                [&self.zero_noise[..], &self.zero_noise[..]]
             };
             sensor_run(isa, row, &row_mean, noise, &sensor);
             self.row_mean = row_mean;

@@ -5,8 +5,9 @@
 //! multiply and an add on its own), so a frame does not depend on the CPU it was
 //! rendered on; `tests/camera_fast.rs` checks it.
 
-/// Scale of the stored noise field: `value as f32 * NOISE_SCALE` is half a standard
-/// normal sample (a power of two, so the conversion is exact in both builds).
+/// Scale of the stored noise fields: `(a + b) as f32 * NOISE_SCALE`, the sum of one
+/// sample of each, is half a standard normal sample (a power of two, so the conversion
+/// is exact in both builds).
 pub(crate) const NOISE_SCALE: f32 = 1.0 / 4096.0;
 /// Bytes a texture must hold past its last texel for the gathers (each reads 4 bytes).
 pub(crate) const TEXTURE_PAD: usize = 3;
@@ -348,8 +349,8 @@ fn caustic_rock_px(r: &CausticRockRun, t: i32) -> f32 {
 }
 
 #[inline(always)]
-fn sensor_px(s: &SensorRow, m: f32, g: i16) -> u8 {
-    let g = g as f32 * NOISE_SCALE;
+fn sensor_px(s: &SensorRow, m: f32, a: i16, b: i16) -> u8 {
+    let g = (a as i32 + b as i32) as f32 * NOISE_SCALE;
     let v = (m.max(0.0) + s.read_var).sqrt() + g;
     // The 2^23 trick: adding 2^23 to a float in [0, 2^23) leaves the rounded integer in
     // its mantissa bits (what the packed build does too).
@@ -385,18 +386,29 @@ pub(crate) fn ramp_run(out: &mut [f32], r: Ramp) {
     }
 }
 
-/// One row through the sensor: mean electrons and noise in, grey levels out.
+/// One row through the sensor: mean electrons and the two noise windows in, grey
+/// levels out.
 #[inline(always)]
-pub(crate) fn sensor_run(isa: Isa, out: &mut [u8], mean: &[f32], noise: &[i16], s: &SensorRow) {
-    let n = out.len().min(mean.len()).min(noise.len());
-    let (out, mean, noise) = (&mut out[..n], &mean[..n], &noise[..n]);
+pub(crate) fn sensor_run(
+    isa: Isa,
+    out: &mut [u8],
+    mean: &[f32],
+    noise: [&[i16]; 2],
+    s: &SensorRow,
+) {
+    let n = out
+        .len()
+        .min(mean.len())
+        .min(noise[0].len())
+        .min(noise[1].len());
+    let (out, mean, na, nb) = (&mut out[..n], &mean[..n], &noise[0][..n], &noise[1][..n]);
     match isa {
         #[cfg(target_arch = "x86_64")]
         // SAFETY: Avx2 is only chosen when the CPU has it.
-        Isa::Avx2 => unsafe { avx2::sensor_run(out, mean, noise, s) },
+        Isa::Avx2 => unsafe { avx2::sensor_run(out, mean, na, nb, s) },
         Isa::Portable => {
-            for ((px, &m), &g) in out.iter_mut().zip(mean).zip(noise) {
-                *px = sensor_px(s, m, g);
+            for (((px, &m), &a), &b) in out.iter_mut().zip(mean).zip(na).zip(nb) {
+                *px = sensor_px(s, m, a, b);
             }
         }
     }
@@ -653,7 +665,13 @@ mod avx2 {
     }
 
     #[target_feature(enable = "avx2")]
-    pub(super) unsafe fn sensor_run(out: &mut [u8], mean: &[f32], noise: &[i16], s: &SensorRow) {
+    pub(super) unsafe fn sensor_run(
+        out: &mut [u8],
+        mean: &[f32],
+        na: &[i16],
+        nb: &[i16],
+        s: &SensorRow,
+    ) {
         let n = out.len();
         let zero = _mm256_setzero_ps();
         let (rv, per_s, top) = (
@@ -670,8 +688,9 @@ mod avx2 {
         let mut t0 = 0usize;
         while t0 + 8 <= n {
             let m = _mm256_loadu_ps(mean.as_ptr().add(t0));
-            let g16 = _mm_loadu_si128(noise.as_ptr().add(t0) as *const __m128i);
-            let g = _mm256_mul_ps(_mm256_cvtepi32_ps(_mm256_cvtepi16_epi32(g16)), scale);
+            let ga = _mm256_cvtepi16_epi32(_mm_loadu_si128(na.as_ptr().add(t0) as *const __m128i));
+            let gb = _mm256_cvtepi16_epi32(_mm_loadu_si128(nb.as_ptr().add(t0) as *const __m128i));
+            let g = _mm256_mul_ps(_mm256_cvtepi32_ps(_mm256_add_epi32(ga, gb)), scale);
             // max(m, 0) like f32::max: a NaN mean gives 0 (the second operand).
             let v = _mm256_add_ps(_mm256_sqrt_ps(_mm256_add_ps(_mm256_max_ps(m, zero), rv)), g);
             let x = _mm256_min_ps(_mm256_max_ps(_mm256_mul_ps(v, per_s), zero), top);
@@ -687,7 +706,7 @@ mod avx2 {
             t0 += 8;
         }
         for t in t0..n {
-            out[t] = sensor_px(s, mean[t], noise[t]);
+            out[t] = sensor_px(s, mean[t], na[t], nb[t]);
         }
     }
 }

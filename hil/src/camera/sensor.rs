@@ -15,9 +15,13 @@ pub(crate) const RESPONSE_LUT_LEN: usize = 1 << 12;
 /// Entries of the Gaussian table (power of two: indexed with a mask). 16 KB: it stays in
 /// L1 beside the response table while a frame renders.
 const GAUSS_LOG2: u32 = 12;
-/// Samples in the noise field the fast renderer reads rows from (512 KB of i16): a row
-/// takes a window at a random offset, so two rows share (shifted) noise with a
-/// probability of about 2 width / NOISE_LEN, 1 % at 1440 pixels.
+/// Samples in each of the two noise fields the fast renderer reads rows from (512 KB of
+/// i16 each). A row adds windows of both at two random offsets: with one field, a row
+/// repeated a shifted window of another with a probability of about 2 width / NOISE_LEN
+/// (1 % at 1440 pixels, a dozen rows a frame), and that measurably changed AAEC's
+/// settling (river site: final exposure +8 %, position RMS 5.5 -> 7.6 mm over three
+/// seeds; per-pixel picks and a 16x larger field both gave the old figures). With two,
+/// a repeat needs both offsets to collide (about 1e-4).
 const NOISE_LEN: usize = 1 << 18;
 
 /// xorshift64*: fast, seeded, good enough to pick Gaussian table entries.
@@ -47,9 +51,9 @@ pub(crate) struct SensorTables {
     /// Halves of standard normal samples (`g / 2`), normalized to exact mean 0 and
     /// variance 1/4.
     pub(crate) half_gauss: Vec<f32>,
-    /// Halves of standard normal samples in units of `kernels::NOISE_SCALE`, same
-    /// normalization, at least two rows long.
-    pub(crate) noise_field: Vec<i16>,
+    /// Two fields of normal samples whose sum is half a standard normal sample in units
+    /// of `kernels::NOISE_SCALE` (each has variance 1/8), at least two rows long.
+    pub(crate) noise_fields: [Vec<i16>; 2],
     /// Grey level for `s = i * s_step` (see the module doc), rounded.
     pub(crate) response_lut: Box<[u8; RESPONSE_LUT_LEN]>,
     /// Table index per unit of `s`.
@@ -80,7 +84,8 @@ impl SensorTables {
             .iter()
             .map(|g| (0.5 * (g - mean) / sd) as f32)
             .collect();
-        let noise_field = noise_field(&mut rng, NOISE_LEN.max(2 * model.width as usize));
+        let len = NOISE_LEN.max(2 * model.width as usize);
+        let noise_fields = [noise_field(&mut rng, len), noise_field(&mut rng, len)];
 
         let s = &model.sensor;
         let gain = 10f64.powf(model.gain_db / 20.0);
@@ -99,7 +104,7 @@ impl SensorTables {
         }
         Self {
             half_gauss,
-            noise_field,
+            noise_fields,
             response_lut,
             lut_per_s: (1.0 / s_step) as f32,
             read_var_e2: read_var as f32,
@@ -123,8 +128,8 @@ impl SensorTables {
     }
 }
 
-/// `n` halves of standard normal samples (Box-Muller, normalized to mean 0 and variance
-/// 1/4) in units of `NOISE_SCALE`.
+/// `n` normal samples (Box-Muller, normalized to mean 0 and variance 1/8: two of them add
+/// up to half a standard normal sample) in units of `NOISE_SCALE`.
 fn noise_field(rng: &mut super::super::scene::SplitMix64, n: usize) -> Vec<i16> {
     let mut g = Vec::with_capacity(n + 1);
     while g.len() < n {
@@ -139,7 +144,7 @@ fn noise_field(rng: &mut super::super::scene::SplitMix64, n: usize) -> Vec<i16> 
     let mean = g.iter().sum::<f64>() / n as f64;
     let var = g.iter().map(|v| (v - mean).powi(2)).sum::<f64>() / n as f64;
     let sd = var.sqrt().max(1e-12);
-    let k = 0.5 / sd / super::kernels::NOISE_SCALE as f64;
+    let k = 0.5 * std::f64::consts::FRAC_1_SQRT_2 / sd / super::kernels::NOISE_SCALE as f64;
     g.iter()
         .map(|v| ((v - mean) * k).round().clamp(-32767.0, 32767.0) as i16)
         .collect()
