@@ -24,6 +24,10 @@ use crate::scene::{
 
 /// Pixels between grid nodes.
 const GRID: usize = 16;
+/// Relative and absolute (electrons) agreement of two light nodes 32 pixels apart under
+/// which the node between them is interpolated instead of shaded.
+const LIGHT_REL_TOL: f32 = 0.02;
+const LIGHT_ABS_TOL_E: f32 = 0.5;
 /// Surfaces with their own light fields: plate, wall, seabed, open water.
 const PLATE: usize = 0;
 const WALL: usize = 1;
@@ -251,6 +255,40 @@ impl FastRenderer {
         let idx = node * NSURF + surf;
         if self.stamp[idx] == self.frame_id {
             return self.fields[idx];
+        }
+        // Adaptive light grid: a node between two nodes 32 pixels apart whose fields
+        // agree (LIGHT_REL_TOL) takes their mean (most of the background); where they
+        // differ (the lamp's beam, the plate, the glare) it is shaded. The light has no
+        // feature narrower than about 100 pixels (beam edge and glare lobe are 8-15
+        // degrees wide), so agreeing ends leave no peak in between.
+        let (nx, ny) = (self.nx, self.node_x.len() / self.nx);
+        let (i, j) = (node % nx, node / nx);
+        let pair = if i % 2 == 1 && i + 1 < nx {
+            Some((node - 1, node + 1))
+        } else if j % 2 == 1 && j + 1 < ny {
+            Some((node - nx, node + nx))
+        } else {
+            None
+        };
+        if let Some((a, b)) = pair {
+            let (fa, fb) = (
+                self.node_fields(ctx, a, surf),
+                self.node_fields(ctx, b, surf),
+            );
+            let close = (0..3).all(|c| {
+                (fa[c] - fb[c]).abs()
+                    <= LIGHT_REL_TOL * fa[c].abs().max(fb[c].abs()) + LIGHT_ABS_TOL_E
+            });
+            if close {
+                let f = [
+                    0.5 * (fa[0] + fb[0]),
+                    0.5 * (fa[1] + fb[1]),
+                    0.5 * (fa[2] + fb[2]),
+                ];
+                self.fields[idx] = f;
+                self.stamp[idx] = self.frame_id;
+                return f;
+            }
         }
         let x = self.node_x[node] as f64;
         let y = self.node_y[node] as f64;
