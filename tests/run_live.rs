@@ -131,8 +131,12 @@ fn run_on_hil_vehicle_with_recorded_frames_end_to_end() {
     let v = vehicle();
     let rec = tmp("e2e.mcap");
     let summary = tmp("e2e.json");
+    // At the recorded pace: the vehicle runs in real time, and markhold judges the link
+    // on frame stamps (0.9 s without a message = silent). With --no-pace the stamps ran
+    // ahead of the vehicle's messages and a stall of its thread read as a silent link
+    // (9 of 90 frames silent, 2 Dec 2026).
     let o = markhold()
-        .args(["run", "--no-pace", "--site"])
+        .args(["run", "--site"])
         .arg(site_path())
         .arg("--camera")
         .arg(format!("frames:{}", frames.display()))
