@@ -56,44 +56,54 @@ fn setup(scenario: LightingScenario) -> (Scene, UnderwaterCamera, Isometry3<f64>
     (scene, cam, t_wc)
 }
 
+/// How a bench renders its frames.
+#[derive(Clone, Copy)]
+enum Build {
+    /// The fast renderer, AVX2 loops where the CPU has them.
+    Fast,
+    /// The same loops without AVX2 (what a CPU without it runs; same frames).
+    Portable,
+    /// The per-pixel f64 reference.
+    Reference,
+}
+
 fn bench_render(c: &mut Criterion) {
     let mut g = c.benchmark_group("render_1440x1080");
     g.throughput(Throughput::Elements(1440 * 1080));
-    for sc in LightingScenario::ALL {
-        let (scene, mut cam, t_wc) = setup(sc);
-        let mut frame = Frame::default();
-        let mut t = 0.0;
-        g.bench_with_input(BenchmarkId::new("fast", sc), &sc, |b, _| {
-            b.iter(|| {
-                t += 1.0 / 30.0;
-                cam.render(&scene, &t_wc, &t_wc, t, &mut frame);
-            })
-        });
-    }
-    // The same loops without AVX2 (what a CPU without it runs; same frames).
-    for sc in [LightingScenario::Normal, LightingScenario::Caustics] {
-        let (scene, mut cam, t_wc) = setup(sc);
-        cam.set_portable_render(true);
-        let mut frame = Frame::default();
-        let mut t = 0.0;
-        g.bench_with_input(BenchmarkId::new("portable", sc), &sc, |b, _| {
-            b.iter(|| {
-                t += 1.0 / 30.0;
-                cam.render(&scene, &t_wc, &t_wc, t, &mut frame);
-            })
-        });
-    }
-    g.sample_size(10);
-    for sc in [LightingScenario::Normal, LightingScenario::Adversarial] {
-        let (scene, mut cam, t_wc) = setup(sc);
-        let mut frame = Frame::default();
-        let mut t = 0.0;
-        g.bench_with_input(BenchmarkId::new("reference", sc), &sc, |b, _| {
-            b.iter(|| {
-                t += 1.0 / 30.0;
-                cam.render_reference(&scene, &t_wc, &t_wc, t, &mut frame);
-            })
-        });
+    let runs = [
+        (Build::Fast, "fast", &LightingScenario::ALL[..]),
+        (
+            Build::Portable,
+            "portable",
+            &[LightingScenario::Normal, LightingScenario::Caustics][..],
+        ),
+        (
+            Build::Reference,
+            "reference",
+            &[LightingScenario::Normal, LightingScenario::Adversarial][..],
+        ),
+    ];
+    for (build, name, scenarios) in runs {
+        if let Build::Reference = build {
+            g.sample_size(10);
+        }
+        for &sc in scenarios {
+            let (scene, mut cam, t_wc) = setup(sc);
+            cam.set_portable_render(matches!(build, Build::Portable));
+            let mut frame = Frame::default();
+            let mut t = 0.0;
+            g.bench_with_input(BenchmarkId::new(name, sc), &sc, |b, _| {
+                b.iter(|| {
+                    t += 1.0 / 30.0;
+                    match build {
+                        Build::Reference => {
+                            cam.render_reference(&scene, &t_wc, &t_wc, t, &mut frame)
+                        }
+                        _ => cam.render(&scene, &t_wc, &t_wc, t, &mut frame),
+                    }
+                })
+            });
+        }
     }
     g.finish();
 }

@@ -5,7 +5,6 @@
 
 mod fast;
 mod kernels;
-pub(crate) use kernels::TEXTURE_PAD;
 mod reference;
 mod sensor;
 
@@ -217,6 +216,19 @@ impl CameraModel {
     }
 }
 
+/// What both renderers need for one frame.
+pub(crate) struct FrameInput<'a> {
+    pub(crate) model: &'a CameraModel,
+    pub(crate) scene: &'a Scene,
+    pub(crate) t_wc: &'a Isometry3<f64>,
+    /// The vehicle's lamps placed for this frame.
+    pub(crate) lamps: &'a [WorldLamp],
+    pub(crate) time_s: f64,
+    /// Electrons per unit of exitance at this frame's exposure.
+    pub(crate) e_per_unit: f64,
+    pub(crate) tables: &'a SensorTables,
+}
+
 /// The simulated camera. Holds every buffer it renders with, so `render` allocates
 /// nothing after the first frame.
 pub struct UnderwaterCamera {
@@ -316,22 +328,7 @@ impl UnderwaterCamera {
         time_s: f64,
         out: &mut Frame,
     ) {
-        let exposure_us = self.begin_frame();
-        out.resize(self.model.width, self.model.height);
-        scene.lamps_for(t_world_vehicle, &mut self.lamps);
-        let e_per_unit = electrons_per_unit(&self.model, exposure_us);
-        self.fast.render(
-            &self.model,
-            scene,
-            t_world_cam,
-            &self.lamps,
-            time_s,
-            e_per_unit,
-            &self.tables,
-            &mut self.rng,
-            out,
-        );
-        self.finish_frame(out, time_s, exposure_us);
+        self.render_with(scene, t_world_cam, t_world_vehicle, time_s, out, false);
     }
 
     /// The slow, obviously-correct renderer (f64 per pixel, no precomputation): the
@@ -345,21 +342,35 @@ impl UnderwaterCamera {
         time_s: f64,
         out: &mut Frame,
     ) {
+        self.render_with(scene, t_world_cam, t_world_vehicle, time_s, out, true);
+    }
+
+    fn render_with(
+        &mut self,
+        scene: &Scene,
+        t_world_cam: &Isometry3<f64>,
+        t_world_vehicle: &Isometry3<f64>,
+        time_s: f64,
+        out: &mut Frame,
+        reference: bool,
+    ) {
         let exposure_us = self.begin_frame();
         out.resize(self.model.width, self.model.height);
         scene.lamps_for(t_world_vehicle, &mut self.lamps);
-        let e_per_unit = electrons_per_unit(&self.model, exposure_us);
-        reference::render(
-            &self.model,
+        let input = FrameInput {
+            model: &self.model,
             scene,
-            t_world_cam,
-            &self.lamps,
+            t_wc: t_world_cam,
+            lamps: &self.lamps,
             time_s,
-            e_per_unit,
-            &self.tables,
-            &mut self.rng,
-            out,
-        );
+            e_per_unit: electrons_per_unit(&self.model, exposure_us),
+            tables: &self.tables,
+        };
+        if reference {
+            reference::render(&input, &mut self.rng, out);
+        } else {
+            self.fast.render(&input, &mut self.rng, out);
+        }
         self.finish_frame(out, time_s, exposure_us);
     }
 

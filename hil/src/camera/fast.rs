@@ -14,10 +14,10 @@ use nalgebra::{Isometry3, Point3, Vector3};
 
 use super::kernels::{
     plate_run, ramp_run, rock_nodes_run, sensor_run, CausticLayers, Isa, PlateRun, Ramp, RockNodes,
-    SensorRow, Tex,
+    SensorRow,
 };
-use super::sensor::{SensorTables, XorShift64Star, RESPONSE_LUT_LEN};
-use super::CameraModel;
+use super::sensor::{XorShift64Star, RESPONSE_LUT_LEN};
+use super::{CameraModel, FrameInput};
 use crate::scene::{
     Scene, WorldLamp, ALBEDO_BLACK, ALBEDO_WHITE, CAUSTIC_LAYER2_SCALE, CAUSTIC_LAYER2_SHIFT,
 };
@@ -460,68 +460,40 @@ impl FastRenderer {
         }
     }
 
-    #[allow(clippy::too_many_arguments)]
-    pub(crate) fn render(
-        &mut self,
-        model: &CameraModel,
-        scene: &Scene,
-        t_wc: &Isometry3<f64>,
-        lamps: &[WorldLamp],
-        time_s: f64,
-        e_per_unit: f64,
-        tables: &SensorTables,
-        rng: &mut XorShift64Star,
-        out: &mut Frame,
-    ) {
+    pub(crate) fn render(&mut self, input: &FrameInput, rng: &mut XorShift64Star, out: &mut Frame) {
         #[cfg(target_arch = "x86_64")]
         if self.isa == Isa::Avx2 {
             // SAFETY: `Isa::Avx2` is only chosen when the CPU has AVX2.
             unsafe {
-                return self.render_avx2(
-                    model, scene, t_wc, lamps, time_s, e_per_unit, tables, rng, out,
-                );
+                return self.render_avx2(input, rng, out);
             }
         }
-        self.render_impl(
-            model, scene, t_wc, lamps, time_s, e_per_unit, tables, rng, out,
-        )
+        self.render_impl(input, rng, out)
     }
 
     /// The same code compiled for AVX2, so its plain loops also run eight wide.
     #[cfg(target_arch = "x86_64")]
     #[target_feature(enable = "avx2")]
-    #[allow(clippy::too_many_arguments)]
     unsafe fn render_avx2(
         &mut self,
-        model: &CameraModel,
-        scene: &Scene,
-        t_wc: &Isometry3<f64>,
-        lamps: &[WorldLamp],
-        time_s: f64,
-        e_per_unit: f64,
-        tables: &SensorTables,
+        input: &FrameInput,
         rng: &mut XorShift64Star,
         out: &mut Frame,
     ) {
-        self.render_impl(
-            model, scene, t_wc, lamps, time_s, e_per_unit, tables, rng, out,
-        )
+        self.render_impl(input, rng, out)
     }
 
     #[inline(always)]
-    #[allow(clippy::too_many_arguments)]
-    fn render_impl(
-        &mut self,
-        model: &CameraModel,
-        scene: &Scene,
-        t_wc: &Isometry3<f64>,
-        lamps: &[WorldLamp],
-        time_s: f64,
-        e_per_unit: f64,
-        tables: &SensorTables,
-        rng: &mut XorShift64Star,
-        out: &mut Frame,
-    ) {
+    fn render_impl(&mut self, input: &FrameInput, rng: &mut XorShift64Star, out: &mut Frame) {
+        let FrameInput {
+            model,
+            scene,
+            t_wc,
+            lamps,
+            time_s,
+            e_per_unit,
+            tables,
+        } = *input;
         self.frame_id = self.frame_id.wrapping_add(1);
         if self.frame_id == u32::MAX {
             self.stamp.fill(u32::MAX - 1);
@@ -558,12 +530,7 @@ impl FastRenderer {
                 ALBEDO_BLACK as f32
             }
         }));
-        let caustic = Tex {
-            data: &scene.caustic.data,
-            log2: scene.caustic.log2,
-            scale: scene.caustic.scale,
-            offset: scene.caustic.offset,
-        };
+        let caustic = &scene.caustic;
         let caustics = CausticFrame::new(scene, time_s);
         let layers = caustics.on.then_some(CausticLayers {
             tex: caustic,
@@ -591,12 +558,7 @@ impl FastRenderer {
             layers,
             isa: self.isa,
         };
-        let rock = Tex {
-            data: &scene.rock.data,
-            log2: scene.rock.log2,
-            scale: scene.rock.scale,
-            offset: scene.rock.offset,
-        };
+        let rock = &scene.rock;
         let sensor = SensorRow {
             read_var: tables.read_var_e2,
             per_s: tables.lut_per_s,
@@ -678,7 +640,7 @@ impl FastRenderer {
                         walks: [wk(0), wk(1), wk(2), wk(3), wk(4), wk(5)],
                     };
                     let c = pc.caustics.on.then_some((caustic, pc.caustics.strength));
-                    rock_nodes_run(isa, out, &nodes, rock, c);
+                    rock_nodes_run(isa, out, 0, &nodes, rock, c);
                 } else {
                     for k in i..i1 {
                         let x1 = ((k + 1) * GRID).min(w);
@@ -819,57 +781,37 @@ impl FastRenderer {
                     }
                 }
                 k => {
-                    let (f0, fd) = (sp.f0[k], sp.df[k]);
-                    let texel_per_m = pc.texel_per_m;
-                    // Surface coordinates are affine along a 16-pixel span to well under
-                    // a texel (the division would cost more than the rest): exact at
-                    // both ends, stepped in 16.16 fixed point.
-                    let d_end = f0[0] + fd[0] * GRID as f32;
-                    let affine = (f0[0] > 1e-6 && d_end > 1e-6).then(|| {
-                        let (u0, v0) = (f0[1] / f0[0], f0[2] / f0[0]);
-                        let u1 = (f0[1] + fd[1] * GRID as f32) / d_end;
-                        let v1 = (f0[2] + fd[2] * GRID as f32) / d_end;
-                        let g = 1.0 / GRID as f32;
-                        (u0, (u1 - u0) * g, v0, (v1 - v0) * g)
-                    });
-                    let mut fields = Stepper::new(a0, ad, first);
-                    match affine.and_then(|(u0, du, v0, dv)| {
-                        RockSteps::new(u0, du, v0, dv, first, texel_per_m, caustics)
-                    }) {
-                        Some(mut st) => {
-                            let ct = &scene.caustic;
-                            for m in run.iter_mut() {
-                                let albedo = rock.at(st.ru.get(), st.rv.get());
-                                let c = if caustics.on {
-                                    caustics.combine(
-                                        ct.at(st.c0u.get(), st.c0v.get()),
-                                        ct.at(st.c1u.get(), st.c1v.get()),
-                                    )
-                                } else {
-                                    1.0
-                                };
-                                *m = albedo * (fields.v[0] * c + fields.v[1]) + fields.v[2];
-                                st.step();
-                                fields.step();
-                            }
-                        }
-                        None => {
-                            // Near the horizon: exact per pixel.
-                            for (t, m) in run.iter_mut().enumerate() {
-                                let t = first + t as f32;
-                                let inv = 1.0 / (f0[0] + fd[0] * t);
-                                let u = (f0[1] + fd[1] * t) * inv;
-                                let v = (f0[2] + fd[2] * t) * inv;
-                                let tk = texel_per_m;
-                                let albedo = rock.at(floor_i32(u * tk), floor_i32(v * tk));
-                                let c = if caustics.on {
-                                    caustics.at(scene, u, v)
-                                } else {
-                                    1.0
-                                };
-                                *m = albedo * (fields.v[0] * c + fields.v[1]) + fields.v[2];
-                                fields.step();
-                            }
+                    let p = k - WALL;
+                    if self.row_affine[p * nx + i] && self.row_affine[p * nx + i + 1] {
+                        // The packed runs' walks and fields, from this run's first pixel.
+                        let wk = |w: usize| {
+                            let base = (p * WALKS + w) * nx;
+                            &self.row_walks[base + i..=base + i + 1]
+                        };
+                        let nodes = RockNodes {
+                            cells: &self.cell_fields[k * nx + i..=k * nx + i + 1],
+                            fy,
+                            walks: [wk(0), wk(1), wk(2), wk(3), wk(4), wk(5)],
+                        };
+                        let c = caustics.on.then_some((&scene.caustic, caustics.strength));
+                        rock_nodes_run(pc.isa, run, start, &nodes, rock, c);
+                    } else {
+                        // Near the horizon: exact per pixel.
+                        let (f0, fd) = (sp.f0[k], sp.df[k]);
+                        let tk = pc.texel_per_m;
+                        for (t, m) in run.iter_mut().enumerate() {
+                            let t = first + t as f32;
+                            let inv = 1.0 / (f0[0] + fd[0] * t);
+                            let u = (f0[1] + fd[1] * t) * inv;
+                            let v = (f0[2] + fd[2] * t) * inv;
+                            let albedo = rock.at(floor_i32(u * tk), floor_i32(v * tk));
+                            let c = if caustics.on {
+                                caustics.at(scene, u, v)
+                            } else {
+                                1.0
+                            };
+                            let f = |c: usize| a0[c] + ad[c] * t;
+                            *m = albedo * (f(0) * c + f(1)) + f(2);
                         }
                     }
                 }
@@ -1024,123 +966,6 @@ impl CausticFrame {
     #[inline(always)]
     fn combine(&self, l0: f32, l1: f32) -> f32 {
         1.0 + self.strength * (0.5 * (l0 + l1) - 1.0)
-    }
-}
-
-/// A texel coordinate stepped along a run in 16.16 fixed point.
-#[derive(Debug, Clone, Copy)]
-struct Fixed {
-    at: i64,
-    step: i64,
-}
-
-impl Fixed {
-    /// `start + step * t` texels; `None` when out of the exactly representable range.
-    fn new(start: f32, step: f32) -> Option<Self> {
-        let ok = start.is_finite() && step.is_finite() && start.abs() < 1e9 && step.abs() < 1e7;
-        ok.then(|| {
-            let at = start as f64 * 65536.0;
-            // floor() without a libm call; the step's truncation errs by 2^-16 texel.
-            let i = at as i64;
-            Self {
-                at: i - ((i as f64) > at) as i64,
-                step: (step as f64 * 65536.0) as i64,
-            }
-        })
-    }
-
-    #[inline(always)]
-    fn get(&self) -> i32 {
-        // Arithmetic shift: floor for negative coordinates too.
-        (self.at >> 16) as i32
-    }
-}
-
-/// The texel coordinates a rock run walks: the rock itself and both caustic layers.
-struct RockSteps {
-    ru: Fixed,
-    rv: Fixed,
-    c0u: Fixed,
-    c0v: Fixed,
-    c1u: Fixed,
-    c1v: Fixed,
-}
-
-impl RockSteps {
-    /// From affine surface coordinates `u0 + du t`, `v0 + dv t` (metres), at pixel `first`.
-    /// The caustic layers are stepped only when caustics are on.
-    fn new(
-        u0: f32,
-        du: f32,
-        v0: f32,
-        dv: f32,
-        first: f32,
-        rock_per_m: f32,
-        c: &CausticFrame,
-    ) -> Option<Self> {
-        let (u, v) = (u0 + du * first, v0 + dv * first);
-        let k = c.texels_per_m;
-        let (s2, sh) = (CAUSTIC_LAYER2_SCALE, CAUSTIC_LAYER2_SHIFT);
-        let none = Fixed { at: 0, step: 0 };
-        let caustic = if c.on {
-            [
-                Fixed::new((u + c.off0.0) * k, du * k)?,
-                Fixed::new((v + c.off0.1) * k, dv * k)?,
-                Fixed::new((u * s2 + c.off1.0) * k + sh.0, du * s2 * k)?,
-                Fixed::new((v * s2 + c.off1.1) * k + sh.1, dv * s2 * k)?,
-            ]
-        } else {
-            [none; 4]
-        };
-        Some(Self {
-            ru: Fixed::new(u * rock_per_m, du * rock_per_m)?,
-            rv: Fixed::new(v * rock_per_m, dv * rock_per_m)?,
-            c0u: caustic[0],
-            c0v: caustic[1],
-            c1u: caustic[2],
-            c1v: caustic[3],
-        })
-    }
-
-    #[inline(always)]
-    fn step_rock(&mut self) {
-        self.ru.at += self.ru.step;
-        self.rv.at += self.rv.step;
-    }
-
-    #[inline(always)]
-    fn step(&mut self) {
-        self.step_rock();
-        self.c0u.at += self.c0u.step;
-        self.c0v.at += self.c0v.step;
-        self.c1u.at += self.c1u.step;
-        self.c1v.at += self.c1v.step;
-    }
-}
-
-/// Light fields stepped along a run.
-struct Stepper {
-    v: [f32; 3],
-    d: [f32; 3],
-}
-
-impl Stepper {
-    fn new(a0: [f32; 3], ad: [f32; 3], first: f32) -> Self {
-        Self {
-            v: [
-                a0[0] + ad[0] * first,
-                a0[1] + ad[1] * first,
-                a0[2] + ad[2] * first,
-            ],
-            d: ad,
-        }
-    }
-
-    #[inline(always)]
-    fn step(&mut self) {
-        for c in 0..3 {
-            self.v[c] += self.d[c];
-        }
     }
 }
 

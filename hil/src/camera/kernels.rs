@@ -1,45 +1,25 @@
 //! The per-pixel loops of the fast renderer, each in two builds that give bit-identical
 //! results: a portable one (scalar, what a CPU without AVX2 runs) and an AVX2 one (eight
-//! pixels per instruction, texels fetched with gathers). Both evaluate the same formula
+//! pixels per instruction; texels and table entries still read one by one). Both evaluate the same formula
 //! with the same f32 operations in the same order (no FMA: Rust never contracts a
 //! multiply and an add on its own), so a frame does not depend on the CPU it was
 //! rendered on; `tests/camera_fast.rs` checks it.
+
+use crate::scene::Texture;
 
 /// Scale of the stored noise fields: `(a + b) as f32 * NOISE_SCALE`, the sum of one
 /// sample of each, is half a standard normal sample (a power of two, so the conversion
 /// is exact in both builds).
 pub(crate) const NOISE_SCALE: f32 = 1.0 / 4096.0;
-/// Bytes a texture must hold past its last texel for the gathers (each reads 4 bytes).
-pub(crate) const TEXTURE_PAD: usize = 3;
-
-/// A byte texture for the loops: `value = offset + scale * byte`, side `1 << log2`,
-/// `data` at least `side^2 + TEXTURE_PAD` long.
-#[derive(Clone, Copy)]
-pub(crate) struct Tex<'a> {
-    pub(crate) data: &'a [u8],
-    pub(crate) log2: u32,
-    pub(crate) scale: f32,
-    pub(crate) offset: f32,
+/// Whether the packed loops may read `t` by masked index without a bounds check.
+fn complete(t: &Texture) -> bool {
+    t.log2 <= 15 && t.data.len() == 1usize << (2 * t.log2)
 }
 
-impl Tex<'_> {
-    #[inline(always)]
-    fn mask(&self) -> i32 {
-        (1i32 << self.log2) - 1
-    }
-
-    /// Whether the gathers may read this texture (padding present).
-    pub(crate) fn gather_safe(&self) -> bool {
-        self.log2 <= 15 && self.data.len() >= (1usize << (2 * self.log2)) + TEXTURE_PAD
-    }
-
-    /// Byte at 16.16 fixed-point texel coordinates (wrapping).
-    #[inline(always)]
-    fn byte(&self, u: i32, v: i32) -> f32 {
-        let m = self.mask();
-        let i = (((v >> 16) & m) << self.log2) | ((u >> 16) & m);
-        self.data.get(i as usize).copied().unwrap_or(0) as f32
-    }
+/// Texel byte at 16.16 fixed-point coordinates (wrapping), as a float.
+#[inline(always)]
+fn texel(t: &Texture, u: i32, v: i32) -> f32 {
+    t.byte(u >> 16, v >> 16) as f32
 }
 
 /// A 16.16 fixed-point texel coordinate along a run: `at + step * t` (wrapping).
@@ -73,7 +53,7 @@ impl Ramp {
 /// Rock without caustics: `byte * scaled_light + offset_light` (the rock's albedo scale
 /// and offset folded into the light terms by the caller).
 pub(crate) struct RockRun<'a> {
-    pub(crate) tex: Tex<'a>,
+    pub(crate) tex: &'a Texture,
     pub(crate) u: Walk,
     pub(crate) v: Walk,
     pub(crate) light: Ramp,
@@ -83,8 +63,8 @@ pub(crate) struct RockRun<'a> {
 /// Rock under caustics: `albedo * (ambient * c + lamp) + add`, with
 /// `c = 1 + strength * (0.5 * (c0 + c1) - 1)` from two caustic layers.
 pub(crate) struct CausticRockRun<'a> {
-    pub(crate) rock: Tex<'a>,
-    pub(crate) caustic: Tex<'a>,
+    pub(crate) rock: &'a Texture,
+    pub(crate) caustic: &'a Texture,
     pub(crate) u: Walk,
     pub(crate) v: Walk,
     pub(crate) c0u: Walk,
@@ -133,7 +113,7 @@ impl RockNodes<'_> {
     /// Span `s` without caustics: daylight and lamps add up before the albedo, and the
     /// albedo's scale and offset fold into the light terms (one multiply-add a pixel).
     #[inline(always)]
-    fn rock_run<'t>(&self, tex: Tex<'t>, s: usize) -> RockRun<'t> {
+    fn rock_run<'t>(&self, tex: &'t Texture, s: usize) -> RockRun<'t> {
         let (a, l, d) = (self.ramp(0, s), self.ramp(1, s), self.ramp(2, s));
         let (l0, ld) = (a.at + l.at, a.step + l.step);
         RockRun {
@@ -154,8 +134,8 @@ impl RockNodes<'_> {
     #[inline(always)]
     fn caustic_run<'t>(
         &self,
-        rock: Tex<'t>,
-        caustic: Tex<'t>,
+        rock: &'t Texture,
+        caustic: &'t Texture,
         strength: f32,
         s: usize,
     ) -> CausticRockRun<'t> {
@@ -176,35 +156,38 @@ impl RockNodes<'_> {
     }
 }
 
-/// Rock over a run of 16-pixel spans (`out` starts at the run's first node; the last
-/// span may be short). `caustic` is the caustic texture and strength when caustics are on.
+/// Rock over a run of 16-pixel spans: `out` holds the run's pixels from offset `first`
+/// (counted from the run's first node) on; the last span may be short. `caustic` is the
+/// caustic texture and strength when caustics are on.
 #[inline(always)]
 pub(crate) fn rock_nodes_run(
     isa: Isa,
     out: &mut [f32],
+    first: usize,
     nodes: &RockNodes,
-    rock: Tex,
-    caustic: Option<(Tex, f32)>,
+    rock: &Texture,
+    caustic: Option<(&Texture, f32)>,
 ) {
-    let gather_ok = rock.gather_safe() && caustic.is_none_or(|(c, _)| c.gather_safe());
+    let readable = complete(rock) && caustic.is_none_or(|(c, _)| complete(c));
     match isa {
         #[cfg(target_arch = "x86_64")]
-        // SAFETY: Avx2 is only chosen when the CPU has it; the textures are padded.
-        Isa::Avx2 if gather_ok => unsafe { avx2::rock_nodes_run(out, nodes, rock, caustic) },
+        // SAFETY: Avx2 is only chosen when the CPU has it; indices are masked into the
+        // complete textures.
+        Isa::Avx2 if readable => unsafe { avx2::rock_nodes_run(out, first, nodes, rock, caustic) },
         _ => {
-            let spans = nodes.cells.len().saturating_sub(1);
-            for (s, o) in out.chunks_mut(16).enumerate().take(spans) {
+            for (range, s, t0) in span_parts(out.len(), first, nodes) {
+                let o = &mut out[range];
                 match caustic {
                     None => {
                         let r = nodes.rock_run(rock, s);
                         for (t, m) in o.iter_mut().enumerate() {
-                            *m = rock_px(&r, t as i32);
+                            *m = rock_px(&r, (t0 + t) as i32);
                         }
                     }
                     Some((c, k)) => {
                         let r = nodes.caustic_run(rock, c, k, s);
                         for (t, m) in o.iter_mut().enumerate() {
-                            *m = caustic_rock_px(&r, t as i32);
+                            *m = caustic_rock_px(&r, (t0 + t) as i32);
                         }
                     }
                 }
@@ -213,10 +196,33 @@ pub(crate) fn rock_nodes_run(
     }
 }
 
+/// The parts of a run of `len` pixels from offset `first` (counted from the run's first
+/// node) that fall in one 16-pixel span each: (range in the run, span, offset of the
+/// part's first pixel in the span). An iterator, not a callback, so the AVX2 loop body
+/// stays in the function that enables AVX2.
+fn span_parts(
+    len: usize,
+    first: usize,
+    nodes: &RockNodes,
+) -> impl Iterator<Item = (std::ops::Range<usize>, usize, usize)> {
+    let spans = nodes.cells.len().saturating_sub(1);
+    let mut done = 0;
+    std::iter::from_fn(move || {
+        let pos = first + done;
+        if done >= len || pos / 16 >= spans {
+            return None;
+        }
+        let (s, t0) = (pos / 16, pos % 16);
+        let n = (16 - t0).min(len - done);
+        done += n;
+        Some((done - n..done, s, t0))
+    })
+}
+
 /// The caustic layers in texel units for one frame (see `CausticFrame` in `fast.rs`).
 #[derive(Clone, Copy)]
 pub(crate) struct CausticLayers<'a> {
-    pub(crate) tex: Tex<'a>,
+    pub(crate) tex: &'a Texture,
     pub(crate) strength: f32,
     pub(crate) texels_per_m: f32,
     pub(crate) off0: (f32, f32),
@@ -250,7 +256,7 @@ impl PlateRun<'_> {
     fn gather_safe(&self) -> bool {
         self.side >= 3
             && self.cells.len() >= (self.side * self.side) as usize
-            && self.caustic.is_none_or(|c| c.tex.gather_safe())
+            && self.caustic.is_none_or(|c| complete(c.tex))
     }
 
     /// Cell (ci, cj) of the printed grid (-1 and `cells` are the white border).
@@ -289,11 +295,13 @@ fn plate_px(r: &PlateRun, t: f32) -> f32 {
     let c = match &r.caustic {
         Some(l) => {
             let k = l.texels_per_m;
-            let t0 = l.tex.byte(
+            let t0 = texel(
+                l.tex,
                 floor_i32((u + l.off0.0) * k) << 16,
                 floor_i32((v + l.off0.1) * k) << 16,
             );
-            let t1 = l.tex.byte(
+            let t1 = texel(
+                l.tex,
                 floor_i32((u * l.scale2 + l.off1.0) * k + l.shift2.0) << 16,
                 floor_i32((v * l.scale2 + l.off1.1) * k + l.shift2.1) << 16,
             );
@@ -335,15 +343,15 @@ pub(crate) struct SensorRow<'a> {
 #[inline(always)]
 fn rock_px(r: &RockRun, t: i32) -> f32 {
     let tf = t as f32;
-    r.tex.byte(r.u.get(t), r.v.get(t)) * r.light.get(tf) + r.add.get(tf)
+    texel(r.tex, r.u.get(t), r.v.get(t)) * r.light.get(tf) + r.add.get(tf)
 }
 
 #[inline(always)]
 fn caustic_rock_px(r: &CausticRockRun, t: i32) -> f32 {
     let tf = t as f32;
-    let albedo = r.rock.offset + r.rock.scale * r.rock.byte(r.u.get(t), r.v.get(t));
-    let c0 = r.caustic.offset + r.caustic.scale * r.caustic.byte(r.c0u.get(t), r.c0v.get(t));
-    let c1 = r.caustic.offset + r.caustic.scale * r.caustic.byte(r.c1u.get(t), r.c1v.get(t));
+    let albedo = r.rock.offset + r.rock.scale * texel(r.rock, r.u.get(t), r.v.get(t));
+    let c0 = r.caustic.offset + r.caustic.scale * texel(r.caustic, r.c0u.get(t), r.c0v.get(t));
+    let c1 = r.caustic.offset + r.caustic.scale * texel(r.caustic, r.c1u.get(t), r.c1v.get(t));
     let c = 1.0 + r.strength * (0.5 * (c0 + c1) - 1.0);
     albedo * (r.ambient.get(tf) * c + r.lamp.get(tf)) + r.add.get(tf)
 }
@@ -442,8 +450,8 @@ mod avx2 {
 
     /// Eight texel bytes as floats. The caller guarantees `gather_safe`.
     #[inline(always)]
-    unsafe fn fetch(tex: &Tex, u: __m256i, v: __m256i) -> __m256 {
-        let m = _mm256_set1_epi32(tex.mask());
+    unsafe fn fetch(tex: &Texture, u: __m256i, v: __m256i) -> __m256 {
+        let m = _mm256_set1_epi32(tex.mask() as i32);
         let tx = _mm256_and_si256(_mm256_srai_epi32::<16>(u), m);
         let ty = _mm256_and_si256(_mm256_srai_epi32::<16>(v), m);
         let shift = _mm_cvtsi32_si128(tex.log2 as i32);
@@ -462,24 +470,24 @@ mod avx2 {
 
     /// Runs inside `rock_nodes_run` (AVX2 enabled there).
     #[inline(always)]
-    unsafe fn rock_span(out: &mut [f32], r: &RockRun) {
+    unsafe fn rock_span(out: &mut [f32], first: usize, r: &RockRun) {
         let n = out.len();
         let mut t0 = 0usize;
         while t0 + 8 <= n {
-            let ti = _mm256_add_epi32(_mm256_set1_epi32(t0 as i32), lanes());
+            let ti = _mm256_add_epi32(_mm256_set1_epi32((first + t0) as i32), lanes());
             let tf = _mm256_cvtepi32_ps(ti);
-            let b = fetch(&r.tex, walk(r.u, ti), walk(r.v, ti));
+            let b = fetch(r.tex, walk(r.u, ti), walk(r.v, ti));
             let m = _mm256_add_ps(_mm256_mul_ps(b, ramp(r.light, tf)), ramp(r.add, tf));
             _mm256_storeu_ps(out.as_mut_ptr().add(t0), m);
             t0 += 8;
         }
         for (t, m) in out.iter_mut().enumerate().skip(t0) {
-            *m = rock_px(r, t as i32);
+            *m = rock_px(r, (first + t) as i32);
         }
     }
 
     #[inline(always)]
-    unsafe fn caustic_rock_span(out: &mut [f32], r: &CausticRockRun) {
+    unsafe fn caustic_rock_span(out: &mut [f32], first: usize, r: &CausticRockRun) {
         let n = out.len();
         let mut t0 = 0usize;
         let (ro, rs) = (_mm256_set1_ps(r.rock.offset), _mm256_set1_ps(r.rock.scale));
@@ -493,19 +501,19 @@ mod avx2 {
             _mm256_set1_ps(r.strength),
         );
         while t0 + 8 <= n {
-            let ti = _mm256_add_epi32(_mm256_set1_epi32(t0 as i32), lanes());
+            let ti = _mm256_add_epi32(_mm256_set1_epi32((first + t0) as i32), lanes());
             let tf = _mm256_cvtepi32_ps(ti);
             let albedo = _mm256_add_ps(
                 ro,
-                _mm256_mul_ps(rs, fetch(&r.rock, walk(r.u, ti), walk(r.v, ti))),
+                _mm256_mul_ps(rs, fetch(r.rock, walk(r.u, ti), walk(r.v, ti))),
             );
             let c0 = _mm256_add_ps(
                 co,
-                _mm256_mul_ps(cs, fetch(&r.caustic, walk(r.c0u, ti), walk(r.c0v, ti))),
+                _mm256_mul_ps(cs, fetch(r.caustic, walk(r.c0u, ti), walk(r.c0v, ti))),
             );
             let c1 = _mm256_add_ps(
                 co,
-                _mm256_mul_ps(cs, fetch(&r.caustic, walk(r.c1u, ti), walk(r.c1v, ti))),
+                _mm256_mul_ps(cs, fetch(r.caustic, walk(r.c1u, ti), walk(r.c1v, ti))),
             );
             let c = _mm256_add_ps(
                 one,
@@ -520,29 +528,44 @@ mod avx2 {
             t0 += 8;
         }
         for (t, m) in out.iter_mut().enumerate().skip(t0) {
-            *m = caustic_rock_px(r, t as i32);
+            *m = caustic_rock_px(r, (first + t) as i32);
         }
     }
 
     #[target_feature(enable = "avx2")]
     pub(super) unsafe fn rock_nodes_run(
         out: &mut [f32],
+        first: usize,
         nodes: &RockNodes,
-        rock: Tex,
-        caustic: Option<(Tex, f32)>,
+        rock: &Texture,
+        caustic: Option<(&Texture, f32)>,
     ) {
-        let spans = nodes.cells.len().saturating_sub(1);
-        for (s, o) in out.chunks_mut(16).enumerate().take(spans) {
+        for (range, s, t0) in span_parts(out.len(), first, nodes) {
+            let o = &mut out[range];
             match caustic {
-                None => rock_span(o, &nodes.rock_run(rock, s)),
-                Some((c, k)) => caustic_rock_span(o, &nodes.caustic_run(rock, c, k, s)),
+                None => rock_span(o, t0, &nodes.rock_run(rock, s)),
+                Some((c, k)) => caustic_rock_span(o, t0, &nodes.caustic_run(rock, c, k, s)),
             }
         }
+    }
+
+    /// Share of the pixel footprint on the lower cell: `(i - c) / w + 0.5` in [0, 1].
+    #[inline(always)]
+    unsafe fn box_weight(i: __m256i, c: __m256, inv_w: __m256) -> __m256 {
+        let x = _mm256_mul_ps(_mm256_sub_ps(_mm256_cvtepi32_ps(i), c), inv_w);
+        let x = _mm256_max_ps(_mm256_add_ps(x, _mm256_set1_ps(0.5)), _mm256_setzero_ps());
+        _mm256_min_ps(x, _mm256_set1_ps(1.0))
     }
 
     #[inline(always)]
     unsafe fn floor_epi32(x: __m256) -> __m256i {
         _mm256_cvttps_epi32(_mm256_floor_ps(x))
+    }
+
+    /// floor(x) as a 16.16 fixed-point texel coordinate (what `fetch` takes).
+    #[inline(always)]
+    unsafe fn fixed_floor(x: __m256) -> __m256i {
+        _mm256_slli_epi32::<16>(floor_epi32(x))
     }
 
     #[inline(always)]
@@ -561,11 +584,7 @@ mod avx2 {
     #[target_feature(enable = "avx2")]
     pub(super) unsafe fn plate_run(out: &mut [f32], first: usize, r: &PlateRun) {
         let n = out.len();
-        let (zero, one, half) = (
-            _mm256_setzero_ps(),
-            _mm256_set1_ps(1.0),
-            _mm256_set1_ps(0.5),
-        );
+        let (one, half) = (_mm256_set1_ps(1.0), _mm256_set1_ps(0.5));
         let (hm, cpm) = (_mm256_set1_ps(r.half_marker), _mm256_set1_ps(r.cell_per_m));
         let (iwu, iwv) = (_mm256_set1_ps(r.inv_wu), _mm256_set1_ps(r.inv_wv));
         let ione = _mm256_set1_epi32(1);
@@ -580,26 +599,7 @@ mod avx2 {
             let cv = _mm256_mul_ps(_mm256_sub_ps(hm, v), cpm);
             let iu = floor_epi32(_mm256_add_ps(cu, half));
             let iv = floor_epi32(_mm256_add_ps(cv, half));
-            let au = _mm256_min_ps(
-                _mm256_max_ps(
-                    _mm256_add_ps(
-                        _mm256_mul_ps(_mm256_sub_ps(_mm256_cvtepi32_ps(iu), cu), iwu),
-                        half,
-                    ),
-                    zero,
-                ),
-                one,
-            );
-            let av = _mm256_min_ps(
-                _mm256_max_ps(
-                    _mm256_add_ps(
-                        _mm256_mul_ps(_mm256_sub_ps(_mm256_cvtepi32_ps(iv), cv), iwv),
-                        half,
-                    ),
-                    zero,
-                ),
-                one,
-            );
+            let (au, av) = (box_weight(iu, cu, iwu), box_weight(iv, cv, iwv));
             let (iu1, iv1) = (_mm256_sub_epi32(iu, ione), _mm256_sub_epi32(iv, ione));
             let nav = _mm256_sub_ps(one, av);
             let left = _mm256_add_ps(
@@ -617,23 +617,22 @@ mod avx2 {
             let c = match &r.caustic {
                 Some(l) => {
                     let k = _mm256_set1_ps(l.texels_per_m);
-                    let fx = |x: __m256| _mm256_slli_epi32::<16>(floor_epi32(x));
                     let b0 = fetch(
-                        &l.tex,
-                        fx(_mm256_mul_ps(_mm256_add_ps(u, _mm256_set1_ps(l.off0.0)), k)),
-                        fx(_mm256_mul_ps(_mm256_add_ps(v, _mm256_set1_ps(l.off0.1)), k)),
+                        l.tex,
+                        fixed_floor(_mm256_mul_ps(_mm256_add_ps(u, _mm256_set1_ps(l.off0.0)), k)),
+                        fixed_floor(_mm256_mul_ps(_mm256_add_ps(v, _mm256_set1_ps(l.off0.1)), k)),
                     );
                     let s2 = _mm256_set1_ps(l.scale2);
                     let b1 = fetch(
-                        &l.tex,
-                        fx(_mm256_add_ps(
+                        l.tex,
+                        fixed_floor(_mm256_add_ps(
                             _mm256_mul_ps(
                                 _mm256_add_ps(_mm256_mul_ps(u, s2), _mm256_set1_ps(l.off1.0)),
                                 k,
                             ),
                             _mm256_set1_ps(l.shift2.0),
                         )),
-                        fx(_mm256_add_ps(
+                        fixed_floor(_mm256_add_ps(
                             _mm256_mul_ps(
                                 _mm256_add_ps(_mm256_mul_ps(v, s2), _mm256_set1_ps(l.off1.1)),
                                 k,

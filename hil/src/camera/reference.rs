@@ -5,8 +5,8 @@
 use markhold_exposure::Frame;
 use nalgebra::{Isometry3, Point3, Vector3};
 
-use super::sensor::{SensorTables, XorShift64Star};
-use super::CameraModel;
+use super::sensor::XorShift64Star;
+use super::{CameraModel, FrameInput};
 use crate::scene::{Scene, Surface, WorldLamp, ALBEDO_BLACK, ALBEDO_WHITE};
 
 /// Where a pixel's ray ends.
@@ -189,18 +189,16 @@ pub(crate) fn pixel_light(
     albedo * (shade.ambient * caustic + shade.lamp) + shade.glare + shade.backscatter
 }
 
-#[allow(clippy::too_many_arguments)]
-pub(crate) fn render(
-    model: &CameraModel,
-    scene: &Scene,
-    t_wc: &Isometry3<f64>,
-    lamps: &[WorldLamp],
-    time_s: f64,
-    e_per_unit: f64,
-    tables: &SensorTables,
-    rng: &mut XorShift64Star,
-    out: &mut Frame,
-) {
+pub(crate) fn render(input: &FrameInput, rng: &mut XorShift64Star, out: &mut Frame) {
+    let FrameInput {
+        model,
+        scene,
+        t_wc,
+        lamps,
+        time_s,
+        e_per_unit,
+        tables,
+    } = *input;
     let w = model.width as usize;
     let mask = tables.gauss_mask();
     for (y, row) in out.data.chunks_exact_mut(w).enumerate() {

@@ -66,20 +66,7 @@ pub(crate) struct SensorTables {
 impl SensorTables {
     pub(crate) fn new(seed: u64, model: &super::CameraModel, response: &Response) -> Self {
         let mut rng = super::super::scene::SplitMix64::new(seed ^ 0x6A55_0000_0000_0003);
-        let n = 1usize << GAUSS_LOG2;
-        let mut gauss = Vec::with_capacity(n);
-        while gauss.len() < n {
-            // Box-Muller.
-            let u1 = rng.next_f64().max(1e-300);
-            let u2 = rng.next_f64();
-            let r = (-2.0 * u1.ln()).sqrt();
-            let a = std::f64::consts::TAU * u2;
-            gauss.push(r * a.cos());
-            gauss.push(r * a.sin());
-        }
-        let mean = gauss.iter().sum::<f64>() / n as f64;
-        let var = gauss.iter().map(|g| (g - mean).powi(2)).sum::<f64>() / n as f64;
-        let sd = var.sqrt().max(1e-12);
+        let (gauss, mean, sd) = normal_samples(&mut rng, 1 << GAUSS_LOG2);
         let half_gauss = gauss
             .iter()
             .map(|g| (0.5 * (g - mean) / sd) as f32)
@@ -131,6 +118,16 @@ impl SensorTables {
 /// `n` normal samples (Box-Muller, normalized to mean 0 and variance 1/8: two of them add
 /// up to half a standard normal sample) in units of `NOISE_SCALE`.
 fn noise_field(rng: &mut super::super::scene::SplitMix64, n: usize) -> Vec<i16> {
+    let (g, mean, sd) = normal_samples(rng, n);
+    let k = 0.5 * std::f64::consts::FRAC_1_SQRT_2 / sd / super::kernels::NOISE_SCALE as f64;
+    g.iter()
+        .map(|v| ((v - mean) * k).round().clamp(-32767.0, 32767.0) as i16)
+        .collect()
+}
+
+/// `n` standard normal samples (Box-Muller) with their sample mean and standard
+/// deviation, so callers can normalize them exactly.
+fn normal_samples(rng: &mut super::super::scene::SplitMix64, n: usize) -> (Vec<f64>, f64, f64) {
     let mut g = Vec::with_capacity(n + 1);
     while g.len() < n {
         let u1 = rng.next_f64().max(1e-300);
@@ -143,11 +140,7 @@ fn noise_field(rng: &mut super::super::scene::SplitMix64, n: usize) -> Vec<i16> 
     g.truncate(n);
     let mean = g.iter().sum::<f64>() / n as f64;
     let var = g.iter().map(|v| (v - mean).powi(2)).sum::<f64>() / n as f64;
-    let sd = var.sqrt().max(1e-12);
-    let k = 0.5 * std::f64::consts::FRAC_1_SQRT_2 / sd / super::kernels::NOISE_SCALE as f64;
-    g.iter()
-        .map(|v| ((v - mean) * k).round().clamp(-32767.0, 32767.0) as i16)
-        .collect()
+    (g, mean, var.sqrt().max(1e-12))
 }
 
 /// Electrons per unit of exitance (W/m2) during an exposure of `exposure_us`.

@@ -41,23 +41,16 @@ impl Texture {
         let lo = values.iter().cloned().fold(f32::MAX, f32::min);
         let hi = values.iter().cloned().fold(f32::MIN, f32::max);
         let scale = ((hi - lo) / 255.0).max(1e-12);
-        let mut data: Vec<u8> = values
+        let data = values
             .iter()
             .map(|v| ((v - lo) / scale).round().clamp(0.0, 255.0) as u8)
             .collect();
-        // Bytes past the last texel that the renderer's gathers may read (never used).
-        data.extend([0; crate::camera::TEXTURE_PAD]);
         Self {
             log2,
             data,
             scale,
             offset: lo,
         }
-    }
-
-    /// The texels, without the padding.
-    pub(crate) fn texels(&self) -> &[u8] {
-        &self.data[..self.side() * self.side()]
     }
 
     pub(crate) fn side(&self) -> usize {
@@ -185,8 +178,7 @@ pub(crate) fn caustic_texture(seed: u64, log2: u32, cells_per_side: usize) -> Te
         .collect();
     // Bytes from 0 with a scale that makes the mean exactly 1 after quantization.
     let mut t = Texture::from_values(log2, &data);
-    let texels = t.texels();
-    let mean_byte = texels.iter().map(|&b| b as f64).sum::<f64>() / texels.len() as f64;
+    let mean_byte = t.data.iter().map(|&b| b as f64).sum::<f64>() / t.data.len() as f64;
     t.offset = 0.0;
     t.scale = (1.0 / mean_byte.max(1e-6)) as f32;
     t
@@ -204,7 +196,7 @@ mod tests {
         assert_eq!(a.data, b.data);
         assert_ne!(a.data, c.data);
         let vals = |t: &Texture| -> Vec<f32> {
-            (0..t.texels().len())
+            (0..t.data.len())
                 .map(|i| t.at((i % t.side()) as i32, (i / t.side()) as i32))
                 .collect()
         };
@@ -218,7 +210,7 @@ mod tests {
     fn caustics_have_unit_mean_and_contrast() {
         let t = caustic_texture(3, 7, 6);
         let v: Vec<f32> = t
-            .texels()
+            .data
             .iter()
             .map(|&b| t.offset + t.scale * b as f32)
             .collect();
