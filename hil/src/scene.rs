@@ -641,7 +641,8 @@ pub struct Scene {
     /// Fixed lamps in the world (the marker lamp).
     pub(crate) world_lamps: Vec<WorldLamp>,
     pub(crate) rock: Texture,
-    pub(crate) caustic: Texture,
+    /// The two caustic webs (same size and byte scale; see `Scene::caustic`).
+    pub(crate) caustic: [Texture; 2],
     /// Caustic drift directions of the two layers (unit, in surface coordinates).
     pub(crate) caustic_dirs: [(f64, f64); 2],
     /// Lamps switched off / daylight changed during the run.
@@ -650,20 +651,21 @@ pub struct Scene {
 
 /// Side of the rock texture (texels, power of two).
 const ROCK_LOG2: u32 = 10;
-/// Side of the caustic texture (texels, power of two) and its cells per side.
+/// Side of the caustic textures (texels, power of two) and the cells per side of each
+/// web: the second web's cells are 1.33x larger, so the two never tile in step.
 const CAUSTIC_LOG2: u32 = 10;
-const CAUSTIC_CELLS: usize = 8;
-/// The second caustic layer is scaled (so the two never tile in step) and shifted.
-pub(crate) const CAUSTIC_LAYER2_SCALE: f32 = 0.73;
-pub(crate) const CAUSTIC_LAYER2_SHIFT: (f32, f32) = (97.0, 31.0);
+const CAUSTIC_CELLS: [usize; 2] = [8, 6];
+/// Where the second web starts against the first, texels.
+const CAUSTIC_LAYER2_SHIFT: (i64, i64) = (97, 31);
 
-/// The caustic layers' placement for one instant.
+/// The caustic layers' placement for one instant: the first web's offset (metres), and
+/// the second's against it in whole texels.
 #[derive(Debug, Clone, Copy)]
 pub(crate) struct CausticParams {
     pub(crate) strength: f64,
     pub(crate) texels_per_m: f64,
     pub(crate) off0: (f64, f64),
-    pub(crate) off1: (f64, f64),
+    pub(crate) shift: (i32, i32),
 }
 
 impl Scene {
@@ -711,7 +713,7 @@ impl Scene {
             background.albedo_mean as f32,
             background.albedo_spread as f32,
         );
-        let caustic = texture::caustic_texture(rng.next_u64(), CAUSTIC_LOG2, CAUSTIC_CELLS);
+        let caustic = texture::caustic_textures(rng.next_u64(), CAUSTIC_LOG2, CAUSTIC_CELLS);
         let a0 = rng.next_f64() * std::f64::consts::TAU;
         // The second layer drifts at a clearly different angle so the web keeps changing.
         let a1 = a0 + 2.0 + rng.next_f64();
@@ -888,17 +890,26 @@ impl Scene {
         let l = &self.lighting;
         let d = l.caustics_speed_mps * t;
         let [(a, b), (c, e)] = self.caustic_dirs;
+        let k = self.caustic[0].side() as f64 / CAUSTIC_CELLS[0] as f64 / l.caustics_scale_m;
+        // The second web drifts its own way; it moves against the first in whole texels
+        // (2 mm at the default scale), so the two blend into one texture per frame.
+        let side = self.caustic[0].side() as i64;
+        let rel = |x: f64, s: i64| ((x * k).round() as i64 + s).rem_euclid(side) as i32;
         CausticParams {
             strength: l.caustics_strength,
-            texels_per_m: self.caustic.side() as f64 / CAUSTIC_CELLS as f64 / l.caustics_scale_m,
+            texels_per_m: k,
             off0: (a * d, b * d),
-            off1: (c * d, e * d),
+            shift: (
+                rel((c - a) * d, CAUSTIC_LAYER2_SHIFT.0),
+                rel((e - b) * d, CAUSTIC_LAYER2_SHIFT.1),
+            ),
         }
     }
 
     /// Caustic factor (mean 1) at surface coordinates (u, v) metres at time `t`. Two
-    /// layers of the web drift in different directions; their mean keeps changing shape
-    /// like a real caustic network.
+    /// webs drift in different directions; their mean keeps changing shape like a real
+    /// caustic network. The mean is taken on the bytes (rounded half up), as the fast
+    /// renderer's blended texture holds it.
     pub(crate) fn caustic(&self, u: f64, v: f64, t: f64) -> f64 {
         let p = self.caustic_params(t);
         if p.strength <= 0.0 {
@@ -906,17 +917,17 @@ impl Scene {
         }
         let k = p.texels_per_m;
         // Nearest texel (the texture is fine enough; the fast renderer does the same).
-        let near = |x: f64, y: f64| {
-            self.caustic
-                .at(x.floor() as i64 as i32, y.floor() as i64 as i32) as f64
-        };
-        let l0 = near((u + p.off0.0) * k, (v + p.off0.1) * k);
-        let s = CAUSTIC_LAYER2_SCALE as f64;
-        let l1 = near(
-            (u * s + p.off1.0) * k + CAUSTIC_LAYER2_SHIFT.0 as f64,
-            (v * s + p.off1.1) * k + CAUSTIC_LAYER2_SHIFT.1 as f64,
+        let (x, y) = (
+            ((u + p.off0.0) * k).floor() as i64 as i32,
+            ((v + p.off0.1) * k).floor() as i64 as i32,
         );
-        1.0 + p.strength * (0.5 * (l0 + l1) - 1.0)
+        let [a, b] = &self.caustic;
+        let byte = (a.byte(x, y) as u16
+            + b.byte(x.wrapping_add(p.shift.0), y.wrapping_add(p.shift.1)) as u16
+            + 1)
+            >> 1;
+        let c = a.offset as f64 + a.scale as f64 * byte as f64;
+        1.0 + p.strength * (c - 1.0)
     }
 
     /// Rock / seabed albedo at surface coordinates (u, v) metres.

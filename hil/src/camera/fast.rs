@@ -18,9 +18,7 @@ use super::kernels::{
 };
 use super::sensor::{XorShift64Star, RESPONSE_LUT_LEN};
 use super::{CameraModel, FrameInput};
-use crate::scene::{
-    Scene, WorldLamp, ALBEDO_BLACK, ALBEDO_WHITE, CAUSTIC_LAYER2_SCALE, CAUSTIC_LAYER2_SHIFT,
-};
+use crate::scene::{Scene, Texture, WorldLamp, ALBEDO_BLACK, ALBEDO_WHITE};
 
 /// Pixels between grid nodes.
 const GRID: usize = 16;
@@ -151,11 +149,14 @@ pub(crate) struct FastRenderer {
     zero_noise: Vec<i16>,
     /// The marker's cell albedos for `PlateRun`, refilled per frame.
     cell_table: Vec<f32>,
+    /// The frame's blend of the two caustic webs (`Texture::blend_shifted`): one texel
+    /// read a pixel for both.
+    caustic_blend: Texture,
     isa: Isa,
 }
 
-/// Texel walks per rock plane and node: rock u, v, then both caustic layers' u, v.
-const WALKS: usize = 6;
+/// Texel walks per rock plane and node: rock u, v, then the blended caustic's u, v.
+const WALKS: usize = 4;
 
 /// Everything the per-pixel loop needs for one frame.
 struct FrameCtx<'a> {
@@ -182,6 +183,8 @@ struct PixelConsts<'a> {
     albedo_back: f32,
     texel_per_m: f32,
     caustics: CausticFrame,
+    /// The frame's blend of the caustic webs (meaningful when `caustics.on`).
+    blend: &'a Texture,
     layers: Option<CausticLayers<'a>>,
     isa: Isa,
 }
@@ -240,6 +243,7 @@ impl FastRenderer {
             row_mean: vec![0.0; w],
             zero_noise: vec![0; w],
             cell_table: Vec::new(),
+            caustic_blend: Texture::default(),
             isa: Isa::detect(false),
         }
     }
@@ -425,7 +429,7 @@ impl FastRenderer {
         // Texel walks of the rock planes at the nodes.
         let tk = pc.texel_per_m;
         let c = &pc.caustics;
-        let (ck, s2, sh) = (c.texels_per_m, CAUSTIC_LAYER2_SCALE, CAUSTIC_LAYER2_SHIFT);
+        let ck = c.texels_per_m;
         for (p, k) in [WALL, SEABED].into_iter().enumerate() {
             let d = &self.row_forms[k * 3 * nx..(k * 3 + 1) * nx];
             let nu = &self.row_forms[(k * 3 + 1) * nx..(k * 3 + 2) * nx];
@@ -434,9 +438,7 @@ impl FastRenderer {
             let walks = &mut self.row_walks[p * WALKS * nx..(p + 1) * WALKS * nx];
             let (ru, rest) = walks.split_at_mut(nx);
             let (rv, rest) = rest.split_at_mut(nx);
-            let (c0u, rest) = rest.split_at_mut(nx);
-            let (c0v, rest) = rest.split_at_mut(nx);
-            let (c1u, c1v) = rest.split_at_mut(nx);
+            let (cu, cv) = rest.split_at_mut(nx);
             let inv = |d: f32| if d > 1e-6 { 1.0 / d } else { 0.0 };
             let planes = d.iter().zip(nu).zip(nv);
             for ((((&d, &nu), &nv), ok), (ru, rv)) in planes.zip(ok).zip(ru.iter_mut().zip(rv)) {
@@ -447,14 +449,10 @@ impl FastRenderer {
             }
             if c.on {
                 let planes = d.iter().zip(nu).zip(nv);
-                let cu = c0u.iter_mut().zip(c0v).zip(c1u.iter_mut().zip(c1v));
-                for (((&d, &nu), &nv), ((c0u, c0v), (c1u, c1v))) in planes.zip(cu) {
+                for (((&d, &nu), &nv), (cu, cv)) in planes.zip(cu.iter_mut().zip(cv)) {
                     let k = inv(d);
-                    let (u, v) = (nu * k, nv * k);
-                    *c0u = fix16((u + c.off0.0) * ck);
-                    *c0v = fix16((v + c.off0.1) * ck);
-                    *c1u = fix16((u * s2 + c.off1.0) * ck + sh.0);
-                    *c1v = fix16((v * s2 + c.off1.1) * ck + sh.1);
+                    *cu = fix16((nu * k + c.off0.0) * ck);
+                    *cv = fix16((nv * k + c.off0.1) * ck);
                 }
             }
         }
@@ -530,16 +528,20 @@ impl FastRenderer {
                 ALBEDO_BLACK as f32
             }
         }));
-        let caustic = &scene.caustic;
         let caustics = CausticFrame::new(scene, time_s);
+        // Blend the two webs at this frame's offset between them (about 0.1 ms: a third
+        // of the second texel read it saves under caustics). Rebuilt every frame: the
+        // webs move against each other by a few texels a frame.
+        let mut blend = std::mem::take(&mut self.caustic_blend);
+        if caustics.on {
+            let [a, b] = &scene.caustic;
+            blend.blend_shifted(a, b, caustics.shift);
+        }
         let layers = caustics.on.then_some(CausticLayers {
-            tex: caustic,
+            tex: &blend,
             strength: caustics.strength,
             texels_per_m: caustics.texels_per_m,
             off0: caustics.off0,
-            off1: caustics.off1,
-            scale2: CAUSTIC_LAYER2_SCALE,
-            shift2: CAUSTIC_LAYER2_SHIFT,
         });
         let pc = PixelConsts {
             scene,
@@ -555,6 +557,7 @@ impl FastRenderer {
             albedo_back: scene.plate_back_albedo() as f32,
             texel_per_m: (1.0 / scene.background.texel_m) as f32,
             caustics,
+            blend: &blend,
             layers,
             isa: self.isa,
         };
@@ -637,9 +640,9 @@ impl FastRenderer {
                     let nodes = RockNodes {
                         cells: &self.cell_fields[surf * nx + i..=surf * nx + i1],
                         fy,
-                        walks: [wk(0), wk(1), wk(2), wk(3), wk(4), wk(5)],
+                        walks: [wk(0), wk(1), wk(2), wk(3)],
                     };
-                    let c = pc.caustics.on.then_some((caustic, pc.caustics.strength));
+                    let c = pc.caustics.on.then_some((pc.blend, pc.caustics.strength));
                     rock_nodes_run(isa, out, 0, &nodes, rock, c);
                 } else {
                     for k in i..i1 {
@@ -666,6 +669,7 @@ impl FastRenderer {
             self.row_mean = row_mean;
         }
         self.cell_table = cell_table;
+        self.caustic_blend = blend;
     }
 
     /// A span that may show several surfaces (or the plate, or the horizon): split at
@@ -791,9 +795,9 @@ impl FastRenderer {
                         let nodes = RockNodes {
                             cells: &self.cell_fields[k * nx + i..=k * nx + i + 1],
                             fy,
-                            walks: [wk(0), wk(1), wk(2), wk(3), wk(4), wk(5)],
+                            walks: [wk(0), wk(1), wk(2), wk(3)],
                         };
-                        let c = caustics.on.then_some((&scene.caustic, caustics.strength));
+                        let c = caustics.on.then_some((pc.blend, caustics.strength));
                         rock_nodes_run(pc.isa, run, start, &nodes, rock, c);
                     } else {
                         // Near the horizon: exact per pixel.
@@ -806,7 +810,7 @@ impl FastRenderer {
                             let v = (f0[2] + fd[2] * t) * inv;
                             let albedo = rock.at(floor_i32(u * tk), floor_i32(v * tk));
                             let c = if caustics.on {
-                                caustics.at(scene, u, v)
+                                caustics.at(pc.blend, u, v)
                             } else {
                                 1.0
                             };
@@ -930,7 +934,8 @@ struct CausticFrame {
     strength: f32,
     texels_per_m: f32,
     off0: (f32, f32),
-    off1: (f32, f32),
+    /// The second web against the first, texels.
+    shift: (i32, i32),
 }
 
 impl CausticFrame {
@@ -941,31 +946,19 @@ impl CausticFrame {
             strength: p.strength as f32,
             texels_per_m: p.texels_per_m as f32,
             off0: (p.off0.0 as f32, p.off0.1 as f32),
-            off1: (p.off1.0 as f32, p.off1.1 as f32),
+            shift: p.shift,
         }
     }
 
-    /// Caustic factor at surface coordinates (u, v), metres.
+    /// Caustic factor at surface coordinates (u, v), metres, from the frame's `blend`.
     #[inline(always)]
-    fn at(&self, scene: &Scene, u: f32, v: f32) -> f32 {
+    fn at(&self, blend: &Texture, u: f32, v: f32) -> f32 {
         let k = self.texels_per_m;
-        let (s2, sh) = (CAUSTIC_LAYER2_SCALE, CAUSTIC_LAYER2_SHIFT);
-        let t = &scene.caustic;
-        self.combine(
-            t.at(
-                floor_i32((u + self.off0.0) * k),
-                floor_i32((v + self.off0.1) * k),
-            ),
-            t.at(
-                floor_i32((u * s2 + self.off1.0) * k + sh.0),
-                floor_i32((v * s2 + self.off1.1) * k + sh.1),
-            ),
-        )
-    }
-
-    #[inline(always)]
-    fn combine(&self, l0: f32, l1: f32) -> f32 {
-        1.0 + self.strength * (0.5 * (l0 + l1) - 1.0)
+        let b = blend.at(
+            floor_i32((u + self.off0.0) * k),
+            floor_i32((v + self.off0.1) * k),
+        );
+        1.0 + self.strength * (b - 1.0)
     }
 }
 

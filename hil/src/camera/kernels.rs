@@ -61,16 +61,14 @@ pub(crate) struct RockRun<'a> {
 }
 
 /// Rock under caustics: `albedo * (ambient * c + lamp) + add`, with
-/// `c = 1 + strength * (0.5 * (c0 + c1) - 1)` from two caustic layers.
+/// `c = 1 + strength * (texel - 1)` from the frame's blend of the two caustic webs.
 pub(crate) struct CausticRockRun<'a> {
     pub(crate) rock: &'a Texture,
     pub(crate) caustic: &'a Texture,
     pub(crate) u: Walk,
     pub(crate) v: Walk,
-    pub(crate) c0u: Walk,
-    pub(crate) c0v: Walk,
-    pub(crate) c1u: Walk,
-    pub(crate) c1v: Walk,
+    pub(crate) cu: Walk,
+    pub(crate) cv: Walk,
     pub(crate) strength: f32,
     pub(crate) ambient: Ramp,
     pub(crate) lamp: Ramp,
@@ -79,13 +77,13 @@ pub(crate) struct CausticRockRun<'a> {
 
 /// The light fields of a rock plane at the nodes of a run of spans (ambient, lamp,
 /// additive; see `fast.rs`), and its texel walks at the same nodes (16.16, wrapping):
-/// rock u, v, then (under caustics) both caustic layers' u, v.
+/// rock u, v, then (under caustics) the blended caustic texture's u, v.
 pub(crate) struct RockNodes<'a> {
     /// Per node: the fields on the grid row above and their change to the one below.
     pub(crate) cells: &'a [[f32; 6]],
     /// The row's vertical weight between those grid rows.
     pub(crate) fy: f32,
-    pub(crate) walks: [&'a [i32]; 6],
+    pub(crate) walks: [&'a [i32]; 4],
 }
 
 impl RockNodes<'_> {
@@ -144,10 +142,8 @@ impl RockNodes<'_> {
             caustic,
             u: self.walk(0, s),
             v: self.walk(1, s),
-            c0u: self.walk(2, s),
-            c0v: self.walk(3, s),
-            c1u: self.walk(4, s),
-            c1v: self.walk(5, s),
+            cu: self.walk(2, s),
+            cv: self.walk(3, s),
             strength,
             ambient: self.ramp(0, s),
             lamp: self.ramp(1, s),
@@ -222,13 +218,11 @@ fn span_parts(
 /// The caustic layers in texel units for one frame (see `CausticFrame` in `fast.rs`).
 #[derive(Clone, Copy)]
 pub(crate) struct CausticLayers<'a> {
+    /// The frame's blend of the two webs.
     pub(crate) tex: &'a Texture,
     pub(crate) strength: f32,
     pub(crate) texels_per_m: f32,
     pub(crate) off0: (f32, f32),
-    pub(crate) off1: (f32, f32),
-    pub(crate) scale2: f32,
-    pub(crate) shift2: (f32, f32),
 }
 
 /// The front of the marker plate along one run: the cells box-filtered over the pixel
@@ -295,21 +289,12 @@ fn plate_px(r: &PlateRun, t: f32) -> f32 {
     let c = match &r.caustic {
         Some(l) => {
             let k = l.texels_per_m;
-            let t0 = texel(
+            let b = texel(
                 l.tex,
                 floor_i32((u + l.off0.0) * k) << 16,
                 floor_i32((v + l.off0.1) * k) << 16,
             );
-            let t1 = texel(
-                l.tex,
-                floor_i32((u * l.scale2 + l.off1.0) * k + l.shift2.0) << 16,
-                floor_i32((v * l.scale2 + l.off1.1) * k + l.shift2.1) << 16,
-            );
-            let (c0, c1) = (
-                l.tex.offset + l.tex.scale * t0,
-                l.tex.offset + l.tex.scale * t1,
-            );
-            1.0 + l.strength * (0.5 * (c0 + c1) - 1.0)
+            1.0 + l.strength * ((l.tex.offset + l.tex.scale * b) - 1.0)
         }
         None => 1.0,
     };
@@ -350,9 +335,8 @@ fn rock_px(r: &RockRun, t: i32) -> f32 {
 fn caustic_rock_px(r: &CausticRockRun, t: i32) -> f32 {
     let tf = t as f32;
     let albedo = r.rock.offset + r.rock.scale * texel(r.rock, r.u.get(t), r.v.get(t));
-    let c0 = r.caustic.offset + r.caustic.scale * texel(r.caustic, r.c0u.get(t), r.c0v.get(t));
-    let c1 = r.caustic.offset + r.caustic.scale * texel(r.caustic, r.c1u.get(t), r.c1v.get(t));
-    let c = 1.0 + r.strength * (0.5 * (c0 + c1) - 1.0);
+    let b = r.caustic.offset + r.caustic.scale * texel(r.caustic, r.cu.get(t), r.cv.get(t));
+    let c = 1.0 + r.strength * (b - 1.0);
     albedo * (r.ambient.get(tf) * c + r.lamp.get(tf)) + r.add.get(tf)
 }
 
@@ -456,8 +440,8 @@ mod avx2 {
         let ty = _mm256_and_si256(_mm256_srai_epi32::<16>(v), m);
         let shift = _mm_cvtsi32_si128(tex.log2 as i32);
         let idx = _mm256_or_si256(_mm256_sll_epi32(ty, shift), tx);
-        // Each lane reads 4 bytes from its texel on; the low one is the texel
-        // (`TEXTURE_PAD` bytes follow the last texel).
+        // Scalar reads packed into one word (AVX2 gathers were slower on the AMD EPYC
+        // this was tuned on).
         let mut ix = [0u32; 8];
         _mm256_storeu_si256(ix.as_mut_ptr() as *mut __m256i, idx);
         let d = tex.data.as_ptr();
@@ -495,11 +479,7 @@ mod avx2 {
             _mm256_set1_ps(r.caustic.offset),
             _mm256_set1_ps(r.caustic.scale),
         );
-        let (one, half, k) = (
-            _mm256_set1_ps(1.0),
-            _mm256_set1_ps(0.5),
-            _mm256_set1_ps(r.strength),
-        );
+        let (one, k) = (_mm256_set1_ps(1.0), _mm256_set1_ps(r.strength));
         while t0 + 8 <= n {
             let ti = _mm256_add_epi32(_mm256_set1_epi32((first + t0) as i32), lanes());
             let tf = _mm256_cvtepi32_ps(ti);
@@ -507,21 +487,11 @@ mod avx2 {
                 ro,
                 _mm256_mul_ps(rs, fetch(r.rock, walk(r.u, ti), walk(r.v, ti))),
             );
-            let c0 = _mm256_add_ps(
+            let b = _mm256_add_ps(
                 co,
-                _mm256_mul_ps(cs, fetch(r.caustic, walk(r.c0u, ti), walk(r.c0v, ti))),
+                _mm256_mul_ps(cs, fetch(r.caustic, walk(r.cu, ti), walk(r.cv, ti))),
             );
-            let c1 = _mm256_add_ps(
-                co,
-                _mm256_mul_ps(cs, fetch(r.caustic, walk(r.c1u, ti), walk(r.c1v, ti))),
-            );
-            let c = _mm256_add_ps(
-                one,
-                _mm256_mul_ps(
-                    k,
-                    _mm256_sub_ps(_mm256_mul_ps(half, _mm256_add_ps(c0, c1)), one),
-                ),
-            );
+            let c = _mm256_add_ps(one, _mm256_mul_ps(k, _mm256_sub_ps(b, one)));
             let light = _mm256_add_ps(_mm256_mul_ps(ramp(r.ambient, tf), c), ramp(r.lamp, tf));
             let m = _mm256_add_ps(_mm256_mul_ps(albedo, light), ramp(r.add, tf));
             _mm256_storeu_ps(out.as_mut_ptr().add(t0), m);
@@ -622,33 +592,11 @@ mod avx2 {
                         fixed_floor(_mm256_mul_ps(_mm256_add_ps(u, _mm256_set1_ps(l.off0.0)), k)),
                         fixed_floor(_mm256_mul_ps(_mm256_add_ps(v, _mm256_set1_ps(l.off0.1)), k)),
                     );
-                    let s2 = _mm256_set1_ps(l.scale2);
-                    let b1 = fetch(
-                        l.tex,
-                        fixed_floor(_mm256_add_ps(
-                            _mm256_mul_ps(
-                                _mm256_add_ps(_mm256_mul_ps(u, s2), _mm256_set1_ps(l.off1.0)),
-                                k,
-                            ),
-                            _mm256_set1_ps(l.shift2.0),
-                        )),
-                        fixed_floor(_mm256_add_ps(
-                            _mm256_mul_ps(
-                                _mm256_add_ps(_mm256_mul_ps(v, s2), _mm256_set1_ps(l.off1.1)),
-                                k,
-                            ),
-                            _mm256_set1_ps(l.shift2.1),
-                        )),
-                    );
                     let (to, ts) = (_mm256_set1_ps(l.tex.offset), _mm256_set1_ps(l.tex.scale));
-                    let c0 = _mm256_add_ps(to, _mm256_mul_ps(ts, b0));
-                    let c1 = _mm256_add_ps(to, _mm256_mul_ps(ts, b1));
+                    let b = _mm256_add_ps(to, _mm256_mul_ps(ts, b0));
                     _mm256_add_ps(
                         one,
-                        _mm256_mul_ps(
-                            _mm256_set1_ps(l.strength),
-                            _mm256_sub_ps(_mm256_mul_ps(half, _mm256_add_ps(c0, c1)), one),
-                        ),
+                        _mm256_mul_ps(_mm256_set1_ps(l.strength), _mm256_sub_ps(b, one)),
                     )
                 }
                 None => one,

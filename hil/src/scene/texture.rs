@@ -27,7 +27,7 @@ impl SplitMix64 {
 
 /// A square tileable texture stored as bytes (`value = offset + scale * byte`), side
 /// `1 << log2`: small enough to stay in cache while a frame renders.
-#[derive(Debug, Clone)]
+#[derive(Debug, Clone, Default)]
 pub(crate) struct Texture {
     pub(crate) log2: u32,
     pub(crate) data: Vec<u8>,
@@ -167,21 +167,75 @@ pub(crate) fn rock_texture(seed: u64, log2: u32, mean: f32, spread: f32) -> Text
 }
 
 /// Caustic web: bright thin lines along the borders of a jittered (tileable) Voronoi
-/// diagram, the pattern refracting surface waves focus on the bottom. Values have mean 1.
-pub(crate) fn caustic_texture(seed: u64, log2: u32, cells_per_side: usize) -> Texture {
+/// diagram, the pattern refracting surface waves focus on the bottom. Two webs, one per
+/// entry of `cells_per_side`, quantized on one scale (so a texel of one and a texel of
+/// the other average as bytes) that gives their texels together a mean of exactly 1.
+pub(crate) fn caustic_textures(seed: u64, log2: u32, cells_per_side: [usize; 2]) -> [Texture; 2] {
     let side = 1usize << log2;
     let mut rng = SplitMix64::new(seed ^ 0xCA05_71C5_0000_0002);
     // Bright near the border (distance in cell sizes).
-    let data: Vec<f32> = voronoi(&mut rng, side, cells_per_side)
-        .into_iter()
-        .map(|(edge, _)| (-edge * 9.0).exp())
-        .collect();
+    let mut data = Vec::with_capacity(2 * side * side);
+    for cells in cells_per_side {
+        data.extend(
+            voronoi(&mut rng, side, cells)
+                .into_iter()
+                .map(|(edge, _)| (-edge * 9.0).exp()),
+        );
+    }
     // Bytes from 0 with a scale that makes the mean exactly 1 after quantization.
-    let mut t = Texture::from_values(log2, &data);
-    let mean_byte = t.data.iter().map(|&b| b as f64).sum::<f64>() / t.data.len() as f64;
-    t.offset = 0.0;
-    t.scale = (1.0 / mean_byte.max(1e-6)) as f32;
-    t
+    let both = Texture::from_values(log2, &data);
+    let mean_byte = both.data.iter().map(|&b| b as f64).sum::<f64>() / both.data.len() as f64;
+    let scale = (1.0 / mean_byte.max(1e-6)) as f32;
+    let mut halves = both.data.chunks_exact(side * side).map(|d| Texture {
+        log2,
+        data: d.to_vec(),
+        scale,
+        offset: 0.0,
+    });
+    let mut next = || halves.next().unwrap_or_else(|| Texture::blank(log2));
+    [next(), next()]
+}
+
+impl Texture {
+    /// A texture of zeros (scale 1).
+    pub(crate) fn blank(log2: u32) -> Self {
+        Self {
+            log2,
+            data: vec![0; 1 << (2 * log2)],
+            scale: 1.0,
+            offset: 0.0,
+        }
+    }
+
+    /// The mean byte of a texel of `a` and the texel `shift` texels on of `b`, rounded
+    /// half up: `(a[p] + b[p + shift] + 1) >> 1`, byte `p` of `self`, which takes the
+    /// size and scale of `a` (`a` and `b` the same size and scale).
+    pub(crate) fn blend_shifted(&mut self, a: &Texture, b: &Texture, shift: (i32, i32)) {
+        let (side, m) = (a.side(), a.mask());
+        self.log2 = a.log2;
+        self.scale = a.scale;
+        self.offset = a.offset;
+        self.data.resize(side * side, 0);
+        if b.log2 != a.log2 || a.data.len() != side * side || b.data.len() != side * side {
+            self.data.fill(0);
+            return;
+        }
+        let dx = shift.0 as usize & m;
+        for (y, out) in self.data.chunks_exact_mut(side).enumerate() {
+            let ra = &a.data[y * side..(y + 1) * side];
+            let yb = (y + shift.1 as usize) & m;
+            let rb = &b.data[yb * side..(yb + 1) * side];
+            // Row of b rotated left by dx: two straight pieces (the loops vectorize).
+            let (o1, o2) = out.split_at_mut(side - dx);
+            let (a1, a2) = ra.split_at(side - dx);
+            for ((o, &x), &y) in o1.iter_mut().zip(a1).zip(&rb[dx..]) {
+                *o = ((x as u16 + y as u16 + 1) >> 1) as u8;
+            }
+            for ((o, &x), &y) in o2.iter_mut().zip(a2).zip(&rb[..dx]) {
+                *o = ((x as u16 + y as u16 + 1) >> 1) as u8;
+            }
+        }
+    }
 }
 
 #[cfg(test)]
@@ -208,23 +262,29 @@ mod tests {
 
     #[test]
     fn caustics_have_unit_mean_and_contrast() {
-        let t = caustic_texture(3, 7, 6);
-        let v: Vec<f32> = t
-            .data
-            .iter()
-            .map(|&b| t.offset + t.scale * b as f32)
-            .collect();
-        let mean = v.iter().sum::<f32>() / v.len() as f32;
-        assert!((mean - 1.0).abs() < 1e-3);
-        let max = v.iter().cloned().fold(0f32, f32::max);
-        let min = v.iter().cloned().fold(f32::MAX, f32::min);
-        assert!(max > 2.0 * mean && min < 0.5 * mean, "{min} {max}");
+        let layers = caustic_textures(3, 7, [6, 4]);
+        assert_eq!(layers[0].scale, layers[1].scale);
+        let vals = |t: &Texture| -> Vec<f32> {
+            t.data
+                .iter()
+                .map(|&b| t.offset + t.scale * b as f32)
+                .collect()
+        };
+        let (v0, v1) = (vals(&layers[0]), vals(&layers[1]));
+        let mean = (v0.iter().sum::<f32>() + v1.iter().sum::<f32>()) / (2 * v0.len()) as f32;
+        assert!((mean - 1.0).abs() < 1e-3, "{mean}");
+        for v in [v0, v1] {
+            let max = v.iter().cloned().fold(0f32, f32::max);
+            let min = v.iter().cloned().fold(f32::MAX, f32::min);
+            assert!(max > 2.0 * mean && min < 0.5 * mean, "{min} {max}");
+        }
+        assert_ne!(layers[0].data, layers[1].data);
     }
 
     #[test]
     fn caustics_tile_seamlessly() {
         // Opposite borders of a tileable texture differ no more than neighbours inside.
-        let t = caustic_texture(5, 7, 5);
+        let [t, _] = caustic_textures(5, 7, [5, 3]);
         let s = t.side();
         let mut border = 0f32;
         let mut inner = 0f32;
@@ -238,5 +298,19 @@ mod tests {
         // Mean jump between neighbouring columns inside.
         inner /= (s - 1) as f32;
         assert!(border < 3.0 * inner + 1e-3, "{border} vs {inner}");
+    }
+
+    #[test]
+    fn blend_is_the_shifted_mean_of_two_layers() {
+        let [a, b] = caustic_textures(9, 5, [3, 2]);
+        let mut c = Texture::blank(2);
+        for shift in [(0, 0), (7, -3), (-40, 65), (31, 31)] {
+            c.blend_shifted(&a, &b, shift);
+            assert_eq!((c.log2, c.scale, c.offset), (a.log2, a.scale, a.offset));
+            for (y, x) in [(0, 0), (3, 31), (31, 0), (17, 9)] {
+                let want = (a.byte(x, y) as u16 + b.byte(x + shift.0, y + shift.1) as u16 + 1) >> 1;
+                assert_eq!(c.byte(x, y) as u16, want, "{shift:?} at ({x}, {y})");
+            }
+        }
     }
 }
