@@ -17,7 +17,7 @@ use nalgebra::{Isometry3, Point3, Unit, Vector3};
 use serde::{Deserialize, Serialize};
 
 use crate::{invalid, HilError};
-pub(crate) use texture::{SplitMix64, Texture};
+pub(crate) use texture::{LitTexture, SplitMix64, Texture};
 
 /// Water types with tabulated coefficients (green band, where a grey camera is most
 /// sensitive), from the ranges reported for Jerlov oceanic / coastal types and turbid
@@ -651,21 +651,29 @@ pub struct Scene {
 
 /// Side of the rock texture (texels, power of two).
 const ROCK_LOG2: u32 = 10;
-/// Side of the caustic textures (texels, power of two) and the cells per side of each
-/// web: the second web's cells are 1.33x larger, so the two never tile in step.
-const CAUSTIC_LOG2: u32 = 10;
-const CAUSTIC_CELLS: [usize; 2] = [8, 6];
+/// The caustic webs lie on the rock texture's texel grid (same side, same texel size),
+/// so one texel read gives a pixel both its albedo and its caustic light. The second
+/// web's cells are 1.33x larger than the first's, so the two never tile in step.
+const CAUSTIC_LAYER2_CELLS: f64 = 0.75;
 /// Where the second web starts against the first, texels.
 const CAUSTIC_LAYER2_SHIFT: (i64, i64) = (97, 31);
 
-/// The caustic layers' placement for one instant: the first web's offset (metres), and
-/// the second's against it in whole texels.
+/// Cells per side of the two caustic webs on a rock texture of `side` texels of
+/// `texel_m`: the configured cell size, rounded so a whole number of cells tiles the
+/// texture (at least 2, at most one per 8 texels).
+fn caustic_cells(side: usize, texel_m: f64, scale_m: f64) -> [usize; 2] {
+    let (lo, hi) = (2.0, (side / 8).max(2) as f64);
+    let a = (side as f64 * texel_m / scale_m).round().clamp(lo, hi);
+    let b = (a * CAUSTIC_LAYER2_CELLS).round().clamp(lo, hi);
+    [a as usize, b as usize]
+}
+
+/// Where the caustic webs are at one instant: each web's drift, in whole rock texels
+/// (1.5 mm at the default texel size).
 #[derive(Debug, Clone, Copy)]
 pub(crate) struct CausticParams {
     pub(crate) strength: f64,
-    pub(crate) texels_per_m: f64,
-    pub(crate) off0: (f64, f64),
-    pub(crate) shift: (i32, i32),
+    pub(crate) shift: [(i32, i32); 2],
 }
 
 impl Scene {
@@ -713,7 +721,8 @@ impl Scene {
             background.albedo_mean as f32,
             background.albedo_spread as f32,
         );
-        let caustic = texture::caustic_textures(rng.next_u64(), CAUSTIC_LOG2, CAUSTIC_CELLS);
+        let cells = caustic_cells(rock.side(), background.texel_m, lighting.caustics_scale_m);
+        let caustic = texture::caustic_textures(rng.next_u64(), ROCK_LOG2, cells);
         let a0 = rng.next_f64() * std::f64::consts::TAU;
         // The second layer drifts at a clearly different angle so the web keeps changing.
         let a1 = a0 + 2.0 + rng.next_f64();
@@ -888,44 +897,37 @@ impl Scene {
     /// Where the two drifting layers of the caustic web are at time `t`.
     pub(crate) fn caustic_params(&self, t: f64) -> CausticParams {
         let l = &self.lighting;
-        let d = l.caustics_speed_mps * t;
+        let d = l.caustics_speed_mps * t / self.background.texel_m;
         let [(a, b), (c, e)] = self.caustic_dirs;
-        let k = self.caustic[0].side() as f64 / CAUSTIC_CELLS[0] as f64 / l.caustics_scale_m;
-        // The second web drifts its own way; it moves against the first in whole texels
-        // (2 mm at the default scale), so the two blend into one texture per frame.
-        let side = self.caustic[0].side() as i64;
-        let rel = |x: f64, s: i64| ((x * k).round() as i64 + s).rem_euclid(side) as i32;
+        let side = self.rock.side() as i64;
+        let at = |x: f64, s: i64| ((x * d).round() as i64 + s).rem_euclid(side) as i32;
         CausticParams {
             strength: l.caustics_strength,
-            texels_per_m: k,
-            off0: (a * d, b * d),
-            shift: (
-                rel((c - a) * d, CAUSTIC_LAYER2_SHIFT.0),
-                rel((e - b) * d, CAUSTIC_LAYER2_SHIFT.1),
-            ),
+            shift: [
+                (at(a, 0), at(b, 0)),
+                (at(c, CAUSTIC_LAYER2_SHIFT.0), at(e, CAUSTIC_LAYER2_SHIFT.1)),
+            ],
         }
     }
 
     /// Caustic factor (mean 1) at surface coordinates (u, v) metres at time `t`. Two
     /// webs drift in different directions; their mean keeps changing shape like a real
-    /// caustic network. The mean is taken on the bytes (rounded half up), as the fast
-    /// renderer's blended texture holds it.
+    /// caustic network. Both lie on the rock's texel grid and move in whole texels; the
+    /// mean is taken on the bytes (rounded half up), as the fast renderer's per-frame
+    /// texture holds it.
     pub(crate) fn caustic(&self, u: f64, v: f64, t: f64) -> f64 {
         let p = self.caustic_params(t);
         if p.strength <= 0.0 {
             return 1.0;
         }
-        let k = p.texels_per_m;
-        // Nearest texel (the texture is fine enough; the fast renderer does the same).
-        let (x, y) = (
-            ((u + p.off0.0) * k).floor() as i64 as i32,
-            ((v + p.off0.1) * k).floor() as i64 as i32,
-        );
+        let k = 1.0 / self.background.texel_m;
+        // The texel the rock albedo is read from.
+        let (x, y) = ((u * k).floor() as i64 as i32, (v * k).floor() as i64 as i32);
         let [a, b] = &self.caustic;
-        let byte = (a.byte(x, y) as u16
-            + b.byte(x.wrapping_add(p.shift.0), y.wrapping_add(p.shift.1)) as u16
-            + 1)
-            >> 1;
+        let [sa, sb] = p.shift;
+        let at =
+            |t: &Texture, s: (i32, i32)| t.byte(x.wrapping_add(s.0), y.wrapping_add(s.1)) as u16;
+        let byte = (at(a, sa) + at(b, sb) + 1) >> 1;
         let c = a.offset as f64 + a.scale as f64 * byte as f64;
         1.0 + p.strength * (c - 1.0)
     }
@@ -1054,5 +1056,57 @@ mod tests {
         assert!(far.backscatter > near.backscatter);
         let inf = scene.backscatter(&cam, &ray, f64::INFINITY, &[]);
         assert!(inf > far.backscatter && inf.is_finite());
+    }
+
+    #[test]
+    fn caustic_cells_tile_the_rock_texture_near_the_configured_size() {
+        // 1024 texels of 1.5 mm = 1.536 m: 6.1 cells of 0.25 m -> 6 (0.256 m), the
+        // second web 1.33x larger.
+        assert_eq!(caustic_cells(1024, 0.0015, 0.25), [6, 5]);
+        assert_eq!(caustic_cells(1024, 0.0015, 0.1), [15, 11]);
+        // Clamped: at least 2 cells, at most one per 8 texels.
+        assert_eq!(caustic_cells(1024, 0.0015, 5.0), [2, 2]);
+        assert_eq!(caustic_cells(1024, 0.0015, 0.001), [128, 96]);
+    }
+
+    #[test]
+    fn caustics_move_in_whole_texels_and_keep_a_unit_mean() {
+        let lighting = LightingConfig {
+            scenario: LightingScenario::Caustics,
+            ..LightingConfig::default()
+        };
+        let scene = Scene::new(
+            &WaterConfig::default(),
+            &lighting,
+            MarkerSpec {
+                cells: 4,
+                white: vec![false; 16],
+                size_m: 0.1,
+                plate_margin_m: 0.02,
+            },
+            Isometry3::identity(),
+            5,
+        )
+        .unwrap();
+        let texel = scene.background.texel_m;
+        let speed = scene.lighting.caustics_speed_mps;
+        // After one second the first web has drifted speed / texel texels (rounded).
+        let [a0, _] = scene.caustic_params(0.0).shift;
+        let [a1, _] = scene.caustic_params(1.0).shift;
+        let moved = (((a1.0 - a0.0) as f64).powi(2) + ((a1.1 - a0.1) as f64).powi(2)).sqrt();
+        assert!((moved - speed / texel).abs() <= 1.5, "{moved} texels");
+        // The factor over a 1 m patch has a mean near 1 and a visible contrast.
+        let (mut sum, mut lo, mut hi, n) = (0.0, f64::MAX, 0f64, 200);
+        for i in 0..n {
+            for j in 0..n {
+                let c = scene.caustic(i as f64 * 0.005, j as f64 * 0.005, 2.0);
+                sum += c;
+                lo = lo.min(c);
+                hi = hi.max(c);
+            }
+        }
+        let mean = sum / (n * n) as f64;
+        assert!((mean - 1.0).abs() < 0.1, "mean {mean}");
+        assert!(hi > 1.5 && lo < 0.8, "{lo} .. {hi}");
     }
 }

@@ -13,12 +13,12 @@ use markhold_exposure::Frame;
 use nalgebra::{Isometry3, Point3, Vector3};
 
 use super::kernels::{
-    plate_run, ramp_run, rock_nodes_run, sensor_run, CausticLayers, Isa, PlateRun, Ramp, RockNodes,
+    plate_run, ramp_run, rock_nodes_run, sensor_run, Isa, PlateCaustics, PlateRun, Ramp, RockNodes,
     SensorRow,
 };
 use super::sensor::{XorShift64Star, RESPONSE_LUT_LEN};
 use super::{CameraModel, FrameInput};
-use crate::scene::{Scene, Texture, WorldLamp, ALBEDO_BLACK, ALBEDO_WHITE};
+use crate::scene::{LitTexture, Scene, WorldLamp, ALBEDO_BLACK, ALBEDO_WHITE};
 
 /// Pixels between grid nodes.
 const GRID: usize = 16;
@@ -149,14 +149,15 @@ pub(crate) struct FastRenderer {
     zero_noise: Vec<i16>,
     /// The marker's cell albedos for `PlateRun`, refilled per frame.
     cell_table: Vec<f32>,
-    /// The frame's blend of the two caustic webs (`Texture::blend_shifted`): one texel
-    /// read a pixel for both.
-    caustic_blend: Texture,
+    /// The frame's rock-and-caustic texture (`LitTexture::build`): under caustics a
+    /// rock pixel reads one texel for its albedo and its caustic light.
+    lit: LitTexture,
     isa: Isa,
 }
 
-/// Texel walks per rock plane and node: rock u, v, then the blended caustic's u, v.
-const WALKS: usize = 4;
+/// Texel walks per rock plane and node: rock u, v (the caustic webs lie on the same
+/// texel grid).
+const WALKS: usize = 2;
 
 /// Everything the per-pixel loop needs for one frame.
 struct FrameCtx<'a> {
@@ -183,9 +184,9 @@ struct PixelConsts<'a> {
     albedo_back: f32,
     texel_per_m: f32,
     caustics: CausticFrame,
-    /// The frame's blend of the caustic webs (meaningful when `caustics.on`).
-    blend: &'a Texture,
-    layers: Option<CausticLayers<'a>>,
+    /// The frame's rock-and-caustic texture (meaningful when `caustics.on`).
+    lit: &'a LitTexture,
+    layers: Option<PlateCaustics<'a>>,
     isa: Isa,
 }
 
@@ -243,7 +244,7 @@ impl FastRenderer {
             row_mean: vec![0.0; w],
             zero_noise: vec![0; w],
             cell_table: Vec::new(),
-            caustic_blend: Texture::default(),
+            lit: LitTexture::default(),
             isa: Isa::detect(false),
         }
     }
@@ -428,17 +429,13 @@ impl FastRenderer {
         }
         // Texel walks of the rock planes at the nodes.
         let tk = pc.texel_per_m;
-        let c = &pc.caustics;
-        let ck = c.texels_per_m;
         for (p, k) in [WALL, SEABED].into_iter().enumerate() {
             let d = &self.row_forms[k * 3 * nx..(k * 3 + 1) * nx];
             let nu = &self.row_forms[(k * 3 + 1) * nx..(k * 3 + 2) * nx];
             let nv = &self.row_forms[(k * 3 + 2) * nx..(k * 3 + 3) * nx];
             let ok = &mut self.row_affine[p * nx..(p + 1) * nx];
             let walks = &mut self.row_walks[p * WALKS * nx..(p + 1) * WALKS * nx];
-            let (ru, rest) = walks.split_at_mut(nx);
-            let (rv, rest) = rest.split_at_mut(nx);
-            let (cu, cv) = rest.split_at_mut(nx);
+            let (ru, rv) = walks.split_at_mut(nx);
             let inv = |d: f32| if d > 1e-6 { 1.0 / d } else { 0.0 };
             let planes = d.iter().zip(nu).zip(nv);
             for ((((&d, &nu), &nv), ok), (ru, rv)) in planes.zip(ok).zip(ru.iter_mut().zip(rv)) {
@@ -446,14 +443,6 @@ impl FastRenderer {
                 let k = inv(d);
                 *ru = fix16(nu * k * tk);
                 *rv = fix16(nv * k * tk);
-            }
-            if c.on {
-                let planes = d.iter().zip(nu).zip(nv);
-                for (((&d, &nu), &nv), (cu, cv)) in planes.zip(cu.iter_mut().zip(cv)) {
-                    let k = inv(d);
-                    *cu = fix16((nu * k + c.off0.0) * ck);
-                    *cv = fix16((nv * k + c.off0.1) * ck);
-                }
             }
         }
     }
@@ -529,19 +518,17 @@ impl FastRenderer {
             }
         }));
         let caustics = CausticFrame::new(scene, time_s);
-        // Blend the two webs at this frame's offset between them (about 0.1 ms: a third
-        // of the second texel read it saves under caustics). Rebuilt every frame: the
-        // webs move against each other by a few texels a frame.
-        let mut blend = std::mem::take(&mut self.caustic_blend);
+        // Rock and both webs at this frame's drifts in one texture (a few tenths of a
+        // millisecond; it saves two texel reads a caustic pixel). Rebuilt every frame:
+        // the webs drift a few texels a frame.
+        let mut lit = std::mem::take(&mut self.lit);
         if caustics.on {
-            let [a, b] = &scene.caustic;
-            blend.blend_shifted(a, b, caustics.shift);
+            lit.build(&scene.rock, &scene.caustic, caustics.shift);
         }
-        let layers = caustics.on.then_some(CausticLayers {
-            tex: &blend,
+        let layers = caustics.on.then_some(PlateCaustics {
+            tex: &lit,
             strength: caustics.strength,
             texels_per_m: caustics.texels_per_m,
-            off0: caustics.off0,
         });
         let pc = PixelConsts {
             scene,
@@ -557,7 +544,7 @@ impl FastRenderer {
             albedo_back: scene.plate_back_albedo() as f32,
             texel_per_m: (1.0 / scene.background.texel_m) as f32,
             caustics,
-            blend: &blend,
+            lit: &lit,
             layers,
             isa: self.isa,
         };
@@ -640,9 +627,9 @@ impl FastRenderer {
                     let nodes = RockNodes {
                         cells: &self.cell_fields[surf * nx + i..=surf * nx + i1],
                         fy,
-                        walks: [wk(0), wk(1), wk(2), wk(3)],
+                        walks: [wk(0), wk(1)],
                     };
-                    let c = pc.caustics.on.then_some((pc.blend, pc.caustics.strength));
+                    let c = pc.caustics.on.then_some((pc.lit, pc.caustics.strength));
                     rock_nodes_run(isa, out, 0, &nodes, rock, c);
                 } else {
                     for k in i..i1 {
@@ -669,7 +656,7 @@ impl FastRenderer {
             self.row_mean = row_mean;
         }
         self.cell_table = cell_table;
-        self.caustic_blend = blend;
+        self.lit = lit;
     }
 
     /// A span that may show several surfaces (or the plate, or the horizon): split at
@@ -795,9 +782,9 @@ impl FastRenderer {
                         let nodes = RockNodes {
                             cells: &self.cell_fields[k * nx + i..=k * nx + i + 1],
                             fy,
-                            walks: [wk(0), wk(1), wk(2), wk(3)],
+                            walks: [wk(0), wk(1)],
                         };
-                        let c = caustics.on.then_some((pc.blend, caustics.strength));
+                        let c = caustics.on.then_some((pc.lit, caustics.strength));
                         rock_nodes_run(pc.isa, run, start, &nodes, rock, c);
                     } else {
                         // Near the horizon: exact per pixel.
@@ -810,7 +797,7 @@ impl FastRenderer {
                             let v = (f0[2] + fd[2] * t) * inv;
                             let albedo = rock.at(floor_i32(u * tk), floor_i32(v * tk));
                             let c = if caustics.on {
-                                caustics.at(pc.blend, u, v)
+                                caustics.at(pc.lit, u, v)
                             } else {
                                 1.0
                             };
@@ -932,10 +919,10 @@ fn classify(sp: &Span, forms: &[PlaneForms; 3], half: f32, t: f32) -> usize {
 struct CausticFrame {
     on: bool,
     strength: f32,
+    /// Rock texels per metre (the webs lie on the rock's texel grid).
     texels_per_m: f32,
-    off0: (f32, f32),
-    /// The second web against the first, texels.
-    shift: (i32, i32),
+    /// Each web's drift, texels.
+    shift: [(i32, i32); 2],
 }
 
 impl CausticFrame {
@@ -944,20 +931,16 @@ impl CausticFrame {
         Self {
             on: p.strength > 0.0,
             strength: p.strength as f32,
-            texels_per_m: p.texels_per_m as f32,
-            off0: (p.off0.0 as f32, p.off0.1 as f32),
+            texels_per_m: (1.0 / scene.background.texel_m) as f32,
             shift: p.shift,
         }
     }
 
-    /// Caustic factor at surface coordinates (u, v), metres, from the frame's `blend`.
+    /// Caustic factor at surface coordinates (u, v), metres, from the frame's `lit`.
     #[inline(always)]
-    fn at(&self, blend: &Texture, u: f32, v: f32) -> f32 {
+    fn at(&self, lit: &LitTexture, u: f32, v: f32) -> f32 {
         let k = self.texels_per_m;
-        let b = blend.at(
-            floor_i32((u + self.off0.0) * k),
-            floor_i32((v + self.off0.1) * k),
-        );
+        let b = lit.caustic_at(floor_i32(u * k), floor_i32(v * k));
         1.0 + self.strength * (b - 1.0)
     }
 }

@@ -5,7 +5,7 @@
 //! multiply and an add on its own), so a frame does not depend on the CPU it was
 //! rendered on; `tests/camera_fast.rs` checks it.
 
-use crate::scene::Texture;
+use crate::scene::{LitTexture, Texture};
 
 /// Scale of the stored noise fields: `(a + b) as f32 * NOISE_SCALE`, the sum of one
 /// sample of each, is half a standard normal sample (a power of two, so the conversion
@@ -13,13 +13,30 @@ use crate::scene::Texture;
 pub(crate) const NOISE_SCALE: f32 = 1.0 / 4096.0;
 /// Whether the packed loops may read `t` by masked index without a bounds check.
 fn complete(t: &Texture) -> bool {
-    t.log2 <= 15 && t.data.len() == 1usize << (2 * t.log2)
+    square(t.log2, t.data.len())
+}
+
+/// The same for a rock-and-caustic texture.
+fn complete_lit(t: &LitTexture) -> bool {
+    square(t.log2, t.data.len())
+}
+
+/// `len` texels make a square of side `1 << log2` whose indices fit the packed lanes.
+fn square(log2: u32, len: usize) -> bool {
+    log2 <= 15 && len == 1usize << (2 * log2)
 }
 
 /// Texel byte at 16.16 fixed-point coordinates (wrapping), as a float.
 #[inline(always)]
 fn texel(t: &Texture, u: i32, v: i32) -> f32 {
     t.byte(u >> 16, v >> 16) as f32
+}
+
+/// Rock and caustic bytes at 16.16 fixed-point coordinates (wrapping), as floats.
+#[inline(always)]
+fn lit_texel(t: &LitTexture, u: i32, v: i32) -> (f32, f32) {
+    let w = t.word(u >> 16, v >> 16);
+    ((w & 0xFF) as f32, (w >> 8) as f32)
 }
 
 /// A 16.16 fixed-point texel coordinate along a run: `at + step * t` (wrapping).
@@ -61,14 +78,12 @@ pub(crate) struct RockRun<'a> {
 }
 
 /// Rock under caustics: `albedo * (ambient * c + lamp) + add`, with
-/// `c = 1 + strength * (texel - 1)` from the frame's blend of the two caustic webs.
+/// `c = 1 + strength * (caustic - 1)`, both read from one texel of the frame's
+/// rock-and-caustic texture.
 pub(crate) struct CausticRockRun<'a> {
-    pub(crate) rock: &'a Texture,
-    pub(crate) caustic: &'a Texture,
+    pub(crate) tex: &'a LitTexture,
     pub(crate) u: Walk,
     pub(crate) v: Walk,
-    pub(crate) cu: Walk,
-    pub(crate) cv: Walk,
     pub(crate) strength: f32,
     pub(crate) ambient: Ramp,
     pub(crate) lamp: Ramp,
@@ -77,13 +92,13 @@ pub(crate) struct CausticRockRun<'a> {
 
 /// The light fields of a rock plane at the nodes of a run of spans (ambient, lamp,
 /// additive; see `fast.rs`), and its texel walks at the same nodes (16.16, wrapping):
-/// rock u, v, then (under caustics) the blended caustic texture's u, v.
+/// the rock texture's u, v (the caustic webs lie on the same grid).
 pub(crate) struct RockNodes<'a> {
     /// Per node: the fields on the grid row above and their change to the one below.
     pub(crate) cells: &'a [[f32; 6]],
     /// The row's vertical weight between those grid rows.
     pub(crate) fy: f32,
-    pub(crate) walks: [&'a [i32]; 4],
+    pub(crate) walks: [&'a [i32]; 2],
 }
 
 impl RockNodes<'_> {
@@ -130,20 +145,11 @@ impl RockNodes<'_> {
     }
 
     #[inline(always)]
-    fn caustic_run<'t>(
-        &self,
-        rock: &'t Texture,
-        caustic: &'t Texture,
-        strength: f32,
-        s: usize,
-    ) -> CausticRockRun<'t> {
+    fn caustic_run<'t>(&self, tex: &'t LitTexture, strength: f32, s: usize) -> CausticRockRun<'t> {
         CausticRockRun {
-            rock,
-            caustic,
+            tex,
             u: self.walk(0, s),
             v: self.walk(1, s),
-            cu: self.walk(2, s),
-            cv: self.walk(3, s),
             strength,
             ambient: self.ramp(0, s),
             lamp: self.ramp(1, s),
@@ -154,7 +160,7 @@ impl RockNodes<'_> {
 
 /// Rock over a run of 16-pixel spans: `out` holds the run's pixels from offset `first`
 /// (counted from the run's first node) on; the last span may be short. `caustic` is the
-/// caustic texture and strength when caustics are on.
+/// frame's rock-and-caustic texture and the caustics' strength when they are on.
 #[inline(always)]
 pub(crate) fn rock_nodes_run(
     isa: Isa,
@@ -162,9 +168,9 @@ pub(crate) fn rock_nodes_run(
     first: usize,
     nodes: &RockNodes,
     rock: &Texture,
-    caustic: Option<(&Texture, f32)>,
+    caustic: Option<(&LitTexture, f32)>,
 ) {
-    let readable = complete(rock) && caustic.is_none_or(|(c, _)| complete(c));
+    let readable = complete(rock) && caustic.is_none_or(|(c, _)| complete_lit(c));
     match isa {
         #[cfg(target_arch = "x86_64")]
         // SAFETY: Avx2 is only chosen when the CPU has it; indices are masked into the
@@ -181,7 +187,7 @@ pub(crate) fn rock_nodes_run(
                         }
                     }
                     Some((c, k)) => {
-                        let r = nodes.caustic_run(rock, c, k, s);
+                        let r = nodes.caustic_run(c, k, s);
                         for (t, m) in o.iter_mut().enumerate() {
                             *m = caustic_rock_px(&r, (t0 + t) as i32);
                         }
@@ -215,14 +221,13 @@ fn span_parts(
     })
 }
 
-/// The caustic layers in texel units for one frame (see `CausticFrame` in `fast.rs`).
+/// The caustics on the plate for one frame (see `CausticFrame` in `fast.rs`).
 #[derive(Clone, Copy)]
-pub(crate) struct CausticLayers<'a> {
-    /// The frame's blend of the two webs.
-    pub(crate) tex: &'a Texture,
+pub(crate) struct PlateCaustics<'a> {
+    /// The frame's rock-and-caustic texture (its caustic bytes).
+    pub(crate) tex: &'a LitTexture,
     pub(crate) strength: f32,
     pub(crate) texels_per_m: f32,
-    pub(crate) off0: (f32, f32),
 }
 
 /// The front of the marker plate along one run: the cells box-filtered over the pixel
@@ -239,7 +244,7 @@ pub(crate) struct PlateRun<'a> {
     /// Cell albedos with a one-cell white border, `side` = cells + 2 per row.
     pub(crate) cells: &'a [f32],
     pub(crate) side: i32,
-    pub(crate) caustic: Option<CausticLayers<'a>>,
+    pub(crate) caustic: Option<PlateCaustics<'a>>,
     pub(crate) ambient: Ramp,
     pub(crate) lamp: Ramp,
     pub(crate) add: Ramp,
@@ -250,7 +255,7 @@ impl PlateRun<'_> {
     fn gather_safe(&self) -> bool {
         self.side >= 3
             && self.cells.len() >= (self.side * self.side) as usize
-            && self.caustic.is_none_or(|c| complete(c.tex))
+            && self.caustic.is_none_or(|c| complete_lit(c.tex))
     }
 
     /// Cell (ci, cj) of the printed grid (-1 and `cells` are the white border).
@@ -289,12 +294,8 @@ fn plate_px(r: &PlateRun, t: f32) -> f32 {
     let c = match &r.caustic {
         Some(l) => {
             let k = l.texels_per_m;
-            let b = texel(
-                l.tex,
-                floor_i32((u + l.off0.0) * k) << 16,
-                floor_i32((v + l.off0.1) * k) << 16,
-            );
-            1.0 + l.strength * ((l.tex.offset + l.tex.scale * b) - 1.0)
+            let (_, b) = lit_texel(l.tex, floor_i32(u * k) << 16, floor_i32(v * k) << 16);
+            1.0 + l.strength * ((l.tex.caustic_offset + l.tex.caustic_scale * b) - 1.0)
         }
         None => 1.0,
     };
@@ -334,8 +335,9 @@ fn rock_px(r: &RockRun, t: i32) -> f32 {
 #[inline(always)]
 fn caustic_rock_px(r: &CausticRockRun, t: i32) -> f32 {
     let tf = t as f32;
-    let albedo = r.rock.offset + r.rock.scale * texel(r.rock, r.u.get(t), r.v.get(t));
-    let b = r.caustic.offset + r.caustic.scale * texel(r.caustic, r.cu.get(t), r.cv.get(t));
+    let (rb, cb) = lit_texel(r.tex, r.u.get(t), r.v.get(t));
+    let albedo = r.tex.rock_offset + r.tex.rock_scale * rb;
+    let b = r.tex.caustic_offset + r.tex.caustic_scale * cb;
     let c = 1.0 + r.strength * (b - 1.0);
     albedo * (r.ambient.get(tf) * c + r.lamp.get(tf)) + r.add.get(tf)
 }
@@ -432,24 +434,52 @@ mod avx2 {
         )
     }
 
-    /// Eight texel bytes as floats. The caller guarantees `gather_safe`.
+    /// Indices of the texels at eight 16.16 coordinates in a square texture of side
+    /// `1 << log2` (wrapping).
     #[inline(always)]
-    unsafe fn fetch(tex: &Texture, u: __m256i, v: __m256i) -> __m256 {
-        let m = _mm256_set1_epi32(tex.mask() as i32);
+    unsafe fn indices(log2: u32, u: __m256i, v: __m256i) -> [u32; 8] {
+        let m = _mm256_set1_epi32(((1u32 << log2) - 1) as i32);
         let tx = _mm256_and_si256(_mm256_srai_epi32::<16>(u), m);
         let ty = _mm256_and_si256(_mm256_srai_epi32::<16>(v), m);
-        let shift = _mm_cvtsi32_si128(tex.log2 as i32);
-        let idx = _mm256_or_si256(_mm256_sll_epi32(ty, shift), tx);
-        // Scalar reads packed into one word (AVX2 gathers were slower on the AMD EPYC
-        // this was tuned on).
+        let idx = _mm256_or_si256(_mm256_sll_epi32(ty, _mm_cvtsi32_si128(log2 as i32)), tx);
         let mut ix = [0u32; 8];
         _mm256_storeu_si256(ix.as_mut_ptr() as *mut __m256i, idx);
+        ix
+    }
+
+    /// Eight texel bytes as floats. The caller guarantees `complete(tex)`.
+    #[inline(always)]
+    unsafe fn fetch(tex: &Texture, u: __m256i, v: __m256i) -> __m256 {
+        // Scalar reads packed into one word (AVX2 gathers were slower on the AMD EPYC
+        // this was tuned on).
+        let ix = indices(tex.log2, u, v);
         let d = tex.data.as_ptr();
         let mut word = 0u64;
         for (k, &i) in ix.iter().enumerate() {
             word |= (*d.add(i as usize) as u64) << (8 * k);
         }
         _mm256_cvtepi32_ps(_mm256_cvtepu8_epi32(_mm_cvtsi64_si128(word as i64)))
+    }
+
+    /// Eight rock-and-caustic texels: (rock bytes, caustic bytes) as floats. The caller
+    /// guarantees `complete_lit(tex)`.
+    #[inline(always)]
+    unsafe fn fetch_lit(tex: &LitTexture, u: __m256i, v: __m256i) -> (__m256, __m256) {
+        let ix = indices(tex.log2, u, v);
+        let d = tex.data.as_ptr();
+        let (mut lo, mut hi) = (0u64, 0u64);
+        for (k, &i) in ix.iter().enumerate() {
+            let w = *d.add(i as usize) as u64;
+            if k < 4 {
+                lo |= w << (16 * k);
+            } else {
+                hi |= w << (16 * (k - 4));
+            }
+        }
+        let w = _mm256_cvtepu16_epi32(_mm_set_epi64x(hi as i64, lo as i64));
+        let rock = _mm256_and_si256(w, _mm256_set1_epi32(0xFF));
+        let caustic = _mm256_srli_epi32::<8>(w);
+        (_mm256_cvtepi32_ps(rock), _mm256_cvtepi32_ps(caustic))
     }
 
     /// Runs inside `rock_nodes_run` (AVX2 enabled there).
@@ -474,23 +504,21 @@ mod avx2 {
     unsafe fn caustic_rock_span(out: &mut [f32], first: usize, r: &CausticRockRun) {
         let n = out.len();
         let mut t0 = 0usize;
-        let (ro, rs) = (_mm256_set1_ps(r.rock.offset), _mm256_set1_ps(r.rock.scale));
+        let (ro, rs) = (
+            _mm256_set1_ps(r.tex.rock_offset),
+            _mm256_set1_ps(r.tex.rock_scale),
+        );
         let (co, cs) = (
-            _mm256_set1_ps(r.caustic.offset),
-            _mm256_set1_ps(r.caustic.scale),
+            _mm256_set1_ps(r.tex.caustic_offset),
+            _mm256_set1_ps(r.tex.caustic_scale),
         );
         let (one, k) = (_mm256_set1_ps(1.0), _mm256_set1_ps(r.strength));
         while t0 + 8 <= n {
             let ti = _mm256_add_epi32(_mm256_set1_epi32((first + t0) as i32), lanes());
             let tf = _mm256_cvtepi32_ps(ti);
-            let albedo = _mm256_add_ps(
-                ro,
-                _mm256_mul_ps(rs, fetch(r.rock, walk(r.u, ti), walk(r.v, ti))),
-            );
-            let b = _mm256_add_ps(
-                co,
-                _mm256_mul_ps(cs, fetch(r.caustic, walk(r.cu, ti), walk(r.cv, ti))),
-            );
+            let (rb, cb) = fetch_lit(r.tex, walk(r.u, ti), walk(r.v, ti));
+            let albedo = _mm256_add_ps(ro, _mm256_mul_ps(rs, rb));
+            let b = _mm256_add_ps(co, _mm256_mul_ps(cs, cb));
             let c = _mm256_add_ps(one, _mm256_mul_ps(k, _mm256_sub_ps(b, one)));
             let light = _mm256_add_ps(_mm256_mul_ps(ramp(r.ambient, tf), c), ramp(r.lamp, tf));
             let m = _mm256_add_ps(_mm256_mul_ps(albedo, light), ramp(r.add, tf));
@@ -508,13 +536,13 @@ mod avx2 {
         first: usize,
         nodes: &RockNodes,
         rock: &Texture,
-        caustic: Option<(&Texture, f32)>,
+        caustic: Option<(&LitTexture, f32)>,
     ) {
         for (range, s, t0) in span_parts(out.len(), first, nodes) {
             let o = &mut out[range];
             match caustic {
                 None => rock_span(o, t0, &nodes.rock_run(rock, s)),
-                Some((c, k)) => caustic_rock_span(o, t0, &nodes.caustic_run(rock, c, k, s)),
+                Some((c, k)) => caustic_rock_span(o, t0, &nodes.caustic_run(c, k, s)),
             }
         }
     }
@@ -587,12 +615,15 @@ mod avx2 {
             let c = match &r.caustic {
                 Some(l) => {
                     let k = _mm256_set1_ps(l.texels_per_m);
-                    let b0 = fetch(
+                    let (_, b0) = fetch_lit(
                         l.tex,
-                        fixed_floor(_mm256_mul_ps(_mm256_add_ps(u, _mm256_set1_ps(l.off0.0)), k)),
-                        fixed_floor(_mm256_mul_ps(_mm256_add_ps(v, _mm256_set1_ps(l.off0.1)), k)),
+                        fixed_floor(_mm256_mul_ps(u, k)),
+                        fixed_floor(_mm256_mul_ps(v, k)),
                     );
-                    let (to, ts) = (_mm256_set1_ps(l.tex.offset), _mm256_set1_ps(l.tex.scale));
+                    let (to, ts) = (
+                        _mm256_set1_ps(l.tex.caustic_offset),
+                        _mm256_set1_ps(l.tex.caustic_scale),
+                    );
                     let b = _mm256_add_ps(to, _mm256_mul_ps(ts, b0));
                     _mm256_add_ps(
                         one,

@@ -206,33 +206,95 @@ impl Texture {
             offset: 0.0,
         }
     }
+}
 
-    /// The mean byte of a texel of `a` and the texel `shift` texels on of `b`, rounded
-    /// half up: `(a[p] + b[p + shift] + 1) >> 1`, byte `p` of `self`, which takes the
-    /// size and scale of `a` (`a` and `b` the same size and scale).
-    pub(crate) fn blend_shifted(&mut self, a: &Texture, b: &Texture, shift: (i32, i32)) {
-        let (side, m) = (a.side(), a.mask());
-        self.log2 = a.log2;
-        self.scale = a.scale;
-        self.offset = a.offset;
-        self.data.resize(side * side, 0);
-        if b.log2 != a.log2 || a.data.len() != side * side || b.data.len() != side * side {
+/// Rock albedo and caustic light on one texel grid, two bytes a texel: the rock's byte
+/// (low) and the mean of the two caustic webs' bytes at this frame's drifts, rounded half
+/// up (high). Built once per frame under caustics, so a pixel reads one texel for both.
+#[derive(Debug, Clone, Default)]
+pub(crate) struct LitTexture {
+    pub(crate) log2: u32,
+    pub(crate) data: Vec<u16>,
+    /// `value = offset + scale * byte` of the rock and of the caustic byte.
+    pub(crate) rock_scale: f32,
+    pub(crate) rock_offset: f32,
+    pub(crate) caustic_scale: f32,
+    pub(crate) caustic_offset: f32,
+}
+
+impl LitTexture {
+    pub(crate) fn mask(&self) -> usize {
+        (1usize << self.log2) - 1
+    }
+
+    /// The two bytes at texel coordinates (wraps).
+    #[inline(always)]
+    pub(crate) fn word(&self, tx: i32, ty: i32) -> u16 {
+        let m = self.mask();
+        self.data[((ty as usize & m) << self.log2) | (tx as usize & m)]
+    }
+
+    /// Caustic value (mean 1 over the texture) at texel coordinates.
+    #[inline(always)]
+    pub(crate) fn caustic_at(&self, tx: i32, ty: i32) -> f32 {
+        self.caustic_offset + self.caustic_scale * (self.word(tx, ty) >> 8) as f32
+    }
+
+    /// Rebuild from `rock` and the webs, web `k` moved by `shift[k]` texels: texel `p`
+    /// holds `rock[p]` and `(webs[0][p + shift[0]] + webs[1][p + shift[1]] + 1) >> 1`.
+    /// All three textures are the same size and both webs have the same byte scale (else
+    /// the caustic bytes are left at zero).
+    pub(crate) fn build(&mut self, rock: &Texture, webs: &[Texture; 2], shift: [(i32, i32); 2]) {
+        let (side, m) = (rock.side(), rock.mask());
+        let n = side * side;
+        self.log2 = rock.log2;
+        self.rock_scale = rock.scale;
+        self.rock_offset = rock.offset;
+        self.caustic_scale = webs[0].scale;
+        self.caustic_offset = webs[0].offset;
+        self.data.resize(n, 0);
+        let [a, b] = webs;
+        let fits = |t: &Texture| t.log2 == rock.log2 && t.data.len() == n;
+        if rock.data.len() != n {
             self.data.fill(0);
             return;
         }
-        let dx = shift.0 as usize & m;
-        for (y, out) in self.data.chunks_exact_mut(side).enumerate() {
-            let ra = &a.data[y * side..(y + 1) * side];
-            let yb = (y + shift.1 as usize) & m;
-            let rb = &b.data[yb * side..(yb + 1) * side];
-            // Row of b rotated left by dx: two straight pieces (the loops vectorize).
-            let (o1, o2) = out.split_at_mut(side - dx);
-            let (a1, a2) = ra.split_at(side - dx);
-            for ((o, &x), &y) in o1.iter_mut().zip(a1).zip(&rb[dx..]) {
-                *o = ((x as u16 + y as u16 + 1) >> 1) as u8;
+        if !(fits(a) && fits(b)) || a.scale != b.scale || a.offset != b.offset {
+            for (o, &r) in self.data.iter_mut().zip(&rock.data) {
+                *o = r as u16;
             }
-            for ((o, &x), &y) in o2.iter_mut().zip(a2).zip(&rb[..dx]) {
-                *o = ((x as u16 + y as u16 + 1) >> 1) as u8;
+            return;
+        }
+        let (dxa, dxb) = (shift[0].0 as usize & m, shift[1].0 as usize & m);
+        // Pieces of a row over which both webs' rows run on without wrapping.
+        let mut cuts = [0, (side - dxa) & m, (side - dxb) & m, side];
+        cuts.sort_unstable();
+        for (y, out) in self.data.chunks_exact_mut(side).enumerate() {
+            fn row(t: &Texture, y: usize, dy: i32) -> &[u8] {
+                let (side, m) = (t.side(), t.mask());
+                let y = (y + dy as usize) & m;
+                &t.data[y * side..(y + 1) * side]
+            }
+            let (rr, ra, rb) = (
+                row(rock, y, 0),
+                row(a, y, shift[0].1),
+                row(b, y, shift[1].1),
+            );
+            for w in cuts.windows(2) {
+                let (x0, x1) = (w[0], w[1]);
+                if x0 == x1 {
+                    continue;
+                }
+                let (ia, ib) = ((x0 + dxa) & m, (x0 + dxb) & m);
+                let len = x1 - x0;
+                let pieces = out[x0..x1]
+                    .iter_mut()
+                    .zip(&rr[x0..x1])
+                    .zip(ra[ia..ia + len].iter().zip(&rb[ib..ib + len]));
+                for ((o, &r), (&ca, &cb)) in pieces {
+                    let c = (ca as u16 + cb as u16 + 1) >> 1;
+                    *o = r as u16 | c << 8;
+                }
             }
         }
     }
@@ -301,15 +363,21 @@ mod tests {
     }
 
     #[test]
-    fn blend_is_the_shifted_mean_of_two_layers() {
-        let [a, b] = caustic_textures(9, 5, [3, 2]);
-        let mut c = Texture::blank(2);
-        for shift in [(0, 0), (7, -3), (-40, 65), (31, 31)] {
-            c.blend_shifted(&a, &b, shift);
-            assert_eq!((c.log2, c.scale, c.offset), (a.log2, a.scale, a.offset));
-            for (y, x) in [(0, 0), (3, 31), (31, 0), (17, 9)] {
-                let want = (a.byte(x, y) as u16 + b.byte(x + shift.0, y + shift.1) as u16 + 1) >> 1;
-                assert_eq!(c.byte(x, y) as u16, want, "{shift:?} at ({x}, {y})");
+    fn lit_texture_holds_the_rock_and_the_shifted_mean_of_two_webs() {
+        let rock = rock_texture(4, 5, 0.3, 0.1);
+        let webs = caustic_textures(9, 5, [3, 2]);
+        let mut lit = LitTexture::default();
+        for shift in [[(0, 0), (0, 0)], [(7, -3), (-40, 65)], [(31, 31), (1, 30)]] {
+            lit.build(&rock, &webs, shift);
+            assert_eq!(lit.log2, 5);
+            for (y, x) in [(0, 0), (3, 31), (31, 0), (17, 9), (30, 2)] {
+                let [(ax, ay), (bx, by)] = shift;
+                let want =
+                    (webs[0].byte(x + ax, y + ay) as u16 + webs[1].byte(x + bx, y + by) as u16 + 1)
+                        >> 1;
+                let w = lit.word(x, y);
+                assert_eq!(w >> 8, want, "{shift:?} at ({x}, {y})");
+                assert_eq!(w & 0xFF, rock.byte(x, y) as u16);
             }
         }
     }
