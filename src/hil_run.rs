@@ -353,6 +353,11 @@ pub fn run_hil(
         wall.elapsed().as_secs_f64(),
         run.rig.truth().lockstep_timeouts,
     );
+    let world = run.rig.world_wall_seconds();
+    summary.world_wall_seconds = world;
+    if world > 0.0 {
+        summary.world_realtime_factor = summary.sim_seconds / world;
+    }
     if let Some(f) = run.faults.take() {
         summary.faults = f.monitor.into_reports();
     }

@@ -404,6 +404,13 @@ fn print_table(site: &str, s: &Summary) {
                 s.wall_seconds, s.realtime_factor
             ),
         ),
+        (
+            "HIL world (physics, render)",
+            format!(
+                "{:.1} s ({:.1}x real time)",
+                s.world_wall_seconds, s.world_realtime_factor
+            ),
+        ),
         ("marker detected", pct(s.detection_rate)),
         (
             "position RMS (last half)",

@@ -1,5 +1,6 @@
-//! Run statistics and the `--summary` JSON. Everything but `wall_seconds` is a function
-//! of the seed: the same seed gives the same numbers.
+//! Run statistics and the `--summary` JSON. Everything but the wall-clock fields
+//! (`wall_seconds`, `realtime_factor`, `world_wall_seconds`, `world_realtime_factor`,
+//! `loop_latency_p99_ms`) is a function of the seed: the same seed gives the same numbers.
 
 use markhold_exposure::ExposureMethod;
 use markhold_hil::scene::LightingScenario;
@@ -19,6 +20,10 @@ pub struct Summary {
     pub wall_seconds: f64,
     /// Simulated seconds per wall second.
     pub realtime_factor: f64,
+    /// Wall seconds the HIL world took (physics, the vehicle's MAVLink, rendering), and
+    /// simulated seconds per such second: the world's own speed, without the loop.
+    pub world_wall_seconds: f64,
+    pub world_realtime_factor: f64,
     pub detection_rate: f64,
     /// Vehicle vs station, ground truth, RMS over the last half of the run.
     pub position_rms_m: f64,
@@ -138,6 +143,8 @@ impl RunStats {
             } else {
                 0.0
             },
+            world_wall_seconds: 0.0,
+            world_realtime_factor: 0.0,
             detection_rate: self.detected.iter().filter(|d| **d).count() as f64 / n.max(1) as f64,
             position_rms_m,
             final_position_error_m: self.pos_err_m.last().copied().unwrap_or(f64::NAN),

@@ -59,11 +59,19 @@ fn pool_station_keeping_settles() {
     assert!(f("final_yaw_error_deg") < 3.0, "{s}");
     assert!(f("detection_rate") > 0.95, "{s}");
     assert_eq!(s["frames"].as_u64(), Some(900), "{s}");
+    // The world's own time is part of the loop's: positive, and less than the whole.
+    assert!(
+        f("world_wall_seconds") > 0.0 && f("world_wall_seconds") < f("wall_seconds"),
+        "{s}"
+    );
+    assert!(f("world_realtime_factor") > f("realtime_factor"), "{s}");
     for k in [
         "position_rms_m",
         "exposure_convergence_frames",
         "sim_seconds",
         "wall_seconds",
+        "world_wall_seconds",
+        "world_realtime_factor",
         "exposure_method",
         "lighting",
         "seed",
@@ -89,7 +97,13 @@ fn same_seed_same_numbers() {
     let mut a = run_summary(&args, &d.join("a.json"));
     let mut b = run_summary(&args, &d.join("b.json"));
     // Wall-clock measurements are the only fields allowed to differ.
-    for k in ["wall_seconds", "realtime_factor", "loop_latency_p99_ms"] {
+    for k in [
+        "wall_seconds",
+        "realtime_factor",
+        "world_wall_seconds",
+        "world_realtime_factor",
+        "loop_latency_p99_ms",
+    ] {
         a.as_object_mut().unwrap().remove(k);
         b.as_object_mut().unwrap().remove(k);
     }

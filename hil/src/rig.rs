@@ -70,6 +70,9 @@ pub struct HilRig {
     lock_step: bool,
     lockstep_wait: Duration,
     frames: u64,
+    /// Wall time spent advancing the world and rendering (not waiting for input): what
+    /// the HIL world costs, reported beside the whole loop's wall time.
+    busy: Duration,
     steps: u64,
     physics_hz: f64,
     fps: f64,
@@ -125,6 +128,7 @@ impl HilRig {
             lock_step: setup.lock_step,
             lockstep_wait: LOCKSTEP_WAIT,
             frames: 0,
+            busy: Duration::ZERO,
             steps: 0,
             fps,
             pwm: idle,
@@ -262,6 +266,7 @@ impl HilRig {
     pub fn step_frame(&mut self, frame: &mut Frame) -> Result<(), HilError> {
         self.wait_for_client()?;
         self.inputs_at_last_grab = self.lockstep_inputs();
+        let start = Instant::now();
         self.advance_to_frame()?;
         let state = self.vehicle.state();
         let t_world_cam = state.t_world_vehicle * self.t_vehicle_cam;
@@ -272,8 +277,15 @@ impl HilRig {
             state.time_s,
             frame,
         );
+        self.busy += start.elapsed();
         self.frames += 1;
         Ok(())
+    }
+
+    /// Wall seconds spent in `step_frame` on physics, the vehicle's MAVLink and
+    /// rendering (the lock-step wait for input excluded).
+    pub fn world_wall_seconds(&self) -> f64 {
+        self.busy.as_secs_f64()
     }
 }
 
