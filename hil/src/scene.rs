@@ -722,7 +722,14 @@ impl Scene {
             background.albedo_spread as f32,
         );
         let cells = caustic_cells(rock.side(), background.texel_m, lighting.caustics_scale_m);
-        let caustic = texture::caustic_textures(rng.next_u64(), ROCK_LOG2, cells);
+        // The webs cost a few hundred milliseconds to generate: only when they are seen
+        // (the seed is drawn either way so the later draws do not depend on it).
+        let caustic_seed = rng.next_u64();
+        let caustic = if lighting.caustics_strength > 0.0 {
+            texture::caustic_textures(caustic_seed, ROCK_LOG2, cells)
+        } else {
+            [Texture::blank(0), Texture::blank(0)]
+        };
         let a0 = rng.next_f64() * std::f64::consts::TAU;
         // The second layer drifts at a clearly different angle so the web keeps changing.
         let a1 = a0 + 2.0 + rng.next_f64();
