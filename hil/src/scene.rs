@@ -643,7 +643,7 @@ pub struct Scene {
     pub(crate) rock: Texture,
     /// The two caustic webs (same size and byte scale; see `Scene::caustic`).
     pub(crate) caustic: [Texture; 2],
-    /// Caustic drift directions of the two layers (unit, in surface coordinates).
+    /// Caustic drift directions of the two webs (unit, in surface coordinates).
     pub(crate) caustic_dirs: [(f64, f64); 2],
     /// Lamps switched off / daylight changed during the run.
     pub(crate) scale: LightingScale,
@@ -731,7 +731,7 @@ impl Scene {
             [Texture::blank(0), Texture::blank(0)]
         };
         let a0 = rng.next_f64() * std::f64::consts::TAU;
-        // The second layer drifts at a clearly different angle so the web keeps changing.
+        // The second web drifts at a clearly different angle so the pattern keeps changing.
         let a1 = a0 + 2.0 + rng.next_f64();
         Ok(Self {
             marker,
@@ -901,7 +901,7 @@ impl Scene {
         }
     }
 
-    /// Where the two drifting layers of the caustic web are at time `t`.
+    /// Where the two drifting caustic webs are at time `t`.
     pub(crate) fn caustic_params(&self, t: f64) -> CausticParams {
         let l = &self.lighting;
         let d = l.caustics_speed_mps * t / self.background.texel_m;

@@ -186,7 +186,7 @@ struct PixelConsts<'a> {
     caustics: CausticFrame,
     /// The frame's rock-and-caustic texture (meaningful when `caustics.on`).
     lit: &'a LitTexture,
-    layers: Option<PlateCaustics<'a>>,
+    plate_caustics: Option<PlateCaustics<'a>>,
     isa: Isa,
 }
 
@@ -525,7 +525,7 @@ impl FastRenderer {
         if caustics.on {
             lit.build(&scene.rock, &scene.caustic, caustics.shift);
         }
-        let layers = caustics.on.then_some(PlateCaustics {
+        let plate_caustics = caustics.on.then_some(PlateCaustics {
             tex: &lit,
             strength: caustics.strength,
             texels_per_m: caustics.texels_per_m,
@@ -545,7 +545,7 @@ impl FastRenderer {
             texel_per_m: (1.0 / scene.background.texel_m) as f32,
             caustics,
             lit: &lit,
-            layers,
+            plate_caustics,
             isa: self.isa,
         };
         let rock = &scene.rock;
@@ -747,7 +747,7 @@ impl FastRenderer {
                         inv_wv: pc.inv_wv,
                         cells: pc.cell_table,
                         side: pc.cells as i32 + 2,
-                        caustic: pc.layers,
+                        caustic: pc.plate_caustics,
                         ambient: Ramp {
                             at: a0[0],
                             step: ad[0],

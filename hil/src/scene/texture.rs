@@ -324,15 +324,15 @@ mod tests {
 
     #[test]
     fn caustics_have_unit_mean_and_contrast() {
-        let layers = caustic_textures(3, 7, [6, 4]);
-        assert_eq!(layers[0].scale, layers[1].scale);
+        let webs = caustic_textures(3, 7, [6, 4]);
+        assert_eq!(webs[0].scale, webs[1].scale);
         let vals = |t: &Texture| -> Vec<f32> {
             t.data
                 .iter()
                 .map(|&b| t.offset + t.scale * b as f32)
                 .collect()
         };
-        let (v0, v1) = (vals(&layers[0]), vals(&layers[1]));
+        let (v0, v1) = (vals(&webs[0]), vals(&webs[1]));
         let mean = (v0.iter().sum::<f32>() + v1.iter().sum::<f32>()) / (2 * v0.len()) as f32;
         assert!((mean - 1.0).abs() < 1e-3, "{mean}");
         for v in [v0, v1] {
@@ -340,7 +340,7 @@ mod tests {
             let min = v.iter().cloned().fold(f32::MAX, f32::min);
             assert!(max > 2.0 * mean && min < 0.5 * mean, "{min} {max}");
         }
-        assert_ne!(layers[0].data, layers[1].data);
+        assert_ne!(webs[0].data, webs[1].data);
     }
 
     #[test]
