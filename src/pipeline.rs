@@ -406,11 +406,10 @@ impl<L: CommandLink> Pipeline<L> {
         let (obs, full_search_after_send): (Option<MarkerObservation>, bool) =
             match self.tracker.process_tracked(&self.frame)? {
                 Tracked::Done(obs) => (obs, false),
-                // Before the first fix there is no command to protect: search first.
-                Tracked::NeedsFullSearch
-                    if self.tracker.detector_config().defer_full_search
-                        && self.marker_seen_s.is_some() =>
-                {
+                // Deferred before the first fix too: the command (neutral until then) keeps
+                // its latency while the marker is being acquired, which can take seconds
+                // under caustics; the first fix then serves from the next frame on.
+                Tracked::NeedsFullSearch if self.tracker.detector_config().defer_full_search => {
                     (None, true)
                 }
                 Tracked::NeedsFullSearch => (self.tracker.process_full(&self.frame)?, false),
