@@ -32,9 +32,19 @@ fn run(
     faults: &[&str],
     initial_exposure_us: Option<f64>,
 ) -> Outcome {
+    run_seed(site, seconds, faults, initial_exposure_us, 3)
+}
+
+fn run_seed(
+    site: &LoadedSite,
+    seconds: f64,
+    faults: &[&str],
+    initial_exposure_us: Option<f64>,
+    seed: u64,
+) -> Outcome {
     let opts = HilOptions {
         seconds,
-        seed: 3,
+        seed,
         start_on_station: true,
         initial_exposure_us,
         faults: faults
@@ -484,14 +494,21 @@ fn frames_to_settle(e: &[f64], from: usize, to: usize, fps: f64, tol: f64) -> (u
 /// What the tests hold the exposure to after a light change, in HIL: within 15 % of the
 /// value it settles at within one second (30 frames), then no oscillation: every
 /// frame-to-frame change below 15 % and nothing outside 25 % of the settled value.
-/// Issue 3's goal (AAEC within 8 frames, to within 5 % of the best exposure) is NOT met
-/// here (see RELIABILITY_NOTES.md): the frames to within 5 % are printed, not asserted.
 const RECOVER_FRAMES: usize = 30;
 const RECOVER_TOL: f64 = 0.15;
+/// Issue 9's goal, asserted on every seed of `LIGHT_SEEDS`: within 5 % of the settled
+/// value at most 8 frames after the change (one frame of actuation delay, so 4 used
+/// frames). Met since AAEC's knee landing (exposure/NOTES.md, session 6); before it,
+/// 6 of these 20 cases were.
+const SETTLE_FRAMES: usize = 8;
+/// The light-change tests run over these seeds of the simulated world: the frames to
+/// settle varied from 2 to 71 over them before the knee landing, so one seed says little.
+const LIGHT_SEEDS: [u64; 5] = [1, 2, 3, 4, 5];
 
 /// One light change at `at_s`, checked up to `to_s`: exposure follows it in the expected
 /// direction, recovers and does not oscillate, the marker is detected on every frame
-/// after recovery. Returns the frames to within 5 % of the settled value.
+/// after recovery, and is within 5 % of its settled value after at most `SETTLE_FRAMES`.
+/// Returns the frames to within 5 % of the settled value.
 fn light_change(o: &Outcome, fps: f64, at_s: f64, to_s: f64, brighter: bool, what: &str) -> usize {
     let e = &o.exposure_used_us;
     let k = (at_s * fps).round() as usize;
@@ -524,6 +541,10 @@ fn light_change(o: &Outcome, fps: f64, at_s: f64, to_s: f64, brighter: bool, wha
         o.detected[after..to].iter().all(|d| *d),
         "{what}: marker not detected after recovery"
     );
+    assert!(
+        n5 <= SETTLE_FRAMES,
+        "{what}: {n5} frames to within 5 % of {settled:.0} us"
+    );
     n5
 }
 
@@ -546,24 +567,29 @@ fn lamp_switched_off_and_on_exposure_follows_without_oscillation() {
         );
     }
     let s = params::parse(&path, &text).unwrap();
-    let o = run(&s, 12.0, &["lamp_off@4+4"], None);
-    let fps = s.site.camera.fps;
-    let r = &o.reports[0];
-    assert_eq!(r.kind, FaultKind::LampOff);
-    light_change(&o, fps, 4.0, 8.0, false, "lamp off");
-    light_change(&o, fps, 8.0, 12.0, true, "lamp on");
-    // The loop never lost the vehicle over it.
-    assert!(r.silent_at_s.is_none(), "{r:?}");
+    for seed in LIGHT_SEEDS {
+        let o = run_seed(&s, 12.0, &["lamp_off@4+4"], None, seed);
+        let fps = s.site.camera.fps;
+        let r = &o.reports[0];
+        assert_eq!(r.kind, FaultKind::LampOff);
+        light_change(&o, fps, 4.0, 8.0, false, &format!("seed {seed}, lamp off"));
+        light_change(&o, fps, 8.0, 12.0, true, &format!("seed {seed}, lamp on"));
+        // The loop never lost the vehicle over it.
+        assert!(r.silent_at_s.is_none(), "{r:?}");
+    }
 }
 
 #[test]
 fn ambient_light_back_from_10x_exposure_recovers_without_oscillation() {
     // 10x daylight from the start (the loop settles in it), back to the site's at 5 s.
     let s = site("stabilize");
-    let o = run(&s, 9.0, &["ambient_step@0+5"], None);
-    let fps = s.site.camera.fps;
-    assert_eq!(o.reports[0].kind, FaultKind::AmbientStep);
-    light_change(&o, fps, 5.0, 9.0, false, "ambient 10x -> 1x");
+    for seed in LIGHT_SEEDS {
+        let o = run_seed(&s, 9.0, &["ambient_step@0+5"], None, seed);
+        let fps = s.site.camera.fps;
+        assert_eq!(o.reports[0].kind, FaultKind::AmbientStep);
+        let what = format!("seed {seed}, ambient 10x -> 1x");
+        light_change(&o, fps, 5.0, 9.0, false, &what);
+    }
 }
 
 /// A 10x step up in daylight (this wandered for 2.5 s before AAEC's restart policy of
@@ -571,8 +597,11 @@ fn ambient_light_back_from_10x_exposure_recovers_without_oscillation() {
 #[test]
 fn ambient_light_10x_step_up_exposure_recovers_without_oscillation() {
     let s = site("stabilize");
-    let o = run(&s, 8.0, &["ambient_step@4"], None);
-    let fps = s.site.camera.fps;
-    assert_eq!(o.reports[0].kind, FaultKind::AmbientStep);
-    light_change(&o, fps, 4.0, 8.0, true, "ambient 1x -> 10x");
+    for seed in LIGHT_SEEDS {
+        let o = run_seed(&s, 8.0, &["ambient_step@4"], None, seed);
+        let fps = s.site.camera.fps;
+        assert_eq!(o.reports[0].kind, FaultKind::AmbientStep);
+        let what = format!("seed {seed}, ambient 1x -> 10x");
+        light_change(&o, fps, 4.0, 8.0, true, &what);
+    }
 }

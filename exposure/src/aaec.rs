@@ -20,6 +20,10 @@
 //! - outside a bracket, the momentum step is scaled by a factor that halves on each
 //!   sign change and grows back while the sign holds (Rprop-like);
 //! - a RoI with no gradient (black, or washed out) steps toward mid grey at once;
+//! - knee landing (`knee_quantile`): after a (re)start, the exposure goes in one or
+//!   two steps to a fixed margin above the knee of `M` (where the marker's white cells
+//!   clip, predicted from an unclipped quantile through the camera response) and holds
+//!   there while `M` is flat within its noise, instead of wandering on the plateau;
 //! - the per-frame change is bounded by `max_ratio_per_frame`.
 //!
 //! With `adaptive_step = false` it is the paper's plain momentum ascent (same metric,
@@ -47,6 +51,21 @@ const RESTART_STEP_SCALE: f64 = 0.1;
 const CLIPPED_GREY: usize = 254;
 /// Pixel and row step of the highlight guard's histogram.
 const GUARD_STEP: usize = 2;
+
+/// After a descent below the knee, a frame still clipped and with a slope below this
+/// (M not rising as it does below the knee) is still above it: descend again.
+const KNEE_FLAT_SLOPE: f64 = 0.5;
+/// Smallest clipped fraction of the RoI taken as the marker's white cells clipping:
+/// a frame above the knee steps below it, a landing holds; fewer clipped pixels
+/// (highlights, caustics) leave it to the ascent.
+const KNEE_CLIPPED: f64 = 0.25;
+/// Slope at or below which a clipped frame starts the descent below the knee (M
+/// falls steeply: the white cells clip far above the knee, as after a light change).
+const KNEE_DESCEND_SLOPE: f64 = -1.0;
+/// Used frames at a knee hold before its slope statistics may release it.
+const HOLD_MIN_FRAMES: u32 = 6;
+/// Longest memory of the knee hold's slope statistics, used frames.
+const HOLD_WINDOW: u32 = 32;
 
 /// What AAEC runs when the marker has been lost for more than `lost_hold_frames`.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
@@ -129,6 +148,38 @@ pub struct AaecConfig {
     /// Grey level the fallback may drive the brightest `highlight_frac` of the frame to,
     /// 128..=250.
     pub highlight_grey: f64,
+    /// Knee landing, [0, 1) (0 = off): quantile of the RoI's grey levels taken as the
+    /// marker's white cells. On a marker with evenly lit cells, `M` rises as t^2 (slope
+    /// 2 on a linear camera) until the white cells clip, then is flat within its frame
+    /// noise (+-10 %) over a 2x range: the knee is the shortest exposure whose `M` is
+    /// as good as the best (the tie-break: least clipping and motion blur), and unlike
+    /// the plateau it is measurable. After a (re)start of the ascent: from below (a
+    /// strong positive slope, that quantile unclipped in 16 .. `saturation_grey - 2`)
+    /// the response predicts the exposure at which it clips, and one step (or more,
+    /// if bounded by `max_ratio_per_frame`) goes there times `knee_margin`; from
+    /// above (that quantile clipped, a quarter of the RoI clipped and a slope <= -1,
+    /// as after a light change) steps of `max_ratio_per_frame` go below the knee
+    /// first. If the landing frame has a quarter of the RoI clipped and a slope below
+    /// half the one the landing was predicted from, the exposure is held there (see
+    /// `knee_hold_z`, `knee_hold_slope`); otherwise the ascent goes on.
+    pub knee_quantile: f64,
+    /// Factor above the predicted clip onset where the knee landing aims, [1, 2]: the
+    /// white cells clip from about 1.0x, `M` is flat from 1.1x (HIL pool fixture).
+    pub knee_margin: f64,
+    /// Knee hold, downward, (0, 10]: at a knee hold, a mean slope (at least 6 used
+    /// frames) below `-restart_slope` and beyond `knee_hold_z` standard deviations of
+    /// its noise says a shorter exposure is better: the exposure goes down to the
+    /// predicted clip onset (the landing divided by `knee_margin`) and holds there; a
+    /// second such verdict lets the ascent resume.
+    pub knee_hold_z: f64,
+    /// Knee hold, upward, [`restart_slope`, 10]: a mean slope at a knee hold (at least
+    /// 6 used frames) at or above this lets the ascent resume (at or below its
+    /// negative, the exposure moves down as for `knee_hold_z`). 1 = half the slope below the knee (linear camera): the exposure is
+    /// below the knee (the light dimmed) or there is no knee. A smaller mean slope is
+    /// left alone: the tie-break toward the shorter exposure (in HIL daylight the mean
+    /// slope just above the knee is +0.2 .. +0.5; `M` there is 5-10 % below the old
+    /// settling points, 1.5-2x longer, a loss of the order of its frame noise).
+    pub knee_hold_slope: f64,
 }
 
 impl Default for AaecConfig {
@@ -156,6 +207,10 @@ impl Default for AaecConfig {
             fallback: AaecFallback::Mean,
             highlight_frac: 0.005,
             highlight_grey: 230.0,
+            knee_quantile: 0.9,
+            knee_margin: 1.1,
+            knee_hold_z: 3.0,
+            knee_hold_slope: 1.0,
         }
     }
 }
@@ -290,6 +345,34 @@ impl AaecConfig {
             &v,
             "a grey level in [128, 250]",
         )?;
+        let v = self.knee_quantile;
+        check(
+            (0.0..1.0).contains(&v),
+            "knee_quantile",
+            &v,
+            "a fraction in [0, 1) (0 = off)",
+        )?;
+        let v = self.knee_margin;
+        check(
+            (1.0..=2.0).contains(&v),
+            "knee_margin",
+            &v,
+            "a factor in [1, 2]",
+        )?;
+        let v = self.knee_hold_z;
+        check(
+            v > 0.0 && v <= 10.0,
+            "knee_hold_z",
+            &v,
+            "standard deviations in (0, 10]",
+        )?;
+        let v = self.knee_hold_slope;
+        check(
+            v >= self.restart_slope && v <= 10.0,
+            "knee_hold_slope",
+            &v,
+            "a slope in [restart_slope, 10]",
+        )?;
         Ok(())
     }
 
@@ -322,6 +405,14 @@ pub struct Aaec {
     last_roi: Option<Roi>,
     lost_frames: u32,
     in_fallback: bool,
+    /// The knee landing of this climb: None = not taken, Some(x) = its target, ln t.
+    landed: Option<f64>,
+    /// What the last step was, for the knee landing.
+    last_knee: KneeStep,
+    /// Slope of the frame the landing was predicted from (below the knee).
+    landed_slope: f64,
+    /// Held at a knee landing.
+    hold: Option<Hold>,
 }
 
 impl Aaec {
@@ -349,6 +440,10 @@ impl Aaec {
             last_roi: None,
             lost_frames: 0,
             in_fallback: false,
+            landed: None,
+            last_knee: KneeStep::None,
+            landed_slope: 0.0,
+            hold: None,
         })
     }
 
@@ -362,6 +457,145 @@ impl Aaec {
         self.step_scale = 1.0;
         self.prev = None;
         self.bracket = None;
+        self.landed = None;
+        self.last_knee = KneeStep::None;
+        self.hold = None;
+    }
+
+    /// Grey level of the knee quantile of `view` (every 2nd pixel and row).
+    fn knee_grey(&self, view: crate::ImageView<'_>) -> Option<usize> {
+        let q = self.cfg.knee_quantile;
+        if q <= 0.0 {
+            return None;
+        }
+        let mut hist = [0u32; 256];
+        for y in (0..view.height).step_by(GUARD_STEP) {
+            for &p in view.row(y).iter().step_by(GUARD_STEP) {
+                hist[p as usize] += 1;
+            }
+        }
+        let n: u64 = hist.iter().map(|&c| c as u64).sum();
+        if n == 0 {
+            return None;
+        }
+        let want = ((q * n as f64).ceil() as u64).max(1);
+        let mut acc = 0u64;
+        for (g, &c) in hist.iter().enumerate() {
+            acc += c as u64;
+            if acc >= want {
+                return Some(g);
+            }
+        }
+        None
+    }
+
+    /// The knee landing step (ln t) from a frame at `x` with slope `s`, if it applies.
+    fn knee_step(
+        &mut self,
+        view: crate::ImageView<'_>,
+        x: f64,
+        s: f64,
+        clipped_frac: f64,
+        last: KneeStep,
+    ) -> Option<f64> {
+        // One landing per climb, continued while a bounded step left it short.
+        let short_of_landing = match self.landed {
+            None => true,
+            Some(xl) => last == KneeStep::Landing && x < xl - COLLAPSED_WIDTH,
+        };
+        if !self.cfg.adaptive_step
+            || self.bracket.is_some()
+            || self.hold.is_some()
+            || !short_of_landing
+        {
+            return None;
+        }
+        let g = self.knee_grey(view)?;
+        let sat = self.cfg.saturation_grey as usize;
+        if g + 1 >= sat
+            && self.landed.is_none()
+            && clipped_frac >= KNEE_CLIPPED
+            && (s <= KNEE_DESCEND_SLOPE || (last == KneeStep::Descent && s < KNEE_FLAT_SLOPE))
+        {
+            // The brightest cells clip (a large part of the RoI) and M falls steeply
+            // (or, after such a step, does not rise): above the knee, by an unknown
+            // factor. Go below it by the largest steps, then land from there.
+            self.v = 0.0;
+            self.last_knee = KneeStep::Descent;
+            return Some(-self.cfg.max_ratio_per_frame.ln());
+        }
+        if s < self.cfg.restart_slope || !(16..=sat.saturating_sub(2)).contains(&g) {
+            return None;
+        }
+        let ratio = self.response.signal(sat as f64) / self.response.signal(g as f64);
+        let delta = (ratio * self.cfg.knee_margin).ln();
+        if delta <= 0.0 {
+            return None;
+        }
+        // The target, not the bounded step: a landing cut short by the bound goes on.
+        self.landed = Some(x + delta);
+        self.landed_slope = s;
+        self.last_knee = KneeStep::Landing;
+        let bound = self.cfg.max_ratio_per_frame.ln();
+        // Momentum as for an ascent step: if M is not flat at the landing (no knee, the
+        // cells clip gradually), the ascent goes on at the pace it would have had. None
+        // after a step cut short by the bound (the landing goes on from there).
+        self.v = if delta <= bound { delta } else { 0.0 };
+        Some(delta.min(bound))
+    }
+
+    /// On the frame at a knee landing: true to hold there (see
+    /// [`AaecConfig::knee_quantile`]).
+    fn hold_knee(&mut self, clipped_frac: f64, s: f64) -> bool {
+        if self.bracket.is_some() || self.hold.is_some() {
+            return false;
+        }
+        // Landed when a large part of the RoI clips (the marker's white cells, not a
+        // few highlights) and M is flat: the slope has lost at least half of its value
+        // below the knee (2 on a linear camera) in either direction.
+        if clipped_frac < KNEE_CLIPPED || s.abs() >= 0.5 * self.landed_slope {
+            return false;
+        }
+        self.hold = Some(Hold::default());
+        self.v = 0.0;
+        true
+    }
+
+    /// While held at a knee landing: the step (0 = stay), or None when the ascent
+    /// resumes. Keeps the slope's mean and variance there (1/n weights, then 1/32).
+    fn knee_held(&mut self, s: f64) -> Option<f64> {
+        let mut h = self.hold?;
+        h.n = (h.n + 1).min(HOLD_WINDOW);
+        h.age = h.age.saturating_add(1);
+        let a = 1.0 / h.n as f64;
+        let d = s - h.mean;
+        h.mean += a * d;
+        h.var = (1.0 - a) * (h.var + a * d * d);
+        // Right after the landing, a consistent fall of M (beyond the noise) corrects
+        // the margin; later only a mean slope beyond `knee_hold_slope` moves the hold.
+        let shorter = (h.age <= HOLD_WINDOW
+            && h.mean <= -self.cfg.restart_slope
+            && -h.mean > self.cfg.knee_hold_z * h.var.sqrt())
+            || h.mean <= -self.cfg.knee_hold_slope;
+        let longer = h.mean >= self.cfg.knee_hold_slope;
+        if h.n < HOLD_MIN_FRAMES || !(shorter || longer) {
+            self.hold = Some(h);
+            return Some(0.0);
+        }
+        if shorter && !h.onset && self.cfg.knee_margin > 1.0 {
+            // M falls past the knee: go down to the predicted clip onset and hold there.
+            tracing::debug!(mean = h.mean, "aaec: knee hold moves to the clip onset");
+            self.hold = Some(Hold {
+                onset: true,
+                ..Hold::default()
+            });
+            return Some(-self.cfg.knee_margin.ln());
+        }
+        tracing::debug!(mean = h.mean, sd = h.var.sqrt(), "aaec: knee hold released");
+        self.hold = None;
+        self.step_scale = RESTART_STEP_SCALE;
+        self.v = 0.0;
+        None
     }
 
     /// The region to meter: the marker's padded box, else the last one for a few frames.
@@ -591,6 +825,28 @@ struct Bracket {
     probing: bool,
 }
 
+/// The knee landing's last step.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum KneeStep {
+    None,
+    /// Toward the predicted knee.
+    Landing,
+    /// Below the knee by the largest step.
+    Descent,
+}
+
+/// The slope's statistics at a knee hold.
+#[derive(Debug, Clone, Copy, Default)]
+struct Hold {
+    n: u32,
+    mean: f64,
+    var: f64,
+    /// Used frames since the hold began.
+    age: u32,
+    /// Moved down to the predicted clip onset already.
+    onset: bool,
+}
+
 impl ExposureController for Aaec {
     fn method(&self) -> ExposureMethod {
         ExposureMethod::Aaec
@@ -668,7 +924,17 @@ impl ExposureController for Aaec {
                     self.reset_ascent();
                 }
             }
-            let d = self.ascent_step(x, s);
+            let view = frame.view().crop(roi);
+            let last = std::mem::replace(&mut self.last_knee, KneeStep::None);
+            let d = if let Some(d) = self.knee_held(s) {
+                d
+            } else if last == KneeStep::Landing && self.hold_knee(mv.saturated_frac, s) {
+                0.0
+            } else if let Some(d) = self.knee_step(view, x, s, mv.saturated_frac, last) {
+                d
+            } else {
+                self.ascent_step(x, s)
+            };
             self.prev = Some(Sample { x, s, ln_m });
             d
         };

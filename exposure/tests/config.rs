@@ -91,6 +91,46 @@ fn bad_values_name_the_key() {
         ),
         (
             ExposureConfig {
+                aaec: AaecConfig {
+                    knee_quantile: 1.0,
+                    ..Default::default()
+                },
+                ..Default::default()
+            },
+            "exposure.aaec.knee_quantile = 1",
+        ),
+        (
+            ExposureConfig {
+                aaec: AaecConfig {
+                    knee_margin: 0.9,
+                    ..Default::default()
+                },
+                ..Default::default()
+            },
+            "exposure.aaec.knee_margin = 0.9",
+        ),
+        (
+            ExposureConfig {
+                aaec: AaecConfig {
+                    knee_hold_z: 0.0,
+                    ..Default::default()
+                },
+                ..Default::default()
+            },
+            "exposure.aaec.knee_hold_z = 0",
+        ),
+        (
+            ExposureConfig {
+                aaec: AaecConfig {
+                    knee_hold_slope: 0.1,
+                    ..Default::default()
+                },
+                ..Default::default()
+            },
+            "exposure.aaec.knee_hold_slope = 0.1",
+        ),
+        (
+            ExposureConfig {
                 aec: AecConfig {
                     max_change_frac: 0.0,
                     ..Default::default()
