@@ -67,6 +67,19 @@ const HOLD_MIN_FRAMES: u32 = 6;
 /// Longest memory of the knee hold's slope statistics, used frames.
 const HOLD_WINDOW: u32 = 32;
 
+/// Grey-level histogram of every `GUARD_STEP`-th pixel and row of `view` (on the
+/// stack), and the number of pixels counted.
+fn sparse_histogram(view: crate::ImageView<'_>) -> ([u32; 256], u64) {
+    let mut hist = [0u32; 256];
+    for y in (0..view.height).step_by(GUARD_STEP) {
+        for &p in view.row(y).iter().step_by(GUARD_STEP) {
+            hist[p as usize] += 1;
+        }
+    }
+    let n = hist.iter().map(|&c| c as u64).sum();
+    (hist, n)
+}
+
 /// What AAEC runs when the marker has been lost for more than `lost_hold_frames`.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "lowercase")]
@@ -174,8 +187,9 @@ pub struct AaecConfig {
     pub knee_hold_z: f64,
     /// Knee hold, upward, [`restart_slope`, 10]: a mean slope at a knee hold (at least
     /// 6 used frames) at or above this lets the ascent resume (at or below its
-    /// negative, the exposure moves down as for `knee_hold_z`). 1 = half the slope below the knee (linear camera): the exposure is
-    /// below the knee (the light dimmed) or there is no knee. A smaller mean slope is
+    /// negative, the exposure moves down as for `knee_hold_z`). 1 = half the slope
+    /// below the knee (linear camera): the exposure is below the knee (the light
+    /// dimmed) or there is no knee. A smaller mean slope is
     /// left alone: the tie-break toward the shorter exposure (in HIL daylight the mean
     /// slope just above the knee is +0.2 .. +0.5; `M` there is 5-10 % below the old
     /// settling points, 1.5-2x longer, a loss of the order of its frame noise).
@@ -468,13 +482,7 @@ impl Aaec {
         if q <= 0.0 {
             return None;
         }
-        let mut hist = [0u32; 256];
-        for y in (0..view.height).step_by(GUARD_STEP) {
-            for &p in view.row(y).iter().step_by(GUARD_STEP) {
-                hist[p as usize] += 1;
-            }
-        }
-        let n: u64 = hist.iter().map(|&c| c as u64).sum();
+        let (hist, n) = sparse_histogram(view);
         if n == 0 {
             return None;
         }
@@ -632,13 +640,7 @@ impl Aaec {
             return None;
         }
         let view = frame.view();
-        let mut hist = [0u32; 256];
-        for y in (0..view.height).step_by(GUARD_STEP) {
-            for &p in view.row(y).iter().step_by(GUARD_STEP) {
-                hist[p as usize] += 1;
-            }
-        }
-        let n: u64 = hist.iter().map(|&c| c as u64).sum();
+        let (hist, n) = sparse_histogram(view);
         if n == 0 {
             return None;
         }
