@@ -573,9 +573,10 @@ impl Aaec {
     /// resumes. Keeps the slope's mean and variance there (1/n weights, then 1/32).
     fn knee_held(&mut self, s: f64) -> Option<f64> {
         let mut h = self.hold?;
-        h.n = (h.n + 1).min(HOLD_WINDOW);
         h.age = h.age.saturating_add(1);
-        let a = 1.0 / h.n as f64;
+        // Samples in the running statistics: 1/n weights up to the window, then fixed.
+        let n = h.age.min(HOLD_WINDOW);
+        let a = 1.0 / n as f64;
         let d = s - h.mean;
         h.mean += a * d;
         h.var = (1.0 - a) * (h.var + a * d * d);
@@ -586,7 +587,7 @@ impl Aaec {
             && -h.mean > self.cfg.knee_hold_z * h.var.sqrt())
             || h.mean <= -self.cfg.knee_hold_slope;
         let longer = h.mean >= self.cfg.knee_hold_slope;
-        if h.n < HOLD_MIN_FRAMES || !(shorter || longer) {
+        if n < HOLD_MIN_FRAMES || !(shorter || longer) {
             self.hold = Some(h);
             return Some(0.0);
         }
@@ -840,7 +841,6 @@ enum KneeStep {
 /// The slope's statistics at a knee hold.
 #[derive(Debug, Clone, Copy, Default)]
 struct Hold {
-    n: u32,
     mean: f64,
     var: f64,
     /// Used frames since the hold began.

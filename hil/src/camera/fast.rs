@@ -518,6 +518,7 @@ impl FastRenderer {
             }
         }));
         let caustics = CausticFrame::new(scene, time_s);
+        let texel_per_m = (1.0 / scene.background.texel_m) as f32;
         // Rock and both webs at this frame's drifts in one texture (a few tenths of a
         // millisecond; it saves two texel reads a caustic pixel). Rebuilt every frame:
         // the webs drift a few texels a frame.
@@ -528,7 +529,7 @@ impl FastRenderer {
         let plate_caustics = caustics.on.then_some(PlateCaustics {
             tex: &lit,
             strength: caustics.strength,
-            texels_per_m: caustics.texels_per_m,
+            texels_per_m: texel_per_m,
         });
         let pc = PixelConsts {
             scene,
@@ -542,7 +543,7 @@ impl FastRenderer {
             inv_wu: 1.0 / (footprint.0 as f32 * cell_per_m).max(1e-6),
             inv_wv: 1.0 / (footprint.1 as f32 * cell_per_m).max(1e-6),
             albedo_back: scene.plate_back_albedo() as f32,
-            texel_per_m: (1.0 / scene.background.texel_m) as f32,
+            texel_per_m,
             caustics,
             lit: &lit,
             plate_caustics,
@@ -797,7 +798,7 @@ impl FastRenderer {
                             let v = (f0[2] + fd[2] * t) * inv;
                             let albedo = rock.at(floor_i32(u * tk), floor_i32(v * tk));
                             let c = if caustics.on {
-                                caustics.at(pc.lit, u, v)
+                                caustics.at(pc.lit, tk, u, v)
                             } else {
                                 1.0
                             };
@@ -919,8 +920,6 @@ fn classify(sp: &Span, forms: &[PlaneForms; 3], half: f32, t: f32) -> usize {
 struct CausticFrame {
     on: bool,
     strength: f32,
-    /// Rock texels per metre (the webs lie on the rock's texel grid).
-    texels_per_m: f32,
     /// Each web's drift, texels.
     shift: [(i32, i32); 2],
 }
@@ -931,15 +930,14 @@ impl CausticFrame {
         Self {
             on: p.strength > 0.0,
             strength: p.strength as f32,
-            texels_per_m: (1.0 / scene.background.texel_m) as f32,
             shift: p.shift,
         }
     }
 
-    /// Caustic factor at surface coordinates (u, v), metres, from the frame's `lit`.
+    /// Caustic factor at surface coordinates (u, v), metres, from the frame's `lit`
+    /// (`k` rock texels per metre: the webs lie on the rock's grid).
     #[inline(always)]
-    fn at(&self, lit: &LitTexture, u: f32, v: f32) -> f32 {
-        let k = self.texels_per_m;
+    fn at(&self, lit: &LitTexture, k: f32, u: f32, v: f32) -> f32 {
         let b = lit.caustic_at(floor_i32(u * k), floor_i32(v * k));
         1.0 + self.strength * (b - 1.0)
     }

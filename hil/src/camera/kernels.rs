@@ -1,9 +1,9 @@
 //! The per-pixel loops of the fast renderer, each in two builds that give bit-identical
 //! results: a portable one (scalar, what a CPU without AVX2 runs) and an AVX2 one (eight
-//! pixels per instruction; texels and table entries still read one by one). Both evaluate the same formula
-//! with the same f32 operations in the same order (no FMA: Rust never contracts a
-//! multiply and an add on its own), so a frame does not depend on the CPU it was
-//! rendered on; `tests/camera_fast.rs` checks it.
+//! pixels per instruction; texels and table entries still read one by one). Both
+//! evaluate the same formula with the same f32 operations in the same order (no FMA:
+//! Rust never contracts a multiply and an add on its own), so a frame does not depend on
+//! the CPU it was rendered on; `tests/camera_fast.rs` checks it.
 
 use crate::scene::{LitTexture, Texture};
 

@@ -64,8 +64,7 @@ impl Texture {
     /// Raw byte at texel coordinates (wraps).
     #[inline(always)]
     pub(crate) fn byte(&self, tx: i32, ty: i32) -> u8 {
-        let m = self.mask();
-        self.data[((ty as usize & m) << self.log2) | (tx as usize & m)]
+        self.data[texel_index(self.log2, tx, ty)]
     }
 
     /// Nearest texel at texel coordinates (wraps).
@@ -73,6 +72,13 @@ impl Texture {
     pub(crate) fn at(&self, tx: i32, ty: i32) -> f32 {
         self.offset + self.scale * self.byte(tx, ty) as f32
     }
+}
+
+/// Index of texel (tx, ty) in a square texture of side `1 << log2`, wrapping.
+#[inline(always)]
+fn texel_index(log2: u32, tx: i32, ty: i32) -> usize {
+    let m = (1usize << log2) - 1;
+    ((ty as usize & m) << log2) | (tx as usize & m)
 }
 
 /// Value noise lattice of side `cells` (tileable), smoothly interpolated.
@@ -186,14 +192,14 @@ pub(crate) fn caustic_textures(seed: u64, log2: u32, cells_per_side: [usize; 2])
     let both = Texture::from_values(log2, &data);
     let mean_byte = both.data.iter().map(|&b| b as f64).sum::<f64>() / both.data.len() as f64;
     let scale = (1.0 / mean_byte.max(1e-6)) as f32;
-    let mut halves = both.data.chunks_exact(side * side).map(|d| Texture {
+    let (a, b) = both.data.split_at(side * side);
+    let web = |d: &[u8]| Texture {
         log2,
         data: d.to_vec(),
         scale,
         offset: 0.0,
-    });
-    let mut next = || halves.next().unwrap_or_else(|| Texture::blank(log2));
-    [next(), next()]
+    };
+    [web(a), web(b)]
 }
 
 impl Texture {
@@ -223,15 +229,10 @@ pub(crate) struct LitTexture {
 }
 
 impl LitTexture {
-    pub(crate) fn mask(&self) -> usize {
-        (1usize << self.log2) - 1
-    }
-
     /// The two bytes at texel coordinates (wraps).
     #[inline(always)]
     pub(crate) fn word(&self, tx: i32, ty: i32) -> u16 {
-        let m = self.mask();
-        self.data[((ty as usize & m) << self.log2) | (tx as usize & m)]
+        self.data[texel_index(self.log2, tx, ty)]
     }
 
     /// Caustic value (mean 1 over the texture) at texel coordinates.
