@@ -621,6 +621,7 @@ impl FastRenderer {
             per_s: tables.lut_per_s,
             top: (RESPONSE_LUT_LEN - 1) as f32,
             lut: &tables.response_lut,
+            linear: tables.linear,
         };
         let isa = self.isa;
         let valid = [forms[PLATE].valid, forms[WALL].valid, forms[SEABED].valid];

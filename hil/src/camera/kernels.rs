@@ -324,6 +324,8 @@ pub(crate) struct SensorRow<'a> {
     pub(crate) per_s: f32,
     pub(crate) top: f32,
     pub(crate) lut: &'a [u8; super::sensor::RESPONSE_LUT_LEN],
+    /// A linear response computed instead of read from `lut`.
+    pub(crate) linear: Option<super::sensor::Linear>,
 }
 
 #[inline(always)]
@@ -346,6 +348,9 @@ fn caustic_rock_px(r: &CausticRockRun, t: i32) -> f32 {
 fn sensor_px(s: &SensorRow, m: f32, a: i16, b: i16) -> u8 {
     let g = (a as i32 + b as i32) as f32 * NOISE_SCALE;
     let v = (m.max(0.0) + s.read_var).sqrt() + g;
+    if let Some(l) = &s.linear {
+        return l.level(v, s.read_var);
+    }
     // The 2^23 trick: adding 2^23 to a float in [0, 2^23) leaves the rounded integer in
     // its mantissa bits (what the packed build does too).
     let ix = ((v * s.per_s).max(0.0).min(s.top) + 8_388_608.0).to_bits() & 0x7F_FFFF;
@@ -399,7 +404,12 @@ pub(crate) fn sensor_run(
     match isa {
         #[cfg(target_arch = "x86_64")]
         // SAFETY: Avx2 is only chosen when the CPU has it.
-        Isa::Avx2 => unsafe { avx2::sensor_run(out, mean, na, nb, s) },
+        Isa::Avx2 => unsafe {
+            match &s.linear {
+                Some(l) => avx2::sensor_run_linear(out, mean, na, nb, s, l),
+                None => avx2::sensor_run(out, mean, na, nb, s),
+            }
+        },
         Isa::Portable => {
             for (((px, &m), &a), &b) in out.iter_mut().zip(mean).zip(na).zip(nb) {
                 *px = sensor_px(s, m, a, b);
@@ -681,6 +691,56 @@ mod avx2 {
                 word |= (level as u64) << (8 * k);
             }
             out[t0..t0 + 8].copy_from_slice(&word.to_le_bytes());
+            t0 += 8;
+        }
+        for t in t0..n {
+            out[t] = sensor_px(s, mean[t], na[t], nb[t]);
+        }
+    }
+
+    /// `sensor_run` for a linear response: the level computed (`Linear::level`, same
+    /// operations in the same order) and packed to bytes, no table read.
+    #[target_feature(enable = "avx2")]
+    pub(super) unsafe fn sensor_run_linear(
+        out: &mut [u8],
+        mean: &[f32],
+        na: &[i16],
+        nb: &[i16],
+        s: &SensorRow,
+        l: &super::super::sensor::Linear,
+    ) {
+        let n = out.len();
+        let zero = _mm256_setzero_ps();
+        let rv = _mm256_set1_ps(s.read_var);
+        let (fw, per_e, top) = (
+            _mm256_set1_ps(l.full_well_e),
+            _mm256_set1_ps(l.per_e),
+            _mm256_set1_ps(255.0),
+        );
+        let (magic, byte) = (_mm256_set1_ps(8_388_608.0), _mm256_set1_epi32(0xFF));
+        let scale = _mm256_set1_ps(NOISE_SCALE);
+        let mut t0 = 0usize;
+        while t0 + 8 <= n {
+            let m = _mm256_loadu_ps(mean.as_ptr().add(t0));
+            let ga = _mm256_cvtepi16_epi32(_mm_loadu_si128(na.as_ptr().add(t0) as *const __m128i));
+            let gb = _mm256_cvtepi16_epi32(_mm_loadu_si128(nb.as_ptr().add(t0) as *const __m128i));
+            let g = _mm256_mul_ps(_mm256_cvtepi32_ps(_mm256_add_epi32(ga, gb)), scale);
+            let v = _mm256_add_ps(_mm256_sqrt_ps(_mm256_add_ps(_mm256_max_ps(m, zero), rv)), g);
+            let v = _mm256_max_ps(v, zero);
+            let e = _mm256_min_ps(
+                _mm256_max_ps(_mm256_sub_ps(_mm256_mul_ps(v, v), rv), zero),
+                fw,
+            );
+            let y = _mm256_min_ps(_mm256_mul_ps(e, per_e), top);
+            let q = _mm256_and_si256(_mm256_castps_si256(_mm256_add_ps(y, magic)), byte);
+            // Eight levels (0..=255 in i32 lanes) to eight bytes.
+            let p16 = _mm256_packus_epi32(q, q);
+            let p8 = _mm256_packus_epi16(p16, p16);
+            let b = _mm_unpacklo_epi32(
+                _mm256_castsi256_si128(p8),
+                _mm256_extracti128_si256::<1>(p8),
+            );
+            _mm_storel_epi64(out.as_mut_ptr().add(t0) as *mut __m128i, b);
             t0 += 8;
         }
         for t in t0..n {
