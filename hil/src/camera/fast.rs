@@ -348,7 +348,7 @@ impl FastRenderer {
         // lowest set bit of its index there; the smaller of the two), and, where they
         // exist, between two more 3 s apart (for the curvature test below).
         let base = ctx.light_base;
-        let step = |k: usize| (k % base != 0).then_some(k & k.wrapping_neg());
+        let step = |k: usize| (!k.is_multiple_of(base)).then_some(k & k.wrapping_neg());
         let h = step(i).filter(|&s| i + s < nx);
         let v = step(j).filter(|&t| j + t < ny);
         let line = |d: usize, k: usize, n: usize, s: usize| {
