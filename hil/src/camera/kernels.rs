@@ -101,21 +101,29 @@ pub(crate) struct RockNodes<'a> {
     pub(crate) walks: [&'a [i32]; 2],
 }
 
-impl RockNodes<'_> {
-    /// Walk `w` along span `s` (16 pixels: an arithmetic shift divides the delta).
+/// One span of a rock run at the nodes: both ends' cell fields and texel walks.
+#[derive(Clone, Copy)]
+struct SpanNodes<'a> {
+    cells: &'a [[f32; 6]],
+    walks: [&'a [i32]; 2],
+    fy: f32,
+}
+
+impl SpanNodes<'_> {
+    /// Walk `w` along the span (16 pixels: an arithmetic shift divides the delta).
     #[inline(always)]
-    fn walk(&self, w: usize, s: usize) -> Walk {
-        let (a, b) = (self.walks[w][s], self.walks[w][s + 1]);
+    fn walk(&self, w: usize) -> Walk {
+        let (a, b) = (self.walks[w][0], self.walks[w][1]);
         Walk {
             at: a,
             step: b.wrapping_sub(a) >> 4,
         }
     }
 
-    /// Field `c` along span `s`.
+    /// Field `c` along the span.
     #[inline(always)]
-    fn ramp(&self, c: usize, s: usize) -> Ramp {
-        let (l, r) = (&self.cells[s], &self.cells[s + 1]);
+    fn ramp(&self, c: usize) -> Ramp {
+        let (l, r) = (&self.cells[0], &self.cells[1]);
         let (a, b) = (l[c] + l[c + 3] * self.fy, r[c] + r[c + 3] * self.fy);
         Ramp {
             at: a,
@@ -123,16 +131,16 @@ impl RockNodes<'_> {
         }
     }
 
-    /// Span `s` without caustics: daylight and lamps add up before the albedo, and the
-    /// albedo's scale and offset fold into the light terms (one multiply-add a pixel).
+    /// Without caustics: daylight and lamps add up before the albedo, and the albedo's
+    /// scale and offset fold into the light terms (one multiply-add a pixel).
     #[inline(always)]
-    fn rock_run<'t>(&self, tex: &'t Texture, s: usize) -> RockRun<'t> {
-        let (a, l, d) = (self.ramp(0, s), self.ramp(1, s), self.ramp(2, s));
+    fn rock_run<'t>(&self, tex: &'t Texture) -> RockRun<'t> {
+        let (a, l, d) = (self.ramp(0), self.ramp(1), self.ramp(2));
         let (l0, ld) = (a.at + l.at, a.step + l.step);
         RockRun {
             tex,
-            u: self.walk(0, s),
-            v: self.walk(1, s),
+            u: self.walk(0),
+            v: self.walk(1),
             light: Ramp {
                 at: l0 * tex.scale,
                 step: ld * tex.scale,
@@ -144,18 +152,82 @@ impl RockNodes<'_> {
         }
     }
 
+    /// Under caustics.
     #[inline(always)]
-    fn caustic_run<'t>(&self, tex: &'t LitTexture, strength: f32, s: usize) -> CausticRockRun<'t> {
+    fn caustic_run<'t>(&self, tex: &'t LitTexture, strength: f32) -> CausticRockRun<'t> {
         CausticRockRun {
             tex,
-            u: self.walk(0, s),
-            v: self.walk(1, s),
+            u: self.walk(0),
+            v: self.walk(1),
             strength,
-            ambient: self.ramp(0, s),
-            lamp: self.ramp(1, s),
-            add: self.ramp(2, s),
+            ambient: self.ramp(0),
+            lamp: self.ramp(1),
+            add: self.ramp(2),
         }
     }
+}
+
+impl RockNodes<'_> {
+    /// Span `s` (nodes `s` and `s + 1`).
+    #[inline(always)]
+    fn span(&self, s: usize) -> SpanNodes<'_> {
+        SpanNodes {
+            cells: &self.cells[s..s + 2],
+            walks: [&self.walks[0][s..s + 2], &self.walks[1][s..s + 2]],
+            fy: self.fy,
+        }
+    }
+
+    /// Spans `s..`, in order (windows of the node arrays: no index per span).
+    #[inline(always)]
+    fn spans_from(&self, s: usize) -> impl Iterator<Item = SpanNodes<'_>> {
+        let [wu, wv] = self.walks;
+        let fy = self.fy;
+        self.cells[s..]
+            .windows(2)
+            .zip(wu[s..].windows(2).zip(wv[s..].windows(2)))
+            .map(move |(cells, (u, v))| SpanNodes {
+                cells,
+                walks: [u, v],
+                fy,
+            })
+    }
+}
+
+/// Runs the body on the parts `o` of a run of pixels `$out` from offset `$first`
+/// (counted from the run's first node) that fall in one 16-pixel span each (`t0`: the
+/// part's first pixel in its span, `span`: its nodes): a part span, whole spans (their
+/// nodes from windows of the node arrays: no index or division per span), a part span.
+/// A macro, not a function taking a closure: a closure does not inherit AVX2 from the
+/// function it is written in, and the loop bodies must (45.1 vs 36.5 M instructions a
+/// night-harbor frame).
+macro_rules! for_span_parts {
+    ($out:expr, $first:expr, $nodes:expr, |$o:ident, $t0:ident, $sp:ident| $body:expr) => {{
+        let (out, first, nodes): (&mut [f32], usize, &RockNodes) = ($out, $first, $nodes);
+        let (len, spans) = (out.len(), nodes.cells.len().saturating_sub(1));
+        let (mut s, t0) = (first / 16, first % 16);
+        let mut done = 0;
+        if t0 != 0 && s < spans {
+            done = (16 - t0).min(len);
+            let ($o, $t0, $sp) = (&mut out[..done], t0, nodes.span(s));
+            $body;
+            s += 1;
+        }
+        let whole = ((len - done) / 16).min(spans.saturating_sub(s));
+        if whole > 0 {
+            let parts = out[done..done + 16 * whole].chunks_exact_mut(16);
+            for ($o, $sp) in parts.zip(nodes.spans_from(s)) {
+                let $t0 = 0usize;
+                $body;
+            }
+            (done, s) = (done + 16 * whole, s + whole);
+        }
+        if done < len && s < spans {
+            let n = (len - done).min(16);
+            let ($o, $t0, $sp) = (&mut out[done..done + n], 0usize, nodes.span(s));
+            $body;
+        }
+    }};
 }
 
 /// Rock over a run of 16-pixel spans: `out` holds the run's pixels from offset `first`
@@ -176,49 +248,21 @@ pub(crate) fn rock_nodes_run(
         // SAFETY: Avx2 is only chosen when the CPU has it; indices are masked into the
         // complete textures.
         Isa::Avx2 if readable => unsafe { avx2::rock_nodes_run(out, first, nodes, rock, caustic) },
-        _ => {
-            for (range, s, t0) in span_parts(out.len(), first, nodes) {
-                let o = &mut out[range];
-                match caustic {
-                    None => {
-                        let r = nodes.rock_run(rock, s);
-                        for (t, m) in o.iter_mut().enumerate() {
-                            *m = rock_px(&r, (t0 + t) as i32);
-                        }
-                    }
-                    Some((c, k)) => {
-                        let r = nodes.caustic_run(c, k, s);
-                        for (t, m) in o.iter_mut().enumerate() {
-                            *m = caustic_rock_px(&r, (t0 + t) as i32);
-                        }
-                    }
+        _ => match caustic {
+            None => for_span_parts!(out, first, nodes, |o, t0, span| {
+                let r = span.rock_run(rock);
+                for (t, m) in o.iter_mut().enumerate() {
+                    *m = rock_px(&r, (t0 + t) as i32);
                 }
-            }
-        }
+            }),
+            Some((c, k)) => for_span_parts!(out, first, nodes, |o, t0, span| {
+                let r = span.caustic_run(c, k);
+                for (t, m) in o.iter_mut().enumerate() {
+                    *m = caustic_rock_px(&r, (t0 + t) as i32);
+                }
+            }),
+        },
     }
-}
-
-/// The parts of a run of `len` pixels from offset `first` (counted from the run's first
-/// node) that fall in one 16-pixel span each: (range in the run, span, offset of the
-/// part's first pixel in the span). An iterator, not a callback, so the AVX2 loop body
-/// stays in the function that enables AVX2.
-fn span_parts(
-    len: usize,
-    first: usize,
-    nodes: &RockNodes,
-) -> impl Iterator<Item = (std::ops::Range<usize>, usize, usize)> {
-    let spans = nodes.cells.len().saturating_sub(1);
-    let mut done = 0;
-    std::iter::from_fn(move || {
-        let pos = first + done;
-        if done >= len || pos / 16 >= spans {
-            return None;
-        }
-        let (s, t0) = (pos / 16, pos % 16);
-        let n = (16 - t0).min(len - done);
-        done += n;
-        Some((done - n..done, s, t0))
-    })
 }
 
 /// The caustics on the plate for one frame (see `CausticFrame` in `fast.rs`).
@@ -548,12 +592,14 @@ mod avx2 {
         rock: &Texture,
         caustic: Option<(&LitTexture, f32)>,
     ) {
-        for (range, s, t0) in span_parts(out.len(), first, nodes) {
-            let o = &mut out[range];
-            match caustic {
-                None => rock_span(o, t0, &nodes.rock_run(rock, s)),
-                Some((c, k)) => caustic_rock_span(o, t0, &nodes.caustic_run(c, k, s)),
-            }
+        // One loop per texture kind, not a branch per span.
+        match caustic {
+            None => for_span_parts!(out, first, nodes, |o, t0, span| {
+                rock_span(o, t0, &span.rock_run(rock))
+            }),
+            Some((c, k)) => for_span_parts!(out, first, nodes, |o, t0, span| {
+                caustic_rock_span(o, t0, &span.caustic_run(c, k))
+            }),
         }
     }
 
