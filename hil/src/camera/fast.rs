@@ -330,12 +330,20 @@ impl FastRenderer {
     }
 
     /// The light fields of `surf` at node `node`, computed on first use this frame.
-    #[inline]
+    #[inline(always)]
     fn node_fields(&mut self, ctx: &FrameCtx, node: usize, surf: usize) -> [f32; 3] {
         let idx = node * NSURF + surf;
         if self.stamp[idx] == self.frame_id {
             return self.fields[idx];
         }
+        self.node_fields_new(ctx, node, surf)
+    }
+
+    /// `node_fields` the first time this frame (kept out of line: the lookup above is
+    /// what most calls do).
+    #[inline(never)]
+    fn node_fields_new(&mut self, ctx: &FrameCtx, node: usize, surf: usize) -> [f32; 3] {
+        let idx = node * NSURF + surf;
         // Adaptive light grid: a node between two nodes 32 pixels apart takes their mean
         // where the light along that line is flat or nearly linear; where it curves (a
         // beam's edge or spot, the glare) the node is shaded. The light has no feature
@@ -446,12 +454,19 @@ impl FastRenderer {
     }
 
     /// Make the cell fields of `surf` valid at nodes `i0..=i1` of cell row `j`.
-    #[inline]
+    #[inline(always)]
     fn ensure_cells(&mut self, ctx: &FrameCtx, surf: usize, i0: usize, i1: usize, j: usize) {
         let (lo, hi) = self.cell_range[surf];
         if lo <= i0 && i1 <= hi {
             return;
         }
+        self.fill_cells(ctx, surf, i0, i1, j);
+    }
+
+    /// `ensure_cells` outside the known range (out of line: most calls are inside it).
+    #[inline(never)]
+    fn fill_cells(&mut self, ctx: &FrameCtx, surf: usize, i0: usize, i1: usize, j: usize) {
+        let (lo, hi) = self.cell_range[surf];
         let nx = self.nx;
         for i in i0..=i1 {
             let idx = surf * nx + i;
