@@ -135,9 +135,10 @@ pub(crate) struct FastRenderer {
     /// Frame id for which `fields[i]` is valid.
     stamp: Vec<u32>,
     frame_id: u32,
-    /// Row-interpolated node coordinates of the current row.
-    row_x: Vec<f32>,
-    row_y: Vec<f32>,
+    /// The planes' forms (laid out like `row_forms`) on the current cell row's top grid
+    /// row, then their change to the bottom one: a row's forms are a lerp of the two
+    /// (the forms are affine in the ray, the ray is lerped between grid rows).
+    cell_forms: Vec<f32>,
     /// The current row at its nodes: the planes' forms `(k * 3 + c) * nx + i`, the signs
     /// of the surface tests, the rock planes' texel walks and whether they are affine.
     row_forms: Vec<f32>,
@@ -306,8 +307,7 @@ impl FastRenderer {
             fields: vec![[0.0; 3]; nx * ny * NSURF],
             stamp: vec![u32::MAX; nx * ny * NSURF],
             frame_id: 0,
-            row_x: vec![0.0; nx],
-            row_y: vec![0.0; nx],
+            cell_forms: vec![0.0; 2 * 9 * nx],
             row_forms: vec![0.0; 9 * nx],
             row_mask: vec![0; nx],
             row_walks: vec![0; 2 * WALKS * nx],
@@ -515,20 +515,33 @@ impl FastRenderer {
         (l, df)
     }
 
+    /// The planes' forms on grid rows `j` and `j + 1` (see `cell_forms`).
+    fn cell_row_forms(&mut self, forms: &[PlaneForms; 3], j: usize) {
+        let nx = self.nx;
+        let (top, delta) = self.cell_forms.split_at_mut(9 * nx);
+        let (x0, x1) = self.node_x[j * nx..(j + 2) * nx].split_at(nx);
+        let (y0, y1) = self.node_y[j * nx..(j + 2) * nx].split_at(nx);
+        for (k, fm) in forms.iter().enumerate() {
+            for (c, coef) in [&fm.d, &fm.u, &fm.v].into_iter().enumerate() {
+                let at = (k * 3 + c) * nx;
+                let (t, d) = (&mut top[at..at + nx], &mut delta[at..at + nx]);
+                for i in 0..nx {
+                    let (a, b) = (form(coef, x0[i], y0[i]), form(coef, x1[i], y1[i]));
+                    t[i] = a;
+                    d[i] = b - a;
+                }
+            }
+        }
+    }
+
     /// The current row at its nodes: forms, test signs, texel walks (plain loops over
     /// arrays, so they run on packed registers).
     #[inline(always)]
-    fn row_nodes(&mut self, ctx: &FrameCtx, pc: &PixelConsts) {
+    fn row_nodes(&mut self, ctx: &FrameCtx, pc: &PixelConsts, fy: f32) {
         let nx = self.nx;
-        let (xs, ys) = (&self.row_x[..nx], &self.row_y[..nx]);
-        for k in 0..3 {
-            let fm = &ctx.forms[k];
-            for (c, coef) in [&fm.d, &fm.u, &fm.v].into_iter().enumerate() {
-                let o = &mut self.row_forms[(k * 3 + c) * nx..(k * 3 + c + 1) * nx];
-                for ((f, &x), &y) in o.iter_mut().zip(xs).zip(ys) {
-                    *f = form(coef, x, y);
-                }
-            }
+        let (top, delta) = self.cell_forms.split_at(9 * nx);
+        for ((f, &a), &d) in self.row_forms.iter_mut().zip(top).zip(delta) {
+            *f = a + d * fy;
         }
         // The signs of the linear tests that pick the surface (see `Cuts`): a span whose
         // two nodes agree on all of them shows one surface.
@@ -699,18 +712,10 @@ impl FastRenderer {
                     self.cell_id = 0;
                 }
                 self.cell_range = [(1, 0); NSURF];
+                self.cell_row_forms(&ctx.forms, j);
             }
             let fy = (py - j * GRID) as f32 * (1.0 / GRID as f32);
-            for (row, nodes) in [
-                (&mut self.row_x, &self.node_x),
-                (&mut self.row_y, &self.node_y),
-            ] {
-                let (top, bottom) = nodes[j * nx..(j + 2) * nx].split_at(nx);
-                for ((r, &a), &b) in row.iter_mut().zip(top).zip(bottom) {
-                    *r = a + (b - a) * fy;
-                }
-            }
-            self.row_nodes(&ctx, &pc);
+            self.row_nodes(&ctx, &pc, fy);
             let mut row_mean = std::mem::take(&mut self.row_mean);
             let spans = nx - 1;
             let mut i = 0;
