@@ -13,8 +13,8 @@ use markhold_exposure::Frame;
 use nalgebra::{Isometry3, Point3, Vector3};
 
 use super::kernels::{
-    plate_run, ramp_run, rock_nodes_run, sensor_run, Isa, PlateCaustics, PlateRun, Ramp, RockNodes,
-    SensorRow,
+    plate_run, ramp_run, rock_nodes_run, sensor_run, CellRows, Isa, PlateCaustics, PlateRun, Ramp,
+    RockNodes, SensorRow,
 };
 use super::sensor::{XorShift64Star, RESPONSE_LUT_LEN};
 use super::{CameraModel, FrameInput};
@@ -221,6 +221,8 @@ struct PixelConsts<'a> {
     cells: usize,
     /// Cell albedos with a one-cell white border (see `PlateRun`).
     cell_table: &'a [f32],
+    /// The same as bits, where they fit.
+    cell_rows: Option<CellRows>,
     cell_per_m: f32,
     half_marker: f32,
     inv_wu: f32,
@@ -257,6 +259,7 @@ impl PixelConsts<'_> {
             inv_wu: self.inv_wu,
             inv_wv: self.inv_wv,
             cells: self.cell_table,
+            rows: self.cell_rows.as_ref(),
             side: self.cells as i32 + 2,
             caustic: self.plate_caustics,
             ambient: ramp(0, &a0, &ad),
@@ -677,6 +680,7 @@ impl FastRenderer {
             half: scene.plate_half_m() as f32,
             cells: m.cells,
             cell_table: &cell_table,
+            cell_rows: CellRows::new(&cell_table, side, ALBEDO_WHITE as f32, ALBEDO_BLACK as f32),
             cell_per_m,
             half_marker: 0.5 * m.size_m as f32,
             // Footprint in cells: the width of the box filter over the cell grid.
