@@ -772,6 +772,22 @@ mod avx2 {
         }
     }
 
+    /// The square-root-domain signal `s` of pixels `t0..t0 + 8`: mean electrons and the
+    /// two noise windows in (see `sensor_px`). max(m, 0) like f32::max: a NaN mean gives
+    /// 0 (the second operand).
+    #[inline(always)]
+    unsafe fn signal_s(mean: &[f32], na: &[i16], nb: &[i16], t0: usize, rv: __m256) -> __m256 {
+        let m = _mm256_loadu_ps(mean.as_ptr().add(t0));
+        let ga = _mm256_cvtepi16_epi32(_mm_loadu_si128(na.as_ptr().add(t0) as *const __m128i));
+        let gb = _mm256_cvtepi16_epi32(_mm_loadu_si128(nb.as_ptr().add(t0) as *const __m128i));
+        let g = _mm256_mul_ps(
+            _mm256_cvtepi32_ps(_mm256_add_epi32(ga, gb)),
+            _mm256_set1_ps(NOISE_SCALE),
+        );
+        let m0 = _mm256_max_ps(m, _mm256_setzero_ps());
+        _mm256_add_ps(_mm256_sqrt_ps(_mm256_add_ps(m0, rv)), g)
+    }
+
     #[target_feature(enable = "avx2")]
     pub(super) unsafe fn sensor_run(
         out: &mut [u8],
@@ -791,16 +807,10 @@ mod avx2 {
             _mm256_set1_ps(8_388_608.0),
             _mm256_set1_epi32(0x7F_FFFF & (super::super::sensor::RESPONSE_LUT_LEN as i32 - 1)),
         );
-        let scale = _mm256_set1_ps(NOISE_SCALE);
         let mut idx = [0u32; 8];
         let mut t0 = 0usize;
         while t0 + 8 <= n {
-            let m = _mm256_loadu_ps(mean.as_ptr().add(t0));
-            let ga = _mm256_cvtepi16_epi32(_mm_loadu_si128(na.as_ptr().add(t0) as *const __m128i));
-            let gb = _mm256_cvtepi16_epi32(_mm_loadu_si128(nb.as_ptr().add(t0) as *const __m128i));
-            let g = _mm256_mul_ps(_mm256_cvtepi32_ps(_mm256_add_epi32(ga, gb)), scale);
-            // max(m, 0) like f32::max: a NaN mean gives 0 (the second operand).
-            let v = _mm256_add_ps(_mm256_sqrt_ps(_mm256_add_ps(_mm256_max_ps(m, zero), rv)), g);
+            let v = signal_s(mean, na, nb, t0, rv);
             let x = _mm256_min_ps(_mm256_max_ps(_mm256_mul_ps(v, per_s), zero), top);
             let ix = _mm256_and_si256(_mm256_castps_si256(_mm256_add_ps(x, magic)), mant);
             _mm256_storeu_si256(idx.as_mut_ptr() as *mut __m256i, ix);
@@ -838,15 +848,9 @@ mod avx2 {
             _mm256_set1_ps(255.0),
         );
         let (magic, byte) = (_mm256_set1_ps(8_388_608.0), _mm256_set1_epi32(0xFF));
-        let scale = _mm256_set1_ps(NOISE_SCALE);
         let mut t0 = 0usize;
         while t0 + 8 <= n {
-            let m = _mm256_loadu_ps(mean.as_ptr().add(t0));
-            let ga = _mm256_cvtepi16_epi32(_mm_loadu_si128(na.as_ptr().add(t0) as *const __m128i));
-            let gb = _mm256_cvtepi16_epi32(_mm_loadu_si128(nb.as_ptr().add(t0) as *const __m128i));
-            let g = _mm256_mul_ps(_mm256_cvtepi32_ps(_mm256_add_epi32(ga, gb)), scale);
-            let v = _mm256_add_ps(_mm256_sqrt_ps(_mm256_add_ps(_mm256_max_ps(m, zero), rv)), g);
-            let v = _mm256_max_ps(v, zero);
+            let v = _mm256_max_ps(signal_s(mean, na, nb, t0, rv), zero);
             let e = _mm256_min_ps(
                 _mm256_max_ps(_mm256_sub_ps(_mm256_mul_ps(v, v), rv), zero),
                 fw,
