@@ -347,11 +347,11 @@ impl FastRenderer {
     #[inline(never)]
     fn node_fields_new(&mut self, ctx: &FrameCtx, node: usize, surf: usize) -> [f32; 3] {
         let idx = node * NSURF + surf;
-        // Adaptive light grid: a node between two nodes 32 pixels apart takes their mean
-        // where the light along that line is flat or nearly linear; where it curves (a
-        // beam's edge or spot, the glare) the node is shaded. The light has no feature
-        // narrower than about 100 pixels (beam edge and glare lobe are 8-15 degrees
-        // wide), so the 32-pixel nodes and their curvature see every feature.
+        // Adaptive light grid: a node halfway between two nodes takes their mean where
+        // the light along that line is flat or nearly linear; where it curves (a beam's
+        // edge or spot, the glare) the node is shaded. The shaded base grid is fine
+        // enough for the narrowest lamp feature of the frame (`light_base`), so its
+        // nodes and their curvature see every feature.
         let (nx, ny) = (self.nx, self.node_x.len() / self.nx);
         let (i, j) = (node % nx, node / nx);
         // Nodes on the base grid (every `light_base`-th node both ways) are shaded; any
