@@ -877,6 +877,43 @@ mod avx2 {
 mod tests {
     use super::*;
 
+    /// The macro's parts tile the run as one read per pixel would: pixel `p` in span
+    /// `(first + p) / 16` at offset `(first + p) % 16`, up to the last span.
+    #[test]
+    fn span_parts_tile_the_run() {
+        let cells = vec![[0f32; 6]; 12];
+        let walks: Vec<i32> = (0..12).collect();
+        let nodes = RockNodes {
+            cells: &cells,
+            fy: 0.0,
+            walks: [&walks, &walks],
+        };
+        for first in [0usize, 1, 7, 15, 16, 17, 40, 170, 176, 200] {
+            for len in [0usize, 1, 8, 15, 16, 17, 31, 32, 33, 100, 200] {
+                let mut out = vec![0f32; len];
+                // Each pixel records its span (the node walk at the span's start) + 1 and its
+                // offset in the span, written through the part it was given.
+                let mut seen = vec![(0i32, 0usize); len];
+                let base = out.as_ptr() as usize;
+                for_span_parts!(&mut out, first, &nodes, |o, t0, span| {
+                    let at = (o.as_ptr() as usize - base) / 4;
+                    for k in 0..o.len() {
+                        seen[at + k] = (span.walks[0][0] + 1, t0 + k);
+                    }
+                });
+                for (p, &got) in seen.iter().enumerate() {
+                    let pos = first + p;
+                    let want = if pos / 16 < cells.len() - 1 {
+                        (pos as i32 / 16 + 1, pos % 16)
+                    } else {
+                        (0, 0)
+                    };
+                    assert_eq!(got, want, "first {first} len {len} pixel {p}");
+                }
+            }
+        }
+    }
+
     #[test]
     fn cell_rows_hold_the_table_as_bits_or_decline() {
         let (w, b) = (0.85f32, 0.05f32);
