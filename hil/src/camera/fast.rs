@@ -13,8 +13,8 @@ use markhold_exposure::Frame;
 use nalgebra::{Isometry3, Point3, Vector3};
 
 use super::kernels::{
-    plate_run, ramp_run, rock_nodes_run, sensor_run, CellRows, Isa, PlateCaustics, PlateRun, Ramp,
-    RockNodes, SensorRow,
+    fold_rock_cell, plate_run, ramp_run, rock_nodes_run, sensor_run, CellRows, Isa, PlateCaustics,
+    PlateRun, Ramp, RockNodes, SensorRow,
 };
 use super::sensor::{XorShift64Star, RESPONSE_LUT_LEN};
 use super::{CameraModel, FrameInput};
@@ -155,6 +155,9 @@ pub(crate) struct FastRenderer {
     cell_stamp: Vec<u32>,
     cell_id: u32,
     cell_range: [(usize, usize); NSURF],
+    /// The rock planes' cell fields folded for the loop without caustics
+    /// (`fold_rock_cell`; `p * nx + i`, p = surface - WALL), valid with `cell_fields`.
+    rock_cells: Vec<[f32; 6]>,
     /// Mean electrons of the current row's pixels (the sensor runs as a second pass).
     row_mean: Vec<f32>,
     /// A row of zero noise (noise off).
@@ -319,6 +322,7 @@ impl FastRenderer {
             cell_stamp: vec![u32::MAX; NSURF * nx],
             cell_id: 0,
             cell_range: [(1, 0); NSURF],
+            rock_cells: vec![[0.0; 6]; 2 * nx],
             row_mean: vec![0.0; w],
             zero_noise: vec![0; w],
             cell_table: Vec::new(),
@@ -478,7 +482,7 @@ impl FastRenderer {
             }
             let n0 = self.node_fields(ctx, j * nx + i, surf);
             let n1 = self.node_fields(ctx, (j + 1) * nx + i, surf);
-            self.cell_fields[idx] = [
+            let cell = [
                 n0[0],
                 n0[1],
                 n0[2],
@@ -486,6 +490,10 @@ impl FastRenderer {
                 n1[1] - n0[1],
                 n1[2] - n0[2],
             ];
+            self.cell_fields[idx] = cell;
+            if let Some(p) = surf.checked_sub(WALL).filter(|&p| p < 2) {
+                self.rock_cells[p * nx + i] = fold_rock_cell(&cell, &ctx.scene.rock);
+            }
             self.cell_stamp[idx] = self.cell_id;
         }
         // Grow the known range when the runs touch it (the usual case: the same runs
@@ -769,12 +777,15 @@ impl FastRenderer {
                         let base = (p * WALKS + k) * nx;
                         &self.row_walks[base + i..=base + i1]
                     };
+                    let c = pc.caustics.on.then_some((pc.lit, pc.caustics.strength));
                     let nodes = RockNodes {
-                        cells: &self.cell_fields[surf * nx + i..=surf * nx + i1],
+                        cells: match c {
+                            Some(_) => &self.cell_fields[surf * nx + i..=surf * nx + i1],
+                            None => &self.rock_cells[p * nx + i..=p * nx + i1],
+                        },
                         fy,
                         walks: [wk(0), wk(1)],
                     };
-                    let c = pc.caustics.on.then_some((pc.lit, pc.caustics.strength));
                     rock_nodes_run(isa, out, 0, &nodes, rock, c);
                 } else {
                     for k in i..i1 {
@@ -901,12 +912,15 @@ impl FastRenderer {
                             let base = (p * WALKS + w) * nx;
                             &self.row_walks[base + i..=base + i + 1]
                         };
+                        let c = caustics.on.then_some((pc.lit, caustics.strength));
                         let nodes = RockNodes {
-                            cells: &self.cell_fields[k * nx + i..=k * nx + i + 1],
+                            cells: match c {
+                                Some(_) => &self.cell_fields[k * nx + i..=k * nx + i + 1],
+                                None => &self.rock_cells[p * nx + i..=p * nx + i + 1],
+                            },
                             fy,
                             walks: [wk(0), wk(1)],
                         };
-                        let c = caustics.on.then_some((pc.lit, caustics.strength));
                         rock_nodes_run(pc.isa, run, start, &nodes, rock, c);
                     } else {
                         // Near the horizon: exact per pixel.

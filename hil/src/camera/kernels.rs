@@ -94,11 +94,30 @@ pub(crate) struct CausticRockRun<'a> {
 /// additive; see `fast.rs`), and its texel walks at the same nodes (16.16, wrapping):
 /// the rock texture's u, v (the caustic webs lie on the same grid).
 pub(crate) struct RockNodes<'a> {
-    /// Per node: the fields on the grid row above and their change to the one below.
+    /// Per node: the fields on the grid row above and their change to the one below
+    /// (folded by `fold_rock_cell` when the run has no caustics).
     pub(crate) cells: &'a [[f32; 6]],
     /// The row's vertical weight between those grid rows.
     pub(crate) fy: f32,
     pub(crate) walks: [&'a [i32]; 2],
+}
+
+/// A rock plane's cell fields (ambient, lamp, additive; then their change down the
+/// cell) as the loop without caustics takes them: daylight and lamps add up before the
+/// albedo, and the albedo's scale and offset fold into the light terms (one multiply-add
+/// a pixel): light * scale, additive + light * offset, their changes, and zeros.
+#[inline(always)]
+pub(crate) fn fold_rock_cell(c: &[f32; 6], tex: &Texture) -> [f32; 6] {
+    let (top, bottom) = (c[0] + c[1], (c[0] + c[3]) + (c[1] + c[4]));
+    let (add_top, add_bottom) = (c[2] + top * tex.offset, (c[2] + c[5]) + bottom * tex.offset);
+    [
+        top * tex.scale,
+        add_top,
+        0.0,
+        bottom * tex.scale - top * tex.scale,
+        add_bottom - add_top,
+        0.0,
+    ]
 }
 
 /// One span of a rock run at the nodes: both ends' cell fields and texel walks.
@@ -131,24 +150,16 @@ impl SpanNodes<'_> {
         }
     }
 
-    /// Without caustics: daylight and lamps add up before the albedo, and the albedo's
-    /// scale and offset fold into the light terms (one multiply-add a pixel).
+    /// Without caustics: the cells hold the light and the additive term with the rock
+    /// texture's scale and offset folded in (see `fold_rock_cell`).
     #[inline(always)]
     fn rock_run<'t>(&self, tex: &'t Texture) -> RockRun<'t> {
-        let (a, l, d) = (self.ramp(0), self.ramp(1), self.ramp(2));
-        let (l0, ld) = (a.at + l.at, a.step + l.step);
         RockRun {
             tex,
             u: self.walk(0),
             v: self.walk(1),
-            light: Ramp {
-                at: l0 * tex.scale,
-                step: ld * tex.scale,
-            },
-            add: Ramp {
-                at: d.at + l0 * tex.offset,
-                step: d.step + ld * tex.offset,
-            },
+            light: self.ramp(0),
+            add: self.ramp(1),
         }
     }
 
