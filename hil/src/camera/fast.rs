@@ -14,7 +14,7 @@ use nalgebra::{Isometry3, Point3, Vector3};
 
 use super::kernels::{
     fold_rock_cell, plate_run, ramp_run, rock_nodes_run, sensor_run, CellRows, Isa, PlateCaustics,
-    PlateRun, Ramp, RockNodes, SensorRow,
+    PlateRun, Ramp, RockFold, RockNodes, SensorRow,
 };
 use super::sensor::{XorShift64Star, RESPONSE_LUT_LEN};
 use super::{CameraModel, FrameInput};
@@ -155,8 +155,8 @@ pub(crate) struct FastRenderer {
     cell_stamp: Vec<u32>,
     cell_id: u32,
     cell_range: [(usize, usize); NSURF],
-    /// The rock planes' cell fields folded for the loop without caustics
-    /// (`fold_rock_cell`; `p * nx + i`, p = surface - WALL), valid with `cell_fields`.
+    /// The rock planes' cell fields folded for the rock loops (`fold_rock_cell`;
+    /// `p * nx + i`, p = surface - WALL), valid with `cell_fields`.
     rock_cells: Vec<[f32; 6]>,
     /// Mean electrons of the current row's pixels (the sensor runs as a second pass).
     row_mean: Vec<f32>,
@@ -184,6 +184,8 @@ struct FrameCtx<'a> {
     e_per_unit: f64,
     /// Nodes between the adaptive light grid's shaded nodes (see `light_base`).
     light_base: usize,
+    /// How the rock planes' fields fold into the rock loops this frame.
+    rock_fold: RockFold,
 }
 
 /// The adaptive light grid's base spacing (nodes) for this frame. The narrowest thing
@@ -492,7 +494,7 @@ impl FastRenderer {
             ];
             self.cell_fields[idx] = cell;
             if let Some(p) = surf.checked_sub(WALL).filter(|&p| p < 2) {
-                self.rock_cells[p * nx + i] = fold_rock_cell(&cell, &ctx.scene.rock);
+                self.rock_cells[p * nx + i] = fold_rock_cell(&cell, ctx.rock_fold);
             }
             self.cell_stamp[idx] = self.cell_id;
         }
@@ -637,6 +639,22 @@ impl FastRenderer {
             self.frame_id = 0;
         }
         let (geo, forms) = frame_planes(scene, t_wc);
+        let caustics = CausticFrame::new(scene, time_s);
+        // Rock and both webs at this frame's drifts in one texture (a few tenths of a
+        // millisecond; it saves two texel reads a caustic pixel). Rebuilt every frame:
+        // the webs drift a few texels a frame.
+        let mut lit = std::mem::take(&mut self.lit);
+        if caustics.on {
+            lit.build(&scene.rock, &scene.caustic, caustics.shift);
+        }
+        let rock_fold = if caustics.on {
+            RockFold::caustic(caustics.strength, lit.caustic_offset, lit.caustic_scale)
+        } else {
+            RockFold::Plain {
+                scale: scene.rock.scale,
+                offset: scene.rock.offset,
+            }
+        };
         let ctx = FrameCtx {
             scene,
             t_wc,
@@ -645,6 +663,7 @@ impl FastRenderer {
             forms,
             e_per_unit,
             light_base: light_base(model, scene, t_wc, lamps),
+            rock_fold,
         };
         let footprint = plate_footprint(model, scene, t_wc, &forms[PLATE]);
         let m = scene.marker();
@@ -668,15 +687,7 @@ impl FastRenderer {
                 ALBEDO_BLACK as f32
             }
         }));
-        let caustics = CausticFrame::new(scene, time_s);
         let texel_per_m = (1.0 / scene.background.texel_m) as f32;
-        // Rock and both webs at this frame's drifts in one texture (a few tenths of a
-        // millisecond; it saves two texel reads a caustic pixel). Rebuilt every frame:
-        // the webs drift a few texels a frame.
-        let mut lit = std::mem::take(&mut self.lit);
-        if caustics.on {
-            lit.build(&scene.rock, &scene.caustic, caustics.shift);
-        }
         let plate_caustics = caustics.on.then_some(PlateCaustics {
             tex: &lit,
             strength: caustics.strength,
@@ -774,12 +785,9 @@ impl FastRenderer {
                         let base = (p * WALKS + k) * nx;
                         &self.row_walks[base + i..=base + i1]
                     };
-                    let c = pc.caustics.on.then_some((pc.lit, pc.caustics.strength));
+                    let c = pc.caustics.on.then_some(pc.lit);
                     let nodes = RockNodes {
-                        cells: match c {
-                            Some(_) => &self.cell_fields[surf * nx + i..=surf * nx + i1],
-                            None => &self.rock_cells[p * nx + i..=p * nx + i1],
-                        },
+                        cells: &self.rock_cells[p * nx + i..=p * nx + i1],
                         fy,
                         walks: [wk(0), wk(1)],
                     };
@@ -909,12 +917,9 @@ impl FastRenderer {
                             let base = (p * WALKS + w) * nx;
                             &self.row_walks[base + i..=base + i + 1]
                         };
-                        let c = caustics.on.then_some((pc.lit, caustics.strength));
+                        let c = caustics.on.then_some(pc.lit);
                         let nodes = RockNodes {
-                            cells: match c {
-                                Some(_) => &self.cell_fields[k * nx + i..=k * nx + i + 1],
-                                None => &self.rock_cells[p * nx + i..=p * nx + i + 1],
-                            },
+                            cells: &self.rock_cells[p * nx + i..=p * nx + i + 1],
                             fy,
                             walks: [wk(0), wk(1)],
                         };
@@ -1284,6 +1289,11 @@ mod tests {
                 forms,
                 e_per_unit: electrons_per_unit(&model, exposure_us),
                 light_base: light_base(&model, &scene, &t_wc, &lamps),
+                // Not read by the node fields this test checks.
+                rock_fold: RockFold::Plain {
+                    scale: 1.0,
+                    offset: 0.0,
+                },
             };
             assert_eq!(ctx.light_base, base, "{scenario} at {dist_m} m");
             let mut r = FastRenderer::new(&model);

@@ -77,16 +77,16 @@ pub(crate) struct RockRun<'a> {
     pub(crate) add: Ramp,
 }
 
-/// Rock under caustics: `albedo * (ambient * c + lamp) + add`, with
-/// `c = 1 + strength * (caustic - 1)`, both read from one texel of the frame's
+/// Rock under caustics: `albedo * (light + caustic * byte) + add`, the ambient light's
+/// caustic factor `1 + strength * (offset + scale * byte - 1)` folded into the light
+/// terms (`fold_rock_cell`); albedo and caustic byte from one texel of the frame's
 /// rock-and-caustic texture.
 pub(crate) struct CausticRockRun<'a> {
     pub(crate) tex: &'a LitTexture,
     pub(crate) u: Walk,
     pub(crate) v: Walk,
-    pub(crate) strength: f32,
-    pub(crate) ambient: Ramp,
-    pub(crate) lamp: Ramp,
+    pub(crate) light: Ramp,
+    pub(crate) caustic: Ramp,
     pub(crate) add: Ramp,
 }
 
@@ -95,28 +95,62 @@ pub(crate) struct CausticRockRun<'a> {
 /// the rock texture's u, v (the caustic webs lie on the same grid).
 pub(crate) struct RockNodes<'a> {
     /// Per node: the fields on the grid row above and their change to the one below
-    /// (folded by `fold_rock_cell` when the run has no caustics).
+    /// (folded by `fold_rock_cell`).
     pub(crate) cells: &'a [[f32; 6]],
     /// The row's vertical weight between those grid rows.
     pub(crate) fy: f32,
     pub(crate) walks: [&'a [i32]; 2],
 }
 
+/// How a rock plane's light fields fold into the per-pixel formula for this frame.
+#[derive(Debug, Clone, Copy)]
+pub(crate) enum RockFold {
+    /// Without caustics: the rock texture's `value = offset + scale * byte`.
+    Plain { scale: f32, offset: f32 },
+    /// Under caustics: the ambient light's factor `1 + strength * (offset + scale *
+    /// byte - 1)` written `c0 + q * byte`.
+    Caustic { c0: f32, q: f32 },
+}
+
+impl RockFold {
+    /// Under caustics of `strength` whose bytes read `offset + scale * byte`.
+    pub(crate) fn caustic(strength: f32, offset: f32, scale: f32) -> Self {
+        RockFold::Caustic {
+            c0: 1.0 + strength * (offset - 1.0),
+            q: strength * scale,
+        }
+    }
+
+    /// The three fields a rock loop takes from (ambient, lamp, additive) at a point.
+    #[inline(always)]
+    fn fields(self, a: f32, l: f32, d: f32) -> [f32; 3] {
+        match self {
+            // Daylight and lamps add up before the albedo, and the albedo's scale and
+            // offset fold into the light terms (one multiply-add a pixel).
+            RockFold::Plain { scale, offset } => {
+                let light = a + l;
+                [light * scale, d + light * offset, 0.0]
+            }
+            // Light without the caustic byte, its factor on the byte, additive.
+            RockFold::Caustic { c0, q } => [a * c0 + l, a * q, d],
+        }
+    }
+}
+
 /// A rock plane's cell fields (ambient, lamp, additive; then their change down the
-/// cell) as the loop without caustics takes them: daylight and lamps add up before the
-/// albedo, and the albedo's scale and offset fold into the light terms (one multiply-add
-/// a pixel): light * scale, additive + light * offset, their changes, and zeros.
+/// cell) as the rock loops take them (`RockFold::fields` at the top and the bottom of
+/// the cell, then their change): once a cell row, not once a span.
 #[inline(always)]
-pub(crate) fn fold_rock_cell(c: &[f32; 6], tex: &Texture) -> [f32; 6] {
-    let (top, bottom) = (c[0] + c[1], (c[0] + c[3]) + (c[1] + c[4]));
-    let (add_top, add_bottom) = (c[2] + top * tex.offset, (c[2] + c[5]) + bottom * tex.offset);
+pub(crate) fn fold_rock_cell(c: &[f32; 6], fold: RockFold) -> [f32; 6] {
+    let top = fold.fields(c[0], c[1], c[2]);
+    let bottom = fold.fields(c[0] + c[3], c[1] + c[4], c[2] + c[5]);
     [
-        top * tex.scale,
-        add_top,
-        0.0,
-        bottom * tex.scale - top * tex.scale,
-        add_bottom - add_top,
-        0.0,
+        top[0],
+        top[1],
+        top[2],
+        bottom[0] - top[0],
+        bottom[1] - top[1],
+        bottom[2] - top[2],
     ]
 }
 
@@ -163,16 +197,15 @@ impl SpanNodes<'_> {
         }
     }
 
-    /// Under caustics.
+    /// Under caustics (the cells folded with `RockFold::Caustic`).
     #[inline(always)]
-    fn caustic_run<'t>(&self, tex: &'t LitTexture, strength: f32) -> CausticRockRun<'t> {
+    fn caustic_run<'t>(&self, tex: &'t LitTexture) -> CausticRockRun<'t> {
         CausticRockRun {
             tex,
             u: self.walk(0),
             v: self.walk(1),
-            strength,
-            ambient: self.ramp(0),
-            lamp: self.ramp(1),
+            light: self.ramp(0),
+            caustic: self.ramp(1),
             add: self.ramp(2),
         }
     }
@@ -243,7 +276,7 @@ macro_rules! for_span_parts {
 
 /// Rock over a run of 16-pixel spans: `out` holds the run's pixels from offset `first`
 /// (counted from the run's first node) on; the last span may be short. `caustic` is the
-/// frame's rock-and-caustic texture and the caustics' strength when they are on.
+/// frame's rock-and-caustic texture when caustics are on.
 #[inline(always)]
 pub(crate) fn rock_nodes_run(
     isa: Isa,
@@ -251,9 +284,9 @@ pub(crate) fn rock_nodes_run(
     first: usize,
     nodes: &RockNodes,
     rock: &Texture,
-    caustic: Option<(&LitTexture, f32)>,
+    caustic: Option<&LitTexture>,
 ) {
-    let readable = complete(rock) && caustic.is_none_or(|(c, _)| complete_lit(c));
+    let readable = complete(rock) && caustic.is_none_or(complete_lit);
     match isa {
         #[cfg(target_arch = "x86_64")]
         // SAFETY: Avx2 is only chosen when the CPU has it; indices are masked into the
@@ -266,8 +299,8 @@ pub(crate) fn rock_nodes_run(
                     *m = rock_px(&r, (t0 + t) as i32);
                 }
             }),
-            Some((c, k)) => for_span_parts!(out, first, nodes, |o, t0, span| {
-                let r = span.caustic_run(c, k);
+            Some(c) => for_span_parts!(out, first, nodes, |o, t0, span| {
+                let r = span.caustic_run(c);
                 for (t, m) in o.iter_mut().enumerate() {
                     *m = caustic_rock_px(&r, (t0 + t) as i32);
                 }
@@ -429,9 +462,7 @@ fn caustic_rock_px(r: &CausticRockRun, t: i32) -> f32 {
     let tf = t as f32;
     let (rb, cb) = lit_texel(r.tex, r.u.get(t), r.v.get(t));
     let albedo = r.tex.rock_offset + r.tex.rock_scale * rb;
-    let b = r.tex.caustic_offset + r.tex.caustic_scale * cb;
-    let c = 1.0 + r.strength * (b - 1.0);
-    albedo * (r.ambient.get(tf) * c + r.lamp.get(tf)) + r.add.get(tf)
+    albedo * (r.light.get(tf) + r.caustic.get(tf) * cb) + r.add.get(tf)
 }
 
 #[inline(always)]
@@ -608,19 +639,12 @@ mod avx2 {
             _mm256_set1_ps(r.tex.rock_offset),
             _mm256_set1_ps(r.tex.rock_scale),
         );
-        let (co, cs) = (
-            _mm256_set1_ps(r.tex.caustic_offset),
-            _mm256_set1_ps(r.tex.caustic_scale),
-        );
-        let (one, k) = (_mm256_set1_ps(1.0), _mm256_set1_ps(r.strength));
         while t0 + 8 <= n {
             let ti = _mm256_add_epi32(_mm256_set1_epi32((first + t0) as i32), lanes());
             let tf = _mm256_cvtepi32_ps(ti);
             let (rb, cb) = fetch_lit(r.tex, walk(r.u, ti), walk(r.v, ti));
             let albedo = _mm256_add_ps(ro, _mm256_mul_ps(rs, rb));
-            let b = _mm256_add_ps(co, _mm256_mul_ps(cs, cb));
-            let c = _mm256_add_ps(one, _mm256_mul_ps(k, _mm256_sub_ps(b, one)));
-            let light = _mm256_add_ps(_mm256_mul_ps(ramp(r.ambient, tf), c), ramp(r.lamp, tf));
+            let light = _mm256_add_ps(ramp(r.light, tf), _mm256_mul_ps(ramp(r.caustic, tf), cb));
             let m = _mm256_add_ps(_mm256_mul_ps(albedo, light), ramp(r.add, tf));
             _mm256_storeu_ps(out.as_mut_ptr().add(t0), m);
             t0 += 8;
@@ -636,15 +660,15 @@ mod avx2 {
         first: usize,
         nodes: &RockNodes,
         rock: &Texture,
-        caustic: Option<(&LitTexture, f32)>,
+        caustic: Option<&LitTexture>,
     ) {
         // One loop per texture kind, not a branch per span.
         match caustic {
             None => for_span_parts!(out, first, nodes, |o, t0, span| {
                 rock_span(o, t0, &span.rock_run(rock))
             }),
-            Some((c, k)) => for_span_parts!(out, first, nodes, |o, t0, span| {
-                caustic_rock_span(o, t0, &span.caustic_run(c, k))
+            Some(c) => for_span_parts!(out, first, nodes, |o, t0, span| {
+                caustic_rock_span(o, t0, &span.caustic_run(c))
             }),
         }
     }
