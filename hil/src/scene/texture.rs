@@ -244,7 +244,10 @@ impl LitTexture {
     /// Rebuild from `rock` and the webs, web `k` moved by `shift[k]` texels: texel `p`
     /// holds `rock[p]` and `(webs[0][p + shift[0]] + webs[1][p + shift[1]] + 1) >> 1`.
     /// All three textures are the same size and both webs have the same byte scale (else
-    /// the caustic bytes are left at zero).
+    /// the caustic bytes are left at zero). Inlined, so the renderer's AVX2 build packs
+    /// 32 texels an instruction where the baseline packs 16 (byte arithmetic: the same
+    /// bytes either way).
+    #[inline(always)]
     pub(crate) fn build(&mut self, rock: &Texture, webs: &[Texture; 2], shift: [(i32, i32); 2]) {
         let (side, m) = (rock.side(), rock.mask());
         let n = side * side;
