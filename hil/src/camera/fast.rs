@@ -143,6 +143,7 @@ pub(crate) struct FastRenderer {
     /// of the surface tests, the rock planes' texel walks and whether they are affine.
     row_forms: Vec<f32>,
     row_mask: Vec<u8>,
+    row_mask32: Vec<u32>,
     row_walks: Vec<i32>,
     row_affine: Vec<bool>,
     /// Light fields of the current row at its nodes, per surface (`surf * nx + i`),
@@ -318,6 +319,7 @@ impl FastRenderer {
             cell_forms: vec![0.0; 2 * 9 * nx],
             row_forms: vec![0.0; 9 * nx],
             row_mask: vec![0; nx],
+            row_mask32: vec![0; nx],
             row_walks: vec![0; 2 * WALKS * nx],
             row_affine: vec![false; 2 * nx],
             cell_fields: vec![[0.0; 6]; NSURF * nx],
@@ -568,16 +570,20 @@ impl FastRenderer {
             f(WALL, 0),
             f(SEABED, 0),
         );
-        let masks = self.row_mask[..nx].iter_mut().zip(fdp).zip(fup).zip(fvp);
+        // In 32-bit lanes (as wide as the forms, so the loop runs packed), then narrowed.
+        let masks = self.row_mask32[..nx].iter_mut().zip(fdp).zip(fup).zip(fvp);
         for ((((m, &dp), &up), &vp), (&dw, &ds)) in masks.zip(fdw.iter().zip(fds)) {
-            *m = (dp > 0.0) as u8
-                | ((up - half * dp > 0.0) as u8) << 1
-                | ((up + half * dp > 0.0) as u8) << 2
-                | ((vp - half * dp > 0.0) as u8) << 3
-                | ((vp + half * dp > 0.0) as u8) << 4
-                | ((dw > 0.0) as u8) << 5
-                | ((ds > 0.0) as u8) << 6
-                | ((hw * ds - hs * dw > 0.0) as u8) << 7;
+            *m = (dp > 0.0) as u32
+                | ((up - half * dp > 0.0) as u32) << 1
+                | ((up + half * dp > 0.0) as u32) << 2
+                | ((vp - half * dp > 0.0) as u32) << 3
+                | ((vp + half * dp > 0.0) as u32) << 4
+                | ((dw > 0.0) as u32) << 5
+                | ((ds > 0.0) as u32) << 6
+                | ((hw * ds - hs * dw > 0.0) as u32) << 7;
+        }
+        for (m, &w) in self.row_mask[..nx].iter_mut().zip(&self.row_mask32[..nx]) {
+            *m = w as u8;
         }
         // Texel walks of the rock planes at the nodes.
         let tk = pc.texel_per_m;
