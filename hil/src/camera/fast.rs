@@ -13,8 +13,8 @@ use markhold_exposure::Frame;
 use nalgebra::{Isometry3, Point3, Vector3};
 
 use super::kernels::{
-    fold_rock_cell, plate_run, ramp_run, rock_nodes_run, sensor_run, CellRows, Isa, PlateCaustics,
-    PlateRun, Ramp, RockFold, RockNodes, SensorRow,
+    fold_rock_cell, plate_run, ramp_run, rock_nodes_run, sensor_run, top_and_change, CellRows, Isa,
+    PlateCaustics, PlateRun, Ramp, RockFold, RockNodes, SensorRow,
 };
 use super::sensor::{XorShift64Star, RESPONSE_LUT_LEN};
 use super::{CameraModel, FrameInput};
@@ -486,14 +486,7 @@ impl FastRenderer {
             }
             let n0 = self.node_fields(ctx, j * nx + i, surf);
             let n1 = self.node_fields(ctx, (j + 1) * nx + i, surf);
-            let cell = [
-                n0[0],
-                n0[1],
-                n0[2],
-                n1[0] - n0[0],
-                n1[1] - n0[1],
-                n1[2] - n0[2],
-            ];
+            let cell = top_and_change(n0, n1);
             self.cell_fields[idx] = cell;
             if let Some(p) = surf.checked_sub(WALL).filter(|&p| p < 2) {
                 self.rock_cells[p * nx + i] = fold_rock_cell(&cell, ctx.rock_fold);

@@ -144,6 +144,13 @@ impl RockFold {
 pub(crate) fn fold_rock_cell(c: &[f32; 6], fold: RockFold) -> [f32; 6] {
     let top = fold.fields(c[0], c[1], c[2]);
     let bottom = fold.fields(c[0] + c[3], c[1] + c[4], c[2] + c[5]);
+    top_and_change(top, bottom)
+}
+
+/// A cell's fields as the loops take them: the top node's three, then the bottom
+/// node's minus the top's.
+#[inline(always)]
+pub(crate) fn top_and_change(top: [f32; 3], bottom: [f32; 3]) -> [f32; 6] {
     [
         top[0],
         top[1],
