@@ -3,7 +3,7 @@
 
 use criterion::{criterion_group, criterion_main, BenchmarkId, Criterion, Throughput};
 use markhold_exposure::{ExposureLimits, Frame, ResponseModel};
-use markhold_hil::camera::{CameraModel, UnderwaterCamera};
+use markhold_hil::camera::{CameraModel, RenderLoops, UnderwaterCamera};
 use markhold_hil::scene::{LightingConfig, LightingScenario, MarkerSpec, Scene, WaterConfig};
 use nalgebra::{Isometry3, Matrix3, Rotation3, Translation3, UnitQuaternion, Vector3};
 
@@ -59,10 +59,8 @@ fn setup(scenario: LightingScenario) -> (Scene, UnderwaterCamera, Isometry3<f64>
 /// How a bench renders its frames.
 #[derive(Clone, Copy)]
 enum Build {
-    /// The fast renderer, AVX2 loops where the CPU has them.
-    Fast,
-    /// The same loops without AVX2 (what a CPU without it runs; same frames).
-    Portable,
+    /// The fast renderer with the widest loops this CPU runs up to these.
+    Fast(RenderLoops),
     /// The per-pixel f64 reference.
     Reference,
 }
@@ -70,13 +68,16 @@ enum Build {
 fn bench_render(c: &mut Criterion) {
     let mut g = c.benchmark_group("render_1440x1080");
     g.throughput(Throughput::Elements(1440 * 1080));
+    let (all, some) = (
+        &LightingScenario::ALL[..],
+        &[LightingScenario::Normal, LightingScenario::Caustics][..],
+    );
     let runs = [
-        (Build::Fast, "fast", &LightingScenario::ALL[..]),
-        (
-            Build::Portable,
-            "portable",
-            &[LightingScenario::Normal, LightingScenario::Caustics][..],
-        ),
+        // The widest build this CPU runs, and AVX2 alone beside it.
+        (Build::Fast(RenderLoops::Avx512), "fast", all),
+        (Build::Fast(RenderLoops::Avx2), "fast-avx2", some),
+        // What a CPU without AVX2 runs (same frames).
+        (Build::Fast(RenderLoops::Portable), "portable", some),
         (
             Build::Reference,
             "reference",
@@ -89,7 +90,12 @@ fn bench_render(c: &mut Criterion) {
         }
         for &sc in scenarios {
             let (scene, mut cam, t_wc) = setup(sc);
-            cam.set_portable_render(matches!(build, Build::Portable));
+            if let Build::Fast(loops) = build {
+                let got = cam.set_render_loops(loops);
+                if got != loops && name != "fast" {
+                    continue; // this CPU lacks the named build: nothing to time
+                }
+            }
             let mut frame = Frame::default();
             let mut t = 0.0;
             g.bench_with_input(BenchmarkId::new(name, sc), &sc, |b, _| {
@@ -99,7 +105,7 @@ fn bench_render(c: &mut Criterion) {
                         Build::Reference => {
                             cam.render_reference(&scene, &t_wc, &t_wc, t, &mut frame)
                         }
-                        _ => cam.render(&scene, &t_wc, &t_wc, t, &mut frame),
+                        Build::Fast(_) => cam.render(&scene, &t_wc, &t_wc, t, &mut frame),
                     }
                 })
             });

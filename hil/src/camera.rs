@@ -18,6 +18,18 @@ use crate::scene::{Scene, WorldLamp};
 use crate::{invalid, HilError};
 use sensor::{electrons_per_unit, SensorTables, XorShift64Star};
 
+/// The builds of the fast renderer's per-pixel loops, narrowest first. All give the
+/// same frames, pixel for pixel.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum RenderLoops {
+    /// Scalar loops (what a CPU without AVX2 runs).
+    Portable,
+    /// Eight pixels a step.
+    Avx2,
+    /// AVX2, and the rock loops sixteen pixels a step with texels from two-row windows.
+    Avx512,
+}
+
 /// `[camera.sensor]`: how the sensor turns light into electrons and electrons into noise.
 /// Defaults are those of a Sony IMX273 (FLIR Blackfly S BFS-U3-16S2M, the paper's camera).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -311,6 +323,12 @@ impl UnderwaterCamera {
     /// frames; tests compare them).
     pub fn set_portable_render(&mut self, portable: bool) {
         self.fast.set_portable(portable);
+    }
+
+    /// Render with the widest build of the loops this CPU runs up to `want` (every
+    /// build gives the same frames; tests compare them). Returns the build chosen.
+    pub fn set_render_loops(&mut self, want: RenderLoops) -> RenderLoops {
+        self.fast.set_loops(want)
     }
 
     pub fn model(&self) -> &CameraModel {

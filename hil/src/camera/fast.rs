@@ -17,7 +17,7 @@ use super::kernels::{
     PlateCaustics, PlateRun, Ramp, RockFold, RockNodes, SensorRow,
 };
 use super::sensor::{XorShift64Star, RESPONSE_LUT_LEN};
-use super::{CameraModel, FrameInput};
+use super::{CameraModel, FrameInput, RenderLoops};
 use crate::scene::{LitTexture, Scene, WorldLamp, ALBEDO_BLACK, ALBEDO_WHITE};
 
 /// Pixels between grid nodes.
@@ -340,6 +340,24 @@ impl FastRenderer {
         self.isa = Isa::detect(portable);
     }
 
+    pub(crate) fn set_loops(&mut self, want: RenderLoops) -> RenderLoops {
+        let want = match want {
+            #[cfg(target_arch = "x86_64")]
+            RenderLoops::Avx2 => Isa::Avx2,
+            #[cfg(target_arch = "x86_64")]
+            RenderLoops::Avx512 => Isa::Avx512,
+            _ => Isa::Portable,
+        };
+        self.isa = Isa::best_up_to(want);
+        match self.isa {
+            Isa::Portable => RenderLoops::Portable,
+            #[cfg(target_arch = "x86_64")]
+            Isa::Avx2 => RenderLoops::Avx2,
+            #[cfg(target_arch = "x86_64")]
+            Isa::Avx512 => RenderLoops::Avx512,
+        }
+    }
+
     /// The light fields of `surf` at node `node`, computed on first use this frame.
     #[inline(always)]
     fn node_fields(&mut self, ctx: &FrameCtx, node: usize, surf: usize) -> [f32; 3] {
@@ -600,12 +618,25 @@ impl FastRenderer {
 
     pub(crate) fn render(&mut self, input: &FrameInput, rng: &mut XorShift64Star, out: &mut Frame) {
         #[cfg(target_arch = "x86_64")]
-        if self.isa == Isa::Avx2 {
+        match self.isa {
             // SAFETY: `Isa::Avx2` is only chosen when the CPU has AVX2.
-            unsafe {
-                return self.render_avx2(input, rng, out);
-            }
+            Isa::Avx2 => unsafe { return self.render_avx2(input, rng, out) },
+            // SAFETY: `Isa::Avx512` is only chosen when the CPU has AVX2 and AVX-512.
+            Isa::Avx512 => unsafe { return self.render_avx512(input, rng, out) },
+            Isa::Portable => {}
         }
+        self.render_impl(input, rng, out)
+    }
+
+    /// The same code compiled for AVX-512 (the rock loops take their 16-lane build).
+    #[cfg(target_arch = "x86_64")]
+    #[target_feature(enable = "avx2,avx512f,avx512bw,avx512vl")]
+    unsafe fn render_avx512(
+        &mut self,
+        input: &FrameInput,
+        rng: &mut XorShift64Star,
+        out: &mut Frame,
+    ) {
         self.render_impl(input, rng, out)
     }
 
