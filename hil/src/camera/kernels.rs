@@ -369,6 +369,11 @@ pub(crate) struct PlateRun<'a> {
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub(crate) struct CellRows {
     pub(crate) bits: [u32; 16],
+    /// Two clamped rows a word, for the AVX-512 plate loop (tables up to 15 x 15):
+    /// `pairs[p]` holds row `clamp(p - 1)` in its low half and row `clamp(p)` in its
+    /// high half (rows clamped to the table), so pair `clamp(iv + 1, 0, side)` holds the
+    /// rows of cells `iv - 1` and `iv` as `cell` clamps them.
+    pub(crate) pairs: Option<[u32; 16]>,
     pub(crate) white: f32,
     pub(crate) black: f32,
 }
@@ -389,7 +394,16 @@ impl CellRows {
                 }
             }
         }
-        Some(Self { bits, white, black })
+        let pairs = (side <= 15).then(|| {
+            let row = |r: isize| bits[r.clamp(0, side as isize - 1) as usize];
+            std::array::from_fn(|p| row(p as isize - 1) | row(p as isize) << 16)
+        });
+        Some(Self {
+            bits,
+            pairs,
+            white,
+            black,
+        })
     }
 }
 
@@ -452,6 +466,11 @@ pub(crate) fn plate_run(isa: Isa, out: &mut [f32], first: usize, r: &PlateRun) {
         #[cfg(target_arch = "x86_64")]
         // SAFETY: Avx2 (and Avx512) are only chosen when the CPU has them; indices are
         // clamped/masked.
+        Isa::Avx512 if r.gather_safe() && r.rows.is_some_and(|w| w.pairs.is_some()) => unsafe {
+            avx512::plate_run(out, first, r)
+        },
+        #[cfg(target_arch = "x86_64")]
+        // SAFETY: as above.
         isa if isa.avx2() && r.gather_safe() => unsafe { avx2::plate_run(out, first, r) },
         _ => {
             for (t, m) in out.iter_mut().enumerate() {
@@ -1189,6 +1208,112 @@ mod avx512 {
         let light = _mm512_add_ps(ramp(r.light, tf), _mm512_mul_ps(ramp(r.caustic, tf), cb));
         let m = _mm512_add_ps(_mm512_mul_ps(albedo, light), ramp(r.add, tf));
         _mm512_storeu_ps(out.as_mut_ptr(), m);
+    }
+
+    /// Share of the pixel footprint on the lower cell (see the AVX2 `box_weight`).
+    #[inline(always)]
+    unsafe fn box_weight(i: __m512i, c: __m512, inv_w: __m512) -> __m512 {
+        let x = _mm512_mul_ps(_mm512_sub_ps(_mm512_cvtepi32_ps(i), c), inv_w);
+        let x = _mm512_max_ps(_mm512_add_ps(x, _mm512_set1_ps(0.5)), _mm512_setzero_ps());
+        _mm512_min_ps(x, _mm512_set1_ps(1.0))
+    }
+
+    #[inline(always)]
+    unsafe fn floor_epi32(x: __m512) -> __m512i {
+        _mm512_cvttps_epi32(_mm512_roundscale_ps::<
+            { _MM_FROUND_TO_NEG_INF | _MM_FROUND_NO_EXC },
+        >(x))
+    }
+
+    #[inline(always)]
+    unsafe fn clamp(x: __m512i, lo: i32, hi: i32) -> __m512i {
+        _mm512_min_epi32(
+            _mm512_max_epi32(x, _mm512_set1_epi32(lo)),
+            _mm512_set1_epi32(hi),
+        )
+    }
+
+    /// The plate sixteen pixels a step: the four cells around a pixel from one permute
+    /// of the paired rows (`CellRows::pairs`) and two shifts, where the AVX2 loop takes
+    /// two permutes, a blend and a shift per cell. The caller guarantees
+    /// `r.gather_safe()` and the pairs.
+    #[target_feature(enable = "avx2,avx512f,avx512bw,avx512vl,avx512vbmi")]
+    pub(super) unsafe fn plate_run(out: &mut [f32], first: usize, r: &PlateRun) {
+        let Some(rows) = r.rows else {
+            return super::avx2::plate_run(out, first, r);
+        };
+        let Some(pairs) = rows.pairs else {
+            return super::avx2::plate_run(out, first, r);
+        };
+        let pairs = _mm512_loadu_si512(pairs.as_ptr() as *const __m512i);
+        let (black, white) = (_mm512_set1_ps(rows.black), _mm512_set1_ps(rows.white));
+        let n = out.len();
+        let side = r.side;
+        let (one, half) = (_mm512_set1_ps(1.0), _mm512_set1_ps(0.5));
+        let (hm, cpm) = (_mm512_set1_ps(r.half_marker), _mm512_set1_ps(r.cell_per_m));
+        let (iwu, iwv) = (_mm512_set1_ps(r.inv_wu), _mm512_set1_ps(r.inv_wv));
+        let (lo_bit, hi_bit) = (_mm512_set1_epi32(1), _mm512_set1_epi32(1 << 16));
+        let mut t0 = 0usize;
+        while t0 + 16 <= n {
+            let ti = _mm512_add_epi32(_mm512_set1_epi32((first + t0) as i32), lanes());
+            let t = _mm512_cvtepi32_ps(ti);
+            let inv = _mm512_div_ps(one, ramp(r.d, t));
+            let u = _mm512_mul_ps(ramp(r.nu, t), inv);
+            let v = _mm512_mul_ps(ramp(r.nv, t), inv);
+            let cu = _mm512_mul_ps(_mm512_add_ps(u, hm), cpm);
+            let cv = _mm512_mul_ps(_mm512_sub_ps(hm, v), cpm);
+            let iu = floor_epi32(_mm512_add_ps(cu, half));
+            let iv = floor_epi32(_mm512_add_ps(cv, half));
+            let (au, av) = (box_weight(iu, cu, iwu), box_weight(iv, cv, iwv));
+            // Rows of cells iv - 1 (low half) and iv (high half), then the columns of
+            // cells iu - 1 and iu as `cell` clamps them.
+            let pair =
+                _mm512_permutexvar_epi32(clamp(_mm512_add_epi32(iv, lo_bit), 0, side), pairs);
+            let c0 = clamp(iu, 0, side - 1);
+            let c1 = clamp(_mm512_add_epi32(iu, lo_bit), 0, side - 1);
+            let (w0, w1) = (_mm512_srlv_epi32(pair, c0), _mm512_srlv_epi32(pair, c1));
+            let cell = |w: __m512i, bit: __m512i| {
+                _mm512_mask_blend_ps(_mm512_test_epi32_mask(w, bit), black, white)
+            };
+            let nav = _mm512_sub_ps(one, av);
+            let left = _mm512_add_ps(
+                _mm512_mul_ps(av, cell(w0, lo_bit)),
+                _mm512_mul_ps(nav, cell(w0, hi_bit)),
+            );
+            let right = _mm512_add_ps(
+                _mm512_mul_ps(av, cell(w1, lo_bit)),
+                _mm512_mul_ps(nav, cell(w1, hi_bit)),
+            );
+            let albedo = _mm512_add_ps(
+                _mm512_mul_ps(au, left),
+                _mm512_mul_ps(_mm512_sub_ps(one, au), right),
+            );
+            let c = match &r.caustic {
+                Some(l) => {
+                    let k = _mm512_set1_ps(l.texels_per_m);
+                    let fixed =
+                        |x: __m512| _mm512_slli_epi32::<16>(floor_epi32(_mm512_mul_ps(x, k)));
+                    let (_, b0) = fetch_lit(l.tex, fixed(u), fixed(v));
+                    let (to, ts) = (
+                        _mm512_set1_ps(l.tex.caustic_offset),
+                        _mm512_set1_ps(l.tex.caustic_scale),
+                    );
+                    let b = _mm512_add_ps(to, _mm512_mul_ps(ts, b0));
+                    _mm512_add_ps(
+                        one,
+                        _mm512_mul_ps(_mm512_set1_ps(l.strength), _mm512_sub_ps(b, one)),
+                    )
+                }
+                None => one,
+            };
+            let light = _mm512_add_ps(_mm512_mul_ps(ramp(r.ambient, t), c), ramp(r.lamp, t));
+            let m = _mm512_add_ps(_mm512_mul_ps(albedo, light), ramp(r.add, t));
+            _mm512_storeu_ps(out.as_mut_ptr().add(t0), m);
+            t0 += 16;
+        }
+        if t0 < n {
+            super::avx2::plate_run(&mut out[t0..], first + t0, r);
+        }
     }
 
     #[target_feature(enable = "avx2,avx512f,avx512bw,avx512vl,avx512vbmi")]
