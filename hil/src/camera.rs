@@ -26,7 +26,7 @@ pub enum RenderLoops {
     Portable,
     /// Eight pixels a step.
     Avx2,
-    /// AVX2, and the rock loops sixteen pixels a step with texels from two-row windows.
+    /// AVX2, and the rock, plate and linear sensor loops sixteen pixels a step.
     Avx512,
 }
 

@@ -1,8 +1,8 @@
 //! The per-pixel loops of the fast renderer, in builds that give bit-identical results:
 //! a portable one (scalar, what a CPU without AVX2 runs), an AVX2 one (eight pixels per
 //! instruction; texels and table entries still read one by one) and, where the CPU has
-//! AVX-512 (with VBMI), the AVX2 one with its rock loops sixteen pixels a step and texels
-//! picked from two-row windows. All evaluate the same formula with the same f32
+//! AVX-512 (with VBMI), the AVX2 one with its rock, plate and linear sensor loops sixteen
+//! pixels a step (the rock's texels picked from two-row windows). All evaluate the same formula with the same f32
 //! operations in the same order (no FMA: Rust never contracts a multiply and an add on
 //! its own), so a frame does not depend on the CPU it was rendered on;
 //! `tests/camera_fast.rs` checks it.
@@ -21,12 +21,6 @@ fn complete(t: &Texture) -> bool {
 /// The same for a rock-and-caustic texture.
 fn complete_lit(t: &LitTexture) -> bool {
     square(t.log2, t.data.len())
-}
-
-/// Whether the 32-bit words that hold a complete texture's texels lie inside it (the
-/// AVX-512 rock loop gathers them): at least 2 x 2 texels.
-fn whole_words(rock: &Texture, lit: Option<&LitTexture>) -> bool {
-    rock.log2 >= 1 && lit.is_none_or(|l| l.log2 >= 1)
 }
 
 /// `len` texels make a square of side `1 << log2` whose indices fit the packed lanes.
@@ -306,7 +300,7 @@ pub(crate) fn rock_nodes_run(
         #[cfg(target_arch = "x86_64")]
         // SAFETY: Avx512 is only chosen when the CPU has it (and AVX2); indices are masked
         // into the complete textures.
-        Isa::Avx512 if readable && whole_words(rock, caustic) => unsafe {
+        Isa::Avx512 if readable => unsafe {
             avx512::rock_nodes_run(out, first, nodes, rock, caustic)
         },
         #[cfg(target_arch = "x86_64")]
@@ -524,7 +518,8 @@ pub(crate) enum Isa {
     Portable,
     #[cfg(target_arch = "x86_64")]
     Avx2,
-    /// AVX2 everywhere, and the rock loops sixteen pixels a step with texels from two-row windows.
+    /// The AVX2 loops, and the rock, plate and linear sensor loops sixteen pixels a step
+    /// (the rock's texels picked from two-row windows).
     #[cfg(target_arch = "x86_64")]
     Avx512,
 }
@@ -1005,7 +1000,8 @@ mod avx2 {
     }
 }
 
-/// The rock loops sixteen pixels (one whole span) a step. Where a span's texels lie in
+/// The AVX-512 build: rock, plate and linear sensor sixteen pixels a step (the others
+/// are the AVX2 loops). The rock takes one whole span a step. Where a span's texels lie in
 /// two texture rows of 64 bytes (the usual case: a span covers about nine texels at 1 m),
 /// both rows are loaded and one two-register byte permute (AVX-512 VBMI) picks the
 /// sixteen texels; elsewhere they are read one by one. On the AMD EPYC this was measured
