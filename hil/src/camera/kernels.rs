@@ -1579,6 +1579,123 @@ mod tests {
         assert!(builds.iter().any(|&b| b != Isa::Portable) || Isa::detect(false) == Isa::Portable);
     }
 
+    /// Every packed plate loop gives the portable loop's values, bit for bit: runs that
+    /// cross the whole table and its border on both sides (the clamped cells), at
+    /// lengths that leave 8-pixel and scalar tails, with and without caustics, for the
+    /// table as bits (with and without the AVX-512 row pairs) and as gathered cells.
+    #[test]
+    fn packed_plate_loops_match_portable_across_the_table_and_its_border() {
+        let mut x = 0x9E37_79B9_7F4A_7C15u64;
+        let mut next = move || {
+            x ^= x << 13;
+            x ^= x >> 7;
+            x ^= x << 17;
+            x
+        };
+        let (w, b) = (0.85f32, 0.05f32);
+        let side = 10usize;
+        let cells: Vec<f32> = (0..side * side)
+            .map(|k| {
+                let (c, r) = (k % side, k / side);
+                let border = c == 0 || r == 0 || c == side - 1 || r == side - 1;
+                if border || next() % 2 == 0 {
+                    w
+                } else {
+                    b
+                }
+            })
+            .collect();
+        let rows = CellRows::new(&cells, side, w, b).expect("two albedos, 10 x 10");
+        assert!(rows.pairs.is_some());
+        let no_pairs = CellRows {
+            pairs: None,
+            ..rows
+        };
+        let log2 = 6;
+        let lit = LitTexture {
+            log2,
+            data: (0..1usize << (2 * log2)).map(|_| next() as u16).collect(),
+            rock_scale: 0.01,
+            rock_offset: 0.2,
+            caustic_scale: 0.004,
+            caustic_offset: 0.5,
+        };
+        let caustic = PlateCaustics {
+            tex: &lit,
+            strength: 0.6,
+            texels_per_m: 600.0,
+        };
+        let mut compared = 0;
+        for (k, table) in [Some(&rows), Some(&no_pairs), None].into_iter().enumerate() {
+            for c in [None, Some(caustic)] {
+                // Rows from above the plate to below it, each from left of it to right.
+                for row in 0..7 {
+                    let v = -0.12 + 0.04 * row as f32;
+                    let r = PlateRun {
+                        d: Ramp {
+                            at: 1.0,
+                            step: 2e-4,
+                        },
+                        nu: Ramp {
+                            at: -0.13,
+                            step: 0.26 / 97.0,
+                        },
+                        nv: Ramp { at: v, step: 1e-4 },
+                        half_marker: 0.06,
+                        cell_per_m: (side - 2) as f32 / 0.12,
+                        inv_wu: 1.0 / 0.04,
+                        inv_wv: 1.0 / 0.05,
+                        cells: &cells,
+                        side: side as i32,
+                        rows: table,
+                        caustic: c,
+                        ambient: Ramp {
+                            at: 30.0,
+                            step: 0.1,
+                        },
+                        lamp: Ramp {
+                            at: 5.0,
+                            step: -0.02,
+                        },
+                        add: Ramp {
+                            at: 2.0,
+                            step: 0.01,
+                        },
+                    };
+                    for (first, len) in [(0usize, 97usize), (3, 40), (16, 16), (5, 7), (0, 0)] {
+                        let mut want = vec![0f32; len];
+                        plate_run(Isa::Portable, &mut want, first, &r);
+                        for isa in [Isa::Avx2, Isa::Avx512].map(Isa::best_up_to) {
+                            let mut got = vec![0f32; len];
+                            plate_run(isa, &mut got, first, &r);
+                            let same = got
+                                .iter()
+                                .zip(&want)
+                                .all(|(a, b)| a.to_bits() == b.to_bits());
+                            assert!(
+                                same,
+                                "{isa:?} table {k} caustic {} row {row} first {first}",
+                                c.is_some()
+                            );
+                            compared += 1;
+                        }
+                        // Rows over the printed cells see both albedos: the comparison means something.
+                        if len == 97 {
+                            let (lo, hi) = want
+                                .iter()
+                                .fold((f32::MAX, f32::MIN), |(l, h), &m| (l.min(m), h.max(m)));
+                            assert!(
+                                hi > 2.0 * lo || !(2..=4).contains(&row),
+                                "row {row}: {lo}..{hi}"
+                            );
+                        }
+                    }
+                }
+            }
+        }
+        assert!(compared > 0);
+    }
+
     #[test]
     fn cell_rows_hold_the_table_as_bits_or_decline() {
         let (w, b) = (0.85f32, 0.05f32);
