@@ -6,7 +6,7 @@ use std::time::{Duration, Instant};
 use anyhow::Context;
 use markhold_autopilot::{ArduSubMode, StationKeeper, Supervisor, VehicleLink};
 use markhold_exposure::{build_controller, Camera, ExposureMethod, Frame};
-use markhold_hil::camera::CameraModel;
+use markhold_hil::camera::{CameraModel, RenderLoops};
 use markhold_hil::scene::{LightingScenario, MarkerSpec};
 use markhold_hil::{EndpointConfig, HilRig, HilSetup, Truth, VehicleMotion};
 use markhold_vision::{marker_bitmap, MarkerTracker};
@@ -40,6 +40,9 @@ pub struct HilOptions {
     /// `link.signing_key_file`, so a signing markhold meets a vehicle that signs with the
     /// same key and requires signed input.
     pub vehicle_signing_key_file: Option<PathBuf>,
+    /// The renderer's loops, up to this build (`--render-loops`); None: the widest the CPU
+    /// runs. Every build renders the same frames; only the world's speed differs.
+    pub render_loops: Option<RenderLoops>,
 }
 
 impl Default for HilOptions {
@@ -56,6 +59,7 @@ impl Default for HilOptions {
             snapshot_every: 30,
             faults: Vec::new(),
             vehicle_signing_key_file: None,
+            render_loops: None,
         }
     }
 }
@@ -170,6 +174,9 @@ impl HilRun {
             lock_step: true,
         };
         let mut rig = HilRig::new(setup).context("building the HIL world")?;
+        if let Some(want) = opts.render_loops {
+            rig.set_render_loops(want);
+        }
         rig.set_exposure_us(initial_us)?;
         let faults = if opts.faults.is_empty() {
             None
@@ -355,6 +362,7 @@ pub fn run_hil(
     );
     let world = run.rig.world_wall_seconds();
     summary.world_wall_seconds = world;
+    summary.render_loops = run.rig.render_loops().to_string();
     if world > 0.0 {
         summary.world_realtime_factor = summary.sim_seconds / world;
     }

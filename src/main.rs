@@ -126,6 +126,11 @@ struct HilArgs {
     /// Port of the live view (0: any free port).
     #[arg(long, default_value_t = 8765)]
     foxglove_port: u16,
+    /// The renderer's loops: portable, avx2 or avx512 (the widest this CPU runs up to
+    /// that; default: the widest). Every build renders the same frames, so the run is
+    /// the same; only the world's speed differs (the summary says which ran).
+    #[arg(long, value_name = "BUILD")]
+    render_loops: Option<markhold_hil::camera::RenderLoops>,
 }
 
 #[derive(clap::Args)]
@@ -281,6 +286,7 @@ fn hil(args: HilArgs) -> anyhow::Result<()> {
         snapshot_dir: args.snapshot.clone(),
         snapshot_every: args.snapshot_every.max(1),
         faults: args.faults.clone(),
+        render_loops: args.render_loops,
         ..HilOptions::default()
     };
     let frames = (args.seconds * site.site.camera.fps).round() as u64;
@@ -406,10 +412,17 @@ fn print_table(site: &str, s: &Summary) {
         ),
         (
             "HIL world (physics, render)",
-            format!(
-                "{:.1} s ({:.1}x real time)",
-                s.world_wall_seconds, s.world_realtime_factor
-            ),
+            if s.render_loops.is_empty() {
+                format!(
+                    "{:.1} s ({:.1}x real time)",
+                    s.world_wall_seconds, s.world_realtime_factor
+                )
+            } else {
+                format!(
+                    "{:.1} s ({:.1}x real time, {} loops)",
+                    s.world_wall_seconds, s.world_realtime_factor, s.render_loops
+                )
+            },
         ),
         ("marker detected", pct(s.detection_rate)),
         (
@@ -435,8 +448,9 @@ fn print_table(site: &str, s: &Summary) {
         ),
     ];
     println!("markhold hil");
+    let width = rows.iter().map(|(k, _)| k.len()).max().unwrap_or(0);
     for (k, v) in rows {
-        println!("  {k:<26} {v}");
+        println!("  {k:<width$} {v}");
     }
     print_faults(&s.faults);
 }

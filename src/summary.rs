@@ -24,6 +24,10 @@ pub struct Summary {
     /// simulated seconds per such second: the world's own speed, without the loop.
     pub world_wall_seconds: f64,
     pub world_realtime_factor: f64,
+    /// The renderer's loops that produced the world's speed (`portable`, `avx2`, `avx512`:
+    /// the widest this CPU runs unless `--render-loops` chose narrower). Every build gives
+    /// the same frames, so only the two fields above depend on it.
+    pub render_loops: String,
     pub detection_rate: f64,
     /// Vehicle vs station, ground truth, RMS over the last half of the run.
     pub position_rms_m: f64,
@@ -145,6 +149,7 @@ impl RunStats {
             },
             world_wall_seconds: 0.0,
             world_realtime_factor: 0.0,
+            render_loops: String::new(),
             detection_rate: self.detected.iter().filter(|d| **d).count() as f64 / n.max(1) as f64,
             position_rms_m,
             final_position_error_m: self.pos_err_m.last().copied().unwrap_or(f64::NAN),

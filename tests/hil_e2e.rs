@@ -76,6 +76,7 @@ fn pool_station_keeping_settles() {
         "lighting",
         "seed",
         "loop_latency_p99_ms",
+        "render_loops",
     ] {
         assert!(s.get(k).is_some(), "summary lacks {k}: {s}");
     }
@@ -97,13 +98,7 @@ fn same_seed_same_numbers() {
     let mut a = run_summary(&args, &d.join("a.json"));
     let mut b = run_summary(&args, &d.join("b.json"));
     // Wall-clock measurements are the only fields allowed to differ.
-    for k in [
-        "wall_seconds",
-        "realtime_factor",
-        "world_wall_seconds",
-        "world_realtime_factor",
-        "loop_latency_p99_ms",
-    ] {
+    for k in WALL_FIELDS {
         a.as_object_mut().unwrap().remove(k);
         b.as_object_mut().unwrap().remove(k);
     }
@@ -173,4 +168,63 @@ fn out_of_range_value_is_named() {
     let (code, err) = bad_site("range.toml", &text);
     assert_eq!(code, 78, "{err}");
     assert!(err.contains("camera.fps") && err.contains("-5"), "{err}");
+}
+
+/// The summary fields the wall clock changes.
+const WALL_FIELDS: [&str; 5] = [
+    "wall_seconds",
+    "realtime_factor",
+    "world_wall_seconds",
+    "world_realtime_factor",
+    "loop_latency_p99_ms",
+];
+
+#[test]
+fn render_loops_change_the_speed_not_the_run() {
+    // `--render-loops portable` against the widest build this CPU runs: the same frames,
+    // so the same run to the bit; the summary names the build that ran. (On a CPU
+    // without AVX2 both are the portable loops and only the names are checked.)
+    let d = tmpdir("render-loops");
+    let pool = repo("params/pool.toml");
+    let base = [
+        "hil",
+        "--site",
+        pool.to_str().unwrap(),
+        "--seconds",
+        "3",
+        "--seed",
+        "5",
+    ];
+    let mut portable = base.to_vec();
+    portable.extend(["--render-loops", "portable"]);
+    let mut a = run_summary(&portable, &d.join("portable.json"));
+    let mut b = run_summary(&base, &d.join("widest.json"));
+    assert_eq!(a["render_loops"], "portable", "{a}");
+    let widest = b["render_loops"].as_str().unwrap_or_default().to_string();
+    assert!(
+        ["portable", "avx2", "avx512"].contains(&widest.as_str()),
+        "{b}"
+    );
+    for k in WALL_FIELDS.iter().chain(&["render_loops"]) {
+        a.as_object_mut().unwrap().remove(*k);
+        b.as_object_mut().unwrap().remove(*k);
+    }
+    assert_eq!(a, b, "portable vs {widest}");
+}
+
+#[test]
+fn unknown_render_loops_are_named() {
+    let pool = repo("params/pool.toml");
+    let o = bin()
+        .args(["hil", "--site", pool.to_str().unwrap(), "--seconds", "0.1"])
+        .args(["--render-loops", "neon"])
+        .output()
+        .expect("run markhold");
+    assert!(!o.status.success());
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(
+        err.contains("--render-loops") && err.contains("neon"),
+        "{err}"
+    );
+    assert!(err.contains("portable, avx2, avx512"), "{err}");
 }

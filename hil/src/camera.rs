@@ -30,6 +30,37 @@ pub enum RenderLoops {
     Avx512,
 }
 
+impl RenderLoops {
+    /// Lower-case name, as `markhold hil --render-loops` takes it and the summary reports it.
+    pub fn name(self) -> &'static str {
+        match self {
+            Self::Portable => "portable",
+            Self::Avx2 => "avx2",
+            Self::Avx512 => "avx512",
+        }
+    }
+}
+
+impl std::str::FromStr for RenderLoops {
+    type Err = String;
+    fn from_str(s: &str) -> Result<Self, Self::Err> {
+        match s.to_ascii_lowercase().as_str() {
+            "portable" => Ok(Self::Portable),
+            "avx2" => Ok(Self::Avx2),
+            "avx512" => Ok(Self::Avx512),
+            other => Err(format!(
+                "unknown render loops '{other}': expected one of portable, avx2, avx512"
+            )),
+        }
+    }
+}
+
+impl std::fmt::Display for RenderLoops {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(self.name())
+    }
+}
+
 /// `[camera.sensor]`: how the sensor turns light into electrons and electrons into noise.
 /// Defaults are those of a Sony IMX273 (FLIR Blackfly S BFS-U3-16S2M, the paper's camera).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -329,6 +360,11 @@ impl UnderwaterCamera {
     /// build gives the same frames; tests compare them). Returns the build chosen.
     pub fn set_render_loops(&mut self, want: RenderLoops) -> RenderLoops {
         self.fast.set_loops(want)
+    }
+
+    /// The build of the loops the fast renderer runs.
+    pub fn render_loops(&self) -> RenderLoops {
+        self.fast.loops()
     }
 
     pub fn model(&self) -> &CameraModel {

@@ -13,7 +13,7 @@ use std::time::{Duration, Instant};
 use markhold_exposure::{Camera, CameraError, ExposureLimits, Frame};
 use nalgebra::Isometry3;
 
-use crate::camera::{CameraModel, UnderwaterCamera};
+use crate::camera::{CameraModel, RenderLoops, UnderwaterCamera};
 use crate::endpoint::{EndpointConfig, EndpointStats, VehicleEndpoint};
 use crate::mixer::MAX_MOTORS;
 use crate::scene::{LightingConfig, LightingScale, MarkerSpec, Scene, WaterConfig};
@@ -205,6 +205,17 @@ impl HilRig {
     /// the response act on it as on a real sensor.
     pub fn set_lighting(&mut self, scale: LightingScale) -> Result<(), HilError> {
         self.scene.set_lighting(scale)
+    }
+
+    /// Render with the widest build of the loops this CPU runs up to `want` (all give the
+    /// same frames); returns the build chosen. The default is the widest this CPU runs.
+    pub fn set_render_loops(&mut self, want: RenderLoops) -> RenderLoops {
+        self.camera.set_render_loops(want)
+    }
+
+    /// The build of the renderer's loops (for the summary: the world's speed depends on it).
+    pub fn render_loops(&self) -> RenderLoops {
+        self.camera.render_loops()
     }
 
     /// Simulation time of the next frame `grab` will render (its stamp).

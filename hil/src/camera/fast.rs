@@ -349,6 +349,10 @@ impl FastRenderer {
             _ => Isa::Portable,
         };
         self.isa = Isa::best_up_to(want);
+        self.loops()
+    }
+
+    pub(crate) fn loops(&self) -> RenderLoops {
         match self.isa {
             Isa::Portable => RenderLoops::Portable,
             #[cfg(target_arch = "x86_64")]
