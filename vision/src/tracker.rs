@@ -471,6 +471,12 @@ impl MarkerTracker {
         roi: Roi,
         scale: u32,
     ) -> Result<Option<Corners>, VisionError> {
+        // A downscaled window is cropped to whole multiples of the scale (at most
+        // `scale - 1` pixels off its right and bottom padding): then the ratio is an exact
+        // integer, OpenCV's INTER_AREA takes its fast integer-block path instead of the
+        // general fractional one, and small pixel i covers full pixels [s i, s i + s)
+        // exactly, as the corner mapping below assumes.
+        let roi = whole_blocks(roi, scale);
         let rect = core::Rect::new(
             roi.x as i32,
             roi.y as i32,
@@ -756,9 +762,45 @@ fn window(x0: f64, y0: f64, x1: f64, y1: f64, w: u32, h: u32) -> Option<Roi> {
     })
 }
 
+/// `roi` cropped at its right and bottom to whole `scale` x `scale` blocks (unchanged
+/// when it holds less than one block a side, or at scale 1).
+fn whole_blocks(roi: Roi, scale: u32) -> Roi {
+    if scale <= 1 || roi.width < scale || roi.height < scale {
+        return roi;
+    }
+    Roi {
+        width: roi.width / scale * scale,
+        height: roi.height / scale * scale,
+        ..roi
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn downscaled_windows_hold_whole_blocks() {
+        let r = |x, y, width, height| Roi {
+            x,
+            y,
+            width,
+            height,
+        };
+        for scale in 1..=4 {
+            for (w, h) in [(803, 601), (800, 600), (4, 3), (3, 3), (1439, 1079)] {
+                let c = whole_blocks(r(7, 11, w, h), scale);
+                assert_eq!((c.x, c.y), (7, 11));
+                if w >= scale && h >= scale {
+                    assert_eq!((c.width % scale, c.height % scale), (0, 0), "{c:?} {scale}");
+                }
+                assert!(c.width <= w && w - c.width < scale, "{c:?} {scale}");
+                assert!(c.height <= h && h - c.height < scale, "{c:?} {scale}");
+            }
+        }
+        // Smaller than a block: left alone (the detector rejects it as too small).
+        assert_eq!(whole_blocks(r(0, 0, 2, 9), 3), r(0, 0, 2, 9));
+    }
 
     #[test]
     fn tracker_is_send() {
