@@ -175,7 +175,12 @@ impl HilRun {
         };
         let mut rig = HilRig::new(setup).context("building the HIL world")?;
         if let Some(want) = opts.render_loops {
-            rig.set_render_loops(want);
+            let got = rig.set_render_loops(want);
+            if got != want {
+                tracing::warn!(
+                    "--render-loops {want}: this CPU runs up to {got}; rendering with {got}"
+                );
+            }
         }
         rig.set_exposure_us(initial_us)?;
         let faults = if opts.faults.is_empty() {
