@@ -412,17 +412,15 @@ fn print_table(site: &str, s: &Summary) {
         ),
         (
             "HIL world (physics, render)",
-            if s.render_loops.is_empty() {
-                format!(
-                    "{:.1} s ({:.1}x real time)",
-                    s.world_wall_seconds, s.world_realtime_factor
-                )
-            } else {
-                format!(
-                    "{:.1} s ({:.1}x real time, {} loops)",
-                    s.world_wall_seconds, s.world_realtime_factor, s.render_loops
-                )
-            },
+            format!(
+                "{:.1} s ({:.1}x real time{})",
+                s.world_wall_seconds,
+                s.world_realtime_factor,
+                match s.render_loops.as_str() {
+                    "" => String::new(),
+                    loops => format!(", {loops} loops"),
+                }
+            ),
         ),
         ("marker detected", pct(s.detection_rate)),
         (

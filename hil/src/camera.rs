@@ -31,6 +31,9 @@ pub enum RenderLoops {
 }
 
 impl RenderLoops {
+    /// Every build, narrowest first.
+    pub const ALL: [Self; 3] = [Self::Portable, Self::Avx2, Self::Avx512];
+
     /// Lower-case name, as `markhold hil --render-loops` takes it and the summary reports it.
     pub fn name(self) -> &'static str {
         match self {
@@ -44,14 +47,17 @@ impl RenderLoops {
 impl std::str::FromStr for RenderLoops {
     type Err = String;
     fn from_str(s: &str) -> Result<Self, Self::Err> {
-        match s.to_ascii_lowercase().as_str() {
-            "portable" => Ok(Self::Portable),
-            "avx2" => Ok(Self::Avx2),
-            "avx512" => Ok(Self::Avx512),
-            other => Err(format!(
-                "unknown render loops '{other}': expected one of portable, avx2, avx512"
-            )),
-        }
+        let s = s.to_ascii_lowercase();
+        Self::ALL
+            .into_iter()
+            .find(|l| l.name() == s)
+            .ok_or_else(|| {
+                let names: Vec<_> = Self::ALL.iter().map(|l| l.name()).collect();
+                format!(
+                    "unknown render loops '{s}': expected one of {}",
+                    names.join(", ")
+                )
+            })
     }
 }
 
