@@ -151,6 +151,23 @@ pub struct AaecConfig {
     pub lost_hold_frames: u32,
     /// Controller used after that (momentum is reset on the switch).
     pub fallback: AaecFallback,
+    /// Reacquisition sweep (our design; 0 = off), fallback frames 0..=1000: when the
+    /// fallback has not shown the marker again after this many frames, the exposure
+    /// steps through a ladder around the exposure the marker was last seen at, that
+    /// exposure between every two rungs (c, c r, c, c / r, c, c r^2, ...) out to
+    /// `sweep_span`; after one pass the fallback runs again for as many frames, and so
+    /// on. On the first frame that shows the marker AAEC restarts from that frame's
+    /// exposure. A whole-frame fallback meters what the marker is not: under caustics
+    /// it settled where the web of highlights sits (HIL reef-caustics seed 5: 0.9 ms,
+    /// the marker's cells too dark to decode, lost for the last 30 s of the run).
+    pub sweep_after_frames: u32,
+    /// Ratio between the sweep's rungs, [1.1, 16].
+    pub sweep_ratio: f64,
+    /// How far the sweep reaches from its centre, as a factor, [`sweep_ratio`, 1000].
+    pub sweep_span: f64,
+    /// Frames each rung is commanded, 1..=30 (the camera applies an exposure a frame
+    /// or more late, and the marker found on a rung must still be there on the next).
+    pub sweep_dwell_frames: u32,
     /// Highlight guard of the fallback, [0, 0.5] (0 = off): while the marker is lost, the
     /// brightest `highlight_frac` of the frame may not be driven above `highlight_grey`,
     /// and when that many pixels are clipped the exposure shortens by
@@ -219,6 +236,10 @@ impl Default for AaecConfig {
             saturation_penalty: 1.0,
             lost_hold_frames: 5,
             fallback: AaecFallback::Mean,
+            sweep_after_frames: 30,
+            sweep_ratio: 2.0,
+            sweep_span: 4.0,
+            sweep_dwell_frames: 3,
             highlight_frac: 0.005,
             highlight_grey: 230.0,
             knee_quantile: 0.9,
@@ -345,6 +366,34 @@ impl AaecConfig {
         )?;
         let v = self.lost_hold_frames;
         check(v <= 1000, "lost_hold_frames", &v, "frames in 0..=1000")?;
+        let v = self.sweep_after_frames;
+        check(
+            v <= 1000,
+            "sweep_after_frames",
+            &v,
+            "frames in 0..=1000 (0 = off)",
+        )?;
+        let v = self.sweep_ratio;
+        check(
+            (1.1..=16.0).contains(&v),
+            "sweep_ratio",
+            &v,
+            "a factor in [1.1, 16]",
+        )?;
+        let v = self.sweep_span;
+        check(
+            v >= self.sweep_ratio && v <= 1000.0,
+            "sweep_span",
+            &v,
+            "a factor in [sweep_ratio, 1000]",
+        )?;
+        let v = self.sweep_dwell_frames;
+        check(
+            (1..=30).contains(&v),
+            "sweep_dwell_frames",
+            &v,
+            "frames in 1..=30",
+        )?;
         let v = self.highlight_frac;
         check(
             (0.0..=0.5).contains(&v),
@@ -419,6 +468,12 @@ pub struct Aaec {
     last_roi: Option<Roi>,
     lost_frames: u32,
     in_fallback: bool,
+    /// Exposure of the last frame that showed the marker (the sweep's centre).
+    seen_us: Option<f64>,
+    /// The reacquisition sweep, while it runs.
+    sweep: Option<Sweep>,
+    /// `lost_frames` after which the next sweep starts.
+    sweep_at: u32,
     /// The knee landing of this climb: None = not taken, Some(x) = its target, ln t.
     landed: Option<f64>,
     /// What the last step was, for the knee landing.
@@ -454,6 +509,9 @@ impl Aaec {
             last_roi: None,
             lost_frames: 0,
             in_fallback: false,
+            seen_us: None,
+            sweep: None,
+            sweep_at: 0,
             landed: None,
             last_knee: KneeStep::None,
             landed_slope: 0.0,
@@ -616,6 +674,10 @@ impl Aaec {
             Some(r) => {
                 self.lost_frames = 0;
                 self.last_roi = Some(r);
+                let t = frame.meta.exposure_us;
+                if t.is_finite() && t > 0.0 {
+                    self.seen_us = Some(t);
+                }
                 Some(r)
             }
             None => {
@@ -628,6 +690,71 @@ impl Aaec {
                 }
             }
         }
+    }
+
+    /// Rung `j` (1, 2, ...) of a sweep around `center_us`: x r, / r, x r^2, / r^2, ...,
+    /// clamped to the camera's range; `None` where the clamp makes it the same as the
+    /// rung before it on its side.
+    fn rung_us(&self, center_us: f64, j: u32) -> Option<f64> {
+        let e = if j % 2 == 1 {
+            j.div_ceil(2) as i32
+        } else {
+            -((j / 2) as i32)
+        };
+        let r = self.cfg.sweep_ratio;
+        let t = self.limits.clamp(center_us * r.powi(e));
+        let before = self.limits.clamp(center_us * r.powi(e - e.signum()));
+        ((t - before).abs() > 1e-9 * before).then_some(t)
+    }
+
+    /// The exposure to command on this update of the reacquisition sweep; `None` when
+    /// its pass is over (the fallback runs again, from where it was).
+    fn sweep_step(&mut self) -> Option<f64> {
+        let mut sweep = match self.sweep {
+            Some(s) => s,
+            None => {
+                let center_us = self.limits.clamp(self.seen_us.unwrap_or(self.commanded_us));
+                let rungs = (self.cfg.sweep_span.ln() / self.cfg.sweep_ratio.ln() + 1e-9).floor();
+                tracing::debug!(center_us, "aaec: marker still lost, sweeping the exposure");
+                Sweep {
+                    center_us,
+                    j: 0,
+                    last_j: (rungs as u32).saturating_mul(2),
+                    rung_us: center_us,
+                    left: self.cfg.sweep_dwell_frames,
+                    fallback_us: self.commanded_us,
+                }
+            }
+        };
+        if sweep.left == 0 {
+            if sweep.rung_us != sweep.center_us {
+                // Back to the centre between two rungs.
+                sweep.rung_us = sweep.center_us;
+            } else {
+                // The next rung inside the range; past the last one the pass is over.
+                loop {
+                    if sweep.j >= sweep.last_j {
+                        self.sweep = None;
+                        self.sweep_at = self
+                            .lost_frames
+                            .saturating_add(self.cfg.sweep_after_frames)
+                            .saturating_sub(1);
+                        self.commanded_us = sweep.fallback_us;
+                        self.fallback.reset(sweep.fallback_us);
+                        return None;
+                    }
+                    sweep.j += 1;
+                    if let Some(t) = self.rung_us(sweep.center_us, sweep.j) {
+                        sweep.rung_us = t;
+                        break;
+                    }
+                }
+            }
+            sweep.left = self.cfg.sweep_dwell_frames;
+        }
+        sweep.left -= 1;
+        self.sweep = Some(sweep);
+        Some(sweep.rung_us)
     }
 
     /// The highlight guard: the longest exposure the fallback may command after `frame`
@@ -838,6 +965,21 @@ enum KneeStep {
     Descent,
 }
 
+/// The reacquisition sweep (see [`AaecConfig::sweep_after_frames`]).
+#[derive(Debug, Clone, Copy)]
+struct Sweep {
+    center_us: f64,
+    /// The last rung commanded (see `Aaec::rung_us`); 0 = none yet.
+    j: u32,
+    /// The pass's last rung.
+    last_j: u32,
+    rung_us: f64,
+    /// Updates left on this rung.
+    left: u32,
+    /// The fallback's exposure when the sweep began (it resumes there).
+    fallback_us: f64,
+}
+
 /// The slope's statistics at a knee hold.
 #[derive(Debug, Clone, Copy, Default)]
 struct Hold {
@@ -861,6 +1003,21 @@ impl ExposureController for Aaec {
                 self.in_fallback = true;
                 self.reset_ascent();
                 self.fallback.reset(self.commanded_us);
+                self.sweep_at = self
+                    .lost_frames
+                    .saturating_add(self.cfg.sweep_after_frames)
+                    .saturating_sub(1);
+            }
+            if self.cfg.sweep_after_frames > 0 && self.lost_frames > self.sweep_at {
+                if let Some(t) = self.sweep_step() {
+                    self.commanded_us = t;
+                    return ExposureStep {
+                        exposure_us: t,
+                        metric: f64::NAN,
+                        used_frame: false,
+                        roi: None,
+                    };
+                }
             }
             let t = self.commanded_us;
             let mut step = self.fallback.update(frame, None);
@@ -882,6 +1039,11 @@ impl ExposureController for Aaec {
         if self.in_fallback {
             self.in_fallback = false;
             self.reset_ascent();
+            if self.sweep.take().is_some() {
+                // Found on a rung: restart from the exposure this frame was taken at (the
+                // command may already be a rung further on).
+                self.commanded_us = self.limits.clamp(frame.meta.exposure_us);
+            }
         }
         let hold = ExposureStep {
             exposure_us: self.commanded_us,
@@ -967,6 +1129,8 @@ impl ExposureController for Aaec {
         self.last_roi = None;
         self.lost_frames = 0;
         self.in_fallback = false;
+        self.seen_us = None;
+        self.sweep = None;
         self.fallback.reset(self.commanded_us);
     }
 }

@@ -131,6 +131,36 @@ fn bad_values_name_the_key() {
         ),
         (
             ExposureConfig {
+                aaec: AaecConfig {
+                    sweep_ratio: 1.0,
+                    ..Default::default()
+                },
+                ..Default::default()
+            },
+            "exposure.aaec.sweep_ratio = 1",
+        ),
+        (
+            ExposureConfig {
+                aaec: AaecConfig {
+                    sweep_dwell_frames: 0,
+                    ..Default::default()
+                },
+                ..Default::default()
+            },
+            "exposure.aaec.sweep_dwell_frames = 0",
+        ),
+        (
+            ExposureConfig {
+                aaec: AaecConfig {
+                    sweep_span: 1.5,
+                    ..Default::default()
+                },
+                ..Default::default()
+            },
+            "exposure.aaec.sweep_span = 1.5",
+        ),
+        (
+            ExposureConfig {
                 aec: AecConfig {
                     max_change_frac: 0.0,
                     ..Default::default()

@@ -61,7 +61,12 @@ fn ten_times_long_is_a_clipped_disc_in_a_dark_frame() {
 #[test]
 fn without_a_marker_a_clipped_blob_shortens_the_exposure() {
     let scene = scene();
-    let cfg = AaecConfig::default();
+    // The guard alone: with no detector at all, the reacquisition sweep (tested in
+    // `sweep.rs`) would start walking its ladder after 35 frames.
+    let cfg = AaecConfig {
+        sweep_after_frames: 0,
+        ..AaecConfig::default()
+    };
     let best = best_exposure(&scene, &cfg);
     let t0 = 10.0 * best;
     let mut c = aaec(cfg, t0);
