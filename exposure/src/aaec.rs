@@ -1039,10 +1039,11 @@ impl ExposureController for Aaec {
         if self.in_fallback {
             self.in_fallback = false;
             self.reset_ascent();
-            if self.sweep.take().is_some() {
+            let t = frame.meta.exposure_us;
+            if self.sweep.take().is_some() && t.is_finite() && t > 0.0 {
                 // Found on a rung: restart from the exposure this frame was taken at (the
                 // command may already be a rung further on).
-                self.commanded_us = self.limits.clamp(frame.meta.exposure_us);
+                self.commanded_us = self.limits.clamp(t);
             }
         }
         let hold = ExposureStep {
