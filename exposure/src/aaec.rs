@@ -236,7 +236,7 @@ impl Default for AaecConfig {
             saturation_penalty: 1.0,
             lost_hold_frames: 5,
             fallback: AaecFallback::Mean,
-            sweep_after_frames: 30,
+            sweep_after_frames: 10,
             sweep_ratio: 2.0,
             sweep_span: 4.0,
             sweep_dwell_frames: 3,

@@ -184,7 +184,7 @@ fn the_sweep_finds_a_marker_the_fallback_cannot_show() {
     let (first_off, _) = found_over(0);
     assert_eq!(first_off, None, "the fallback alone found it: no test");
     let (first_on, held) = found_over(AaecConfig::default().sweep_after_frames);
-    // Within two passes and the fallback's 30 frames between them: a pass is 3 frames
+    // Within two passes and the fallback's 10 frames between them: a pass is 3 frames
     // a step, eight steps (c, x2, c, /2, c, x4, c, /4).
     assert!(
         matches!(first_on, Some(k) if k <= 90),

@@ -62,7 +62,7 @@ fn ten_times_long_is_a_clipped_disc_in_a_dark_frame() {
 fn without_a_marker_a_clipped_blob_shortens_the_exposure() {
     let scene = scene();
     // The guard alone: with no detector at all, the reacquisition sweep (tested in
-    // `sweep.rs`) would start walking its ladder after 35 frames.
+    // `sweep.rs`) would start walking its ladder after 15 frames.
     let cfg = AaecConfig {
         sweep_after_frames: 0,
         ..AaecConfig::default()
