@@ -674,10 +674,7 @@ impl Aaec {
             Some(r) => {
                 self.lost_frames = 0;
                 self.last_roi = Some(r);
-                let t = frame.meta.exposure_us;
-                if t.is_finite() && t > 0.0 {
-                    self.seen_us = Some(t);
-                }
+                self.seen_us = taken_us(frame).or(self.seen_us);
                 Some(r)
             }
             None => {
@@ -707,6 +704,15 @@ impl Aaec {
         ((t - before).abs() > 1e-9 * before).then_some(t)
     }
 
+    /// The fallback runs `sweep_after_frames` frames, this one included, before the next
+    /// pass of the sweep.
+    fn schedule_sweep(&mut self) {
+        self.sweep_at = self
+            .lost_frames
+            .saturating_add(self.cfg.sweep_after_frames)
+            .saturating_sub(1);
+    }
+
     /// The exposure to command on this update of the reacquisition sweep; `None` when
     /// its pass is over (the fallback runs again, from where it was).
     fn sweep_step(&mut self) -> Option<f64> {
@@ -721,24 +727,23 @@ impl Aaec {
                     j: 0,
                     last_j: (rungs as u32).saturating_mul(2),
                     rung_us: center_us,
+                    at_center: true,
                     left: self.cfg.sweep_dwell_frames,
                     fallback_us: self.commanded_us,
                 }
             }
         };
         if sweep.left == 0 {
-            if sweep.rung_us != sweep.center_us {
+            if !sweep.at_center {
                 // Back to the centre between two rungs.
+                sweep.at_center = true;
                 sweep.rung_us = sweep.center_us;
             } else {
                 // The next rung inside the range; past the last one the pass is over.
                 loop {
                     if sweep.j >= sweep.last_j {
                         self.sweep = None;
-                        self.sweep_at = self
-                            .lost_frames
-                            .saturating_add(self.cfg.sweep_after_frames)
-                            .saturating_sub(1);
+                        self.schedule_sweep();
                         self.commanded_us = sweep.fallback_us;
                         self.fallback.reset(sweep.fallback_us);
                         return None;
@@ -746,6 +751,7 @@ impl Aaec {
                     sweep.j += 1;
                     if let Some(t) = self.rung_us(sweep.center_us, sweep.j) {
                         sweep.rung_us = t;
+                        sweep.at_center = false;
                         break;
                     }
                 }
@@ -965,6 +971,12 @@ enum KneeStep {
     Descent,
 }
 
+/// The exposure `frame` says it was taken with, when that is a real one.
+fn taken_us(frame: &Frame) -> Option<f64> {
+    let t = frame.meta.exposure_us;
+    (t.is_finite() && t > 0.0).then_some(t)
+}
+
 /// The reacquisition sweep (see [`AaecConfig::sweep_after_frames`]).
 #[derive(Debug, Clone, Copy)]
 struct Sweep {
@@ -974,6 +986,8 @@ struct Sweep {
     /// The pass's last rung.
     last_j: u32,
     rung_us: f64,
+    /// `rung_us` is the centre (between two rungs).
+    at_center: bool,
     /// Updates left on this rung.
     left: u32,
     /// The fallback's exposure when the sweep began (it resumes there).
@@ -1003,10 +1017,7 @@ impl ExposureController for Aaec {
                 self.in_fallback = true;
                 self.reset_ascent();
                 self.fallback.reset(self.commanded_us);
-                self.sweep_at = self
-                    .lost_frames
-                    .saturating_add(self.cfg.sweep_after_frames)
-                    .saturating_sub(1);
+                self.schedule_sweep();
             }
             if self.cfg.sweep_after_frames > 0 && self.lost_frames > self.sweep_at {
                 if let Some(t) = self.sweep_step() {
@@ -1039,8 +1050,7 @@ impl ExposureController for Aaec {
         if self.in_fallback {
             self.in_fallback = false;
             self.reset_ascent();
-            let t = frame.meta.exposure_us;
-            if self.sweep.take().is_some() && t.is_finite() && t > 0.0 {
+            if let (Some(_), Some(t)) = (self.sweep.take(), taken_us(frame)) {
                 // Found on a rung: restart from the exposure this frame was taken at (the
                 // command may already be a rung further on).
                 self.commanded_us = self.limits.clamp(t);
