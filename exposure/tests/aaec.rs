@@ -4,11 +4,6 @@ mod common;
 use common::*;
 use markhold_exposure::*;
 
-fn aaec(cfg: AaecConfig, initial: f64) -> Aaec {
-    let fallback = Box::new(MeanAe::new(MeanAeConfig::default(), limits(), initial).unwrap());
-    Aaec::new(cfg, Response::linear(), limits(), initial, fallback).unwrap()
-}
-
 fn short(tr: &[f64], best: f64) -> Vec<f64> {
     tr.iter()
         .map(|t| (t / best * 1000.0).round() / 1000.0)

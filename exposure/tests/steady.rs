@@ -5,11 +5,6 @@ mod common;
 use common::*;
 use markhold_exposure::*;
 
-fn aaec(cfg: AaecConfig, initial: f64) -> Aaec {
-    let fallback = Box::new(MeanAe::new(MeanAeConfig::default(), limits(), initial).unwrap());
-    Aaec::new(cfg, Response::linear(), limits(), initial, fallback).unwrap()
-}
-
 /// Largest relative deviation of `tr` from its first value, and max / min.
 fn spread(tr: &[f64]) -> (f64, f64) {
     let (lo, hi) = tr

@@ -6,11 +6,6 @@ mod common;
 use common::*;
 use markhold_exposure::*;
 
-fn aaec(cfg: AaecConfig, initial: f64) -> Aaec {
-    let fallback = Box::new(MeanAe::new(MeanAeConfig::default(), limits(), initial).unwrap());
-    Aaec::new(cfg, Response::linear(), limits(), initial, fallback).unwrap()
-}
-
 fn close(a: f64, b: f64) -> bool {
     (a - b).abs() <= 1e-9 * b.abs()
 }

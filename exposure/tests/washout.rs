@@ -13,11 +13,6 @@ fn scene() -> Scene {
     Scene::lamp_plate(Response::linear(), 60.0, 55.0, 1.0, 0.01, 0.08)
 }
 
-fn aaec(cfg: AaecConfig, initial: f64) -> Aaec {
-    let fallback = Box::new(MeanAe::new(MeanAeConfig::default(), limits(), initial).unwrap());
-    Aaec::new(cfg, Response::linear(), limits(), initial, fallback).unwrap()
-}
-
 /// Contrast a detector needs (grey levels between white and black cells).
 const FOUND: f64 = 40.0;
 

@@ -4,7 +4,8 @@
 #![allow(dead_code)]
 
 use markhold_exposure::{
-    Corners, ExposureController, ExposureLimits, Frame, GradientMetric, MetricParams, Response, Roi,
+    Aaec, AaecConfig, Corners, ExposureController, ExposureLimits, Frame, GradientMetric, MeanAe,
+    MeanAeConfig, MetricParams, Response, Roi,
 };
 
 pub const W: u32 = 320;
@@ -16,6 +17,12 @@ pub fn limits() -> ExposureLimits {
         max_us: 30_000.0,
         fps: 30.0,
     }
+}
+
+/// AAEC on a linear camera with the mean AE as its fallback, both from `initial`.
+pub fn aaec(cfg: AaecConfig, initial: f64) -> Aaec {
+    let fallback = Box::new(MeanAe::new(MeanAeConfig::default(), limits(), initial).unwrap());
+    Aaec::new(cfg, Response::linear(), limits(), initial, fallback).unwrap()
 }
 
 /// Irradiance map in units where `E * t_us / FULL_WELL_US = 1` is full well.
