@@ -4,9 +4,11 @@
 //! At start-up: open the device (empty id: the first one Aravis finds), ExposureAuto and
 //! GainAuto off, Mono8 (or an 8-bit Bayer format, converted to grey), the calibration's
 //! width and height, the site's frame rate and gain, exposure chunks on where the camera
-//! has them, then a small pool of buffers queued on the stream. Per frame: one buffer is
-//! popped, copied (or debayered) into the caller's frame and queued again; nothing is
-//! allocated on our side after start-up.
+//! has them, then a small pool of buffers queued on the stream. Per frame: the newest
+//! filled buffer is popped (older ones waiting behind it are queued again unread, so a
+//! slow loop acts on the latest picture rather than falling behind), copied (or
+//! debayered) into the caller's frame and queued again; nothing is allocated on our side
+//! after start-up.
 //!
 //! The exposure each frame was taken with comes from the frame's `ExposureTime` chunk
 //! when the camera sends chunks, else from the `ExposureTime` feature read after the
@@ -137,6 +139,11 @@ pub struct GenicamCamera {
     seq: u64,
     /// Buffers the camera could not fill (incomplete, lost packets), skipped.
     pub skipped: u64,
+    /// Complete frames passed over because a newer one was already waiting, or because
+    /// the camera had dropped newer ones while every buffer was full.
+    pub stale: u64,
+    /// The stream's underrun count at the last frame delivered.
+    underruns: u64,
     /// Debayered image (allocated once at start-up for Bayer cameras).
     grey: core::Mat,
 }
@@ -414,6 +421,8 @@ impl GenicamCamera {
             last_stamp_s: f64::NEG_INFINITY,
             seq: 0,
             skipped: 0,
+            stale: 0,
+            underruns: 0,
             grey,
         };
         me.write_exposure(limits.clamp(cfg.initial_us))
@@ -615,13 +624,37 @@ impl Camera for GenicamCamera {
             seq: me.seq,
             reason,
         };
+        let mut waited = false;
         loop {
-            let Some(buffer) = self.stream.timeout_pop_buffer(self.timeout_us) else {
+            let Some(mut buffer) = self.stream.timeout_pop_buffer(self.timeout_us) else {
                 return Err(read_err(
                     self,
                     format!("no frame within {} ms", self.timeout_us / 1000),
                 ));
             };
+            // Frames that queued while the loop was busy are old news to a station
+            // keeper: act on the newest and give the older buffers back to the camera.
+            while let Some(newer) = self.stream.try_pop_buffer() {
+                if buffer.status() == BufferStatus::Success {
+                    self.stale += 1;
+                }
+                self.stream.push_buffer(buffer);
+                buffer = newer;
+            }
+            // If every buffer was full, the camera dropped frames newer than the newest
+            // queued one: with the pool free again, the next frame is the fresh picture
+            // (at most one frame period away). Waited for once per grab.
+            let underruns = self.stream.statistics().2;
+            if underruns != self.underruns && !waited {
+                self.underruns = underruns;
+                waited = true;
+                if buffer.status() == BufferStatus::Success {
+                    self.stale += 1;
+                }
+                self.stream.push_buffer(buffer);
+                continue;
+            }
+            self.underruns = underruns;
             let status = buffer.status();
             if status != BufferStatus::Success {
                 // Incomplete frame: give the buffer back and wait for the next one.
@@ -667,6 +700,7 @@ impl Drop for GenicamCamera {
             failures,
             underruns,
             skipped = self.skipped,
+            stale = self.stale,
             "GenICam stream closed"
         );
     }

@@ -263,6 +263,37 @@ fn fake_gige_camera_stamps_come_from_the_camera_clock() {
 }
 
 #[test]
+fn after_a_stall_the_next_frame_is_the_newest_not_a_queued_one() {
+    let _l = lock();
+    use_fake_interface(false);
+    let _fake = FakeGv::start();
+    let mut cam = GenicamCamera::open("127.0.0.1", &config(320, 240, 2000.0)).unwrap();
+    let mut f = Frame::default();
+    for _ in 0..3 {
+        cam.grab(&mut f).unwrap();
+    }
+    let before = f.meta.stamp_s;
+    // The loop is busy for 10 frame periods; the pool's 4 buffers fill meanwhile.
+    std::thread::sleep(Duration::from_millis(330));
+    cam.grab(&mut f).unwrap();
+    let gap = f.meta.stamp_s - before;
+    eprintln!("genicam fake: after a 330 ms stall the next frame is {gap:.3} s newer");
+    // Taking the queued buffers in order would give the frame after `before` (33 ms).
+    assert!(gap > 0.25, "the frame after the stall is {gap:.3} s newer");
+    assert!(cam.stale >= 2, "{} stale frames passed over", cam.stale);
+    // Keeping up again, consecutive frames follow one another.
+    let stale = cam.stale;
+    let mut last = f.meta.stamp_s;
+    for _ in 0..5 {
+        cam.grab(&mut f).unwrap();
+        let dt = f.meta.stamp_s - last;
+        assert!(dt > 0.0 && dt < 0.1, "frame interval {dt:.3} s");
+        last = f.meta.stamp_s;
+    }
+    assert!(cam.stale - stale <= 1, "{} passed over", cam.stale - stale);
+}
+
+#[test]
 fn start_up_checks_name_the_device_and_the_problem() {
     let _l = lock();
     use_fake_interface(false);
