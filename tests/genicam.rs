@@ -281,16 +281,22 @@ fn after_a_stall_the_next_frame_is_the_newest_not_a_queued_one() {
     // Taking the queued buffers in order would give the frame after `before` (33 ms).
     assert!(gap > 0.25, "the frame after the stall is {gap:.3} s newer");
     assert!(cam.stale >= 2, "{} stale frames passed over", cam.stale);
-    // Keeping up again, consecutive frames follow one another.
-    let stale = cam.stale;
+    // Keeping up again, each grab passes over exactly the frames that arrived since the
+    // last one but the newest (none when the loop keeps pace). Checked while fewer than
+    // the pool's 4 buffers filled, where the count is exact.
+    let period = 1.0 / cam.exposure_limits().fps;
     let mut last = f.meta.stamp_s;
     for _ in 0..5 {
+        let stale = cam.stale;
         cam.grab(&mut f).unwrap();
         let dt = f.meta.stamp_s - last;
-        assert!(dt > 0.0 && dt < 0.1, "frame interval {dt:.3} s");
+        let arrived = (dt / period).round() as u64;
+        assert!(arrived >= 1, "frame interval {dt:.3} s");
+        if arrived < 4 {
+            assert_eq!(cam.stale - stale, arrived - 1, "frame interval {dt:.3} s");
+        }
         last = f.meta.stamp_s;
     }
-    assert!(cam.stale - stale <= 1, "{} passed over", cam.stale - stale);
 }
 
 #[test]
@@ -469,12 +475,10 @@ fn run_with_fake_genicam_camera_on_hil_vehicle() {
         serde_json::from_str(&std::fs::read_to_string(&summary).unwrap()).unwrap();
     eprintln!("genicam run: {report}");
     assert_eq!(report["stopped_by"], "max_seconds", "{report}");
-    // 2 s of camera time at 30 fps; frames the loop was too slow for (2 shared cores)
-    // are lost by the stream, the rest come in order.
+    // 2 s of camera time at 30 fps; when the loop is slower (2 shared cores) each grab
+    // takes the newest frame and passes over the rest.
     let frames = report["frames"].as_u64().unwrap();
-    assert!((30..=64).contains(&frames), "{report}");
-    let loop_s = report["loop_seconds"].as_f64().unwrap();
-    assert!((2.0..2.2).contains(&loop_s), "{report}");
+    assert!((10..=64).contains(&frames), "{report}");
     // A ramp, no marker.
     assert_eq!(report["detected"], 0, "{report}");
     // The vehicle heard markhold's pilot input on (nearly) every frame.
@@ -485,12 +489,14 @@ fn run_with_fake_genicam_camera_on_hil_vehicle() {
     // site's limits, and the loop's clock is the camera's.
     let buf = std::fs::read(&rec).unwrap();
     let mut exposures = Vec::new();
+    let mut stamps = Vec::new();
     let mut commands = 0;
     for m in mcap::MessageStream::new(&buf).unwrap() {
         let m = m.unwrap();
         if m.channel.topic == TOPIC_FRAME {
             let v: FrameMsg = serde_json::from_slice(&m.data).unwrap();
             exposures.push(v.exposure_us);
+            stamps.push(v.stamp_s);
         } else if m.channel.topic == TOPIC_COMMAND {
             commands += 1;
         }
@@ -498,6 +504,14 @@ fn run_with_fake_genicam_camera_on_hil_vehicle() {
     let dropped = report["record"]["frames_dropped"].as_u64().unwrap();
     assert_eq!(exposures.len() as u64 + dropped, frames, "{report}");
     assert_eq!(commands, exposures.len());
+    // The run stops at the first frame 2 s after the first: within one frame gap of it.
+    let gap = stamps.windows(2).map(|w| w[1] - w[0]).fold(0.0, f64::max);
+    assert!(gap > 0.0, "stamps {stamps:?}");
+    let loop_s = report["loop_seconds"].as_f64().unwrap();
+    assert!(
+        loop_s >= 2.0 && loop_s <= 2.0 + gap + 1e-6,
+        "gap {gap}: {report}"
+    );
     let site = params::load(&site_path()).unwrap();
     let lim = site.limits();
     for e in &exposures {
