@@ -248,7 +248,13 @@ fn flood(receive_task: bool) {
     );
     // The flood really reached the link and was read (100 000 sent in 10 s).
     assert!(rx_flood >= rx_quiet + 90_000, "{rx_quiet} / {rx_flood}");
-    // Every frame still commands within one frame period, and station is held.
-    assert!(p99_flood < 1000.0 / 30.0, "p99 {p99_flood} ms");
+    // The flood takes no part in the loop: on lockstep HIL (same seed, same frames) the
+    // flooded run ends where the quiet one does, to the bit, and station is held. The
+    // latency figures are printed for the notes, not asserted (wall clock).
+    assert_eq!(
+        (err_flood.to_bits(), det_flood.to_bits()),
+        (err_quiet.to_bits(), det_quiet.to_bits()),
+        "station error {err_quiet:e} / {err_flood:e} m, detection {det_quiet} / {det_flood}"
+    );
     assert!(err_flood < 0.1 && det_flood > 0.95);
 }
