@@ -6,9 +6,18 @@
 
 use std::net::SocketAddr;
 use std::path::Path;
+use std::sync::{Mutex, MutexGuard};
 
 use markhold::hil_run::{HilOptions, HilRun};
 use markhold::params::{self, LoadedSite};
+
+/// One test at a time: the soak reads the process's peak RSS, which a flood test's
+/// simulator, built in parallel, would raise.
+static ONE_AT_A_TIME: Mutex<()> = Mutex::new(());
+
+fn one_at_a_time() -> MutexGuard<'static, ()> {
+    ONE_AT_A_TIME.lock().unwrap_or_else(|p| p.into_inner())
+}
 
 fn small_site() -> LoadedSite {
     small_site_with(false)
@@ -68,6 +77,7 @@ fn udp_rx_queue(addr: SocketAddr) -> Option<u64> {
 
 #[test]
 fn station_keeping_soak() {
+    let _one = one_at_a_time();
     let seconds: f64 = std::env::var("MARKHOLD_SOAK_SECONDS")
         .ok()
         .and_then(|v| v.parse().ok())
@@ -240,6 +250,7 @@ fn mavlink_flood_does_not_break_station_keeping_read_on_tick() {
 }
 
 fn flood(receive_task: bool) {
+    let _one = one_at_a_time();
     let (p99_quiet, err_quiet, det_quiet, rx_quiet) = flood_run(false, receive_task);
     let (p99_flood, err_flood, det_flood, rx_flood) = flood_run(true, receive_task);
     println!(

@@ -337,7 +337,12 @@ fn run(
                             ..Default::default()
                         }));
                     }
-                    MavMessage::SET_POSITION_TARGET_LOCAL_NED(d) => g.setpoints.push(d),
+                    MavMessage::SET_POSITION_TARGET_LOCAL_NED(d) => {
+                        // In setpoint mode a setpoint is the loop's tick: the fake's
+                        // heartbeats follow loop time, as they do with overrides.
+                        g.setpoints.push(d);
+                        g.steps += 1;
+                    }
                     MavMessage::VISION_POSITION_ESTIMATE(d) => g.vision.push(d),
                     #[allow(deprecated)]
                     MavMessage::SET_GPS_GLOBAL_ORIGIN(d) => {
@@ -347,8 +352,8 @@ fn run(
                     other => g.other.push((h.system_id, format!("{other:?}"))),
                 }
             }
-            // Heartbeat + telemetry: every 10 plant steps (sim time), and at least at 10 Hz
-            // of wall time when nothing steps the plant.
+            // Heartbeat + telemetry: every 10 plant steps or setpoints (loop time), and at
+            // least at 10 Hz of wall time when nothing steps the plant.
             let due =
                 g.steps >= last_hb_step + 10 || last_hb.elapsed() > Duration::from_millis(100);
             if g.heartbeats_on && due {
