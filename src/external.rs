@@ -41,7 +41,25 @@ pub struct ExternalCamera {
     limits: ExposureLimits,
     period: Duration,
     started: Instant,
+    /// The frame slot (of `period` since `started`) the next frame may take at the earliest.
     frames: u64,
+    /// Slots that passed while the loop was busy: frames a real camera took and the loop
+    /// never saw.
+    passed_over: u64,
+}
+
+/// The slot a frame grabbed `elapsed_s` after the camera started takes, when the next
+/// slot not yet used is `next`: `next` itself if its time has not come yet (the caller
+/// waits for it), else the newest slot whose time has come. A real camera runs at its
+/// own rate: a late loop gets the newest frame, stamped with its own time, never a
+/// backlog stamped as if no time had passed.
+pub fn frame_slot(next: u64, elapsed_s: f64, period_s: f64) -> u64 {
+    let due = (elapsed_s / period_s).floor();
+    if due.is_finite() && due > next as f64 {
+        due as u64
+    } else {
+        next
+    }
 }
 
 impl ExternalCamera {
@@ -69,7 +87,13 @@ impl Camera for ExternalCamera {
 
     fn grab(&mut self, frame: &mut Frame) -> Result<(), CameraError> {
         // A real camera delivers frames at its own rate: so does this one.
-        let due = self.started + self.period * self.frames as u32;
+        let elapsed_s = Instant::now()
+            .saturating_duration_since(self.started)
+            .as_secs_f64();
+        let slot = frame_slot(self.frames, elapsed_s, self.period.as_secs_f64());
+        self.passed_over += slot - self.frames;
+        self.frames = slot;
+        let due = self.started + self.period.mul_f64(self.frames as f64);
         if let Some(wait) = due.checked_duration_since(Instant::now()) {
             std::thread::sleep(wait);
         }
@@ -161,6 +185,7 @@ pub fn run_external(
         period: Duration::from_secs_f64(1.0 / fps),
         started: Instant::now(),
         frames: 0,
+        passed_over: 0,
     };
 
     let mode = s.link.mode.ardusub();
@@ -193,7 +218,9 @@ pub fn run_external(
     };
     let frames = (opts.seconds * fps).round().max(1.0) as u64;
     let mut stats = RunStats::new(frames as usize, t_world_marker, t_marker_station);
-    for _ in 0..frames {
+    // Until the camera's clock reaches the run's length: frames the loop was too slow
+    // for are passed over, not made up for afterwards.
+    while cam.frames < frames {
         if let Some(p) = pose_from_telemetry(pipeline.link.state()) {
             cam.set_vehicle_pose(p);
         }
@@ -203,6 +230,13 @@ pub fn run_external(
     }
     let now = cam.frames as f64 / fps;
     pipeline.link.send_neutral(now)?;
+    if cam.passed_over > 0 {
+        tracing::info!(
+            passed_over = cam.passed_over,
+            of = cam.frames,
+            "external vehicle: camera frames the loop was too slow for"
+        );
+    }
     Ok(stats.summary(
         method,
         scenario,
@@ -210,4 +244,23 @@ pub fn run_external(
         started.elapsed().as_secs_f64(),
         0,
     ))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::frame_slot;
+
+    #[test]
+    fn a_late_loop_takes_the_newest_slot_and_an_early_one_waits() {
+        let p = 1.0 / 30.0;
+        // Early or on time: the next slot (the caller sleeps until it is due).
+        assert_eq!(frame_slot(0, 0.0, p), 0);
+        assert_eq!(frame_slot(5, 0.1, p), 5);
+        assert_eq!(frame_slot(3, 3.5 * p, p), 3);
+        // 10.5 periods in with slot 4 next: slots 4..=9 passed, 10 is the newest.
+        assert_eq!(frame_slot(4, 10.5 * p, p), 10);
+        // Nonsense clocks leave the slot alone.
+        assert_eq!(frame_slot(7, f64::NAN, p), 7);
+        assert_eq!(frame_slot(7, 1.0, 0.0), 7);
+    }
 }
