@@ -137,6 +137,20 @@ fn mean(f: &Frame) -> f64 {
     f.data.iter().map(|&p| p as f64).sum::<f64>() / f.data.len() as f64
 }
 
+/// The simulated GigE camera on loopback, opened at `width` x `height` and `initial_us`.
+/// Dropped in reverse order: the camera closes before the fake stops and the lock goes.
+fn fake_gige_camera(
+    width: u32,
+    height: u32,
+    initial_us: f64,
+) -> (MutexGuard<'static, ()>, FakeGv, GenicamCamera) {
+    let l = lock();
+    use_fake_interface(false);
+    let fake = FakeGv::start();
+    let cam = GenicamCamera::open("127.0.0.1", &config(width, height, initial_us)).unwrap();
+    (l, fake, cam)
+}
+
 /// Set each exposure in turn and grab `per` frames at it; returns (read back by
 /// `set_exposure_us`, frames' meta exposure, frame mean) per frame.
 fn sweep(cam: &mut GenicamCamera, exposures: &[f64], per: usize) -> Vec<(f64, f64, f64)> {
@@ -154,10 +168,7 @@ fn sweep(cam: &mut GenicamCamera, exposures: &[f64], per: usize) -> Vec<(f64, f6
 
 #[test]
 fn fake_gige_camera_exposure_is_set_per_frame_and_read_back() {
-    let _l = lock();
-    use_fake_interface(false);
-    let _fake = FakeGv::start();
-    let mut cam = GenicamCamera::open("127.0.0.1", &config(640, 480, 3000.0)).unwrap();
+    let (_l, _fake, mut cam) = fake_gige_camera(640, 480, 3000.0);
     assert_eq!(cam.name(), "genicam:127.0.0.1");
     // The simulated camera sends no chunk data: the feature is read after each frame.
     assert_eq!(cam.exposure_source(), ExposureSource::FeatureAfterFrame);
@@ -238,10 +249,7 @@ fn fake_gige_camera_exposure_is_set_per_frame_and_read_back() {
 
 #[test]
 fn fake_gige_camera_stamps_come_from_the_camera_clock() {
-    let _l = lock();
-    use_fake_interface(false);
-    let _fake = FakeGv::start();
-    let mut cam = GenicamCamera::open("127.0.0.1", &config(320, 240, 2000.0)).unwrap();
+    let (_l, _fake, mut cam) = fake_gige_camera(320, 240, 2000.0);
     let mut f = Frame::default();
     let mut stamps = Vec::new();
     for k in 0..20u64 {
@@ -264,10 +272,7 @@ fn fake_gige_camera_stamps_come_from_the_camera_clock() {
 
 #[test]
 fn after_a_stall_the_next_frame_is_the_newest_not_a_queued_one() {
-    let _l = lock();
-    use_fake_interface(false);
-    let _fake = FakeGv::start();
-    let mut cam = GenicamCamera::open("127.0.0.1", &config(320, 240, 2000.0)).unwrap();
+    let (_l, _fake, mut cam) = fake_gige_camera(320, 240, 2000.0);
     let mut f = Frame::default();
     for _ in 0..3 {
         cam.grab(&mut f).unwrap();
