@@ -85,6 +85,10 @@ impl Camera for ExternalCamera {
         Ok(self.camera.set_exposure_us(exposure_us))
     }
 
+    fn frames_passed_over(&self) -> u64 {
+        self.passed_over
+    }
+
     fn grab(&mut self, frame: &mut Frame) -> Result<(), CameraError> {
         // A real camera delivers frames at its own rate: so does this one.
         let elapsed_s = Instant::now()

@@ -139,8 +139,9 @@ pub struct GenicamCamera {
     seq: u64,
     /// Buffers the camera could not fill (incomplete, lost packets), skipped.
     pub skipped: u64,
-    /// Complete frames passed over because a newer one was already waiting, or because
-    /// the camera had dropped newer ones while every buffer was full.
+    /// Complete frames passed over, after the first frame delivered, because a newer one
+    /// was already waiting, or because the camera had dropped newer ones while every
+    /// buffer was full. (The stream's underrun statistic, logged at close, counts packets.)
     pub stale: u64,
     /// The stream's underrun count at the last frame delivered.
     underruns: u64,
@@ -635,7 +636,7 @@ impl Camera for GenicamCamera {
             // Frames that queued while the loop was busy are old news to a station
             // keeper: act on the newest and give the older buffers back to the camera.
             while let Some(newer) = self.stream.try_pop_buffer() {
-                if buffer.status() == BufferStatus::Success {
+                if buffer.status() == BufferStatus::Success && self.seq > 0 {
                     self.stale += 1;
                 }
                 self.stream.push_buffer(buffer);
@@ -648,7 +649,7 @@ impl Camera for GenicamCamera {
             if underruns != self.underruns && !waited {
                 self.underruns = underruns;
                 waited = true;
-                if buffer.status() == BufferStatus::Success {
+                if buffer.status() == BufferStatus::Success && self.seq > 0 {
                     self.stale += 1;
                 }
                 self.stream.push_buffer(buffer);
@@ -686,6 +687,10 @@ impl Camera for GenicamCamera {
             self.seq += 1;
             return Ok(());
         }
+    }
+
+    fn frames_passed_over(&self) -> u64 {
+        self.stale
     }
 }
 

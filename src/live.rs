@@ -154,6 +154,8 @@ pub struct RunReport {
     pub vision_stalls: u64,
     /// Disarm on exit (`link.disarm_on_exit` and a signal): how the request ended.
     pub disarm: Option<CommandStatus>,
+    /// Frames the camera took that the loop was too slow to see (it acts on the newest).
+    pub frames_passed_over: u64,
 }
 
 /// How long one `grab` waits for a frame before it hands control back to the loop, so
@@ -198,6 +200,9 @@ impl Camera for LiveCamera {
     }
     fn set_exposure_us(&mut self, exposure_us: f64) -> Result<f64, CameraError> {
         self.inner.set_exposure_us(exposure_us)
+    }
+    fn frames_passed_over(&self) -> u64 {
+        self.inner.frames_passed_over()
     }
     fn grab(&mut self, frame: &mut Frame) -> Result<(), CameraError> {
         if !self.next_valid {
@@ -546,6 +551,7 @@ pub fn run_live(
         foxglove_addr,
         vision_stalls,
         disarm,
+        frames_passed_over: cam.frames_passed_over(),
     })
 }
 

@@ -534,6 +534,12 @@ fn run_cmd(args: RunArgs) -> anyhow::Result<()> {
         "markhold run: {} frames, marker in {}, {:.1} s of camera time, stopped by {:?}",
         report.frames, report.detected, report.loop_seconds, report.stopped_by
     );
+    if report.frames_passed_over > 0 {
+        println!(
+            "  {} camera frames passed over: the loop was slower than the camera and acted on the newest",
+            report.frames_passed_over
+        );
+    }
     if let (Some(r), Some(p)) = (&report.record, &args.record) {
         println!(
             "  recorded to {} ({} images dropped, {} frames dropped)",

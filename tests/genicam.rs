@@ -517,6 +517,14 @@ fn run_with_fake_genicam_camera_on_hil_vehicle() {
         loop_s >= 2.0 && loop_s <= 2.0 + gap + 1e-6,
         "gap {gap}: {report}"
     );
+    // Frames handled and frames passed over for a newer one are frames the camera took
+    // in that time, each counted once.
+    let passed = report["frames_passed_over"].as_u64().unwrap();
+    eprintln!("genicam run: {frames} frames handled, {passed} passed over");
+    assert!(
+        frames + passed <= (loop_s * 30.0).round() as u64 + 2,
+        "{report}"
+    );
     let site = params::load(&site_path()).unwrap();
     let lim = site.limits();
     for e in &exposures {
