@@ -222,8 +222,10 @@ pub fn run_external(
     };
     let frames = (opts.seconds * fps).round().max(1.0) as u64;
     let mut stats = RunStats::new(frames as usize, t_world_marker, t_marker_station);
-    // Until the camera's clock reaches the run's length: frames the loop was too slow
+    // The camera's clock starts with the loop (arming took wall time that is not the
+    // run's), and runs until it reaches the run's length: frames the loop was too slow
     // for are passed over, not made up for afterwards.
+    cam.started = Instant::now();
     while cam.frames < frames {
         if let Some(p) = pose_from_telemetry(pipeline.link.state()) {
             cam.set_vehicle_pose(p);
