@@ -53,7 +53,7 @@ pub struct ExternalCamera {
 /// waits for it), else the newest slot whose time has come. A real camera runs at its
 /// own rate: a late loop gets the newest frame, stamped with its own time, never a
 /// backlog stamped as if no time had passed.
-pub fn frame_slot(next: u64, elapsed_s: f64, period_s: f64) -> u64 {
+fn frame_slot(next: u64, elapsed_s: f64, period_s: f64) -> u64 {
     let due = (elapsed_s / period_s).floor();
     if due.is_finite() && due > next as f64 {
         due as u64
@@ -236,9 +236,9 @@ pub fn run_external(
     }
     let now = cam.frames as f64 / fps;
     pipeline.link.send_neutral(now)?;
-    if cam.passed_over > 0 {
+    if cam.frames_passed_over() > 0 {
         tracing::info!(
-            passed_over = cam.passed_over,
+            passed_over = cam.frames_passed_over(),
             of = cam.frames,
             "external vehicle: camera frames the loop was too slow for"
         );

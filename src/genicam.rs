@@ -142,7 +142,7 @@ pub struct GenicamCamera {
     /// Complete frames passed over, after the first frame delivered, because a newer one
     /// was already waiting, or because the camera had dropped newer ones while every
     /// buffer was full. (The stream's underrun statistic, logged at close, counts packets.)
-    pub stale: u64,
+    stale: u64,
     /// The stream's underrun count at the last frame delivered.
     underruns: u64,
     /// Debayered image (allocated once at start-up for Bayer cameras).
@@ -524,6 +524,15 @@ impl GenicamCamera {
         Ok(back)
     }
 
+    /// Give `buffer` back to the stream unread, counting it when it held a complete frame
+    /// after the first one delivered (what queued during start-up was never the loop's).
+    fn pass_over(&mut self, buffer: Buffer) {
+        if buffer.status() == BufferStatus::Success && self.seq > 0 {
+            self.stale += 1;
+        }
+        self.stream.push_buffer(buffer);
+    }
+
     /// The exposure `buffer` was taken with.
     fn frame_exposure_us(&self, buffer: &Buffer) -> f64 {
         if let Some(parser) = &self.chunks {
@@ -636,26 +645,20 @@ impl Camera for GenicamCamera {
             // Frames that queued while the loop was busy are old news to a station
             // keeper: act on the newest and give the older buffers back to the camera.
             while let Some(newer) = self.stream.try_pop_buffer() {
-                if buffer.status() == BufferStatus::Success && self.seq > 0 {
-                    self.stale += 1;
-                }
-                self.stream.push_buffer(buffer);
+                self.pass_over(buffer);
                 buffer = newer;
             }
             // If every buffer was full, the camera dropped frames newer than the newest
             // queued one: with the pool free again, the next frame is the fresh picture
             // (at most one frame period away). Waited for once per grab.
             let underruns = self.stream.statistics().2;
-            if underruns != self.underruns && !waited {
-                self.underruns = underruns;
+            let pool_was_full = underruns != self.underruns;
+            self.underruns = underruns;
+            if pool_was_full && !waited {
                 waited = true;
-                if buffer.status() == BufferStatus::Success && self.seq > 0 {
-                    self.stale += 1;
-                }
-                self.stream.push_buffer(buffer);
+                self.pass_over(buffer);
                 continue;
             }
-            self.underruns = underruns;
             let status = buffer.status();
             if status != BufferStatus::Success {
                 // Incomplete frame: give the buffer back and wait for the next one.

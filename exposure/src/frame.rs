@@ -256,9 +256,9 @@ pub trait Camera {
     fn set_exposure_us(&mut self, exposure_us: f64) -> Result<f64, CameraError>;
     /// Wait for the next frame and write it into `frame`.
     fn grab(&mut self, frame: &mut Frame) -> Result<(), CameraError>;
-    /// Frames the camera took after the first one it delivered that the loop never got,
-    /// because the loop was slower than the camera (passed over for a newer frame, or
-    /// dropped for want of a free buffer). Cameras that deliver every frame say 0.
+    /// Frames the camera took after the first one it delivered that `grab` passed over
+    /// for a newer one, because the loop was slower than the camera. Cameras that deliver
+    /// every frame say 0.
     fn frames_passed_over(&self) -> u64 {
         0
     }
