@@ -1,20 +1,15 @@
 //! markhold: keeps an ArduSub vehicle on station in front of a fiducial marker.
 //!
-//! This crate wires the member crates into one loop ([`pipeline`]) and runs it against
-//! the simulated world ([`hil_run`]); `params` reads dive-site files.
+//! The loop ([`pipeline`]) is built in one place from a site file ([`params`]); runners
+//! differ only in their camera, their link and the observers they attach
+//! ([`observe`], [`record`]). [`field`] runs it on a real vehicle; [`sim`] (feature
+//! `sim`, on by default) against the simulated world.
 
-pub mod compare;
-pub mod external;
-pub mod faults;
-pub mod hil_run;
-pub mod live;
+pub mod field;
+pub mod observe;
 pub mod params;
 mod params_validate;
 pub mod pipeline;
-pub mod plots;
 pub mod record;
-pub mod replay;
-pub mod signal;
-pub mod snapshot;
-pub mod summary;
-pub mod trace;
+#[cfg(feature = "sim")]
+pub mod sim;

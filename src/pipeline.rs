@@ -1,17 +1,28 @@
-//! The per-frame loop, the same for live, HIL and replay: only the camera, the link and
-//! where time comes from differ. Data flows one way per frame:
-//! camera -> vision -> station keeper -> link, then exposure -> camera.
+//! The per-frame loop, the same for every runner (`hil`, `hil --vehicle`, `run`,
+//! `replay`): only the camera, the link and the observers differ. Data flows one way per
+//! frame: camera -> vision -> station keeper -> link, then exposure -> camera, then the
+//! observers. [`Pipeline::new`] is the one place the loop is built.
 
+mod failsafe;
+mod observer;
+
+use std::sync::mpsc::SyncSender;
 use std::time::Instant;
 
 use markhold_autopilot::{
-    ArduSubMode, CommandStatus, Directive, Effort, FailsafeEvent, MarkerLostAction,
-    PoseMeasurement, StationKeeper, Supervisor, SupervisorInput, VehicleLink, VehicleState,
+    ArduSubMode, Directive, Effort, FailsafeEvent, PoseMeasurement, RawFrame, StationKeeper,
+    Supervisor, SupervisorInput, VehicleLink, VehicleState,
 };
-use markhold_exposure::{Camera, Corners, ExposureController, ExposureStep, Frame};
+use markhold_exposure::{
+    build_controller, Camera, Corners, ExposureController, ExposureMethod, ExposureStep, Frame,
+};
 use markhold_vision::{MarkerObservation, MarkerTracker, Tracked};
 use nalgebra::{Isometry3, Matrix6};
-use serde::Serialize;
+
+pub use failsafe::{FailsafeActions, ModeTransition, SURFACE_CLIMB_EFFORT};
+pub use observer::{FrameView, Observer, Observers};
+
+use crate::params::LoadedSite;
 
 /// What happened on one frame, for the summary, the recorder and tests.
 #[derive(Debug, Clone, Copy)]
@@ -60,6 +71,9 @@ pub trait CommandLink {
     fn request_arm(&mut self, _arm: bool, _now_s: f64) -> anyhow::Result<()> {
         Ok(())
     }
+    /// Copy every MAVLink frame sent and received to `tap` (a recorder); a link without
+    /// MAVLink has nothing to copy.
+    fn set_raw_tap(&mut self, _tap: Option<SyncSender<RawFrame>>) {}
 }
 
 impl CommandLink for VehicleLink {
@@ -84,252 +98,166 @@ impl CommandLink for VehicleLink {
     fn request_arm(&mut self, arm: bool, now_s: f64) -> anyhow::Result<()> {
         Ok(VehicleLink::request_arm(self, arm, now_s)?)
     }
+    fn set_raw_tap(&mut self, tap: Option<SyncSender<RawFrame>>) {
+        VehicleLink::set_raw_tap(self, tap);
+    }
 }
 
-/// Heave effort (+ down) of the climb when `surface` falls back to ALT_HOLD: half stick
-/// up, i.e. half of ArduSub's pilot climb rate (PILOT_SPEED_UP, 0.5 m/s in the HIL
-/// endpoint), so about 0.25 m/s.
-pub const SURFACE_CLIMB_EFFORT: f64 = -0.5;
-
-/// A mode transition the loop made on its own (marker-loss action and the way back),
-/// logged and kept for the fault reports.
-#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
-#[serde(tag = "transition", rename_all = "snake_case")]
-pub enum ModeTransition {
-    /// The marker-loss action was requested from the vehicle.
-    LossActionRequested {
-        at_s: f64,
-        action: MarkerLostAction,
-        mode: ArduSubMode,
-    },
-    /// The vehicle refused (or never answered) SURFACE: ALT_HOLD with a climb instead.
-    SurfaceFallback { at_s: f64, refused: CommandStatus },
-    /// The vehicle reports the action's mode in its heartbeat.
-    LossActionInMode { at_s: f64, mode: ArduSubMode },
-    /// Marker back: the site's mode requested again, the keeper reset.
-    SiteModeRequested { at_s: f64, mode: ArduSubMode },
-    /// The vehicle reports the site's mode again.
-    SiteModeRestored { at_s: f64, mode: ArduSubMode },
-    /// A mode request of ours ended without the mode (rejected or no answer).
-    ModeRequestFailed {
-        at_s: f64,
-        mode: ArduSubMode,
-        status: CommandStatus,
-    },
-}
-
-/// The marker-loss action in progress, if any.
+/// How a loop starts: the exposure method, where the exposure starts, and the flight
+/// mode the failsafe actions return to (none: replay, which asks the vehicle nothing).
 #[derive(Debug, Clone, Copy, PartialEq)]
-struct LossAction {
-    action: MarkerLostAction,
-    /// The mode asked for now (SURFACE, or ALT_HOLD).
-    mode: ArduSubMode,
-    /// ALT_HOLD with a climb (surface fallback).
-    climb: bool,
-    in_mode: bool,
-}
-
-/// What the loop does about failsafes beyond the supervisor's directive: the marker-loss
-/// action (a mode change) and the way back to the site's mode.
-#[derive(Debug, Clone, Default)]
-pub struct FailsafeActions {
-    /// The site's mode: restored when the marker comes back. `None` (replay): no mode is
-    /// ever requested.
+pub struct LoopStart {
+    pub method: ExposureMethod,
+    /// Clamped to the camera's limits by [`Pipeline::new`].
+    pub initial_exposure_us: f64,
     pub site_mode: Option<ArduSubMode>,
-    loss: Option<LossAction>,
-    /// Site mode requested, not yet seen in the heartbeat.
-    restoring: Option<ArduSubMode>,
-    /// Transitions of the last frame (reused buffer).
-    pub transitions: Vec<ModeTransition>,
 }
 
-impl FailsafeActions {
-    /// For a loop that runs in `site_mode` (requested back after a marker-loss action).
-    pub fn new(site_mode: Option<ArduSubMode>) -> Self {
+impl LoopStart {
+    /// The site's own start: its exposure method and initial exposure, its flight mode.
+    pub fn of_site(site: &LoadedSite) -> Self {
+        let s = &site.site;
         Self {
-            site_mode,
-            loss: None,
-            restoring: None,
-            transitions: Vec::with_capacity(4),
+            method: s.exposure.method,
+            initial_exposure_us: site.limits().clamp(s.camera.initial_exposure_us),
+            site_mode: Some(s.link.mode.ardusub()),
         }
-    }
-
-    /// True while a marker-loss action is in force.
-    pub fn loss_action_active(&self) -> bool {
-        self.loss.is_some()
-    }
-
-    /// The mode the loss action has asked for (SURFACE or ALT_HOLD), if one is in force.
-    pub fn loss_action_mode(&self) -> Option<ArduSubMode> {
-        self.loss.map(|l| l.mode)
-    }
-
-    /// True while the loss action climbs in ALT_HOLD (SURFACE refused).
-    pub fn climbing(&self) -> bool {
-        self.loss.is_some_and(|l| l.climb)
-    }
-
-    fn log(&mut self, t: ModeTransition) {
-        match t {
-            ModeTransition::SurfaceFallback { .. } | ModeTransition::ModeRequestFailed { .. } => {
-                tracing::warn!(transition = ?t, "failsafe mode")
-            }
-            _ => tracing::info!(transition = ?t, "failsafe mode"),
-        }
-        self.transitions.push(t);
-    }
-
-    /// Act on this frame's supervisor events and on the vehicle's answers.
-    fn update<L: CommandLink>(
-        &mut self,
-        link: &mut L,
-        keeper: &mut StationKeeper,
-        events: &[FailsafeEvent],
-        now_s: f64,
-    ) -> anyhow::Result<()> {
-        self.transitions.clear();
-        let Some(site_mode) = self.site_mode else {
-            return Ok(());
-        };
-        for e in events {
-            match *e {
-                FailsafeEvent::MarkerLostActionDue { action, .. } => {
-                    let mode = match action {
-                        MarkerLostAction::None => continue,
-                        MarkerLostAction::AltHold => ArduSubMode::AltHold,
-                        MarkerLostAction::Surface => ArduSubMode::Surface,
-                    };
-                    link.request_mode(mode, now_s)?;
-                    self.restoring = None;
-                    self.loss = Some(LossAction {
-                        action,
-                        mode,
-                        climb: false,
-                        in_mode: false,
-                    });
-                    self.log(ModeTransition::LossActionRequested {
-                        at_s: now_s,
-                        action,
-                        mode,
-                    });
-                }
-                FailsafeEvent::MarkerReacquired { .. } if self.loss.is_some() => {
-                    self.loss = None;
-                    link.request_mode(site_mode, now_s)?;
-                    self.restoring = Some(site_mode);
-                    keeper.reset();
-                    self.log(ModeTransition::SiteModeRequested {
-                        at_s: now_s,
-                        mode: site_mode,
-                    });
-                }
-                _ => {}
-            }
-        }
-        let Some(v) = link.vehicle_state() else {
-            return Ok(());
-        };
-        let (mode_now, status) = (v.mode, v.mode_command);
-        let failed = matches!(
-            status,
-            CommandStatus::Rejected { .. } | CommandStatus::TimedOut
-        );
-        if let Some(mut l) = self.loss {
-            if !l.in_mode && mode_now == Some(l.mode) {
-                l.in_mode = true;
-                self.log(ModeTransition::LossActionInMode {
-                    at_s: now_s,
-                    mode: l.mode,
-                });
-            } else if !l.in_mode && failed {
-                if l.mode == ArduSubMode::Surface {
-                    // ArduSub's SURFACE needs a depth sensor; a vehicle without the mode
-                    // (or one that does not answer) still holds depth and climbs in
-                    // ALT_HOLD with the throttle stick up.
-                    l.mode = ArduSubMode::AltHold;
-                    l.climb = true;
-                    link.request_mode(ArduSubMode::AltHold, now_s)?;
-                    self.log(ModeTransition::SurfaceFallback {
-                        at_s: now_s,
-                        refused: status,
-                    });
-                } else {
-                    self.log(ModeTransition::ModeRequestFailed {
-                        at_s: now_s,
-                        mode: l.mode,
-                        status,
-                    });
-                    // Neutral input goes on; the supervisor keeps the loop neutral.
-                    l.in_mode = true;
-                }
-            }
-            self.loss = Some(l);
-        }
-        if let Some(m) = self.restoring {
-            if mode_now == Some(m) {
-                self.restoring = None;
-                self.log(ModeTransition::SiteModeRestored {
-                    at_s: now_s,
-                    mode: m,
-                });
-            } else if failed {
-                self.restoring = None;
-                self.log(ModeTransition::ModeRequestFailed {
-                    at_s: now_s,
-                    mode: m,
-                    status,
-                });
-            }
-        }
-        Ok(())
     }
 }
 
+/// What a loop is made of, for tests and logs: two runners given the same site and
+/// start build the same loop.
+#[derive(Debug, Clone, PartialEq)]
+pub struct LoopDescription {
+    pub site: String,
+    pub start: LoopStart,
+    pub frame_width: u32,
+    pub frame_height: u32,
+    pub observers: Vec<&'static str>,
+}
+
+/// The loop: vision, exposure, station keeper, failsafe supervisor, a link, and the
+/// observers that see every frame.
 pub struct Pipeline<L: CommandLink = VehicleLink> {
-    pub tracker: MarkerTracker,
-    pub exposure: Box<dyn ExposureController>,
-    pub keeper: StationKeeper,
-    pub link: L,
-    pub supervisor: Supervisor,
-    pub frame: Frame,
+    tracker: MarkerTracker,
+    exposure: Box<dyn ExposureController>,
+    keeper: StationKeeper,
+    link: L,
+    supervisor: Supervisor,
+    frame: Frame,
     /// Failsafe transitions of the last frame (reused buffer).
-    pub events: Vec<FailsafeEvent>,
+    events: Vec<FailsafeEvent>,
     /// Loop time the marker was last seen.
-    pub marker_seen_s: Option<f64>,
+    marker_seen_s: Option<f64>,
     /// Set by a signal handler: the next frame sends neutral and the loop ends.
-    pub shutdown: bool,
+    shutdown: bool,
     /// Loop time of the last frame stepped.
-    pub last_frame_s: Option<f64>,
+    last_frame_s: Option<f64>,
     /// The vehicle's mode changes seen so far: a change resets the station keeper.
-    pub mode_changes_seen: u64,
+    mode_changes_seen: u64,
     /// Marker-loss action and the way back to the site's mode.
-    pub failsafe: FailsafeActions,
+    failsafe: FailsafeActions,
+    observers: Observers,
+    site_name: String,
+    start: LoopStart,
 }
 
 impl<L: CommandLink> Pipeline<L> {
-    /// A loop over these parts, with empty per-frame state.
+    /// The loop of `site`, started as `start`, commanding through `link`, with
+    /// `observers` attached (one of them may tap the link's raw MAVLink).
     pub fn new(
-        tracker: MarkerTracker,
-        exposure: Box<dyn ExposureController>,
-        keeper: StationKeeper,
-        supervisor: Supervisor,
-        link: L,
-        frame: Frame,
-    ) -> Self {
-        Self {
+        site: &LoadedSite,
+        start: LoopStart,
+        mut link: L,
+        observers: Observers,
+    ) -> anyhow::Result<Self> {
+        let s = &site.site;
+        let calib = &site.calibration;
+        let limits = site.limits();
+        let start = LoopStart {
+            initial_exposure_us: limits.clamp(start.initial_exposure_us),
+            ..start
+        };
+        let tracker = MarkerTracker::new(&s.marker, &s.vision, calib.clone())?;
+        let exposure =
+            build_controller(&s.exposure, start.method, limits, start.initial_exposure_us)?;
+        let keeper = StationKeeper::new(&s.station, &s.controller, site.t_vehicle_cam())?;
+        if let Some(tap) = observers.mavlink_tap() {
+            link.set_raw_tap(Some(tap));
+        }
+        Ok(Self {
             tracker,
             exposure,
             keeper,
+            supervisor: Supervisor::new(&s.controller, &s.link),
             link,
-            supervisor,
-            frame,
+            frame: Frame::new(calib.width, calib.height),
             events: Vec::with_capacity(8),
             marker_seen_s: None,
             shutdown: false,
             last_frame_s: None,
             mode_changes_seen: 0,
-            failsafe: FailsafeActions::default(),
+            failsafe: FailsafeActions::new(start.site_mode),
+            observers,
+            site_name: s.site.name.clone(),
+            start,
+        })
+    }
+
+    /// What this loop is made of.
+    pub fn describe(&self) -> LoopDescription {
+        LoopDescription {
+            site: self.site_name.clone(),
+            start: self.start,
+            frame_width: self.frame.width,
+            frame_height: self.frame.height,
+            observers: self.observers.names(),
         }
+    }
+
+    pub fn start(&self) -> LoopStart {
+        self.start
+    }
+
+    pub fn link(&self) -> &L {
+        &self.link
+    }
+
+    pub fn link_mut(&mut self) -> &mut L {
+        &mut self.link
+    }
+
+    /// The last frame stepped (its pixels and metadata).
+    pub fn frame(&self) -> &Frame {
+        &self.frame
+    }
+
+    /// Supervisor transitions of the last frame or tick.
+    pub fn events(&self) -> &[FailsafeEvent] {
+        &self.events
+    }
+
+    pub fn failsafe(&self) -> &FailsafeActions {
+        &self.failsafe
+    }
+
+    /// From the next frame on, send neutral and end (a signal, or a recorded shutdown).
+    pub fn set_shutdown(&mut self, shutdown: bool) {
+        self.shutdown = shutdown;
+    }
+
+    pub fn shutdown_requested(&self) -> bool {
+        self.shutdown
+    }
+
+    /// Finish every observer (recording closed, trace flushed): the first error.
+    pub fn finish_observers(&mut self) -> anyhow::Result<()> {
+        self.observers.finish()
+    }
+
+    /// The run did not start: abort the observers (a half-made recording is removed).
+    pub fn abort_observers(&mut self) {
+        self.observers.abort();
     }
 
     /// Send what the supervisor allows. While the surface fallback climbs in ALT_HOLD,
@@ -463,7 +391,7 @@ impl<L: CommandLink> Pipeline<L> {
         let corners = obs.as_ref().map(|o| o.corners);
         let step = self.exposure.update(&self.frame, corners.as_ref());
         camera.set_exposure_us(step.exposure_us)?;
-        Ok(FrameRecord {
+        let rec = FrameRecord {
             seq: self.frame.meta.seq,
             stamp_s: stamp,
             exposure_used_us: self.frame.meta.exposure_us,
@@ -476,6 +404,31 @@ impl<L: CommandLink> Pipeline<L> {
             effort,
             directive,
             latency_s,
-        })
+        };
+        self.observe(&rec);
+        Ok(rec)
+    }
+
+    /// The frame `rec` (the last one stepped) as observers see it.
+    pub fn view<'a>(&'a self, rec: &'a FrameRecord) -> FrameView<'a> {
+        FrameView {
+            rec,
+            frame: &self.frame,
+            heartbeat_s: self.link.vehicle_heartbeat_s(),
+            vehicle: self.link.vehicle_state(),
+            events: &self.events,
+            transitions: &self.failsafe.transitions,
+            shutdown: self.shutdown,
+        }
+    }
+
+    fn observe(&mut self, rec: &FrameRecord) {
+        if self.observers.is_empty() {
+            return;
+        }
+        // The list is taken out for the call so the view can borrow the rest.
+        let mut observers = std::mem::take(&mut self.observers);
+        observers.frame(&self.view(rec));
+        self.observers = observers;
     }
 }

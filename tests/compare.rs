@@ -1,11 +1,12 @@
 //! `markhold compare` end to end on a small site: every table, plot and JSON field, and
 //! the paper's headline result (AAEC sees the marker in adversarial light, Default does not).
+#![cfg(feature = "sim")]
 
 use std::path::Path;
 use std::process::Command;
 
 use indicatif::ProgressBar;
-use markhold::compare::{run_compare, CompareOptions, CompareResults};
+use markhold::sim::compare::{run_compare, CompareOptions, CompareResults};
 use markhold_exposure::ExposureMethod;
 use markhold_hil::scene::LightingScenario;
 

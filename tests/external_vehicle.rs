@@ -2,6 +2,7 @@
 //! Here the external vehicle is hil's own rig, free-running in real time on its own
 //! thread (as ArduSub SITL would be); markhold renders its camera from the vehicle's
 //! LOCAL_POSITION_NED + ATTITUDE telemetry and holds station over loopback UDP.
+#![cfg(feature = "sim")]
 
 use std::path::Path;
 use std::process::Command;
@@ -9,8 +10,8 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
-use markhold::hil_run::{camera_model, marker_spec, start_offset};
 use markhold::params;
+use markhold::sim::hil::{camera_model, marker_spec, start_offset};
 use markhold_exposure::{Camera, Frame};
 use markhold_hil::{EndpointConfig, HilRig, HilSetup, VehicleMotion};
 

@@ -1,11 +1,13 @@
 //! End to end: faults injected into a HIL run (the library's `HilRun`, the same loop the
 //! binary runs), each checked for what the loop must do about it. 640x480 pool fixture.
+#![cfg(feature = "sim")]
 
 use std::path::Path;
 
-use markhold::faults::{FaultKind, FaultReport, FaultSpec, STATION_TOL_M};
-use markhold::hil_run::{HilOptions, HilRun};
 use markhold::params::{self, LoadedSite};
+use markhold::pipeline::Observers;
+use markhold::sim::faults::{FaultKind, FaultReport, FaultSpec, STATION_TOL_M};
+use markhold::sim::hil::{HilOptions, HilRun};
 use markhold_autopilot::{ArduSubMode, Directive};
 use markhold_hil::Truth;
 
@@ -22,8 +24,8 @@ struct Outcome {
     exposure_used_us: Vec<f64>,
     directives: Vec<Directive>,
     detected: Vec<bool>,
-    stats: markhold::faults::CameraFaultStats,
-    relay: Option<markhold::faults::RelayStats>,
+    stats: markhold::sim::faults::CameraFaultStats,
+    relay: Option<markhold::sim::faults::RelayStats>,
 }
 
 fn run(
@@ -53,7 +55,7 @@ fn run_seed(
             .collect(),
         ..HilOptions::default()
     };
-    let mut hil = HilRun::build(site, &opts).unwrap();
+    let mut hil = HilRun::build(site, &opts, Observers::new()).unwrap();
     hil.arm(site.site.link.mode.ardusub()).unwrap();
     let frames = (seconds * site.site.camera.fps).round() as usize;
     let mut out = Outcome {

@@ -1,13 +1,15 @@
 //! Garbage and truncated datagrams on every socket markhold and its HIL world listen on
 //! (the vehicle endpoint, markhold's own link socket, the SITL JSON server): no panic, and
 //! the link keeps working. Loopback only, ports from the OS, every wait bounded.
+#![cfg(feature = "sim")]
 
 use std::net::{SocketAddr, UdpSocket};
 use std::path::Path;
 use std::time::Duration;
 
-use markhold::hil_run::{HilOptions, HilRun};
 use markhold::params;
+use markhold::pipeline::Observers;
+use markhold::sim::hil::{HilOptions, HilRun};
 use markhold_autopilot::FailsafeEvent;
 
 /// Seeded garbage, with the shapes that hurt parsers: empty, one magic byte, a MAVLink 2
@@ -83,14 +85,14 @@ fn garbage_run(to_vehicle: bool, to_link: bool) {
         },
         ..HilOptions::default()
     };
-    let mut hil = HilRun::build(&site, &opts).unwrap();
+    let mut hil = HilRun::build(&site, &opts, Observers::new()).unwrap();
     hil.arm(site.site.link.mode.ardusub()).unwrap();
     let vehicle = hil.rig.mavlink_udp_addr();
     let attacker = UdpSocket::bind("127.0.0.1:0").unwrap();
     attacker
         .set_read_timeout(Some(Duration::from_millis(1)))
         .unwrap();
-    let received_before = hil.pipeline.link.messages_received();
+    let received_before = hil.pipeline.link().messages_received();
     let mut sent = 0;
     let mut events = Vec::new();
     let frames = (opts.seconds * site.site.camera.fps) as u64;
@@ -109,7 +111,7 @@ fn garbage_run(to_vehicle: bool, to_link: bool) {
         }
         let (rec, _) = hil.step().unwrap();
         detected += u64::from(rec.detected);
-        events.extend_from_slice(&hil.pipeline.events);
+        events.extend_from_slice(&hil.pipeline.events());
     }
     assert!(sent > 1000);
     let mut buf = [0u8; 512];
@@ -124,9 +126,9 @@ fn garbage_run(to_vehicle: bool, to_link: bool) {
             .any(|e| matches!(e, FailsafeEvent::VehicleHeartbeatLost { .. })),
         "{events:?}, {to_attacker} datagrams to the garbage sender"
     );
-    let state = hil.pipeline.link.state();
+    let state = hil.pipeline.link().state();
     assert!(state.heartbeat_ok && state.armed, "{state:?}");
-    assert!(hil.pipeline.link.messages_received() > received_before + 100);
+    assert!(hil.pipeline.link().messages_received() > received_before + 100);
     let truth = hil.rig.truth();
     assert!(truth.armed);
     assert!(detected as f64 > 0.95 * frames as f64);

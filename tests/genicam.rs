@@ -6,6 +6,7 @@
 //! The simulated camera draws a diagonal ramp `((x + y + frame_id) % 255) * s` with
 //! `s = 1 + gain + log10(exposure_us / 10000)` (clamped to 0..255), so an image's mean
 //! tells the exposure it was really taken with.
+#![cfg(feature = "sim")]
 
 use std::io::{BufRead, BufReader};
 use std::net::UdpSocket;
@@ -15,12 +16,12 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Mutex, MutexGuard};
 use std::time::{Duration, Instant};
 
-use markhold::hil_run::{camera_model, marker_spec};
-use markhold::live::genicam::{
+use markhold::field::camera::genicam::{
     use_fake_interface, ExposureSource, GenicamCamera, GenicamConfig, GenicamError,
 };
 use markhold::params;
 use markhold::record::{FrameMsg, TOPIC_COMMAND, TOPIC_FRAME};
+use markhold::sim::hil::{camera_model, marker_spec};
 use markhold_exposure::{Camera, ExposureLimits, Frame};
 use markhold_hil::endpoint::EndpointStats;
 use markhold_hil::{EndpointConfig, HilRig, HilSetup, VehicleMotion};

@@ -1,5 +1,6 @@
 //! End-to-end: the built binary holds station in HIL, deterministically, and rejects bad
 //! site files with a message that names the file and the key.
+#![cfg(feature = "sim")]
 
 use std::path::{Path, PathBuf};
 use std::process::Command;

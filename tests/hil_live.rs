@@ -1,6 +1,7 @@
 //! `markhold hil --foxglove`: a simulated run watched live. A raw WebSocket client (the
 //! Foxglove protocol, no client crate) subscribes to the exposure channel while the run
 //! goes on and must receive messages from it.
+#![cfg(feature = "sim")]
 
 use std::io::{BufRead, BufReader, Read, Write};
 use std::net::TcpStream;

@@ -1,14 +1,14 @@
 //! The raw MAVLink tap: a HIL run recorded with the link tapped has a `/mavlink/raw`
 //! channel holding every frame markhold wrote and read, in order, with loop-time stamps,
 //! and each frame parses back to what the link counted.
+#![cfg(feature = "sim")]
 
 use std::path::Path;
 
-use markhold::hil_run::{HilOptions, HilRun};
 use markhold::params;
-use markhold::record::{
-    record_step, RecordConfig, Recorder, RunInfo, MAVLINK_RAW_ENCODING, TOPIC_MAVLINK_RAW,
-};
+use markhold::pipeline::{Observer, Observers};
+use markhold::record::{RecordConfig, Recorder, RunInfo, MAVLINK_RAW_ENCODING, TOPIC_MAVLINK_RAW};
+use markhold::sim::hil::{HilOptions, HilRun};
 use markhold_autopilot::mavlink::dialects::ardupilotmega::MavMessage;
 use markhold_autopilot::mavlink::MavlinkReader;
 
@@ -27,7 +27,7 @@ fn recorded_raw_mavlink_reads_back_as_the_links_traffic() {
         start_on_station: true,
         ..HilOptions::default()
     };
-    let mut hil = HilRun::build(&site, &opts).unwrap();
+    let mut hil = HilRun::build(&site, &opts, Observers::new()).unwrap();
     let info = RunInfo::new(
         "hil",
         &site,
@@ -45,17 +45,17 @@ fn recorded_raw_mavlink_reads_back_as_the_links_traffic() {
         },
     )
     .unwrap();
-    hil.pipeline.link.set_raw_tap(Some(rec.mavlink_tap()));
+    hil.pipeline.link_mut().set_raw_tap(Some(rec.mavlink_tap()));
     hil.arm(site.site.link.mode.ardusub()).unwrap();
     let frames = (opts.seconds * site.site.camera.fps) as usize;
     for _ in 0..frames {
         let (fr, _) = hil.step().unwrap();
-        record_step(&mut rec, &hil.pipeline, &fr);
+        rec.frame(&hil.pipeline.view(&fr));
     }
-    let sent = hil.pipeline.link.messages_sent();
-    let received = hil.pipeline.link.messages_received();
-    assert_eq!(hil.pipeline.link.raw_tap_dropped(), 0);
-    hil.pipeline.link.set_raw_tap(None);
+    let sent = hil.pipeline.link().messages_sent();
+    let received = hil.pipeline.link().messages_received();
+    assert_eq!(hil.pipeline.link().raw_tap_dropped(), 0);
+    hil.pipeline.link_mut().set_raw_tap(None);
     rec.finish().unwrap();
 
     let buf = std::fs::read(&path).unwrap();

@@ -1,20 +1,22 @@
 //! A HIL run recorded to MCAP, read back with the mcap crate, and replayed: the same
 //! build and frames give bit-identical commands. Plus the recorder's loss accounting
 //! and its write-error path.
+#![cfg(feature = "sim")]
 
 use std::collections::BTreeMap;
 use std::io::{Cursor, Seek, SeekFrom, Write};
 use std::path::{Path, PathBuf};
 
-use markhold::hil_run::{HilOptions, HilRun};
 use markhold::params;
 use markhold::pipeline::FrameRecord;
+use markhold::pipeline::{Observer, Observers};
+use markhold::record::replay::replay;
 use markhold::record::{
-    self, CommandMsg, LinkSnapshot, RecordConfig, Recorder, RunInfo, TOPICS, TOPIC_ANNOTATIONS,
+    CommandMsg, LinkSnapshot, RecordConfig, Recorder, RunInfo, TOPICS, TOPIC_ANNOTATIONS,
     TOPIC_COMMAND, TOPIC_DETECTION, TOPIC_EXPOSURE, TOPIC_FAILSAFE, TOPIC_FRAME, TOPIC_IMAGE,
     TOPIC_POSE, TOPIC_VEHICLE,
 };
-use markhold::replay::replay;
+use markhold::sim::hil::{HilOptions, HilRun};
 
 const SITE: &str = "tests/fixtures/pool-640.toml";
 
@@ -56,8 +58,8 @@ fn record_hil(path: &Path, seconds: f64, tamper: &dyn Fn(&mut FrameRecord)) -> R
         seconds,
         ..HilOptions::default()
     };
-    let mut rec = record::open_hil_recorder(&site, &opts, path).unwrap();
-    let mut run = HilRun::build(&site, &opts).unwrap();
+    let mut rec = markhold::sim::hil::open_recorder(&site, &opts, path).unwrap();
+    let mut run = HilRun::build(&site, &opts, Observers::new()).unwrap();
     run.arm(site.site.link.mode.ardusub()).unwrap();
     let n = (seconds * site.site.camera.fps).round() as u64;
     let mut out = Recorded {
@@ -69,9 +71,9 @@ fn record_hil(path: &Path, seconds: f64, tamper: &dyn Fn(&mut FrameRecord)) -> R
     for _ in 0..n {
         let (mut fr, _) = run.step().unwrap();
         tamper(&mut fr);
-        record::record_step(&mut rec, &run.pipeline, &fr);
+        rec.frame(&run.pipeline.view(&fr));
         out.detected += fr.detected as u64;
-        out.events += run.pipeline.events.len() as u64;
+        out.events += run.pipeline.events().len() as u64;
         out.records.push(fr);
     }
     let stats = rec.finish().unwrap();

@@ -1,6 +1,7 @@
 //! `markhold run` end to end: the recorded-frames camera, hil's vehicle endpoint as the
 //! vehicle (free-running on its own thread, like ArduSub would be), a recording that
 //! replays; SIGTERM stops it cleanly; start-up failures exit 2 and leave nothing behind.
+#![cfg(feature = "sim")]
 
 use std::io::{BufRead, BufReader};
 use std::path::{Path, PathBuf};
@@ -9,9 +10,9 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, OnceLock};
 use std::time::{Duration, Instant};
 
-use markhold::hil_run::{camera_model, marker_spec};
 use markhold::params;
 use markhold::record::{CommandMsg, TOPIC_COMMAND};
+use markhold::sim::hil::{camera_model, marker_spec};
 use markhold_exposure::{Camera, Frame};
 use markhold_hil::endpoint::EndpointStats;
 use markhold_hil::{EndpointConfig, HilRig, HilSetup, VehicleMotion};
@@ -167,7 +168,7 @@ fn run_on_hil_vehicle_with_recorded_frames_end_to_end() {
     assert!(cmds.iter().filter(|c| c.directive == "command").count() >= 85);
 
     // The dive replays to the same commands (unless the recorder had to drop images).
-    let out = markhold::replay::replay(&rec).unwrap();
+    let out = markhold::record::replay::replay(&rec).unwrap();
     if report["record"]["images_dropped"] == 0 {
         assert!(out.commands_match, "{out:?}");
         assert_eq!(out.frames_replayed, 90);

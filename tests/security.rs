@@ -2,13 +2,15 @@
 //! and listening sockets bound only to the configured address (loopback by default).
 //! Loopback only (127.0.0.1, and the 127.0.0.2 alias of the loopback interface), ports
 //! from the OS, every wait bounded.
+#![cfg(feature = "sim")]
 
 use std::net::{IpAddr, Ipv4Addr, SocketAddr, UdpSocket};
 use std::path::{Path, PathBuf};
 use std::time::Duration;
 
-use markhold::hil_run::{HilOptions, HilRun};
 use markhold::params::{self, LoadedSite};
+use markhold::pipeline::Observers;
+use markhold::sim::hil::{HilOptions, HilRun};
 use markhold_autopilot::mavlink;
 use markhold_autopilot::{LinkConfig, VehicleLink};
 use mavlink::dialects::ardupilotmega::{MavMessage, RC_CHANNELS_OVERRIDE_DATA};
@@ -109,7 +111,7 @@ fn signed_run_holds_station_and_unsigned_override_is_ignored() {
         start_on_station: true,
         ..HilOptions::default()
     };
-    let mut hil = HilRun::build(&site, &opts).unwrap();
+    let mut hil = HilRun::build(&site, &opts, Observers::new()).unwrap();
     hil.arm(site.site.link.mode.ardusub()).unwrap();
     let vehicle = hil.rig.mavlink_udp_addr();
     let rogue = UdpSocket::bind("127.0.0.1:0").unwrap();
@@ -140,7 +142,7 @@ fn signed_run_holds_station_and_unsigned_override_is_ignored() {
         max_err = max_err.max(station_error(&hil));
     }
     let st = hil.rig.endpoint_stats();
-    let link = hil.pipeline.link.state();
+    let link = hil.pipeline.link().state();
     println!(
         "signed: station error max {max_err:.4} m, final {:.4} m; vehicle: {} pilot inputs \
          accepted, rejected {} unsigned / {} bad signature / {} datagrams; link: received {}, \
@@ -192,7 +194,7 @@ fn wrongly_keyed_markhold_never_commands_the_vehicle_and_says_why() {
         vehicle_signing_key_file: Some(theirs),
         ..HilOptions::default()
     };
-    let mut hil = HilRun::build(&site, &opts).unwrap();
+    let mut hil = HilRun::build(&site, &opts, Observers::new()).unwrap();
     let err = hil
         .arm(site.site.link.mode.ardusub())
         .expect_err("armed with the wrong key")
@@ -214,7 +216,7 @@ fn wrongly_keyed_markhold_never_commands_the_vehicle_and_says_why() {
     }
     let st = hil.rig.endpoint_stats();
     assert_eq!((st.messages, st.pilot_inputs), (0, 0), "{st:?}");
-    assert!(!hil.pipeline.link.state().discovered);
+    assert!(!hil.pipeline.link().state().discovered);
     std::fs::remove_dir_all(&dir).unwrap();
 }
 
@@ -232,7 +234,7 @@ fn unsigned_markhold_is_refused_by_a_signing_vehicle() {
         vehicle_signing_key_file: Some(theirs),
         ..HilOptions::default()
     };
-    let mut hil = HilRun::build(&site, &opts).unwrap();
+    let mut hil = HilRun::build(&site, &opts, Observers::new()).unwrap();
     assert!(hil.arm(site.site.link.mode.ardusub()).is_err());
     let st = hil.rig.endpoint_stats();
     assert!(st.rejected_unsigned > 0, "{st:?}");
@@ -310,6 +312,7 @@ fn every_listener_binds_loopback_by_default_and_the_configured_address_when_give
             seconds: 1.0,
             ..HilOptions::default()
         },
+        Observers::new(),
     )
     .unwrap();
     assert_bound("hil rig", "udp", hil.rig.mavlink_udp_addr(), lo);
@@ -317,7 +320,7 @@ fn every_listener_binds_loopback_by_default_and_the_configured_address_when_give
     assert_bound(
         "markhold link",
         "udp",
-        hil.pipeline.link.local_addr().unwrap(),
+        hil.pipeline.link().local_addr().unwrap(),
         lo,
     );
     drop(hil);

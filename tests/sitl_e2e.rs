@@ -1,5 +1,6 @@
 //! `markhold sitl` end to end: a client written to ArduPilot's published JSON-backend
 //! packet format sends servo packets over loopback UDP and checks the replies.
+#![cfg(feature = "sim")]
 
 use std::net::UdpSocket;
 use std::process::{Command, Stdio};

@@ -3,13 +3,15 @@
 //! drift and no socket queue grows. The default is 1 simulated minute; the full hour:
 //!
 //!   MARKHOLD_SOAK_SECONDS=3600 cargo test --release --test soak -- --nocapture
+#![cfg(feature = "sim")]
 
 use std::net::SocketAddr;
 use std::path::Path;
 use std::sync::{Mutex, MutexGuard};
 
-use markhold::hil_run::{HilOptions, HilRun};
 use markhold::params::{self, LoadedSite};
+use markhold::pipeline::Observers;
+use markhold::sim::hil::{HilOptions, HilRun};
 
 /// One test at a time: the soak reads the process's peak RSS, which a flood test's
 /// simulator, built in parallel, would raise.
@@ -89,7 +91,7 @@ fn station_keeping_soak() {
         start_on_station: true,
         ..HilOptions::default()
     };
-    let mut hil = HilRun::build(&site, &opts).unwrap();
+    let mut hil = HilRun::build(&site, &opts, Observers::new()).unwrap();
     hil.arm(site.site.link.mode.ardusub()).unwrap();
     let fps = site.site.camera.fps;
     let frames = (seconds * fps) as usize;
@@ -103,7 +105,7 @@ fn station_keeping_soak() {
             .norm()
     };
     let vehicle = hil.rig.mavlink_udp_addr();
-    let link = hil.pipeline.link.local_addr().unwrap();
+    let link = hil.pipeline.link().local_addr().unwrap();
     let mut err2 = Vec::with_capacity(frames / window + 1);
     let mut acc = 0.0;
     let mut rss_start = (0, 0);
@@ -201,13 +203,13 @@ fn flood_run(flood: bool, receive_task: bool) -> (f64, f64, f64, u64) {
         faults: vec!["link_cut@100000".parse().unwrap()],
         ..HilOptions::default()
     };
-    let mut hil = HilRun::build(&site, &opts).unwrap();
+    let mut hil = HilRun::build(&site, &opts, Observers::new()).unwrap();
     hil.arm(site.site.link.mode.ardusub()).unwrap();
     let fps = site.site.camera.fps;
     let per_frame = (10_000.0 / fps).round() as usize;
     let frames: Vec<Vec<u8>> = (0..=255u8).map(foreign_attitude).collect();
     let n = (opts.seconds * fps) as usize;
-    let received0 = hil.pipeline.link.messages_received();
+    let received0 = hil.pipeline.link().messages_received();
     let mut lat = Vec::with_capacity(n);
     let mut det = 0;
     for i in 0..n {
@@ -221,7 +223,7 @@ fn flood_run(flood: bool, receive_task: bool) -> (f64, f64, f64, u64) {
         lat.push(rec.latency_s);
         det += usize::from(rec.detected);
     }
-    let state = hil.pipeline.link.state();
+    let state = hil.pipeline.link().state();
     assert!(state.heartbeat_ok && state.armed, "{state:?}");
     let t = hil.rig.truth();
     let err = (hil.t_marker_station.inverse() * hil.t_world_marker.inverse() * t.t_world_vehicle)
@@ -229,10 +231,10 @@ fn flood_run(flood: bool, receive_task: bool) -> (f64, f64, f64, u64) {
         .vector
         .norm();
     (
-        markhold::summary::percentile(&lat, 0.99) * 1e3,
+        markhold::sim::summary::percentile(&lat, 0.99) * 1e3,
         err,
         det as f64 / n as f64,
-        hil.pipeline.link.messages_received() - received0,
+        hil.pipeline.link().messages_received() - received0,
     )
 }
 

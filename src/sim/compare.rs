@@ -16,9 +16,10 @@ use markhold_hil::VehicleMotion;
 use nalgebra::Vector3;
 use serde::{Deserialize, Serialize};
 
-use crate::hil_run::{HilOptions, HilRun};
+use super::hil::{HilOptions, HilRun};
+use super::summary::{convergence_frames, cov_det, rms};
 use crate::params::LoadedSite;
-use crate::summary::{convergence_frames, cov_det, rms};
+use crate::pipeline::Observers;
 
 /// Relative band of "converged" (the 5%).
 pub const CONVERGENCE_TOL: f64 = 0.05;
@@ -435,12 +436,8 @@ fn run_one(
             hil.start_on_station = false;
         }
     }
-    let mut run = HilRun::build(&site, &hil)?;
-    // What `HilRun::build` set the camera to.
-    let initial_exposure_us = site.limits().clamp(
-        hil.initial_exposure_us
-            .unwrap_or(site.site.camera.initial_exposure_us),
-    );
+    let mut run = HilRun::build(&site, &hil, Observers::new())?;
+    let initial_exposure_us = run.pipeline.start().initial_exposure_us;
     run.arm(site.site.link.mode.ardusub())?;
     let t_marker_world = run.t_world_marker.inverse();
     let t_station_marker = run.t_marker_station.inverse();
@@ -461,7 +458,7 @@ fn run_one(
         progress.inc(1);
     }
     let now = run.rig.truth().time_s;
-    run.pipeline.link.send_neutral(now)?;
+    run.pipeline.link_mut().send_neutral(now)?;
     Ok(RunSeries {
         method: job.method,
         lighting: job.lighting,
@@ -1095,7 +1092,7 @@ pub fn write_outputs(out: &CompareOutput, dir: &std::path::Path) -> anyhow::Resu
     let p = dir.join("results.json");
     std::fs::write(&p, json + "\n").with_context(|| format!("writing {}", p.display()))?;
     let mut files = vec!["results.json".to_string()];
-    let plots = crate::plots::write_plots(out, dir)?;
+    let plots = super::plots::write_plots(out, dir)?;
     let md = report_markdown(&out.results, &plots);
     let p = dir.join("report.md");
     std::fs::write(&p, md).with_context(|| format!("writing {}", p.display()))?;

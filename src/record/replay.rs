@@ -7,44 +7,17 @@ use std::path::{Path, PathBuf};
 use anyhow::{bail, Context as _};
 use foxglove::schemas::CompressedImage;
 use foxglove::Decode;
-use markhold_autopilot::{Effort, StationKeeper, Supervisor};
-use markhold_exposure::{
-    build_controller, Camera, CameraError, ExposureLimits, ExposureMethod, Frame, FrameMeta,
-};
-use markhold_vision::{CameraCalibration, MarkerTracker};
+use markhold_autopilot::Effort;
+use markhold_exposure::{Camera, CameraError, ExposureLimits, ExposureMethod, Frame, FrameMeta};
+use markhold_vision::CameraCalibration;
 use opencv::prelude::*;
 use serde::Serialize;
 
 use crate::params::{LoadedSite, Site};
-use crate::pipeline::{CommandLink, Pipeline};
+use crate::pipeline::{CommandLink, LoopStart, Observers, Pipeline};
 use crate::record::{
     CommandMsg, FrameMsg, RunInfo, METADATA_NAME, TOPIC_COMMAND, TOPIC_FRAME, TOPIC_IMAGE,
 };
-
-/// A loop built from a site, for any link: the same construction as `hil`.
-pub fn build_pipeline<L: CommandLink>(
-    site: &LoadedSite,
-    method: ExposureMethod,
-    initial_exposure_us: f64,
-    link: L,
-) -> anyhow::Result<Pipeline<L>> {
-    let s = &site.site;
-    let calib = &site.calibration;
-    Ok(Pipeline {
-        tracker: MarkerTracker::new(&s.marker, &s.vision, calib.clone())?,
-        exposure: build_controller(&s.exposure, method, site.limits(), initial_exposure_us)?,
-        keeper: StationKeeper::new(&s.station, &s.controller, site.t_vehicle_cam())?,
-        supervisor: Supervisor::new(&s.controller, &s.link),
-        link,
-        frame: Frame::new(calib.width, calib.height),
-        events: Vec::with_capacity(8),
-        marker_seen_s: None,
-        shutdown: false,
-        last_frame_s: None,
-        mode_changes_seen: 0,
-        failsafe: Default::default(),
-    })
-}
 
 /// What replay sent: per frame, the effort, or `None` for neutral input.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -248,7 +221,12 @@ pub fn replay(path: &Path) -> anyhow::Result<ReplaySummary> {
             info.exposure_method
         )
     })?;
-    let mut pipeline = build_pipeline(&site, method, info.initial_exposure_us, SinkLink::default())
+    let start = LoopStart {
+        method,
+        initial_exposure_us: info.initial_exposure_us,
+        site_mode: None,
+    };
+    let mut pipeline = Pipeline::new(&site, start, SinkLink::default(), Observers::new())
         .context("rebuilding the recorded loop")?;
     let mut camera = ReplayCamera {
         frame: Frame::new(site.calibration.width, site.calibration.height),
@@ -311,8 +289,8 @@ pub fn replay(path: &Path) -> anyhow::Result<ReplaySummary> {
                     gain_db: f64::from_bits(f.bits.gain),
                 };
                 camera.ready = true;
-                pipeline.link.heartbeat_s = f.bits.heartbeat.map(f64::from_bits);
-                pipeline.shutdown = f.shutdown;
+                pipeline.link_mut().heartbeat_s = f.bits.heartbeat.map(f64::from_bits);
+                pipeline.set_shutdown(f.shutdown);
                 let rec = pipeline.step(&mut camera)?;
                 out.frames_replayed += 1;
                 replayed = Some(CommandMsg::from_record(&rec));

@@ -3,22 +3,25 @@
 use std::path::PathBuf;
 use std::time::{Duration, Instant};
 
+use std::path::Path;
+
 use anyhow::Context;
-use markhold_autopilot::{ArduSubMode, StationKeeper, Supervisor, VehicleLink};
-use markhold_exposure::{build_controller, Camera, ExposureMethod, Frame};
+use markhold_autopilot::{ArduSubMode, VehicleLink};
+use markhold_exposure::{Camera, ExposureMethod};
 use markhold_hil::camera::{CameraModel, RenderLoops};
 use markhold_hil::scene::{LightingScenario, MarkerSpec};
 use markhold_hil::{EndpointConfig, HilRig, HilSetup, Truth, VehicleMotion};
-use markhold_vision::{marker_bitmap, MarkerTracker};
+use markhold_vision::marker_bitmap;
 use nalgebra::{Isometry3, Translation3, UnitQuaternion, Vector3};
 
-use crate::faults::{
+use super::faults::{
     CameraFaults, FaultKind, FaultMonitor, FaultPlan, FaultRig, FaultSpec, FaultyCamera, LinkRelay,
     Projection,
 };
+use super::summary::{RunStats, Summary};
 use crate::params::LoadedSite;
-use crate::pipeline::{FailsafeActions, FrameRecord, Pipeline};
-use crate::summary::{RunStats, Summary};
+use crate::pipeline::{FrameRecord, LoopStart, Observers, Pipeline};
+use crate::record::{RecordConfig, RecordError, Recorder, RunInfo};
 
 /// Options of one HIL run (the command line's flags, or an experiment of `compare`).
 #[derive(Debug, Clone)]
@@ -133,22 +136,64 @@ pub fn marker_spec(site: &LoadedSite) -> anyhow::Result<MarkerSpec> {
     })
 }
 
+/// The loop's start for a HIL run with `opts`: the site's, with the command line's
+/// exposure method and initial exposure where given.
+pub fn loop_start(site: &LoadedSite, opts: &HilOptions) -> LoopStart {
+    let s = &site.site;
+    LoopStart {
+        method: opts.exposure.unwrap_or(s.exposure.method),
+        initial_exposure_us: site.limits().clamp(
+            opts.initial_exposure_us
+                .unwrap_or(s.camera.initial_exposure_us),
+        ),
+        site_mode: Some(s.link.mode.ardusub()),
+    }
+}
+
+/// Open `--record FILE` for a HIL run with `opts`. It waits for the writer when the
+/// queue is full: simulated time waits too, and a lossless recording keeps replay exact.
+pub fn open_recorder(
+    site: &LoadedSite,
+    opts: &HilOptions,
+    path: &Path,
+) -> Result<Recorder, RecordError> {
+    let LoopStart {
+        method,
+        initial_exposure_us: initial,
+        ..
+    } = loop_start(site, opts);
+    let options = format!(
+        "hil --site {} --seconds {} --seed {} --exposure {method} --initial-exposure-us {initial}",
+        site.path.display(),
+        opts.seconds,
+        opts.seed
+    );
+    let info = RunInfo::new("hil", site, method, initial, options)?;
+    let cfg = RecordConfig {
+        wait_when_full: true,
+        ..RecordConfig::default()
+    };
+    Recorder::create(path, &info, cfg)
+}
+
 impl HilRun {
-    pub fn build(site: &LoadedSite, opts: &HilOptions) -> anyhow::Result<Self> {
+    /// The simulated world and the loop against it, with `observers` attached.
+    pub fn build(
+        site: &LoadedSite,
+        opts: &HilOptions,
+        observers: Observers,
+    ) -> anyhow::Result<Self> {
         let s = &site.site;
-        let method = opts.exposure.unwrap_or(s.exposure.method);
+        let start = loop_start(site, opts);
+        let method = start.method;
         let mut lighting_cfg = s.lighting.clone();
         if let Some(l) = opts.lighting {
             lighting_cfg.scenario = l;
         }
         let lighting = lighting_cfg.scenario;
         let limits = site.limits();
-        let initial_us = limits.clamp(
-            opts.initial_exposure_us
-                .unwrap_or(s.camera.initial_exposure_us),
-        );
+        let initial_us = start.initial_exposure_us;
 
-        let calib = &site.calibration;
         let model = camera_model(site, limits);
         let t_marker_station = s.station.t_marker_vehicle();
         let t_world_marker = site.t_world_marker();
@@ -208,23 +253,7 @@ impl HilRun {
         let mut link_cfg = s.link.clone();
         link_cfg.url = format!("udpout:{vehicle_addr}");
         let link = VehicleLink::connect(&link_cfg).context("connecting to the HIL vehicle")?;
-        let exposure = build_controller(&s.exposure, method, limits, initial_us)?;
-        let tracker = MarkerTracker::new(&s.marker, &s.vision, site.calibration.clone())?;
-        let keeper = StationKeeper::new(&s.station, &s.controller, site.t_vehicle_cam())?;
-        let pipeline = Pipeline {
-            tracker,
-            exposure,
-            keeper,
-            supervisor: Supervisor::new(&s.controller, &s.link),
-            link,
-            frame: Frame::new(calib.width, calib.height),
-            events: Vec::with_capacity(8),
-            marker_seen_s: None,
-            shutdown: false,
-            last_frame_s: None,
-            mode_changes_seen: 0,
-            failsafe: FailsafeActions::new(Some(s.link.mode.ardusub())),
-        };
+        let pipeline = Pipeline::new(site, start, link, observers)?;
         Ok(Self {
             rig,
             pipeline,
@@ -239,7 +268,7 @@ impl HilRun {
     /// Arm in the configured mode before the first frame. The handshake is bounded by a
     /// wall-clock deadline: it waits on sockets, not on simulated time.
     pub fn arm(&mut self, mode: ArduSubMode) -> anyhow::Result<()> {
-        let link = &mut self.pipeline.link;
+        let link = self.pipeline.link_mut();
         link.request_mode(mode, 0.0)?;
         link.request_arm(true, 0.0)?;
         let deadline = Instant::now() + Duration::from_secs(5);
@@ -280,12 +309,12 @@ impl HilRun {
         };
         let rec = self.pipeline.step(&mut cam)?;
         let truth = self.rig.truth();
-        let link = self.pipeline.link.state();
+        let link = self.pipeline.link().state();
         f.monitor.observe(
             &rec,
             &truth,
-            &self.pipeline.events,
-            &self.pipeline.failsafe.transitions,
+            self.pipeline.events(),
+            &self.pipeline.failsafe().transitions,
             link.armed,
             link.heartbeat_ok,
         );
@@ -335,44 +364,56 @@ fn dist5(d: &[f64]) -> [f64; 5] {
     out
 }
 
-/// Run a whole HIL session and summarize it. `on_frame` sees every frame (progress,
-/// snapshots, recording).
+/// Run a whole HIL session with `observers` attached and summarize it.
 pub fn run_hil(
     site: &LoadedSite,
     opts: &HilOptions,
-    on_frame: &mut dyn FnMut(&FrameRecord, &Truth, &Frame),
+    observers: Observers,
 ) -> anyhow::Result<Summary> {
     let wall = Instant::now();
-    let mut run = HilRun::build(site, opts)?;
+    let mut run = HilRun::build(site, opts, observers)?;
     run.arm(site.site.link.mode.ardusub())?;
     let frames = (opts.seconds * site.site.camera.fps).round().max(1.0) as u64;
     let mut stats = RunStats::new(frames as usize, run.t_world_marker, run.t_marker_station);
-    for _ in 0..frames {
+    let stepped = (0..frames).try_for_each(|_| {
         let (rec, truth) = run.step()?;
         stats.push(&rec, &truth);
-        on_frame(&rec, &truth, &run.pipeline.frame);
-    }
-    // Leave the vehicle with neutral pilot input.
+        anyhow::Ok(())
+    });
+    // Leave the vehicle with neutral pilot input, and close the observers (a recording
+    // is finalized), also after an error.
     let now = run.rig.truth().time_s;
-    run.pipeline.link.send_neutral(now)?;
+    let neutral = run.pipeline.link_mut().send_neutral(now);
+    let wall_seconds = wall.elapsed().as_secs_f64();
+    let observed = run.pipeline.finish_observers();
+    stepped?;
+    neutral?;
     if let Some(f) = run.faults.as_mut() {
         f.pump_relay(now)?;
     }
-    let mut summary = stats.summary(
-        run.method,
-        run.lighting,
-        opts.seed,
-        wall.elapsed().as_secs_f64(),
-        run.rig.truth().lockstep_timeouts,
-    );
-    let world = run.rig.world_wall_seconds();
-    summary.world_wall_seconds = world;
-    summary.render_loops = run.rig.render_loops().to_string();
-    if world > 0.0 {
-        summary.world_realtime_factor = summary.sim_seconds / world;
+    observed?;
+    Ok(run.summary(&stats, opts, wall_seconds))
+}
+
+impl HilRun {
+    /// The run's summary from its statistics and the world's own timing.
+    fn summary(&mut self, stats: &RunStats, opts: &HilOptions, wall_seconds: f64) -> Summary {
+        let mut summary = stats.summary(
+            self.method,
+            self.lighting,
+            opts.seed,
+            wall_seconds,
+            self.rig.truth().lockstep_timeouts,
+        );
+        let world = self.rig.world_wall_seconds();
+        summary.world_wall_seconds = world;
+        summary.render_loops = self.rig.render_loops().to_string();
+        if world > 0.0 {
+            summary.world_realtime_factor = summary.sim_seconds / world;
+        }
+        if let Some(f) = self.faults.take() {
+            summary.faults = f.monitor.into_reports();
+        }
+        summary
     }
-    if let Some(f) = run.faults.take() {
-        summary.faults = f.monitor.into_reports();
-    }
-    Ok(summary)
 }

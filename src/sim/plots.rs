@@ -18,7 +18,7 @@ use plotters_backend::{
     BackendColor, BackendCoord, BackendStyle, BackendTextStyle, DrawingErrorKind,
 };
 
-use crate::compare::{method_name, CompareOutput, RunKind, RunSeries};
+use super::compare::{method_name, CompareOutput, RunKind, RunSeries};
 
 const SIZE: (u32, u32) = (900, 640);
 

@@ -43,7 +43,7 @@ pub struct Summary {
     /// Frames the HIL vehicle stepped without having received that frame's command.
     pub lockstep_timeouts: u64,
     /// Injected faults (`--fault`) with their timings and what the loop did.
-    pub faults: Vec<crate::faults::FaultReport>,
+    pub faults: Vec<super::faults::FaultReport>,
 }
 
 /// Per-frame series kept during a run (allocated once at the start).

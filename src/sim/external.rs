@@ -9,17 +9,16 @@
 use std::time::{Duration, Instant};
 
 use anyhow::Context;
-use markhold_autopilot::{StationKeeper, Supervisor, VehicleLink, VehicleState};
-use markhold_exposure::{build_controller, Camera, CameraError, ExposureLimits, Frame};
+use markhold_autopilot::{VehicleLink, VehicleState};
+use markhold_exposure::{Camera, CameraError, ExposureLimits, Frame};
 use markhold_hil::camera::UnderwaterCamera;
 use markhold_hil::scene::Scene;
-use markhold_vision::MarkerTracker;
 use nalgebra::{Isometry3, Translation3, UnitQuaternion};
 
-use crate::hil_run::{camera_model, marker_spec, start_offset, HilOptions};
+use super::hil::{camera_model, loop_start, marker_spec, start_offset, HilOptions};
+use super::summary::{RunStats, Summary};
 use crate::params::LoadedSite;
-use crate::pipeline::Pipeline;
-use crate::summary::{RunStats, Summary};
+use crate::pipeline::{Observers, Pipeline};
 
 /// The vehicle's pose from its telemetry (world = its local NED frame).
 pub fn pose_from_telemetry(state: &VehicleState) -> Option<Isometry3<f64>> {
@@ -142,7 +141,7 @@ pub fn run_external(
     site: &LoadedSite,
     url: &str,
     opts: &HilOptions,
-    on_frame: &mut dyn FnMut(&crate::pipeline::FrameRecord, &Frame),
+    observers: Observers,
 ) -> anyhow::Result<Summary> {
     let s = &site.site;
     let started = Instant::now();
@@ -159,17 +158,15 @@ pub fn run_external(
         start_offset(&s.vehicle)
     };
     let t_world_marker = t_world_vehicle0 * offset.inverse() * t_marker_station.inverse();
-    let method = opts.exposure.unwrap_or(s.exposure.method);
+    let start = loop_start(site, opts);
+    let method = start.method;
     let mut lighting = s.lighting.clone();
     if let Some(l) = opts.lighting {
         lighting.scenario = l;
     }
     let scenario = lighting.scenario;
     let limits = site.limits();
-    let initial_us = limits.clamp(
-        opts.initial_exposure_us
-            .unwrap_or(s.camera.initial_exposure_us),
-    );
+    let initial_us = start.initial_exposure_us;
     let scene = Scene::new(
         &s.water,
         &lighting,
@@ -206,20 +203,7 @@ pub fn run_external(
         std::thread::sleep(Duration::from_millis(10));
     }
 
-    let mut pipeline = Pipeline {
-        tracker: MarkerTracker::new(&s.marker, &s.vision, site.calibration.clone())?,
-        exposure: build_controller(&s.exposure, method, limits, initial_us)?,
-        keeper: StationKeeper::new(&s.station, &s.controller, site.t_vehicle_cam())?,
-        supervisor: Supervisor::new(&s.controller, &s.link),
-        link,
-        frame: Frame::new(site.calibration.width, site.calibration.height),
-        events: Vec::with_capacity(8),
-        marker_seen_s: None,
-        shutdown: false,
-        last_frame_s: None,
-        mode_changes_seen: 0,
-        failsafe: crate::pipeline::FailsafeActions::new(Some(mode)),
-    };
+    let mut pipeline = Pipeline::new(site, start, link, observers)?;
     let frames = (opts.seconds * fps).round().max(1.0) as u64;
     let mut stats = RunStats::new(frames as usize, t_world_marker, t_marker_station);
     // The camera's clock starts with the loop (arming took wall time that is not the
@@ -227,15 +211,15 @@ pub fn run_external(
     // for are passed over, not made up for afterwards.
     cam.started = Instant::now();
     while cam.frames < frames {
-        if let Some(p) = pose_from_telemetry(pipeline.link.state()) {
+        if let Some(p) = pose_from_telemetry(pipeline.link().state()) {
             cam.set_vehicle_pose(p);
         }
         let rec = pipeline.step(&mut cam)?;
         stats.push_external(&rec, &cam.t_world_vehicle, &cam.t_vehicle_cam);
-        on_frame(&rec, &pipeline.frame);
     }
     let now = cam.frames as f64 / fps;
-    pipeline.link.send_neutral(now)?;
+    pipeline.link_mut().send_neutral(now)?;
+    pipeline.finish_observers()?;
     if cam.frames_passed_over() > 0 {
         tracing::info!(
             passed_over = cam.frames_passed_over(),

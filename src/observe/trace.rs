@@ -5,7 +5,7 @@ use std::path::{Path, PathBuf};
 
 use anyhow::Context;
 
-use crate::pipeline::FrameRecord;
+use crate::pipeline::{FrameRecord, FrameView, Observer};
 
 pub struct TraceWriter {
     path: PathBuf,
@@ -68,12 +68,24 @@ impl TraceWriter {
     }
 
     /// Flush and report the first write error, naming the file.
-    pub fn finish(mut self) -> anyhow::Result<()> {
+    fn flush_and_report(&mut self) -> anyhow::Result<()> {
         if let Some(e) = self.error.take() {
             return Err(e).with_context(|| format!("writing --trace {}", self.path.display()));
         }
         self.out
             .flush()
             .with_context(|| format!("writing --trace {}", self.path.display()))
+    }
+}
+
+impl Observer for TraceWriter {
+    fn name(&self) -> &'static str {
+        "trace"
+    }
+    fn frame(&mut self, view: &FrameView<'_>) {
+        self.row(view.rec);
+    }
+    fn finish(mut self: Box<Self>) -> anyhow::Result<()> {
+        self.flush_and_report()
     }
 }

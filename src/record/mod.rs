@@ -44,7 +44,9 @@ use markhold_exposure::{Frame, FrameMeta};
 use serde::{Deserialize, Serialize};
 
 use crate::params::LoadedSite;
-use crate::pipeline::{CommandLink, FrameRecord, Pipeline};
+use crate::pipeline::{FrameRecord, FrameView, Observer};
+
+pub mod replay;
 
 pub const TOPIC_IMAGE: &str = "/camera/image";
 pub const TOPIC_ANNOTATIONS: &str = "/camera/annotations";
@@ -260,6 +262,14 @@ impl Shared {
                 tracing::error!("recording: write failed, the loop goes on without it: {e}");
                 *slot = Some(e.to_string());
             }
+        }
+    }
+    fn stats(&self) -> RecordStats {
+        RecordStats {
+            frames: self.frames.load(Ordering::Relaxed),
+            images_dropped: self.images_dropped.load(Ordering::Relaxed),
+            frames_dropped: self.frames_dropped.load(Ordering::Relaxed),
+            write_error: self.write_error.lock().ok().and_then(|s| s.clone()),
         }
     }
     fn failed(&self) -> bool {
@@ -566,12 +576,12 @@ impl Recorder {
 
     /// Counters so far.
     pub fn stats(&self) -> RecordStats {
-        RecordStats {
-            frames: self.shared.frames.load(Ordering::Relaxed),
-            images_dropped: self.shared.images_dropped.load(Ordering::Relaxed),
-            frames_dropped: self.shared.frames_dropped.load(Ordering::Relaxed),
-            write_error: self.shared.write_error.lock().ok().and_then(|s| s.clone()),
-        }
+        self.shared.stats()
+    }
+
+    /// A handle on the counters that outlives the recorder.
+    pub fn stats_handle(&self) -> RecordStatsHandle {
+        RecordStatsHandle(self.shared.clone())
     }
 
     /// Write what is queued, finalize the file and return what was recorded.
@@ -1018,113 +1028,57 @@ impl WriterThread {
     }
 }
 
-/// Record the frame `pipeline` just stepped (what its link knew, its events).
-pub fn record_step<L: CommandLink>(rec: &mut Recorder, pipeline: &Pipeline<L>, fr: &FrameRecord) {
-    let snap = LinkSnapshot {
-        heartbeat_s: pipeline.link.vehicle_heartbeat_s(),
-        vehicle: pipeline.link.vehicle_state().cloned(),
-    };
-    rec.record(
-        fr,
-        &pipeline.frame,
-        &snap,
-        pipeline.shutdown,
-        &pipeline.events,
-    );
+/// Reads a recorder's counters, also after the recorder was handed to the loop and
+/// finished there.
+#[derive(Clone)]
+pub struct RecordStatsHandle(Arc<Shared>);
+
+impl RecordStatsHandle {
+    pub fn get(&self) -> RecordStats {
+        self.0.stats()
+    }
 }
 
-/// `run_hil` with every frame recorded. The recorder is finished by the caller, also
-/// when this returns an error.
-pub fn run_hil_recorded(
-    site: &LoadedSite,
-    opts: &crate::hil_run::HilOptions,
-    recorder: &mut Recorder,
-    on_frame: &mut dyn FnMut(&FrameRecord, &markhold_hil::Truth, &Frame),
-) -> anyhow::Result<crate::summary::Summary> {
-    use crate::hil_run::HilRun;
-    let wall = std::time::Instant::now();
-    let mut run = HilRun::build(site, opts)?;
-    // Every MAVLink frame markhold sends or receives goes to /mavlink/raw.
-    run.pipeline.link.set_raw_tap(Some(recorder.mavlink_tap()));
-    run.arm(site.site.link.mode.ardusub())?;
-    let frames = (opts.seconds * site.site.camera.fps).round().max(1.0) as u64;
-    let mut stats =
-        crate::summary::RunStats::new(frames as usize, run.t_world_marker, run.t_marker_station);
-    for _ in 0..frames {
-        let (rec, truth) = run.step()?;
-        record_step(recorder, &run.pipeline, &rec);
-        stats.push(&rec, &truth);
-        on_frame(&rec, &truth, &run.pipeline.frame);
+impl Observer for Recorder {
+    fn name(&self) -> &'static str {
+        if self.path.is_some() {
+            "recorder"
+        } else {
+            "live view"
+        }
     }
-    // As `run_hil`: neutral input, then the fault reports.
-    let now = run.rig.truth().time_s;
-    run.pipeline.link.send_neutral(now)?;
-    if let Some(f) = run.faults.as_mut() {
-        f.pump_relay(now)?;
+    fn frame(&mut self, v: &FrameView<'_>) {
+        let link = LinkSnapshot {
+            heartbeat_s: v.heartbeat_s,
+            vehicle: v.vehicle.cloned(),
+        };
+        self.record(v.rec, v.frame, &link, v.shutdown, v.events);
     }
-    let mut summary = stats.summary(
-        run.method,
-        run.lighting,
-        opts.seed,
-        wall.elapsed().as_secs_f64(),
-        run.rig.truth().lockstep_timeouts,
-    );
-    if let Some(f) = run.faults.take() {
-        summary.faults = f.monitor.into_reports();
+    /// Finalize the file and say what it holds; a write error met during the run (the
+    /// run went on without the recording) is an error here.
+    fn finish(self: Box<Self>) -> anyhow::Result<()> {
+        let path = self.path.clone();
+        let stats = (*self).finish()?;
+        let Some(path) = path else { return Ok(()) };
+        eprintln!(
+            "markhold: recorded {} frames to {} ({} images dropped, {} frames dropped)",
+            stats.frames,
+            path.display(),
+            stats.images_dropped,
+            stats.frames_dropped
+        );
+        if let Some(reason) = &stats.write_error {
+            return Err(RecordError::Write {
+                reason: format!("{}: {reason}", path.display()),
+            }
+            .into());
+        }
+        Ok(())
     }
-    Ok(summary)
-}
-
-/// The exposure method and initial exposure a HIL run with `opts` uses (as `HilRun`).
-pub fn hil_exposure_start(
-    site: &LoadedSite,
-    opts: &crate::hil_run::HilOptions,
-) -> (markhold_exposure::ExposureMethod, f64) {
-    let s = &site.site;
-    let method = opts.exposure.unwrap_or(s.exposure.method);
-    let initial = site.limits().clamp(
-        opts.initial_exposure_us
-            .unwrap_or(s.camera.initial_exposure_us),
-    );
-    (method, initial)
-}
-
-/// Open `--record FILE` for a HIL run with `opts`.
-pub fn open_hil_recorder(
-    site: &LoadedSite,
-    opts: &crate::hil_run::HilOptions,
-    path: &Path,
-) -> Result<Recorder, RecordError> {
-    let (method, initial) = hil_exposure_start(site, opts);
-    let options = format!(
-        "hil --site {} --seconds {} --seed {} --exposure {method} --initial-exposure-us {initial}",
-        site.path.display(),
-        opts.seconds,
-        opts.seed
-    );
-    let info = RunInfo::new("hil", site, method, initial, options)?;
-    let cfg = RecordConfig {
-        wait_when_full: true,
-        ..RecordConfig::default()
-    };
-    Recorder::create(path, &info, cfg)
-}
-
-/// Finish a recording and say what it holds; a write error during the run is an
-/// error here (the run itself went on).
-pub fn finish_and_report(recorder: Recorder, path: &Path) -> Result<RecordStats, RecordError> {
-    let stats = recorder.finish()?;
-    eprintln!(
-        "markhold: recorded {} frames to {} ({} images dropped, {} frames dropped)",
-        stats.frames,
-        path.display(),
-        stats.images_dropped,
-        stats.frames_dropped
-    );
-    if let Some(reason) = &stats.write_error {
-        return Err(RecordError::Write {
-            reason: format!("{}: {reason}", path.display()),
-        });
+    fn abort(self: Box<Self>) {
+        (*self).abort();
     }
-    Ok(stats)
+    fn mavlink_tap(&self) -> Option<SyncSender<markhold_autopilot::RawFrame>> {
+        Some(self.tap.clone())
+    }
 }

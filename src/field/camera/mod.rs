@@ -1,0 +1,221 @@
+//! Where a live run's frames come from: the `--camera` URL, and the real cameras that
+//! need this crate's dependencies (GenICam through Aravis). Cameras that OpenCV reads
+//! (V4L2, recorded frames) live in `markhold-vision`.
+
+use std::path::PathBuf;
+use std::str::FromStr;
+use std::time::{Duration, Instant};
+
+use markhold_exposure::{Camera, CameraError, ExposureLimits, Frame};
+use markhold_vision::{RecordedCamera, V4l2Camera};
+
+use super::run::StartupError;
+use super::signal::ShutdownFlag;
+use crate::params::LoadedSite;
+
+pub mod genicam;
+
+/// Where frames come from.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub enum CameraUrl {
+    /// `v4l2:/dev/videoN`.
+    V4l2(String),
+    /// `frames:DIR`: a recorded-frames folder (PNGs and `frames.csv`).
+    Frames(PathBuf),
+    /// `genicam:<device id>` (Aravis id or a GigE camera's IP address; empty: the first
+    /// camera found).
+    Genicam(String),
+}
+
+impl FromStr for CameraUrl {
+    type Err = String;
+    fn from_str(s: &str) -> Result<Self, String> {
+        match s.split_once(':') {
+            Some(("v4l2", dev)) if !dev.is_empty() => Ok(Self::V4l2(dev.to_string())),
+            Some(("frames", dir)) if !dir.is_empty() => Ok(Self::Frames(PathBuf::from(dir))),
+            Some(("genicam", id)) => Ok(Self::Genicam(id.to_string())),
+            _ => Err(format!(
+                "{s}: expected v4l2:/dev/videoN, frames:DIR or genicam:<device id>"
+            )),
+        }
+    }
+}
+
+impl std::fmt::Display for CameraUrl {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            Self::V4l2(d) => write!(f, "v4l2:{d}"),
+            Self::Frames(p) => write!(f, "frames:{}", p.display()),
+            Self::Genicam(id) => write!(f, "genicam:{id}"),
+        }
+    }
+}
+
+/// How long one `grab` waits for a frame before it hands control back to the loop, so
+/// the supervisor sees loop time pass while the camera is stalled.
+pub const NO_FRAME_TICK: Duration = Duration::from_millis(50);
+
+/// The opened camera with its next frame kept for the loop (the first one from the
+/// start-up check), paced if recorded.
+pub struct LiveCamera {
+    inner: Box<dyn Camera>,
+    /// The next frame, grabbed but not handed out yet (buffer allocated once).
+    pub(super) next: Frame,
+    next_valid: bool,
+    pace: bool,
+    /// Wall time and stamp of the first frame.
+    t0: Option<(Instant, f64)>,
+    stop: ShutdownFlag,
+    /// Wall time the last frame was handed to the loop.
+    delivered_at: Option<Instant>,
+    /// The last `grab` returned because no frame was due within [`NO_FRAME_TICK`].
+    no_frame: bool,
+}
+
+impl LiveCamera {
+    /// True (once) if the last grab failed only because no frame came in time.
+    pub fn take_no_frame(&mut self) -> bool {
+        std::mem::take(&mut self.no_frame)
+    }
+
+    /// Wall time since the last frame was handed to the loop.
+    pub fn since_last_frame(&self) -> Duration {
+        self.delivered_at.map_or(Duration::ZERO, |t| t.elapsed())
+    }
+}
+
+impl Camera for LiveCamera {
+    fn name(&self) -> &str {
+        self.inner.name()
+    }
+    fn exposure_limits(&self) -> ExposureLimits {
+        self.inner.exposure_limits()
+    }
+    fn set_exposure_us(&mut self, exposure_us: f64) -> Result<f64, CameraError> {
+        self.inner.set_exposure_us(exposure_us)
+    }
+    fn frames_passed_over(&self) -> u64 {
+        self.inner.frames_passed_over()
+    }
+    fn grab(&mut self, frame: &mut Frame) -> Result<(), CameraError> {
+        if !self.next_valid {
+            self.inner.grab(&mut self.next)?;
+            self.next_valid = true;
+        }
+        if self.pace {
+            let stamp = self.next.meta.stamp_s;
+            let (w0, s0) = *self.t0.get_or_insert((Instant::now(), stamp));
+            let due = w0 + Duration::from_secs_f64((stamp - s0).clamp(0.0, 3600.0));
+            let give_up = Instant::now() + NO_FRAME_TICK;
+            // Short sleeps: a signal must not wait for a long gap in the recording, and
+            // the loop gets control back every NO_FRAME_TICK while no frame is due.
+            while !self.stop.is_set() {
+                let now = Instant::now();
+                if now >= due {
+                    break;
+                }
+                if now >= give_up {
+                    self.no_frame = true;
+                    return Err(CameraError::Read {
+                        device: self.inner.name().to_string(),
+                        seq: self.next.meta.seq,
+                        reason: format!("no frame within {} ms", NO_FRAME_TICK.as_millis()),
+                    });
+                }
+                std::thread::sleep((due.min(give_up) - now).min(Duration::from_millis(20)));
+            }
+        }
+        // Hand the frame over by swapping buffers (no copy, no allocation once both
+        // have the camera's size).
+        std::mem::swap(frame, &mut self.next);
+        self.next_valid = false;
+        self.delivered_at = Some(Instant::now());
+        Ok(())
+    }
+}
+
+pub fn open_camera(
+    site: &LoadedSite,
+    url: &CameraUrl,
+    initial_us: f64,
+    stop: &ShutdownFlag,
+    pace: bool,
+) -> Result<LiveCamera, StartupError> {
+    let name = url.to_string();
+    let cam = &site.site.camera;
+    let (mut inner, paced): (Box<dyn Camera>, bool) = match url {
+        CameraUrl::V4l2(dev) => {
+            let c = V4l2Camera::open(dev, cam.width_px, cam.height_px, cam.fps).map_err(|e| {
+                StartupError::Camera {
+                    url: name.clone(),
+                    reason: e.to_string(),
+                }
+            })?;
+            (Box::new(c.with_exposure_limits(site.limits())), false)
+        }
+        CameraUrl::Frames(dir) => {
+            let c = RecordedCamera::open(dir).map_err(|e| StartupError::Camera {
+                url: name.clone(),
+                reason: e.to_string(),
+            })?;
+            if c.is_empty() {
+                return Err(StartupError::Camera {
+                    url: name,
+                    reason: "the folder's frames.csv lists no frames".into(),
+                });
+            }
+            (Box::new(c), pace)
+        }
+        CameraUrl::Genicam(id) => {
+            let cfg = genicam::GenicamConfig {
+                width: site.calibration.width,
+                height: site.calibration.height,
+                fps: cam.fps,
+                limits: site.limits(),
+                initial_us,
+                gain_db: cam.gain_db,
+                buffers: genicam::DEFAULT_BUFFERS,
+                frame_timeout_s: (4.0 / cam.fps.max(0.1)).max(1.0),
+            };
+            let c = genicam::GenicamCamera::open(id, &cfg).map_err(|e| StartupError::Camera {
+                url: name.clone(),
+                reason: e.to_string(),
+            })?;
+            (Box::new(c), false)
+        }
+    };
+    inner
+        .set_exposure_us(initial_us)
+        .map_err(|e| StartupError::Exposure {
+            url: name.clone(),
+            exposure_us: initial_us,
+            reason: e.to_string(),
+        })?;
+    let mut first = Frame::new(0, 0);
+    inner
+        .grab(&mut first)
+        .map_err(|e| StartupError::FirstFrame {
+            url: name.clone(),
+            reason: e.to_string(),
+        })?;
+    let calib = &site.calibration;
+    if first.width != calib.width || first.height != calib.height {
+        return Err(StartupError::Resolution {
+            url: name,
+            width: first.width,
+            height: first.height,
+            calib_width: calib.width,
+            calib_height: calib.height,
+        });
+    }
+    Ok(LiveCamera {
+        inner,
+        next: first,
+        next_valid: true,
+        pace: paced,
+        t0: None,
+        stop: stop.clone(),
+        delivered_at: None,
+        no_frame: false,
+    })
+}

@@ -1,0 +1,6 @@
+//! The real-vehicle edge: the `run` runner, its cameras, and signals. Nothing here
+//! imports simulation code.
+
+pub mod camera;
+pub mod run;
+pub mod signal;

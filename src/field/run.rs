@@ -1,0 +1,408 @@
+//! `markhold run`: the loop on a real camera and a real ArduSub link, with start-up
+//! checks, Ctrl-C / SIGTERM handling, recording and the Foxglove live view.
+//!
+//! Time is the camera's: frame stamps are the loop's clock. The wall clock only bounds
+//! start-up waits and paces a recorded-frames camera to its stamps.
+
+use std::path::PathBuf;
+use std::time::{Duration, Instant};
+
+use markhold_autopilot::{CommandStatus, Directive, FailsafeEvent, VehicleLink};
+use markhold_exposure::{Camera, CameraError};
+use serde::Serialize;
+
+use super::camera::{open_camera, CameraUrl, LiveCamera};
+use super::signal::ShutdownFlag;
+use crate::params::LoadedSite;
+use crate::pipeline::{LoopStart, Observers, Pipeline};
+use crate::record::{RecordConfig, RecordStats, RecordStatsHandle, Recorder, RunInfo};
+
+/// `markhold run`'s options.
+#[derive(Debug, Clone)]
+pub struct RunOptions {
+    /// MAVLink URL (default: the site's `[link] url`).
+    pub link_url: Option<String>,
+    pub camera: CameraUrl,
+    pub record: Option<PathBuf>,
+    /// Serve the Foxglove WebSocket live view on 127.0.0.1 at this port (0: any free).
+    pub foxglove_port: Option<u16>,
+    /// Wall seconds to wait for the vehicle's first heartbeat.
+    pub heartbeat_timeout_s: f64,
+    /// Request the site's mode and arm before the first frame.
+    pub arm: bool,
+    /// Stop after this many seconds of loop time.
+    pub max_seconds: Option<f64>,
+    /// Play a recorded-frames camera at the pace of its stamps (a real camera paces itself).
+    pub pace_frames: bool,
+}
+
+impl Default for RunOptions {
+    fn default() -> Self {
+        Self {
+            link_url: None,
+            camera: CameraUrl::V4l2("/dev/video0".into()),
+            record: None,
+            foxglove_port: None,
+            heartbeat_timeout_s: 5.0,
+            arm: false,
+            max_seconds: None,
+            pace_frames: true,
+        }
+    }
+}
+
+/// A start-up check that failed: the run does not start.
+#[derive(Debug, thiserror::Error)]
+pub enum StartupError {
+    #[error("camera {url}: cannot open it: {reason}")]
+    Camera { url: String, reason: String },
+    #[error("camera {url}: the driver refused manual exposure ({exposure_us} us): {reason}")]
+    Exposure {
+        url: String,
+        exposure_us: f64,
+        reason: String,
+    },
+    #[error("camera {url}: no first frame: {reason}")]
+    FirstFrame { url: String, reason: String },
+    #[error("camera {url} gives {width}x{height} frames but the site's calibration is for {calib_width}x{calib_height}: recalibrate or set camera.width_px / height_px")]
+    Resolution {
+        url: String,
+        width: u32,
+        height: u32,
+        calib_width: u32,
+        calib_height: u32,
+    },
+    #[error("link {url}: cannot open it: {reason}")]
+    Link { url: String, reason: String },
+    #[error("link {url}: no vehicle heartbeat within {timeout_s} s (is the vehicle on, and this the right address/port?)")]
+    NoHeartbeat { url: String, timeout_s: f64 },
+    #[error("link {url}: the vehicle did not arm in {mode:?} within {timeout_s} s")]
+    Arm {
+        url: String,
+        mode: markhold_autopilot::ArduSubMode,
+        timeout_s: f64,
+    },
+    #[error("--record: {source}")]
+    Record { source: crate::record::RecordError },
+    #[error("--foxglove: {reason}")]
+    LiveView { reason: String },
+}
+
+/// Why the loop ended.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
+#[serde(rename_all = "snake_case")]
+pub enum StopReason {
+    Signal,
+    EndOfStream,
+    MaxSeconds,
+}
+
+/// What a `run` did.
+#[derive(Debug, Clone, Serialize)]
+pub struct RunReport {
+    pub frames: u64,
+    pub detected: u64,
+    /// Loop time from the first frame to the last, seconds.
+    pub loop_seconds: f64,
+    pub stopped_by: StopReason,
+    pub record: Option<RecordStats>,
+    /// The recording or live view failed to close cleanly (the run itself went on).
+    pub record_error: Option<String>,
+    /// Where the live view listened, if it was on.
+    pub foxglove_addr: Option<String>,
+    /// Times the camera stalled long enough for the vision-stall failsafe (neutral).
+    pub vision_stalls: u64,
+    /// Disarm on exit (`link.disarm_on_exit` and a signal): how the request ended.
+    pub disarm: Option<CommandStatus>,
+    /// Frames the camera took that the loop was too slow to see (it acts on the newest).
+    pub frames_passed_over: u64,
+}
+
+/// Open the link and wait (wall clock, bounded) for the vehicle's heartbeat; `now_s`
+/// is the loop time of the first frame.
+fn open_link(
+    site: &LoadedSite,
+    opts: &RunOptions,
+    now_s: f64,
+    stop: &ShutdownFlag,
+) -> Result<VehicleLink, StartupError> {
+    let mut cfg = site.site.link.clone();
+    if let Some(u) = &opts.link_url {
+        cfg.url = u.clone();
+    }
+    let url = cfg.url.clone();
+    let link_err = |reason: String| StartupError::Link {
+        url: url.clone(),
+        reason,
+    };
+    let mut link = VehicleLink::connect(&cfg).map_err(|e| link_err(e.to_string()))?;
+    let timeout = Duration::from_secs_f64(opts.heartbeat_timeout_s.clamp(0.0, 600.0));
+    let deadline = Instant::now() + timeout;
+    loop {
+        link.tick(now_s).map_err(|e| link_err(e.to_string()))?;
+        if link.state().last_heartbeat_s.is_some() {
+            break;
+        }
+        if Instant::now() >= deadline || stop.is_set() {
+            return Err(StartupError::NoHeartbeat {
+                url,
+                timeout_s: opts.heartbeat_timeout_s,
+            });
+        }
+        std::thread::sleep(Duration::from_millis(10));
+    }
+    if opts.arm {
+        let mode = site.site.link.mode.ardusub();
+        link.request_mode(mode, now_s)
+            .map_err(|e| link_err(e.to_string()))?;
+        link.request_arm(true, now_s)
+            .map_err(|e| link_err(e.to_string()))?;
+        let deadline = Instant::now() + timeout;
+        while !link.state().armed {
+            if Instant::now() >= deadline || stop.is_set() {
+                return Err(StartupError::Arm {
+                    url,
+                    mode,
+                    timeout_s: opts.heartbeat_timeout_s,
+                });
+            }
+            std::thread::sleep(Duration::from_millis(10));
+            link.tick(now_s).map_err(|e| link_err(e.to_string()))?;
+        }
+    }
+    Ok(link)
+}
+
+fn is_end_of_stream(e: &anyhow::Error) -> bool {
+    matches!(
+        e.downcast_ref::<CameraError>(),
+        Some(CameraError::EndOfStream { .. })
+    )
+}
+
+/// The recording and the live view a run asked for, as observers of its loop.
+fn observers(
+    site: &LoadedSite,
+    opts: &RunOptions,
+    start: &LoopStart,
+) -> Result<(Observers, Option<RecordStatsHandle>, Option<String>), StartupError> {
+    let record_err = |source| StartupError::Record { source };
+    let mut recorder = match &opts.record {
+        Some(path) => {
+            let options = format!(
+                "run --site {} --camera {} --link {}",
+                site.path.display(),
+                opts.camera,
+                opts.link_url.as_deref().unwrap_or(&site.site.link.url)
+            );
+            let info = RunInfo::new(
+                "run",
+                site,
+                start.method,
+                start.initial_exposure_us,
+                options,
+            )
+            .map_err(record_err)?;
+            Some(Recorder::create(path, &info, RecordConfig::default()).map_err(record_err)?)
+        }
+        None if opts.foxglove_port.is_some() => {
+            Some(Recorder::live_only(RecordConfig::default()).map_err(record_err)?)
+        }
+        None => None,
+    };
+    let mut foxglove_addr = None;
+    if let (Some(port), Some(r)) = (opts.foxglove_port, recorder.as_mut()) {
+        match r.serve_live(port) {
+            Ok(p) => {
+                eprintln!("markhold run: Foxglove live view on ws://127.0.0.1:{p}");
+                foxglove_addr = Some(format!("127.0.0.1:{p}"));
+            }
+            Err(e) => {
+                if let Some(r) = recorder.take() {
+                    r.abort();
+                }
+                return Err(StartupError::LiveView {
+                    reason: e.to_string(),
+                });
+            }
+        }
+    }
+    let stats = recorder
+        .as_ref()
+        .filter(|_| opts.record.is_some())
+        .map(Recorder::stats_handle);
+    let mut list = Observers::new();
+    if let Some(r) = recorder {
+        list.push(r);
+    }
+    Ok((list, stats, foxglove_addr))
+}
+
+/// The loop of a live run: the site's start, a real link, the run's observers.
+pub fn build_loop(
+    site: &LoadedSite,
+    link: VehicleLink,
+    observers: Observers,
+) -> anyhow::Result<Pipeline> {
+    Pipeline::new(site, LoopStart::of_site(site), link, observers)
+}
+
+/// Counters of the loop while it runs.
+#[derive(Default)]
+struct Counts {
+    frames: u64,
+    detected: u64,
+    first_stamp: Option<f64>,
+    last_stamp: f64,
+    vision_stalls: u64,
+    disarm_asked: bool,
+}
+
+/// Step until a signal, the end of a recorded stream or `max_seconds`.
+fn drive(
+    pipeline: &mut Pipeline,
+    cam: &mut LiveCamera,
+    opts: &RunOptions,
+    stop: &ShutdownFlag,
+    n: &mut Counts,
+) -> anyhow::Result<StopReason> {
+    loop {
+        if stop.is_set() {
+            // This frame sends neutral input (the supervisor's shutdown directive).
+            pipeline.set_shutdown(true);
+        }
+        let rec = match pipeline.step(cam) {
+            Ok(r) => r,
+            Err(_) if cam.take_no_frame() => {
+                // No frame yet: loop time is the last frame's stamp plus the time waited
+                // (the only place the wall clock enters the loop: without frames there
+                // is no other clock), so the supervisor can call the camera stalled.
+                let now = n.last_stamp + cam.since_last_frame().as_secs_f64();
+                let d = pipeline.tick_without_frame(now)?;
+                n.vision_stalls += pipeline
+                    .events()
+                    .iter()
+                    .filter(|e| matches!(e, FailsafeEvent::VisionStalled { .. }))
+                    .count() as u64;
+                if let Directive::Shutdown { disarm } = d {
+                    n.disarm_asked = disarm;
+                    return Ok(StopReason::Signal);
+                }
+                continue;
+            }
+            Err(e) if is_end_of_stream(&e) => return Ok(StopReason::EndOfStream),
+            Err(e) => return Err(e.context(format!("frame {}", n.frames))),
+        };
+        n.frames += 1;
+        n.detected += u64::from(rec.detected);
+        n.last_stamp = rec.stamp_s;
+        let t0 = *n.first_stamp.get_or_insert(rec.stamp_s);
+        if let Directive::Shutdown { disarm } = rec.directive {
+            n.disarm_asked = disarm;
+            return Ok(StopReason::Signal);
+        }
+        if opts.max_seconds.is_some_and(|m| rec.stamp_s - t0 >= m) {
+            return Ok(StopReason::MaxSeconds);
+        }
+    }
+}
+
+/// Run the loop until a signal, the end of a recorded stream or `max_seconds`.
+/// Start-up checks come first, in the order: record path, camera (opens, accepts
+/// exposure, resolution matches the calibration), vehicle heartbeat. A failed check
+/// removes the recording it had started.
+pub fn run_live(
+    site: &LoadedSite,
+    opts: &RunOptions,
+    stop: &ShutdownFlag,
+) -> anyhow::Result<RunReport> {
+    let start = LoopStart::of_site(site);
+    let (mut observers, record_stats, foxglove_addr) = observers(site, opts, &start)?;
+    let started = (|| -> anyhow::Result<(LiveCamera, VehicleLink)> {
+        let cam = open_camera(
+            site,
+            &opts.camera,
+            start.initial_exposure_us,
+            stop,
+            opts.pace_frames,
+        )?;
+        let link = open_link(site, opts, cam.next.meta.stamp_s, stop)?;
+        Ok((cam, link))
+    })();
+    let (mut cam, link) = match started {
+        Ok(v) => v,
+        Err(e) => {
+            observers.abort();
+            return Err(e);
+        }
+    };
+    let mut pipeline = build_loop(site, link, observers)?;
+    tracing::info!(camera = %opts.camera, "running");
+    eprintln!(
+        "markhold run: running (camera {}, Ctrl-C to stop)",
+        opts.camera
+    );
+    let mut n = Counts {
+        last_stamp: cam.next.meta.stamp_s,
+        ..Counts::default()
+    };
+    let stopped = drive(&mut pipeline, &mut cam, opts, stop, &mut n);
+    // Leave the vehicle with neutral pilot input, whatever ended the loop; disarm if
+    // asked; then close the recording (it keeps the disarm's MAVLink), also after an
+    // error.
+    let neutral = pipeline.link_mut().send_neutral(n.last_stamp);
+    let disarm = (stopped.is_ok() && n.disarm_asked)
+        .then(|| disarm_on_exit(pipeline.link_mut(), n.last_stamp));
+    let observers_done = pipeline.finish_observers();
+    let stopped_by = stopped?;
+    neutral?;
+    Ok(RunReport {
+        frames: n.frames,
+        detected: n.detected,
+        loop_seconds: n.first_stamp.map_or(0.0, |t0| n.last_stamp - t0),
+        stopped_by,
+        record: record_stats.map(|h| h.get()),
+        record_error: observers_done.err().map(|e| format!("{e:#}")),
+        foxglove_addr,
+        vision_stalls: n.vision_stalls,
+        disarm,
+        frames_passed_over: cam.frames_passed_over(),
+    })
+}
+
+/// After the shutdown's neutral input: disarm, acknowledged and retried by the link, on
+/// loop time `t0` plus the time waited (no frames come any more), bounded by the link's
+/// own retries. Neutral input keeps going out (the link's keep-alive) until it settles.
+fn disarm_on_exit(link: &mut VehicleLink, t0: f64) -> CommandStatus {
+    let cfg = link.config().clone();
+    let started = Instant::now();
+    let limit = cfg.command_timeout_s * f64::from(cfg.command_retries + 1) + 0.5;
+    let now = |started: Instant| t0 + started.elapsed().as_secs_f64();
+    if let Err(e) = link.request_arm(false, now(started)) {
+        tracing::warn!(error = %e, "disarm on exit: request not sent");
+        return CommandStatus::TimedOut;
+    }
+    eprintln!("markhold run: disarming (link.disarm_on_exit)");
+    let status = loop {
+        let t = now(started);
+        if let Err(e) = link.tick(t) {
+            tracing::warn!(error = %e, "disarm on exit: link");
+        }
+        let st = link.state();
+        match st.arm_command {
+            CommandStatus::Pending { .. } | CommandStatus::Idle if st.armed => {}
+            CommandStatus::Pending { .. } | CommandStatus::Idle => break CommandStatus::Accepted,
+            other => break other,
+        }
+        if t - t0 > limit {
+            break CommandStatus::TimedOut;
+        }
+        std::thread::sleep(Duration::from_millis(10));
+    };
+    tracing::info!(?status, armed = link.state().armed, "disarm on exit");
+    eprintln!(
+        "markhold run: disarm on exit: {status:?} (vehicle armed: {})",
+        link.state().armed
+    );
+    status
+}

@@ -1,0 +1,11 @@
+//! The simulation edge (feature `sim`): the HIL runner, the external-vehicle camera,
+//! fault injection, the paper's experiments (`compare`) and their plots, and the HIL
+//! summary.
+
+pub mod cmd;
+pub mod compare;
+pub mod external;
+pub mod faults;
+pub mod hil;
+pub mod plots;
+pub mod summary;
