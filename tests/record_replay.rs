@@ -316,6 +316,7 @@ fn cli_hil_record_then_replay_summary() {
     let bin = env!("CARGO_BIN_EXE_markhold");
     let rec = temp_path("cli.mcap");
     let summary = temp_path("cli-replay.json");
+    let hil_summary = temp_path("cli-hil.json");
     let o = std::process::Command::new(bin)
         .args([
             "hil",
@@ -327,9 +328,17 @@ fn cli_hil_record_then_replay_summary() {
             "--record",
         ])
         .arg(&rec)
+        .arg("--summary")
+        .arg(&hil_summary)
         .output()
         .unwrap();
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    // A recorded run is the same runner as any other: the world's own time is reported.
+    let h: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&hil_summary).unwrap()).unwrap();
+    assert!(h["world_wall_seconds"].as_f64().unwrap() > 0.0, "{h}");
+    assert!(h["world_realtime_factor"].as_f64().unwrap() > 0.0, "{h}");
+    assert_ne!(h["render_loops"], "", "{h}");
     let o = std::process::Command::new(bin)
         .arg("replay")
         .arg(&rec)

@@ -210,6 +210,21 @@ fn compare(recorded: &CommandMsg, replayed: &CommandMsg) -> Option<Mismatch> {
     None
 }
 
+/// The recorded loop again: the recorded site and start, a link that keeps the
+/// commands, and no mode requests (there is no vehicle to ask).
+pub fn build_loop(
+    site: &LoadedSite,
+    method: ExposureMethod,
+    info: &RunInfo,
+) -> anyhow::Result<Pipeline<SinkLink>> {
+    let start = LoopStart {
+        method,
+        initial_exposure_us: info.initial_exposure_us,
+        site_mode: None,
+    };
+    Pipeline::new(site, start, SinkLink::default(), Observers::new())
+}
+
 /// Replay a recording and compare its commands.
 pub fn replay(path: &Path) -> anyhow::Result<ReplaySummary> {
     let buf = std::fs::read(path).with_context(|| format!("reading {}", path.display()))?;
@@ -221,13 +236,7 @@ pub fn replay(path: &Path) -> anyhow::Result<ReplaySummary> {
             info.exposure_method
         )
     })?;
-    let start = LoopStart {
-        method,
-        initial_exposure_us: info.initial_exposure_us,
-        site_mode: None,
-    };
-    let mut pipeline = Pipeline::new(&site, start, SinkLink::default(), Observers::new())
-        .context("rebuilding the recorded loop")?;
+    let mut pipeline = build_loop(&site, method, &info).context("rebuilding the recorded loop")?;
     let mut camera = ReplayCamera {
         frame: Frame::new(site.calibration.width, site.calibration.height),
         ready: false,

@@ -136,6 +136,16 @@ fn wait_for_pose(link: &mut VehicleLink, started: Instant) -> anyhow::Result<Iso
     )
 }
 
+/// The loop of an external-vehicle run: the HIL run's start, the vehicle's link.
+pub fn build_loop(
+    site: &LoadedSite,
+    opts: &HilOptions,
+    link: VehicleLink,
+    observers: Observers,
+) -> anyhow::Result<Pipeline> {
+    Pipeline::new(site, loop_start(site, opts), link, observers)
+}
+
 /// Run the loop against an external vehicle for `opts.seconds` of its real time.
 pub fn run_external(
     site: &LoadedSite,
@@ -203,7 +213,7 @@ pub fn run_external(
         std::thread::sleep(Duration::from_millis(10));
     }
 
-    let mut pipeline = Pipeline::new(site, start, link, observers)?;
+    let mut pipeline = build_loop(site, opts, link, observers)?;
     let frames = (opts.seconds * fps).round().max(1.0) as u64;
     let mut stats = RunStats::new(frames as usize, t_world_marker, t_marker_station);
     // The camera's clock starts with the loop (arming took wall time that is not the
