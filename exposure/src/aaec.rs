@@ -1,5 +1,5 @@
 //! AAEC: Adaptive Active Exposure Control (Ren, Lensgraf, Quattrini Li, ISER 2023),
-//! with the fixes `docs/exposure.md` asks for.
+//! with the fixes `docs/reference/exposure-spec.md` asks for.
 //!
 //! Per used frame: RoI = the marker's corner box padded by `roi_pad_frac` on each side,
 //! `M` and `dM/d(ln t)` on it, then a momentum step in log exposure on the scale-free

@@ -1,6 +1,6 @@
 //! markhold-exposure: frames, the camera seam, and exposure controllers.
 //!
-//! Pure Rust, no OpenCV. The controllers follow `docs/exposure.md`: AAEC (the
+//! Pure Rust, no OpenCV. The controllers follow `docs/reference/exposure-spec.md`: AAEC (the
 //! paper's method, RoI + momentum on a soft-percentile gradient metric), AEC
 //! (Zhang et al. 2017), GEC (Shim et al.) and a camera's mean-intensity AE.
 

@@ -365,7 +365,7 @@ impl GradientMetric {
     /// border). `None` when the view has no interior pixel.
     pub fn evaluate(&mut self, view: ImageView<'_>) -> Option<MetricValue> {
         // The same code compiled twice: with AVX2 the i16 Sobel lanes double (0.64-0.71x
-        // the time, NOTES.md). No FMA: Rust never fuses on its own, so both builds give
+        // the time, docs/design/exposure.md). No FMA: Rust never fuses on its own, so both builds give
         // bit-identical results and a HIL run does not depend on the CPU.
         #[cfg(target_arch = "x86_64")]
         if std::arch::is_x86_feature_detected!("avx2") {

@@ -3,7 +3,7 @@
 //! vision position estimates, requested telemetry streams, and the pilot-input and GCS
 //! failsafes. Every time it sees is simulation time passed in by the caller.
 //!
-//! Facts from ArduSub (see docs/ardusub.md): pilot input only from the GCS system id,
+//! Facts from ArduSub (see docs/reference/ardusub.md): pilot input only from the GCS system id,
 //! MANUAL_CONTROL's target must be our system id, RC overrides expire after 3 s, manual
 //! control is scaled by the joystick gain, the stabilized modes apply a 30 us input dead
 //! zone (40 us on yaw), disarm after 3 s without pilot input and 5 s after the GCS

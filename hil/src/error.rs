@@ -1,4 +1,4 @@
-//! The one error enum of markhold-hil. Each engineer adds the variants of their modules.
+//! The one error enum of markhold-hil. Each module adds its own variants.
 
 #[derive(Debug, thiserror::Error)]
 pub enum HilError {

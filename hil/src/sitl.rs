@@ -1,7 +1,7 @@
 //! ArduPilot SITL JSON physics server: lets a user's ArduSub SITL
 //! (`sim_vehicle.py -v ArduSub -f vectored_6dof --model JSON`) fly our simulated vehicle.
 //!
-//! Protocol (ArduPilot libraries/SITL/SIM_JSON, see docs/ardusub.md): ArduPilot sends
+//! Protocol (ArduPilot libraries/SITL/SIM_JSON, see docs/reference/ardusub.md): ArduPilot sends
 //! little-endian servo packets `u16 magic (18458 = 16 channels, 29569 = 32), u16
 //! frame_rate, u32 frame_count, u16 pwm[16 | 32]` to UDP 9002; the physics answers each
 //! with exactly one newline-framed compact JSON state (ArduPilot scans the text for

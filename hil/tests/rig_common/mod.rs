@@ -1,4 +1,4 @@
-//! Shared helpers of the vehicle engineer's integration tests: a small HIL setup and a
+//! Shared helpers of the vehicle-side integration tests: a small HIL setup and a
 //! MAVLink client written against the published message set (loopback only, every
 //! receive bounded by a deadline).
 #![allow(dead_code)]
