@@ -144,7 +144,7 @@ fn vehicle_disarmed_by_its_own_failsafe_is_reported_not_fought() {
 /// AAEC's optimum on this scene is flat and where it stops depends on the path: from
 /// above (the start) it settles at 7.0-8.6 ms; after the loss the fallback AE has taken
 /// it down to about 2.1 ms and it climbs back to 4.1-6.2 ms (8.5 ms once). Over seeds 1-6
-/// and both faults the ratio was 0.92-1.86 (`occlude` and `out_of_view`, 2 Dec 2026), so
+/// and both faults the ratio was 0.92-1.86 (`occlude` and `out_of_view`), so
 /// 1.5 held for some noise fields and not others. A runaway goes to a limit (20 us or
 /// 30 ms) and is caught here and by the limit check.
 const BACK_FACTOR: f64 = 2.0;
@@ -169,7 +169,7 @@ fn exposure_bounded(s: &LoadedSite, o: &Outcome, start_s: f64, back_s: f64, fact
 
 fn occlusion(seconds_occluded: f64) {
     // STABILIZE: with the marker gone nothing holds position, and in MANUAL the attitude
-    // drifts too (see RELIABILITY_NOTES.md).
+    // drifts too (see docs/design/reliability.md).
     let s = site("stabilize");
     let start = 4.0;
     let end = start + seconds_occluded;
@@ -220,7 +220,7 @@ fn marker_occluded_long_policy_acts_exposure_holds() {
         .replace("mode = \"manual\"", "mode = \"stabilize\"")
         + "\n[controller]\nmarker_lost_action = \"alt_hold\"\n";
     let s = params::parse(&path, &text).unwrap();
-    // 12 s covers the action (10 s); the 30 s case is quoted in RELIABILITY_NOTES.md.
+    // 12 s covers the action (10 s); the 30 s case is quoted in docs/design/reliability.md.
     let o = run(&s, 14.5, &["occlude@2+12"], None);
     let r = &o.reports[0];
     let hold = s.site.controller.marker_lost_hold_s;
@@ -498,9 +498,9 @@ fn frames_to_settle(e: &[f64], from: usize, to: usize, fps: f64, tol: f64) -> (u
 /// frame-to-frame change below 15 % and nothing outside 25 % of the settled value.
 const RECOVER_FRAMES: usize = 30;
 const RECOVER_TOL: f64 = 0.15;
-/// Issue 9's goal, asserted on every seed of `LIGHT_SEEDS`: within 5 % of the settled
+/// The light-change goal, asserted on every seed of `LIGHT_SEEDS`: within 5 % of the settled
 /// value at most 8 frames after the change (one frame of actuation delay, so 4 used
-/// frames). Met since AAEC's knee landing (exposure/NOTES.md, session 6); before it,
+/// frames). Met since AAEC's knee landing (docs/design/exposure.md); before it,
 /// 6 of these 20 cases were.
 const SETTLE_FRAMES: usize = 8;
 /// The light-change tests run over these seeds of the simulated world: the frames to
@@ -594,8 +594,8 @@ fn ambient_light_back_from_10x_exposure_recovers_without_oscillation() {
     }
 }
 
-/// A 10x step up in daylight (this wandered for 2.5 s before AAEC's restart policy of
-/// commit 80becfe; see RELIABILITY_NOTES.md).
+/// A 10x step up in daylight (without AAEC's restart policy this wandered for 2.5 s;
+/// see docs/design/exposure.md).
 #[test]
 fn ambient_light_10x_step_up_exposure_recovers_without_oscillation() {
     let s = site("stabilize");

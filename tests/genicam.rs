@@ -198,7 +198,7 @@ fn fake_gige_camera_exposure_is_set_per_frame_and_read_back() {
     let per = 8;
     let steps = [lo, hi, lo, hi];
     let rows = sweep(&mut cam, &steps, per);
-    // Figures for the notes (printed, not asserted): one exposure change is a GVCP
+    // Figures (printed, not asserted): one exposure change is a GVCP
     // write and a read-back; the per-frame read-after-frame is one GVCP read.
     let t = Instant::now();
     for k in 0..50 {

@@ -135,7 +135,7 @@ fn run_on_hil_vehicle_with_recorded_frames_end_to_end() {
     // At the recorded pace: the vehicle runs in real time, and markhold judges the link
     // on frame stamps (0.9 s without a message = silent). With --no-pace the stamps ran
     // ahead of the vehicle's messages and a stall of its thread read as a silent link
-    // (9 of 90 frames silent, 2 Dec 2026).
+    // (9 of 90 frames silent).
     let o = markhold()
         .args(["run", "--site"])
         .arg(site_path())

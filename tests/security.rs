@@ -1,4 +1,4 @@
-//! Security (issue 9): MAVLink 2 signing end to end between markhold and the HIL vehicle,
+//! Security: MAVLink 2 signing end to end between markhold and the HIL vehicle,
 //! and listening sockets bound only to the configured address (loopback by default).
 //! Loopback only (127.0.0.1, and the 127.0.0.2 alias of the loopback interface), ports
 //! from the OS, every wait bounded.

@@ -263,7 +263,7 @@ fn flood(receive_task: bool) {
     assert!(rx_flood >= rx_quiet + 90_000, "{rx_quiet} / {rx_flood}");
     // The flood takes no part in the loop: on lockstep HIL (same seed, same frames) the
     // flooded run ends where the quiet one does, to the bit, and station is held. The
-    // latency figures are printed for the notes, not asserted (wall clock).
+    // latency figures are printed, not asserted (wall clock).
     assert_eq!(
         (err_flood.to_bits(), det_flood.to_bits()),
         (err_quiet.to_bits(), det_quiet.to_bits()),

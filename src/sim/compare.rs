@@ -770,7 +770,7 @@ fn summarize(
     })
 }
 
-/// The paper's numbers (docs/exposure.md, "What the paper measured"), for the report.
+/// The paper's numbers (docs/reference/exposure-spec.md, "What the paper measured"), for the report.
 mod paper {
     use markhold_exposure::ExposureMethod;
     use markhold_hil::scene::LightingScenario;
