@@ -6,5 +6,5 @@ mod snapshot;
 mod trace;
 
 pub use progress::Progress;
-pub use snapshot::{save_png, Snapshots};
+pub use snapshot::Snapshots;
 pub use trace::TraceWriter;

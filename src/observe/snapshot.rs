@@ -1,39 +1,31 @@
-//! `--snapshot DIR`: every n-th frame as PNG, so a person can look at what the camera saw.
+//! `--snapshot DIR`: every n-th frame as PNG, so a person can look at what the camera
+//! saw. The folder is a recorded-frames camera (`frame_NNNNNN.png` and `frames.csv` with
+//! each frame's stamp and exposure), so `run --camera frames:DIR` plays it back.
 
 use std::path::{Path, PathBuf};
 
 use anyhow::Context;
-use markhold_exposure::Frame;
-use opencv::core::{Mat, Vector};
+use markhold_vision::FrameRecorder;
 
 use crate::pipeline::{FrameView, Observer};
-
-/// Write `frame` as an 8-bit grey PNG.
-pub fn save_png(frame: &Frame, path: &Path) -> anyhow::Result<()> {
-    let mat = Mat::new_rows_cols_with_data(frame.height as i32, frame.width as i32, &frame.data)
-        .context("wrapping the frame for PNG encoding")?;
-    let name = path.display();
-    let ok = opencv::imgcodecs::imwrite(path, &mat, &Vector::new())
-        .with_context(|| format!("writing {name}"))?;
-    anyhow::ensure!(ok, "writing {name}: the PNG encoder refused the file");
-    Ok(())
-}
 
 /// Saves frames whose sequence number is a multiple of `every` into a folder.
 pub struct Snapshots {
     dir: PathBuf,
+    out: FrameRecorder,
     every: u64,
     /// The first failure; later frames are not tried.
     error: Option<anyhow::Error>,
 }
 
 impl Snapshots {
-    /// Creates `dir` if needed.
+    /// Creates `dir` if needed, with a fresh `frames.csv`.
     pub fn create(dir: &Path, every: u64) -> anyhow::Result<Self> {
-        std::fs::create_dir_all(dir)
+        let out = FrameRecorder::create(dir)
             .with_context(|| format!("creating --snapshot {}", dir.display()))?;
         Ok(Self {
             dir: dir.to_path_buf(),
+            out,
             every: every.max(1),
             error: None,
         })
@@ -48,9 +40,8 @@ impl Observer for Snapshots {
         if self.error.is_some() || !view.rec.seq.is_multiple_of(self.every) {
             return;
         }
-        let path = self.dir.join(format!("frame-{:06}.png", view.rec.seq));
-        if let Err(e) = save_png(view.frame, &path) {
-            self.error = Some(e);
+        if let Err(e) = self.out.write(view.frame) {
+            self.error = Some(anyhow::Error::new(e).context(format!("in {}", self.dir.display())));
         }
     }
     fn finish(self: Box<Self>) -> anyhow::Result<()> {
