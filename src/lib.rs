@@ -9,7 +9,6 @@ pub mod faults;
 pub mod hil_run;
 pub mod live;
 pub mod params;
-mod params_validate;
 pub mod pipeline;
 pub mod plots;
 pub mod record;

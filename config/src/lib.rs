@@ -25,6 +25,9 @@
 //! );
 //! ```
 //!
+//! Such lists are kept one check per line (`#[rustfmt::skip]` on the function): rustfmt
+//! would spread each call over six lines and hide the table.
+//!
 //! Ranges are the standard ones (`a..=b` closed, `a..b` closed-open, `a..`, `..=b`) plus
 //! [`open`], [`open_closed`], [`above`] and [`below`] for the bounds Rust has no syntax
 //! for. NaN lies in no bounded range, so a float check written as a range rejects it.
