@@ -8,7 +8,6 @@
 pub mod field;
 pub mod observe;
 pub mod params;
-mod params_validate;
 pub mod pipeline;
 pub mod record;
 #[cfg(feature = "sim")]

@@ -141,6 +141,9 @@ fn params_check(file: &Path) -> anyhow::Result<()> {
         "# {}: valid. Effective values, defaults filled in:\n",
         file.display()
     );
+    if let Some(note) = params::SIM_SECTIONS_NOTE {
+        println!("# {note}\n");
+    }
     println!("{text}");
     Ok(())
 }

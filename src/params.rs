@@ -2,20 +2,45 @@
 //! that uses it. Loading validates everything once; errors name the file, line, key,
 //! value and what was expected, and map to exit code 78 (EX_CONFIG).
 
-// Validation is written as `!(lo <= v && v <= hi)` on purpose: NaN fails every
-// comparison, so the negated form rejects it with the same message.
-#![allow(clippy::neg_cmp_op_on_partial_ord)]
-
+use std::ops::Range;
 use std::path::{Path, PathBuf};
 
 use markhold_autopilot::{ControllerConfig, LinkConfig, StationConfig};
+use markhold_config::{above, open_closed, AsDebug, Checks, ConfigError};
 use markhold_exposure::{ExposureConfig, ExposureLimits};
-use markhold_hil::camera::SensorConfig;
-use markhold_hil::scene::{LightingConfig, WaterConfig};
-use markhold_hil::VehicleConfig;
 use markhold_vision::{CameraCalibration, DetectorConfig, MarkerConfig};
 use nalgebra::{Isometry3, Matrix3, Rotation3, Translation3, UnitQuaternion, Vector3};
 use serde::{Deserialize, Serialize};
+use toml::de::{DeTable, DeValue};
+
+pub use sim_sections::{LightingConfig, SensorConfig, VehicleConfig, WaterConfig};
+
+/// The simulator's sections, typed and checked by markhold-hil.
+#[cfg(feature = "sim")]
+mod sim_sections {
+    pub use markhold_hil::camera::SensorConfig;
+    pub use markhold_hil::scene::{LightingConfig, WaterConfig};
+    pub use markhold_hil::VehicleConfig;
+}
+
+/// A build without the simulator reads its sections as plain tables: parsed, kept and
+/// printed as written, not checked.
+#[cfg(not(feature = "sim"))]
+mod sim_sections {
+    pub type SensorConfig = toml::Table;
+    pub type LightingConfig = toml::Table;
+    pub type WaterConfig = toml::Table;
+    pub type VehicleConfig = toml::Table;
+}
+
+/// What `params check` says about the simulator's sections in this build.
+#[cfg(feature = "sim")]
+pub const SIM_SECTIONS_NOTE: Option<&str> = None;
+#[cfg(not(feature = "sim"))]
+pub const SIM_SECTIONS_NOTE: Option<&str> = Some(
+    "[water], [lighting], [vehicle] and [camera] sensor are not checked: \
+     this build has no simulator (cargo feature `sim`)",
+);
 
 /// Exit code for a bad configuration (sysexits EX_CONFIG).
 pub const EXIT_CONFIG: i32 = 78;
@@ -35,14 +60,9 @@ pub enum ParamsError {
         key: String,
         message: String,
     },
-    #[error("{file}:{line}: {key} = {value}: expected {expected}")]
-    Invalid {
-        file: PathBuf,
-        line: usize,
-        key: String,
-        value: String,
-        expected: String,
-    },
+    /// A value out of range, located in its file.
+    #[error(transparent)]
+    Config(#[from] ConfigError),
     #[error("{file}:{line}: {key} = {value}: {reason}")]
     ReferencedFile {
         file: PathBuf,
@@ -192,88 +212,103 @@ pub fn t_vehicle_cam(cam: &CameraSection) -> Isometry3<f64> {
     Isometry3::from_parts(Vector3::from(cam.mount_position_m).into(), rot)
 }
 
-/// Line (1-based) of `key` inside `[section]` (or `[section.sub]`) of a TOML text, for
-/// messages about values that parsed but are out of range. Falls back to the section
-/// header, then to line 1.
-pub fn line_of_key(text: &str, dotted: &str) -> usize {
-    let parts: Vec<&str> = dotted.split('.').collect();
-    let (table, key) = match parts.split_last() {
-        Some((k, t)) => (t.join("."), *k),
-        None => (String::new(), dotted),
-    };
-    let mut current = String::new();
-    let mut header_line = None;
-    for (i, raw) in text.lines().enumerate() {
-        let line = raw.trim();
-        if line.starts_with('[') {
-            current = line
-                .trim_matches(|c| c == '[' || c == ']')
-                .trim()
-                .to_string();
-            if current == table {
-                header_line = Some(i + 1);
-            }
-            continue;
-        }
-        if current == table {
-            if let Some((k, _)) = line.split_once('=') {
-                if k.trim() == key {
-                    return i + 1;
-                }
-            }
-        }
-    }
-    header_line.unwrap_or(1)
+/// The site text's keys with their spans, for messages that point at a line.
+struct Located<'t> {
+    text: &'t str,
+    doc: DeTable<'t>,
 }
 
-/// The dotted key and raw value of a `key = value` line (1-based), with the table it is in.
-pub fn key_at_line(text: &str, line: usize) -> Option<(String, String)> {
-    let mut table = String::new();
-    for (i, raw) in text.lines().enumerate() {
-        let l = raw.trim();
-        if l.starts_with('[') {
-            table = l.trim_matches(|c| c == '[' || c == ']').trim().to_string();
+impl<'t> Located<'t> {
+    /// Parses what it can: a file with a syntax error still locates its other keys.
+    fn new(text: &'t str) -> Self {
+        let (doc, _) = DeTable::parse_recoverable(text);
+        Self {
+            text,
+            doc: doc.into_inner(),
         }
-        if i + 1 == line {
-            let (k, v) = l.split_once('=')?;
-            let v = v.split(" #").next().unwrap_or(v).trim();
-            let k = k.trim();
-            let key = if table.is_empty() {
-                k.to_string()
-            } else {
-                format!("{table}.{k}")
+    }
+
+    fn line_of_offset(&self, offset: usize) -> usize {
+        let end = offset.min(self.text.len());
+        self.text.as_bytes()[..end]
+            .iter()
+            .filter(|&&b| b == b'\n')
+            .count()
+            + 1
+    }
+
+    /// Line (1-based) of a dotted key such as `camera.sensor.read_noise_e` (also inside
+    /// an inline table) or `lighting.vehicle_lamps[1].direction`. A key the file leaves
+    /// out is reported at its nearest table that the file has, else at line 1.
+    fn line_of_key(&self, dotted: &str) -> usize {
+        let mut table = &self.doc;
+        let mut line = 1;
+        for segment in dotted.split('.') {
+            let (name, index) = match segment.split_once('[') {
+                Some((n, i)) => (n, i.trim_end_matches(']').parse::<usize>().ok()),
+                None => (segment, None),
             };
-            return Some((key, v.to_string()));
+            let Some((key, value)) = table.iter().find(|(k, _)| k.get_ref() == name) else {
+                break;
+            };
+            line = self.line_of_offset(key.span().start);
+            let value = match (value.get_ref(), index) {
+                (DeValue::Array(items), Some(i)) => match items.get(i) {
+                    Some(item) => item,
+                    None => break,
+                },
+                _ => value,
+            };
+            match value.get_ref() {
+                DeValue::Table(t) => table = t,
+                _ => break,
+            }
+        }
+        line
+    }
+
+    /// `section.key = value: ` of the innermost non-table value at `offset`, for parse
+    /// errors (serde's messages name neither).
+    fn key_at(&self, offset: usize) -> Option<String> {
+        let mut found = None;
+        self.find_at(&self.doc, "", offset, &mut found);
+        found.map(|(key, span)| format!("{key} = {}: ", &self.text[span]))
+    }
+
+    fn find_at(
+        &self,
+        table: &DeTable<'t>,
+        prefix: &str,
+        offset: usize,
+        found: &mut Option<(String, Range<usize>)>,
+    ) {
+        for (key, value) in table {
+            let dotted = if prefix.is_empty() {
+                key.get_ref().to_string()
+            } else {
+                format!("{prefix}.{}", key.get_ref())
+            };
+            let here = key.span().contains(&offset) || value.span().contains(&offset);
+            match value.get_ref() {
+                DeValue::Table(t) => self.find_at(t, &dotted, offset, found),
+                DeValue::Array(items) if items.iter().any(|i| i.get_ref().is_table()) => {
+                    for item in items.iter() {
+                        if let DeValue::Table(t) = item.get_ref() {
+                            self.find_at(t, &dotted, offset, found);
+                        }
+                    }
+                }
+                _ if here => *found = Some((dotted, value.span())),
+                _ => {}
+            }
         }
     }
-    None
 }
 
-fn line_of_offset(text: &str, offset: usize) -> usize {
-    text[..offset.min(text.len())].matches('\n').count() + 1
-}
-
-/// Split a crate's "key = value: expected ..." message into its parts.
-fn invalid_from(
-    file: &Path,
-    text: &str,
-    section: &str,
-    key: String,
-    value: String,
-    expected: String,
-) -> ParamsError {
-    let key = if section.is_empty() || key.starts_with(&format!("{section}.")) {
-        key
-    } else {
-        format!("{section}.{key}")
-    };
-    ParamsError::Invalid {
-        file: file.to_path_buf(),
-        line: line_of_key(text, &key),
-        key,
-        value,
-        expected,
-    }
+/// The crate error of a section, located in the site file.
+fn located(path: &Path, at: &Located<'_>, e: ConfigError) -> ParamsError {
+    let line = at.line_of_key(&e.key);
+    ParamsError::Config(e.at(path, line))
 }
 
 /// Read, parse and validate a site file.
@@ -287,30 +322,25 @@ pub fn load(path: &Path) -> Result<LoadedSite, ParamsError> {
 
 /// Parse and validate site text read from `path` (relative files resolve against it).
 pub fn parse(path: &Path, text: &str) -> Result<LoadedSite, ParamsError> {
-    let mut site: Site = toml::from_str(text).map_err(|e| {
-        let line = e.span().map(|s| line_of_offset(text, s.start)).unwrap_or(1);
+    let parsed: Result<Site, _> = toml::from_str(text);
+    let at = Located::new(text);
+    let mut site = parsed.map_err(|e| {
+        let offset = e.span().map(|s| s.start);
         ParamsError::Parse {
             file: path.to_path_buf(),
-            line,
-            key: key_at_line(text, line)
-                .map(|(k, v)| format!("{k} = {v}: "))
-                .unwrap_or_default(),
+            line: offset.map_or(1, |o| at.line_of_offset(o)),
+            key: offset.and_then(|o| at.key_at(o)).unwrap_or_default(),
             message: e.message().trim().to_string(),
         }
     })?;
-    let inv = |section: &str, key: String, value: String, expected: String| {
-        invalid_from(path, text, section, key, value, expected)
-    };
-    validate_site(&site).map_err(|(k, v, e)| inv("", k, v, e))?;
-    crate::params_validate::validate_sections(&site)
-        .map_err(|(section, k, v, e)| inv(section, k, v, e))?;
+    validate(&site).map_err(|e| located(path, &at, e))?;
 
     let base = path.parent().unwrap_or(Path::new("."));
     if let Some(rel) = &site.camera.calibration_file {
         let full = base.join(rel);
         site.camera.calibration_file = Some(full.clone());
     }
-    let calibration = calibration_of(path, text, &site.camera)?;
+    let calibration = calibration_of(path, &at, &site.camera)?;
     Ok(LoadedSite {
         path: path.to_path_buf(),
         site,
@@ -318,15 +348,41 @@ pub fn parse(path: &Path, text: &str) -> Result<LoadedSite, ParamsError> {
     })
 }
 
+/// Every section of a parsed site, in file order of the usual site file.
+fn validate(site: &Site) -> Result<(), ConfigError> {
+    validate_site(site)?;
+    validate_sim(site)?;
+    site.marker.validate()?;
+    site.vision.validate()?;
+    site.exposure.validate()?;
+    site.station.validate()?;
+    site.controller.validate()?;
+    site.link.validate()
+}
+
+#[cfg(feature = "sim")]
+fn validate_sim(site: &Site) -> Result<(), ConfigError> {
+    site.water.validate()?;
+    site.lighting.validate()?;
+    site.vehicle.validate()?;
+    site.camera.sensor.validate()
+}
+
+/// Without the simulator its sections stay unchecked (see [`SIM_SECTIONS_NOTE`]).
+#[cfg(not(feature = "sim"))]
+fn validate_sim(_: &Site) -> Result<(), ConfigError> {
+    Ok(())
+}
+
 fn calibration_of(
     path: &Path,
-    text: &str,
+    at: &Located<'_>,
     cam: &CameraSection,
 ) -> Result<CameraCalibration, ParamsError> {
     if let Some(file) = &cam.calibration_file {
         let referenced = |reason: String| ParamsError::ReferencedFile {
             file: path.to_path_buf(),
-            line: line_of_key(text, "camera.calibration_file"),
+            line: at.line_of_key("camera.calibration_file"),
             key: "camera.calibration_file".into(),
             value: file.display().to_string(),
             reason,
@@ -351,93 +407,105 @@ fn calibration_of(
     })
 }
 
-type Bad = (String, String, String);
-
-fn bad(key: &str, value: impl std::fmt::Display, expected: &str) -> Bad {
-    (key.to_string(), value.to_string(), expected.to_string())
+#[rustfmt::skip]
+fn validate_site(site: &Site) -> Result<(), ConfigError> {
+    let s = &site.site;
+    Checks::new("site")
+        .check("name", AsDebug(&s.name), !s.name.trim().is_empty(), "a non-empty name")
+        .range("depth_m", s.depth_m, 0.0..=300.0, "a depth in metres, 0..300")
+        .done()?;
+    let c = &site.camera;
+    let pixels = "a positive number of pixels";
+    let distortion_ok = c.distortion.iter().all(|k| k.is_finite());
+    Checks::new("camera")
+        .range("width_px", c.width_px, 16..=8192, "16..8192 pixels")
+        .range("height_px", c.height_px, 16..=8192, "16..8192 pixels")
+        .range("fps", c.fps, open_closed(0.0, 500.0), "frames per second in (0, 500]")
+        .range("exposure_min_us", c.exposure_min_us, above(0.0), "a positive exposure in microseconds")
+        .range("exposure_max_us", c.exposure_max_us, above(c.exposure_min_us), "microseconds, more than exposure_min_us")
+        .range("initial_exposure_us", c.initial_exposure_us, above(0.0), "a positive exposure in microseconds")
+        .range("gain_db", c.gain_db, -20.0..=48.0, "a gain in dB, -20..48")
+        .range("actuation_delay_frames", c.actuation_delay_frames, ..=10, "0..10 frames")
+        .opt(c.fx_px, |k, v| k.positive("fx_px", v, pixels))
+        .opt(c.fy_px, |k, v| k.positive("fy_px", v, pixels))
+        .opt(c.cx_px, |k, v| k.positive("cx_px", v, pixels))
+        .opt(c.cy_px, |k, v| k.positive("cy_px", v, pixels))
+        .check("distortion", AsDebug(c.distortion), distortion_ok, "five finite numbers k1 k2 p1 p2 k3")
+        .all("mount_position_m", &c.mount_position_m, -2.0..=2.0, "a position on the vehicle, each coordinate within 2 m")
+        .all("mount_rpy_deg", &c.mount_rpy_deg, -180.0..=180.0, "angles in degrees within -180..180")
+        .done()
 }
 
-fn validate_site(site: &Site) -> Result<(), Bad> {
-    let s = &site.site;
-    if s.name.trim().is_empty() {
-        return Err(bad("site.name", "\"\"", "a non-empty name"));
-    }
-    if !(s.depth_m >= 0.0 && s.depth_m <= 300.0) {
-        return Err(bad("site.depth_m", s.depth_m, "a depth in metres, 0..300"));
-    }
-    let c = &site.camera;
-    if !(16..=8192).contains(&c.width_px) {
-        return Err(bad("camera.width_px", c.width_px, "16..8192 pixels"));
-    }
-    if !(16..=8192).contains(&c.height_px) {
-        return Err(bad("camera.height_px", c.height_px, "16..8192 pixels"));
-    }
-    if !(c.fps > 0.0 && c.fps <= 500.0) {
-        return Err(bad("camera.fps", c.fps, "frames per second in (0, 500]"));
-    }
-    if !(c.exposure_min_us > 0.0) {
-        return Err(bad(
-            "camera.exposure_min_us",
-            c.exposure_min_us,
-            "a positive exposure in microseconds",
-        ));
-    }
-    if !(c.exposure_max_us > c.exposure_min_us) {
-        return Err(bad(
-            "camera.exposure_max_us",
-            c.exposure_max_us,
-            "microseconds, more than exposure_min_us",
-        ));
-    }
-    if !(c.initial_exposure_us > 0.0) {
-        return Err(bad(
-            "camera.initial_exposure_us",
-            c.initial_exposure_us,
-            "a positive exposure in microseconds",
-        ));
-    }
-    if !(-20.0..=48.0).contains(&c.gain_db) {
-        return Err(bad("camera.gain_db", c.gain_db, "a gain in dB, -20..48"));
-    }
-    if c.actuation_delay_frames > 10 {
-        return Err(bad(
-            "camera.actuation_delay_frames",
-            c.actuation_delay_frames,
-            "0..10 frames",
-        ));
-    }
-    for (k, v) in [
-        ("camera.fx_px", c.fx_px),
-        ("camera.fy_px", c.fy_px),
-        ("camera.cx_px", c.cx_px),
-        ("camera.cy_px", c.cy_px),
-    ] {
-        if let Some(v) = v {
-            if !(v.is_finite() && v > 0.0) {
-                return Err(bad(k, v, "a positive number of pixels"));
-            }
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    const POOL: &str = include_str!("../params/pool.toml");
+
+    /// Pool with `line` inserted after the `[camera]` header, and the error of parsing it.
+    fn camera_error(line: &str) -> ParamsError {
+        let text = POOL.replacen("[camera]\n", &format!("[camera]\n{line}\n"), 1);
+        match parse(Path::new("/sites/pool.toml"), &text) {
+            Ok(_) => panic!("`{line}` was accepted"),
+            Err(e) => e,
         }
     }
-    if c.distortion.iter().any(|v| !v.is_finite()) {
-        return Err(bad(
-            "camera.distortion",
-            format!("{:?}", c.distortion),
-            "five finite numbers k1 k2 p1 p2 k3",
-        ));
+
+    fn camera_line() -> usize {
+        POOL.lines()
+            .position(|l| l == "[camera]")
+            .expect("pool has [camera]")
+            + 2
     }
-    if c.mount_position_m.iter().any(|v| !(v.abs() <= 2.0)) {
-        return Err(bad(
-            "camera.mount_position_m",
-            format!("{:?}", c.mount_position_m),
-            "a position on the vehicle, each coordinate within 2 m",
-        ));
+
+    #[test]
+    fn pool_is_valid() {
+        parse(Path::new("/sites/pool.toml"), POOL).expect("pool.toml");
     }
-    if c.mount_rpy_deg.iter().any(|v| !(v.abs() <= 180.0)) {
-        return Err(bad(
-            "camera.mount_rpy_deg",
-            format!("{:?}", c.mount_rpy_deg),
-            "angles in degrees within -180..180",
-        ));
+
+    #[cfg(feature = "sim")]
+    #[test]
+    fn a_key_inside_an_inline_table_is_reported_at_its_own_line() {
+        let e = camera_error("sensor = { read_noise_e = -1.0 }");
+        assert_eq!(
+            e.to_string(),
+            format!(
+                "/sites/pool.toml:{}: camera.sensor.read_noise_e = -1: expected a noise in \
+                 [0, 1000] electrons",
+                camera_line()
+            )
+        );
     }
-    Ok(())
+
+    #[cfg(feature = "sim")]
+    #[test]
+    fn a_type_error_inside_an_inline_table_names_the_inner_key() {
+        let e = camera_error("sensor = { read_noise_e = \"x\" }");
+        let ParamsError::Parse { line, key, .. } = e else {
+            panic!("not a parse error: {e}");
+        };
+        assert_eq!(
+            (line, key.as_str()),
+            (camera_line(), "camera.sensor.read_noise_e = \"x\": ")
+        );
+    }
+
+    #[test]
+    fn a_key_of_a_sub_table_is_reported_at_its_line() {
+        let text = format!("{POOL}\n[controller.yaw]\nkp = 0.5\noutput_limit = 1.5\n");
+        let e = parse(Path::new("/sites/pool.toml"), &text).expect_err("output_limit 1.5");
+        let ParamsError::Config(e) = e else {
+            panic!("not a range error: {e}");
+        };
+        assert_eq!(e.key, "controller.yaw.output_limit");
+        assert_eq!(e.line, Some(text.lines().count()));
+    }
+
+    #[test]
+    fn a_key_left_out_is_reported_at_its_table() {
+        let at = Located::new("[site]\nname = \"x\"\n\n[camera]\nfps = 1.0\n");
+        assert_eq!(at.line_of_key("camera.exposure_max_us"), 4);
+        assert_eq!(at.line_of_key("camera.fps"), 5);
+        assert_eq!(at.line_of_key("nowhere.key"), 1);
+    }
 }

@@ -5,39 +5,14 @@ use std::path::PathBuf;
 use nalgebra::{Isometry3, Matrix3, Rotation3, Translation3, UnitQuaternion, Vector3};
 use serde::{Deserialize, Serialize};
 
+use markhold_config::{Checks, ConfigError};
+
 use crate::error::AutopilotError;
 
-fn check_finite(key: &str, v: f64) -> Result<(), AutopilotError> {
-    if v.is_finite() {
-        Ok(())
-    } else {
-        Err(AutopilotError::config(key, v, "must be a finite number"))
-    }
-}
-
-fn check_positive(key: &str, v: f64) -> Result<(), AutopilotError> {
-    if v.is_finite() && v > 0.0 {
-        Ok(())
-    } else {
-        Err(AutopilotError::config(
-            key,
-            v,
-            "must be a finite number > 0",
-        ))
-    }
-}
-
-fn check_non_negative(key: &str, v: f64) -> Result<(), AutopilotError> {
-    if v.is_finite() && v >= 0.0 {
-        Ok(())
-    } else {
-        Err(AutopilotError::config(
-            key,
-            v,
-            "must be a finite number >= 0",
-        ))
-    }
-}
+// The wording of the expected values, shared by every section of this crate.
+const FINITE: &str = "a finite number";
+const POSITIVE: &str = "a finite number > 0";
+const NON_NEGATIVE: &str = "a finite number >= 0";
 
 /// `[station]`: where the vehicle should sit relative to the marker (docs/frames.md).
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -76,19 +51,15 @@ pub fn r_marker_body_facing() -> Rotation3<f64> {
 
 impl StationConfig {
     /// Checks every key.
-    pub fn validate(&self) -> Result<(), AutopilotError> {
-        check_positive("station.distance_m", self.distance_m)?;
-        check_finite("station.lateral_m", self.lateral_m)?;
-        check_finite("station.vertical_m", self.vertical_m)?;
-        check_finite("station.yaw_deg", self.yaw_deg)?;
-        if self.yaw_deg.abs() > 180.0 {
-            return Err(AutopilotError::config(
-                "station.yaw_deg",
-                self.yaw_deg,
-                "must lie in -180..180",
-            ));
-        }
-        Ok(())
+    #[rustfmt::skip]
+    pub fn validate(&self) -> Result<(), ConfigError> {
+        Checks::new("station")
+            .positive("distance_m", self.distance_m, POSITIVE)
+            .finite("lateral_m", self.lateral_m, FINITE)
+            .finite("vertical_m", self.vertical_m, FINITE)
+            .finite("yaw_deg", self.yaw_deg, FINITE)
+            .range("yaw_deg", self.yaw_deg, -180.0..=180.0, "must lie in -180..180")
+            .done()
     }
 
     /// Desired vehicle pose in the marker frame.
@@ -151,23 +122,18 @@ impl AxisConfig {
         }
     }
 
-    fn validate(&self, axis: &str) -> Result<(), AutopilotError> {
-        let k = |f: &str| format!("controller.{axis}.{f}");
-        check_non_negative(&k("kp"), self.kp)?;
-        check_non_negative(&k("ki"), self.ki)?;
-        check_non_negative(&k("kd"), self.kd)?;
-        check_non_negative(&k("p_limit"), self.p_limit)?;
-        check_non_negative(&k("i_limit"), self.i_limit)?;
-        check_non_negative(&k("d_limit"), self.d_limit)?;
-        check_non_negative(&k("output_limit"), self.output_limit)?;
-        if self.output_limit > 1.0 {
-            return Err(AutopilotError::config(
-                k("output_limit"),
-                self.output_limit,
-                "must be <= 1 (efforts are normalized)",
-            ));
-        }
-        Ok(())
+    #[rustfmt::skip]
+    fn validate(&self, axis: &str) -> Result<(), ConfigError> {
+        Checks::new(format!("controller.{axis}"))
+            .non_negative("kp", self.kp, NON_NEGATIVE)
+            .non_negative("ki", self.ki, NON_NEGATIVE)
+            .non_negative("kd", self.kd, NON_NEGATIVE)
+            .non_negative("p_limit", self.p_limit, NON_NEGATIVE)
+            .non_negative("i_limit", self.i_limit, NON_NEGATIVE)
+            .non_negative("d_limit", self.d_limit, NON_NEGATIVE)
+            .non_negative("output_limit", self.output_limit, NON_NEGATIVE)
+            .range("output_limit", self.output_limit, ..=1.0, "<= 1 (efforts are normalized)")
+            .done()
     }
 }
 
@@ -334,36 +300,23 @@ impl From<ControllerConfigToml> for ControllerConfig {
 
 impl ControllerConfig {
     /// Checks every key.
-    pub fn validate(&self) -> Result<(), AutopilotError> {
+    #[rustfmt::skip]
+    pub fn validate(&self) -> Result<(), ConfigError> {
         for (name, axis) in self.axes_named() {
             axis.validate(name)?;
         }
-        check_positive("controller.rate_hz", self.rate_hz)?;
-        if self.rate_hz > 1000.0 {
-            return Err(AutopilotError::config(
-                "controller.rate_hz",
-                self.rate_hz,
-                "must be <= 1000",
-            ));
-        }
-        check_positive("controller.derivative_filter_hz", self.derivative_filter_hz)?;
-        check_non_negative("controller.marker_lost_hold_s", self.marker_lost_hold_s)?;
-        check_non_negative(
-            "controller.marker_lost_action_after_s",
-            self.marker_lost_action_after_s,
-        )?;
-        check_positive(
-            "controller.filter_q_trans_m2_per_s",
-            self.filter_q_trans_m2_per_s,
-        )?;
-        check_positive(
-            "controller.filter_q_rot_rad2_per_s",
-            self.filter_q_rot_rad2_per_s,
-        )?;
-        check_non_negative("controller.filter_gate_sigma", self.filter_gate_sigma)?;
-        check_positive("controller.max_gap_s", self.max_gap_s)?;
-        check_positive("controller.vision_stall_s", self.vision_stall_s)?;
-        Ok(())
+        Checks::new("controller")
+            .positive("rate_hz", self.rate_hz, POSITIVE)
+            .range("rate_hz", self.rate_hz, ..=1000.0, "<= 1000")
+            .positive("derivative_filter_hz", self.derivative_filter_hz, POSITIVE)
+            .non_negative("marker_lost_hold_s", self.marker_lost_hold_s, NON_NEGATIVE)
+            .non_negative("marker_lost_action_after_s", self.marker_lost_action_after_s, NON_NEGATIVE)
+            .positive("filter_q_trans_m2_per_s", self.filter_q_trans_m2_per_s, POSITIVE)
+            .positive("filter_q_rot_rad2_per_s", self.filter_q_rot_rad2_per_s, POSITIVE)
+            .non_negative("filter_gate_sigma", self.filter_gate_sigma, NON_NEGATIVE)
+            .positive("max_gap_s", self.max_gap_s, POSITIVE)
+            .positive("vision_stall_s", self.vision_stall_s, POSITIVE)
+            .done()
     }
 
     /// The six axes in effort order with their key names.
@@ -550,107 +503,54 @@ impl Default for LinkConfig {
 
 impl LinkConfig {
     /// Checks every key (the URL is parsed too).
-    pub fn validate(&self) -> Result<(), AutopilotError> {
-        crate::transport::Endpoint::parse(&self.url)?;
-        if self.gcs_system_id == 0 {
-            return Err(AutopilotError::config(
-                "link.gcs_system_id",
-                self.gcs_system_id,
-                "must be 1..255 (ArduSub expects SYSID_MYGCS, default 255)",
-            ));
-        }
-        if self.vehicle_system_id == 0 {
-            return Err(AutopilotError::config(
-                "link.vehicle_system_id",
-                self.vehicle_system_id,
-                "must be 1..255",
-            ));
-        }
-        match (self.command, self.mode) {
-            (CommandKind::Effort, LinkMode::Guided) => {
-                return Err(AutopilotError::config(
-                    "link.mode",
-                    "guided",
-                    "effort commands need manual, stabilize or alt_hold",
-                ))
-            }
-            (CommandKind::Setpoint, m) if m != LinkMode::Guided => {
-                return Err(AutopilotError::config(
-                    "link.mode",
-                    format!("{m:?}").to_lowercase(),
-                    "setpoint commands need guided",
-                ))
-            }
-            _ => {}
-        }
-        check_positive("link.heartbeat_hz", self.heartbeat_hz)?;
-        check_positive("link.stream_hz", self.stream_hz)?;
-        check_positive("link.stream_rerequest_s", self.stream_rerequest_s)?;
-        check_positive("link.pilot_input_hz", self.pilot_input_hz)?;
-        if self.pilot_input_hz < 5.0 {
-            return Err(AutopilotError::config(
-                "link.pilot_input_hz",
-                self.pilot_input_hz,
-                "must be >= 5 or ArduSub's pilot-input failsafe disarms",
-            ));
-        }
-        check_positive("link.vehicle_timeout_s", self.vehicle_timeout_s)?;
-        if self.vehicle_timeout_s * self.stream_hz < 4.0 {
-            return Err(AutopilotError::config(
-                "link.vehicle_timeout_s",
-                self.vehicle_timeout_s,
-                "must cover at least 4 telemetry messages at link.stream_hz \
-                 (vehicle_timeout_s x stream_hz >= 4)",
-            ));
-        }
-        check_positive("link.command_timeout_s", self.command_timeout_s)?;
-        for (k, v) in [
-            ("link.thruster_deadband_us", self.thruster_deadband_us),
-            ("link.input_deadzone_us", self.input_deadzone_us),
-            ("link.yaw_deadzone_us", self.yaw_deadzone_us),
-        ] {
-            check_non_negative(k, v)?;
-            if v >= 200.0 {
-                return Err(AutopilotError::config(k, v, "must be < 200 us"));
-            }
-        }
-        check_non_negative("link.effort_epsilon", self.effort_epsilon)?;
-        if self.effort_epsilon >= 0.5 {
-            return Err(AutopilotError::config(
-                "link.effort_epsilon",
-                self.effort_epsilon,
-                "must be < 0.5",
-            ));
-        }
-        check_positive("link.surface_pressure_pa", self.surface_pressure_pa)?;
-        check_positive("link.water_density_kg_m3", self.water_density_kg_m3)?;
-        if !(self.manual_control_gain.is_finite()
-            && self.manual_control_gain >= 0.1
-            && self.manual_control_gain <= 1.0)
-        {
-            return Err(AutopilotError::config(
-                "link.manual_control_gain",
-                self.manual_control_gain,
-                "must lie in 0.1..1 (ArduSub JS_GAIN range)",
-            ));
-        }
-        if !(self.origin_lat_deg.is_finite() && self.origin_lat_deg.abs() <= 90.0) {
-            return Err(AutopilotError::config(
-                "link.origin_lat_deg",
-                self.origin_lat_deg,
-                "must lie in -90..90",
-            ));
-        }
-        if !(self.origin_lon_deg.is_finite() && self.origin_lon_deg.abs() <= 180.0) {
-            return Err(AutopilotError::config(
-                "link.origin_lon_deg",
-                self.origin_lon_deg,
-                "must lie in -180..180",
-            ));
-        }
-        check_finite("link.origin_alt_m", self.origin_alt_m)?;
-        Ok(())
+    #[rustfmt::skip]
+    pub fn validate(&self) -> Result<(), ConfigError> {
+        crate::transport::Endpoint::parse(&self.url).map_err(|e| url_error(&self.url, e))?;
+        let mode = format!("{:?}", self.mode).to_lowercase();
+        let guided = self.mode == LinkMode::Guided;
+        let effort = self.command == CommandKind::Effort;
+        let timeout_covers = self.vehicle_timeout_s * self.stream_hz >= 4.0;
+        let below_200 = "< 200 us";
+        let covers_4 = "must cover at least 4 telemetry messages at link.stream_hz \
+                        (vehicle_timeout_s x stream_hz >= 4)";
+        Checks::new("link")
+            .range("gcs_system_id", self.gcs_system_id, 1.., "1..255 (ArduSub expects SYSID_MYGCS, default 255)")
+            .range("vehicle_system_id", self.vehicle_system_id, 1.., "1..255")
+            .check("mode", &mode, !(effort && guided), "effort commands need manual, stabilize or alt_hold")
+            .check("mode", &mode, effort || guided, "setpoint commands need guided")
+            .positive("heartbeat_hz", self.heartbeat_hz, POSITIVE)
+            .positive("stream_hz", self.stream_hz, POSITIVE)
+            .positive("stream_rerequest_s", self.stream_rerequest_s, POSITIVE)
+            .positive("pilot_input_hz", self.pilot_input_hz, POSITIVE)
+            .range("pilot_input_hz", self.pilot_input_hz, 5.0.., ">= 5 or ArduSub's pilot-input failsafe disarms")
+            .positive("vehicle_timeout_s", self.vehicle_timeout_s, POSITIVE)
+            .check("vehicle_timeout_s", self.vehicle_timeout_s, timeout_covers, covers_4)
+            .positive("command_timeout_s", self.command_timeout_s, POSITIVE)
+            .non_negative("thruster_deadband_us", self.thruster_deadband_us, NON_NEGATIVE)
+            .range("thruster_deadband_us", self.thruster_deadband_us, ..200.0, below_200)
+            .non_negative("input_deadzone_us", self.input_deadzone_us, NON_NEGATIVE)
+            .range("input_deadzone_us", self.input_deadzone_us, ..200.0, below_200)
+            .non_negative("yaw_deadzone_us", self.yaw_deadzone_us, NON_NEGATIVE)
+            .range("yaw_deadzone_us", self.yaw_deadzone_us, ..200.0, below_200)
+            .non_negative("effort_epsilon", self.effort_epsilon, NON_NEGATIVE)
+            .range("effort_epsilon", self.effort_epsilon, ..0.5, "< 0.5")
+            .positive("surface_pressure_pa", self.surface_pressure_pa, POSITIVE)
+            .positive("water_density_kg_m3", self.water_density_kg_m3, POSITIVE)
+            .range("manual_control_gain", self.manual_control_gain, 0.1..=1.0, "must lie in 0.1..1 (ArduSub JS_GAIN range)")
+            .range("origin_lat_deg", self.origin_lat_deg, -90.0..=90.0, "must lie in -90..90")
+            .range("origin_lon_deg", self.origin_lon_deg, -180.0..=180.0, "must lie in -180..180")
+            .finite("origin_alt_m", self.origin_alt_m, FINITE)
+            .done()
     }
+}
+
+/// The link URL's parse error as the error of the `link.url` key.
+fn url_error(url: &str, e: AutopilotError) -> ConfigError {
+    let expected = match e {
+        AutopilotError::InvalidUrl { reason, .. } => format!("a link url ({reason})"),
+        other => other.to_string(),
+    };
+    ConfigError::new("link.url", format!("{url:?}"), expected)
 }
 
 #[cfg(test)]

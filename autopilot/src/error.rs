@@ -6,15 +6,8 @@ use thiserror::Error;
 #[derive(Debug, Error)]
 pub enum AutopilotError {
     /// A configuration key holds a value the code cannot use.
-    #[error("invalid config `{key}` = {value}: {reason}")]
-    InvalidConfig {
-        /// Dotted key, e.g. `controller.surge.kp`.
-        key: String,
-        /// The offending value, printed.
-        value: String,
-        /// What is expected instead.
-        reason: &'static str,
-    },
+    #[error(transparent)]
+    Config(#[from] markhold_config::ConfigError),
     /// The link URL could not be understood.
     #[error("invalid link url `{url}`: {reason}")]
     InvalidUrl {
@@ -73,18 +66,4 @@ pub enum AutopilotError {
         /// What the caller tried to send.
         requested: &'static str,
     },
-}
-
-impl AutopilotError {
-    pub(crate) fn config(
-        key: impl Into<String>,
-        value: impl std::fmt::Display,
-        reason: &'static str,
-    ) -> Self {
-        Self::InvalidConfig {
-            key: key.into(),
-            value: value.to_string(),
-            reason,
-        }
-    }
 }

@@ -367,11 +367,13 @@ impl StationKeeper {
         let tv = t_vehicle_cam.translation.vector;
         let q = t_vehicle_cam.rotation;
         if !(tv.iter().all(|v| v.is_finite()) && q.coords.iter().all(|v| v.is_finite())) {
-            return Err(AutopilotError::config(
+            let value = format!("{t_vehicle_cam:?}");
+            let e = markhold_config::ConfigError::new(
                 "camera.mount",
-                format!("{t_vehicle_cam:?}"),
+                value,
                 "t_vehicle_cam must be finite",
-            ));
+            );
+            return Err(e.into());
         }
         let dt_step = 1.0 / ctl.rate_hz;
         let a = ctl.axes_named();

@@ -23,6 +23,7 @@ pub use config::{
 pub use error::AutopilotError;
 pub use keeper::{wrap_pi, Effort, KeeperStatus, PoseMeasurement, StationKeeper};
 pub use link::{ArduSubMode, CommandStatus, RawFrame, VehicleLink, VehicleState};
+pub use markhold_config::ConfigError;
 /// The mavlink crate the link is built on (same version and features), for callers that
 /// build or check frames themselves (tests, tools).
 pub use mavlink;

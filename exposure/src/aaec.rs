@@ -31,9 +31,10 @@
 
 use crate::metric::{GradientMetric, MetricParams};
 use crate::{
-    exposed_as_commanded, invalid, Corners, ExposureController, ExposureError, ExposureLimits,
+    exposed_as_commanded, Corners, ExposureController, ExposureError, ExposureLimits,
     ExposureMethod, ExposureStep, Frame, Response, Roi,
 };
+use markhold_config::{open, open_closed, Checks, ConfigError};
 use serde::{Deserialize, Serialize};
 
 /// Largest move in ln t (25%) over which the scene-change test compares M with its
@@ -251,192 +252,38 @@ impl Default for AaecConfig {
 }
 
 impl AaecConfig {
-    pub fn validate(&self) -> Result<(), ExposureError> {
-        let k = |name: &str| format!("aaec.{name}");
-        let check = |ok: bool, name: &str, v: &dyn std::fmt::Display, exp: &str| {
-            if ok {
-                Ok(())
-            } else {
-                Err(invalid(&k(name), v, exp))
-            }
-        };
-        let p = self.percentile;
-        check(p > 0.0 && p < 1.0, "percentile", &p, "a fraction in (0, 1)")?;
-        let wp = self.weight_power;
-        check(
-            wp % 2 == 1 && wp <= 9,
-            "weight_power",
-            &wp,
-            "an odd integer in 1..=9",
-        )?;
-        let v = self.roi_pad_frac;
-        check(
-            (0.0..=1.0).contains(&v),
-            "roi_pad_frac",
-            &v,
-            "a fraction in [0, 1]",
-        )?;
-        let v = self.momentum;
-        check(
-            (0.0..1.0).contains(&v),
-            "momentum",
-            &v,
-            "a factor in [0, 1)",
-        )?;
-        let v = self.learning_rate;
-        check(
-            v > 0.0 && v <= 10.0,
-            "learning_rate",
-            &v,
-            "a rate in (0, 10]",
-        )?;
-        let v = self.dead_band_us;
-        check(
-            (0.0..=1000.0).contains(&v),
-            "dead_band_us",
-            &v,
-            "microseconds in [0, 1000]",
-        )?;
-        let v = self.max_ratio_per_frame;
-        check(
-            v > 1.0 && v <= 100.0,
-            "max_ratio_per_frame",
-            &v,
-            "a ratio in (1, 100]",
-        )?;
-        let v = self.step_shrink;
-        check(v > 0.0 && v < 1.0, "step_shrink", &v, "a factor in (0, 1)")?;
-        let v = self.step_grow;
-        check(
-            (1.0..=4.0).contains(&v),
-            "step_grow",
-            &v,
-            "a factor in [1, 4]",
-        )?;
-        let v = self.min_step_scale;
-        check(
-            v > 0.0 && v <= 1.0,
-            "min_step_scale",
-            &v,
-            "a scale in (0, 1]",
-        )?;
-        let v = self.metric_floor_grey2;
-        check(
-            v > 0.0 && v.is_finite(),
-            "metric_floor_grey2",
-            &v,
-            "a positive value",
-        )?;
-        let v = self.bracket_frames;
-        check(
-            v <= 1000,
-            "bracket_frames",
-            &v,
-            "frames in 0..=1000 (0 = no age limit)",
-        )?;
-        let v = self.restart_metric_change;
-        check(
-            v > 0.0 && v <= 20.0,
-            "restart_metric_change",
-            &v,
-            "a change of ln M in (0, 20]",
-        )?;
-        let v = self.restart_slope;
-        check(
-            v > 0.0 && v <= 10.0,
-            "restart_slope",
-            &v,
-            "a slope in (0, 10]",
-        )?;
-        let v = self.probe_frames;
-        check(
-            (1..=MAX_PROBE_FRAMES).contains(&v),
-            "probe_frames",
-            &v,
-            "frames in 1..=64",
-        )?;
-        let v = self.saturation_grey;
-        check(v >= 128, "saturation_grey", &v, "a grey level in 128..=255")?;
-        let v = self.saturation_penalty;
-        check(
-            (0.0..=10.0).contains(&v),
-            "saturation_penalty",
-            &v,
-            "a factor in [0, 10]",
-        )?;
-        let v = self.lost_hold_frames;
-        check(v <= 1000, "lost_hold_frames", &v, "frames in 0..=1000")?;
-        let v = self.sweep_after_frames;
-        check(
-            v <= 1000,
-            "sweep_after_frames",
-            &v,
-            "frames in 0..=1000 (0 = off)",
-        )?;
-        let v = self.sweep_ratio;
-        check(
-            (1.1..=16.0).contains(&v),
-            "sweep_ratio",
-            &v,
-            "a factor in [1.1, 16]",
-        )?;
-        let v = self.sweep_span;
-        check(
-            v >= self.sweep_ratio && v <= 1000.0,
-            "sweep_span",
-            &v,
-            "a factor in [sweep_ratio, 1000]",
-        )?;
-        let v = self.sweep_dwell_frames;
-        check(
-            (1..=30).contains(&v),
-            "sweep_dwell_frames",
-            &v,
-            "frames in 1..=30",
-        )?;
-        let v = self.highlight_frac;
-        check(
-            (0.0..=0.5).contains(&v),
-            "highlight_frac",
-            &v,
-            "a fraction in [0, 0.5]",
-        )?;
-        let v = self.highlight_grey;
-        check(
-            (128.0..=250.0).contains(&v),
-            "highlight_grey",
-            &v,
-            "a grey level in [128, 250]",
-        )?;
-        let v = self.knee_quantile;
-        check(
-            (0.0..1.0).contains(&v),
-            "knee_quantile",
-            &v,
-            "a fraction in [0, 1) (0 = off)",
-        )?;
-        let v = self.knee_margin;
-        check(
-            (1.0..=2.0).contains(&v),
-            "knee_margin",
-            &v,
-            "a factor in [1, 2]",
-        )?;
-        let v = self.knee_hold_z;
-        check(
-            v > 0.0 && v <= 10.0,
-            "knee_hold_z",
-            &v,
-            "standard deviations in (0, 10]",
-        )?;
-        let v = self.knee_hold_slope;
-        check(
-            v >= self.restart_slope && v <= 10.0,
-            "knee_hold_slope",
-            &v,
-            "a slope in [restart_slope, 10]",
-        )?;
-        Ok(())
+    #[rustfmt::skip]
+    pub fn validate(&self) -> Result<(), ConfigError> {
+        Checks::new("exposure.aaec")
+            .range("percentile", self.percentile, open(0.0, 1.0), "a fraction in (0, 1)")
+            .odd("weight_power", self.weight_power, 1..=9, "an odd integer in 1..=9")
+            .range("roi_pad_frac", self.roi_pad_frac, 0.0..=1.0, "a fraction in [0, 1]")
+            .range("momentum", self.momentum, 0.0..1.0, "a factor in [0, 1)")
+            .range("learning_rate", self.learning_rate, open_closed(0.0, 10.0), "a rate in (0, 10]")
+            .range("dead_band_us", self.dead_band_us, 0.0..=1000.0, "microseconds in [0, 1000]")
+            .range("max_ratio_per_frame", self.max_ratio_per_frame, open_closed(1.0, 100.0), "a ratio in (1, 100]")
+            .range("step_shrink", self.step_shrink, open(0.0, 1.0), "a factor in (0, 1)")
+            .range("step_grow", self.step_grow, 1.0..=4.0, "a factor in [1, 4]")
+            .range("min_step_scale", self.min_step_scale, open_closed(0.0, 1.0), "a scale in (0, 1]")
+            .positive("metric_floor_grey2", self.metric_floor_grey2, "a positive value")
+            .range("bracket_frames", self.bracket_frames, ..=1000, "frames in 0..=1000 (0 = no age limit)")
+            .range("restart_metric_change", self.restart_metric_change, open_closed(0.0, 20.0), "a change of ln M in (0, 20]")
+            .range("restart_slope", self.restart_slope, open_closed(0.0, 10.0), "a slope in (0, 10]")
+            .range("probe_frames", self.probe_frames, 1..=MAX_PROBE_FRAMES, "frames in 1..=64")
+            .range("saturation_grey", self.saturation_grey, 128.., "a grey level in 128..=255")
+            .range("saturation_penalty", self.saturation_penalty, 0.0..=10.0, "a factor in [0, 10]")
+            .range("lost_hold_frames", self.lost_hold_frames, ..=1000, "frames in 0..=1000")
+            .range("sweep_after_frames", self.sweep_after_frames, ..=1000, "frames in 0..=1000 (0 = off)")
+            .range("sweep_ratio", self.sweep_ratio, 1.1..=16.0, "a factor in [1.1, 16]")
+            .range("sweep_span", self.sweep_span, self.sweep_ratio..=1000.0, "a factor in [sweep_ratio, 1000]")
+            .range("sweep_dwell_frames", self.sweep_dwell_frames, 1..=30, "frames in 1..=30")
+            .range("highlight_frac", self.highlight_frac, 0.0..=0.5, "a fraction in [0, 0.5]")
+            .range("highlight_grey", self.highlight_grey, 128.0..=250.0, "a grey level in [128, 250]")
+            .range("knee_quantile", self.knee_quantile, 0.0..1.0, "a fraction in [0, 1) (0 = off)")
+            .range("knee_margin", self.knee_margin, 1.0..=2.0, "a factor in [1, 2]")
+            .range("knee_hold_z", self.knee_hold_z, open_closed(0.0, 10.0), "standard deviations in (0, 10]")
+            .range("knee_hold_slope", self.knee_hold_slope, self.restart_slope..=10.0, "a slope in [restart_slope, 10]")
+            .done()
     }
 
     /// The metric parameters this configuration implies.

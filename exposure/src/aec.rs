@@ -16,8 +16,10 @@
 
 use crate::metric::{GradientMetric, MetricParams};
 use crate::pyramid::Downsampler;
+use markhold_config::{above, open, open_closed, Checks, ConfigError};
+
 use crate::{
-    exposed_as_commanded, invalid, Corners, ExposureController, ExposureError, ExposureLimits,
+    exposed_as_commanded, Corners, ExposureController, ExposureError, ExposureLimits,
     ExposureMethod, ExposureStep, Frame, Response,
 };
 use serde::{Deserialize, Serialize};
@@ -88,117 +90,29 @@ impl Default for AecConfig {
 }
 
 impl AecConfig {
-    pub fn validate(&self) -> Result<(), ExposureError> {
-        let check = |ok: bool, name: &str, v: &dyn std::fmt::Display, exp: &str| {
-            if ok {
-                Ok(())
-            } else {
-                Err(invalid(&format!("aec.{name}"), v, exp))
-            }
-        };
-        let v = self.percentile;
-        check(v > 0.0 && v < 1.0, "percentile", &v, "a fraction in (0, 1)")?;
-        let v = self.weight_power;
-        check(
-            !v.is_multiple_of(2) && v <= 9,
-            "weight_power",
-            &v,
-            "an odd integer in 1..=9",
-        )?;
-        let v = self.pyramid_factor;
-        check(
-            (1..=32).contains(&v),
-            "pyramid_factor",
-            &v,
-            "a factor in 1..=32",
-        )?;
-        let v = self.rate;
-        check(v > 0.0 && v <= 10.0, "rate", &v, "a rate in (0, 10]")?;
-        let v = self.slope_history;
-        check(
-            (2..=100).contains(&v),
-            "slope_history",
-            &v,
-            "frames in 2..=100",
-        )?;
-        let v = self.slope_grow;
-        check(
-            (1.0..=4.0).contains(&v),
-            "slope_grow",
-            &v,
-            "a factor in [1, 4]",
-        )?;
-        let v = self.slope_scale_max;
-        check(
-            (1.0..=1e6).contains(&v),
-            "slope_scale_max",
-            &v,
-            "a cap in [1, 1e6]",
-        )?;
-        let v = self.dead_band_us;
-        check(
-            (0.0..=1000.0).contains(&v),
-            "dead_band_us",
-            &v,
-            "microseconds in [0, 1000]",
-        )?;
-        let v = self.max_change_frac;
-        check(
-            v > 0.0 && v <= 1.0,
-            "max_change_frac",
-            &v,
-            "a fraction in (0, 1]",
-        )?;
+    #[rustfmt::skip]
+    pub fn validate(&self) -> Result<(), ConfigError> {
         let (lo, hi) = (self.mean_low_grey, self.mean_high_grey);
-        check(
-            (0.0..255.0).contains(&lo),
-            "mean_low_grey",
-            &lo,
-            "a grey level in [0, 255)",
-        )?;
-        check(
-            hi > lo && hi <= 255.0,
-            "mean_high_grey",
-            &hi,
-            "a grey level above mean_low_grey, <= 255",
-        )?;
-        let v = self.target_grey;
-        check(
-            v > 1.0 && v < 254.0,
-            "target_grey",
-            &v,
-            "a grey level in (1, 254)",
-        )?;
-        let v = self.over_frac_max;
-        check(
-            v > 0.0 && v <= 1.0,
-            "over_frac_max",
-            &v,
-            "a fraction in (0, 1]",
-        )?;
-        let v = self.saturation_grey;
-        check(v >= 128, "saturation_grey", &v, "a grey level in 128..=255")?;
-        let v = self.saturation_penalty;
-        check(
-            (0.0..=10.0).contains(&v),
-            "saturation_penalty",
-            &v,
-            "a factor in [0, 10]",
-        )?;
-        let (lo, hi) = (self.exposure_min_us, self.exposure_max_us);
-        check(
-            lo > 0.0 && lo.is_finite(),
-            "exposure_min_us",
-            &lo,
-            "microseconds > 0",
-        )?;
-        check(
-            hi > lo && hi.is_finite(),
-            "exposure_max_us",
-            &hi,
-            "microseconds above exposure_min_us",
-        )?;
-        Ok(())
+        let (min_us, max_us) = (self.exposure_min_us, self.exposure_max_us);
+        Checks::new("exposure.aec")
+            .range("percentile", self.percentile, open(0.0, 1.0), "a fraction in (0, 1)")
+            .odd("weight_power", self.weight_power, 1..=9, "an odd integer in 1..=9")
+            .range("pyramid_factor", self.pyramid_factor, 1..=32, "a factor in 1..=32")
+            .range("rate", self.rate, open_closed(0.0, 10.0), "a rate in (0, 10]")
+            .range("slope_history", self.slope_history, 2..=100, "frames in 2..=100")
+            .range("slope_grow", self.slope_grow, 1.0..=4.0, "a factor in [1, 4]")
+            .range("slope_scale_max", self.slope_scale_max, 1.0..=1e6, "a cap in [1, 1e6]")
+            .range("dead_band_us", self.dead_band_us, 0.0..=1000.0, "microseconds in [0, 1000]")
+            .range("max_change_frac", self.max_change_frac, open_closed(0.0, 1.0), "a fraction in (0, 1]")
+            .range("mean_low_grey", lo, 0.0..255.0, "a grey level in [0, 255)")
+            .range("mean_high_grey", hi, open_closed(lo, 255.0), "a grey level above mean_low_grey, <= 255")
+            .range("target_grey", self.target_grey, open(1.0, 254.0), "a grey level in (1, 254)")
+            .range("over_frac_max", self.over_frac_max, open_closed(0.0, 1.0), "a fraction in (0, 1]")
+            .range("saturation_grey", self.saturation_grey, 128.., "a grey level in 128..=255")
+            .range("saturation_penalty", self.saturation_penalty, 0.0..=10.0, "a factor in [0, 10]")
+            .positive("exposure_min_us", min_us, "microseconds > 0")
+            .finite_range("exposure_max_us", max_us, above(min_us), "microseconds above exposure_min_us")
+            .done()
     }
 
     /// The metric parameters this configuration implies.

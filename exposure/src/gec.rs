@@ -11,8 +11,10 @@
 //! `alpha = 0.5` if `gamma_hat >= 1` else 1.
 
 use crate::pyramid::Downsampler;
+use markhold_config::{open_closed, Checks, ConfigError};
+
 use crate::{
-    exposed_as_commanded, invalid, Corners, ExposureController, ExposureError, ExposureLimits,
+    exposed_as_commanded, Corners, ExposureController, ExposureError, ExposureLimits,
     ExposureMethod, ExposureStep, Frame, ImageView,
 };
 use serde::{Deserialize, Serialize};
@@ -56,35 +58,15 @@ impl Default for GecConfig {
 }
 
 impl GecConfig {
-    pub fn validate(&self) -> Result<(), ExposureError> {
-        let check = |ok: bool, name: &str, v: &dyn std::fmt::Display, exp: &str| {
-            if ok {
-                Ok(())
-            } else {
-                Err(invalid(&format!("gec.{name}"), v, exp))
-            }
-        };
-        let v = self.downsample;
-        check(
-            (1..=32).contains(&v),
-            "downsample",
-            &v,
-            "a factor in 1..=32",
-        )?;
-        let v = self.delta;
-        check(
-            (0.0..1.0).contains(&v),
-            "delta",
-            &v,
-            "a threshold in [0, 1)",
-        )?;
-        let v = self.lambda;
-        check(v > 0.0 && v <= 1e6, "lambda", &v, "a value in (0, 1e6]")?;
-        let v = self.kp;
-        check(v > 0.0 && v <= 2.0, "kp", &v, "a gain in (0, 2]")?;
-        let v = self.d;
-        check(v > 0.0 && v <= 10.0, "d", &v, "a value in (0, 10]")?;
-        Ok(())
+    #[rustfmt::skip]
+    pub fn validate(&self) -> Result<(), ConfigError> {
+        Checks::new("exposure.gec")
+            .range("downsample", self.downsample, 1..=32, "a factor in 1..=32")
+            .range("delta", self.delta, 0.0..1.0, "a threshold in [0, 1)")
+            .range("lambda", self.lambda, open_closed(0.0, 1e6), "a value in (0, 1e6]")
+            .range("kp", self.kp, open_closed(0.0, 2.0), "a gain in (0, 2]")
+            .range("d", self.d, open_closed(0.0, 10.0), "a value in (0, 10]")
+            .done()
     }
 }
 

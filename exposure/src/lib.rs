@@ -22,17 +22,14 @@ pub use mean::{MeanAe, MeanAeConfig};
 pub use metric::{soft_percentile_weights, GradientMetric, MetricParams, MetricValue, RankWeights};
 pub use response::{Response, ResponseModel};
 
+pub use markhold_config::ConfigError;
 use serde::{Deserialize, Serialize};
 
 /// Errors of this crate. Config errors name the key and the value.
 #[derive(Debug, thiserror::Error)]
 pub enum ExposureError {
-    #[error("exposure.{key} = {value}: expected {expected}")]
-    InvalidConfig {
-        key: String,
-        value: String,
-        expected: String,
-    },
+    #[error(transparent)]
+    Config(#[from] ConfigError),
     #[error("image buffer of {len} bytes is too small for {width}x{height}")]
     BufferTooSmall {
         width: usize,
@@ -171,7 +168,7 @@ impl Default for ExposureConfig {
 impl ExposureConfig {
     /// Check every range (files are read by [`ResponseModel::load`]); the error names
     /// the key.
-    pub fn validate(&self) -> Result<(), ExposureError> {
+    pub fn validate(&self) -> Result<(), ConfigError> {
         self.default.validate()?;
         self.aaec.validate()?;
         self.aec.validate()?;
@@ -222,13 +219,5 @@ pub fn build_controller(
                 fallback,
             )?))
         }
-    }
-}
-
-pub(crate) fn invalid(key: &str, value: impl std::fmt::Display, expected: &str) -> ExposureError {
-    ExposureError::InvalidConfig {
-        key: key.to_string(),
-        value: value.to_string(),
-        expected: expected.to_string(),
     }
 }

@@ -1,8 +1,10 @@
 //! A camera's built-in auto exposure: damped mean-intensity targeting in log
 //! exposure, `ln t += kappa * (ln target - ln mean)`. The "Default" of the paper.
 
+use markhold_config::{open, open_closed, Checks, ConfigError};
+
 use crate::{
-    exposed_as_commanded, invalid, Corners, ExposureController, ExposureError, ExposureLimits,
+    exposed_as_commanded, Corners, ExposureController, ExposureError, ExposureLimits,
     ExposureMethod, ExposureStep, Frame, Roi,
 };
 use serde::{Deserialize, Serialize};
@@ -33,29 +35,13 @@ impl Default for MeanAeConfig {
 }
 
 impl MeanAeConfig {
-    pub fn validate(&self) -> Result<(), ExposureError> {
-        if !(self.target_grey > 1.0 && self.target_grey < 254.0) {
-            return Err(invalid(
-                "default.target_grey",
-                self.target_grey,
-                "a grey level in (1, 254)",
-            ));
-        }
-        if !(self.kappa > 0.0 && self.kappa <= 1.0) {
-            return Err(invalid(
-                "default.kappa",
-                self.kappa,
-                "a damping factor in (0, 1]",
-            ));
-        }
-        if self.subsample == 0 || self.subsample > 64 {
-            return Err(invalid(
-                "default.subsample",
-                self.subsample,
-                "a pixel step in 1..=64",
-            ));
-        }
-        Ok(())
+    #[rustfmt::skip]
+    pub fn validate(&self) -> Result<(), ConfigError> {
+        Checks::new("exposure.default")
+            .range("target_grey", self.target_grey, open(1.0, 254.0), "a grey level in (1, 254)")
+            .range("kappa", self.kappa, open_closed(0.0, 1.0), "a damping factor in (0, 1]")
+            .range("subsample", self.subsample, 1..=64, "a pixel step in 1..=64")
+            .done()
     }
 }
 

@@ -5,7 +5,8 @@
 //! `dI/d(ln t) = 1 / g'(I)`; the HIL camera needs the forward map `f` to render. Both live
 //! in one [`Response`] so that the simulated camera and the controllers' model agree.
 
-use crate::{invalid, ExposureError};
+use crate::ExposureError;
+use markhold_config::{Checks, ConfigError};
 use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
 
@@ -25,13 +26,11 @@ pub enum ResponseModel {
 
 impl ResponseModel {
     /// Check the ranges that can be checked without reading files.
-    pub fn validate(&self) -> Result<(), ExposureError> {
-        if let ResponseModel::Gamma { gamma } = self {
-            if !(*gamma >= 0.2 && *gamma <= 5.0) {
-                return Err(invalid("response.gamma", gamma, "a gamma in [0.2, 5]"));
-            }
+    pub fn validate(&self) -> Result<(), ConfigError> {
+        match self {
+            ResponseModel::Gamma { gamma } => check_gamma(*gamma),
+            ResponseModel::Linear | ResponseModel::Table { .. } => Ok(()),
         }
-        Ok(())
     }
 
     /// The same model with a relative table path taken relative to `base` (the folder
@@ -54,6 +53,12 @@ impl ResponseModel {
             ResponseModel::Table { file } => Response::from_table_file(file),
         }
     }
+}
+
+fn check_gamma(gamma: f64) -> Result<(), ConfigError> {
+    Checks::new("exposure.response")
+        .range("gamma", gamma, 0.2..=5.0, "a gamma in [0.2, 5]")
+        .done()
 }
 
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -84,9 +89,7 @@ impl Response {
 
     /// `I = 255 x^(1/gamma)`, so `g'(I) = gamma / I`.
     pub fn gamma(gamma: f64) -> Result<Self, ExposureError> {
-        if !(0.2..=5.0).contains(&gamma) {
-            return Err(invalid("response.gamma", gamma, "a gamma in [0.2, 5]"));
-        }
+        check_gamma(gamma)?;
         Ok(Self::gamma_unchecked(gamma, Forward::Gamma(gamma)))
     }
 
@@ -108,14 +111,11 @@ impl Response {
     /// A response from a `g'` table (every entry finite and > 0). The forward curve is
     /// its integral: `ln f^-1(I) = -int_I^255 g'`, trapezoid rule between levels.
     pub fn from_g_prime(g_prime: [f64; 256]) -> Result<Self, ExposureError> {
-        for (i, v) in g_prime.iter().enumerate() {
-            if !(v.is_finite() && *v > 0.0) {
-                return Err(invalid(
-                    &format!("response.table[{i}]"),
-                    v,
-                    "a finite g' > 0",
-                ));
-            }
+        let bad = g_prime.iter().position(|v| !(v.is_finite() && *v > 0.0));
+        if let Some(i) = bad {
+            Checks::new("exposure.response")
+                .positive(&format!("table[{i}]"), g_prime[i], "a finite g' > 0")
+                .done()?;
         }
         Ok(Self::integrate(g_prime))
     }

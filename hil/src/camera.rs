@@ -15,7 +15,8 @@ use nalgebra::{Isometry3, Point3};
 use serde::{Deserialize, Serialize};
 
 use crate::scene::{Scene, WorldLamp};
-use crate::{invalid, HilError};
+use crate::HilError;
+use markhold_config::{above, open_closed, Checks, ConfigError};
 use sensor::{electrons_per_unit, SensorTables, XorShift64Star};
 
 /// The builds of the fast renderer's per-pixel loops, narrowest first. All give the
@@ -95,29 +96,13 @@ impl Default for SensorConfig {
 }
 
 impl SensorConfig {
-    pub fn validate(&self) -> Result<(), HilError> {
-        if !(self.full_well_e >= 100.0 && self.full_well_e <= 1e7) {
-            return Err(invalid(
-                "camera.sensor.full_well_e",
-                self.full_well_e,
-                "a capacity in [100, 1e7] electrons",
-            ));
-        }
-        if !(self.read_noise_e >= 0.0 && self.read_noise_e <= 1000.0) {
-            return Err(invalid(
-                "camera.sensor.read_noise_e",
-                self.read_noise_e,
-                "a noise in [0, 1000] electrons",
-            ));
-        }
-        if !(self.electrons_per_w_m2_us > 0.0 && self.electrons_per_w_m2_us <= 1e6) {
-            return Err(invalid(
-                "camera.sensor.electrons_per_w_m2_us",
-                self.electrons_per_w_m2_us,
-                "a sensitivity in (0, 1e6]",
-            ));
-        }
-        Ok(())
+    #[rustfmt::skip]
+    pub fn validate(&self) -> Result<(), ConfigError> {
+        Checks::new("camera.sensor")
+            .range("full_well_e", self.full_well_e, 100.0..=1e7, "a capacity in [100, 1e7] electrons")
+            .range("read_noise_e", self.read_noise_e, 0.0..=1000.0, "a noise in [0, 1000] electrons")
+            .range("electrons_per_w_m2_us", self.electrons_per_w_m2_us, open_closed(0.0, 1e6), "a sensitivity in (0, 1e6]")
+            .done()
     }
 }
 
@@ -166,61 +151,36 @@ impl CameraModel {
         }
     }
 
-    pub fn validate(&self) -> Result<(), HilError> {
-        if !(8..=16384).contains(&self.width) {
-            return Err(invalid("camera.width", self.width, "8..=16384 pixels"));
-        }
-        if !(8..=16384).contains(&self.height) {
-            return Err(invalid("camera.height", self.height, "8..=16384 pixels"));
-        }
-        for (key, v) in [("camera.fx", self.fx), ("camera.fy", self.fy)] {
-            if !(v.is_finite() && v > 1.0) {
-                return Err(invalid(key, v, "a focal length > 1 pixel"));
-            }
-        }
-        for (key, v) in [("camera.cx", self.cx), ("camera.cy", self.cy)] {
-            if !v.is_finite() {
-                return Err(invalid(key, v, "a finite principal point"));
-            }
-        }
-        if let Some((i, v)) = self
+    #[rustfmt::skip]
+    pub fn validate(&self) -> Result<(), ConfigError> {
+        let bad_dist = self
             .dist
             .iter()
-            .enumerate()
-            .find(|(_, v)| !(v.is_finite() && v.abs() < 100.0))
-        {
-            return Err(invalid(
-                &format!("camera.distortion[{i}]"),
-                v,
-                "a finite coefficient, |k| < 100",
-            ));
-        }
-        if !(self.fps > 0.0 && self.fps <= 1000.0) {
-            return Err(invalid("camera.fps", self.fps, "a frame rate in (0, 1000]"));
-        }
+            .position(|v| !(v.is_finite() && v.abs() < 100.0));
         let l = &self.limits;
-        if !(l.min_us > 0.0 && l.max_us >= l.min_us && l.max_us.is_finite()) {
-            return Err(invalid(
-                "camera.exposure_min_us",
-                format!("{}..{}", l.min_us, l.max_us),
-                "0 < exposure_min_us <= exposure_max_us",
-            ));
-        }
-        if !(self.gain_db >= 0.0 && self.gain_db <= 48.0) {
-            return Err(invalid(
-                "camera.gain_db",
-                self.gain_db,
-                "a gain in [0, 48] dB",
-            ));
-        }
-        if self.delay_frames > 8 {
-            return Err(invalid(
-                "camera.actuation_delay_frames",
-                self.delay_frames,
-                "0..=8 frames",
-            ));
-        }
-        self.sensor.validate()
+        let limits_ok = l.min_us > 0.0 && l.max_us >= l.min_us && l.max_us.is_finite();
+        Checks::new("camera")
+            .range("width", self.width, 8..=16384, "8..=16384 pixels")
+            .range("height", self.height, 8..=16384, "8..=16384 pixels")
+            .finite_range("fx", self.fx, above(1.0), "a focal length > 1 pixel")
+            .finite_range("fy", self.fy, above(1.0), "a focal length > 1 pixel")
+            .finite("cx", self.cx, "a finite principal point")
+            .finite("cy", self.cy, "a finite principal point")
+            .opt(bad_dist, |c, i| {
+                let name = format!("distortion[{i}]");
+                c.check(
+                    &name,
+                    self.dist[i],
+                    false,
+                    "a finite coefficient, |k| < 100",
+                )
+            })
+            .range("fps", self.fps, open_closed(0.0, 1000.0), "a frame rate in (0, 1000]")
+            .check("exposure_min_us", format!("{}..{}", l.min_us, l.max_us), limits_ok, "0 < exposure_min_us <= exposure_max_us")
+            .range("gain_db", self.gain_db, 0.0..=48.0, "a gain in [0, 48] dB")
+            .range("actuation_delay_frames", self.delay_frames, ..=8, "0..=8 frames")
+            .then(|| self.sensor.validate())
+            .done()
     }
 
     /// Apply the distortion to normalized coordinates (OpenCV's model).

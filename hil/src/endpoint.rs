@@ -32,10 +32,10 @@ pub use control::ControlGains;
 use control::{Controller, NavEstimate};
 use signing::{Signing, Verdict};
 
-use crate::invalid;
 use crate::mixer::MAX_MOTORS;
 use crate::vehicle::{VehicleState, GRAVITY_MPS2};
 use crate::HilError;
+use markhold_config::{open_closed, Checks, ConfigError};
 
 /// ArduSub flight modes (HEARTBEAT.custom_mode).
 pub mod mode {
@@ -136,53 +136,25 @@ impl Default for EndpointConfig {
 }
 
 impl EndpointConfig {
-    pub fn validate(&self) -> Result<(), HilError> {
-        if self.system_id == 0 {
-            return Err(invalid("endpoint.system_id", 0, "1..=255"));
-        }
-        if self.bind_ip.is_multicast() || self.bind_ip.is_unspecified() {
-            return Err(invalid(
-                "endpoint.bind_ip",
-                self.bind_ip,
-                "one unicast address (127.0.0.1 by default; not 0.0.0.0)",
-            ));
-        }
-        if !(self.joystick_gain.is_finite()
-            && self.joystick_gain > 0.0
-            && self.joystick_gain <= 1.0)
-        {
-            return Err(invalid(
-                "endpoint.joystick_gain",
-                self.joystick_gain,
-                "0 < gain <= 1",
-            ));
-        }
-        for (key, v) in [
-            ("endpoint.pilot_timeout_s", self.pilot_timeout_s),
-            ("endpoint.gcs_timeout_s", self.gcs_timeout_s),
-        ] {
-            if !(v.is_finite() && v >= 0.0) {
-                return Err(invalid(key, v, "seconds >= 0 (0 disables)"));
-            }
-        }
-        for (key, v) in [
-            ("endpoint.rc_override_timeout_s", self.rc_override_timeout_s),
-            ("endpoint.guided_timeout_s", self.guided_timeout_s),
-            ("endpoint.vision_timeout_s", self.vision_timeout_s),
-            ("endpoint.heartbeat_hz", self.heartbeat_hz),
-        ] {
-            if !(v.is_finite() && v > 0.0) {
-                return Err(invalid(key, v, "a positive number"));
-            }
-        }
-        if !mode::SUPPORTED.contains(&self.initial_mode) {
-            return Err(invalid(
-                "endpoint.initial_mode",
-                self.initial_mode,
-                "0 (STABILIZE), 2 (ALT_HOLD), 4 (GUIDED), 16 (POSHOLD) or 19 (MANUAL)",
-            ));
-        }
-        self.gains.validate()
+    #[rustfmt::skip]
+    pub fn validate(&self) -> Result<(), ConfigError> {
+        let ip = self.bind_ip;
+        let positive = "a positive number";
+        let unicast = !(ip.is_multicast() || ip.is_unspecified());
+        let modes = "0 (STABILIZE), 2 (ALT_HOLD), 4 (GUIDED), 16 (POSHOLD) or 19 (MANUAL)";
+        Checks::new("endpoint")
+            .range("system_id", self.system_id, 1.., "1..=255")
+            .check("bind_ip", ip, unicast, "one unicast address (127.0.0.1 by default; not 0.0.0.0)")
+            .range("joystick_gain", self.joystick_gain, open_closed(0.0, 1.0), "0 < gain <= 1")
+            .non_negative("pilot_timeout_s", self.pilot_timeout_s, "seconds >= 0 (0 disables)")
+            .non_negative("gcs_timeout_s", self.gcs_timeout_s, "seconds >= 0 (0 disables)")
+            .positive("rc_override_timeout_s", self.rc_override_timeout_s, positive)
+            .positive("guided_timeout_s", self.guided_timeout_s, positive)
+            .positive("vision_timeout_s", self.vision_timeout_s, positive)
+            .positive("heartbeat_hz", self.heartbeat_hz, positive)
+            .one_of("initial_mode", self.initial_mode, &mode::SUPPORTED, modes)
+            .then(|| self.gains.validate())
+            .done()
     }
 }
 

@@ -1,13 +1,10 @@
-//! The one error enum of markhold-hil. Each module adds its own variants.
+//! The one error enum of markhold-hil.
 
 #[derive(Debug, thiserror::Error)]
 pub enum HilError {
-    #[error("{key} = {value}: expected {expected}")]
-    InvalidConfig {
-        key: String,
-        value: String,
-        expected: String,
-    },
+    /// A config key holds a value the simulator cannot use.
+    #[error(transparent)]
+    Config(#[from] markhold_config::ConfigError),
     /// The camera response named in the site file could not be built.
     #[error("camera response: {source}")]
     CameraResponse {

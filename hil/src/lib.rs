@@ -16,17 +16,9 @@ pub mod vehicle;
 
 pub use endpoint::{EndpointConfig, VehicleEndpoint};
 pub use error::HilError;
+pub use markhold_config::ConfigError;
 pub use mixer::{Frame6Dof, Mixer};
 pub use rig::{HilRig, HilSetup, Truth};
 pub use sitl::{SitlConfig, SitlServer};
 pub use thruster::ThrusterConfig;
 pub use vehicle::{Hydrodynamics, Vehicle, VehicleConfig, VehicleMotion, VehicleState};
-
-/// A config error naming the key, the bad value and what was expected.
-pub(crate) fn invalid(key: &str, value: impl std::fmt::Display, expected: &str) -> HilError {
-    HilError::InvalidConfig {
-        key: key.to_string(),
-        value: value.to_string(),
-        expected: expected.to_string(),
-    }
-}

@@ -46,11 +46,12 @@ impl std::str::FromStr for Frame6Dof {
         match s {
             "heavy" => Ok(Frame6Dof::Heavy),
             "standard" => Ok(Frame6Dof::Standard),
-            _ => Err(crate::invalid(
+            _ => Err(markhold_config::ConfigError::new(
                 "vehicle.frame",
                 s,
                 "\"heavy\" or \"standard\"",
-            )),
+            )
+            .into()),
         }
     }
 }

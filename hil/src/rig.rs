@@ -18,7 +18,8 @@ use crate::endpoint::{EndpointConfig, EndpointStats, VehicleEndpoint};
 use crate::mixer::MAX_MOTORS;
 use crate::scene::{LightingConfig, LightingScale, MarkerSpec, Scene, WaterConfig};
 use crate::vehicle::{Vehicle, VehicleConfig, VehicleMotion, VehicleState};
-use crate::{invalid, HilError};
+use crate::HilError;
+use markhold_config::{open_closed, Checks};
 
 /// How long a lock-step grab waits for the client's input, wall clock.
 pub const LOCKSTEP_WAIT: Duration = Duration::from_millis(250);
@@ -96,9 +97,15 @@ impl HilRig {
         setup.vehicle.validate()?;
         setup.endpoint.validate()?;
         let fps = setup.camera.fps;
-        if !(fps.is_finite() && fps > 0.0 && fps <= setup.vehicle.physics_hz) {
-            return Err(invalid("camera.fps", fps, "0 < fps <= vehicle.physics_hz"));
-        }
+        let physics_hz = setup.vehicle.physics_hz;
+        Checks::new("camera")
+            .range(
+                "fps",
+                fps,
+                open_closed(0.0, physics_hz),
+                "0 < fps <= vehicle.physics_hz",
+            )
+            .done()?;
         // Independent streams for the scene, the sensor noise and the gusts.
         let scene = Scene::new(
             &setup.water,

@@ -16,7 +16,8 @@ use std::str::FromStr;
 use nalgebra::{Isometry3, Point3, Unit, Vector3};
 use serde::{Deserialize, Serialize};
 
-use crate::{invalid, HilError};
+use crate::HilError;
+use markhold_config::{open_closed, AsDebug, Checks, ConfigError};
 pub(crate) use texture::{LitTexture, SplitMix64, Texture};
 
 /// Water types with tabulated coefficients (green band, where a grey camera is most
@@ -89,32 +90,17 @@ pub struct WaterOptics {
 }
 
 impl WaterConfig {
-    pub fn validate(&self) -> Result<(), HilError> {
-        let checks = [
-            ("water.attenuation_per_m", self.attenuation_per_m, 0.0, 20.0),
-            ("water.backscatter_per_m", self.backscatter_per_m, 0.0, 20.0),
-            (
-                "water.daylight_attenuation_per_m",
-                self.daylight_attenuation_per_m,
-                0.0,
-                20.0,
-            ),
-            ("water.veiling_fraction", self.veiling_fraction, 0.0, 1.0),
-            (
-                "water.lamp_scatter_per_m",
-                self.lamp_scatter_per_m,
-                0.0,
-                10.0,
-            ),
-        ];
-        for (key, v, lo, hi) in checks {
-            if let Some(v) = v {
-                if !(v >= lo && v <= hi) {
-                    return Err(invalid(key, v, &format!("a number in [{lo}, {hi}]")));
-                }
-            }
-        }
-        Ok(())
+    #[rustfmt::skip]
+    pub fn validate(&self) -> Result<(), ConfigError> {
+        let per_m = 0.0..=20.0;
+        let in_20 = "a number in [0, 20]";
+        Checks::new("water")
+            .range_opt("attenuation_per_m", self.attenuation_per_m, per_m.clone(), in_20)
+            .range_opt("backscatter_per_m", self.backscatter_per_m, per_m.clone(), in_20)
+            .range_opt("daylight_attenuation_per_m", self.daylight_attenuation_per_m, per_m, in_20)
+            .range_opt("veiling_fraction", self.veiling_fraction, 0.0..=1.0, "a number in [0, 1]")
+            .range_opt("lamp_scatter_per_m", self.lamp_scatter_per_m, 0.0..=10.0, "a number in [0, 10]")
+            .done()
     }
 
     /// The coefficients this water uses (explicit values, else the type's).
@@ -209,46 +195,18 @@ impl Default for LampConfig {
 }
 
 impl LampConfig {
-    fn validate(&self, key: &str) -> Result<(), HilError> {
-        if self.position_m.iter().any(|v| !v.is_finite()) {
-            return Err(invalid(
-                &format!("{key}.position_m"),
-                format!("{:?}", self.position_m),
-                "finite metres",
-            ));
-        }
+    #[rustfmt::skip]
+    fn validate(&self, key: &str) -> Result<(), ConfigError> {
         let n = Vector3::from(self.direction).norm();
-        if !(n.is_finite() && n > 1e-9) {
-            return Err(invalid(
-                &format!("{key}.direction"),
-                format!("{:?}", self.direction),
-                "a non-zero finite vector",
-            ));
-        }
-        if !(self.intensity_w_sr >= 0.0 && self.intensity_w_sr <= 1e6) {
-            return Err(invalid(
-                &format!("{key}.intensity_w_sr"),
-                self.intensity_w_sr,
-                "an intensity in [0, 1e6] W/sr",
-            ));
-        }
-        if !(self.inner_half_angle_deg >= 0.0 && self.inner_half_angle_deg < 89.0) {
-            return Err(invalid(
-                &format!("{key}.inner_half_angle_deg"),
-                self.inner_half_angle_deg,
-                "an angle in [0, 89) degrees",
-            ));
-        }
-        if !(self.outer_half_angle_deg > self.inner_half_angle_deg
-            && self.outer_half_angle_deg <= 90.0)
-        {
-            return Err(invalid(
-                &format!("{key}.outer_half_angle_deg"),
-                self.outer_half_angle_deg,
-                "an angle above inner_half_angle_deg, at most 90 degrees",
-            ));
-        }
-        Ok(())
+        let position_ok = self.position_m.iter().all(|v| v.is_finite());
+        let outer = open_closed(self.inner_half_angle_deg, 90.0);
+        Checks::new(key)
+            .check("position_m", AsDebug(self.position_m), position_ok, "finite metres")
+            .check("direction", AsDebug(self.direction), n.is_finite() && n > 1e-9, "a non-zero finite vector")
+            .range("intensity_w_sr", self.intensity_w_sr, 0.0..=1e6, "an intensity in [0, 1e6] W/sr")
+            .range("inner_half_angle_deg", self.inner_half_angle_deg, 0.0..89.0, "an angle in [0, 89) degrees")
+            .range("outer_half_angle_deg", self.outer_half_angle_deg, outer, "an angle above inner_half_angle_deg, at most 90 degrees")
+            .done()
     }
 }
 
@@ -311,52 +269,24 @@ fn vehicle_lamp_pair(intensity_w_sr: f64) -> Vec<LampConfig> {
 }
 
 impl LightingConfig {
-    pub fn validate(&self) -> Result<(), HilError> {
-        if let Some(a) = self.ambient_surface_w_m2 {
-            if !(0.0..=5000.0).contains(&a) {
-                return Err(invalid(
-                    "lighting.ambient_surface_w_m2",
-                    a,
-                    "an irradiance in [0, 5000] W/m2",
-                ));
-            }
-        }
-        if let Some(lamps) = &self.vehicle_lamps {
-            for (i, l) in lamps.iter().enumerate() {
-                l.validate(&format!("lighting.vehicle_lamps[{i}]"))?;
-            }
-        }
-        if let Some(l) = &self.marker_lamp {
-            l.validate("lighting.marker_lamp")?;
-        }
-        if let Some(s) = self.caustics_strength {
-            if !(0.0..=1.0).contains(&s) {
-                return Err(invalid(
-                    "lighting.caustics_strength",
-                    s,
-                    "a contrast in [0, 1]",
-                ));
-            }
-        }
-        if let Some(s) = self.caustics_scale_m {
-            if !(0.01..=10.0).contains(&s) {
-                return Err(invalid(
-                    "lighting.caustics_scale_m",
-                    s,
-                    "a size in [0.01, 10] m",
-                ));
-            }
-        }
-        if let Some(s) = self.caustics_speed_mps {
-            if !(0.0..=10.0).contains(&s) {
-                return Err(invalid(
-                    "lighting.caustics_speed_mps",
-                    s,
-                    "a speed in [0, 10] m/s",
-                ));
-            }
-        }
-        Ok(())
+    #[rustfmt::skip]
+    pub fn validate(&self) -> Result<(), ConfigError> {
+        let lamps = self.vehicle_lamps.as_deref().unwrap_or_default();
+        Checks::new("lighting")
+            .range_opt("ambient_surface_w_m2", self.ambient_surface_w_m2, 0.0..=5000.0, "an irradiance in [0, 5000] W/m2")
+            .then(|| {
+                let mut each = lamps.iter().enumerate();
+                each.try_for_each(|(i, l)| l.validate(&format!("lighting.vehicle_lamps[{i}]")))
+            })
+            .then(|| {
+                self.marker_lamp
+                    .as_ref()
+                    .map_or(Ok(()), |l| l.validate("lighting.marker_lamp"))
+            })
+            .range_opt("caustics_strength", self.caustics_strength, 0.0..=1.0, "a contrast in [0, 1]")
+            .range_opt("caustics_scale_m", self.caustics_scale_m, 0.01..=10.0, "a size in [0.01, 10] m")
+            .range_opt("caustics_speed_mps", self.caustics_speed_mps, 0.0..=10.0, "a speed in [0, 10] m/s")
+            .done()
     }
 
     /// The scenario's values with this config's overrides.
@@ -422,39 +352,16 @@ impl Default for BackgroundConfig {
 }
 
 impl BackgroundConfig {
-    pub fn validate(&self) -> Result<(), HilError> {
-        if !(self.wall_behind_marker_m >= 0.001 && self.wall_behind_marker_m <= 1000.0) {
-            return Err(invalid(
-                "scene.wall_behind_marker_m",
-                self.wall_behind_marker_m,
-                "a distance in [0.001, 1000] m",
-            ));
-        }
-        if !(self.seabed_below_marker_m >= 0.0 && self.seabed_below_marker_m <= 1000.0) {
-            return Err(invalid(
-                "scene.seabed_below_marker_m",
-                self.seabed_below_marker_m,
-                "a distance in [0, 1000] m",
-            ));
-        }
-        if !(self.albedo_spread >= 0.0
-            && self.albedo_mean - self.albedo_spread >= 0.0
-            && self.albedo_mean + self.albedo_spread <= 1.0)
-        {
-            return Err(invalid(
-                "scene.albedo_mean",
-                self.albedo_mean,
-                "albedo_mean +- albedo_spread within [0, 1]",
-            ));
-        }
-        if !(self.texel_m >= 1e-4 && self.texel_m <= 0.1) {
-            return Err(invalid(
-                "scene.texel_m",
-                self.texel_m,
-                "a size in [1e-4, 0.1] m",
-            ));
-        }
-        Ok(())
+    #[rustfmt::skip]
+    pub fn validate(&self) -> Result<(), ConfigError> {
+        let (mean, spread) = (self.albedo_mean, self.albedo_spread);
+        let albedo_ok = spread >= 0.0 && mean - spread >= 0.0 && mean + spread <= 1.0;
+        Checks::new("scene")
+            .range("wall_behind_marker_m", self.wall_behind_marker_m, 0.001..=1000.0, "a distance in [0.001, 1000] m")
+            .range("seabed_below_marker_m", self.seabed_below_marker_m, 0.0..=1000.0, "a distance in [0, 1000] m")
+            .check("albedo_mean", mean, albedo_ok, "albedo_mean +- albedo_spread within [0, 1]")
+            .range("texel_m", self.texel_m, 1e-4..=0.1, "a size in [1e-4, 0.1] m")
+            .done()
     }
 }
 
@@ -472,28 +379,16 @@ pub struct MarkerSpec {
 }
 
 impl MarkerSpec {
-    pub fn validate(&self) -> Result<(), HilError> {
-        if !(3..=64).contains(&self.cells) {
-            return Err(invalid("marker.cells", self.cells, "3..=64 cells per side"));
-        }
-        if self.white.len() != self.cells * self.cells {
-            return Err(invalid(
-                "marker.white",
-                format!("{} cells", self.white.len()),
-                &format!("cells^2 = {} cells", self.cells * self.cells),
-            ));
-        }
-        if !(self.size_m > 0.0 && self.size_m <= 10.0) {
-            return Err(invalid("marker.size_m", self.size_m, "a size in (0, 10] m"));
-        }
-        if !(self.plate_margin_m >= 0.0 && self.plate_margin_m <= 10.0) {
-            return Err(invalid(
-                "marker.plate_margin_m",
-                self.plate_margin_m,
-                "a margin in [0, 10] m",
-            ));
-        }
-        Ok(())
+    #[rustfmt::skip]
+    pub fn validate(&self) -> Result<(), ConfigError> {
+        let cells2 = self.cells * self.cells;
+        let white = format!("{} cells", self.white.len());
+        Checks::new("marker")
+            .range("cells", self.cells, 3..=64, "3..=64 cells per side")
+            .check("white", white, self.white.len() == cells2, &format!("cells^2 = {cells2} cells"))
+            .range("size_m", self.size_m, open_closed(0.0, 10.0), "a size in (0, 10] m")
+            .range("plate_margin_m", self.plate_margin_m, 0.0..=10.0, "a margin in [0, 10] m")
+            .done()
     }
 }
 
@@ -617,16 +512,12 @@ impl LightingScale {
         ambient: 1.0,
     };
 
-    pub fn validate(&self) -> Result<(), HilError> {
-        for (k, v) in [
-            ("lighting_scale.lamp", self.lamp),
-            ("lighting_scale.ambient", self.ambient),
-        ] {
-            if !(v.is_finite() && (0.0..=1e4).contains(&v)) {
-                return Err(invalid(k, v, "a factor in [0, 1e4]"));
-            }
-        }
-        Ok(())
+    #[rustfmt::skip]
+    pub fn validate(&self) -> Result<(), ConfigError> {
+        Checks::new("lighting_scale")
+            .range("lamp", self.lamp, 0.0..=1e4, "a factor in [0, 1e4]")
+            .range("ambient", self.ambient, 0.0..=1e4, "a factor in [0, 1e4]")
+            .done()
     }
 }
 

@@ -19,7 +19,8 @@ use serde::{Deserialize, Serialize};
 
 use crate::mixer::MAX_MOTORS;
 use crate::vehicle::{Vehicle, VehicleConfig, VehicleState};
-use crate::{invalid, HilError};
+use crate::HilError;
+use markhold_config::{Checks, ConfigError};
 
 /// Magic of a 16-channel servo packet.
 pub const MAGIC_16: u16 = 18458;
@@ -376,15 +377,15 @@ impl SitlServer {
 }
 
 impl SitlConfig {
-    pub fn validate(&self) -> Result<(), HilError> {
+    pub fn validate(&self) -> Result<(), ConfigError> {
         if self.port == 0 {
             // Port 0 works (tests) but ArduPilot could never find it.
             tracing::debug!("sitl.port = 0: an ephemeral port, for tests");
         }
-        if self.bind_ip.is_multicast() {
-            return Err(invalid("sitl.bind_ip", self.bind_ip, "a unicast address"));
-        }
-        Ok(())
+        let ip = self.bind_ip;
+        Checks::new("sitl")
+            .check("bind_ip", ip, !ip.is_multicast(), "a unicast address")
+            .done()
     }
 }
 

@@ -3,8 +3,7 @@
 
 use serde::{Deserialize, Serialize};
 
-use crate::invalid;
-use crate::HilError;
+use markhold_config::{Checks, ConfigError};
 
 /// Static and dynamic parameters of one T200 (published figures at 16 V).
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
@@ -33,36 +32,15 @@ impl Default for ThrusterConfig {
 }
 
 impl ThrusterConfig {
-    pub fn validate(&self) -> Result<(), HilError> {
-        if !(self.forward_max_n.is_finite() && self.forward_max_n > 0.0) {
-            return Err(invalid(
-                "vehicle.thruster.forward_max_n",
-                self.forward_max_n,
-                "a positive number of newtons",
-            ));
-        }
-        if !(self.reverse_max_n.is_finite() && self.reverse_max_n > 0.0) {
-            return Err(invalid(
-                "vehicle.thruster.reverse_max_n",
-                self.reverse_max_n,
-                "a positive number of newtons",
-            ));
-        }
-        if !(self.dead_band_half_us.is_finite() && (0.0..400.0).contains(&self.dead_band_half_us)) {
-            return Err(invalid(
-                "vehicle.thruster.dead_band_half_us",
-                self.dead_band_half_us,
-                "0 <= value < 400",
-            ));
-        }
-        if !(self.time_constant_s.is_finite() && self.time_constant_s >= 0.0) {
-            return Err(invalid(
-                "vehicle.thruster.time_constant_s",
-                self.time_constant_s,
-                "a non-negative number of seconds",
-            ));
-        }
-        Ok(())
+    #[rustfmt::skip]
+    pub fn validate(&self) -> Result<(), ConfigError> {
+        let newtons = "a positive number of newtons";
+        Checks::new("vehicle.thruster")
+            .positive("forward_max_n", self.forward_max_n, newtons)
+            .positive("reverse_max_n", self.reverse_max_n, newtons)
+            .range("dead_band_half_us", self.dead_band_half_us, 0.0..400.0, "0 <= value < 400")
+            .non_negative("time_constant_s", self.time_constant_s, "a non-negative number of seconds")
+            .done()
     }
 
     /// Steady-state thrust (N, signed: positive pushes along the thruster's direction)

@@ -23,10 +23,10 @@ use rapier3d::math::{Pose as RPose, Rotation as RRot, Vector as RVec};
 use rapier3d::pipeline::PhysicsWorld;
 use serde::{Deserialize, Serialize};
 
-use crate::invalid;
 use crate::mixer::{Frame6Dof, Mixer, MAX_MOTORS};
 use crate::thruster::{Thruster, ThrusterConfig};
 use crate::HilError;
+use markhold_config::{above, AsDebug, Checks, ConfigError};
 
 /// Standard gravity, m/s^2.
 pub const GRAVITY_MPS2: f64 = 9.81;
@@ -136,82 +136,52 @@ impl Default for VehicleConfig {
     }
 }
 
-fn check_finite(key: &str, v: &[f64]) -> Result<(), HilError> {
-    match v.iter().find(|x| !x.is_finite()) {
-        Some(x) => Err(invalid(key, x, "finite numbers")),
-        None => Ok(()),
-    }
-}
-
-fn check_non_negative(key: &str, v: &[f64]) -> Result<(), HilError> {
-    check_finite(key, v)?;
-    match v.iter().find(|x| **x < 0.0) {
-        Some(x) => Err(invalid(key, x, "non-negative numbers")),
-        None => Ok(()),
-    }
+/// Each element finite, then each >= 0, the first bad element reported.
+fn non_negative(c: Checks, name: &str, v: &[f64]) -> Checks {
+    c.each_finite(name, v, "finite numbers")
+        .each(name, v, 0.0.., "non-negative numbers")
 }
 
 impl VehicleConfig {
-    pub fn validate(&self) -> Result<(), HilError> {
-        if !(self.physics_hz.is_finite() && (10.0..=10_000.0).contains(&self.physics_hz)) {
-            return Err(invalid(
-                "vehicle.physics_hz",
-                self.physics_hz,
-                "10..=10000 Hz",
-            ));
-        }
-        if let Some(m) = self.mass_kg {
-            if !(m.is_finite() && m > 0.0) {
-                return Err(invalid("vehicle.mass_kg", m, "a positive mass in kg"));
-            }
-        }
-        if let Some(b) = self.buoyancy_n {
-            check_non_negative("vehicle.buoyancy_n", &[b])?;
-        }
-        if let Some(v) = &self.cb_from_cg_m {
-            check_finite("vehicle.cb_from_cg_m", v)?;
-        }
-        if let Some(v) = &self.inertia_kgm2 {
-            check_non_negative("vehicle.inertia_kgm2", v)?;
-            if v.contains(&0.0) {
-                return Err(invalid(
-                    "vehicle.inertia_kgm2",
-                    format!("{v:?}"),
+    #[rustfmt::skip]
+    pub fn validate(&self) -> Result<(), ConfigError> {
+        let no_zero_inertia = |v: &[f64; 3]| !v.contains(&0.0);
+        Checks::new("vehicle")
+            .finite_range("physics_hz", self.physics_hz, 10.0..=10_000.0, "10..=10000 Hz")
+            .opt(self.mass_kg, |c, m| {
+                c.positive("mass_kg", m, "a positive mass in kg")
+            })
+            .opt(self.buoyancy_n, |c, b| non_negative(c, "buoyancy_n", &[b]))
+            .opt(self.cb_from_cg_m.as_ref(), |c, v| {
+                c.each_finite("cb_from_cg_m", v, "finite numbers")
+            })
+            .opt(self.inertia_kgm2.as_ref(), |c, v| {
+                non_negative(c, "inertia_kgm2", v).check(
+                    "inertia_kgm2",
+                    AsDebug(v),
+                    no_zero_inertia(v),
                     "positive",
-                ));
-            }
-        }
-        if let Some(v) = &self.added_mass {
-            check_non_negative("vehicle.added_mass", v)?;
-        }
-        if let Some(v) = &self.damping_linear {
-            check_non_negative("vehicle.damping_linear", v)?;
-        }
-        if let Some(v) = &self.damping_quadratic {
-            check_non_negative("vehicle.damping_quadratic", v)?;
-        }
-        self.thruster.validate()?;
-        check_finite("vehicle.current_mps", &self.current_mps)?;
-        check_non_negative("vehicle.gust_std_mps", &self.gust_std_mps)?;
-        if !(self.gust_time_constant_s.is_finite() && self.gust_time_constant_s > 0.0) {
-            return Err(invalid(
-                "vehicle.gust_time_constant_s",
-                self.gust_time_constant_s,
-                "a positive number of seconds",
-            ));
-        }
-        check_non_negative("vehicle.wave_height_m", &[self.wave_height_m])?;
-        if !(self.wave_period_s.is_finite() && self.wave_period_s > 0.5) {
-            return Err(invalid(
-                "vehicle.wave_period_s",
-                self.wave_period_s,
-                "> 0.5 s",
-            ));
-        }
-        check_finite("vehicle.wave_direction_deg", &[self.wave_direction_deg])?;
-        check_non_negative("vehicle.initial_offset_m", &[self.initial_offset_m])?;
-        check_finite("vehicle.initial_offset_deg", &[self.initial_offset_deg])?;
-        Ok(())
+                )
+            })
+            .opt(self.added_mass.as_ref(), |c, v| {
+                non_negative(c, "added_mass", v)
+            })
+            .opt(self.damping_linear.as_ref(), |c, v| {
+                non_negative(c, "damping_linear", v)
+            })
+            .opt(self.damping_quadratic.as_ref(), |c, v| {
+                non_negative(c, "damping_quadratic", v)
+            })
+            .then(|| self.thruster.validate())
+            .each_finite("current_mps", &self.current_mps, "finite numbers")
+            .with(|c| non_negative(c, "gust_std_mps", &self.gust_std_mps))
+            .positive("gust_time_constant_s", self.gust_time_constant_s, "a positive number of seconds")
+            .with(|c| non_negative(c, "wave_height_m", &[self.wave_height_m]))
+            .finite_range("wave_period_s", self.wave_period_s, above(0.5), "> 0.5 s")
+            .finite("wave_direction_deg", self.wave_direction_deg, "finite numbers")
+            .with(|c| non_negative(c, "initial_offset_m", &[self.initial_offset_m]))
+            .finite("initial_offset_deg", self.initial_offset_deg, "finite numbers")
+            .done()
     }
 
     /// The frame's published table with this config's overrides applied.

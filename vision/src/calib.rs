@@ -3,6 +3,7 @@
 
 use crate::yaml::{self, Node};
 use crate::VisionError;
+use markhold_config::{open, AsDebug, Checks, ConfigError};
 use std::path::{Path, PathBuf};
 
 /// Intrinsics of one camera at one resolution.
@@ -33,46 +34,20 @@ impl CameraCalibration {
     }
 
     /// Check the values; the error names the field (`calibration.<field>`).
-    pub fn validate(&self) -> Result<(), VisionError> {
-        let bad = |field: &str, value: String, expected: &str| VisionError::InvalidConfig {
-            key: format!("calibration.{field}"),
-            value,
-            expected: expected.to_string(),
-        };
-        if self.width == 0 || self.height == 0 {
-            return Err(bad(
-                "image_width/image_height",
-                format!("{}x{}", self.width, self.height),
-                "a non-empty resolution",
-            ));
-        }
-        for (name, v) in [("fx", self.fx), ("fy", self.fy)] {
-            if !(v.is_finite() && v > 0.0) {
-                return Err(bad(name, v.to_string(), "a focal length > 0 px"));
-            }
-        }
-        if !(self.cx.is_finite() && self.cx > 0.0 && self.cx < self.width as f64) {
-            return Err(bad(
-                "cx",
-                self.cx.to_string(),
-                "a principal point inside the image",
-            ));
-        }
-        if !(self.cy.is_finite() && self.cy > 0.0 && self.cy < self.height as f64) {
-            return Err(bad(
-                "cy",
-                self.cy.to_string(),
-                "a principal point inside the image",
-            ));
-        }
-        if !matches!(self.dist.len(), 0 | 4 | 5) || self.dist.iter().any(|k| !k.is_finite()) {
-            return Err(bad(
-                "dist",
-                format!("{:?}", self.dist),
-                "0, 4 or 5 finite coefficients (k1 k2 p1 p2 [k3])",
-            ));
-        }
-        Ok(())
+    #[rustfmt::skip]
+    pub fn validate(&self) -> Result<(), ConfigError> {
+        let (w, h) = (self.width, self.height);
+        let inside = "a principal point inside the image";
+        let dist_ok =
+            matches!(self.dist.len(), 0 | 4 | 5) && self.dist.iter().all(|k| k.is_finite());
+        Checks::new("calibration")
+            .check("image_width/image_height", format!("{w}x{h}"), w > 0 && h > 0, "a non-empty resolution")
+            .positive("fx", self.fx, "a focal length > 0 px")
+            .positive("fy", self.fy, "a focal length > 0 px")
+            .range("cx", self.cx, open(0.0, w as f64), inside)
+            .range("cy", self.cy, open(0.0, h as f64), inside)
+            .check("dist", AsDebug(&self.dist), dist_ok, "0, 4 or 5 finite coefficients (k1 k2 p1 p2 [k3])")
+            .done()
     }
 
     /// Error unless the calibration was made at `width` x `height`.
@@ -179,20 +154,13 @@ impl CameraCalibration {
             cy: k[5],
             dist,
         };
-        calib.validate().map_err(|e| match e {
-            VisionError::InvalidConfig {
-                key,
-                value,
-                expected,
-            } => {
-                let field = match key.trim_start_matches("calibration.") {
-                    "dist" => d_name.clone(),
-                    "image_width/image_height" => "image_width".to_string(),
-                    other => format!("{k_name} ({other})"),
-                };
-                f.err(&field, format!("{value}: expected {expected}"))
-            }
-            other => other,
+        calib.validate().map_err(|e| {
+            let field = match e.key.trim_start_matches("calibration.") {
+                "dist" => d_name.clone(),
+                "image_width/image_height" => "image_width".to_string(),
+                other => format!("{k_name} ({other})"),
+            };
+            f.err(&field, format!("{}: expected {}", e.value, e.expected))
         })?;
         Ok(calib)
     }

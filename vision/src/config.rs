@@ -1,6 +1,7 @@
 //! The `[marker]` and `[vision]` sections of a site file.
 
-use crate::error::invalid;
+use markhold_config::{above, open, open_closed, Checks, ConfigError};
+
 use crate::VisionError;
 use opencv::aruco::PREDEFINED_DICTIONARY_NAME as D;
 use serde::{Deserialize, Serialize};
@@ -200,23 +201,13 @@ pub struct MarkerConfig {
 }
 
 impl MarkerConfig {
-    pub fn validate(&self) -> Result<(), VisionError> {
+    #[rustfmt::skip]
+    pub fn validate(&self) -> Result<(), ConfigError> {
         let n = self.family.id_count();
-        if self.id >= n {
-            return Err(invalid(
-                "marker.id",
-                self.id,
-                &format!("an id of {} in 0..{n}", self.family),
-            ));
-        }
-        if !(self.size_m.is_finite() && self.size_m > 0.0) {
-            return Err(invalid(
-                "marker.size_m",
-                self.size_m,
-                "a size > 0 in metres",
-            ));
-        }
-        Ok(())
+        Checks::new("marker")
+            .range("id", self.id, ..n, &format!("an id of {} in 0..{n}", self.family))
+            .positive("size_m", self.size_m, "a size > 0 in metres")
+            .done()
     }
 }
 
@@ -322,161 +313,38 @@ impl Default for DetectorConfig {
 }
 
 impl DetectorConfig {
-    pub fn validate(&self) -> Result<(), VisionError> {
-        let k = |name: &str| format!("vision.{name}");
-        if self.adaptive_thresh_win_min_px < 3 {
-            return Err(invalid(
-                &k("adaptive_thresh_win_min_px"),
-                self.adaptive_thresh_win_min_px,
-                "a window >= 3 px",
-            ));
-        }
-        if self.adaptive_thresh_win_max_px < self.adaptive_thresh_win_min_px
-            || self.adaptive_thresh_win_max_px > 255
-        {
-            return Err(invalid(
-                &k("adaptive_thresh_win_max_px"),
-                self.adaptive_thresh_win_max_px,
-                "a window between adaptive_thresh_win_min_px and 255 px",
-            ));
-        }
-        if self.adaptive_thresh_win_step_px < 1 {
-            return Err(invalid(
-                &k("adaptive_thresh_win_step_px"),
-                self.adaptive_thresh_win_step_px,
-                "a step >= 1 px",
-            ));
-        }
-        if !(self.adaptive_thresh_constant.is_finite()) {
-            return Err(invalid(
-                &k("adaptive_thresh_constant"),
-                self.adaptive_thresh_constant,
-                "a finite grey-level offset",
-            ));
-        }
-        if !(self.min_marker_perimeter_rate > 0.0 && self.min_marker_perimeter_rate < 4.0) {
-            return Err(invalid(
-                &k("min_marker_perimeter_rate"),
-                self.min_marker_perimeter_rate,
-                "a rate in (0, 4)",
-            ));
-        }
-        if !(self.max_marker_perimeter_rate > self.min_marker_perimeter_rate
-            && self.max_marker_perimeter_rate <= 4.0)
-        {
-            return Err(invalid(
-                &k("max_marker_perimeter_rate"),
-                self.max_marker_perimeter_rate,
-                "a rate in (min_marker_perimeter_rate, 4]",
-            ));
-        }
-        if !(self.polygonal_approx_accuracy_rate > 0.0 && self.polygonal_approx_accuracy_rate < 0.5)
-        {
-            return Err(invalid(
-                &k("polygonal_approx_accuracy_rate"),
-                self.polygonal_approx_accuracy_rate,
-                "a rate in (0, 0.5)",
-            ));
-        }
-        if !(0.0..=1.0).contains(&self.error_correction_rate) {
-            return Err(invalid(
-                &k("error_correction_rate"),
-                self.error_correction_rate,
-                "a rate in [0, 1]",
-            ));
-        }
-        if !(1..=32).contains(&self.subpix_window_px) {
-            return Err(invalid(
-                &k("subpix_window_px"),
-                self.subpix_window_px,
-                "a half-window in 1..=32 px",
-            ));
-        }
-        if !(1..=1000).contains(&self.subpix_max_iterations) {
-            return Err(invalid(
-                &k("subpix_max_iterations"),
-                self.subpix_max_iterations,
-                "a count in 1..=1000",
-            ));
-        }
-        if !(self.subpix_min_accuracy_px > 0.0 && self.subpix_min_accuracy_px < 1.0) {
-            return Err(invalid(
-                &k("subpix_min_accuracy_px"),
-                self.subpix_min_accuracy_px,
-                "a distance in (0, 1) px",
-            ));
-        }
-        if !(self.track_window_scale >= 0.1 && self.track_window_scale <= 10.0) {
-            return Err(invalid(
-                &k("track_window_scale"),
-                self.track_window_scale,
-                "a fraction of the marker side in [0.1, 10]",
-            ));
-        }
-        if !(self.track_motion_gain >= 0.0 && self.track_motion_gain <= 20.0) {
-            return Err(invalid(
-                &k("track_motion_gain"),
-                self.track_motion_gain,
-                "a gain in [0, 20]",
-            ));
-        }
-        if !(self.track_target_side_px >= 24.0 && self.track_target_side_px <= 10_000.0) {
-            return Err(invalid(
-                &k("track_target_side_px"),
-                self.track_target_side_px,
-                "a marker side in [24, 10000] px",
-            ));
-        }
-        if !(1..=8).contains(&self.full_search_downscale) {
-            return Err(invalid(
-                &k("full_search_downscale"),
-                self.full_search_downscale,
-                "a factor in 1..=8",
-            ));
-        }
-        if !(self.corner_sigma_px > 0.0 && self.corner_sigma_px.is_finite()) {
-            return Err(invalid(
-                &k("corner_sigma_px"),
-                self.corner_sigma_px,
-                "a standard deviation > 0 px",
-            ));
-        }
-        if !(self.corner_sigma_floor_px > 0.0 && self.corner_sigma_floor_px.is_finite()) {
-            return Err(invalid(
-                &k("corner_sigma_floor_px"),
-                self.corner_sigma_floor_px,
-                "a standard deviation > 0 px",
-            ));
-        }
-        if !(self.ambiguity_ratio >= 1.0 && self.ambiguity_ratio.is_finite()) {
-            return Err(invalid(
-                &k("ambiguity_ratio"),
-                self.ambiguity_ratio,
-                "a ratio >= 1",
-            ));
-        }
-        if !(self.track_max_age_s > 0.0 && self.track_max_age_s.is_finite()) {
-            return Err(invalid(
-                &k("track_max_age_s"),
-                self.track_max_age_s,
-                "a time > 0 s",
-            ));
-        }
-        if self.max_reproj_rms_px.is_nan() || self.max_reproj_rms_px <= 0.0 {
-            return Err(invalid(
-                &k("max_reproj_rms_px"),
-                self.max_reproj_rms_px,
-                "an RMS > 0 px",
-            ));
-        }
-        if !(0..=64).contains(&self.opencv_threads) {
-            return Err(invalid(
-                &k("opencv_threads"),
-                self.opencv_threads,
-                "a thread count in 0..=64 (0 = OpenCV's default)",
-            ));
-        }
-        Ok(())
+    #[rustfmt::skip]
+    pub fn validate(&self) -> Result<(), ConfigError> {
+        let (win_min, win_max) = (
+            self.adaptive_thresh_win_min_px,
+            self.adaptive_thresh_win_max_px,
+        );
+        let min_rate = self.min_marker_perimeter_rate;
+        let max_rate = self.max_marker_perimeter_rate;
+        Checks::new("vision")
+            .range("adaptive_thresh_win_min_px", win_min, 3.., "a window >= 3 px")
+            .range("adaptive_thresh_win_max_px", win_max, win_min..=255, "a window between adaptive_thresh_win_min_px and 255 px")
+            .range("adaptive_thresh_win_step_px", self.adaptive_thresh_win_step_px, 1.., "a step >= 1 px")
+            .finite("adaptive_thresh_constant", self.adaptive_thresh_constant, "a finite grey-level offset")
+            .range("min_marker_perimeter_rate", min_rate, open(0.0, 4.0), "a rate in (0, 4)")
+            .range("max_marker_perimeter_rate", max_rate, open_closed(min_rate, 4.0), "a rate in (min_marker_perimeter_rate, 4]")
+            .range("polygonal_approx_accuracy_rate", self.polygonal_approx_accuracy_rate, open(0.0, 0.5), "a rate in (0, 0.5)")
+            .range("error_correction_rate", self.error_correction_rate, 0.0..=1.0, "a rate in [0, 1]")
+            .range("subpix_window_px", self.subpix_window_px, 1..=32, "a half-window in 1..=32 px")
+            .range("subpix_max_iterations", self.subpix_max_iterations, 1..=1000, "a count in 1..=1000")
+            .range("subpix_min_accuracy_px", self.subpix_min_accuracy_px, open(0.0, 1.0), "a distance in (0, 1) px")
+            .range("track_window_scale", self.track_window_scale, 0.1..=10.0, "a fraction of the marker side in [0.1, 10]")
+            .range("track_motion_gain", self.track_motion_gain, 0.0..=20.0, "a gain in [0, 20]")
+            .range("track_target_side_px", self.track_target_side_px, 24.0..=10_000.0, "a marker side in [24, 10000] px")
+            .range("full_search_downscale", self.full_search_downscale, 1..=8, "a factor in 1..=8")
+            .positive("corner_sigma_px", self.corner_sigma_px, "a standard deviation > 0 px")
+            .positive("corner_sigma_floor_px", self.corner_sigma_floor_px, "a standard deviation > 0 px")
+            .finite_range("ambiguity_ratio", self.ambiguity_ratio, 1.0.., "a ratio >= 1")
+            .positive("track_max_age_s", self.track_max_age_s, "a time > 0 s")
+            // An infinite RMS bound is allowed: it rejects no detection.
+            .range("max_reproj_rms_px", self.max_reproj_rms_px, above(0.0), "an RMS > 0 px")
+            .range("opencv_threads", self.opencv_threads, 0..=64, "a thread count in 0..=64 (0 = OpenCV's default)")
+            .done()
     }
 }
 

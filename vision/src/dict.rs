@@ -1,7 +1,8 @@
 //! OpenCV dictionaries and the printed marker bitmap.
 
-use crate::error::{invalid, CvContext};
+use crate::error::CvContext;
 use crate::{MarkerFamily, VisionError};
+use markhold_config::ConfigError;
 use opencv::{aruco, core, prelude::*};
 
 /// The marker as printed: `cells` x `cells` modules including the black border,
@@ -35,11 +36,8 @@ pub fn marker_bitmap(family: MarkerFamily, id: u32) -> Result<MarkerBitmap, Visi
     let dict = dictionary(family)?;
     let count = dict.bytes_list().rows();
     if id >= count as u32 {
-        return Err(invalid(
-            "marker.id",
-            id,
-            &format!("an id of {family} in 0..{count}"),
-        ));
+        let expected = format!("an id of {family} in 0..{count}");
+        return Err(ConfigError::new("marker.id", id, expected).into());
     }
     let cells = family.data_bits() + 2;
     // One pixel per module: draw_marker renders each module as a side_pixels/cells block.

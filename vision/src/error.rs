@@ -6,12 +6,8 @@ use std::path::PathBuf;
 /// file errors name the file and the field.
 #[derive(Debug, thiserror::Error)]
 pub enum VisionError {
-    #[error("{key} = {value}: expected {expected}")]
-    InvalidConfig {
-        key: String,
-        value: String,
-        expected: String,
-    },
+    #[error(transparent)]
+    Config(#[from] markhold_config::ConfigError),
     #[error("unknown marker family '{name}': expected one of {expected}")]
     UnknownFamily { name: String, expected: String },
     #[error("{path}: field '{field}': {reason}")]
@@ -58,13 +54,5 @@ pub(crate) trait CvContext<T> {
 impl<T> CvContext<T> for Result<T, opencv::Error> {
     fn cv(self, op: &'static str) -> Result<T, VisionError> {
         self.map_err(|source| VisionError::OpenCv { op, source })
-    }
-}
-
-pub(crate) fn invalid(key: &str, value: impl std::fmt::Display, expected: &str) -> VisionError {
-    VisionError::InvalidConfig {
-        key: key.to_string(),
-        value: value.to_string(),
-        expected: expected.to_string(),
     }
 }

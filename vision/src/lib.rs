@@ -27,5 +27,6 @@ pub use config::{DetectorConfig, MarkerConfig, MarkerFamily};
 pub use corners::CornerCov;
 pub use dict::{marker_bitmap, MarkerBitmap};
 pub use error::VisionError;
+pub use markhold_config::ConfigError;
 pub use pose::{cov_in_frame, cov_of_inverse};
 pub use tracker::{MarkerObservation, MarkerTracker, Tracked, TrackerStats};

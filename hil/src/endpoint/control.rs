@@ -7,9 +7,8 @@ use nalgebra::{Isometry3, UnitQuaternion, Vector3};
 use serde::{Deserialize, Serialize};
 
 use super::{mode, GuidedTarget};
-use crate::invalid;
 use crate::vehicle::VehicleState;
-use crate::HilError;
+use markhold_config::{Checks, ConfigError};
 
 /// Controller gains (efforts are normalized -1..1).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -59,27 +58,23 @@ impl Default for ControlGains {
 }
 
 impl ControlGains {
-    pub fn validate(&self) -> Result<(), HilError> {
-        let all = [
-            ("endpoint.gains.attitude_kp", self.attitude_kp),
-            ("endpoint.gains.attitude_kd", self.attitude_kd),
-            ("endpoint.gains.max_tilt_deg", self.max_tilt_deg),
-            ("endpoint.gains.max_yaw_rate_dps", self.max_yaw_rate_dps),
-            ("endpoint.gains.depth_kp", self.depth_kp),
-            ("endpoint.gains.depth_ki", self.depth_ki),
-            ("endpoint.gains.depth_kd", self.depth_kd),
-            ("endpoint.gains.depth_i_max", self.depth_i_max),
-            ("endpoint.gains.max_climb_mps", self.max_climb_mps),
-            ("endpoint.gains.position_kp", self.position_kp),
-            ("endpoint.gains.velocity_kp", self.velocity_kp),
-            ("endpoint.gains.max_speed_mps", self.max_speed_mps),
-        ];
-        for (key, v) in all {
-            if !(v.is_finite() && v >= 0.0) {
-                return Err(invalid(key, v, "a finite number >= 0"));
-            }
-        }
-        Ok(())
+    #[rustfmt::skip]
+    pub fn validate(&self) -> Result<(), ConfigError> {
+        let nn = "a finite number >= 0";
+        Checks::new("endpoint.gains")
+            .non_negative("attitude_kp", self.attitude_kp, nn)
+            .non_negative("attitude_kd", self.attitude_kd, nn)
+            .non_negative("max_tilt_deg", self.max_tilt_deg, nn)
+            .non_negative("max_yaw_rate_dps", self.max_yaw_rate_dps, nn)
+            .non_negative("depth_kp", self.depth_kp, nn)
+            .non_negative("depth_ki", self.depth_ki, nn)
+            .non_negative("depth_kd", self.depth_kd, nn)
+            .non_negative("depth_i_max", self.depth_i_max, nn)
+            .non_negative("max_climb_mps", self.max_climb_mps, nn)
+            .non_negative("position_kp", self.position_kp, nn)
+            .non_negative("velocity_kp", self.velocity_kp, nn)
+            .non_negative("max_speed_mps", self.max_speed_mps, nn)
+            .done()
     }
 }
 

@@ -7,18 +7,19 @@ use std::path::Path;
 
 use mavlink::{MAVLinkV2MessageRaw, SigningConfig, SigningData};
 
-use crate::invalid;
 use crate::HilError;
+use markhold_config::ConfigError;
 
 /// A 32-byte key from a file: 32 raw bytes, or 64 hex digits (whitespace around them is
 /// ignored), like markhold's link.
 pub fn read_key(path: &Path) -> Result<[u8; 32], HilError> {
     let bad = |reason: String| {
-        invalid(
+        let expected = format!("a file of 32 raw bytes or 64 hex digits ({reason})");
+        HilError::from(ConfigError::new(
             "endpoint.signing_key_file",
             path.display(),
-            &format!("a file of 32 raw bytes or 64 hex digits ({reason})"),
-        )
+            expected,
+        ))
     };
     let bytes = std::fs::read(path).map_err(|e| bad(e.to_string()))?;
     let mut k = [0u8; 32];
