@@ -111,7 +111,7 @@ fn garbage_run(to_vehicle: bool, to_link: bool) {
         }
         let (rec, _) = hil.step().unwrap();
         detected += u64::from(rec.detected);
-        events.extend_from_slice(&hil.pipeline.events());
+        events.extend_from_slice(hil.pipeline.events());
     }
     assert!(sent > 1000);
     let mut buf = [0u8; 512];
