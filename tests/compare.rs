@@ -21,6 +21,15 @@ fn out_dir(name: &str) -> std::path::PathBuf {
 #[test]
 fn compare_writes_every_table_plot_and_field() {
     let out = out_dir("compare-e2e");
+    run_small_compare(&out);
+    assert_plots(&out);
+    assert_report(&out);
+    let r = assert_results_json(&out);
+    assert_paper_claim(&r);
+}
+
+/// Two methods, adversarial light, one seed, 3 s, into `out`.
+fn run_small_compare(out: &Path) {
     let status = Command::new(env!("CARGO_BIN_EXE_markhold"))
         .args([
             "compare",
@@ -39,13 +48,15 @@ fn compare_writes_every_table_plot_and_field() {
             "--quiet",
             "--out",
         ])
-        .arg(&out)
+        .arg(out)
         .env("RUST_LOG", "error")
         .status()
         .expect("running markhold compare");
     assert!(status.success(), "markhold compare failed: {status}");
+}
 
-    // Plots: three kinds per lighting, PNG and SVG, non-trivial files.
+/// Plots: three kinds per lighting, PNG and SVG, non-trivial files.
+fn assert_plots(out: &Path) {
     for l in ["adversarial"] {
         for kind in ["static_scatter", "motion_tracks", "exposure"] {
             for ext in ["png", "svg"] {
@@ -61,8 +72,10 @@ fn compare_writes_every_table_plot_and_field() {
         let png = std::fs::read(out.join(format!("exposure_{l}.png"))).expect("png");
         assert_eq!(&png[1..4], b"PNG");
     }
+}
 
-    // Report: the four experiments' tables for each lighting, a row per method.
+/// Report: the four experiments' tables for each lighting, a row per method.
+fn assert_report(out: &Path) {
     let report = std::fs::read_to_string(out.join("report.md")).expect("report.md");
     for l in ["adversarial"] {
         for title in [
@@ -94,8 +107,10 @@ fn compare_writes_every_table_plot_and_field() {
         !report.contains("normal lighting"),
         "only the asked lighting"
     );
+}
 
-    // JSON: every field present (typed parse) and every metric aggregated.
+/// JSON: every field present (typed parse) and every metric aggregated.
+fn assert_results_json(out: &Path) -> CompareResults {
     let text = std::fs::read_to_string(out.join("results.json")).expect("results.json");
     let raw: serde_json::Value = serde_json::from_str(&text).expect("valid JSON");
     for key in [
@@ -148,9 +163,12 @@ fn compare_writes_every_table_plot_and_field() {
     assert_eq!(r.cases.len(), 2);
     assert_eq!(r.timings.len(), 2 * 5);
     assert_eq!(r.stats.len(), 2);
+    r
+}
 
-    // The paper's claim: in adversarial light (lamp on the marker, dark surroundings)
-    // AAEC keeps the marker detected, Default, metering the dark scene, does not.
+/// The paper's claim: in adversarial light (lamp on the marker, dark surroundings)
+/// AAEC keeps the marker detected, Default, metering the dark scene, does not.
+fn assert_paper_claim(r: &CompareResults) {
     let rate = |m: ExposureMethod| {
         let c = r
             .cases

@@ -4,61 +4,25 @@
 //! LOCAL_POSITION_NED + ATTITUDE telemetry and holds station over loopback UDP.
 #![cfg(feature = "sim")]
 
-use std::path::Path;
-use std::process::Command;
-use std::sync::atomic::{AtomicBool, Ordering};
-use std::sync::Arc;
-use std::time::{Duration, Instant};
+mod common;
 
+use common::{markhold, rig_at, site_path, RealTimeVehicle};
 use markhold::params;
-use markhold::sim::hil::{camera_model, marker_spec, start_offset};
-use markhold_exposure::{Camera, Frame};
-use markhold_hil::{EndpointConfig, HilRig, HilSetup, VehicleMotion};
+use markhold::sim::hil::start_offset;
 
 #[test]
 fn holds_station_on_an_external_vehicle() {
-    let site_path = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/fixtures/pool-640.toml");
+    let site_path = site_path();
     let site = params::load(&site_path).unwrap();
     let s = &site.site;
-    let t_world_marker = site.t_world_marker();
-    let t_world_station = t_world_marker * s.station.t_marker_vehicle();
+    let t_world_station = site.t_world_marker() * s.station.t_marker_vehicle();
     let start = t_world_station * start_offset(&s.vehicle);
-    let setup = HilSetup {
-        vehicle: s.vehicle.clone(),
-        endpoint: EndpointConfig::default(),
-        water: s.water.clone(),
-        lighting: s.lighting.clone(),
-        camera: camera_model(&site, site.limits()),
-        t_vehicle_cam: site.t_vehicle_cam(),
-        marker: marker_spec(&site).unwrap(),
-        t_world_marker,
-        t_world_vehicle_start: start,
-        motion: VehicleMotion::Free,
-        seed: 3,
-        lock_step: false,
-    };
-    let mut rig = HilRig::new(setup).unwrap();
-    let addr = rig.mavlink_udp_addr();
-    let stop = Arc::new(AtomicBool::new(false));
-    let stop2 = stop.clone();
     // The external vehicle runs in real time, whatever markhold does.
-    let sim = std::thread::spawn(move || {
-        let mut frame = Frame::default();
-        let t0 = Instant::now();
-        let period = Duration::from_secs_f64(1.0 / 30.0);
-        let mut k = 0u32;
-        while !stop2.load(Ordering::Relaxed) && t0.elapsed() < Duration::from_secs(60) {
-            rig.grab(&mut frame).unwrap();
-            k += 1;
-            if let Some(w) = (t0 + period * k).checked_duration_since(Instant::now()) {
-                std::thread::sleep(w);
-            }
-        }
-        rig.truth()
-    });
+    let sim = RealTimeVehicle::start(rig_at(&site, start, 3, false));
+    let addr = sim.addr;
 
     let out = std::env::temp_dir().join(format!("markhold-external-{}.json", std::process::id()));
-    let o = Command::new(env!("CARGO_BIN_EXE_markhold"))
+    let o = markhold()
         .args(["hil", "--quiet", "--seconds", "12", "--site"])
         .arg(&site_path)
         .arg("--vehicle")
@@ -67,8 +31,7 @@ fn holds_station_on_an_external_vehicle() {
         .arg(&out)
         .output()
         .unwrap();
-    stop.store(true, Ordering::Relaxed);
-    let truth = sim.join().unwrap();
+    let truth = sim.finish().truth;
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     let summary: serde_json::Value =
         serde_json::from_str(&std::fs::read_to_string(&out).unwrap()).unwrap();

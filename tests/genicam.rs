@@ -8,23 +8,22 @@
 //! tells the exposure it was really taken with.
 #![cfg(feature = "sim")]
 
+mod common;
+
 use std::io::{BufRead, BufReader};
 use std::net::UdpSocket;
-use std::path::{Path, PathBuf};
+use std::path::PathBuf;
 use std::process::{Child, Command, Stdio};
-use std::sync::atomic::{AtomicBool, Ordering};
-use std::sync::{Arc, Mutex, MutexGuard};
+use std::sync::{Mutex, MutexGuard};
 use std::time::{Duration, Instant};
 
+use common::{markhold, site_path, station_rig, tmp_path, RealTimeVehicle};
 use markhold::field::camera::genicam::{
     use_fake_interface, ExposureSource, GenicamCamera, GenicamConfig, GenicamError,
 };
 use markhold::params;
 use markhold::record::{FrameMsg, TOPIC_COMMAND, TOPIC_FRAME};
-use markhold::sim::hil::{camera_model, marker_spec};
 use markhold_exposure::{Camera, ExposureLimits, Frame};
-use markhold_hil::endpoint::EndpointStats;
-use markhold_hil::{EndpointConfig, HilRig, HilSetup, VehicleMotion};
 
 const FAKE_GV: &str = "arv-fake-gv-camera-0.8";
 const GVCP: (&str, u16) = ("127.0.0.1", 3956);
@@ -35,16 +34,8 @@ fn lock() -> MutexGuard<'static, ()> {
     LOCK.lock().unwrap_or_else(|p| p.into_inner())
 }
 
-fn site_path() -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/fixtures/pool-640.toml")
-}
-
 fn tmp(name: &str) -> PathBuf {
-    let dir = std::env::temp_dir().join(format!("markhold-genicam-{}", std::process::id()));
-    std::fs::create_dir_all(&dir).unwrap();
-    let p = dir.join(name);
-    let _ = std::fs::remove_file(&p);
-    p
+    tmp_path("genicam", name)
 }
 
 /// Whether something answers a GVCP read of register 0 on 127.0.0.1:3956 within `wait`.
@@ -393,73 +384,11 @@ fn fake_interface_first_camera_without_network() {
 
 // ---- markhold run end to end ----
 
-fn rig() -> HilRig {
-    let site = params::load(&site_path()).unwrap();
-    let s = &site.site;
-    let t_world_marker = site.t_world_marker();
-    HilRig::new(HilSetup {
-        vehicle: s.vehicle.clone(),
-        endpoint: EndpointConfig::default(),
-        water: s.water.clone(),
-        lighting: s.lighting.clone(),
-        camera: camera_model(&site, site.limits()),
-        t_vehicle_cam: site.t_vehicle_cam(),
-        marker: marker_spec(&site).unwrap(),
-        t_world_marker,
-        t_world_vehicle_start: t_world_marker * s.station.t_marker_vehicle(),
-        motion: VehicleMotion::Free,
-        seed: 5,
-        lock_step: false,
-    })
-    .unwrap()
-}
-
-/// hil's vehicle on its own thread in real time (as in tests/run_live.rs).
-struct Vehicle {
-    addr: std::net::SocketAddr,
-    stop: Arc<AtomicBool>,
-    thread: std::thread::JoinHandle<EndpointStats>,
-}
-
-fn vehicle() -> Vehicle {
-    let mut rig = rig();
-    let addr = rig.mavlink_udp_addr();
-    let stop = Arc::new(AtomicBool::new(false));
-    let stop2 = stop.clone();
-    let thread = std::thread::spawn(move || {
-        let mut frame = Frame::default();
-        let t0 = Instant::now();
-        let period = Duration::from_secs_f64(1.0 / 30.0);
-        let mut k = 0u32;
-        while !stop2.load(Ordering::Relaxed) && t0.elapsed() < Duration::from_secs(60) {
-            rig.grab(&mut frame).unwrap();
-            k += 1;
-            if let Some(w) = (t0 + period * k).checked_duration_since(Instant::now()) {
-                std::thread::sleep(w);
-            }
-        }
-        rig.pump().unwrap();
-        rig.endpoint_stats()
-    });
-    Vehicle { addr, stop, thread }
-}
-
-impl Vehicle {
-    fn finish(self) -> EndpointStats {
-        self.stop.store(true, Ordering::Relaxed);
-        self.thread.join().unwrap()
-    }
-}
-
-fn markhold() -> Command {
-    Command::new(env!("CARGO_BIN_EXE_markhold"))
-}
-
 #[test]
 fn run_with_fake_genicam_camera_on_hil_vehicle() {
     let _l = lock();
     let _fake = FakeGv::start();
-    let v = vehicle();
+    let v = RealTimeVehicle::start(station_rig(false));
     let rec = tmp("run.mcap");
     let summary = tmp("run.json");
     let mut child = markhold()
@@ -491,7 +420,7 @@ fn run_with_fake_genicam_camera_on_hil_vehicle() {
     };
     let log = log.join().unwrap().join("\n");
     std::thread::sleep(Duration::from_millis(100));
-    let stats = v.finish();
+    let stats = v.finish().stats;
     assert!(status.success(), "{log}");
     let report: serde_json::Value =
         serde_json::from_str(&std::fs::read_to_string(&summary).unwrap()).unwrap();

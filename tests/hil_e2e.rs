@@ -2,16 +2,11 @@
 //! site files with a message that names the file and the key.
 #![cfg(feature = "sim")]
 
+mod common;
+
 use std::path::{Path, PathBuf};
-use std::process::Command;
 
-fn bin() -> Command {
-    Command::new(env!("CARGO_BIN_EXE_markhold"))
-}
-
-fn repo(p: &str) -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR")).join(p)
-}
+use common::{markhold, repo};
 
 fn tmpdir(name: &str) -> PathBuf {
     let d = std::env::temp_dir().join(format!("markhold-e2e-{}-{name}", std::process::id()));
@@ -20,7 +15,7 @@ fn tmpdir(name: &str) -> PathBuf {
 }
 
 fn run_summary(args: &[&str], out: &Path) -> serde_json::Value {
-    let o = bin()
+    let o = markhold()
         .args(args)
         .arg("--quiet")
         .arg("--summary")
@@ -110,7 +105,7 @@ fn bad_site(name: &str, text: &str) -> (i32, String) {
     let d = tmpdir("bad");
     let path = d.join(name);
     std::fs::write(&path, text).unwrap();
-    let o = bin()
+    let o = markhold()
         .args(["hil", "--quiet", "--seconds", "1", "--site"])
         .arg(&path)
         .output()
@@ -127,7 +122,7 @@ fn pool_text() -> String {
 
 #[test]
 fn missing_site_file_is_named() {
-    let o = bin()
+    let o = markhold()
         .args(["hil", "--quiet", "--site", "/nonexistent/site.toml"])
         .output()
         .unwrap();
@@ -216,7 +211,7 @@ fn render_loops_change_the_speed_not_the_run() {
 #[test]
 fn unknown_render_loops_are_named() {
     let pool = repo("params/pool.toml");
-    let o = bin()
+    let o = markhold()
         .args(["hil", "--site", pool.to_str().unwrap(), "--seconds", "0.1"])
         .args(["--render-loops", "neon"])
         .output()

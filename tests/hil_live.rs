@@ -3,34 +3,14 @@
 //! goes on and must receive messages from it.
 #![cfg(feature = "sim")]
 
+mod common;
+
 use std::io::{BufRead, BufReader, Read, Write};
 use std::net::TcpStream;
-use std::path::PathBuf;
-use std::process::{Command, Stdio};
+use std::process::Stdio;
 use std::time::{Duration, Instant};
 
-fn fixture() -> PathBuf {
-    PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("tests/fixtures/pool-640.toml")
-}
-
-/// One unmasked server frame: (opcode, payload).
-fn read_frame(s: &mut TcpStream) -> std::io::Result<(u8, Vec<u8>)> {
-    let mut h = [0u8; 2];
-    s.read_exact(&mut h)?;
-    let mut len = (h[1] & 0x7f) as u64;
-    if len == 126 {
-        let mut b = [0u8; 2];
-        s.read_exact(&mut b)?;
-        len = u16::from_be_bytes(b) as u64;
-    } else if len == 127 {
-        let mut b = [0u8; 8];
-        s.read_exact(&mut b)?;
-        len = u64::from_be_bytes(b);
-    }
-    let mut data = vec![0u8; len as usize];
-    s.read_exact(&mut data)?;
-    Ok((h[0] & 0x0f, data))
-}
+use common::{markhold, site_path, ws_read_frame};
 
 /// One masked client text frame (clients must mask, RFC 6455 5.3).
 fn write_text(s: &mut TcpStream, text: &str) -> std::io::Result<()> {
@@ -50,9 +30,9 @@ fn write_text(s: &mut TcpStream, text: &str) -> std::io::Result<()> {
 
 #[test]
 fn hil_foxglove_streams_the_exposure_channel_while_running() {
-    let mut child = Command::new(env!("CARGO_BIN_EXE_markhold"))
+    let mut child = markhold()
         .args(["hil", "--site"])
-        .arg(fixture())
+        .arg(site_path())
         .args([
             "--seconds",
             "30",
@@ -106,7 +86,7 @@ fn hil_foxglove_streams_the_exposure_channel_while_running() {
         let mut subscribed = false;
         let mut messages = 0u64;
         while Instant::now() < deadline && messages < 10 {
-            let (op, data) = read_frame(&mut s).map_err(|e| e.to_string())?;
+            let (op, data) = ws_read_frame(&mut s).map_err(|e| e.to_string())?;
             if op == 1 && !subscribed {
                 let v: serde_json::Value =
                     serde_json::from_slice(&data).map_err(|e| e.to_string())?;

@@ -3,50 +3,21 @@
 //! replays; SIGTERM stops it cleanly; start-up failures exit 2 and leave nothing behind.
 #![cfg(feature = "sim")]
 
+mod common;
+
 use std::io::{BufRead, BufReader};
 use std::path::{Path, PathBuf};
 use std::process::{Command, Stdio};
-use std::sync::atomic::{AtomicBool, Ordering};
-use std::sync::{Arc, OnceLock};
+use std::sync::OnceLock;
 use std::time::{Duration, Instant};
 
-use markhold::params;
+use common::{markhold, site_path, station_rig, tmp_path, ws_read_frame, RealTimeVehicle};
 use markhold::record::{CommandMsg, TOPIC_COMMAND};
-use markhold::sim::hil::{camera_model, marker_spec};
 use markhold_exposure::{Camera, Frame};
-use markhold_hil::endpoint::EndpointStats;
-use markhold_hil::{EndpointConfig, HilRig, HilSetup, VehicleMotion};
 use markhold_vision::FrameRecorder;
 
-fn site_path() -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/fixtures/pool-640.toml")
-}
-
 fn tmp(name: &str) -> PathBuf {
-    let dir = std::env::temp_dir().join(format!("markhold-run-{}", std::process::id()));
-    std::fs::create_dir_all(&dir).unwrap();
-    dir.join(name)
-}
-
-fn rig(lock_step: bool) -> HilRig {
-    let site = params::load(&site_path()).unwrap();
-    let s = &site.site;
-    let t_world_marker = site.t_world_marker();
-    HilRig::new(HilSetup {
-        vehicle: s.vehicle.clone(),
-        endpoint: EndpointConfig::default(),
-        water: s.water.clone(),
-        lighting: s.lighting.clone(),
-        camera: camera_model(&site, site.limits()),
-        t_vehicle_cam: site.t_vehicle_cam(),
-        marker: marker_spec(&site).unwrap(),
-        t_world_marker,
-        t_world_vehicle_start: t_world_marker * s.station.t_marker_vehicle(),
-        motion: VehicleMotion::Free,
-        seed: 5,
-        lock_step,
-    })
-    .unwrap()
+    tmp_path("run", name)
 }
 
 /// 90 frames (3 s) rendered on station, as a recorded-frames folder; made once.
@@ -54,7 +25,7 @@ fn frames_dir() -> &'static Path {
     static DIR: OnceLock<PathBuf> = OnceLock::new();
     DIR.get_or_init(|| {
         let dir = tmp("frames");
-        let mut rig = rig(false);
+        let mut rig = station_rig(false);
         rig.set_exposure_us(3000.0).unwrap();
         let mut rec = FrameRecorder::create(&dir).unwrap();
         let mut f = Frame::default();
@@ -66,51 +37,9 @@ fn frames_dir() -> &'static Path {
     })
 }
 
-/// hil's vehicle on its own thread in real time; returns its address and a stopper.
-struct Vehicle {
-    addr: std::net::SocketAddr,
-    stop: Arc<AtomicBool>,
-    thread: std::thread::JoinHandle<(EndpointStats, bool)>,
-}
-
-fn vehicle() -> Vehicle {
-    let mut rig = rig(false);
-    let addr = rig.mavlink_udp_addr();
-    let stop = Arc::new(AtomicBool::new(false));
-    let stop2 = stop.clone();
-    let thread = std::thread::spawn(move || {
-        let mut frame = Frame::default();
-        let t0 = Instant::now();
-        let period = Duration::from_secs_f64(1.0 / 30.0);
-        let mut k = 0u32;
-        while !stop2.load(Ordering::Relaxed) && t0.elapsed() < Duration::from_secs(60) {
-            rig.grab(&mut frame).unwrap();
-            k += 1;
-            if let Some(w) = (t0 + period * k).checked_duration_since(Instant::now()) {
-                std::thread::sleep(w);
-            }
-        }
-        // Take in what arrived after the last frame.
-        rig.pump().unwrap();
-        (rig.endpoint_stats(), rig.truth().armed)
-    });
-    Vehicle { addr, stop, thread }
-}
-
-impl Vehicle {
-    fn finish(self) -> EndpointStats {
-        self.finish_armed().0
-    }
-
-    /// Stop it; its endpoint stats and whether it was still armed.
-    fn finish_armed(self) -> (EndpointStats, bool) {
-        self.stop.store(true, Ordering::Relaxed);
-        self.thread.join().unwrap()
-    }
-}
-
-fn markhold() -> Command {
-    Command::new(env!("CARGO_BIN_EXE_markhold"))
+/// hil's vehicle on its own thread in real time.
+fn vehicle() -> RealTimeVehicle {
+    RealTimeVehicle::start(station_rig(false))
 }
 
 fn commands(path: &Path) -> Vec<CommandMsg> {
@@ -151,7 +80,7 @@ fn run_on_hil_vehicle_with_recorded_frames_end_to_end() {
         .unwrap();
     // Let the vehicle take in the last inputs before stopping it.
     std::thread::sleep(Duration::from_millis(100));
-    let stats = v.finish();
+    let stats = v.finish().stats;
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     let report: serde_json::Value =
         serde_json::from_str(&std::fs::read_to_string(&summary).unwrap()).unwrap();
@@ -300,26 +229,6 @@ fn missing_camera_unreachable_link_and_bad_record_path_exit_2_leaving_nothing() 
     );
 }
 
-/// Read one unmasked server frame (text or binary) from a WebSocket stream.
-fn ws_frame(s: &mut std::net::TcpStream) -> (u8, Vec<u8>) {
-    use std::io::Read;
-    let mut h = [0u8; 2];
-    s.read_exact(&mut h).unwrap();
-    let mut len = (h[1] & 0x7f) as u64;
-    if len == 126 {
-        let mut b = [0u8; 2];
-        s.read_exact(&mut b).unwrap();
-        len = u16::from_be_bytes(b) as u64;
-    } else if len == 127 {
-        let mut b = [0u8; 8];
-        s.read_exact(&mut b).unwrap();
-        len = u64::from_be_bytes(b);
-    }
-    let mut data = vec![0u8; len as usize];
-    s.read_exact(&mut data).unwrap();
-    (h[0] & 0x0f, data)
-}
-
 #[test]
 fn live_view_advertises_every_channel_over_foxglove_websocket() {
     use std::io::Write;
@@ -348,7 +257,7 @@ fn live_view_advertises_every_channel_over_foxglove_websocket() {
     // serverInfo, then the channel advertisement.
     let mut advertised = String::new();
     for _ in 0..4 {
-        let (op, data) = ws_frame(&mut s);
+        let (op, data) = ws_read_frame(&mut s).unwrap();
         if op == 1 {
             let text = String::from_utf8(data).unwrap();
             if text.contains("\"op\":\"advertise\"") {
@@ -370,7 +279,7 @@ fn stalling_frames_dir() -> &'static Path {
     static DIR: OnceLock<PathBuf> = OnceLock::new();
     DIR.get_or_init(|| {
         let dir = tmp("frames-stall");
-        let mut rig = rig(false);
+        let mut rig = station_rig(false);
         rig.set_exposure_us(3000.0).unwrap();
         let mut rec = FrameRecorder::create(&dir).unwrap();
         let mut f = Frame::default();
@@ -507,7 +416,8 @@ fn sigterm_with_disarm_on_exit_sends_neutral_then_disarms() {
         assert!(Instant::now() < deadline, "did not stop after SIGTERM");
         std::thread::sleep(Duration::from_millis(20));
     };
-    let (stats, armed) = v.finish_armed();
+    let end = v.finish();
+    let (stats, armed) = (end.stats, end.truth.armed);
     assert_eq!(status.code(), Some(0), "{rest}");
     assert!(rest.contains("disarm on exit: Accepted"), "{rest}");
     // The vehicle is disarmed, by markhold (well before its own 3 s pilot failsafe: the

@@ -912,28 +912,49 @@ impl WriterThread {
         );
     }
 
+    /// One frame's messages, in this order: image, annotations, frame, exposure,
+    /// detection, pose, command, vehicle, failsafe events.
     fn write(&mut self, it: &Item) {
-        let r = &it.rec;
         let t = stamp_ns(it.meta.stamp_s);
-        let meta = PartialMetadata { log_time: Some(t) };
-        let mut image_written = false;
-        if let Some(img) = &it.image {
-            match self.encode_png(it.width, it.height, img) {
-                Ok(()) => {
-                    let msg = CompressedImage {
-                        timestamp: Some(timestamp(it.meta.stamp_s)),
-                        frame_id: "camera".into(),
-                        data: foxglove::bytes::Bytes::copy_from_slice(self.png.as_slice()),
-                        format: "png".into(),
-                    };
-                    self.channels.image.log_with_meta(&msg, meta);
-                    image_written = true;
-                }
-                Err(e) => self.shared.report_error(&e),
+        let image_written = self.write_image(it, t);
+        self.annotate(it);
+        self.write_frame(it, t, image_written);
+        self.write_exposure(it, t);
+        self.write_detection(it, t);
+        self.write_pose(it, t);
+        let ch = self.channels.command.clone();
+        self.json(&ch, t, &CommandMsg::from_record(&it.rec));
+        self.write_vehicle(it, t);
+        self.write_failsafe_events(it, t);
+    }
+
+    /// The frame's PNG, if it carries pixels; true when it was written.
+    fn write_image(&mut self, it: &Item, t: u64) -> bool {
+        let Some(img) = &it.image else {
+            return false;
+        };
+        match self.encode_png(it.width, it.height, img) {
+            Ok(()) => {
+                let msg = CompressedImage {
+                    timestamp: Some(timestamp(it.meta.stamp_s)),
+                    frame_id: "camera".into(),
+                    data: foxglove::bytes::Bytes::copy_from_slice(self.png.as_slice()),
+                    format: "png".into(),
+                };
+                self.channels
+                    .image
+                    .log_with_meta(&msg, PartialMetadata { log_time: Some(t) });
+                true
+            }
+            Err(e) => {
+                self.shared.report_error(&e);
+                false
             }
         }
+    }
+
+    fn write_frame(&mut self, it: &Item, t: u64, image_written: bool) {
         let m = it.meta;
-        self.annotate(it);
         let frame = FrameMsg {
             seq: m.seq,
             stamp_s: m.stamp_s,
@@ -953,6 +974,10 @@ impl WriterThread {
         };
         let ch = self.channels.frame.clone();
         self.json(&ch, t, &frame);
+    }
+
+    fn write_exposure(&mut self, it: &Item, t: u64) {
+        let (r, m) = (&it.rec, it.meta);
         let exposure = ExposureMsg {
             seq: m.seq,
             stamp_s: m.stamp_s,
@@ -965,6 +990,10 @@ impl WriterThread {
         };
         let ch = self.channels.exposure.clone();
         self.json(&ch, t, &exposure);
+    }
+
+    fn write_detection(&mut self, it: &Item, t: u64) {
+        let (r, m) = (&it.rec, it.meta);
         let q = r.t_cam_marker.map(|p| p.rotation.into_inner().coords);
         let detection = DetectionMsg {
             seq: m.seq,
@@ -978,52 +1007,66 @@ impl WriterThread {
         };
         let ch = self.channels.detection.clone();
         self.json(&ch, t, &detection);
-        if let Some(p) = r.t_cam_marker {
-            let v = p.translation.vector;
-            let q = p.rotation.into_inner().coords;
-            let msg = PoseInFrame {
-                timestamp: Some(timestamp(m.stamp_s)),
-                frame_id: "camera".into(),
-                pose: Some(Pose {
-                    position: Some(Vector3 {
-                        x: v.x,
-                        y: v.y,
-                        z: v.z,
-                    }),
-                    orientation: Some(Quaternion {
-                        x: q.x,
-                        y: q.y,
-                        z: q.z,
-                        w: q.w,
-                    }),
+    }
+
+    /// The marker's pose in the camera frame, when it was measured.
+    fn write_pose(&mut self, it: &Item, t: u64) {
+        let Some(p) = it.rec.t_cam_marker else {
+            return;
+        };
+        let v = p.translation.vector;
+        let q = p.rotation.into_inner().coords;
+        let msg = PoseInFrame {
+            timestamp: Some(timestamp(it.meta.stamp_s)),
+            frame_id: "camera".into(),
+            pose: Some(Pose {
+                position: Some(Vector3 {
+                    x: v.x,
+                    y: v.y,
+                    z: v.z,
                 }),
-            };
-            self.channels.pose.log_with_meta(&msg, meta);
-        }
-        let ch = self.channels.command.clone();
-        self.json(&ch, t, &CommandMsg::from_record(r));
+                orientation: Some(Quaternion {
+                    x: q.x,
+                    y: q.y,
+                    z: q.z,
+                    w: q.w,
+                }),
+            }),
+        };
+        self.channels
+            .pose
+            .log_with_meta(&msg, PartialMetadata { log_time: Some(t) });
+    }
+
+    /// The vehicle's state, when the item carries one.
+    fn write_vehicle(&mut self, it: &Item, t: u64) {
         if let Some(state) = &it.vehicle {
             let ch = self.channels.vehicle.clone();
             self.json(
                 &ch,
                 t,
                 &VehicleMsg {
-                    seq: m.seq,
-                    stamp_s: m.stamp_s,
+                    seq: it.meta.seq,
+                    stamp_s: it.meta.stamp_s,
                     state,
                 },
             );
         }
+    }
+
+    fn write_failsafe_events(&mut self, it: &Item, t: u64) {
         for e in it.events.iter().flatten() {
             let msg = Log {
-                timestamp: Some(timestamp(m.stamp_s)),
+                timestamp: Some(timestamp(it.meta.stamp_s)),
                 level: foxglove::schemas::log::Level::Warning as i32,
                 message: format!("{e:?}"),
                 name: "supervisor".into(),
                 file: String::new(),
                 line: 0,
             };
-            self.channels.failsafe.log_with_meta(&msg, meta);
+            self.channels
+                .failsafe
+                .log_with_meta(&msg, PartialMetadata { log_time: Some(t) });
         }
     }
 }

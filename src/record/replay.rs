@@ -236,101 +236,147 @@ pub fn replay(path: &Path) -> anyhow::Result<ReplaySummary> {
             info.exposure_method
         )
     })?;
-    let mut pipeline = build_loop(&site, method, &info).context("rebuilding the recorded loop")?;
-    let mut camera = ReplayCamera {
-        frame: Frame::new(site.calibration.width, site.calibration.height),
-        ready: false,
-        limits: site.limits(),
-        requested_us: info.initial_exposure_us,
-    };
-    let mut out = ReplaySummary {
-        file: path.to_path_buf(),
-        recorded_by: info.command.clone(),
-        exposure_method: info.exposure_method.clone(),
-        frames_recorded: 0,
-        frames_replayed: 0,
-        commands_compared: 0,
-        commands_match: true,
-        first_mismatch: None,
-    };
-    let mut image: Option<(u64, Vec<u8>)> = None;
-    let mut replayed: Option<CommandMsg> = None;
-    let mut stopped = false;
+    let pipeline = build_loop(&site, method, &info).context("rebuilding the recorded loop")?;
+    let mut replayer = Replayer::new(path, pipeline, &site, &info);
     for msg in mcap::MessageStream::new(&buf).map_err(mcap_err(path))? {
         let msg = msg.map_err(mcap_err(path))?;
         match msg.channel.topic.as_str() {
-            TOPIC_IMAGE => {
-                let img = CompressedImage::decode(&*msg.data).map_err(|e| {
-                    anyhow::anyhow!("{}: image at {} ns: {e}", path.display(), msg.log_time)
-                })?;
-                image = Some((msg.log_time, img.data.to_vec()));
-            }
-            TOPIC_FRAME => {
-                out.frames_recorded += 1;
-                if stopped {
-                    continue;
-                }
-                let f: FrameMsg = serde_json::from_slice(&msg.data)
-                    .with_context(|| format!("{}: frame message", path.display()))?;
-                let png = match image.take() {
-                    Some((t, png)) if t == msg.log_time && f.image => png,
-                    _ => {
-                        // Without the pixels the loop's state diverges: stop here.
-                        stopped = true;
-                        if out.first_mismatch.is_none() {
-                            out.first_mismatch = Some(Mismatch {
-                                seq: f.seq,
-                                stamp_s: f.stamp_s,
-                                field: "image".into(),
-                                recorded: "dropped while recording".into(),
-                                replayed: "not replayed".into(),
-                            });
-                        }
-                        continue;
-                    }
-                };
-                decode_png(&png, &mut camera.frame)
-                    .with_context(|| format!("{}: image of frame {}", path.display(), f.seq))?;
-                camera.frame.meta = FrameMeta {
-                    seq: f.seq,
-                    stamp_s: f64::from_bits(f.bits.stamp),
-                    exposure_us: f64::from_bits(f.bits.exposure),
-                    gain_db: f64::from_bits(f.bits.gain),
-                };
-                camera.ready = true;
-                pipeline.link_mut().heartbeat_s = f.bits.heartbeat.map(f64::from_bits);
-                pipeline.set_shutdown(f.shutdown);
-                let rec = pipeline.step(&mut camera)?;
-                out.frames_replayed += 1;
-                replayed = Some(CommandMsg::from_record(&rec));
-            }
-            TOPIC_COMMAND => {
-                if stopped {
-                    continue;
-                }
-                let recorded: CommandMsg = serde_json::from_slice(&msg.data)
-                    .with_context(|| format!("{}: command message", path.display()))?;
-                let Some(mine) = replayed.take() else {
-                    continue;
-                };
-                out.commands_compared += 1;
-                if out.first_mismatch.is_none() {
-                    out.first_mismatch = compare(&recorded, &mine);
-                }
-            }
+            TOPIC_IMAGE => replayer.image(msg.log_time, &msg.data)?,
+            TOPIC_FRAME => replayer.frame(msg.log_time, &msg.data)?,
+            TOPIC_COMMAND => replayer.command(&msg.data)?,
             _ => {}
         }
     }
-    if out.commands_compared != out.frames_replayed && out.first_mismatch.is_none() {
-        out.first_mismatch = Some(Mismatch {
-            seq: 0,
-            stamp_s: 0.0,
-            field: "count".into(),
-            recorded: format!("{} commands", out.commands_compared),
-            replayed: format!("{} frames", out.frames_replayed),
-        });
+    Ok(replayer.finish())
+}
+
+/// The replay in progress: the loop, its camera, the last image and the last command
+/// replayed, and what was compared so far.
+struct Replayer<'a> {
+    path: &'a Path,
+    pipeline: Pipeline<SinkLink>,
+    camera: ReplayCamera,
+    out: ReplaySummary,
+    /// The last image message: its log time and PNG.
+    image: Option<(u64, Vec<u8>)>,
+    /// The command of the last frame replayed, until its recorded one comes.
+    replayed: Option<CommandMsg>,
+    /// A frame could not be replayed: the loop's state has diverged from here on.
+    stopped: bool,
+}
+
+impl<'a> Replayer<'a> {
+    fn new(
+        path: &'a Path,
+        pipeline: Pipeline<SinkLink>,
+        site: &LoadedSite,
+        info: &RunInfo,
+    ) -> Self {
+        Self {
+            path,
+            pipeline,
+            camera: ReplayCamera {
+                frame: Frame::new(site.calibration.width, site.calibration.height),
+                ready: false,
+                limits: site.limits(),
+                requested_us: info.initial_exposure_us,
+            },
+            out: ReplaySummary {
+                file: path.to_path_buf(),
+                recorded_by: info.command.clone(),
+                exposure_method: info.exposure_method.clone(),
+                frames_recorded: 0,
+                frames_replayed: 0,
+                commands_compared: 0,
+                commands_match: true,
+                first_mismatch: None,
+            },
+            image: None,
+            replayed: None,
+            stopped: false,
+        }
     }
-    out.commands_match = out.first_mismatch.is_none() && out.frames_replayed > 0;
-    let _ = camera.requested_us;
-    Ok(out)
+
+    fn image(&mut self, log_time: u64, data: &[u8]) -> anyhow::Result<()> {
+        let img = CompressedImage::decode(data)
+            .map_err(|e| anyhow::anyhow!("{}: image at {log_time} ns: {e}", self.path.display()))?;
+        self.image = Some((log_time, img.data.to_vec()));
+        Ok(())
+    }
+
+    /// A recorded frame: its image and meta through the loop.
+    fn frame(&mut self, log_time: u64, data: &[u8]) -> anyhow::Result<()> {
+        let path = self.path;
+        self.out.frames_recorded += 1;
+        if self.stopped {
+            return Ok(());
+        }
+        let f: FrameMsg = serde_json::from_slice(data)
+            .with_context(|| format!("{}: frame message", path.display()))?;
+        let png = match self.image.take() {
+            Some((t, png)) if t == log_time && f.image => png,
+            _ => {
+                // Without the pixels the loop's state diverges: stop here.
+                self.stopped = true;
+                if self.out.first_mismatch.is_none() {
+                    self.out.first_mismatch = Some(Mismatch {
+                        seq: f.seq,
+                        stamp_s: f.stamp_s,
+                        field: "image".into(),
+                        recorded: "dropped while recording".into(),
+                        replayed: "not replayed".into(),
+                    });
+                }
+                return Ok(());
+            }
+        };
+        decode_png(&png, &mut self.camera.frame)
+            .with_context(|| format!("{}: image of frame {}", path.display(), f.seq))?;
+        self.camera.frame.meta = FrameMeta {
+            seq: f.seq,
+            stamp_s: f64::from_bits(f.bits.stamp),
+            exposure_us: f64::from_bits(f.bits.exposure),
+            gain_db: f64::from_bits(f.bits.gain),
+        };
+        self.camera.ready = true;
+        self.pipeline.link_mut().heartbeat_s = f.bits.heartbeat.map(f64::from_bits);
+        self.pipeline.set_shutdown(f.shutdown);
+        let rec = self.pipeline.step(&mut self.camera)?;
+        self.out.frames_replayed += 1;
+        self.replayed = Some(CommandMsg::from_record(&rec));
+        Ok(())
+    }
+
+    /// A recorded command: compared with the one the last frame replayed gave.
+    fn command(&mut self, data: &[u8]) -> anyhow::Result<()> {
+        if self.stopped {
+            return Ok(());
+        }
+        let recorded: CommandMsg = serde_json::from_slice(data)
+            .with_context(|| format!("{}: command message", self.path.display()))?;
+        let Some(mine) = self.replayed.take() else {
+            return Ok(());
+        };
+        self.out.commands_compared += 1;
+        if self.out.first_mismatch.is_none() {
+            self.out.first_mismatch = compare(&recorded, &mine);
+        }
+        Ok(())
+    }
+
+    fn finish(self) -> ReplaySummary {
+        let mut out = self.out;
+        if out.commands_compared != out.frames_replayed && out.first_mismatch.is_none() {
+            out.first_mismatch = Some(Mismatch {
+                seq: 0,
+                stamp_s: 0.0,
+                field: "count".into(),
+                recorded: format!("{} commands", out.commands_compared),
+                replayed: format!("{} frames", out.frames_replayed),
+            });
+        }
+        out.commands_match = out.first_mismatch.is_none() && out.frames_replayed > 0;
+        let _ = self.camera.requested_us;
+        out
+    }
 }

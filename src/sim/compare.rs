@@ -914,8 +914,20 @@ pub fn method_name(m: ExposureMethod) -> &'static str {
 /// `report.md`: the four experiments laid out like the paper's tables, one block per
 /// lighting, mean ± sample sd over seeds, the paper's numbers beside ours where it has them.
 pub fn report_markdown(r: &CompareResults, plots: &[String]) -> String {
-    use std::fmt::Write as _;
     let mut o = String::new();
+    report_header(&mut o, r);
+    report_static_precision(&mut o, r);
+    report_motion_tracking(&mut o, r);
+    report_convergence(&mut o, r);
+    report_station_keeping(&mut o, r);
+    report_lockstep_timeouts(&mut o, r);
+    report_plots(&mut o, plots);
+    o
+}
+
+/// The title and what the cells mean.
+fn report_header(o: &mut String, r: &CompareResults) {
+    use std::fmt::Write as _;
     let seeds = r.seeds.len();
     let _ = writeln!(o, "# markhold compare: {}\n", r.site);
     let _ = writeln!(
@@ -926,7 +938,11 @@ pub fn report_markdown(r: &CompareResults, plots: &[String]) -> String {
          from its own camera and water; ours are from the HIL world.\n",
         r.site_file, r.width_px, r.height_px, r.fps, r.seconds, r.seeds, seeds
     );
+}
 
+/// Section 1: static precision, a table per lighting.
+fn report_static_precision(o: &mut String, r: &CompareResults) {
+    use std::fmt::Write as _;
     let _ = writeln!(
         o,
         "## 1. Static precision\n\nVehicle held fixed on station for {} s. det(cov): \
@@ -941,7 +957,7 @@ pub fn report_markdown(r: &CompareResults, plots: &[String]) -> String {
             Some(format!("{d:.2e} / {rate} % / {max:.4} m"))
         };
         table(
-            &mut o,
+            o,
             r,
             l,
             &[
@@ -958,7 +974,11 @@ pub fn report_markdown(r: &CompareResults, plots: &[String]) -> String {
             Some(("Paper det / detection / max", &p)),
         );
     }
+}
 
+/// Section 2: motion tracking, the traverse, then a table per lighting.
+fn report_motion_tracking(o: &mut String, r: &CompareResults) {
+    use std::fmt::Write as _;
     let _ = writeln!(
         o,
         "## 2. Motion tracking\n\nCamera moved sideways at constant speed so the marker \
@@ -977,7 +997,7 @@ pub fn report_markdown(r: &CompareResults, plots: &[String]) -> String {
         let _ = writeln!(o, "### Motion tracking, {l} lighting\n");
         let p = move |m| paper::motion(m, l);
         table(
-            &mut o,
+            o,
             r,
             l,
             &[
@@ -992,7 +1012,11 @@ pub fn report_markdown(r: &CompareResults, plots: &[String]) -> String {
             Some(("Paper distance / detection", &p)),
         );
     }
+}
 
+/// Section 3: convergence from 10x long and 10x short, a table per lighting.
+fn report_convergence(o: &mut String, r: &CompareResults) {
+    use std::fmt::Write as _;
     let _ = writeln!(
         o,
         "## 3. Convergence\n\nVehicle fixed on station; exposure started at 10x and 1/10 of \
@@ -1008,7 +1032,7 @@ pub fn report_markdown(r: &CompareResults, plots: &[String]) -> String {
         let _ = writeln!(o, "### Convergence, {l} lighting\n");
         let p = move |m| paper::convergence_s(m, l).map(|s| format!("{s} s"));
         table(
-            &mut o,
+            o,
             r,
             l,
             &[
@@ -1040,7 +1064,11 @@ pub fn report_markdown(r: &CompareResults, plots: &[String]) -> String {
             Some(("Paper [s]", &p)),
         );
     }
+}
 
+/// Section 4: station keeping with the full loop, a table per lighting.
+fn report_station_keeping(o: &mut String, r: &CompareResults) {
+    use std::fmt::Write as _;
     let _ = writeln!(
         o,
         "## 4. Station keeping\n\nThe full loop from the site's initial offset for {} s. \
@@ -1052,7 +1080,7 @@ pub fn report_markdown(r: &CompareResults, plots: &[String]) -> String {
     for &l in &r.lightings {
         let _ = writeln!(o, "### Station keeping, {l} lighting\n");
         table(
-            &mut o,
+            o,
             r,
             l,
             &[
@@ -1068,20 +1096,28 @@ pub fn report_markdown(r: &CompareResults, plots: &[String]) -> String {
             None,
         );
     }
+}
 
+/// The lock-step timeouts over all runs.
+fn report_lockstep_timeouts(o: &mut String, r: &CompareResults) {
+    use std::fmt::Write as _;
     let timeouts: u64 = r.cases.iter().map(|c| c.lockstep_timeouts).sum();
     let _ = writeln!(
         o,
         "Lock-step timeouts over all runs: {timeouts} (frames the simulated vehicle stepped \
          without its command; 0 in a healthy run).\n"
     );
+}
+
+/// Links to the plots, if any were written.
+fn report_plots(o: &mut String, plots: &[String]) {
+    use std::fmt::Write as _;
     if !plots.is_empty() {
         let _ = writeln!(o, "## Plots\n");
         for p in plots {
             let _ = writeln!(o, "- [{p}]({p})");
         }
     }
-    o
 }
 
 /// Write `results.json`, the plots and `report.md` into `dir` (created if missing).

@@ -931,62 +931,10 @@ impl FaultMonitor {
                 r.marker_detected_again_at_s = Some(t);
             }
             for e in events {
-                match *e {
-                    FailsafeEvent::VehicleHeartbeatLost { at_s, .. }
-                        if r.heartbeat_lost_at_s.is_none() =>
-                    {
-                        r.heartbeat_lost_at_s = Some(at_s)
-                    }
-                    FailsafeEvent::VehicleHeartbeatRestored { at_s, .. }
-                        if r.heartbeat_lost_at_s.is_some()
-                            && r.heartbeat_restored_at_s.is_none() =>
-                    {
-                        r.heartbeat_restored_at_s = Some(at_s)
-                    }
-                    FailsafeEvent::MarkerLost { at_s, .. } if r.marker_lost_at_s.is_none() => {
-                        r.marker_lost_at_s = Some(at_s)
-                    }
-                    FailsafeEvent::MarkerLostActionDue { at_s, .. }
-                        if r.marker_lost_action_at_s.is_none() =>
-                    {
-                        r.marker_lost_action_at_s = Some(at_s)
-                    }
-                    _ => {}
-                }
+                r.note_event(e);
             }
             for tr in transitions {
-                match *tr {
-                    ModeTransition::LossActionRequested { at_s, mode, .. }
-                        if r.loss_action_requested_at_s.is_none() =>
-                    {
-                        r.loss_action_requested_at_s = Some(at_s);
-                        r.loss_action_mode = Some(mode);
-                    }
-                    ModeTransition::SurfaceFallback { at_s, .. }
-                        if r.surface_fallback_at_s.is_none() =>
-                    {
-                        r.surface_fallback_at_s = Some(at_s);
-                        r.loss_action_mode = Some(ArduSubMode::AltHold);
-                    }
-                    ModeTransition::LossActionInMode { at_s, .. }
-                        if r.loss_action_in_mode_at_s.is_none() =>
-                    {
-                        r.loss_action_in_mode_at_s = Some(at_s)
-                    }
-                    ModeTransition::SiteModeRequested { at_s, .. }
-                        if r.loss_action_requested_at_s.is_some()
-                            && r.site_mode_requested_at_s.is_none() =>
-                    {
-                        r.site_mode_requested_at_s = Some(at_s)
-                    }
-                    ModeTransition::SiteModeRestored { at_s, .. }
-                        if r.site_mode_requested_at_s.is_some()
-                            && r.site_mode_restored_at_s.is_none() =>
-                    {
-                        r.site_mode_restored_at_s = Some(at_s)
-                    }
-                    _ => {}
-                }
+                r.note_transition(tr);
             }
             if t >= end && r.station_regained_at_s.is_none() {
                 if err <= STATION_TOL_M {
@@ -1007,6 +955,69 @@ impl FaultMonitor {
 
     pub fn into_reports(self) -> Vec<FaultReport> {
         self.reports
+    }
+}
+
+impl FaultReport {
+    /// The first time each failsafe event of the supervisor was seen in this fault.
+    fn note_event(&mut self, e: &FailsafeEvent) {
+        match *e {
+            FailsafeEvent::VehicleHeartbeatLost { at_s, .. }
+                if self.heartbeat_lost_at_s.is_none() =>
+            {
+                self.heartbeat_lost_at_s = Some(at_s)
+            }
+            FailsafeEvent::VehicleHeartbeatRestored { at_s, .. }
+                if self.heartbeat_lost_at_s.is_some() && self.heartbeat_restored_at_s.is_none() =>
+            {
+                self.heartbeat_restored_at_s = Some(at_s)
+            }
+            FailsafeEvent::MarkerLost { at_s, .. } if self.marker_lost_at_s.is_none() => {
+                self.marker_lost_at_s = Some(at_s)
+            }
+            FailsafeEvent::MarkerLostActionDue { at_s, .. }
+                if self.marker_lost_action_at_s.is_none() =>
+            {
+                self.marker_lost_action_at_s = Some(at_s)
+            }
+            _ => {}
+        }
+    }
+
+    /// The first time each mode transition of the loop was seen in this fault.
+    fn note_transition(&mut self, tr: &ModeTransition) {
+        match *tr {
+            ModeTransition::LossActionRequested { at_s, mode, .. }
+                if self.loss_action_requested_at_s.is_none() =>
+            {
+                self.loss_action_requested_at_s = Some(at_s);
+                self.loss_action_mode = Some(mode);
+            }
+            ModeTransition::SurfaceFallback { at_s, .. }
+                if self.surface_fallback_at_s.is_none() =>
+            {
+                self.surface_fallback_at_s = Some(at_s);
+                self.loss_action_mode = Some(ArduSubMode::AltHold);
+            }
+            ModeTransition::LossActionInMode { at_s, .. }
+                if self.loss_action_in_mode_at_s.is_none() =>
+            {
+                self.loss_action_in_mode_at_s = Some(at_s)
+            }
+            ModeTransition::SiteModeRequested { at_s, .. }
+                if self.loss_action_requested_at_s.is_some()
+                    && self.site_mode_requested_at_s.is_none() =>
+            {
+                self.site_mode_requested_at_s = Some(at_s)
+            }
+            ModeTransition::SiteModeRestored { at_s, .. }
+                if self.site_mode_requested_at_s.is_some()
+                    && self.site_mode_restored_at_s.is_none() =>
+            {
+                self.site_mode_restored_at_s = Some(at_s)
+            }
+            _ => {}
+        }
     }
 }
 

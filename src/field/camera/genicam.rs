@@ -184,228 +184,21 @@ impl GenicamCamera {
     /// Open `device` (an Aravis device id, a GigE camera's IP address, or empty for the
     /// first camera found) and prepare acquisition as `cfg` asks.
     pub fn open(device: &str, cfg: &GenicamConfig) -> Result<Self, GenicamError> {
-        let dev = device.to_string();
-        let rejected = |feature: &'static str| {
-            let dev = dev.clone();
-            move |e: glib::Error| GenicamError::Rejected {
-                device: dev.clone(),
-                feature,
-                reason: msg(e),
-            }
-        };
-        let first;
-        let id = if device.is_empty() {
-            // "The first camera": the first id of Aravis's device lists (GigE: after a
-            // discovery broadcast), opened by id (not every interface opens "any").
-            // SAFETY: Aravis guards its device lists; the id it returns is copied at
-            // once, before anything can update the lists again.
-            first = unsafe {
-                aravis_sys::arv_update_device_list();
-                if aravis_sys::arv_get_n_devices() == 0 {
-                    None
-                } else {
-                    let p = aravis_sys::arv_get_device_id(0);
-                    (!p.is_null()).then(|| CStr::from_ptr(p).to_string_lossy().into_owned())
-                }
-            };
-            match &first {
-                Some(id) => id.as_str(),
-                None => {
-                    return Err(GenicamError::NotFound {
-                        device: dev,
-                        reason: "Aravis finds no camera on USB3 Vision or GigE Vision".into(),
-                    })
-                }
-            }
-        } else {
-            device
-        };
-        let cam = ArvCamera::new(Some(id)).map_err(|e| GenicamError::NotFound {
-            device: dev.clone(),
-            reason: if device.is_empty() {
-                format!("the first camera found, {id}, does not open: {}", msg(e))
-            } else {
-                msg(e)
-            },
-        })?;
+        let id = device_id(device)?;
+        let cam = open_device(device, &id)?;
         // A camera left streaming by a previous program refuses most settings.
         let _ = cam.stop_acquisition();
-
-        // Exposure: manual.
-        if !cam.is_exposure_time_available().unwrap_or(false) {
-            return Err(GenicamError::NoExposureFeature { device: dev });
-        }
-        if cam.is_exposure_auto_available().unwrap_or(false) {
-            cam.set_exposure_time_auto(Auto::Off)
-                .map_err(rejected("ExposureAuto=Off"))?;
-            let now = cam
-                .exposure_time_auto()
-                .map_err(rejected("ExposureAuto=Off"))?;
-            if now != Auto::Off {
-                return Err(GenicamError::Rejected {
-                    device: dev,
-                    feature: "ExposureAuto=Off",
-                    reason: format!("the camera reads back ExposureAuto={now:?}"),
-                });
-            }
-        }
-        let (cam_min, cam_max) = cam
-            .exposure_time_bounds()
-            .map_err(rejected("ExposureTime"))?;
-
-        // Gain: fixed.
-        if cam.is_gain_auto_available().unwrap_or(false) {
-            cam.set_gain_auto(Auto::Off)
-                .map_err(rejected("GainAuto=Off"))?;
-        }
-        let has_db_gain = cam.is_feature_available("Gain").unwrap_or(false);
-        let gain_db = if has_db_gain {
-            let (lo, hi) = cam.gain_bounds().map_err(rejected("Gain"))?;
-            cam.set_gain(cfg.gain_db.clamp(lo, hi))
-                .map_err(rejected("Gain"))?;
-            cam.gain().map_err(rejected("Gain"))?
-        } else {
-            tracing::warn!(
-                device,
-                "the camera has no Gain (dB) feature: gain left as it is, recorded as 0 dB"
-            );
-            0.0
-        };
-
-        // Pixel format: Mono8, else 8-bit Bayer converted to grey.
-        let formats = cam.dup_available_pixel_formats().unwrap_or_default();
-        // GenICam names the Bayer pattern by its first row, OpenCV by its second.
-        let choices = [
-            (PixelFormat::MONO_8, Pixels::Mono8),
-            (
-                PixelFormat::BAYER_RG_8,
-                Pixels::Bayer8(imgproc::COLOR_BayerBG2GRAY),
-            ),
-            (
-                PixelFormat::BAYER_GR_8,
-                Pixels::Bayer8(imgproc::COLOR_BayerGB2GRAY),
-            ),
-            (
-                PixelFormat::BAYER_GB_8,
-                Pixels::Bayer8(imgproc::COLOR_BayerGR2GRAY),
-            ),
-            (
-                PixelFormat::BAYER_BG_8,
-                Pixels::Bayer8(imgproc::COLOR_BayerRG2GRAY),
-            ),
-        ];
-        let Some(&(format, pixels)) = choices
-            .iter()
-            .find(|(f, _)| formats.contains(&i64::from(f.raw())))
-        else {
-            let names = cam
-                .dup_available_pixel_formats_as_strings()
-                .map(|v| v.iter().map(|s| s.to_string()).collect::<Vec<_>>())
-                .unwrap_or_default();
-            return Err(GenicamError::PixelFormat {
-                device: dev,
-                available: if names.is_empty() {
-                    "none listed".into()
-                } else {
-                    names.join(", ")
-                },
-            });
-        };
-        cam.set_pixel_format(format)
-            .map_err(rejected("PixelFormat"))?;
-
-        // Size: the calibration's, from the sensor's top-left corner.
-        let size_err = |reason: String| GenicamError::Resolution {
-            device: dev.clone(),
-            width: cfg.width,
-            height: cfg.height,
-            reason,
-        };
-        let (w, h) = (
-            i32::try_from(cfg.width).unwrap_or(i32::MAX),
-            i32::try_from(cfg.height).unwrap_or(i32::MAX),
-        );
-        let (wb, hb) = (
-            cam.width_bounds().map_err(|e| size_err(msg(e)))?,
-            cam.height_bounds().map_err(|e| size_err(msg(e)))?,
-        );
-        if !(wb.0..=wb.1).contains(&w) || !(hb.0..=hb.1).contains(&h) {
-            return Err(size_err(format!(
-                "the camera takes {}..{} x {}..{} pixels",
-                wb.0, wb.1, hb.0, hb.1
-            )));
-        }
-        // A region of the right size already set (e.g. a centred one the calibration
-        // was made with) is kept; otherwise the region starts at the top-left corner.
-        let current = cam.region().map_err(|e| size_err(msg(e)))?;
-        if (current.2, current.3) != (w, h) {
-            cam.set_region(0, 0, w, h).map_err(|e| size_err(msg(e)))?;
-        }
-        let (_, _, got_w, got_h) = cam.region().map_err(|e| size_err(msg(e)))?;
-        if (got_w, got_h) != (w, h) {
-            return Err(size_err(format!("the camera set {got_w}x{got_h}")));
-        }
-
-        // Frame rate, where the camera lets us set it.
-        if cfg.fps > 0.0 && cam.is_frame_rate_available().unwrap_or(false) {
-            if let Err(e) = cam.set_frame_rate(cfg.fps) {
-                tracing::warn!(device, fps = cfg.fps, error = %msg(e), "frame rate not set");
-            }
-        }
-        let fps = cam
-            .frame_rate()
-            .ok()
-            .filter(|f| f.is_finite() && *f > 0.0)
-            .unwrap_or(cfg.fps);
-
-        // Exposure per frame: chunks where the camera has them.
+        let cam_bounds = exposure_manual(&cam, device)?;
+        let gain_db = gain_fixed(&cam, device, cfg.gain_db)?;
+        let (format, pixels) = pixel_format(&cam, device)?;
+        let (w, h) = region(&cam, device, cfg)?;
+        let fps = frame_rate(&cam, device, cfg.fps);
         let chunks = Self::enable_exposure_chunk(&cam, device);
-
-        let limits = ExposureLimits {
-            min_us: cfg.limits.min_us.max(cam_min),
-            max_us: cfg.limits.max_us.min(cam_max),
-            fps,
-        };
-        // Empty (or NaN) range: nothing the site allows can be set.
-        if matches!(
-            limits.min_us.partial_cmp(&limits.max_us),
-            None | Some(std::cmp::Ordering::Greater)
-        ) {
-            return Err(GenicamError::Rejected {
-                device: dev,
-                feature: "ExposureTime",
-                reason: format!(
-                    "the camera takes {cam_min}..{cam_max} us, the site asks {}..{} us",
-                    cfg.limits.min_us, cfg.limits.max_us
-                ),
-            });
-        }
-
-        // Buffers: allocated once, queued on the stream.
-        let stream_err = |reason: String| GenicamError::Stream {
-            device: dev.clone(),
-            reason,
-        };
-        let payload = cam.payload().map_err(|e| stream_err(msg(e)))? as usize;
-        let stream = cam.create_stream().map_err(|e| stream_err(msg(e)))?;
-        for _ in 0..cfg.buffers.max(2) {
-            stream.push_buffer(Buffer::new_allocate(payload));
-        }
-        let grey = match pixels {
-            Pixels::Mono8 => core::Mat::default(),
-            Pixels::Bayer8(_) => {
-                core::Mat::new_rows_cols_with_default(h, w, core::CV_8UC1, core::Scalar::all(0.0))
-                    .map_err(|e| stream_err(e.to_string()))?
-            }
-        };
-        let timeout_s = if cfg.frame_timeout_s.is_finite() && cfg.frame_timeout_s > 0.0 {
-            cfg.frame_timeout_s
-        } else {
-            1.0
-        };
+        let limits = exposure_limits(device, cfg, cam_bounds, fps)?;
+        let (stream, grey) = buffers(&cam, device, cfg.buffers, pixels, (w, h))?;
         let mut me = Self {
             name: format!("genicam:{device}"),
-            device: dev,
+            device: device.to_string(),
             cam,
             stream,
             chunks,
@@ -417,7 +210,7 @@ impl GenicamCamera {
             written_us: f64::NAN,
             readback_us: f64::NAN,
             gain_db,
-            timeout_us: (timeout_s * 1e6) as u64,
+            timeout_us: frame_timeout_us(cfg.frame_timeout_s),
             t0_ns: None,
             last_stamp_s: f64::NEG_INFINITY,
             seq: 0,
@@ -426,21 +219,10 @@ impl GenicamCamera {
             underruns: 0,
             grey,
         };
-        me.write_exposure(limits.clamp(cfg.initial_us))
-            .map_err(|e| GenicamError::Rejected {
-                device: me.device.clone(),
-                feature: "ExposureTime",
-                reason: e.to_string(),
-            })?;
-        me.cam
-            .start_acquisition()
-            .map_err(|e| GenicamError::Stream {
-                device: me.device.clone(),
-                reason: format!("AcquisitionStart: {}", msg(e)),
-            })?;
+        me.start(limits.clamp(cfg.initial_us))?;
         tracing::info!(
             camera = %me.name,
-            device_id = id,
+            device_id = id.as_str(),
             model = %me.cam.model_name().map(|s| s.to_string()).unwrap_or_default(),
             pixels = ?me.pixels,
             exposure_source = ?me.exposure_source(),
@@ -450,6 +232,22 @@ impl GenicamCamera {
             "GenICam camera started"
         );
         Ok(me)
+    }
+
+    /// Write the first exposure, then start acquisition.
+    fn start(&mut self, initial_us: f64) -> Result<(), GenicamError> {
+        self.write_exposure(initial_us)
+            .map_err(|e| GenicamError::Rejected {
+                device: self.device.clone(),
+                feature: "ExposureTime",
+                reason: e.to_string(),
+            })?;
+        self.cam
+            .start_acquisition()
+            .map_err(|e| GenicamError::Stream {
+                device: self.device.clone(),
+                reason: format!("AcquisitionStart: {}", msg(e)),
+            })
     }
 
     fn enable_exposure_chunk(cam: &ArvCamera, device: &str) -> Option<ChunkParser> {
@@ -607,6 +405,262 @@ impl GenicamCamera {
         }
         Ok(())
     }
+}
+
+/// An Aravis error on `feature` as the start-up error that names it.
+fn rejected<'a>(
+    device: &'a str,
+    feature: &'static str,
+) -> impl Fn(glib::Error) -> GenicamError + 'a {
+    move |e| GenicamError::Rejected {
+        device: device.to_string(),
+        feature,
+        reason: msg(e),
+    }
+}
+
+/// The Aravis device id to open: `device` itself, or for an empty `device` "the first
+/// camera": the first id of Aravis's device lists (GigE: after a discovery broadcast),
+/// opened by id (not every interface opens "any").
+fn device_id(device: &str) -> Result<String, GenicamError> {
+    if !device.is_empty() {
+        return Ok(device.to_string());
+    }
+    // SAFETY: Aravis guards its device lists; the id it returns is copied at once,
+    // before anything can update the lists again.
+    let first = unsafe {
+        aravis_sys::arv_update_device_list();
+        if aravis_sys::arv_get_n_devices() == 0 {
+            None
+        } else {
+            let p = aravis_sys::arv_get_device_id(0);
+            (!p.is_null()).then(|| CStr::from_ptr(p).to_string_lossy().into_owned())
+        }
+    };
+    first.ok_or_else(|| GenicamError::NotFound {
+        device: device.to_string(),
+        reason: "Aravis finds no camera on USB3 Vision or GigE Vision".into(),
+    })
+}
+
+fn open_device(device: &str, id: &str) -> Result<ArvCamera, GenicamError> {
+    ArvCamera::new(Some(id)).map_err(|e| GenicamError::NotFound {
+        device: device.to_string(),
+        reason: if device.is_empty() {
+            format!("the first camera found, {id}, does not open: {}", msg(e))
+        } else {
+            msg(e)
+        },
+    })
+}
+
+/// Exposure: manual. Returns the camera's exposure bounds, us.
+fn exposure_manual(cam: &ArvCamera, device: &str) -> Result<(f64, f64), GenicamError> {
+    if !cam.is_exposure_time_available().unwrap_or(false) {
+        return Err(GenicamError::NoExposureFeature {
+            device: device.to_string(),
+        });
+    }
+    if cam.is_exposure_auto_available().unwrap_or(false) {
+        cam.set_exposure_time_auto(Auto::Off)
+            .map_err(rejected(device, "ExposureAuto=Off"))?;
+        let now = cam
+            .exposure_time_auto()
+            .map_err(rejected(device, "ExposureAuto=Off"))?;
+        if now != Auto::Off {
+            return Err(GenicamError::Rejected {
+                device: device.to_string(),
+                feature: "ExposureAuto=Off",
+                reason: format!("the camera reads back ExposureAuto={now:?}"),
+            });
+        }
+    }
+    cam.exposure_time_bounds()
+        .map_err(rejected(device, "ExposureTime"))
+}
+
+/// Gain: fixed at `gain_db` (within the camera's range). Returns the gain the camera
+/// took, dB (0 when it has no Gain feature in dB).
+fn gain_fixed(cam: &ArvCamera, device: &str, gain_db: f64) -> Result<f64, GenicamError> {
+    if cam.is_gain_auto_available().unwrap_or(false) {
+        cam.set_gain_auto(Auto::Off)
+            .map_err(rejected(device, "GainAuto=Off"))?;
+    }
+    let has_db_gain = cam.is_feature_available("Gain").unwrap_or(false);
+    if has_db_gain {
+        let (lo, hi) = cam.gain_bounds().map_err(rejected(device, "Gain"))?;
+        cam.set_gain(gain_db.clamp(lo, hi))
+            .map_err(rejected(device, "Gain"))?;
+        cam.gain().map_err(rejected(device, "Gain"))
+    } else {
+        tracing::warn!(
+            device,
+            "the camera has no Gain (dB) feature: gain left as it is, recorded as 0 dB"
+        );
+        Ok(0.0)
+    }
+}
+
+/// Pixel format: Mono8, else 8-bit Bayer converted to grey.
+fn pixel_format(cam: &ArvCamera, device: &str) -> Result<(PixelFormat, Pixels), GenicamError> {
+    let formats = cam.dup_available_pixel_formats().unwrap_or_default();
+    // GenICam names the Bayer pattern by its first row, OpenCV by its second.
+    let choices = [
+        (PixelFormat::MONO_8, Pixels::Mono8),
+        (
+            PixelFormat::BAYER_RG_8,
+            Pixels::Bayer8(imgproc::COLOR_BayerBG2GRAY),
+        ),
+        (
+            PixelFormat::BAYER_GR_8,
+            Pixels::Bayer8(imgproc::COLOR_BayerGB2GRAY),
+        ),
+        (
+            PixelFormat::BAYER_GB_8,
+            Pixels::Bayer8(imgproc::COLOR_BayerGR2GRAY),
+        ),
+        (
+            PixelFormat::BAYER_BG_8,
+            Pixels::Bayer8(imgproc::COLOR_BayerRG2GRAY),
+        ),
+    ];
+    let Some(&(format, pixels)) = choices
+        .iter()
+        .find(|(f, _)| formats.contains(&i64::from(f.raw())))
+    else {
+        let names = cam
+            .dup_available_pixel_formats_as_strings()
+            .map(|v| v.iter().map(|s| s.to_string()).collect::<Vec<_>>())
+            .unwrap_or_default();
+        return Err(GenicamError::PixelFormat {
+            device: device.to_string(),
+            available: if names.is_empty() {
+                "none listed".into()
+            } else {
+                names.join(", ")
+            },
+        });
+    };
+    cam.set_pixel_format(format)
+        .map_err(rejected(device, "PixelFormat"))?;
+    Ok((format, pixels))
+}
+
+/// Size: the calibration's, from the sensor's top-left corner. Returns the region's
+/// width and height.
+fn region(cam: &ArvCamera, device: &str, cfg: &GenicamConfig) -> Result<(i32, i32), GenicamError> {
+    let size_err = |reason: String| GenicamError::Resolution {
+        device: device.to_string(),
+        width: cfg.width,
+        height: cfg.height,
+        reason,
+    };
+    let (w, h) = (
+        i32::try_from(cfg.width).unwrap_or(i32::MAX),
+        i32::try_from(cfg.height).unwrap_or(i32::MAX),
+    );
+    let (wb, hb) = (
+        cam.width_bounds().map_err(|e| size_err(msg(e)))?,
+        cam.height_bounds().map_err(|e| size_err(msg(e)))?,
+    );
+    if !(wb.0..=wb.1).contains(&w) || !(hb.0..=hb.1).contains(&h) {
+        return Err(size_err(format!(
+            "the camera takes {}..{} x {}..{} pixels",
+            wb.0, wb.1, hb.0, hb.1
+        )));
+    }
+    // A region of the right size already set (e.g. a centred one the calibration
+    // was made with) is kept; otherwise the region starts at the top-left corner.
+    let current = cam.region().map_err(|e| size_err(msg(e)))?;
+    if (current.2, current.3) != (w, h) {
+        cam.set_region(0, 0, w, h).map_err(|e| size_err(msg(e)))?;
+    }
+    let (_, _, got_w, got_h) = cam.region().map_err(|e| size_err(msg(e)))?;
+    if (got_w, got_h) != (w, h) {
+        return Err(size_err(format!("the camera set {got_w}x{got_h}")));
+    }
+    Ok((w, h))
+}
+
+/// Frame rate, where the camera lets us set it. Returns the rate the camera reports,
+/// else `fps`.
+fn frame_rate(cam: &ArvCamera, device: &str, fps: f64) -> f64 {
+    if fps > 0.0 && cam.is_frame_rate_available().unwrap_or(false) {
+        if let Err(e) = cam.set_frame_rate(fps) {
+            tracing::warn!(device, fps, error = %msg(e), "frame rate not set");
+        }
+    }
+    cam.frame_rate()
+        .ok()
+        .filter(|f| f.is_finite() && *f > 0.0)
+        .unwrap_or(fps)
+}
+
+/// The site's exposure range narrowed to the camera's `(min, max)`, us.
+fn exposure_limits(
+    device: &str,
+    cfg: &GenicamConfig,
+    (cam_min, cam_max): (f64, f64),
+    fps: f64,
+) -> Result<ExposureLimits, GenicamError> {
+    let limits = ExposureLimits {
+        min_us: cfg.limits.min_us.max(cam_min),
+        max_us: cfg.limits.max_us.min(cam_max),
+        fps,
+    };
+    // Empty (or NaN) range: nothing the site allows can be set.
+    if matches!(
+        limits.min_us.partial_cmp(&limits.max_us),
+        None | Some(std::cmp::Ordering::Greater)
+    ) {
+        return Err(GenicamError::Rejected {
+            device: device.to_string(),
+            feature: "ExposureTime",
+            reason: format!(
+                "the camera takes {cam_min}..{cam_max} us, the site asks {}..{} us",
+                cfg.limits.min_us, cfg.limits.max_us
+            ),
+        });
+    }
+    Ok(limits)
+}
+
+/// Buffers: allocated once, queued on the stream; and the debayered image a Bayer
+/// camera's `w` x `h` frames are converted into.
+fn buffers(
+    cam: &ArvCamera,
+    device: &str,
+    count: usize,
+    pixels: Pixels,
+    (w, h): (i32, i32),
+) -> Result<(Stream, core::Mat), GenicamError> {
+    let stream_err = |reason: String| GenicamError::Stream {
+        device: device.to_string(),
+        reason,
+    };
+    let payload = cam.payload().map_err(|e| stream_err(msg(e)))? as usize;
+    let stream = cam.create_stream().map_err(|e| stream_err(msg(e)))?;
+    for _ in 0..count.max(2) {
+        stream.push_buffer(Buffer::new_allocate(payload));
+    }
+    let grey = match pixels {
+        Pixels::Mono8 => core::Mat::default(),
+        Pixels::Bayer8(_) => {
+            core::Mat::new_rows_cols_with_default(h, w, core::CV_8UC1, core::Scalar::all(0.0))
+                .map_err(|e| stream_err(e.to_string()))?
+        }
+    };
+    Ok((stream, grey))
+}
+
+/// Longest wait for one frame, us (1 s when `timeout_s` is not a positive number).
+fn frame_timeout_us(timeout_s: f64) -> u64 {
+    let timeout_s = if timeout_s.is_finite() && timeout_s > 0.0 {
+        timeout_s
+    } else {
+        1.0
+    };
+    (timeout_s * 1e6) as u64
 }
 
 impl Camera for GenicamCamera {
