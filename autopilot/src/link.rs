@@ -28,9 +28,10 @@ use serde::Serialize;
 
 use crate::config::{r_marker_body_facing, CommandKind, LinkConfig, PilotInput};
 use crate::error::AutopilotError;
-use crate::keeper::{wrap_pi, Effort};
 use crate::pilot::PilotMap;
 use crate::transport::{Incoming, Transport, WriteOutcome, MAX_FRAME};
+pub use crate::types::ArduSubMode;
+use crate::types::{wrap_pi, Effort};
 
 /// One MAVLink frame as it crossed the wire, for a recorder: fixed size, copied into a
 /// bounded channel (no allocation per message; dropped and counted when the channel is
@@ -68,59 +69,6 @@ impl RawFrame {
 /// a sender that floods faster than the loop reads cannot keep one tick spinning. What
 /// is left stays in the socket buffer for the next tick.
 pub const MAX_MESSAGES_PER_TICK: usize = 4096;
-
-/// ArduSub flight modes (HEARTBEAT.custom_mode).
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, Serialize)]
-#[repr(u32)]
-pub enum ArduSubMode {
-    /// Attitude held, pilot controls rates.
-    Stabilize = 0,
-    /// Rate control.
-    Acro = 1,
-    /// Depth held.
-    AltHold = 2,
-    /// Mission.
-    Auto = 3,
-    /// Position targets from a companion.
-    Guided = 4,
-    /// Circle.
-    Circle = 7,
-    /// Ascend to the surface.
-    Surface = 9,
-    /// Position hold (needs a position estimate).
-    PosHold = 16,
-    /// Pilot input straight into the mixer.
-    Manual = 19,
-    /// Motor direction detection.
-    MotorDetect = 20,
-    /// Hold altitude above the seabed.
-    SurfTrak = 21,
-}
-
-impl ArduSubMode {
-    /// From HEARTBEAT.custom_mode.
-    pub fn from_custom_mode(m: u32) -> Option<Self> {
-        Some(match m {
-            0 => Self::Stabilize,
-            1 => Self::Acro,
-            2 => Self::AltHold,
-            3 => Self::Auto,
-            4 => Self::Guided,
-            7 => Self::Circle,
-            9 => Self::Surface,
-            16 => Self::PosHold,
-            19 => Self::Manual,
-            20 => Self::MotorDetect,
-            21 => Self::SurfTrak,
-            _ => return None,
-        })
-    }
-
-    /// The custom_mode number.
-    pub fn number(self) -> u32 {
-        self as u32
-    }
-}
 
 /// Progress of an acknowledged command (arm, mode).
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize)]
