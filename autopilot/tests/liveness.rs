@@ -2,6 +2,8 @@
 //! the bounded drain of the UDP socket per tick and its enlarged receive buffer. A raw
 //! loopback socket plays the vehicle; loop time is driven by hand.
 
+#![allow(clippy::unwrap_used)] // Tests fail loudly on a broken setup, by design.
+
 use std::net::UdpSocket;
 
 use markhold_autopilot::link::MAX_MESSAGES_PER_TICK;

@@ -251,6 +251,7 @@ impl Default for AaecConfig {
 }
 
 impl AaecConfig {
+    #[allow(clippy::too_many_lines)] // A flat list of checks, one per key.
     pub fn validate(&self) -> Result<(), ExposureError> {
         let k = |name: &str| format!("aaec.{name}");
         let check = |ok: bool, name: &str, v: &dyn std::fmt::Display, exp: &str| {

@@ -322,6 +322,7 @@ impl Default for DetectorConfig {
 }
 
 impl DetectorConfig {
+    #[allow(clippy::too_many_lines)] // A flat list of checks, one per key.
     pub fn validate(&self) -> Result<(), VisionError> {
         let k = |name: &str| format!("vision.{name}");
         if self.adaptive_thresh_win_min_px < 3 {
