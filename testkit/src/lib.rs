@@ -4,13 +4,20 @@
 //! reallocation, per thread and for the whole process, so a test can check that a
 //! per-frame path allocates nothing once warmed up:
 //!
-//! ```ignore
+//! ```
 //! #[global_allocator]
 //! static A: markhold_testkit::CountingAlloc = markhold_testkit::CountingAlloc;
 //!
-//! let before = markhold_testkit::thread_allocs();
-//! per_frame_work();
-//! assert_eq!(markhold_testkit::thread_allocs(), before);
+//! fn main() {
+//!     let mut buf = Vec::with_capacity(64);
+//!     let before = markhold_testkit::thread_allocs();
+//!     for k in 0..64u8 {
+//!         buf.push(k); // within capacity: nothing allocated
+//!     }
+//!     assert_eq!(markhold_testkit::thread_allocs(), before);
+//!     buf.push(64); // beyond: the vector grows
+//!     assert!(markhold_testkit::thread_allocs() > before);
+//! }
 //! ```
 //!
 //! The counts only move in a test binary that installs it as its global allocator.
