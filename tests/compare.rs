@@ -1,6 +1,7 @@
 //! `markhold compare` end to end on a small site: every table, plot and JSON field, and
 //! the paper's headline result (AAEC sees the marker in adversarial light, Default does not).
 #![cfg(feature = "sim")]
+#![allow(clippy::unwrap_used)] // Tests fail loudly on a broken setup, by design.
 
 use std::path::Path;
 use std::process::Command;

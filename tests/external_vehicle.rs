@@ -3,6 +3,7 @@
 //! thread (as ArduSub SITL would be); markhold renders its camera from the vehicle's
 //! LOCAL_POSITION_NED + ATTITUDE telemetry and holds station over loopback UDP.
 #![cfg(feature = "sim")]
+#![allow(clippy::unwrap_used)] // Tests fail loudly on a broken setup, by design.
 
 mod common;
 

@@ -1,6 +1,7 @@
 //! End to end: faults injected into a HIL run (the library's `HilRun`, the same loop the
 //! binary runs), each checked for what the loop must do about it. 640x480 pool fixture.
 #![cfg(feature = "sim")]
+#![allow(clippy::unwrap_used)] // Tests fail loudly on a broken setup, by design.
 
 use std::path::Path;
 

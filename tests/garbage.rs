@@ -2,6 +2,7 @@
 //! (the vehicle endpoint, markhold's own link socket, the SITL JSON server): no panic, and
 //! the link keeps working. Loopback only, ports from the OS, every wait bounded.
 #![cfg(feature = "sim")]
+#![allow(clippy::unwrap_used)] // Tests fail loudly on a broken setup, by design.
 
 use std::net::{SocketAddr, UdpSocket};
 use std::path::Path;

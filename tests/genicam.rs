@@ -7,6 +7,7 @@
 //! `s = 1 + gain + log10(exposure_us / 10000)` (clamped to 0..255), so an image's mean
 //! tells the exposure it was really taken with.
 #![cfg(feature = "sim")]
+#![allow(clippy::unwrap_used)] // Tests fail loudly on a broken setup, by design.
 
 mod common;
 

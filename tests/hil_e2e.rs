@@ -1,6 +1,7 @@
 //! End-to-end: the built binary holds station in HIL, deterministically, and rejects bad
 //! site files with a message that names the file and the key.
 #![cfg(feature = "sim")]
+#![allow(clippy::unwrap_used)] // Tests fail loudly on a broken setup, by design.
 
 mod common;
 

@@ -2,6 +2,7 @@
 //! Foxglove protocol, no client crate) subscribes to the exposure channel while the run
 //! goes on and must receive messages from it.
 #![cfg(feature = "sim")]
+#![allow(clippy::unwrap_used)] // Tests fail loudly on a broken setup, by design.
 
 mod common;
 

@@ -2,6 +2,7 @@
 //! same site and start, `hil`, `hil --vehicle`, `run` and `replay` make the same loop,
 //! differing only in the link and the observers they attach.
 #![cfg(feature = "sim")]
+#![allow(clippy::unwrap_used)] // Tests fail loudly on a broken setup, by design.
 
 use std::net::UdpSocket;
 use std::path::{Path, PathBuf};

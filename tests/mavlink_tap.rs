@@ -2,6 +2,7 @@
 //! channel holding every frame markhold wrote and read, in order, with loop-time stamps,
 //! and each frame parses back to what the link counted.
 #![cfg(feature = "sim")]
+#![allow(clippy::unwrap_used)] // Tests fail loudly on a broken setup, by design.
 
 use std::path::Path;
 

@@ -1,6 +1,7 @@
 //! `markhold params check`: every shipped site is valid; each kind of bad file exits 78
 //! with a message that names the file, line, key and value. The messages are compared
 //! with snapshots in tests/snapshots/params/ (refresh: UPDATE_SNAPSHOTS=1 cargo test).
+#![allow(clippy::unwrap_used)] // Tests fail loudly on a broken setup, by design.
 
 use std::path::{Path, PathBuf};
 use std::process::Command;

@@ -2,6 +2,7 @@
 //! build and frames give bit-identical commands. Plus the recorder's loss accounting
 //! and its write-error path.
 #![cfg(feature = "sim")]
+#![allow(clippy::unwrap_used)] // Tests fail loudly on a broken setup, by design.
 
 use std::collections::BTreeMap;
 use std::io::{Cursor, Seek, SeekFrom, Write};

@@ -2,6 +2,7 @@
 //! vehicle (free-running on its own thread, like ArduSub would be), a recording that
 //! replays; SIGTERM stops it cleanly; start-up failures exit 2 and leave nothing behind.
 #![cfg(feature = "sim")]
+#![allow(clippy::unwrap_used)] // Tests fail loudly on a broken setup, by design.
 
 mod common;
 

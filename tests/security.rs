@@ -3,6 +3,7 @@
 //! Loopback only (127.0.0.1, and the 127.0.0.2 alias of the loopback interface), ports
 //! from the OS, every wait bounded.
 #![cfg(feature = "sim")]
+#![allow(clippy::unwrap_used)] // Tests fail loudly on a broken setup, by design.
 
 use std::net::{IpAddr, Ipv4Addr, SocketAddr, UdpSocket};
 use std::path::{Path, PathBuf};

@@ -1,6 +1,7 @@
 //! `markhold sitl` end to end: a client written to ArduPilot's published JSON-backend
 //! packet format sends servo packets over loopback UDP and checks the replies.
 #![cfg(feature = "sim")]
+#![allow(clippy::unwrap_used)] // Tests fail loudly on a broken setup, by design.
 
 use std::net::UdpSocket;
 use std::process::{Command, Stdio};

@@ -4,6 +4,7 @@
 //!
 //!   MARKHOLD_SOAK_SECONDS=3600 cargo test --release --test soak -- --nocapture
 #![cfg(feature = "sim")]
+#![allow(clippy::unwrap_used)] // Tests fail loudly on a broken setup, by design.
 
 use std::net::SocketAddr;
 use std::path::Path;

@@ -3,6 +3,8 @@
 //! loopback UDP socket drained by a thread. One station-keeper update. Telemetry from the
 //! vehicle's socket write to the link state: read in `tick` vs a reader task.
 
+#![allow(clippy::unwrap_used)] // A benchmark's setup fails loudly when broken, by design.
+
 use std::hint::black_box;
 use std::net::UdpSocket;
 use std::sync::atomic::{AtomicBool, Ordering};

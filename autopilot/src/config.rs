@@ -378,8 +378,8 @@ pub enum LinkMode {
 
 impl LinkMode {
     /// The ArduSub mode number.
-    pub fn ardusub(self) -> crate::link::ArduSubMode {
-        use crate::link::ArduSubMode;
+    pub fn ardusub(self) -> crate::types::ArduSubMode {
+        use crate::types::ArduSubMode;
         match self {
             Self::Manual => ArduSubMode::Manual,
             Self::Stabilize => ArduSubMode::Stabilize,

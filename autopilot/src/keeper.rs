@@ -9,72 +9,7 @@ use serde::Serialize;
 
 use crate::config::{AxisConfig, ControllerConfig, StationConfig};
 use crate::error::AutopilotError;
-
-/// Normalized efforts for ArduSub's mixer, body FRD, each in -1..1.
-#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize)]
-pub struct Effort {
-    /// Forward (+x).
-    pub surge: f64,
-    /// Right (+y).
-    pub sway: f64,
-    /// Down (+z).
-    pub heave: f64,
-    /// Roll right.
-    pub roll: f64,
-    /// Pitch nose up.
-    pub pitch: f64,
-    /// Yaw right.
-    pub yaw: f64,
-}
-
-impl Effort {
-    /// All axes zero.
-    pub const NEUTRAL: Effort = Effort {
-        surge: 0.0,
-        sway: 0.0,
-        heave: 0.0,
-        roll: 0.0,
-        pitch: 0.0,
-        yaw: 0.0,
-    };
-
-    /// The axes in order (surge, sway, heave, roll, pitch, yaw).
-    pub fn to_array(&self) -> [f64; 6] {
-        [
-            self.surge, self.sway, self.heave, self.roll, self.pitch, self.yaw,
-        ]
-    }
-
-    /// From (surge, sway, heave, roll, pitch, yaw).
-    pub fn from_array(a: [f64; 6]) -> Self {
-        Self {
-            surge: a[0],
-            sway: a[1],
-            heave: a[2],
-            roll: a[3],
-            pitch: a[4],
-            yaw: a[5],
-        }
-    }
-
-    /// Every axis clamped to -1..1; NaN becomes 0 (never command garbage).
-    pub fn clamped(&self) -> Self {
-        let mut a = self.to_array();
-        for v in &mut a {
-            *v = if v.is_finite() {
-                v.clamp(-1.0, 1.0)
-            } else {
-                0.0
-            };
-        }
-        Self::from_array(a)
-    }
-
-    /// True when every axis is exactly zero.
-    pub fn is_neutral(&self) -> bool {
-        self.to_array().iter().all(|v| *v == 0.0)
-    }
-}
+pub use crate::types::{wrap_pi, Effort};
 
 /// One marker pose from vision: the marker in the camera frame, with its 6x6 covariance
 /// (tx, ty, tz, rx, ry, rz) in the camera frame.
@@ -86,17 +21,6 @@ pub struct PoseMeasurement {
     pub t_cam_marker: Isometry3<f64>,
     /// Covariance of `t_cam_marker`, camera frame.
     pub cov_cam: Matrix6<f64>,
-}
-
-/// Wraps an angle to (-pi, pi].
-pub fn wrap_pi(a: f64) -> f64 {
-    use std::f64::consts::PI;
-    let w = (a + PI).rem_euclid(2.0 * PI) - PI;
-    if w <= -PI {
-        w + 2.0 * PI
-    } else {
-        w
-    }
 }
 
 /// Where the keeper stands with respect to the marker.

@@ -15,20 +15,22 @@ pub mod link;
 pub mod pilot;
 pub mod supervisor;
 pub mod transport;
+pub mod types;
 
 pub use config::{
     AxisConfig, CommandKind, ControllerConfig, LinkConfig, LinkMode, MarkerLostAction, PilotInput,
     StationConfig,
 };
 pub use error::AutopilotError;
-pub use keeper::{wrap_pi, Effort, KeeperStatus, PoseMeasurement, StationKeeper};
-pub use link::{ArduSubMode, CommandStatus, RawFrame, VehicleLink, VehicleState};
+pub use keeper::{KeeperStatus, PoseMeasurement, StationKeeper};
+pub use link::{CommandStatus, RawFrame, VehicleLink, VehicleState};
 pub use markhold_config::ConfigError;
 /// The mavlink crate the link is built on (same version and features), for callers that
 /// build or check frames themselves (tests, tools).
 pub use mavlink;
 pub use pilot::PilotMap;
 pub use supervisor::{Directive, FailsafeEvent, Supervisor, SupervisorInput};
+pub use types::{wrap_pi, ArduSubMode, Effort};
 
 #[cfg(test)]
 mod tests {

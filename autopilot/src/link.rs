@@ -18,8 +18,9 @@ use std::sync::Arc;
 #[allow(deprecated)]
 use mavlink::dialects::ardupilotmega::{
     MavAutopilot, MavCmd, MavFrame, MavMessage, MavModeFlag, MavResult, MavState, MavType,
-    PositionTargetTypemask, COMMAND_LONG_DATA, HEARTBEAT_DATA, MANUAL_CONTROL_DATA,
-    RC_CHANNELS_OVERRIDE_DATA, SET_GPS_GLOBAL_ORIGIN_DATA, SET_POSITION_TARGET_LOCAL_NED_DATA,
+    PositionTargetTypemask, ATTITUDE_DATA, COMMAND_ACK_DATA, COMMAND_LONG_DATA, HEARTBEAT_DATA,
+    LOCAL_POSITION_NED_DATA, MANUAL_CONTROL_DATA, RC_CHANNELS_OVERRIDE_DATA, SCALED_PRESSURE2_DATA,
+    SERVO_OUTPUT_RAW_DATA, SET_GPS_GLOBAL_ORIGIN_DATA, SET_POSITION_TARGET_LOCAL_NED_DATA,
     VISION_POSITION_ESTIMATE_DATA,
 };
 use mavlink::{MavHeader, Message, SigningConfig, SigningData};
@@ -28,9 +29,10 @@ use serde::Serialize;
 
 use crate::config::{r_marker_body_facing, CommandKind, LinkConfig, PilotInput};
 use crate::error::AutopilotError;
-use crate::keeper::{wrap_pi, Effort};
 use crate::pilot::PilotMap;
 use crate::transport::{Incoming, Transport, WriteOutcome, MAX_FRAME};
+pub use crate::types::ArduSubMode;
+use crate::types::{wrap_pi, Effort};
 
 /// One MAVLink frame as it crossed the wire, for a recorder: fixed size, copied into a
 /// bounded channel (no allocation per message; dropped and counted when the channel is
@@ -68,59 +70,6 @@ impl RawFrame {
 /// a sender that floods faster than the loop reads cannot keep one tick spinning. What
 /// is left stays in the socket buffer for the next tick.
 pub const MAX_MESSAGES_PER_TICK: usize = 4096;
-
-/// ArduSub flight modes (HEARTBEAT.custom_mode).
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, Serialize)]
-#[repr(u32)]
-pub enum ArduSubMode {
-    /// Attitude held, pilot controls rates.
-    Stabilize = 0,
-    /// Rate control.
-    Acro = 1,
-    /// Depth held.
-    AltHold = 2,
-    /// Mission.
-    Auto = 3,
-    /// Position targets from a companion.
-    Guided = 4,
-    /// Circle.
-    Circle = 7,
-    /// Ascend to the surface.
-    Surface = 9,
-    /// Position hold (needs a position estimate).
-    PosHold = 16,
-    /// Pilot input straight into the mixer.
-    Manual = 19,
-    /// Motor direction detection.
-    MotorDetect = 20,
-    /// Hold altitude above the seabed.
-    SurfTrak = 21,
-}
-
-impl ArduSubMode {
-    /// From HEARTBEAT.custom_mode.
-    pub fn from_custom_mode(m: u32) -> Option<Self> {
-        Some(match m {
-            0 => Self::Stabilize,
-            1 => Self::Acro,
-            2 => Self::AltHold,
-            3 => Self::Auto,
-            4 => Self::Guided,
-            7 => Self::Circle,
-            9 => Self::Surface,
-            16 => Self::PosHold,
-            19 => Self::Manual,
-            20 => Self::MotorDetect,
-            21 => Self::SurfTrak,
-            _ => return None,
-        })
-    }
-
-    /// The custom_mode number.
-    pub fn number(self) -> u32 {
-        self as u32
-    }
-}
 
 /// Progress of an acknowledged command (arm, mode).
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize)]
@@ -160,6 +109,23 @@ pub struct Attitude {
     pub rates: [f64; 3],
 }
 
+impl Attitude {
+    fn of(a: &ATTITUDE_DATA, now_s: f64) -> Self {
+        Self {
+            stamp_s: now_s,
+            time_boot_ms: a.time_boot_ms,
+            roll: f64::from(a.roll),
+            pitch: f64::from(a.pitch),
+            yaw: f64::from(a.yaw),
+            rates: [
+                f64::from(a.rollspeed),
+                f64::from(a.pitchspeed),
+                f64::from(a.yawspeed),
+            ],
+        }
+    }
+}
+
 /// LOCAL_POSITION_NED (32).
 #[derive(Clone, Copy, Debug, Default, PartialEq, Serialize)]
 pub struct LocalPosition {
@@ -171,6 +137,17 @@ pub struct LocalPosition {
     pub position: [f64; 3],
     /// Velocity NED, m/s.
     pub velocity: [f64; 3],
+}
+
+impl LocalPosition {
+    fn of(p: &LOCAL_POSITION_NED_DATA, now_s: f64) -> Self {
+        Self {
+            stamp_s: now_s,
+            time_boot_ms: p.time_boot_ms,
+            position: [f64::from(p.x), f64::from(p.y), f64::from(p.z)],
+            velocity: [f64::from(p.vx), f64::from(p.vy), f64::from(p.vz)],
+        }
+    }
 }
 
 /// Depth from SCALED_PRESSURE2 (137), the external pressure sensor.
@@ -193,6 +170,32 @@ pub struct ServoOutputs {
     pub stamp_s: f64,
     /// Servo 1..16, us.
     pub pwm: [u16; 16],
+}
+
+impl ServoOutputs {
+    fn of(s: &SERVO_OUTPUT_RAW_DATA, now_s: f64) -> Self {
+        Self {
+            stamp_s: now_s,
+            pwm: [
+                s.servo1_raw,
+                s.servo2_raw,
+                s.servo3_raw,
+                s.servo4_raw,
+                s.servo5_raw,
+                s.servo6_raw,
+                s.servo7_raw,
+                s.servo8_raw,
+                s.servo9_raw,
+                s.servo10_raw,
+                s.servo11_raw,
+                s.servo12_raw,
+                s.servo13_raw,
+                s.servo14_raw,
+                s.servo15_raw,
+                s.servo16_raw,
+            ],
+        }
+    }
 }
 
 /// Traffic counters.
@@ -613,55 +616,7 @@ impl VehicleLink {
     fn apply(&mut self, h: &MavHeader, msg: &MavMessage, now_s: f64) {
         self.state.counters.received += 1;
         if let MavMessage::HEARTBEAT(hb) = msg {
-            // GCSes and companions on the same link also heartbeat: only a vehicle counts.
-            // Cameras, gimbals and routers heartbeat too: only the autopilot component counts.
-            if hb.mavtype == MavType::MAV_TYPE_GCS
-                || hb.autopilot == MavAutopilot::MAV_AUTOPILOT_INVALID
-                || h.component_id != self.cfg.vehicle_component_id
-            {
-                return;
-            }
-            let Ok(sysid) = u8::try_from(h.system_id) else {
-                return;
-            };
-            if !self.state.discovered || sysid == self.state.system_id {
-                if !self.state.discovered {
-                    tracing::info!(sysid, compid = h.component_id, "vehicle discovered");
-                }
-                let was_ok = self.state.heartbeat_ok;
-                self.state.system_id = sysid;
-                self.state.component_id = h.component_id;
-                self.state.discovered = true;
-                self.state.vehicle_type = hb.mavtype as u8;
-                let armed = hb
-                    .base_mode
-                    .contains(MavModeFlag::MAV_MODE_FLAG_SAFETY_ARMED);
-                if armed != self.state.armed {
-                    tracing::info!(armed, "vehicle arm state changed");
-                }
-                self.state.armed = armed;
-                let mode = ArduSubMode::from_custom_mode(hb.custom_mode);
-                if mode != self.state.mode {
-                    tracing::info!(?mode, "vehicle mode changed");
-                    if self.state.mode.is_some() {
-                        self.state.mode_changes += 1;
-                    }
-                }
-                self.state.mode = mode;
-                self.state.custom_mode = hb.custom_mode;
-                self.state.last_vehicle_heartbeat_s = Some(now_s);
-                self.state.heartbeats += 1;
-                self.heard(was_ok, now_s);
-                // The heartbeat confirms a pending request even if its ACK was lost.
-                if self.mode_pending.is_some() && mode.is_some() && mode == self.requested_mode {
-                    self.mode_pending = None;
-                    self.state.mode_command = CommandStatus::Accepted;
-                }
-                if self.arm_pending.is_some() && self.requested_arm == Some(armed) {
-                    self.arm_pending = None;
-                    self.state.arm_command = CommandStatus::Accepted;
-                }
-            }
+            self.apply_heartbeat(h, hb, now_s);
             return;
         }
         if !self.state.discovered || h.system_id != u32::from(self.state.system_id) {
@@ -674,90 +629,111 @@ impl VehicleLink {
             self.heard(was_ok, now_s);
         }
         match msg {
-            MavMessage::ATTITUDE(a) => {
-                self.state.attitude = Some(Attitude {
-                    stamp_s: now_s,
-                    time_boot_ms: a.time_boot_ms,
-                    roll: f64::from(a.roll),
-                    pitch: f64::from(a.pitch),
-                    yaw: f64::from(a.yaw),
-                    rates: [
-                        f64::from(a.rollspeed),
-                        f64::from(a.pitchspeed),
-                        f64::from(a.yawspeed),
-                    ],
-                });
-            }
+            MavMessage::ATTITUDE(a) => self.state.attitude = Some(Attitude::of(a, now_s)),
             MavMessage::LOCAL_POSITION_NED(p) => {
-                self.state.local_position = Some(LocalPosition {
-                    stamp_s: now_s,
-                    time_boot_ms: p.time_boot_ms,
-                    position: [f64::from(p.x), f64::from(p.y), f64::from(p.z)],
-                    velocity: [f64::from(p.vx), f64::from(p.vy), f64::from(p.vz)],
-                });
+                self.state.local_position = Some(LocalPosition::of(p, now_s));
             }
-            MavMessage::SCALED_PRESSURE2(p) => {
-                let pa = f64::from(p.press_abs) * 100.0;
-                let depth =
-                    (pa - self.cfg.surface_pressure_pa) / (self.cfg.water_density_kg_m3 * GRAVITY);
-                self.state.depth = Some(Depth {
-                    stamp_s: now_s,
-                    press_abs_hpa: f64::from(p.press_abs),
-                    depth_m: depth,
-                    temperature_c: f64::from(p.temperature) / 100.0,
-                });
-            }
+            MavMessage::SCALED_PRESSURE2(p) => self.state.depth = Some(self.depth_of(p, now_s)),
             // Port 0 carries servos 1..16 (the extension fields hold 9..16).
             MavMessage::SERVO_OUTPUT_RAW(s) if s.port == 0 => {
-                self.state.servo_outputs = Some(ServoOutputs {
-                    stamp_s: now_s,
-                    pwm: [
-                        s.servo1_raw,
-                        s.servo2_raw,
-                        s.servo3_raw,
-                        s.servo4_raw,
-                        s.servo5_raw,
-                        s.servo6_raw,
-                        s.servo7_raw,
-                        s.servo8_raw,
-                        s.servo9_raw,
-                        s.servo10_raw,
-                        s.servo11_raw,
-                        s.servo12_raw,
-                        s.servo13_raw,
-                        s.servo14_raw,
-                        s.servo15_raw,
-                        s.servo16_raw,
-                    ],
-                });
+                self.state.servo_outputs = Some(ServoOutputs::of(s, now_s));
             }
-            MavMessage::COMMAND_ACK(ack) => {
-                let cmd = ack.command as u16;
-                let accepted = ack.result == MavResult::MAV_RESULT_ACCEPTED;
-                let in_progress = ack.result == MavResult::MAV_RESULT_IN_PROGRESS;
-                let status = if accepted {
-                    CommandStatus::Accepted
-                } else {
-                    CommandStatus::Rejected {
-                        result: ack.result as u8,
-                    }
-                };
-                if in_progress {
-                    return;
-                }
-                if cmd == CMD_ARM && self.arm_pending.is_some() {
-                    self.arm_pending = None;
-                    self.state.arm_command = status;
-                    tracing::info!(?status, "arm/disarm acknowledged");
-                } else if cmd == CMD_SET_MODE && self.mode_pending.is_some() {
-                    self.mode_pending = None;
-                    self.state.mode_command = status;
-                    tracing::info!(?status, "set mode acknowledged");
-                } else if cmd == CMD_SET_MESSAGE_INTERVAL && !accepted {
-                    tracing::debug!(result = ack.result as u8, "stream request refused");
-                }
-            }
+            MavMessage::COMMAND_ACK(ack) => self.apply_ack(ack),
             _ => {}
+        }
+    }
+
+    /// A HEARTBEAT: discovers the vehicle, then follows its arm state and mode.
+    fn apply_heartbeat(&mut self, h: &MavHeader, hb: &HEARTBEAT_DATA, now_s: f64) {
+        // GCSes and companions on the same link also heartbeat: only a vehicle counts.
+        // Cameras, gimbals and routers heartbeat too: only the autopilot component counts.
+        if hb.mavtype == MavType::MAV_TYPE_GCS
+            || hb.autopilot == MavAutopilot::MAV_AUTOPILOT_INVALID
+            || h.component_id != self.cfg.vehicle_component_id
+        {
+            return;
+        }
+        let Ok(sysid) = u8::try_from(h.system_id) else {
+            return;
+        };
+        if self.state.discovered && sysid != self.state.system_id {
+            return;
+        }
+        if !self.state.discovered {
+            tracing::info!(sysid, compid = h.component_id, "vehicle discovered");
+        }
+        let was_ok = self.state.heartbeat_ok;
+        self.state.system_id = sysid;
+        self.state.component_id = h.component_id;
+        self.state.discovered = true;
+        self.state.vehicle_type = hb.mavtype as u8;
+        let armed = hb
+            .base_mode
+            .contains(MavModeFlag::MAV_MODE_FLAG_SAFETY_ARMED);
+        if armed != self.state.armed {
+            tracing::info!(armed, "vehicle arm state changed");
+        }
+        self.state.armed = armed;
+        let mode = ArduSubMode::from_custom_mode(hb.custom_mode);
+        if mode != self.state.mode {
+            tracing::info!(?mode, "vehicle mode changed");
+            if self.state.mode.is_some() {
+                self.state.mode_changes += 1;
+            }
+        }
+        self.state.mode = mode;
+        self.state.custom_mode = hb.custom_mode;
+        self.state.last_vehicle_heartbeat_s = Some(now_s);
+        self.state.heartbeats += 1;
+        self.heard(was_ok, now_s);
+        // The heartbeat confirms a pending request even if its ACK was lost.
+        if self.mode_pending.is_some() && mode.is_some() && mode == self.requested_mode {
+            self.mode_pending = None;
+            self.state.mode_command = CommandStatus::Accepted;
+        }
+        if self.arm_pending.is_some() && self.requested_arm == Some(armed) {
+            self.arm_pending = None;
+            self.state.arm_command = CommandStatus::Accepted;
+        }
+    }
+
+    /// Depth from SCALED_PRESSURE2 (the depth sensor), with the site's water and surface.
+    fn depth_of(&self, p: &SCALED_PRESSURE2_DATA, now_s: f64) -> Depth {
+        let pa = f64::from(p.press_abs) * 100.0;
+        let depth = (pa - self.cfg.surface_pressure_pa) / (self.cfg.water_density_kg_m3 * GRAVITY);
+        Depth {
+            stamp_s: now_s,
+            press_abs_hpa: f64::from(p.press_abs),
+            depth_m: depth,
+            temperature_c: f64::from(p.temperature) / 100.0,
+        }
+    }
+
+    /// A COMMAND_ACK settles the pending arm or mode request it answers.
+    fn apply_ack(&mut self, ack: &COMMAND_ACK_DATA) {
+        let cmd = ack.command as u16;
+        let accepted = ack.result == MavResult::MAV_RESULT_ACCEPTED;
+        let in_progress = ack.result == MavResult::MAV_RESULT_IN_PROGRESS;
+        let status = if accepted {
+            CommandStatus::Accepted
+        } else {
+            CommandStatus::Rejected {
+                result: ack.result as u8,
+            }
+        };
+        if in_progress {
+            return;
+        }
+        if cmd == CMD_ARM && self.arm_pending.is_some() {
+            self.arm_pending = None;
+            self.state.arm_command = status;
+            tracing::info!(?status, "arm/disarm acknowledged");
+        } else if cmd == CMD_SET_MODE && self.mode_pending.is_some() {
+            self.mode_pending = None;
+            self.state.mode_command = status;
+            tracing::info!(?status, "set mode acknowledged");
+        } else if cmd == CMD_SET_MESSAGE_INTERVAL && !accepted {
+            tracing::debug!(result = ack.result as u8, "stream request refused");
         }
     }
 
@@ -808,21 +784,33 @@ impl VehicleLink {
         if !now_s.is_finite() {
             return Ok(());
         }
-        if let Some(last) = self.last_tick_s {
-            if now_s < last {
-                // The loop clock restarted (replay, new HIL run): restart the schedules.
-                self.last_hb_sent_s = None;
-                self.last_pilot_s = None;
-                self.last_commanded_s = None;
-                self.last_streams_s = None;
-                self.state.last_heartbeat_s = None;
-                self.state.last_vehicle_heartbeat_s = None;
-            }
+        if self.last_tick_s.is_some_and(|last| now_s < last) {
+            self.restart_schedules();
         }
         let prev_tick = self.last_tick_s;
         self.last_tick_s = Some(now_s);
         self.transport.writer.flush();
-        // Drain the socket until it would block, at most a batch per tick.
+        self.drain_socket(now_s);
+        self.drain_queue(now_s);
+        self.read_task_counters();
+        self.check_link_loss(now_s);
+        self.send_scheduled(now_s)?;
+        self.keep_pilot_alive(now_s, prev_tick)
+    }
+
+    /// The loop clock restarted (replay, new HIL run): restart the schedules.
+    fn restart_schedules(&mut self) {
+        self.last_hb_sent_s = None;
+        self.last_pilot_s = None;
+        self.last_commanded_s = None;
+        self.last_streams_s = None;
+        self.state.last_heartbeat_s = None;
+        self.state.last_vehicle_heartbeat_s = None;
+    }
+
+    /// Applies what the socket holds (UDP read on this thread) until it would block, at
+    /// most a batch per tick.
+    fn drain_socket(&mut self, now_s: f64) {
         let mut n = 0;
         while let Some((h, m)) = self.transport.poll_tick() {
             if let Some(tx) = &self.tap {
@@ -838,6 +826,11 @@ impl VehicleLink {
                 break;
             }
         }
+    }
+
+    /// Applies what the transport task queued (messages, connection changes), at most a
+    /// batch per tick.
+    fn drain_queue(&mut self, now_s: f64) {
         let mut n = 0;
         while let Ok(inc) = self.transport.rx.try_recv() {
             n += 1;
@@ -871,6 +864,11 @@ impl VehicleLink {
                 break;
             }
         }
+    }
+
+    /// Copies the transport task's counters into the state; the first signing rejection
+    /// is explained in the log once.
+    fn read_task_counters(&mut self) {
         let c = &self.transport.counters;
         self.state.counters.receive_dropped = c.dropped_rx.load(Ordering::Relaxed);
         self.state.counters.parse_errors = c.parse_errors.load(Ordering::Relaxed);
@@ -886,8 +884,10 @@ impl VehicleLink {
             }
             self.signing_reported = rejected;
         }
+    }
 
-        // Link loss: the vehicle not heard for `vehicle_timeout_s`.
+    /// Link loss: the vehicle not heard for `vehicle_timeout_s`.
+    fn check_link_loss(&mut self, now_s: f64) {
         if let Some(t) = self.state.last_heartbeat_s {
             let ok = now_s - t <= self.cfg.vehicle_timeout_s;
             if self.state.heartbeat_ok && !ok {
@@ -897,7 +897,10 @@ impl VehicleLink {
             }
             self.state.heartbeat_ok = ok;
         }
+    }
 
+    /// The GCS heartbeat, stream (re-)requests and command retries that are due.
+    fn send_scheduled(&mut self, now_s: f64) -> Result<(), AutopilotError> {
         let hb_period = 1.0 / self.cfg.heartbeat_hz;
         if self.last_hb_sent_s.is_none_or(|t| now_s - t >= hb_period) {
             self.send_heartbeat()?;
@@ -913,11 +916,17 @@ impl VehicleLink {
             self.last_streams_s = Some(now_s);
         }
         self.retry(CMD_ARM, now_s)?;
-        self.retry(CMD_SET_MODE, now_s)?;
+        self.retry(CMD_SET_MODE, now_s)
+    }
 
-        // Keep-alive: the loop sends pilot input after `tick` in each frame; if the previous
-        // frame sent none, centre the sticks now (at most twice `pilot_input_hz` when ticks
-        // come fast) so that ArduSub's pilot-input failsafe never fires.
+    /// Keep-alive: the loop sends pilot input after `tick` in each frame; if the previous
+    /// frame sent none, centre the sticks now (at most twice `pilot_input_hz` when ticks
+    /// come fast) so that ArduSub's pilot-input failsafe never fires.
+    fn keep_pilot_alive(
+        &mut self,
+        now_s: f64,
+        prev_tick: Option<f64>,
+    ) -> Result<(), AutopilotError> {
         let idle = match (self.last_commanded_s, prev_tick) {
             (None, _) | (_, None) => true,
             (Some(p), Some(prev)) => p < prev,

@@ -4,7 +4,7 @@
 use serde::Serialize;
 
 use crate::config::{LinkConfig, LinkMode};
-use crate::keeper::Effort;
+use crate::types::Effort;
 
 /// PWM of a centred stick.
 pub const PWM_NEUTRAL: u16 = 1500;

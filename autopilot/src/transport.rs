@@ -502,15 +502,19 @@ impl AsyncRead for UdpRead {
     }
 }
 
-impl Transport {
-    /// Opens the endpoint: sockets that must exist (udp, tcpin listener) are bound here so
-    /// errors surface at once; stream connections are made by the task.
-    pub(crate) fn open(
-        url: &str,
-        signing: Option<Arc<SigningData>>,
-        receive_on_tick: bool,
-    ) -> Result<Self, AutopilotError> {
-        let ep = Endpoint::parse(url)?;
+/// What every transport starts from: the runtime for its tasks, the queue from the tasks
+/// to `tick`, the counters and reconnect signal both sides share, and the signing key.
+struct Parts {
+    rt: tokio::runtime::Runtime,
+    tx: SyncSender<Incoming>,
+    rx: Receiver<Incoming>,
+    counters: Arc<TaskCounters>,
+    reconnect: Arc<Notify>,
+    signing: Option<Arc<SigningData>>,
+}
+
+impl Parts {
+    fn new(url: &str, signing: Option<Arc<SigningData>>) -> Result<Self, AutopilotError> {
         let rt = tokio::runtime::Builder::new_multi_thread()
             .worker_threads(1)
             .thread_name("markhold-link")
@@ -522,221 +526,262 @@ impl Transport {
                 source: e,
             })?;
         let (tx, rx) = std::sync::mpsc::sync_channel(QUEUE_LEN);
-        let counters = Arc::new(TaskCounters::default());
-        let reconnect = Arc::new(Notify::new());
-        let open_err = |what, target: &str| {
-            let target = target.to_string();
-            move |e| AutopilotError::Open {
-                what,
-                target,
-                source: e,
-            }
+        Ok(Self {
+            rt,
+            tx,
+            rx,
+            counters: Arc::new(TaskCounters::default()),
+            reconnect: Arc::new(Notify::new()),
+            signing,
+        })
+    }
+}
+
+/// The error of a failed socket call while opening `target`.
+fn open_err(what: &'static str, target: &str) -> impl FnOnce(std::io::Error) -> AutopilotError {
+    let target = target.to_string();
+    move |e| AutopilotError::Open {
+        what,
+        target,
+        source: e,
+    }
+}
+
+/// The UDP socket of `udpin:`/`udpout:`, bound (and for udpout connected), non-blocking;
+/// with the destination (None for udpin until a peer speaks).
+fn bind_udp(
+    url: &str,
+    hp: &str,
+    udpin: bool,
+) -> Result<(std::net::UdpSocket, Option<SocketAddr>), AutopilotError> {
+    let (bind, dest) = if udpin {
+        (resolve(url, hp)?, None)
+    } else {
+        let d = resolve(url, hp)?;
+        let any: SocketAddr = if d.is_ipv4() {
+            ([0, 0, 0, 0], 0).into()
+        } else {
+            (std::net::Ipv6Addr::UNSPECIFIED, 0).into()
         };
+        (any, Some(d))
+    };
+    let sock = std::net::UdpSocket::bind(bind).map_err(open_err("udp socket", hp))?;
+    if let Some(d) = dest {
+        sock.connect(d).map_err(open_err("udp socket", hp))?;
+    }
+    sock.set_nonblocking(true)
+        .map_err(open_err("udp socket", hp))?;
+    Ok((sock, dest))
+}
+
+impl Transport {
+    /// Opens the endpoint: sockets that must exist (udp, tcpin listener) are bound here so
+    /// errors surface at once; stream connections are made by the task.
+    pub(crate) fn open(
+        url: &str,
+        signing: Option<Arc<SigningData>>,
+        receive_on_tick: bool,
+    ) -> Result<Self, AutopilotError> {
+        let ep = Endpoint::parse(url)?;
+        let parts = Parts::new(url, signing)?;
         match ep {
             Endpoint::UdpIn(hp) | Endpoint::UdpOut(hp) => {
-                let udpin = url.starts_with("udpin");
-                let (bind, dest) = if udpin {
-                    (resolve(url, &hp)?, None)
-                } else {
-                    let d = resolve(url, &hp)?;
-                    let any: SocketAddr = if d.is_ipv4() {
-                        ([0, 0, 0, 0], 0).into()
-                    } else {
-                        (std::net::Ipv6Addr::UNSPECIFIED, 0).into()
-                    };
-                    (any, Some(d))
-                };
-                let sock = std::net::UdpSocket::bind(bind).map_err(open_err("udp socket", &hp))?;
-                if let Some(d) = dest {
-                    sock.connect(d).map_err(open_err("udp socket", &hp))?;
+                Self::open_udp(parts, url, &hp, receive_on_tick)
+            }
+            Endpoint::TcpOut(hp) => Self::open_tcp_out(parts, url, &hp),
+            Endpoint::TcpIn(hp) => Self::open_tcp_in(parts, url, &hp),
+            Endpoint::Serial { path, baud } => Ok(Self::open_serial(parts, path, baud)),
+        }
+    }
+
+    fn open_udp(
+        p: Parts,
+        url: &str,
+        hp: &str,
+        receive_on_tick: bool,
+    ) -> Result<Self, AutopilotError> {
+        let udpin = url.starts_with("udpin");
+        let (sock, dest) = bind_udp(url, hp, udpin)?;
+        let udp_recv_buffer = grow_recv_buffer(&sock);
+        let local = sock.local_addr().ok();
+        let wsock = sock.try_clone().map_err(open_err("udp socket", hp))?;
+        let dest = Arc::new(Mutex::new(dest));
+        let peer = udpin.then(|| dest.clone());
+        let tick_rx = if receive_on_tick {
+            // Datagrams are read by `tick` on the caller's thread: on loopback (HIL)
+            // everything the vehicle sent before the tick is seen in that tick, so
+            // the link state does not depend on thread scheduling.
+            Some(TickReceiver {
+                reader: MavlinkReader::with_capacity(TICK_READ_CAPACITY, UdpSrc { sock, peer }),
+                signing: p.signing.clone(),
+                last: [0; MAX_FRAME],
+                last_len: 0,
+            })
+        } else {
+            let asock = {
+                let _g = p.rt.enter();
+                tokio::net::UdpSocket::from_std(sock).map_err(open_err("udp socket", hp))?
+            };
+            let (signing, tx, c) = (p.signing, p.tx, p.counters.clone());
+            p.rt.spawn(async move {
+                let mut reader = AsyncMavlinkReader::new(UdpRead {
+                    sock: Arc::new(asock),
+                    peer,
+                });
+                loop {
+                    let why = pump(&mut reader, signing.as_deref(), &tx, &c).await;
+                    tracing::warn!(%why, "udp receive error");
+                    tokio::time::sleep(RECONNECT_BACKOFF).await;
                 }
-                sock.set_nonblocking(true)
-                    .map_err(open_err("udp socket", &hp))?;
-                let udp_recv_buffer = grow_recv_buffer(&sock);
-                let local = sock.local_addr().ok();
-                let wsock = sock.try_clone().map_err(open_err("udp socket", &hp))?;
-                let dest = Arc::new(Mutex::new(dest));
-                let peer = udpin.then(|| dest.clone());
-                let tick_rx = if receive_on_tick {
-                    // Datagrams are read by `tick` on the caller's thread: on loopback (HIL)
-                    // everything the vehicle sent before the tick is seen in that tick, so
-                    // the link state does not depend on thread scheduling.
-                    Some(TickReceiver {
-                        reader: MavlinkReader::with_capacity(
-                            TICK_READ_CAPACITY,
-                            UdpSrc { sock, peer },
-                        ),
-                        signing: signing.clone(),
-                        last: [0; MAX_FRAME],
-                        last_len: 0,
-                    })
-                } else {
-                    let asock = {
-                        let _g = rt.enter();
-                        tokio::net::UdpSocket::from_std(sock)
-                            .map_err(open_err("udp socket", &hp))?
-                    };
-                    let c = counters.clone();
-                    rt.spawn(async move {
-                        let mut reader = AsyncMavlinkReader::new(UdpRead {
-                            sock: Arc::new(asock),
-                            peer,
-                        });
-                        loop {
-                            let why = pump(&mut reader, signing.as_deref(), &tx, &c).await;
-                            tracing::warn!(%why, "udp receive error");
-                            tokio::time::sleep(RECONNECT_BACKOFF).await;
-                        }
-                    });
-                    None
-                };
-                Ok(Self {
-                    rt: Some(rt),
-                    writer: Writer::Udp {
-                        sock: wsock,
-                        dest,
-                        connected: !udpin,
-                    },
-                    rx,
-                    counters,
-                    reconnect,
-                    local_addr: local,
-                    always_connected: true,
-                    tick_rx,
-                    udp_recv_buffer,
-                })
+            });
+            None
+        };
+        Ok(Self {
+            rt: Some(p.rt),
+            writer: Writer::Udp {
+                sock: wsock,
+                dest,
+                connected: !udpin,
+            },
+            rx: p.rx,
+            counters: p.counters,
+            reconnect: p.reconnect,
+            local_addr: local,
+            always_connected: true,
+            tick_rx,
+            udp_recv_buffer,
+        })
+    }
+
+    fn open_tcp_out(p: Parts, url: &str, hp: &str) -> Result<Self, AutopilotError> {
+        let addr = resolve(url, hp)?;
+        let slot: Arc<Mutex<TcpSlot>> = Arc::default();
+        let s2 = slot.clone();
+        let c = p.counters.clone();
+        let rc = p.reconnect.clone();
+        let (signing, tx) = (p.signing, p.tx);
+        p.rt.spawn(async move {
+            loop {
+                match tokio::time::timeout(CONNECT_TIMEOUT, tokio::net::TcpStream::connect(addr))
+                    .await
+                {
+                    Ok(Ok(s)) => {
+                        serve_tcp(s, &s2, signing.as_deref(), &tx, &c, &rc).await;
+                        c.reconnects.fetch_add(1, Ordering::Relaxed);
+                    }
+                    Ok(Err(e)) => tracing::debug!(%addr, error = %e, "tcp connect failed"),
+                    Err(_) => tracing::debug!(%addr, "tcp connect timed out"),
+                }
+                tokio::time::sleep(RECONNECT_BACKOFF).await;
             }
-            Endpoint::TcpOut(hp) => {
-                let addr = resolve(url, &hp)?;
-                let slot: Arc<Mutex<TcpSlot>> = Arc::default();
-                let s2 = slot.clone();
-                let c = counters.clone();
-                let rc = reconnect.clone();
-                rt.spawn(async move {
-                    loop {
-                        match tokio::time::timeout(
-                            CONNECT_TIMEOUT,
-                            tokio::net::TcpStream::connect(addr),
-                        )
-                        .await
-                        {
-                            Ok(Ok(s)) => {
-                                serve_tcp(s, &s2, signing.as_deref(), &tx, &c, &rc).await;
-                                c.reconnects.fetch_add(1, Ordering::Relaxed);
-                            }
-                            Ok(Err(e)) => tracing::debug!(%addr, error = %e, "tcp connect failed"),
-                            Err(_) => tracing::debug!(%addr, "tcp connect timed out"),
-                        }
+        });
+        Ok(Self::tcp(p.rt, p.rx, p.counters, p.reconnect, slot, None))
+    }
+
+    fn open_tcp_in(p: Parts, url: &str, hp: &str) -> Result<Self, AutopilotError> {
+        let addr = resolve(url, hp)?;
+        let l = std::net::TcpListener::bind(addr).map_err(open_err("tcp listener", hp))?;
+        l.set_nonblocking(true)
+            .map_err(open_err("tcp listener", hp))?;
+        let local = l.local_addr().ok();
+        let listener = {
+            let _g = p.rt.enter();
+            tokio::net::TcpListener::from_std(l).map_err(open_err("tcp listener", hp))?
+        };
+        let slot: Arc<Mutex<TcpSlot>> = Arc::default();
+        let s2 = slot.clone();
+        let c = p.counters.clone();
+        let rc = p.reconnect.clone();
+        let (signing, tx) = (p.signing, p.tx);
+        p.rt.spawn(async move {
+            loop {
+                match listener.accept().await {
+                    Ok((s, peer)) => {
+                        tracing::info!(%peer, "tcp client connected");
+                        serve_tcp(s, &s2, signing.as_deref(), &tx, &c, &rc).await;
+                        c.reconnects.fetch_add(1, Ordering::Relaxed);
+                    }
+                    Err(e) => {
+                        tracing::warn!(error = %e, "tcp accept failed");
                         tokio::time::sleep(RECONNECT_BACKOFF).await;
                     }
-                });
-                Ok(Self {
-                    rt: Some(rt),
-                    writer: Writer::Tcp {
-                        stream: slot,
-                        gen: 0,
-                        pending: Vec::with_capacity(TCP_PENDING_CAP),
-                    },
-                    rx,
-                    counters,
-                    reconnect,
-                    local_addr: None,
-                    always_connected: false,
-                    tick_rx: None,
-                    udp_recv_buffer: None,
-                })
+                }
             }
-            Endpoint::TcpIn(hp) => {
-                let addr = resolve(url, &hp)?;
-                let l = std::net::TcpListener::bind(addr).map_err(open_err("tcp listener", &hp))?;
-                l.set_nonblocking(true)
-                    .map_err(open_err("tcp listener", &hp))?;
-                let local = l.local_addr().ok();
-                let listener = {
-                    let _g = rt.enter();
-                    tokio::net::TcpListener::from_std(l).map_err(open_err("tcp listener", &hp))?
-                };
-                let slot: Arc<Mutex<TcpSlot>> = Arc::default();
-                let s2 = slot.clone();
-                let c = counters.clone();
-                let rc = reconnect.clone();
-                rt.spawn(async move {
-                    loop {
-                        match listener.accept().await {
-                            Ok((s, peer)) => {
-                                tracing::info!(%peer, "tcp client connected");
-                                serve_tcp(s, &s2, signing.as_deref(), &tx, &c, &rc).await;
-                                c.reconnects.fetch_add(1, Ordering::Relaxed);
-                            }
-                            Err(e) => {
-                                tracing::warn!(error = %e, "tcp accept failed");
-                                tokio::time::sleep(RECONNECT_BACKOFF).await;
-                            }
-                        }
+        });
+        Ok(Self::tcp(p.rt, p.rx, p.counters, p.reconnect, slot, local))
+    }
+
+    /// A TCP transport (either direction) whose task fills `slot` with the connection.
+    fn tcp(
+        rt: tokio::runtime::Runtime,
+        rx: Receiver<Incoming>,
+        counters: Arc<TaskCounters>,
+        reconnect: Arc<Notify>,
+        slot: Arc<Mutex<TcpSlot>>,
+        local_addr: Option<SocketAddr>,
+    ) -> Self {
+        Self {
+            rt: Some(rt),
+            writer: Writer::Tcp {
+                stream: slot,
+                gen: 0,
+                pending: Vec::with_capacity(TCP_PENDING_CAP),
+            },
+            rx,
+            counters,
+            reconnect,
+            local_addr,
+            always_connected: false,
+            tick_rx: None,
+            udp_recv_buffer: None,
+        }
+    }
+
+    fn open_serial(p: Parts, path: String, baud: u32) -> Self {
+        let (wtx, mut wrx) = tokio::sync::mpsc::channel::<([u8; MAX_FRAME], usize)>(256);
+        let c = p.counters.clone();
+        let rc = p.reconnect.clone();
+        let (signing, tx) = (p.signing, p.tx);
+        p.rt.spawn(async move {
+            loop {
+                let builder = tokio_serial::new(path.as_str(), baud);
+                match tokio_serial::SerialStream::open(&builder) {
+                    Ok(port) => {
+                        push(&tx, &c, Incoming::Connected(path.clone()));
+                        let (r, mut w) = tokio::io::split(port);
+                        let mut reader = AsyncMavlinkReader::new(r);
+                        let why = tokio::select! {
+                            why = pump(&mut reader, signing.as_deref(), &tx, &c) => why,
+                            why = async {
+                                while let Some((f, n)) = wrx.recv().await {
+                                    if let Err(e) = w.write_all(&f[..n]).await {
+                                        return e.to_string();
+                                    }
+                                }
+                                "writer closed".to_string()
+                            } => why,
+                            _ = rc.notified() => "reconnect requested".to_string(),
+                        };
+                        push(&tx, &c, Incoming::Disconnected(why));
+                        c.reconnects.fetch_add(1, Ordering::Relaxed);
                     }
-                });
-                Ok(Self {
-                    rt: Some(rt),
-                    writer: Writer::Tcp {
-                        stream: slot,
-                        gen: 0,
-                        pending: Vec::with_capacity(TCP_PENDING_CAP),
-                    },
-                    rx,
-                    counters,
-                    reconnect,
-                    local_addr: local,
-                    always_connected: false,
-                    tick_rx: None,
-                    udp_recv_buffer: None,
-                })
+                    Err(e) => tracing::debug!(%path, error = %e, "serial open failed"),
+                }
+                // Frames queued while the port was down are stale: drop them.
+                while wrx.try_recv().is_ok() {}
+                tokio::time::sleep(RECONNECT_BACKOFF).await;
             }
-            Endpoint::Serial { path, baud } => {
-                let (wtx, mut wrx) = tokio::sync::mpsc::channel::<([u8; MAX_FRAME], usize)>(256);
-                let c = counters.clone();
-                let rc = reconnect.clone();
-                rt.spawn(async move {
-                    loop {
-                        let builder = tokio_serial::new(path.as_str(), baud);
-                        match tokio_serial::SerialStream::open(&builder) {
-                            Ok(port) => {
-                                push(&tx, &c, Incoming::Connected(path.clone()));
-                                let (r, mut w) = tokio::io::split(port);
-                                let mut reader = AsyncMavlinkReader::new(r);
-                                let why = tokio::select! {
-                                    why = pump(&mut reader, signing.as_deref(), &tx, &c) => why,
-                                    why = async {
-                                        while let Some((f, n)) = wrx.recv().await {
-                                            if let Err(e) = w.write_all(&f[..n]).await {
-                                                return e.to_string();
-                                            }
-                                        }
-                                        "writer closed".to_string()
-                                    } => why,
-                                    _ = rc.notified() => "reconnect requested".to_string(),
-                                };
-                                push(&tx, &c, Incoming::Disconnected(why));
-                                c.reconnects.fetch_add(1, Ordering::Relaxed);
-                            }
-                            Err(e) => tracing::debug!(%path, error = %e, "serial open failed"),
-                        }
-                        // Frames queued while the port was down are stale: drop them.
-                        while wrx.try_recv().is_ok() {}
-                        tokio::time::sleep(RECONNECT_BACKOFF).await;
-                    }
-                });
-                Ok(Self {
-                    rt: Some(rt),
-                    writer: Writer::Serial { tx: wtx },
-                    rx,
-                    counters,
-                    reconnect,
-                    local_addr: None,
-                    always_connected: false,
-                    tick_rx: None,
-                    udp_recv_buffer: None,
-                })
-            }
+        });
+        Self {
+            rt: Some(p.rt),
+            writer: Writer::Serial { tx: wtx },
+            rx: p.rx,
+            counters: p.counters,
+            reconnect: p.reconnect,
+            local_addr: None,
+            always_connected: false,
+            tick_rx: None,
+            udp_recv_buffer: None,
         }
     }
 

@@ -2,14 +2,15 @@
 //! the bounded drain of the UDP socket per tick and its enlarged receive buffer. A raw
 //! loopback socket plays the vehicle; loop time is driven by hand.
 
-use std::alloc::{GlobalAlloc, Layout, System};
-use std::cell::Cell;
+#![allow(clippy::unwrap_used)] // Tests fail loudly on a broken setup, by design.
+
 use std::net::UdpSocket;
 
 use markhold_autopilot::link::MAX_MESSAGES_PER_TICK;
 use markhold_autopilot::mavlink::dialects::ardupilotmega::*;
 use markhold_autopilot::mavlink::{self, MavHeader};
 use markhold_autopilot::{LinkConfig, VehicleLink};
+use markhold_testkit::thread_allocs as allocs;
 
 struct FakeVehicle {
     sock: UdpSocket,
@@ -206,33 +207,9 @@ fn a_burst_between_two_ticks_is_read_whole_and_bounded_per_tick() {
     assert_eq!(link.messages_received() - before, n as u64);
 }
 
-/// Allocations made by the current thread (the link's tokio threads do not count).
-struct Counting;
-
-thread_local! {
-    static ALLOCS: Cell<u64> = const { Cell::new(0) };
-}
-
-unsafe impl GlobalAlloc for Counting {
-    unsafe fn alloc(&self, l: Layout) -> *mut u8 {
-        ALLOCS.with(|c| c.set(c.get() + 1));
-        unsafe { System.alloc(l) }
-    }
-    unsafe fn dealloc(&self, p: *mut u8, l: Layout) {
-        unsafe { System.dealloc(p, l) }
-    }
-    unsafe fn realloc(&self, p: *mut u8, l: Layout, n: usize) -> *mut u8 {
-        ALLOCS.with(|c| c.set(c.get() + 1));
-        unsafe { System.realloc(p, l, n) }
-    }
-}
-
+/// Allocations are counted per thread (the link's tokio threads do not count).
 #[global_allocator]
-static A: Counting = Counting;
-
-fn allocs() -> u64 {
-    ALLOCS.with(|c| c.get())
-}
+static A: markhold_testkit::CountingAlloc = markhold_testkit::CountingAlloc;
 
 #[test]
 fn draining_a_burst_with_the_raw_tap_allocates_nothing() {

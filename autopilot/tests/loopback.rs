@@ -2,6 +2,8 @@
 //! discovery, arm and mode with COMMAND_ACK (and a retry), stream requests, telemetry,
 //! closed-loop station keeping, neutral on exit, heartbeat loss, TCP reconnect.
 
+#![allow(clippy::unwrap_used)] // Tests fail loudly on a broken setup, by design.
+
 mod common;
 
 use std::time::{Duration, Instant};

@@ -3,6 +3,8 @@
 //! RC overrides and over a pseudo-terminal (the serial transport) with MANUAL_CONTROL.
 //! pymavlink is installed with pip when missing; the test fails if it cannot be.
 
+#![allow(clippy::unwrap_used)] // Tests fail loudly on a broken setup, by design.
+
 use std::io::{BufRead, BufReader};
 use std::process::{Child, Command, Stdio};
 use std::sync::mpsc;

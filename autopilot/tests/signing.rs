@@ -2,6 +2,8 @@
 //! rust-mavlink's verifier and the same key), unsigned or wrongly signed incoming frames are
 //! ignored, signed ones are accepted.
 
+#![allow(clippy::unwrap_used)] // Tests fail loudly on a broken setup, by design.
+
 use std::net::UdpSocket;
 use std::path::PathBuf;
 use std::time::{Duration, Instant};

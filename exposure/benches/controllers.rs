@@ -1,5 +1,8 @@
 //! AAEC on a 300x300 RoI, AEC and GEC on 1440x1080, each beside a naive reference
 //! (full sort, f64, fresh buffers) in the same run.
+
+#![allow(clippy::unwrap_used)] // A benchmark's setup fails loudly when broken, by design.
+
 use criterion::{criterion_group, criterion_main, BenchmarkId, Criterion, Throughput};
 use markhold_exposure::*;
 use std::hint::black_box;

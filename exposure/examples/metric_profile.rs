@@ -25,7 +25,7 @@ fn main() {
             data[y * w + x] = (base + noise).clamp(0.0, 255.0) as u8;
         }
     }
-    let v = ImageView::new(w, h, &data).unwrap();
+    let v = ImageView::new(w, h, &data).expect("the buffer holds w * h pixels");
     let mut gm = GradientMetric::new(&Response::linear(), AaecConfig::default().metric_params());
     let reps: usize = std::env::var("REPS")
         .ok()
@@ -36,7 +36,10 @@ fn main() {
     for _ in 0..reps {
         let t = Instant::now();
         for _ in 0..5 {
-            acc += gm.evaluate(v).unwrap().m;
+            acc += gm
+                .evaluate(v)
+                .expect("a 300x300 view is large enough for the metric")
+                .m;
         }
         best = best.min(t.elapsed().as_secs_f64() * 1e6 / 5.0);
     }

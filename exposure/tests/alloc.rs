@@ -4,29 +4,10 @@ mod common;
 
 use common::*;
 use markhold_exposure::*;
-use std::alloc::{GlobalAlloc, Layout, System};
-use std::sync::atomic::{AtomicUsize, Ordering};
-
-struct Counting;
-
-static ALLOCS: AtomicUsize = AtomicUsize::new(0);
-
-unsafe impl GlobalAlloc for Counting {
-    unsafe fn alloc(&self, layout: Layout) -> *mut u8 {
-        ALLOCS.fetch_add(1, Ordering::Relaxed);
-        unsafe { System.alloc(layout) }
-    }
-    unsafe fn dealloc(&self, ptr: *mut u8, layout: Layout) {
-        unsafe { System.dealloc(ptr, layout) }
-    }
-    unsafe fn realloc(&self, ptr: *mut u8, layout: Layout, new_size: usize) -> *mut u8 {
-        ALLOCS.fetch_add(1, Ordering::Relaxed);
-        unsafe { System.realloc(ptr, layout, new_size) }
-    }
-}
+use markhold_testkit::process_allocs;
 
 #[global_allocator]
-static GLOBAL: Counting = Counting;
+static A: markhold_testkit::CountingAlloc = markhold_testkit::CountingAlloc;
 
 #[test]
 fn controllers_do_not_allocate_per_frame() {
@@ -69,7 +50,7 @@ fn controllers_do_not_allocate_per_frame() {
             f.meta.exposure_us = c.commanded_us();
             c.update(f, (k == 0).then_some(&scene.corners));
         }
-        let before = ALLOCS.load(Ordering::Relaxed);
+        let before = process_allocs();
         for round in 0..3 {
             for (k, f) in frames.iter_mut().enumerate() {
                 f.meta.exposure_us = c.commanded_us();
@@ -80,7 +61,7 @@ fn controllers_do_not_allocate_per_frame() {
             }
         }
         long_loss(c, &mut frames);
-        let after = ALLOCS.load(Ordering::Relaxed);
+        let after = process_allocs();
         assert_eq!(
             after - before,
             0,

@@ -52,6 +52,7 @@ fn unknown_keys_are_rejected() {
 }
 
 #[test]
+#[allow(clippy::too_many_lines)] // A flat list of cases, one per key.
 fn bad_values_name_the_key() {
     let limits = ExposureLimits {
         min_us: 10.0,

@@ -1,5 +1,8 @@
 //! The baselines on the rendered scene: each converges to its own optimum from 10x too
 //! short and 10x too long, with one frame of actuation delay.
+
+#![allow(clippy::unwrap_used)] // Tests fail loudly on a broken setup, by design.
+
 mod common;
 
 use common::*;

@@ -1,5 +1,8 @@
 //! The metric against the math: analytic derivative vs finite differences, histogram
 //! ranks vs a full sort.
+
+#![allow(clippy::unwrap_used)] // Tests fail loudly on a broken setup, by design.
+
 mod common;
 
 use common::*;

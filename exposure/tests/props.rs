@@ -1,4 +1,7 @@
 //! Laws every controller keeps on any input: no NaN, no panic, exposure in limits.
+
+#![allow(clippy::unwrap_used)] // Tests fail loudly on a broken setup, by design.
+
 use markhold_exposure::*;
 use proptest::prelude::*;
 

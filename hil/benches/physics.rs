@@ -4,6 +4,8 @@
 //! (400 Hz / 30 fps = 13-14 steps with the autopilot's efforts and the mixer) and one full
 //! HIL rig frame at 1440x1080 (physics + MAVLink poll + render).
 
+#![allow(clippy::unwrap_used)] // A benchmark's setup fails loudly when broken, by design.
+
 use criterion::{criterion_group, criterion_main, BenchmarkId, Criterion, Throughput};
 use markhold_exposure::{Camera, Frame, ResponseModel};
 use markhold_hil::camera::CameraModel;

@@ -1,6 +1,8 @@
 //! One 1440x1080 frame of the HIL camera: the fast renderer beside the plain per-pixel
 //! reference (f64, no precomputation), in the same run.
 
+#![allow(clippy::unwrap_used)] // A benchmark's setup fails loudly when broken, by design.
+
 use criterion::{criterion_group, criterion_main, BenchmarkId, Criterion, Throughput};
 use markhold_exposure::{ExposureLimits, Frame, ResponseModel};
 use markhold_hil::camera::{CameraModel, RenderLoops, UnderwaterCamera};

@@ -502,6 +502,24 @@ impl VehicleEndpoint {
     /// number of messages handled. Garbage bytes are skipped by the frame decoder.
     pub fn poll(&mut self, now_s: f64) -> Result<usize, HilError> {
         self.now_s = now_s;
+        let mut handled = self.poll_udp()?;
+        self.accept_tcp_clients();
+        let mut i = 0;
+        while i < self.tcp_clients.len() {
+            let (n, closed) = self.poll_tcp_client(i);
+            handled += n;
+            if closed {
+                self.tcp_clients.swap_remove(i);
+            } else {
+                i += 1;
+            }
+        }
+        Ok(handled)
+    }
+
+    /// Handles every datagram waiting on the UDP socket; the sender of the last one that
+    /// held an acceptable frame becomes the peer. Returns the messages handled.
+    fn poll_udp(&mut self) -> Result<usize, HilError> {
         let mut handled = 0;
         loop {
             match self.udp.socket.recv_from(&mut self.udp.buf[..]) {
@@ -549,92 +567,95 @@ impl VehicleEndpoint {
                 Err(e) => return Err(socket_err("recv udp", self.udp_addr(), e)),
             }
         }
-        if let Some(listener) = &self.tcp {
-            loop {
-                match listener.accept() {
-                    Ok((stream, peer)) => {
-                        if stream.set_nonblocking(true).is_ok() {
-                            let _ = stream.set_nodelay(true);
-                            tracing::info!(%peer, "tcp client connected");
-                            self.tcp_clients.push(TcpClient {
-                                reader: MavlinkReader::new(TcpSource(stream)),
-                                peer,
-                            });
-                        }
-                    }
-                    Err(e) if e.kind() == ErrorKind::WouldBlock => break,
-                    Err(e) => {
-                        tracing::warn!(error = %e, "tcp accept failed");
-                        break;
-                    }
-                }
-            }
-        }
-        let mut i = 0;
-        while i < self.tcp_clients.len() {
-            let mut closed = false;
-            loop {
-                match self.tcp_clients[i]
-                    .reader
-                    .read_any_raw_message::<MavMessage>()
-                {
-                    Ok(raw) => {
-                        if let Some(s) = self.signing.as_mut() {
-                            let bytes = match &raw {
-                                MAVLinkMessageRaw::V1(r) => r.raw_bytes(),
-                                MAVLinkMessageRaw::V2(r) => r.raw_bytes(),
-                            };
-                            match s.verify(bytes) {
-                                Verdict::Accepted => {}
-                                Verdict::Unsigned => {
-                                    self.stats.rejected_unsigned += 1;
-                                    continue;
-                                }
-                                Verdict::BadSignature => {
-                                    self.stats.rejected_signature += 1;
-                                    continue;
-                                }
-                            }
-                        }
-                        let h = MavHeader {
-                            system_id: raw.system_id(),
-                            component_id: raw.component_id(),
-                            sequence: raw.sequence(),
-                        };
-                        match <MavMessage as mavlink::Message>::parse(
-                            raw.version(),
-                            raw.message_id(),
-                            raw.payload(),
-                        ) {
-                            Ok(m) => {
-                                self.handle(h, m);
-                                handled += 1;
-                            }
-                            Err(e) => {
-                                self.stats.parse_errors += 1;
-                                tracing::debug!(error = %e, "mavlink payload did not parse; skipped");
-                            }
-                        }
-                    }
-                    Err(MessageReadError::Io(e)) if e.kind() == ErrorKind::WouldBlock => break,
-                    Err(MessageReadError::Parse(e)) => {
-                        self.stats.parse_errors += 1;
-                        tracing::debug!(error = %e, "mavlink payload did not parse; skipped");
-                    }
-                    Err(MessageReadError::Io(e)) => {
-                        tracing::info!(peer = %self.tcp_clients[i].peer, error = %e, "tcp client closed");
-                        closed = true;
-                        break;
-                    }
-                }
-            }
-            if closed {
-                self.tcp_clients.swap_remove(i);
-            } else {
-                i += 1;
-            }
-        }
         Ok(handled)
+    }
+
+    /// Takes every TCP client waiting on the listener (when TCP is on).
+    fn accept_tcp_clients(&mut self) {
+        let Some(listener) = &self.tcp else {
+            return;
+        };
+        loop {
+            match listener.accept() {
+                Ok((stream, peer)) => {
+                    if stream.set_nonblocking(true).is_ok() {
+                        let _ = stream.set_nodelay(true);
+                        tracing::info!(%peer, "tcp client connected");
+                        self.tcp_clients.push(TcpClient {
+                            reader: MavlinkReader::new(TcpSource(stream)),
+                            peer,
+                        });
+                    }
+                }
+                Err(e) if e.kind() == ErrorKind::WouldBlock => break,
+                Err(e) => {
+                    tracing::warn!(error = %e, "tcp accept failed");
+                    break;
+                }
+            }
+        }
+    }
+
+    /// Handles every frame TCP client `i` has sent; returns the messages handled and
+    /// whether the client closed.
+    fn poll_tcp_client(&mut self, i: usize) -> (usize, bool) {
+        let mut handled = 0;
+        loop {
+            match self.tcp_clients[i]
+                .reader
+                .read_any_raw_message::<MavMessage>()
+            {
+                Ok(raw) => {
+                    if let Some(s) = self.signing.as_mut() {
+                        let bytes = match &raw {
+                            MAVLinkMessageRaw::V1(r) => r.raw_bytes(),
+                            MAVLinkMessageRaw::V2(r) => r.raw_bytes(),
+                        };
+                        match s.verify(bytes) {
+                            Verdict::Accepted => {}
+                            Verdict::Unsigned => {
+                                self.stats.rejected_unsigned += 1;
+                                continue;
+                            }
+                            Verdict::BadSignature => {
+                                self.stats.rejected_signature += 1;
+                                continue;
+                            }
+                        }
+                    }
+                    let h = MavHeader {
+                        system_id: raw.system_id(),
+                        component_id: raw.component_id(),
+                        sequence: raw.sequence(),
+                    };
+                    match <MavMessage as mavlink::Message>::parse(
+                        raw.version(),
+                        raw.message_id(),
+                        raw.payload(),
+                    ) {
+                        Ok(m) => {
+                            self.handle(h, m);
+                            handled += 1;
+                        }
+                        Err(e) => {
+                            self.stats.parse_errors += 1;
+                            tracing::debug!(error = %e, "mavlink payload did not parse; skipped");
+                        }
+                    }
+                }
+                Err(MessageReadError::Io(e)) if e.kind() == ErrorKind::WouldBlock => {
+                    return (handled, false)
+                }
+                Err(MessageReadError::Parse(e)) => {
+                    self.stats.parse_errors += 1;
+                    tracing::debug!(error = %e, "mavlink payload did not parse; skipped");
+                }
+                Err(MessageReadError::Io(e)) => {
+                    tracing::info!(peer = %self.tcp_clients[i].peer, error = %e, "tcp client closed");
+                    return (handled, true);
+                }
+            }
+        }
     }
 
     fn is_for_us(&self, target_system: u8) -> bool {

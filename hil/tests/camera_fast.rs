@@ -1,5 +1,7 @@
 //! The fast renderer draws what the plain per-pixel reference draws, and is repeatable.
 
+#![allow(clippy::unwrap_used)] // Tests fail loudly on a broken setup, by design.
+
 mod camera_common;
 
 use camera_common::*;

@@ -2,6 +2,8 @@
 //! auto exposure washes the marker out, an exposure metered on the marker reveals it;
 //! in `normal` light both see it.
 
+#![allow(clippy::unwrap_used)] // Tests fail loudly on a broken setup, by design.
+
 mod camera_common;
 
 use camera_common::*;

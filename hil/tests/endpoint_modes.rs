@@ -1,5 +1,7 @@
 //! The simulated autopilot's flight modes, flown through MAVLink like a client would.
 
+#![allow(clippy::unwrap_used)] // Tests fail loudly on a broken setup, by design.
+
 mod rig_common;
 
 use markhold_exposure::{Camera, Frame};

@@ -3,6 +3,8 @@
 //! MAVLink 2 signing (everything sent signed, unsigned and wrongly signed input dropped).
 //! Loopback only, every receive bounded.
 
+#![allow(clippy::unwrap_used)] // Tests fail loudly on a broken setup, by design.
+
 use std::net::{SocketAddr, UdpSocket};
 use std::path::PathBuf;
 use std::time::{Duration, Instant};

@@ -2,42 +2,17 @@
 //! and verifying signed frames, rejecting unsigned ones, answering with signed frames.
 //! Counted per thread by a wrapping global allocator.
 
-use std::alloc::{GlobalAlloc, Layout, System};
-use std::cell::Cell;
 use std::net::UdpSocket;
 use std::time::Duration;
 
 use markhold_hil::{EndpointConfig, Vehicle, VehicleConfig, VehicleEndpoint};
+use markhold_testkit::thread_allocs as allocs;
 use mavlink::dialects::ardupilotmega::*;
 use mavlink::{MavHeader, SigningConfig, SigningData};
 use nalgebra::Isometry3;
 
-struct Counting;
-
-thread_local! {
-    static ALLOCS: Cell<u64> = const { Cell::new(0) };
-}
-
-unsafe impl GlobalAlloc for Counting {
-    unsafe fn alloc(&self, l: Layout) -> *mut u8 {
-        ALLOCS.with(|c| c.set(c.get() + 1));
-        unsafe { System.alloc(l) }
-    }
-    unsafe fn dealloc(&self, p: *mut u8, l: Layout) {
-        unsafe { System.dealloc(p, l) }
-    }
-    unsafe fn realloc(&self, p: *mut u8, l: Layout, n: usize) -> *mut u8 {
-        ALLOCS.with(|c| c.set(c.get() + 1));
-        unsafe { System.realloc(p, l, n) }
-    }
-}
-
 #[global_allocator]
-static A: Counting = Counting;
-
-fn allocs() -> u64 {
-    ALLOCS.with(|c| c.get())
-}
+static A: markhold_testkit::CountingAlloc = markhold_testkit::CountingAlloc;
 
 #[test]
 fn signed_receive_verify_and_send_allocate_nothing() {

@@ -1,5 +1,7 @@
 //! The vehicle endpoint over TCP on loopback, with garbage on the stream.
 
+#![allow(clippy::unwrap_used)] // Tests fail loudly on a broken setup, by design.
+
 mod rig_common;
 
 use std::io::{Read, Write};

@@ -1,5 +1,7 @@
 //! HilRig: lock-step with the client, determinism, and the compare experiments' motions.
 
+#![allow(clippy::unwrap_used)] // Tests fail loudly on a broken setup, by design.
+
 mod rig_common;
 
 use std::time::Duration;

@@ -1,6 +1,8 @@
 //! The SITL JSON physics server, checked with a client written to ArduPilot's published
 //! packet format (libraries/SITL/SIM_JSON): binary servo packets out, JSON states back.
 
+#![allow(clippy::unwrap_used)] // Tests fail loudly on a broken setup, by design.
+
 use std::net::{SocketAddr, UdpSocket};
 use std::time::Duration;
 

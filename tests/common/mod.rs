@@ -2,6 +2,7 @@
 //! scratch paths, the simulated world as a free-running vehicle, and a WebSocket frame
 //! reader for the live view.
 #![allow(dead_code)]
+#![allow(clippy::unwrap_used)] // Tests fail loudly on a broken setup, by design.
 
 use std::net::{SocketAddr, TcpStream};
 use std::path::{Path, PathBuf};

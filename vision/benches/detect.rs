@@ -1,6 +1,8 @@
 //! Detect + pose at 1440x1080: full-frame search and RoI-tracked, beside OpenCV's
 //! default full-frame `detect_markers` (default parameters, no refinement, no pose).
 
+#![allow(clippy::unwrap_used)] // A benchmark's setup fails loudly when broken, by design.
+
 use criterion::{criterion_group, criterion_main, BenchmarkId, Criterion, Throughput};
 use markhold_exposure::Frame;
 use markhold_vision::synth::{render_marker, SceneParams};

@@ -6,6 +6,8 @@
 //! (reference.csv). Refresh: `MARKHOLD_PARITY_REFRESH=1 cargo test --release -p
 //! markhold-vision --test parity`, then `python3 vision/tests/parity/apriltag_reference.py`.
 
+#![allow(clippy::unwrap_used)] // Tests fail loudly on a broken setup, by design.
+
 mod common;
 
 use common::*;

@@ -2,6 +2,7 @@
 //! a kinematic vehicle moved by the RC overrides it receives (one fixed step per override,
 //! so the plant runs on the controller's clock, not on the wall clock).
 
+#![allow(clippy::unwrap_used)] // Tests fail loudly on a broken setup, by design.
 #![allow(dead_code)]
 
 use std::io::{Read, Write};
@@ -222,56 +223,14 @@ fn run(
             std::thread::sleep(Duration::from_millis(2));
             continue;
         };
-        // Receive.
         let mut msgs: Vec<(MavHeader, MavMessage)> = Vec::new();
-        let mut broken = false;
-        match cur {
+        let broken = match cur {
             Io::Udp(s, peer) => {
-                // Block briefly for the first datagram, then drain without waiting (socket
-                // timeouts are rounded up to the kernel tick).
-                s.set_nonblocking(false).unwrap();
-                s.set_read_timeout(Some(Duration::from_millis(2))).unwrap();
-                while let Ok((n, from)) = s.recv_from(&mut buf) {
-                    *peer = Some(from);
-                    let mut r = MavlinkReader::new(&buf[..n]);
-                    while let Ok(m) = r.read_any_message::<MavMessage>() {
-                        msgs.push(m);
-                    }
-                    s.set_nonblocking(true).unwrap();
-                }
+                receive_udp(s, peer, &mut buf, &mut msgs);
+                false
             }
-            Io::Tcp(s) => {
-                s.set_read_timeout(Some(Duration::from_millis(2))).unwrap();
-                match s.read(&mut buf) {
-                    Ok(0) => broken = true,
-                    Ok(n) => tcp_acc.extend_from_slice(&buf[..n]),
-                    Err(_) => {}
-                }
-                // Parse whole frames; keep a trailing partial frame.
-                loop {
-                    let Some(start) = tcp_acc.iter().position(|b| *b == 0xFD) else {
-                        tcp_acc.clear();
-                        break;
-                    };
-                    tcp_acc.drain(..start);
-                    if tcp_acc.len() < 10 {
-                        break;
-                    }
-                    let sig = if tcp_acc[2] & 1 != 0 { 13 } else { 0 };
-                    let total = 10 + tcp_acc[1] as usize + 2 + sig;
-                    if tcp_acc.len() < total {
-                        break;
-                    }
-                    let mut r = MavlinkReader::new(&tcp_acc[..total]);
-                    if let Ok(m) = r.read_any_message::<MavMessage>() {
-                        msgs.push(m);
-                        tcp_acc.drain(..total);
-                    } else {
-                        tcp_acc.drain(..1);
-                    }
-                }
-            }
-        }
+            Io::Tcp(s) => receive_tcp(s, &mut buf, &mut tcp_acc, &mut msgs),
+        };
         if broken {
             io = None;
             continue;
@@ -280,77 +239,7 @@ fn run(
         {
             let mut g = rec.lock().unwrap();
             for (h, m) in msgs {
-                match m {
-                    MavMessage::RC_CHANNELS_OVERRIDE(d) => {
-                        let ch = [
-                            d.chan1_raw,
-                            d.chan2_raw,
-                            d.chan3_raw,
-                            d.chan4_raw,
-                            d.chan5_raw,
-                            d.chan6_raw,
-                            d.chan7_raw,
-                            d.chan8_raw,
-                        ];
-                        g.rc.push(Rc {
-                            sysid: h.system_id,
-                            compid: h.component_id,
-                            target: (d.target_system, d.target_component),
-                            ch,
-                        });
-                        // ArduSub drops pilot input from anyone but its GCS.
-                        if h.system_id == 255 {
-                            g.step(&ch);
-                        }
-                    }
-                    MavMessage::MANUAL_CONTROL(d) => g.manual.push((h.system_id, d)),
-                    MavMessage::HEARTBEAT(d) => {
-                        g.gcs_heartbeats.push((h.system_id, h.component_id, d))
-                    }
-                    MavMessage::COMMAND_LONG(d) => {
-                        g.commands.push((h.system_id, d.clone()));
-                        let result = match d.command {
-                            MavCmd::MAV_CMD_COMPONENT_ARM_DISARM => {
-                                if g.drop_arm_commands > 0 {
-                                    g.drop_arm_commands -= 1;
-                                    continue;
-                                }
-                                g.armed = d.param1 > 0.5;
-                                MavResult::MAV_RESULT_ACCEPTED
-                            }
-                            MavCmd::MAV_CMD_DO_SET_MODE => {
-                                let m = d.param2 as u32;
-                                if [0, 1, 2, 3, 4, 7, 9, 16, 19, 20, 21].contains(&m) {
-                                    g.mode = m;
-                                    MavResult::MAV_RESULT_ACCEPTED
-                                } else {
-                                    MavResult::MAV_RESULT_DENIED
-                                }
-                            }
-                            _ => MavResult::MAV_RESULT_ACCEPTED,
-                        };
-                        out.push(MavMessage::COMMAND_ACK(COMMAND_ACK_DATA {
-                            command: d.command,
-                            result,
-                            target_system: h.system_id as u8,
-                            target_component: h.component_id,
-                            ..Default::default()
-                        }));
-                    }
-                    MavMessage::SET_POSITION_TARGET_LOCAL_NED(d) => {
-                        // In setpoint mode a setpoint is the loop's tick: the fake's
-                        // heartbeats follow loop time, as they do with overrides.
-                        g.setpoints.push(d);
-                        g.steps += 1;
-                    }
-                    MavMessage::VISION_POSITION_ESTIMATE(d) => g.vision.push(d),
-                    #[allow(deprecated)]
-                    MavMessage::SET_GPS_GLOBAL_ORIGIN(d) => {
-                        g.origins
-                            .push((h.system_id, d.latitude, d.longitude, d.altitude))
-                    }
-                    other => g.other.push((h.system_id, format!("{other:?}"))),
-                }
+                g.answer(&h, m, &mut out);
             }
             // Heartbeat + telemetry: every 10 plant steps or setpoints (loop time), and at
             // least at 10 Hz of wall time when nothing steps the plant.
@@ -359,57 +248,7 @@ fn run(
             if g.heartbeats_on && due {
                 last_hb = Instant::now();
                 last_hb_step = g.steps;
-                let mut base = MavModeFlag::MAV_MODE_FLAG_CUSTOM_MODE_ENABLED;
-                if g.armed {
-                    base |= MavModeFlag::MAV_MODE_FLAG_SAFETY_ARMED;
-                }
-                out.push(MavMessage::HEARTBEAT(HEARTBEAT_DATA {
-                    custom_mode: g.mode,
-                    mavtype: MavType::MAV_TYPE_SUBMARINE,
-                    autopilot: MavAutopilot::MAV_AUTOPILOT_ARDUPILOTMEGA,
-                    base_mode: base,
-                    system_status: MavState::MAV_STATE_ACTIVE,
-                    mavlink_version: 3,
-                }));
-                out.push(MavMessage::ATTITUDE(ATTITUDE_DATA {
-                    time_boot_ms: 1000,
-                    roll: 0.01,
-                    pitch: -0.02,
-                    yaw: g.yaw as f32,
-                    rollspeed: 0.0,
-                    pitchspeed: 0.0,
-                    yawspeed: 0.1,
-                }));
-                // 2 m deep in fresh water.
-                out.push(MavMessage::SCALED_PRESSURE2(SCALED_PRESSURE2_DATA {
-                    time_boot_ms: 1000,
-                    press_abs: ((101_325.0 + 997.0 * 9.80665 * 2.0) / 100.0) as f32,
-                    press_diff: 0.0,
-                    temperature: 1234,
-                    ..Default::default()
-                }));
-                out.push(MavMessage::SERVO_OUTPUT_RAW(SERVO_OUTPUT_RAW_DATA {
-                    time_usec: 1,
-                    servo1_raw: 1501,
-                    servo2_raw: 1502,
-                    servo3_raw: 1503,
-                    servo4_raw: 1504,
-                    servo5_raw: 1505,
-                    servo6_raw: 1506,
-                    servo7_raw: 1507,
-                    servo8_raw: 1508,
-                    port: 0,
-                    ..Default::default()
-                }));
-                out.push(MavMessage::LOCAL_POSITION_NED(LOCAL_POSITION_NED_DATA {
-                    time_boot_ms: 1000,
-                    x: -(g.pos_m[2] as f32),
-                    y: g.pos_m[0] as f32,
-                    z: 2.0,
-                    vx: 0.0,
-                    vy: 0.0,
-                    vz: 0.0,
-                }));
+                g.telemetry(&mut out);
             }
         }
         for m in out {
@@ -425,5 +264,201 @@ fn run(
                 }
             }
         }
+    }
+}
+
+/// Block briefly for the first datagram, then drain without waiting (socket timeouts are
+/// rounded up to the kernel tick). The sender becomes the peer.
+fn receive_udp(
+    s: &UdpSocket,
+    peer: &mut Option<SocketAddr>,
+    buf: &mut [u8],
+    msgs: &mut Vec<(MavHeader, MavMessage)>,
+) {
+    s.set_nonblocking(false).unwrap();
+    s.set_read_timeout(Some(Duration::from_millis(2))).unwrap();
+    while let Ok((n, from)) = s.recv_from(buf) {
+        *peer = Some(from);
+        let mut r = MavlinkReader::new(&buf[..n]);
+        while let Ok(m) = r.read_any_message::<MavMessage>() {
+            msgs.push(m);
+        }
+        s.set_nonblocking(true).unwrap();
+    }
+}
+
+/// Reads what the TCP client sent and parses whole frames, keeping a trailing partial
+/// frame in `acc`. True when the client closed.
+fn receive_tcp(
+    s: &mut TcpStream,
+    buf: &mut [u8],
+    acc: &mut Vec<u8>,
+    msgs: &mut Vec<(MavHeader, MavMessage)>,
+) -> bool {
+    s.set_read_timeout(Some(Duration::from_millis(2))).unwrap();
+    let broken = match s.read(buf) {
+        Ok(0) => true,
+        Ok(n) => {
+            acc.extend_from_slice(&buf[..n]);
+            false
+        }
+        Err(_) => false,
+    };
+    loop {
+        let Some(start) = acc.iter().position(|b| *b == 0xFD) else {
+            acc.clear();
+            break;
+        };
+        acc.drain(..start);
+        if acc.len() < 10 {
+            break;
+        }
+        let sig = if acc[2] & 1 != 0 { 13 } else { 0 };
+        let total = 10 + acc[1] as usize + 2 + sig;
+        if acc.len() < total {
+            break;
+        }
+        let mut r = MavlinkReader::new(&acc[..total]);
+        if let Ok(m) = r.read_any_message::<MavMessage>() {
+            msgs.push(m);
+            acc.drain(..total);
+        } else {
+            acc.drain(..1);
+        }
+    }
+    broken
+}
+
+impl Rec {
+    /// Records one message from the link and queues the vehicle's answer, if any.
+    fn answer(&mut self, h: &MavHeader, m: MavMessage, out: &mut Vec<MavMessage>) {
+        match m {
+            MavMessage::RC_CHANNELS_OVERRIDE(d) => {
+                let ch = [
+                    d.chan1_raw,
+                    d.chan2_raw,
+                    d.chan3_raw,
+                    d.chan4_raw,
+                    d.chan5_raw,
+                    d.chan6_raw,
+                    d.chan7_raw,
+                    d.chan8_raw,
+                ];
+                self.rc.push(Rc {
+                    sysid: h.system_id,
+                    compid: h.component_id,
+                    target: (d.target_system, d.target_component),
+                    ch,
+                });
+                // ArduSub drops pilot input from anyone but its GCS.
+                if h.system_id == 255 {
+                    self.step(&ch);
+                }
+            }
+            MavMessage::MANUAL_CONTROL(d) => self.manual.push((h.system_id, d)),
+            MavMessage::HEARTBEAT(d) => self.gcs_heartbeats.push((h.system_id, h.component_id, d)),
+            MavMessage::COMMAND_LONG(d) => self.command(h, d, out),
+            MavMessage::SET_POSITION_TARGET_LOCAL_NED(d) => {
+                // In setpoint mode a setpoint is the loop's tick: the fake's
+                // heartbeats follow loop time, as they do with overrides.
+                self.setpoints.push(d);
+                self.steps += 1;
+            }
+            MavMessage::VISION_POSITION_ESTIMATE(d) => self.vision.push(d),
+            #[allow(deprecated)]
+            MavMessage::SET_GPS_GLOBAL_ORIGIN(d) => {
+                self.origins
+                    .push((h.system_id, d.latitude, d.longitude, d.altitude))
+            }
+            other => self.other.push((h.system_id, format!("{other:?}"))),
+        }
+    }
+
+    /// A COMMAND_LONG: arm and mode change the vehicle, everything else is accepted; each
+    /// is acknowledged (unless arm commands are being dropped).
+    fn command(&mut self, h: &MavHeader, d: COMMAND_LONG_DATA, out: &mut Vec<MavMessage>) {
+        self.commands.push((h.system_id, d.clone()));
+        let result = match d.command {
+            MavCmd::MAV_CMD_COMPONENT_ARM_DISARM => {
+                if self.drop_arm_commands > 0 {
+                    self.drop_arm_commands -= 1;
+                    return;
+                }
+                self.armed = d.param1 > 0.5;
+                MavResult::MAV_RESULT_ACCEPTED
+            }
+            MavCmd::MAV_CMD_DO_SET_MODE => {
+                let m = d.param2 as u32;
+                if [0, 1, 2, 3, 4, 7, 9, 16, 19, 20, 21].contains(&m) {
+                    self.mode = m;
+                    MavResult::MAV_RESULT_ACCEPTED
+                } else {
+                    MavResult::MAV_RESULT_DENIED
+                }
+            }
+            _ => MavResult::MAV_RESULT_ACCEPTED,
+        };
+        out.push(MavMessage::COMMAND_ACK(COMMAND_ACK_DATA {
+            command: d.command,
+            result,
+            target_system: h.system_id as u8,
+            target_component: h.component_id,
+            ..Default::default()
+        }));
+    }
+
+    /// The vehicle's heartbeat and telemetry streams, one message each.
+    fn telemetry(&self, out: &mut Vec<MavMessage>) {
+        let mut base = MavModeFlag::MAV_MODE_FLAG_CUSTOM_MODE_ENABLED;
+        if self.armed {
+            base |= MavModeFlag::MAV_MODE_FLAG_SAFETY_ARMED;
+        }
+        out.push(MavMessage::HEARTBEAT(HEARTBEAT_DATA {
+            custom_mode: self.mode,
+            mavtype: MavType::MAV_TYPE_SUBMARINE,
+            autopilot: MavAutopilot::MAV_AUTOPILOT_ARDUPILOTMEGA,
+            base_mode: base,
+            system_status: MavState::MAV_STATE_ACTIVE,
+            mavlink_version: 3,
+        }));
+        out.push(MavMessage::ATTITUDE(ATTITUDE_DATA {
+            time_boot_ms: 1000,
+            roll: 0.01,
+            pitch: -0.02,
+            yaw: self.yaw as f32,
+            rollspeed: 0.0,
+            pitchspeed: 0.0,
+            yawspeed: 0.1,
+        }));
+        // 2 m deep in fresh water.
+        out.push(MavMessage::SCALED_PRESSURE2(SCALED_PRESSURE2_DATA {
+            time_boot_ms: 1000,
+            press_abs: ((101_325.0 + 997.0 * 9.80665 * 2.0) / 100.0) as f32,
+            press_diff: 0.0,
+            temperature: 1234,
+            ..Default::default()
+        }));
+        out.push(MavMessage::SERVO_OUTPUT_RAW(SERVO_OUTPUT_RAW_DATA {
+            time_usec: 1,
+            servo1_raw: 1501,
+            servo2_raw: 1502,
+            servo3_raw: 1503,
+            servo4_raw: 1504,
+            servo5_raw: 1505,
+            servo6_raw: 1506,
+            servo7_raw: 1507,
+            servo8_raw: 1508,
+            port: 0,
+            ..Default::default()
+        }));
+        out.push(MavMessage::LOCAL_POSITION_NED(LOCAL_POSITION_NED_DATA {
+            time_boot_ms: 1000,
+            x: -(self.pos_m[2] as f32),
+            y: self.pos_m[0] as f32,
+            z: 2.0,
+            vx: 0.0,
+            vy: 0.0,
+            vz: 0.0,
+        }));
     }
 }

@@ -1,6 +1,8 @@
 //! A small scene renderer for the controller tests: a linear (or given-response) camera
 //! imaging a marker-like pattern under uneven light (bright spot on the marker, dark
 //! surround), with an optional caustic flicker. Deterministic.
+
+#![allow(clippy::unwrap_used)] // Tests fail loudly on a broken setup, by design.
 #![allow(dead_code)]
 
 use markhold_exposure::{

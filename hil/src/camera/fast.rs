@@ -16,9 +16,9 @@ use super::kernels::{
     fold_rock_cell, plate_run, ramp_run, rock_nodes_run, sensor_run, top_and_change, CellRows, Isa,
     PlateCaustics, PlateRun, Ramp, RockFold, RockNodes, SensorRow,
 };
-use super::sensor::{XorShift64Star, RESPONSE_LUT_LEN};
+use super::sensor::{SensorTables, XorShift64Star, RESPONSE_LUT_LEN};
 use super::{CameraModel, FrameInput, RenderLoops};
-use crate::scene::{LitTexture, Scene, WorldLamp, ALBEDO_BLACK, ALBEDO_WHITE};
+use crate::scene::{LitTexture, MarkerSpec, Scene, WorldLamp, ALBEDO_BLACK, ALBEDO_WHITE};
 
 /// Pixels between grid nodes.
 const GRID: usize = 16;
@@ -240,6 +240,51 @@ struct PixelConsts<'a> {
     lit: &'a LitTexture,
     plate_caustics: Option<PlateCaustics<'a>>,
     isa: Isa,
+}
+
+impl<'a> PixelConsts<'a> {
+    /// The frame's constants: the marker's cell grid and its box filter, the plate, the
+    /// rock's texel scale and the caustics.
+    #[inline(always)]
+    fn new(
+        model: &CameraModel,
+        ctx: &FrameCtx<'a>,
+        caustics: CausticFrame,
+        lit: &'a LitTexture,
+        cell_table: &'a [f32],
+        isa: Isa,
+    ) -> Self {
+        let scene = ctx.scene;
+        let footprint = plate_footprint(model, scene, ctx.t_wc, &ctx.forms[PLATE]);
+        let m = scene.marker();
+        let cell_per_m = m.cells as f32 / m.size_m as f32;
+        let side = m.cells + 2;
+        let texel_per_m = (1.0 / scene.background.texel_m) as f32;
+        let plate_caustics = caustics.on.then_some(PlateCaustics {
+            tex: lit,
+            strength: caustics.strength,
+            texels_per_m: texel_per_m,
+        });
+        Self {
+            scene,
+            plate_front: ctx.geo[PLATE].glossy,
+            half: scene.plate_half_m() as f32,
+            cells: m.cells,
+            cell_table,
+            cell_rows: CellRows::new(cell_table, side, ALBEDO_WHITE as f32, ALBEDO_BLACK as f32),
+            cell_per_m,
+            half_marker: 0.5 * m.size_m as f32,
+            // Footprint in cells: the width of the box filter over the cell grid.
+            inv_wu: 1.0 / (footprint.0 as f32 * cell_per_m).max(1e-6),
+            inv_wv: 1.0 / (footprint.1 as f32 * cell_per_m).max(1e-6),
+            albedo_back: scene.plate_back_albedo() as f32,
+            texel_per_m,
+            caustics,
+            lit,
+            plate_caustics,
+            isa,
+        }
+    }
 }
 
 impl PixelConsts<'_> {
@@ -667,11 +712,7 @@ impl FastRenderer {
             e_per_unit,
             tables,
         } = *input;
-        self.frame_id = self.frame_id.wrapping_add(1);
-        if self.frame_id == u32::MAX {
-            self.stamp.fill(u32::MAX - 1);
-            self.frame_id = 0;
-        }
+        self.next_frame();
         let (geo, forms) = frame_planes(scene, t_wc);
         let caustics = CausticFrame::new(scene, time_s);
         // Rock and both webs at this frame's drifts in one texture (a few tenths of a
@@ -681,14 +722,6 @@ impl FastRenderer {
         if caustics.on {
             lit.build(&scene.rock, &scene.caustic, caustics.shift);
         }
-        let rock_fold = if caustics.on {
-            RockFold::caustic(caustics.strength, lit.caustic_offset, lit.caustic_scale)
-        } else {
-            RockFold::Plain {
-                scale: scene.rock.scale,
-                offset: scene.rock.offset,
-            }
-        };
         let ctx = FrameCtx {
             scene,
             t_wc,
@@ -697,161 +730,149 @@ impl FastRenderer {
             forms,
             e_per_unit,
             light_base: light_base(model, scene, t_wc, lamps),
-            rock_fold,
+            rock_fold: rock_fold(scene, &caustics, &lit),
         };
-        let footprint = plate_footprint(model, scene, t_wc, &forms[PLATE]);
-        let m = scene.marker();
-        let cell_per_m = m.cells as f32 / m.size_m as f32;
         // The cell table, bordered by the white plate (refilled each frame: the scene is
         // the caller's; no allocation once its size is reached).
         let mut cell_table = std::mem::take(&mut self.cell_table);
-        let side = m.cells + 2;
-        cell_table.clear();
-        cell_table.extend((0..side * side).map(|k| {
-            let (ci, cj) = ((k % side) as isize - 1, (k / side) as isize - 1);
-            let inside = ci >= 0 && cj >= 0 && (ci as usize) < m.cells && (cj as usize) < m.cells;
-            let white = !inside
-                || m.white
-                    .get(cj as usize * m.cells + ci as usize)
-                    .copied()
-                    .unwrap_or(true);
-            if white {
-                ALBEDO_WHITE as f32
-            } else {
-                ALBEDO_BLACK as f32
-            }
-        }));
-        let texel_per_m = (1.0 / scene.background.texel_m) as f32;
-        let plate_caustics = caustics.on.then_some(PlateCaustics {
-            tex: &lit,
-            strength: caustics.strength,
-            texels_per_m: texel_per_m,
-        });
-        let pc = PixelConsts {
-            scene,
-            plate_front: geo[PLATE].glossy,
-            half: scene.plate_half_m() as f32,
-            cells: m.cells,
-            cell_table: &cell_table,
-            cell_rows: CellRows::new(&cell_table, side, ALBEDO_WHITE as f32, ALBEDO_BLACK as f32),
-            cell_per_m,
-            half_marker: 0.5 * m.size_m as f32,
-            // Footprint in cells: the width of the box filter over the cell grid.
-            inv_wu: 1.0 / (footprint.0 as f32 * cell_per_m).max(1e-6),
-            inv_wv: 1.0 / (footprint.1 as f32 * cell_per_m).max(1e-6),
-            albedo_back: scene.plate_back_albedo() as f32,
-            texel_per_m,
-            caustics,
-            lit: &lit,
-            plate_caustics,
-            isa: self.isa,
-        };
-        let rock = &scene.rock;
-        let sensor = SensorRow {
-            read_var: tables.read_var_e2,
-            per_s: tables.lut_per_s,
-            top: (RESPONSE_LUT_LEN - 1) as f32,
-            lut: &tables.response_lut,
-            linear: tables.linear,
-        };
-        let isa = self.isa;
+        fill_cell_table(&mut cell_table, scene.marker());
+        let pc = PixelConsts::new(model, &ctx, caustics, &lit, &cell_table, self.isa);
+        let sensor = sensor_row(tables);
         let valid = [forms[PLATE].valid, forms[WALL].valid, forms[SEABED].valid];
         let surf_of_mask: [usize; 256] = std::array::from_fn(|m| surface_of_mask(m as u8, valid));
-
-        let (w, h, nx) = (self.width, self.height, self.nx);
+        let (w, h) = (self.width, self.height);
         for (py, row) in out.data.chunks_exact_mut(w).enumerate().take(h) {
-            let j = py / GRID;
-            if py == 0 || j != (py - 1) / GRID {
-                // A new cell row: every cached cell field is stale.
-                self.cell_id = self.cell_id.wrapping_add(1);
-                if self.cell_id == u32::MAX {
-                    self.cell_stamp.fill(u32::MAX - 1);
-                    self.cell_id = 0;
-                }
-                self.cell_range = [(1, 0); NSURF];
-                self.cell_row_forms(&ctx.forms, j);
-            }
-            let fy = (py - j * GRID) as f32 * (1.0 / GRID as f32);
-            self.row_nodes(&ctx, &pc, fy);
-            let mut row_mean = std::mem::take(&mut self.row_mean);
-            let spans = nx - 1;
-            let mut i = 0;
-            while i < spans && i * GRID < w {
-                let x0 = i * GRID;
-                let mk = self.row_mask[i];
-                if mk != self.row_mask[i + 1] {
-                    let x1 = (x0 + GRID).min(w);
-                    self.mixed_span(&ctx, &pc, i, j, fy, &mut row_mean[x0..x1]);
-                    i += 1;
-                    continue;
-                }
-                // A run of spans whose nodes all agree on every surface test: one
-                // surface over the whole run, shaded by the packed loops.
-                let i1 = run_end(&self.row_mask, i + 1, spans.min(w.div_ceil(GRID)));
-                let surf = surf_of_mask[mk as usize];
-                let p = surf.wrapping_sub(WALL);
-                let affine = p < 2 && self.row_affine[p * nx + i..=p * nx + i1].iter().all(|&a| a);
-                let plate = surf == PLATE && pc.plate_front;
-                if surf == WATER || affine || plate {
-                    self.ensure_cells(&ctx, surf, i, i1, j);
-                }
-                let out = &mut row_mean[x0..(i1 * GRID).min(w)];
-                if plate {
-                    // Inside the plate's square on every node: no surface border to cut.
-                    for (k, o) in (i..i1).zip(out.chunks_mut(GRID)) {
-                        let light = self.span_fields(&ctx, k, j, fy, PLATE);
-                        plate_run(isa, o, 0, &pc.plate_front(self.span_forms(PLATE, k), light));
-                    }
-                } else if surf == WATER {
-                    let f = &self.cell_fields[surf * nx + i..=surf * nx + i1];
-                    for (s, o) in out.chunks_mut(GRID).enumerate() {
-                        let (a, b) = (f[s][2] + f[s][5] * fy, f[s + 1][2] + f[s + 1][5] * fy);
-                        ramp_run(
-                            o,
-                            Ramp {
-                                at: a,
-                                step: (b - a) * (1.0 / GRID as f32),
-                            },
-                        );
-                    }
-                } else if affine {
-                    let wk = |k: usize| {
-                        let base = (p * WALKS + k) * nx;
-                        &self.row_walks[base + i..=base + i1]
-                    };
-                    let c = pc.caustics.on.then_some(pc.lit);
-                    let nodes = RockNodes {
-                        cells: &self.rock_cells[p * nx + i..=p * nx + i1],
-                        fy,
-                        walks: [wk(0), wk(1)],
-                    };
-                    rock_nodes_run(isa, out, 0, &nodes, rock, c);
-                } else {
-                    for k in i..i1 {
-                        let x1 = ((k + 1) * GRID).min(w);
-                        self.mixed_span(&ctx, &pc, k, j, fy, &mut row_mean[k * GRID..x1]);
-                    }
-                }
-                i = i1;
-            }
+            self.shade_row(&ctx, &pc, &surf_of_mask, py);
             // The sensor: windows of the two noise fields at random offsets per row.
             let noise = if tables.noise {
-                let bits = rng.next_u64();
-                fn window(field: &[i16], r: u64, w: usize) -> &[i16] {
-                    let room = field.len().saturating_sub(w) + 1;
-                    let off = r as usize % room;
-                    &field[off..(off + w).min(field.len())]
-                }
-                let [a, b] = &tables.noise_fields;
-                [window(a, bits >> 32, w), window(b, bits & 0xFFFF_FFFF, w)]
+                noise_windows(&tables.noise_fields, rng.next_u64(), w)
             } else {
                 [&self.zero_noise[..], &self.zero_noise[..]]
             };
-            sensor_run(isa, row, &row_mean, noise, &sensor);
-            self.row_mean = row_mean;
+            sensor_run(self.isa, row, &self.row_mean, noise, &sensor);
         }
         self.cell_table = cell_table;
         self.lit = lit;
+    }
+
+    /// A new frame id for the light-field stamps (they restart before the id wraps).
+    #[inline(always)]
+    fn next_frame(&mut self) {
+        self.frame_id = self.frame_id.wrapping_add(1);
+        if self.frame_id == u32::MAX {
+            self.stamp.fill(u32::MAX - 1);
+            self.frame_id = 0;
+        }
+    }
+
+    /// A new cell row `j`: every cached cell field is stale.
+    #[inline(always)]
+    fn start_cell_row(&mut self, ctx: &FrameCtx, j: usize) {
+        self.cell_id = self.cell_id.wrapping_add(1);
+        if self.cell_id == u32::MAX {
+            self.cell_stamp.fill(u32::MAX - 1);
+            self.cell_id = 0;
+        }
+        self.cell_range = [(1, 0); NSURF];
+        self.cell_row_forms(&ctx.forms, j);
+    }
+
+    /// Mean electrons of image row `py` into `row_mean`: the row's nodes, then its spans,
+    /// a run of spans on one surface at a time.
+    #[inline(always)]
+    fn shade_row(
+        &mut self,
+        ctx: &FrameCtx,
+        pc: &PixelConsts,
+        surf_of_mask: &[usize; 256],
+        py: usize,
+    ) {
+        let j = py / GRID;
+        if py == 0 || j != (py - 1) / GRID {
+            self.start_cell_row(ctx, j);
+        }
+        let fy = (py - j * GRID) as f32 * (1.0 / GRID as f32);
+        self.row_nodes(ctx, pc, fy);
+        let mut row_mean = std::mem::take(&mut self.row_mean);
+        let (w, nx) = (self.width, self.nx);
+        let spans = nx - 1;
+        let mut i = 0;
+        while i < spans && i * GRID < w {
+            let x0 = i * GRID;
+            let mk = self.row_mask[i];
+            if mk != self.row_mask[i + 1] {
+                let x1 = (x0 + GRID).min(w);
+                self.mixed_span(ctx, pc, i, j, fy, &mut row_mean[x0..x1]);
+                i += 1;
+                continue;
+            }
+            // A run of spans whose nodes all agree on every surface test: one
+            // surface over the whole run, shaded by the packed loops.
+            let i1 = run_end(&self.row_mask, i + 1, spans.min(w.div_ceil(GRID)));
+            let surf = surf_of_mask[mk as usize];
+            self.shade_run(ctx, pc, surf, (i, i1), (j, fy), &mut row_mean);
+            i = i1;
+        }
+        self.row_mean = row_mean;
+    }
+
+    /// Spans `i..i1` of the current row, all on surface `surf`, into `row_mean` (the
+    /// whole row); `(j, fy)` is the cell row and the row's weight in it.
+    #[inline(always)]
+    fn shade_run(
+        &mut self,
+        ctx: &FrameCtx,
+        pc: &PixelConsts,
+        surf: usize,
+        (i, i1): (usize, usize),
+        (j, fy): (usize, f32),
+        row_mean: &mut [f32],
+    ) {
+        let (w, nx, isa) = (self.width, self.nx, self.isa);
+        let x0 = i * GRID;
+        let p = surf.wrapping_sub(WALL);
+        let affine = p < 2 && self.row_affine[p * nx + i..=p * nx + i1].iter().all(|&a| a);
+        let plate = surf == PLATE && pc.plate_front;
+        if surf == WATER || affine || plate {
+            self.ensure_cells(ctx, surf, i, i1, j);
+        }
+        let out = &mut row_mean[x0..(i1 * GRID).min(w)];
+        if plate {
+            // Inside the plate's square on every node: no surface border to cut.
+            for (k, o) in (i..i1).zip(out.chunks_mut(GRID)) {
+                let light = self.span_fields(ctx, k, j, fy, PLATE);
+                plate_run(isa, o, 0, &pc.plate_front(self.span_forms(PLATE, k), light));
+            }
+        } else if surf == WATER {
+            let f = &self.cell_fields[surf * nx + i..=surf * nx + i1];
+            for (s, o) in out.chunks_mut(GRID).enumerate() {
+                let (a, b) = (f[s][2] + f[s][5] * fy, f[s + 1][2] + f[s + 1][5] * fy);
+                ramp_run(
+                    o,
+                    Ramp {
+                        at: a,
+                        step: (b - a) * (1.0 / GRID as f32),
+                    },
+                );
+            }
+        } else if affine {
+            let wk = |k: usize| {
+                let base = (p * WALKS + k) * nx;
+                &self.row_walks[base + i..=base + i1]
+            };
+            let c = pc.caustics.on.then_some(pc.lit);
+            let nodes = RockNodes {
+                cells: &self.rock_cells[p * nx + i..=p * nx + i1],
+                fy,
+                walks: [wk(0), wk(1)],
+            };
+            rock_nodes_run(isa, out, 0, &nodes, &ctx.scene.rock, c);
+        } else {
+            for k in i..i1 {
+                let x1 = ((k + 1) * GRID).min(w);
+                self.mixed_span(ctx, pc, k, j, fy, &mut row_mean[k * GRID..x1]);
+            }
+        }
     }
 
     /// The linear forms (D, Nu, Nv) of plane `k` at the left end of span `i` of the
@@ -982,6 +1003,66 @@ impl FastRenderer {
             start = end;
         }
     }
+}
+
+/// How the rock planes' fields fold into the rock loops this frame.
+#[inline(always)]
+fn rock_fold(scene: &Scene, caustics: &CausticFrame, lit: &LitTexture) -> RockFold {
+    if caustics.on {
+        RockFold::caustic(caustics.strength, lit.caustic_offset, lit.caustic_scale)
+    } else {
+        RockFold::Plain {
+            scale: scene.rock.scale,
+            offset: scene.rock.offset,
+        }
+    }
+}
+
+/// The marker's cell albedos with a one-cell white border (the plate), row-major,
+/// `(cells + 2)^2` entries; no allocation once `table` has held that many.
+#[inline(always)]
+fn fill_cell_table(table: &mut Vec<f32>, m: &MarkerSpec) {
+    let side = m.cells + 2;
+    table.clear();
+    table.extend((0..side * side).map(|k| {
+        let (ci, cj) = ((k % side) as isize - 1, (k / side) as isize - 1);
+        let inside = ci >= 0 && cj >= 0 && (ci as usize) < m.cells && (cj as usize) < m.cells;
+        let white = !inside
+            || m.white
+                .get(cj as usize * m.cells + ci as usize)
+                .copied()
+                .unwrap_or(true);
+        if white {
+            ALBEDO_WHITE as f32
+        } else {
+            ALBEDO_BLACK as f32
+        }
+    }));
+}
+
+/// The sensor's per-frame constants for `sensor_run`.
+#[inline(always)]
+fn sensor_row(tables: &SensorTables) -> SensorRow<'_> {
+    SensorRow {
+        read_var: tables.read_var_e2,
+        per_s: tables.lut_per_s,
+        top: (RESPONSE_LUT_LEN - 1) as f32,
+        lut: &tables.response_lut,
+        linear: tables.linear,
+    }
+}
+
+/// A row's windows of the two noise fields, `w` long, at offsets drawn from `bits`
+/// (high and low half).
+#[inline(always)]
+fn noise_windows(fields: &[Vec<i16>; 2], bits: u64, w: usize) -> [&[i16]; 2] {
+    fn window(field: &[i16], r: u64, w: usize) -> &[i16] {
+        let room = field.len().saturating_sub(w) + 1;
+        let off = r as usize % room;
+        &field[off..(off + w).min(field.len())]
+    }
+    let [a, b] = fields;
+    [window(a, bits >> 32, w), window(b, bits & 0xFFFF_FFFF, w)]
 }
 
 /// The first node `k` in `from..end` where `mask[k + 1] != mask[k]`, else `end` (the

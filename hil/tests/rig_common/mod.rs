@@ -1,6 +1,8 @@
 //! Shared helpers of the vehicle-side integration tests: a small HIL setup and a
 //! MAVLink client written against the published message set (loopback only, every
 //! receive bounded by a deadline).
+
+#![allow(clippy::unwrap_used)] // Tests fail loudly on a broken setup, by design.
 #![allow(dead_code)]
 
 use std::net::{SocketAddr, UdpSocket};

@@ -1,5 +1,7 @@
 //! Shared helpers of the integration tests: the test camera, marker poses and noisy
 //! renders through the crate's reference renderer.
+
+#![allow(clippy::unwrap_used)] // Tests fail loudly on a broken setup, by design.
 #![allow(dead_code)]
 
 use markhold_exposure::Frame;
