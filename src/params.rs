@@ -443,6 +443,7 @@ mod tests {
     const POOL: &str = include_str!("../params/pool.toml");
 
     /// Pool with `line` inserted after the `[camera]` header, and the error of parsing it.
+    #[cfg(feature = "sim")]
     fn camera_error(line: &str) -> ParamsError {
         let text = POOL.replacen("[camera]\n", &format!("[camera]\n{line}\n"), 1);
         match parse(Path::new("/sites/pool.toml"), &text) {
@@ -451,6 +452,7 @@ mod tests {
         }
     }
 
+    #[cfg(feature = "sim")]
     fn camera_line() -> usize {
         POOL.lines()
             .position(|l| l == "[camera]")
