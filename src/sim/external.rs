@@ -15,7 +15,7 @@ use markhold_hil::camera::UnderwaterCamera;
 use markhold_hil::scene::Scene;
 use nalgebra::{Isometry3, Translation3, UnitQuaternion};
 
-use super::hil::{camera_model, loop_start, marker_spec, start_offset, HilOptions};
+use super::hil::{camera_model, lighting_of, loop_start, marker_spec, start_offset, HilOptions};
 use super::summary::{RunStats, Summary};
 use crate::params::LoadedSite;
 use crate::pipeline::{Observers, Pipeline};
@@ -170,10 +170,7 @@ pub fn run_external(
     let t_world_marker = t_world_vehicle0 * offset.inverse() * t_marker_station.inverse();
     let start = loop_start(site, opts);
     let method = start.method;
-    let mut lighting = s.lighting.clone();
-    if let Some(l) = opts.lighting {
-        lighting.scenario = l;
-    }
+    let lighting = lighting_of(site, opts);
     let scenario = lighting.scenario;
     let limits = site.limits();
     let initial_us = start.initial_exposure_us;

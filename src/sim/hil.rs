@@ -9,7 +9,7 @@ use anyhow::Context;
 use markhold_autopilot::{ArduSubMode, VehicleLink};
 use markhold_exposure::{Camera, ExposureMethod};
 use markhold_hil::camera::{CameraModel, RenderLoops};
-use markhold_hil::scene::{LightingScenario, MarkerSpec};
+use markhold_hil::scene::{LightingConfig, LightingScenario, MarkerSpec};
 use markhold_hil::{EndpointConfig, HilRig, HilSetup, Truth, VehicleMotion};
 use markhold_vision::marker_bitmap;
 use nalgebra::{Isometry3, Translation3, UnitQuaternion, Vector3};
@@ -150,6 +150,15 @@ pub fn loop_start(site: &LoadedSite, opts: &HilOptions) -> LoopStart {
     }
 }
 
+/// The site's lighting, with the command line's scenario where given.
+pub fn lighting_of(site: &LoadedSite, opts: &HilOptions) -> LightingConfig {
+    let mut lighting = site.site.lighting.clone();
+    if let Some(l) = opts.lighting {
+        lighting.scenario = l;
+    }
+    lighting
+}
+
 /// Open `--record FILE` for a HIL run with `opts`. It waits for the writer when the
 /// queue is full: simulated time waits too, and a lossless recording keeps replay exact.
 pub fn open_recorder(
@@ -186,10 +195,7 @@ impl HilRun {
         let s = &site.site;
         let start = loop_start(site, opts);
         let method = start.method;
-        let mut lighting_cfg = s.lighting.clone();
-        if let Some(l) = opts.lighting {
-            lighting_cfg.scenario = l;
-        }
+        let lighting_cfg = lighting_of(site, opts);
         let lighting = lighting_cfg.scenario;
         let limits = site.limits();
         let initial_us = start.initial_exposure_us;
