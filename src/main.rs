@@ -136,15 +136,29 @@ fn run(cli: Cli) -> anyhow::Result<()> {
 
 fn params_check(file: &Path) -> anyhow::Result<()> {
     let site = params::load(file)?;
-    let text = toml::to_string_pretty(&site.site).context("printing the effective values")?;
+    let text =
+        toml::to_string_pretty(&site.effective()).context("printing the effective values")?;
     println!(
-        "# {}: valid. Effective values, defaults filled in:\n",
+        "# {}: valid. Effective values, defaults filled in:",
         file.display()
     );
-    if let Some(note) = params::SIM_SECTIONS_NOTE {
-        println!("# {note}\n");
+    match &site.site.camera.calibration_file {
+        Some(calib) => println!(
+            "# camera intrinsics and distortion from {} ({} coefficients)",
+            calib.display(),
+            site.calibration.dist.len()
+        ),
+        None => println!(
+            "# camera intrinsics from [camera] (defaults: centred, 62-degree field of view)"
+        ),
     }
-    println!("{text}");
+    if site.calibration.dist.len() > 5 {
+        println!("# full distortion: {:?}", site.calibration.dist);
+    }
+    if let Some(note) = params::SIM_SECTIONS_NOTE {
+        println!("# {note}");
+    }
+    println!("\n{text}");
     Ok(())
 }
 

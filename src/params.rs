@@ -52,10 +52,11 @@ pub enum ParamsError {
         file: PathBuf,
         source: std::io::Error,
     },
-    #[error("{file}:{line}: {key}{message}")]
+    #[error("{file}:{line}:{column}: {key}{message}")]
     Parse {
         file: PathBuf,
         line: usize,
+        column: usize,
         /// `section.key = value: ` of the offending line, when the error points at one.
         key: String,
         message: String,
@@ -63,10 +64,11 @@ pub enum ParamsError {
     /// A value out of range, located in its file.
     #[error(transparent)]
     Config(#[from] ConfigError),
-    #[error("{file}:{line}: {key} = {value}: {reason}")]
+    #[error("{file}:{line}:{column}: {key} = {value}: {reason}")]
     ReferencedFile {
         file: PathBuf,
         line: usize,
+        column: usize,
         key: String,
         value: String,
         reason: String,
@@ -191,6 +193,24 @@ impl LoadedSite {
     pub fn t_world_marker(&self) -> Isometry3<f64> {
         t_world_marker(self.site.site.depth_m)
     }
+
+    /// The site as a run uses it: defaults filled in, and the camera's intrinsics and
+    /// distortion those of the calibration in use (the calibration file's when there is
+    /// one, else the inline values or their defaults). Distortion beyond the five
+    /// coefficients a site file holds is in [`LoadedSite::calibration`].
+    pub fn effective(&self) -> Site {
+        let mut s = self.site.clone();
+        let c = &self.calibration;
+        s.camera.fx_px = Some(c.fx);
+        s.camera.fy_px = Some(c.fy);
+        s.camera.cx_px = Some(c.cx);
+        s.camera.cy_px = Some(c.cy);
+        s.camera.distortion = [0.0; 5];
+        for (d, v) in s.camera.distortion.iter_mut().zip(&c.dist) {
+            *d = *v;
+        }
+        s
+    }
 }
 
 pub fn t_world_marker(depth_m: f64) -> Isometry3<f64> {
@@ -213,6 +233,13 @@ pub fn t_vehicle_cam(cam: &CameraSection) -> Isometry3<f64> {
 }
 
 /// The site text's keys with their spans, for messages that point at a line.
+/// A place in the site file.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+struct Position {
+    line: usize,
+    column: usize,
+}
+
 struct Located<'t> {
     text: &'t str,
     doc: DeTable<'t>,
@@ -228,21 +255,23 @@ impl<'t> Located<'t> {
         }
     }
 
-    fn line_of_offset(&self, offset: usize) -> usize {
+    /// Line and column (1-based; the column in characters) of a byte offset.
+    fn position_of_offset(&self, offset: usize) -> Position {
         let end = offset.min(self.text.len());
-        self.text.as_bytes()[..end]
-            .iter()
-            .filter(|&&b| b == b'\n')
-            .count()
-            + 1
+        let before = self.text.get(..end).unwrap_or(self.text);
+        let line_start = before.rfind('\n').map_or(0, |i| i + 1);
+        Position {
+            line: before.matches('\n').count() + 1,
+            column: before[line_start..].chars().count() + 1,
+        }
     }
 
-    /// Line (1-based) of a dotted key such as `camera.sensor.read_noise_e` (also inside
-    /// an inline table) or `lighting.vehicle_lamps[1].direction`. A key the file leaves
-    /// out is reported at its nearest table that the file has, else at line 1.
-    fn line_of_key(&self, dotted: &str) -> usize {
+    /// Where a dotted key such as `camera.sensor.read_noise_e` (also inside an inline
+    /// table) or `lighting.vehicle_lamps[1].direction` has its value. A key the file
+    /// leaves out is reported at the nearest table that the file has, else at 1:1.
+    fn position_of_key(&self, dotted: &str) -> Position {
         let mut table = &self.doc;
-        let mut line = 1;
+        let mut at = Position { line: 1, column: 1 };
         for segment in dotted.split('.') {
             let (name, index) = match segment.split_once('[') {
                 Some((n, i)) => (n, i.trim_end_matches(']').parse::<usize>().ok()),
@@ -251,7 +280,7 @@ impl<'t> Located<'t> {
             let Some((key, value)) = table.iter().find(|(k, _)| k.get_ref() == name) else {
                 break;
             };
-            line = self.line_of_offset(key.span().start);
+            at = self.position_of_offset(key.span().start);
             let value = match (value.get_ref(), index) {
                 (DeValue::Array(items), Some(i)) => match items.get(i) {
                     Some(item) => item,
@@ -261,10 +290,18 @@ impl<'t> Located<'t> {
             };
             match value.get_ref() {
                 DeValue::Table(t) => table = t,
-                _ => break,
+                _ => {
+                    at = self.position_of_offset(value.span().start);
+                    break;
+                }
             }
         }
-        line
+        at
+    }
+
+    #[cfg(test)]
+    fn line_of_key(&self, dotted: &str) -> usize {
+        self.position_of_key(dotted).line
     }
 
     /// `section.key = value: ` of the innermost non-table value at `offset`, for parse
@@ -307,8 +344,8 @@ impl<'t> Located<'t> {
 
 /// The crate error of a section, located in the site file.
 fn located(path: &Path, at: &Located<'_>, e: ConfigError) -> ParamsError {
-    let line = at.line_of_key(&e.key);
-    ParamsError::Config(e.at(path, line))
+    let p = at.position_of_key(&e.key);
+    ParamsError::Config(e.at_column(path, p.line, p.column))
 }
 
 /// Read, parse and validate a site file.
@@ -326,9 +363,11 @@ pub fn parse(path: &Path, text: &str) -> Result<LoadedSite, ParamsError> {
     let at = Located::new(text);
     let mut site = parsed.map_err(|e| {
         let offset = e.span().map(|s| s.start);
+        let p = at.position_of_offset(offset.unwrap_or(0));
         ParamsError::Parse {
             file: path.to_path_buf(),
-            line: offset.map_or(1, |o| at.line_of_offset(o)),
+            line: p.line,
+            column: p.column,
             key: offset.and_then(|o| at.key_at(o)).unwrap_or_default(),
             message: e.message().trim().to_string(),
         }
@@ -380,9 +419,11 @@ fn calibration_of(
     cam: &CameraSection,
 ) -> Result<CameraCalibration, ParamsError> {
     if let Some(file) = &cam.calibration_file {
+        let p = at.position_of_key("camera.calibration_file");
         let referenced = |reason: String| ParamsError::ReferencedFile {
             file: path.to_path_buf(),
-            line: at.line_of_key("camera.calibration_file"),
+            line: p.line,
+            column: p.column,
             key: "camera.calibration_file".into(),
             value: file.display().to_string(),
             reason,
@@ -472,9 +513,10 @@ mod tests {
         assert_eq!(
             e.to_string(),
             format!(
-                "/sites/pool.toml:{}: camera.sensor.read_noise_e = -1: expected a noise in \
+                "/sites/pool.toml:{}:{}: camera.sensor.read_noise_e = -1: expected a noise in \
                  [0, 1000] electrons",
-                camera_line()
+                camera_line(),
+                "sensor = { read_noise_e = ".len() + 1
             )
         );
     }

@@ -149,3 +149,73 @@ fn missing_file() {
     assert_eq!(code, 78, "{err}");
     assert!(err.contains("/nonexistent/dir/site.toml"), "{err}");
 }
+
+/// `params check` prints what a run uses: with a calibration file, its intrinsics and
+/// distortion, not the inline ones or their defaults.
+#[test]
+fn effective_values_come_from_the_calibration_file() {
+    let dir = std::env::temp_dir().join(format!("markhold-params-cal-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    std::fs::write(
+        dir.join("ost.yaml"),
+        "image_width: 1440\nimage_height: 1080\ncamera_name: cam\ncamera_matrix:\n  rows: 3\n  \
+         cols: 3\n  data: [1195.2, 0, 716.5, 0, 1197.9, 541.25, 0, 0, 1]\n\
+         distortion_model: plumb_bob\ndistortion_coefficients:\n  rows: 1\n  cols: 5\n  \
+         data: [-0.21, 0.07, 0.001, -0.002, 0.0]\n",
+    )
+    .unwrap();
+    let pool = std::fs::read_to_string(repo("params/pool.toml")).unwrap();
+    let site = dir.join("site.toml");
+    std::fs::write(
+        &site,
+        pool.replacen(
+            "[camera]\n",
+            "[camera]\ncalibration_file = \"ost.yaml\"\n",
+            1,
+        ),
+    )
+    .unwrap();
+    let (code, out, err) = check(&site);
+    assert_eq!(code, 0, "{err}");
+    for line in [
+        "fx_px = 1195.2",
+        "fy_px = 1197.9",
+        "cx_px = 716.5",
+        "cy_px = 541.25",
+        "-0.21,",
+        "ost.yaml (5 coefficients)",
+    ] {
+        assert!(out.contains(line), "no `{line}` in\n{out}");
+    }
+    assert!(!out.contains("fx_px = 1200.0"), "{out}");
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// Errors point at the value's line and column, also inside an inline table.
+#[test]
+fn an_error_names_line_and_column_inside_an_inline_table() {
+    let dir = std::env::temp_dir().join(format!("markhold-params-col-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let pool = std::fs::read_to_string(repo("params/pool.toml")).unwrap();
+    let text = pool.replacen(
+        "[camera]\n",
+        "[camera]\nsensor = { full_well_e = 9000.0, read_noise_e = -1.0 }\n",
+        1,
+    );
+    let line = text
+        .lines()
+        .position(|l| l.starts_with("sensor = {"))
+        .unwrap()
+        + 1;
+    let column = "sensor = { full_well_e = 9000.0, read_noise_e = ".len() + 1;
+    let path = dir.join("inline.toml");
+    std::fs::write(&path, &text).unwrap();
+    let (code, _, err) = check(&path);
+    assert_eq!(code, 78, "{err}");
+    let place = format!(
+        "{}:{line}:{column}: camera.sensor.read_noise_e = -1",
+        path.display()
+    );
+    assert!(err.contains(&place), "expected `{place}` in {err}");
+    let _ = std::fs::remove_dir_all(&dir);
+}

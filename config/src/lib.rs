@@ -34,12 +34,12 @@
 
 use std::fmt;
 use std::ops::{Bound, RangeBounds};
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 
 /// A site-file value the code cannot use: the dotted key, the value as written, what was
 /// expected, and (filled in by the site loader) the file and line.
 #[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
-#[error("{}{key} = {value}: expected {expected}", place(.file, .line))]
+#[error("{}{key} = {value}: expected {expected}", place(.file, .line, .column))]
 pub struct ConfigError {
     /// Dotted key, e.g. `exposure.aaec.learning_rate`.
     pub key: String,
@@ -47,17 +47,20 @@ pub struct ConfigError {
     pub value: String,
     /// What is expected instead.
     pub expected: String,
-    /// The site file, when the error came from one.
-    pub file: Option<PathBuf>,
-    /// The 1-based line of the key in `file`.
+    /// The site file, when the error came from one (boxed: the error stays small).
+    pub file: Option<Box<Path>>,
+    /// The 1-based line of the value (or of its table, when the file leaves it out).
     pub line: Option<usize>,
+    /// The 1-based column (in characters) on `line` (32 bits keep the error small).
+    pub column: Option<u32>,
 }
 
-fn place(file: &Option<PathBuf>, line: &Option<usize>) -> String {
-    match (file, line) {
-        (Some(f), Some(l)) => format!("{}:{l}: ", f.display()),
-        (Some(f), None) => format!("{}: ", f.display()),
-        (None, _) => String::new(),
+fn place(file: &Option<Box<Path>>, line: &Option<usize>, column: &Option<u32>) -> String {
+    match (file, line, column) {
+        (Some(f), Some(l), Some(c)) => format!("{}:{l}:{c}: ", f.display()),
+        (Some(f), Some(l), None) => format!("{}:{l}: ", f.display()),
+        (Some(f), None, _) => format!("{}: ", f.display()),
+        (None, _, _) => String::new(),
     }
 }
 
@@ -73,14 +76,22 @@ impl ConfigError {
             expected: expected.into(),
             file: None,
             line: None,
+            column: None,
         }
     }
 
     /// The same error located in `file` at `line`.
     pub fn at(mut self, file: impl Into<PathBuf>, line: usize) -> Self {
-        self.file = Some(file.into());
+        self.file = Some(file.into().into_boxed_path());
         self.line = Some(line);
         self
+    }
+
+    /// The same error located in `file` at `line` and `column`.
+    pub fn at_column(self, file: impl Into<PathBuf>, line: usize, column: usize) -> Self {
+        let mut e = self.at(file, line);
+        e.column = Some(u32::try_from(column).unwrap_or(u32::MAX));
+        e
     }
 }
 
