@@ -85,6 +85,16 @@ struct RunArgs {
     /// Write a JSON report (frames, detections, why it stopped, recording losses).
     #[arg(long)]
     summary: Option<PathBuf>,
+    /// Write one CSV row per frame (time, exposure, metric, detection, pose, effort).
+    #[arg(long, value_name = "FILE.csv")]
+    trace: Option<PathBuf>,
+    /// Save the camera's frames into this folder (PNG and frames.csv with each frame's
+    /// stamp and exposure): `--camera frames:DIR` plays it back.
+    #[arg(long, value_name = "DIR")]
+    record_frames: Option<PathBuf>,
+    /// With --record-frames: save every n-th frame.
+    #[arg(long, default_value_t = 1)]
+    record_frames_every: u64,
 }
 
 #[derive(clap::Args)]
@@ -205,6 +215,9 @@ fn run_cmd(args: RunArgs) -> anyhow::Result<()> {
         arm: args.arm,
         max_seconds: args.seconds,
         pace_frames: !args.no_pace,
+        trace: args.trace.clone(),
+        frames_dir: args.record_frames.clone(),
+        frames_every: args.record_frames_every.max(1),
     };
     let report = markhold::field::run::run_live(&site, &opts, &stop)?;
     println!(

@@ -433,3 +433,75 @@ fn sigterm_with_disarm_on_exit_sends_neutral_then_disarms() {
     let last = cmds.last().unwrap();
     assert!(last.directive.starts_with("shutdown"), "{last:?}");
 }
+
+/// Per frame of a `--trace` CSV: (seq, detected).
+fn detections(trace: &Path) -> Vec<(u64, bool)> {
+    std::fs::read_to_string(trace)
+        .unwrap()
+        .lines()
+        .skip(1)
+        .map(|l| {
+            let f: Vec<&str> = l.split(',').collect();
+            (f[0].parse().unwrap(), f[6] == "1")
+        })
+        .collect()
+}
+
+/// One recorded-frames format: `hil --snapshot` writes what `run --camera frames:` reads,
+/// the run sees the same detections on it, and `run --record-frames` writes the same
+/// folder again.
+#[test]
+fn a_snapshot_plays_back_as_a_camera_with_the_same_detections() {
+    let snap = tmp("snap");
+    let again = tmp("again");
+    let (hil_trace, run_trace) = (tmp("hil.csv"), tmp("run.csv"));
+    for d in [&snap, &again] {
+        let _ = std::fs::remove_dir_all(d);
+    }
+    let o = markhold()
+        .args(["hil", "--quiet", "--seconds", "2", "--site"])
+        .arg(site_path())
+        .args(["--snapshot-every", "1", "--snapshot"])
+        .arg(&snap)
+        .arg("--trace")
+        .arg(&hil_trace)
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+
+    let v = vehicle();
+    let o = markhold()
+        .args(["run", "--no-pace", "--site"])
+        .arg(site_path())
+        .arg("--camera")
+        .arg(format!("frames:{}", snap.display()))
+        .arg("--link")
+        .arg(format!("udpout:{}", v.addr))
+        .arg("--trace")
+        .arg(&run_trace)
+        .arg("--record-frames")
+        .arg(&again)
+        .output()
+        .unwrap();
+    let _ = v.finish();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+
+    let (seen, replayed) = (detections(&hil_trace), detections(&run_trace));
+    assert_eq!(seen.len(), 60, "two seconds at 30 fps");
+    assert!(
+        seen.iter().filter(|d| d.1).count() > 30,
+        "the marker is seen"
+    );
+    assert_eq!(replayed, seen, "the same frames give the same detections");
+    let csv = |d: &Path| std::fs::read_to_string(d.join("frames.csv")).unwrap();
+    assert_eq!(
+        csv(&again),
+        csv(&snap),
+        "stamps and exposures written again"
+    );
+    for name in ["frame_000000.png", "frame_000059.png"] {
+        let a = std::fs::read(snap.join(name)).unwrap();
+        let b = std::fs::read(again.join(name)).unwrap();
+        assert!(a == b, "{name}: the pixels are written again as they were");
+    }
+}

@@ -13,6 +13,7 @@ use serde::Serialize;
 
 use super::camera::{open_camera, CameraUrl, LiveCamera};
 use super::signal::ShutdownFlag;
+use crate::observe::{Snapshots, TraceWriter};
 use crate::params::LoadedSite;
 use crate::pipeline::{LoopStart, Observers, Pipeline};
 use crate::record::{RecordConfig, RecordStats, RecordStatsHandle, Recorder, RunInfo};
@@ -34,6 +35,12 @@ pub struct RunOptions {
     pub max_seconds: Option<f64>,
     /// Play a recorded-frames camera at the pace of its stamps (a real camera paces itself).
     pub pace_frames: bool,
+    /// Write one CSV row per frame here.
+    pub trace: Option<PathBuf>,
+    /// Save every `frames_every`-th camera frame here as a recorded-frames folder (what
+    /// `--camera frames:DIR` plays back).
+    pub frames_dir: Option<PathBuf>,
+    pub frames_every: u64,
 }
 
 impl Default for RunOptions {
@@ -47,6 +54,9 @@ impl Default for RunOptions {
             arm: false,
             max_seconds: None,
             pace_frames: true,
+            trace: None,
+            frames_dir: None,
+            frames_every: 1,
         }
     }
 }
@@ -86,6 +96,8 @@ pub enum StartupError {
     Record { source: crate::record::RecordError },
     #[error("--foxglove: {reason}")]
     LiveView { reason: String },
+    #[error("{flag}: {reason}")]
+    Output { flag: &'static str, reason: String },
 }
 
 /// Why the loop ended.
@@ -232,10 +244,35 @@ fn observers(
         .filter(|_| opts.record.is_some())
         .map(Recorder::stats_handle);
     let mut list = Observers::new();
+    if let Err(e) = files(opts, &mut list) {
+        if let Some(r) = recorder {
+            r.abort();
+        }
+        return Err(e);
+    }
     if let Some(r) = recorder {
         list.push(r);
     }
     Ok((list, stats, foxglove_addr))
+}
+
+/// The trace and the recorded-frames folder a run asked for.
+fn files(opts: &RunOptions, list: &mut Observers) -> Result<(), StartupError> {
+    if let Some(p) = &opts.trace {
+        let t = TraceWriter::create(p).map_err(|e| StartupError::Output {
+            flag: "--trace",
+            reason: format!("{e:#}"),
+        })?;
+        list.push(t);
+    }
+    if let Some(dir) = &opts.frames_dir {
+        let s = Snapshots::create(dir, opts.frames_every).map_err(|e| StartupError::Output {
+            flag: "--record-frames",
+            reason: format!("{e:#}"),
+        })?;
+        list.push(s);
+    }
+    Ok(())
 }
 
 /// The loop of a live run: the site's start, a real link, the run's observers.
