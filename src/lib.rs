@@ -12,3 +12,4 @@ pub mod pipeline;
 pub mod record;
 #[cfg(feature = "sim")]
 pub mod sim;
+pub mod tag;

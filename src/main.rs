@@ -40,6 +40,8 @@ enum Command {
     /// report.md, results.json and plots.
     #[cfg(feature = "sim")]
     Compare(markhold::sim::compare::CompareArgs),
+    /// A printable marker at exact physical size (SVG, PDF or PNG) with its caption.
+    Tag(markhold::tag::TagArgs),
 }
 
 #[derive(Subcommand)]
@@ -141,6 +143,7 @@ fn run(cli: Cli) -> anyhow::Result<()> {
         Command::Run(args) => run_cmd(args),
         #[cfg(feature = "sim")]
         Command::Compare(args) => markhold::sim::compare::cli(args),
+        Command::Tag(args) => markhold::tag::cli(args),
     }
 }
 
