@@ -53,8 +53,10 @@ struct RunArgs {
     /// Dive-site file.
     #[arg(long)]
     site: PathBuf,
-    /// MAVLink URL of the vehicle (default: the site's [link] url, e.g. BlueOS on
-    /// udpout:192.168.2.2:14550; or serial:/dev/ttyACM0:115200).
+    /// MAVLink connection string of the vehicle, as pymavlink reads it (default: the
+    /// site's [link] url): udpout:HOST:PORT sends to (BlueOS: udpout:192.168.2.2:14550),
+    /// udpin: or udp:HOST:PORT listens, tcp:HOST:PORT connects, tcpin: accepts,
+    /// /dev/ttyACM0,115200 or serial:/dev/ttyACM0:115200 is a serial port.
     #[arg(long, value_name = "URL")]
     link: Option<String>,
     /// Camera: v4l2:/dev/videoN, genicam:<device id> (Aravis; empty: the first camera
