@@ -4,7 +4,7 @@ use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 
 use anyhow::Context;
-use clap::{Parser, Subcommand};
+use clap::{CommandFactory, Parser, Subcommand};
 use markhold::params::{self, ParamsError, EXIT_CONFIG};
 
 #[derive(Parser)]
@@ -40,6 +40,18 @@ enum Command {
     /// report.md, results.json and plots.
     #[cfg(feature = "sim")]
     Compare(markhold::sim::compare::CompareArgs),
+    /// Print a shell completion script: bash, zsh, fish, elvish or powershell.
+    Completions {
+        /// The shell to complete for.
+        shell: clap_complete::Shell,
+    },
+    /// Man pages: print markhold.1, or with --out write markhold.1 and one page per
+    /// subcommand (markhold-hil.1, ...) into DIR.
+    Man {
+        /// Folder to write the pages into (created if missing).
+        #[arg(long, value_name = "DIR")]
+        out: Option<PathBuf>,
+    },
 }
 
 #[derive(Subcommand)]
@@ -133,6 +145,18 @@ fn run(cli: Cli) -> anyhow::Result<()> {
         Command::Run(args) => run_cmd(args),
         #[cfg(feature = "sim")]
         Command::Compare(args) => markhold::sim::compare::cli(args),
+        Command::Completions { shell } => {
+            markhold::cli_docs::completions(Cli::command(), shell, &mut std::io::stdout())
+        }
+        Command::Man { out: None } => {
+            markhold::cli_docs::man_page(Cli::command(), &mut std::io::stdout())
+        }
+        Command::Man { out: Some(dir) } => {
+            for page in markhold::cli_docs::man_pages_to(Cli::command(), &dir)? {
+                println!("{}", page.display());
+            }
+            Ok(())
+        }
     }
 }
 
