@@ -5,6 +5,7 @@
 //! ([`observe`], [`record`]). [`field`] runs it on a real vehicle; [`sim`] (feature
 //! `sim`, on by default) against the simulated world.
 
+pub mod cli_docs;
 pub mod field;
 pub mod observe;
 pub mod params;

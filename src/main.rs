@@ -4,7 +4,7 @@ use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 
 use anyhow::Context;
-use clap::{Parser, Subcommand};
+use clap::{CommandFactory, Parser, Subcommand};
 use markhold::params::{self, ParamsError, EXIT_CONFIG};
 
 #[derive(Parser)]
@@ -42,6 +42,18 @@ enum Command {
     Compare(markhold::sim::compare::CompareArgs),
     /// A printable marker at exact physical size (SVG, PDF or PNG) with its caption.
     Tag(markhold::tag::TagArgs),
+    /// Print a shell completion script: bash, zsh, fish, elvish or powershell.
+    Completions {
+        /// The shell to complete for.
+        shell: clap_complete::Shell,
+    },
+    /// Man pages: print markhold.1, or with --out write markhold.1 and one page per
+    /// subcommand (markhold-hil.1, ...) into DIR.
+    Man {
+        /// Folder to write the pages into (created if missing).
+        #[arg(long, value_name = "DIR")]
+        out: Option<PathBuf>,
+    },
 }
 
 #[derive(Subcommand)]
@@ -55,8 +67,10 @@ struct RunArgs {
     /// Dive-site file.
     #[arg(long)]
     site: PathBuf,
-    /// MAVLink URL of the vehicle (default: the site's [link] url, e.g. BlueOS on
-    /// udpout:192.168.2.2:14550; or serial:/dev/ttyACM0:115200).
+    /// MAVLink connection string of the vehicle, as pymavlink reads it (default: the
+    /// site's [link] url): udpout:HOST:PORT sends to (BlueOS: udpout:192.168.2.2:14550),
+    /// udpin: or udp:HOST:PORT listens, tcp:HOST:PORT connects, tcpin: accepts,
+    /// /dev/ttyACM0,115200 or serial:/dev/ttyACM0:115200 is a serial port.
     #[arg(long, value_name = "URL")]
     link: Option<String>,
     /// Camera: v4l2:/dev/videoN, genicam:<device id> (Aravis; empty: the first camera
@@ -144,6 +158,18 @@ fn run(cli: Cli) -> anyhow::Result<()> {
         #[cfg(feature = "sim")]
         Command::Compare(args) => markhold::sim::compare::cli(args),
         Command::Tag(args) => markhold::tag::cli(args),
+        Command::Completions { shell } => {
+            markhold::cli_docs::completions(Cli::command(), shell, &mut std::io::stdout())
+        }
+        Command::Man { out: None } => {
+            markhold::cli_docs::man_page(Cli::command(), &mut std::io::stdout())
+        }
+        Command::Man { out: Some(dir) } => {
+            for page in markhold::cli_docs::man_pages_to(Cli::command(), &dir)? {
+                println!("{}", page.display());
+            }
+            Ok(())
+        }
     }
 }
 

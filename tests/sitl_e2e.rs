@@ -141,3 +141,65 @@ fn sitl_json_server_answers_lock_step_at_rest() {
     let stdout = String::from_utf8_lossy(&out.stdout);
     assert!(stdout.contains("1 rejected"), "{stdout}");
 }
+
+/// A free loopback UDP port (bound on port 0) that `want` accepts, found in a bounded
+/// number of tries.
+fn free_udp_port_where(want: impl Fn(u16) -> bool) -> u16 {
+    for _ in 0..1000 {
+        let p = free_udp_port();
+        if want(p) {
+            return p;
+        }
+    }
+    panic!("no free port of the kind asked for in 1000 tries");
+}
+
+/// `markhold sitl --port P --max-packets 0`: binds, prints its hint and exits; the
+/// stderr, within a bounded wait.
+fn sitl_hint(port: u16) -> String {
+    let mut child = Command::new(env!("CARGO_BIN_EXE_markhold"))
+        .args(["sitl", "--port", &port.to_string(), "--max-packets", "0"])
+        .args(["--max-seconds", "1"])
+        .stdout(Stdio::null())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    let deadline = Instant::now() + Duration::from_secs(30);
+    while child.try_wait().unwrap().is_none() {
+        if Instant::now() > deadline {
+            let _ = child.kill();
+            panic!("markhold sitl --max-packets 0 did not exit within 30 s");
+        }
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    let out = child.wait_with_output().unwrap();
+    assert!(out.status.success(), "{out:?}");
+    String::from_utf8(out.stderr).unwrap()
+}
+
+/// The `sim_vehicle.py` hint reaches the port actually bound: `-I N` for 9002 + 10 N,
+/// and `--sim-port-out` with a note when no instance number does.
+#[test]
+fn sitl_hint_names_the_port_bound() {
+    let port = free_udp_port_where(|p| p >= 9002 && (p - 9002) % 10 == 0);
+    let err = sitl_hint(port);
+    let n = (port - 9002) / 10;
+    assert!(err.contains(&format!("on udp 127.0.0.1:{port}")), "{err}");
+    assert!(
+        err.contains(&format!("--model JSON -I {n}\n")),
+        "port {port} needs instance {n}: {err}"
+    );
+    assert!(
+        !err.contains("9002\n") && !err.contains("--sim-port-out"),
+        "{err}"
+    );
+
+    let port = free_udp_port_where(|p| p < 9002 || (p - 9002) % 10 != 0);
+    let err = sitl_hint(port);
+    assert!(err.contains("no instance number"), "{err}");
+    assert!(
+        err.contains(&format!("-A \"--sim-port-out {port}\"")),
+        "port {port}: {err}"
+    );
+    assert!(!err.contains(" -I "), "{err}");
+}

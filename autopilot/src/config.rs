@@ -398,8 +398,10 @@ impl LinkMode {
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
 pub struct LinkConfig {
-    /// `udpin:HOST:PORT`, `udpout:HOST:PORT`, `tcpout:HOST:PORT`, `tcpin:HOST:PORT`,
-    /// `serial:/dev/ttyACM0:115200`.
+    /// A connection string as pymavlink reads it: `udpin:HOST:PORT` or `udp:HOST:PORT`
+    /// (listen), `udpout:HOST:PORT` (send to), `tcp:HOST:PORT` / `tcpout:HOST:PORT`
+    /// (connect), `tcpin:HOST:PORT` (accept), `serial:/dev/ttyACM0:115200` or
+    /// `/dev/ttyACM0,115200` ([`crate::transport::Endpoint::parse`]).
     pub url: String,
     /// Our system id; ArduSub drops pilot input from any id but SYSID_MYGCS (255).
     pub gcs_system_id: u8,

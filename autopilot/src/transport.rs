@@ -74,40 +74,93 @@ fn check_host_port(url: &str, hp: &str) -> Result<String, AutopilotError> {
     Ok(hp.to_string())
 }
 
-impl Endpoint {
-    /// Parses `udpin:`, `udpout:`, `tcpout:`, `tcpin:` (HOST:PORT) and
-    /// `serial:DEVICE:BAUD`.
-    pub fn parse(url: &str) -> Result<Self, AutopilotError> {
-        let (scheme, rest) = url
-            .split_once(':')
-            .ok_or_else(|| bad(url, "expected SCHEME:ADDRESS"))?;
-        match scheme {
-            "udpin" => Ok(Self::UdpIn(check_host_port(url, rest)?)),
-            "udpout" | "udp" => Ok(Self::UdpOut(check_host_port(url, rest)?)),
-            "tcpout" | "tcp" => Ok(Self::TcpOut(check_host_port(url, rest)?)),
-            "tcpin" => Ok(Self::TcpIn(check_host_port(url, rest)?)),
-            "serial" => {
-                let (path, baud) = rest
-                    .rsplit_once(':')
-                    .ok_or_else(|| bad(url, "expected serial:DEVICE:BAUD"))?;
-                if path.is_empty() {
-                    return Err(bad(url, "empty serial device"));
-                }
-                let baud: u32 = baud
-                    .parse()
-                    .map_err(|_| bad(url, format!("baud `{baud}` is not a number")))?;
-                if baud == 0 {
-                    return Err(bad(url, "baud must be > 0"));
-                }
-                Ok(Self::Serial {
-                    path: path.to_string(),
-                    baud,
-                })
-            }
-            other => Err(bad(
+/// The connection strings markhold accepts, as named in every refusal. They mean what
+/// pymavlink's `mavutil.mavlink_connection` and MAVProxy's `--master` make of them.
+pub const URL_FORMS: &str = "udpin:HOST:PORT or udp:HOST:PORT (listen), \
+udpout:HOST:PORT (send to), tcp:HOST:PORT or tcpout:HOST:PORT (connect), \
+tcpin:HOST:PORT (accept), serial:DEVICE:BAUD, serial:DEVICE,BAUD or /dev/DEVICE,BAUD";
+
+/// Schemes other tools know that markhold does not implement.
+const NOT_IMPLEMENTED: [(&str, &str); 5] = [
+    (
+        "udpbcast",
+        "UDP broadcast is not implemented: send to the vehicle with udpout:VEHICLE_IP:PORT, \
+         or listen with udpin:0.0.0.0:PORT",
+    ),
+    ("mcast", "UDP multicast is not implemented"),
+    ("ws", "WebSocket links are not implemented"),
+    ("wss", "WebSocket links are not implemented"),
+    ("wsserver", "WebSocket links are not implemented"),
+];
+
+/// A refusal that names the accepted forms.
+fn refuse(url: &str, reason: impl std::fmt::Display) -> AutopilotError {
+    bad(url, format!("{reason}; use one of: {URL_FORMS}"))
+}
+
+/// `DEVICE:BAUD` or `DEVICE,BAUD` (a comma first, as in pymavlink and MAVProxy).
+fn parse_serial(url: &str, rest: &str) -> Result<Endpoint, AutopilotError> {
+    let (path, baud) = rest
+        .rsplit_once(',')
+        .or_else(|| rest.rsplit_once(':'))
+        .ok_or_else(|| {
+            refuse(
                 url,
-                format!("unknown scheme `{other}` (udpin, udpout, tcpout, tcpin, serial)"),
-            )),
+                format!("serial device `{rest}` has no baud rate (e.g. {rest},115200)"),
+            )
+        })?;
+    if path.is_empty() {
+        return Err(bad(url, "empty serial device"));
+    }
+    let baud: u32 = baud
+        .parse()
+        .map_err(|_| bad(url, format!("baud `{baud}` is not a number")))?;
+    if baud == 0 {
+        return Err(bad(url, "baud must be > 0"));
+    }
+    Ok(Endpoint::Serial {
+        path: path.to_string(),
+        baud,
+    })
+}
+
+impl Endpoint {
+    /// Parses a connection string the way pymavlink's `mavutil.mavlink_connection` and
+    /// MAVProxy's `--master` read it: `udpin:` and `udp:` listen (HOST:PORT is the local
+    /// address), `udpout:` sends to HOST:PORT, `tcp:` (also `tcpout:`) connects, `tcpin:`
+    /// accepts; a serial device is `serial:DEVICE:BAUD`, `serial:DEVICE,BAUD` or a path
+    /// `/dev/...,BAUD` (or `:BAUD`). Refused, naming the accepted forms: a bare HOST:PORT
+    /// (pymavlink listens on it, MAVProxy's `--out` sends to it), a device without a baud
+    /// rate, and the schemes markhold does not implement (`udpbcast:`, `mcast:`, `ws:`).
+    pub fn parse(url: &str) -> Result<Self, AutopilotError> {
+        if url.starts_with('/') {
+            return parse_serial(url, url);
+        }
+        let Some((scheme, rest)) = url.split_once(':') else {
+            return Err(refuse(url, "expected SCHEME:ADDRESS"));
+        };
+        match scheme {
+            "udpin" | "udp" => Ok(Self::UdpIn(check_host_port(url, rest)?)),
+            "udpout" => Ok(Self::UdpOut(check_host_port(url, rest)?)),
+            "tcp" | "tcpout" => Ok(Self::TcpOut(check_host_port(url, rest)?)),
+            "tcpin" => Ok(Self::TcpIn(check_host_port(url, rest)?)),
+            "serial" => parse_serial(url, rest),
+            _ => {
+                if let Some((_, why)) = NOT_IMPLEMENTED.iter().find(|(s, _)| *s == scheme) {
+                    return Err(refuse(url, format!("`{scheme}:` is refused: {why}")));
+                }
+                if !rest.is_empty() && rest.bytes().all(|b| b.is_ascii_digit()) {
+                    return Err(refuse(
+                        url,
+                        format!(
+                            "a bare HOST:PORT is ambiguous (pymavlink listens on it, MAVProxy's \
+                             --out sends to it): write udpin:{url} to listen or udpout:{url} \
+                             to send"
+                        ),
+                    ));
+                }
+                Err(refuse(url, format!("unknown scheme `{scheme}`")))
+            }
         }
     }
 }
@@ -585,9 +638,8 @@ impl Transport {
         let ep = Endpoint::parse(url)?;
         let parts = Parts::new(url, signing)?;
         match ep {
-            Endpoint::UdpIn(hp) | Endpoint::UdpOut(hp) => {
-                Self::open_udp(parts, url, &hp, receive_on_tick)
-            }
+            Endpoint::UdpIn(hp) => Self::open_udp(parts, url, &hp, true, receive_on_tick),
+            Endpoint::UdpOut(hp) => Self::open_udp(parts, url, &hp, false, receive_on_tick),
             Endpoint::TcpOut(hp) => Self::open_tcp_out(parts, url, &hp),
             Endpoint::TcpIn(hp) => Self::open_tcp_in(parts, url, &hp),
             Endpoint::Serial { path, baud } => Ok(Self::open_serial(parts, path, baud)),
@@ -598,9 +650,9 @@ impl Transport {
         p: Parts,
         url: &str,
         hp: &str,
+        udpin: bool,
         receive_on_tick: bool,
     ) -> Result<Self, AutopilotError> {
-        let udpin = url.starts_with("udpin");
         let (sock, dest) = bind_udp(url, hp, udpin)?;
         let udp_recv_buffer = grow_recv_buffer(&sock);
         let local = sock.local_addr().ok();
@@ -896,42 +948,83 @@ async fn serve_tcp(
 mod tests {
     use super::*;
 
+    /// The connection-string table: every accepted form and the endpoint it means
+    /// (pymavlink's `mavlink_connection` and MAVProxy's `--master` read them the same).
     #[test]
-    fn parses_every_scheme() {
-        assert_eq!(
-            Endpoint::parse("udpout:127.0.0.1:14550").unwrap(),
-            Endpoint::UdpOut("127.0.0.1:14550".into())
-        );
-        assert_eq!(
-            Endpoint::parse("udpin:0.0.0.0:14550").unwrap(),
-            Endpoint::UdpIn("0.0.0.0:14550".into())
-        );
-        assert_eq!(
-            Endpoint::parse("tcpout:localhost:5760").unwrap(),
-            Endpoint::TcpOut("localhost:5760".into())
-        );
-        assert_eq!(
-            Endpoint::parse("tcpin:127.0.0.1:0").unwrap(),
-            Endpoint::TcpIn("127.0.0.1:0".into())
-        );
-        assert_eq!(
-            Endpoint::parse("serial:/dev/ttyACM0:115200").unwrap(),
-            Endpoint::Serial {
-                path: "/dev/ttyACM0".into(),
-                baud: 115200
+    fn parses_every_form() {
+        let serial = |path: &str, baud| Endpoint::Serial {
+            path: path.into(),
+            baud,
+        };
+        for (url, want) in [
+            (
+                "udpin:0.0.0.0:14550",
+                Endpoint::UdpIn("0.0.0.0:14550".into()),
+            ),
+            ("udp:0.0.0.0:14550", Endpoint::UdpIn("0.0.0.0:14550".into())),
+            ("udp:[::1]:14550", Endpoint::UdpIn("[::1]:14550".into())),
+            (
+                "udpout:127.0.0.1:14550",
+                Endpoint::UdpOut("127.0.0.1:14550".into()),
+            ),
+            (
+                "tcp:localhost:5760",
+                Endpoint::TcpOut("localhost:5760".into()),
+            ),
+            (
+                "tcpout:localhost:5760",
+                Endpoint::TcpOut("localhost:5760".into()),
+            ),
+            ("tcpin:127.0.0.1:0", Endpoint::TcpIn("127.0.0.1:0".into())),
+            ("serial:/dev/ttyACM0:115200", serial("/dev/ttyACM0", 115200)),
+            ("serial:/dev/ttyACM0,57600", serial("/dev/ttyACM0", 57600)),
+            ("/dev/ttyACM0,115200", serial("/dev/ttyACM0", 115200)),
+            ("/dev/ttyUSB0:57600", serial("/dev/ttyUSB0", 57600)),
+            ("serial:COM3:57600", serial("COM3", 57600)),
+            (
+                "/dev/serial/by-path/pci-0000:00:14.0-usb-0:2:1.0,921600",
+                serial("/dev/serial/by-path/pci-0000:00:14.0-usb-0:2:1.0", 921600),
+            ),
+        ] {
+            assert_eq!(Endpoint::parse(url).unwrap(), want, "{url}");
+        }
+    }
+
+    /// Every refused form says why and names the forms to use instead.
+    #[test]
+    fn refuses_ambiguous_and_unknown_forms_naming_the_alternatives() {
+        for (url, why) in [
+            ("127.0.0.1:14550", "ambiguous"),
+            ("192.168.2.2:14550", "udpout:192.168.2.2:14550"),
+            (
+                "udpbcast:192.168.2.255:14550",
+                "broadcast is not implemented",
+            ),
+            ("mcast:239.255.145.50:14550", "multicast"),
+            ("ws:127.0.0.1:5760", "WebSocket"),
+            ("wsserver:127.0.0.1:5760", "WebSocket"),
+            ("ftp:1.2.3.4:5", "unknown scheme `ftp`"),
+            ("nocolon", "SCHEME:ADDRESS"),
+            ("/dev/ttyACM0", "no baud rate"),
+            ("serial:/dev/ttyACM0", "no baud rate"),
+        ] {
+            let e = Endpoint::parse(url).unwrap_err().to_string();
+            assert!(e.contains(why) && e.contains(url), "{url}: {e}");
+            for alt in ["udpin:", "udp:", "udpout:", "tcp:", "tcpin:", "serial:"] {
+                assert!(e.contains(alt), "{url}: {e} does not name {alt}");
             }
-        );
+        }
     }
 
     #[test]
-    fn rejects_bad_urls_with_a_reason() {
+    fn rejects_bad_addresses_with_a_reason() {
         for (u, why) in [
-            ("ftp:1.2.3.4:5", "unknown scheme"),
             ("udpout:127.0.0.1", "HOST:PORT"),
-            ("udpout:127.0.0.1:99999", "port"),
+            ("udp:127.0.0.1:99999", "port"),
             ("serial:/dev/ttyACM0:fast", "baud"),
-            ("nocolon", "SCHEME"),
+            ("/dev/ttyACM0,0", "baud must be > 0"),
             ("tcpout::5760", "empty host"),
+            ("tcp::5760", "empty host"),
         ] {
             let e = Endpoint::parse(u).unwrap_err().to_string();
             assert!(e.contains(why) && e.contains(u), "{u}: {e}");

@@ -1,6 +1,8 @@
 //! Interop with pymavlink: a pymavlink script (tests/pymav_vehicle.py) plays the vehicle,
 //! checks what the link sends and sends telemetry the link must parse. Runs over UDP with
 //! RC overrides and over a pseudo-terminal (the serial transport) with MANUAL_CONTROL.
+//! A second script (tests/pymav_connection.py) opens pymavlink's own
+//! `mavutil.mavlink_connection(URL)`, to check that `udp:` means listen on both sides.
 //! pymavlink is installed with pip when missing; the test fails if it cannot be.
 
 #![allow(clippy::unwrap_used)] // Tests fail loudly on a broken setup, by design.
@@ -213,4 +215,111 @@ fn pymavlink_vehicle_over_serial_pty_with_manual_control() {
         "pymavlink vehicle: {verdict}"
     );
     check_telemetry(link.state());
+}
+
+/// A peer opened with `mavutil.mavlink_connection(url)`; returns it and its local port.
+fn spawn_connection(url: &str) -> (Vehicle, u16) {
+    ensure_pymavlink();
+    let script = concat!(env!("CARGO_MANIFEST_DIR"), "/tests/pymav_connection.py");
+    let mut child = Command::new("python3")
+        .args([script, "--url", url, "--deadline", "15"])
+        .stdout(Stdio::piped())
+        .stderr(Stdio::inherit())
+        .spawn()
+        .expect("spawn python3");
+    let out = child.stdout.take().expect("stdout");
+    let (tx, rx) = mpsc::channel();
+    std::thread::spawn(move || {
+        for line in BufReader::new(out).lines().map_while(Result::ok) {
+            if tx.send(line).is_err() {
+                break;
+            }
+        }
+    });
+    let first = rx
+        .recv_timeout(Duration::from_secs(20))
+        .expect("pymavlink peer did not start");
+    let port = first
+        .strip_prefix("PORT ")
+        .and_then(|p| p.parse().ok())
+        .unwrap_or_else(|| panic!("unexpected first line {first:?}"));
+    (Vehicle { child, lines: rx }, port)
+}
+
+/// Ticks the link (bounded) until it has heard the vehicle and the peer has given its
+/// verdict on markhold's heartbeat.
+fn exchange(link: &mut VehicleLink, peer: &mut Vehicle) -> String {
+    let t0 = Instant::now();
+    let mut frame = 0u64;
+    loop {
+        assert!(
+            t0.elapsed() < Duration::from_secs(20),
+            "no exchange with the pymavlink peer: {:?}",
+            link.state()
+        );
+        link.tick(frame as f64 * FRAME_S).unwrap();
+        frame += 1;
+        if let Ok(l) = peer.lines.recv_timeout(Duration::from_millis(30)) {
+            if l.starts_with('{') {
+                let _ = peer.child.wait();
+                // Whatever the peer sent before its verdict is read in a few more ticks.
+                let t1 = Instant::now();
+                while !link.state().discovered && t1.elapsed() < Duration::from_secs(2) {
+                    link.tick(frame as f64 * FRAME_S).unwrap();
+                    frame += 1;
+                    std::thread::sleep(Duration::from_millis(10));
+                }
+                return l;
+            }
+        }
+    }
+}
+
+/// `udp:` means listen in markhold as in pymavlink: markhold listens on `udp:` and a
+/// pymavlink `udpout:` peer reaches it; a pymavlink `udp:` peer listens and markhold's
+/// `udpout:` reaches it. Either way both sides hear each other.
+#[test]
+fn udp_means_listen_as_in_pymavlink() {
+    // markhold `udp:` (listen) <- pymavlink `udpout:` (send to).
+    let mut link = VehicleLink::connect(&LinkConfig {
+        url: "udp:127.0.0.1:0".into(),
+        ..Default::default()
+    })
+    .unwrap();
+    let port = link
+        .local_addr()
+        .expect("a listening link has an address")
+        .port();
+    let (mut peer, _) = spawn_connection(&format!("udpout:127.0.0.1:{port}"));
+    let verdict = exchange(&mut link, &mut peer);
+    assert!(
+        verdict.contains("\"ok\": true"),
+        "pymavlink udpout peer: {verdict}"
+    );
+    assert!(verdict.contains("\"udp_server\": false"), "{verdict}");
+    assert!(
+        link.state().discovered,
+        "markhold's udp: link did not hear pymavlink"
+    );
+
+    // pymavlink `udp:` (listen) <- markhold `udpout:` (send to).
+    let (mut peer, port) = spawn_connection("udp:127.0.0.1:0");
+    let mut link = VehicleLink::connect(&LinkConfig {
+        url: format!("udpout:127.0.0.1:{port}"),
+        ..Default::default()
+    })
+    .unwrap();
+    let verdict = exchange(&mut link, &mut peer);
+    assert!(
+        verdict.contains("\"ok\": true"),
+        "pymavlink udp peer: {verdict}"
+    );
+    assert!(
+        verdict.contains("\"udp_server\": true"),
+        "pymavlink did not listen on udp: {verdict}"
+    );
+    assert!(
+        link.state().discovered,
+        "markhold's udpout: link did not hear pymavlink"
+    );
 }

@@ -117,10 +117,11 @@ pub fn sitl(args: SitlArgs) -> anyhow::Result<()> {
                 args.bind, args.port
             )
         })?;
+    let addr = server.local_addr()?;
     eprintln!(
-        "markhold sitl: ArduPilot JSON physics for site {} on udp {}\n  start ArduSub with: sim_vehicle.py -v ArduSub -f vectored_6dof --model JSON",
+        "markhold sitl: ArduPilot JSON physics for site {} on udp {addr}\n  {}",
         site.site.site.name,
-        server.local_addr()?
+        sim_vehicle_hint(addr)
     );
     match args.max_packets {
         Some(n) => {
@@ -136,6 +137,47 @@ pub fn sitl(args: SitlArgs) -> anyhow::Result<()> {
         None => server.run()?,
     }
     Ok(())
+}
+
+/// ArduPilot SITL's default JSON servo port (`SIM_OUT_PORT` in SITL_cmdline.cpp); each
+/// instance `-I N` adds 10 * N to it, as to its MAVLink TCP port 5760.
+const SITL_JSON_PORT: u16 = 9002;
+
+/// The `sim_vehicle.py` line that sends servo packets to `addr`, the address the SITL
+/// server bound. ArduPilot's JSON backend sends to `JSON:<ip>` (127.0.0.1 without one) on
+/// port 9002 + 10 * instance; a port off that ladder is reached only by the SITL binary's
+/// own `--sim-port-out`, passed through `-A`.
+pub fn sim_vehicle_hint(addr: std::net::SocketAddr) -> String {
+    let ip = addr.ip();
+    let model = if ip.is_loopback() && ip.is_ipv4() {
+        "--model JSON".to_string()
+    } else if ip.is_unspecified() {
+        "--model JSON (SITL on another machine: --model JSON:<this machine's address>)".to_string()
+    } else {
+        format!("--model JSON:{ip}")
+    };
+    let base = format!("sim_vehicle.py -v ArduSub -f vectored_6dof {model}");
+    let port = addr.port();
+    match port.checked_sub(SITL_JSON_PORT) {
+        Some(d) if d % 10 == 0 => {
+            let n = d / 10;
+            let instance = if n == 0 {
+                String::new()
+            } else {
+                format!(" -I {n}")
+            };
+            format!(
+                "start ArduSub with: {base}{instance}\n  (instance {n} sends to port {port}; \
+                 its MAVLink is on tcp:127.0.0.1:{})",
+                5760 + u32::from(n) * 10
+            )
+        }
+        _ => format!(
+            "port {port} is not 9002 + 10 * N, so no instance number (-I N) reaches it; \
+             start ArduSub with: {base} -A \"--sim-port-out {port}\"\n  \
+             (or run markhold sitl --port 9002, or 9002 + 10 * N for instance N)"
+        ),
+    }
 }
 
 /// `markhold hil`: check the options, attach the observers asked for, run, report.
@@ -297,5 +339,42 @@ fn print_faults(faults: &[super::faults::FaultReport]) {
         for (k, v) in rows {
             println!("    {k:<24} {v}");
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::sim_vehicle_hint;
+
+    fn hint(addr: &str) -> String {
+        sim_vehicle_hint(addr.parse().expect("a socket address"))
+    }
+
+    #[test]
+    fn the_sitl_hint_reaches_the_port_and_address_bound() {
+        let h = hint("127.0.0.1:9002");
+        assert!(h.contains("--model JSON\n") && !h.contains("-I "), "{h}");
+        let h = hint("127.0.0.1:19002");
+        assert!(h.contains("--model JSON -I 1000"), "{h}");
+        assert!(
+            h.contains("port 19002") && h.contains("tcp:127.0.0.1:15760"),
+            "{h}"
+        );
+        let h = hint("127.0.0.1:9012");
+        assert!(
+            h.contains(" -I 1\n") && h.contains("tcp:127.0.0.1:5770"),
+            "{h}"
+        );
+        for off in ["127.0.0.1:9003", "127.0.0.1:8992", "127.0.0.1:40001"] {
+            let h = hint(off);
+            let port = off.rsplit(':').next().unwrap_or_default();
+            assert!(h.contains("no instance number"), "{h}");
+            assert!(h.contains(&format!("-A \"--sim-port-out {port}\"")), "{h}");
+            assert!(!h.contains(" -I "), "{h}");
+        }
+        let h = hint("192.168.2.1:9022");
+        assert!(h.contains("--model JSON:192.168.2.1 -I 2"), "{h}");
+        let h = hint("0.0.0.0:9002");
+        assert!(h.contains("JSON:<this machine's address>"), "{h}");
     }
 }
