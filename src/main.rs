@@ -14,6 +14,9 @@ use markhold::params::{self, ParamsError, EXIT_CONFIG};
     about = "Hold an ArduSub vehicle on station in front of a fiducial marker"
 )]
 struct Cli {
+    /// Also write the logs, as plain text, to this file (created or truncated).
+    #[arg(long, global = true, value_name = "FILE")]
+    log_file: Option<PathBuf>,
     #[command(subcommand)]
     command: Command,
 }
@@ -123,15 +126,9 @@ struct ReplayArgs {
 }
 
 fn main() -> ExitCode {
-    tracing_subscriber::fmt()
-        .with_env_filter(
-            tracing_subscriber::EnvFilter::try_from_default_env()
-                .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("warn")),
-        )
-        .with_writer(std::io::stderr)
-        .init();
     let cli = Cli::parse();
-    match run(cli) {
+    let result = init_logging(cli.log_file.as_deref()).and_then(|()| run(cli));
+    match result {
         Ok(()) => ExitCode::SUCCESS,
         Err(e) => {
             eprintln!("markhold: error: {e:#}");
@@ -141,6 +138,62 @@ fn main() -> ExitCode {
                 ExitCode::from(2)
             }
         }
+    }
+}
+
+/// The logs: on stderr, printed above the progress bars (tracing-indicatif draws the bars,
+/// which are spans, and its writer suspends them for each line), coloured only when stderr
+/// is a terminal and `NO_COLOR` is unset or empty; with `--log-file`, also as plain text to
+/// that file. `RUST_LOG` filters both (default: warnings and errors).
+fn init_logging(log_file: Option<&Path>) -> anyhow::Result<()> {
+    use std::io::IsTerminal;
+    use tracing_subscriber::layer::SubscriberExt;
+    use tracing_subscriber::util::SubscriberInitExt;
+    use tracing_subscriber::{EnvFilter, Layer};
+
+    let filter = || EnvFilter::try_from_default_env().unwrap_or_else(|_| EnvFilter::new("warn"));
+    let colour = std::io::stderr().is_terminal()
+        && std::env::var_os("NO_COLOR").is_none_or(|v| v.is_empty());
+    let bars = tracing_indicatif::IndicatifLayer::new();
+    let stderr = tracing_subscriber::fmt::layer()
+        .with_writer(bars.get_stderr_writer())
+        .with_ansi(colour)
+        .with_filter(filter());
+    let file = match log_file {
+        Some(path) => {
+            let f = std::fs::File::create(path)
+                .with_context(|| format!("creating --log-file {}", path.display()))?;
+            Some(
+                tracing_subscriber::fmt::layer()
+                    .with_writer(std::sync::Mutex::new(f))
+                    .with_ansi(false)
+                    .fmt_fields(PlainFields::default())
+                    .with_filter(filter()),
+            )
+        }
+        None => None,
+    };
+    tracing_subscriber::registry()
+        .with(stderr)
+        .with(file)
+        .with(bars.with_filter(tracing_indicatif::filter::IndicatifFilter::new(false)))
+        .try_init()
+        .context("setting up the logs")
+}
+
+/// The log file's field formatter: the default one under its own type, so the span fields
+/// the file's layer keeps are formatted without colour (fmt layers share what one field
+/// formatter type cached for a span, and the terminal's may be coloured).
+#[derive(Default)]
+struct PlainFields(tracing_subscriber::fmt::format::DefaultFields);
+
+impl<'w> tracing_subscriber::fmt::FormatFields<'w> for PlainFields {
+    fn format_fields<R: tracing_subscriber::field::RecordFields>(
+        &self,
+        writer: tracing_subscriber::fmt::format::Writer<'w>,
+        fields: R,
+    ) -> std::fmt::Result {
+        self.0.format_fields(writer, fields)
     }
 }
 

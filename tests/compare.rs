@@ -6,7 +6,6 @@
 use std::path::Path;
 use std::process::Command;
 
-use indicatif::ProgressBar;
 use markhold::sim::compare::{run_compare, CompareOptions, CompareResults};
 use markhold_exposure::ExposureMethod;
 use markhold_hil::scene::LightingScenario;
@@ -205,11 +204,11 @@ fn same_seeds_same_numbers_whatever_the_thread_count() {
         lightings: vec![LightingScenario::Adversarial],
         jobs: 1,
     };
-    let a = run_compare(&site, &opts, &ProgressBar::hidden()).expect("first run");
+    let a = run_compare(&site, &opts, &tracing::Span::none()).expect("first run");
     let b = run_compare(
         &site,
         &CompareOptions { jobs: 2, ..opts },
-        &ProgressBar::hidden(),
+        &tracing::Span::none(),
     )
     .expect("second run");
     assert_eq!(a.results.cases, b.results.cases);

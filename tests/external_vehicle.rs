@@ -23,6 +23,8 @@ fn holds_station_on_an_external_vehicle() {
     let addr = sim.addr;
 
     let out = std::env::temp_dir().join(format!("markhold-external-{}.json", std::process::id()));
+    let plots =
+        std::env::temp_dir().join(format!("markhold-external-plots-{}", std::process::id()));
     let o = markhold()
         .args(["hil", "--quiet", "--seconds", "12", "--site"])
         .arg(&site_path)
@@ -30,6 +32,8 @@ fn holds_station_on_an_external_vehicle() {
         .arg(format!("udpout:{addr}"))
         .arg("--summary")
         .arg(&out)
+        .arg("--plots")
+        .arg(&plots)
         .output()
         .unwrap();
     let truth = sim.finish().truth;
@@ -54,4 +58,12 @@ fn holds_station_on_an_external_vehicle() {
         "external vehicle {err:.3} m from station; {summary}"
     );
     assert!(truth.armed, "markhold armed the external vehicle");
+    // --plots works here too (the trajectory is the vehicle's telemetry).
+    for stem in ["trajectory", "exposure_metric", "detection_latency"] {
+        for ext in ["png", "svg"] {
+            let p = plots.join(format!("{stem}.{ext}"));
+            let len = std::fs::metadata(&p).map_or(0, |m| m.len());
+            assert!(len > 1000, "{} has {len} bytes", p.display());
+        }
+    }
 }

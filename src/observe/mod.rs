@@ -5,6 +5,6 @@ mod progress;
 mod snapshot;
 mod trace;
 
-pub use progress::Progress;
+pub use progress::{bar_span, Progress};
 pub use snapshot::Snapshots;
 pub use trace::TraceWriter;

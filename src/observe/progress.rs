@@ -1,30 +1,47 @@
 //! The progress bar of a run on the terminal: frames done, loop time, exposure, marker.
+//!
+//! The bar is a tracing span (`indicatif.pb_show`) that the binary's subscriber draws with
+//! tracing-indicatif, so log lines are printed above it instead of through it. Without
+//! that subscriber (a library user, a test) the span does nothing.
 
-use indicatif::{ProgressBar, ProgressStyle};
+use tracing::Span;
+use tracing_indicatif::span_ext::IndicatifSpanExt;
 
 use crate::pipeline::{FrameView, Observer};
 
+/// A progress-bar span of `len` steps with `template`, started (none when `quiet`).
+/// The bar draws only on a terminal.
+pub fn bar_span(len: u64, template: &str, quiet: bool) -> Span {
+    if quiet {
+        return Span::none();
+    }
+    let span = tracing::info_span!("progress", indicatif.pb_show = true);
+    let style = indicatif::ProgressStyle::with_template(template)
+        .unwrap_or_else(|_| indicatif::ProgressStyle::default_bar())
+        .progress_chars("=> ");
+    span.pb_set_style(&style);
+    span.pb_set_length(len);
+    span.pb_start();
+    span
+}
+
 pub struct Progress {
-    bar: ProgressBar,
+    bar: Span,
+    /// The message, rewritten in place (no allocation per frame).
+    msg: String,
 }
 
 impl Progress {
     /// A bar over `frames` frames (hidden when `quiet`).
     pub fn new(frames: u64, quiet: bool) -> Self {
-        let bar = if quiet {
-            ProgressBar::hidden()
-        } else {
-            let b = ProgressBar::new(frames);
-            b.set_style(
-                ProgressStyle::with_template(
-                    "{spinner} {elapsed_precise} [{bar:30}] {pos}/{len} frames {msg}",
-                )
-                .unwrap_or_else(|_| ProgressStyle::default_bar())
-                .progress_chars("=> "),
-            );
-            b
-        };
-        Self { bar }
+        Self {
+            bar: bar_span(
+                frames,
+                "{spinner} {elapsed_precise} [{bar:30}] {pos}/{len} frames {msg}",
+                quiet,
+            ),
+            msg: String::with_capacity(64),
+        }
     }
 }
 
@@ -33,19 +50,26 @@ impl Observer for Progress {
         "progress"
     }
     fn frame(&mut self, view: &FrameView<'_>) {
+        if self.bar.is_none() {
+            return;
+        }
         let rec = view.rec;
-        self.bar.inc(1);
+        self.bar.pb_inc(1);
         if rec.seq.is_multiple_of(15) {
-            self.bar.set_message(format!(
+            use std::fmt::Write;
+            self.msg.clear();
+            let _ = write!(
+                self.msg,
                 "t={:.1}s exp={:.0}us {}",
                 rec.stamp_s,
                 rec.exposure.exposure_us,
                 if rec.detected { "marker" } else { "no marker" }
-            ));
+            );
+            self.bar.pb_set_message(&self.msg);
         }
     }
     fn finish(self: Box<Self>) -> anyhow::Result<()> {
-        self.bar.finish_and_clear();
+        // Closing the span clears the bar.
         Ok(())
     }
 }

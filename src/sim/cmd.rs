@@ -67,6 +67,11 @@ pub struct HilArgs {
     /// With --snapshot: save every n-th frame.
     #[arg(long, default_value_t = 30)]
     pub snapshot_every: u64,
+    /// After the run, write its plots into this folder (created if missing), PNG and SVG:
+    /// trajectory (top and side view, marker frame, ground truth), exposure and metric,
+    /// detection and loop latency over time.
+    #[arg(long, value_name = "DIR")]
+    pub plots: Option<PathBuf>,
     /// Write one CSV row per frame (time, exposure, metric, detection, pose, effort).
     #[arg(long, value_name = "FILE.csv")]
     pub trace: Option<PathBuf>,
@@ -204,8 +209,13 @@ pub fn hil(args: HilArgs) -> anyhow::Result<()> {
         initial_exposure_us: args.initial_exposure_us,
         faults: args.faults.clone(),
         render_loops: args.render_loops,
+        plots_dir: args.plots.clone(),
         ..HilOptions::default()
     };
+    if let Some(dir) = &args.plots {
+        std::fs::create_dir_all(dir)
+            .with_context(|| format!("creating --plots {}", dir.display()))?;
+    }
     let observers = hil_observers(&args, &site, &opts)?;
     let summary = match &args.vehicle {
         Some(url) => run_external(&site, url, &opts, observers)?,

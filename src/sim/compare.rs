@@ -9,12 +9,13 @@ use std::sync::Mutex;
 use std::time::Instant;
 
 use anyhow::Context;
-use indicatif::ProgressBar;
 use markhold_exposure::ExposureMethod;
 use markhold_hil::scene::LightingScenario;
 use markhold_hil::VehicleMotion;
 use nalgebra::Vector3;
 use serde::{Deserialize, Serialize};
+use tracing::Span;
+use tracing_indicatif::span_ext::IndicatifSpanExt;
 
 use super::hil::{HilOptions, HilRun};
 use super::summary::{convergence_frames, cov_det, rms};
@@ -86,6 +87,19 @@ pub enum RunKind {
     ConvergenceShort,
     /// The full loop from the site's initial offset.
     Station,
+}
+
+impl RunKind {
+    /// The name in results.json and in log lines.
+    pub fn name(self) -> &'static str {
+        match self {
+            Self::Static => "static",
+            Self::Motion => "motion",
+            Self::ConvergenceLong => "convergence_long",
+            Self::ConvergenceShort => "convergence_short",
+            Self::Station => "station",
+        }
+    }
 }
 
 /// One frame of a run, as the experiments need it.
@@ -300,11 +314,11 @@ pub fn motion_traverse(site: &LoadedSite, seconds: f64) -> (f64, f64) {
     (span, span / seconds)
 }
 
-/// Run every experiment; `progress` counts frames.
+/// Run every experiment; `progress` (a progress-bar span, or `Span::none()`) counts frames.
 pub fn run_compare(
     site: &LoadedSite,
     opts: &CompareOptions,
-    progress: &ProgressBar,
+    progress: &Span,
 ) -> anyhow::Result<CompareOutput> {
     opts.validate()?;
     let fps = site.site.camera.fps;
@@ -325,7 +339,7 @@ pub fn run_compare(
             }
         }
     }
-    progress.set_length(frames * first.len() as u64 * 5 / 3);
+    progress.pb_set_length(frames * first.len() as u64 * 5 / 3);
     let mut series = run_jobs(site, opts, &first, frames, progress)?;
 
     // Convergence starts 10x off the exposure each method settled on in the static run.
@@ -358,7 +372,7 @@ fn run_jobs(
     opts: &CompareOptions,
     jobs: &[Job],
     frames: u64,
-    progress: &ProgressBar,
+    progress: &Span,
 ) -> anyhow::Result<Vec<RunSeries>> {
     let next = AtomicUsize::new(0);
     let out: Mutex<Vec<Option<anyhow::Result<RunSeries>>>> =
@@ -404,8 +418,19 @@ fn run_one(
     opts: &CompareOptions,
     job: &Job,
     frames: u64,
-    progress: &ProgressBar,
+    progress: &Span,
 ) -> anyhow::Result<RunSeries> {
+    // Every log line of this run names it (the worker thread enters the span). Error level:
+    // the span is there whatever the log level lets through.
+    let span = tracing::error_span!(
+        parent: None,
+        "run",
+        method = %job.method,
+        lighting = %job.lighting,
+        seed = job.seed,
+        kind = %job.kind.name()
+    );
+    let _entered = span.enter();
     let wall = Instant::now();
     let mut site = site.clone();
     let mut hil = HilOptions {
@@ -455,7 +480,7 @@ fn run_one(
             vehicle_marker_m: t_marker_vehicle.translation.vector.into(),
             station_error_m: err.translation.vector.norm(),
         });
-        progress.inc(1);
+        progress.pb_inc(1);
     }
     let now = run.rig.truth().time_s;
     run.pipeline.link_mut().send_neutral(now)?;
@@ -1185,21 +1210,13 @@ pub fn cli(args: CompareArgs) -> anyhow::Result<()> {
         opts.jobs = j;
     }
     opts.validate()?;
-    let bar = if args.quiet {
-        ProgressBar::hidden()
-    } else {
-        let b = ProgressBar::new(0);
-        b.set_style(
-            indicatif::ProgressStyle::with_template(
-                "{spinner} {elapsed_precise} [{bar:30}] {pos}/{len} frames, eta {eta}",
-            )
-            .unwrap_or_else(|_| indicatif::ProgressStyle::default_bar())
-            .progress_chars("=> "),
-        );
-        b
-    };
+    let bar = crate::observe::bar_span(
+        0,
+        "{spinner} {elapsed_precise} [{bar:30}] {pos}/{len} frames, eta {eta}",
+        args.quiet,
+    );
     let out = run_compare(&site, &opts, &bar)?;
-    bar.finish_and_clear();
+    drop(bar); // clears the bar
     let files = write_outputs(&out, &args.out)?;
     println!(
         "markhold compare: {} runs of {} s on {}; wrote {} files to {}",

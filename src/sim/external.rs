@@ -234,13 +234,16 @@ pub fn run_external(
             "external vehicle: camera frames the loop was too slow for"
         );
     }
-    Ok(stats.summary(
+    let summary = stats.summary(
         method,
         scenario,
         opts.seed,
         started.elapsed().as_secs_f64(),
         0,
-    ))
+    );
+    // Truth here is the vehicle's telemetry: the plots show where it said it was.
+    super::hil::write_plots_of(site, opts, &stats, &summary)?;
+    Ok(summary)
 }
 
 #[cfg(test)]

@@ -37,6 +37,8 @@ pub struct HilOptions {
     pub snapshot_dir: Option<PathBuf>,
     /// Save every n-th frame when `snapshot_dir` is set.
     pub snapshot_every: u64,
+    /// Write the run's plots (PNG and SVG) into this folder after the run (`--plots`).
+    pub plots_dir: Option<PathBuf>,
     /// Faults to inject (`--fault`), seeded with `seed`.
     pub faults: Vec<FaultSpec>,
     /// MAVLink 2 signing key of the simulated vehicle. None: the site's
@@ -60,6 +62,7 @@ impl Default for HilOptions {
             start_on_station: false,
             snapshot_dir: None,
             snapshot_every: 30,
+            plots_dir: None,
             faults: Vec::new(),
             vehicle_signing_key_file: None,
             render_loops: None,
@@ -398,7 +401,31 @@ pub fn run_hil(
         f.pump_relay(now)?;
     }
     observed?;
-    Ok(run.summary(&stats, opts, wall_seconds))
+    let summary = run.summary(&stats, opts, wall_seconds);
+    write_plots_of(site, opts, &stats, &summary)?;
+    Ok(summary)
+}
+
+/// `--plots DIR`: the run's plots from its series, after the run (they only read).
+pub fn write_plots_of(
+    site: &LoadedSite,
+    opts: &HilOptions,
+    stats: &RunStats,
+    summary: &Summary,
+) -> anyhow::Result<()> {
+    let Some(dir) = &opts.plots_dir else {
+        return Ok(());
+    };
+    let info = super::run_plots::RunPlotInfo {
+        title: format!(
+            "{}, {}, {} lighting, seed {}",
+            site.site.site.name, summary.exposure_method, summary.lighting, summary.seed
+        ),
+        marker_size_m: site.site.marker.size_m,
+    };
+    super::run_plots::write_run_plots(stats, &info, dir)
+        .with_context(|| format!("writing --plots {}", dir.display()))?;
+    Ok(())
 }
 
 impl HilRun {

@@ -1,5 +1,6 @@
-//! Plots of `markhold compare`, drawn once with plotters and written twice: SVG through
-//! plotters' own SVG backend, PNG through a small plotters backend on an OpenCV image
+//! Plots of `markhold compare` (and the backend and helpers `hil --plots` shares), drawn
+//! once with plotters and written twice: SVG through plotters' own SVG backend, PNG
+//! through a small plotters backend on an OpenCV image
 //! (OpenCV is already linked for the detector; plotters' bitmap backend would pull in a
 //! font stack and an image codec we do not otherwise need).
 
@@ -238,30 +239,38 @@ impl DrawingBackend for MatBackend {
     }
 }
 
-fn plot_err<E: std::error::Error + Send + Sync>(e: DrawingAreaErrorKind<E>) -> anyhow::Error {
+pub(crate) fn plot_err<E: std::error::Error + Send + Sync>(
+    e: DrawingAreaErrorKind<E>,
+) -> anyhow::Error {
     anyhow::anyhow!("drawing a plot: {e}")
 }
 
 /// Draw with `$draw` (a function generic over the backend, called with the drawing area)
-/// into `<dir>/<stem>.svg` and `<dir>/<stem>.png`; evaluates to both names.
+/// into `<dir>/<stem>.svg` and `<dir>/<stem>.png` (`$size` pixels, default `SIZE`);
+/// evaluates to both names.
 macro_rules! both {
-    ($dir:expr, $stem:expr, $draw:ident($($arg:expr),*)) => {{
+    ($dir:expr, $stem:expr, $draw:ident($($arg:expr),*)) => {
+        both!($dir, $stem, SIZE, $draw($($arg),*))
+    };
+    ($dir:expr, $stem:expr, $size:expr, $draw:ident($($arg:expr),*)) => {{
         let svg = format!("{}.svg", $stem);
         let png = format!("{}.png", $stem);
         {
             let path = $dir.join(&svg);
-            let root = SVGBackend::new(&path, SIZE).into_drawing_area();
+            let root = plotters::prelude::SVGBackend::new(&path, $size).into_drawing_area();
             $draw(&root, $($arg),*)?;
-            root.present().map_err(plot_err)?;
+            root.present().map_err($crate::sim::plots::plot_err)?;
         }
         {
-            let root = MatBackend::new(&$dir.join(&png), SIZE)?.into_drawing_area();
+            let root = $crate::sim::plots::MatBackend::new(&$dir.join(&png), $size)?
+                .into_drawing_area();
             $draw(&root, $($arg),*)?;
-            root.present().map_err(plot_err)?;
+            root.present().map_err($crate::sim::plots::plot_err)?;
         }
         vec![png, svg]
     }};
 }
+pub(crate) use both;
 
 /// Range of `v` from its 1st to 99th percentile, padded, never empty (a few wild
 /// detections must not squash the cloud into a dot).

@@ -46,10 +46,15 @@ pub struct Summary {
     pub faults: Vec<super::faults::FaultReport>,
 }
 
-/// Per-frame series kept during a run (allocated once at the start).
+/// Per-frame series kept during a run (allocated once at the start); the summary and
+/// `hil --plots` read them after the run.
 pub struct RunStats {
     t_world_marker: Isometry3<f64>,
     t_marker_station: Isometry3<f64>,
+    /// Loop time of each frame (its stamp), seconds.
+    pub time_s: Vec<f64>,
+    /// The exposure controller's metric on each frame (NaN when it computed none).
+    pub metric: Vec<f64>,
     pub detected: Vec<bool>,
     pub exposure_us: Vec<f64>,
     pub pos_err_m: Vec<f64>,
@@ -70,6 +75,8 @@ impl RunStats {
         Self {
             t_world_marker,
             t_marker_station,
+            time_s: Vec::with_capacity(frames),
+            metric: Vec::with_capacity(frames),
             detected: Vec::with_capacity(frames),
             exposure_us: Vec::with_capacity(frames),
             pos_err_m: Vec::with_capacity(frames),
@@ -82,6 +89,11 @@ impl RunStats {
         }
     }
 
+    /// The station in the marker frame (the desired vehicle pose).
+    pub fn t_marker_station(&self) -> &Isometry3<f64> {
+        &self.t_marker_station
+    }
+
     pub fn push(&mut self, rec: &FrameRecord, truth: &Truth) {
         let t_marker_vehicle = self.t_world_marker.inverse() * truth.t_world_vehicle;
         let err = self.t_marker_station.inverse() * t_marker_vehicle;
@@ -89,6 +101,8 @@ impl RunStats {
         // Heading error: yaw of the vehicle relative to its station attitude.
         let (_, _, yaw) = err.rotation.euler_angles();
         self.yaw_err_deg.push(yaw.to_degrees().abs());
+        self.time_s.push(rec.stamp_s);
+        self.metric.push(rec.exposure.metric);
         self.detected.push(rec.detected);
         self.exposure_us.push(rec.exposure.exposure_us);
         self.latency_s.push(rec.latency_s);
