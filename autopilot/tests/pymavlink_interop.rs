@@ -51,11 +51,14 @@ impl Drop for Vehicle {
     }
 }
 
-fn spawn(mode: &str, pilot: &str) -> (Vehicle, String) {
+/// Run a pymavlink script from tests/ with `args`; the script and the first line it
+/// prints (its address), within 20 s.
+fn spawn_script(script: &str, args: &[&str], what: &str) -> (Vehicle, String) {
     ensure_pymavlink();
-    let script = concat!(env!("CARGO_MANIFEST_DIR"), "/tests/pymav_vehicle.py");
+    let path = format!("{}/tests/{script}", env!("CARGO_MANIFEST_DIR"));
     let mut child = Command::new("python3")
-        .args([script, "--mode", mode, "--pilot", pilot, "--deadline", "25"])
+        .arg(path)
+        .args(args)
         .stdout(Stdio::piped())
         .stderr(Stdio::inherit())
         .spawn()
@@ -71,8 +74,13 @@ fn spawn(mode: &str, pilot: &str) -> (Vehicle, String) {
     });
     let first = rx
         .recv_timeout(Duration::from_secs(20))
-        .expect("pymavlink vehicle did not start");
+        .unwrap_or_else(|_| panic!("{what} did not start"));
     (Vehicle { child, lines: rx }, first)
+}
+
+fn spawn(mode: &str, pilot: &str) -> (Vehicle, String) {
+    let args = ["--mode", mode, "--pilot", pilot, "--deadline", "25"];
+    spawn_script("pymav_vehicle.py", &args, "pymavlink vehicle")
 }
 
 /// Runs the loop in real time at 30 Hz (the script checks wall-clock rates): arm in
@@ -219,31 +227,16 @@ fn pymavlink_vehicle_over_serial_pty_with_manual_control() {
 
 /// A peer opened with `mavutil.mavlink_connection(url)`; returns it and its local port.
 fn spawn_connection(url: &str) -> (Vehicle, u16) {
-    ensure_pymavlink();
-    let script = concat!(env!("CARGO_MANIFEST_DIR"), "/tests/pymav_connection.py");
-    let mut child = Command::new("python3")
-        .args([script, "--url", url, "--deadline", "15"])
-        .stdout(Stdio::piped())
-        .stderr(Stdio::inherit())
-        .spawn()
-        .expect("spawn python3");
-    let out = child.stdout.take().expect("stdout");
-    let (tx, rx) = mpsc::channel();
-    std::thread::spawn(move || {
-        for line in BufReader::new(out).lines().map_while(Result::ok) {
-            if tx.send(line).is_err() {
-                break;
-            }
-        }
-    });
-    let first = rx
-        .recv_timeout(Duration::from_secs(20))
-        .expect("pymavlink peer did not start");
+    let (v, first) = spawn_script(
+        "pymav_connection.py",
+        &["--url", url, "--deadline", "15"],
+        "pymavlink peer",
+    );
     let port = first
         .strip_prefix("PORT ")
         .and_then(|p| p.parse().ok())
         .unwrap_or_else(|| panic!("unexpected first line {first:?}"));
-    (Vehicle { child, lines: rx }, port)
+    (v, port)
 }
 
 /// Ticks the link (bounded) until it has heard the vehicle and the peer has given its
