@@ -14,3 +14,11 @@ pub mod record;
 #[cfg(feature = "sim")]
 pub mod sim;
 pub mod tag;
+
+/// Write `value` as pretty JSON to `path`: the `--summary` file of every command.
+pub fn write_summary(path: &std::path::Path, value: &impl serde::Serialize) -> anyhow::Result<()> {
+    use anyhow::Context;
+    let json = serde_json::to_string_pretty(value)?;
+    std::fs::write(path, json + "\n")
+        .with_context(|| format!("writing --summary {}", path.display()))
+}

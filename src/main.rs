@@ -271,7 +271,7 @@ fn replay(args: ReplayArgs) -> anyhow::Result<()> {
         );
     }
     if let Some(path) = &args.summary {
-        write_json(path, &out)?;
+        markhold::write_summary(path, &out)?;
     }
     if !out.commands_match {
         // Not an error of the tool: the recording and this build disagree.
@@ -316,14 +316,7 @@ fn run_cmd(args: RunArgs) -> anyhow::Result<()> {
         eprintln!("markhold: the recording is incomplete: {e}");
     }
     if let Some(path) = &args.summary {
-        write_json(path, &report)?;
+        markhold::write_summary(path, &report)?;
     }
     Ok(())
-}
-
-/// Write `value` as pretty JSON to `path` (`--summary`).
-fn write_json(path: &Path, value: &impl serde::Serialize) -> anyhow::Result<()> {
-    let json = serde_json::to_string_pretty(value)?;
-    std::fs::write(path, json + "\n")
-        .with_context(|| format!("writing --summary {}", path.display()))
 }

@@ -223,9 +223,7 @@ pub fn hil(args: HilArgs) -> anyhow::Result<()> {
     };
     print_table(&site.site.site.name, &summary);
     if let Some(path) = &args.summary {
-        let json = serde_json::to_string_pretty(&summary)?;
-        std::fs::write(path, json + "\n")
-            .with_context(|| format!("writing --summary {}", path.display()))?;
+        crate::write_summary(path, &summary)?;
     }
     Ok(())
 }
