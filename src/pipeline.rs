@@ -246,18 +246,9 @@ impl<L: CommandLink> Pipeline<L> {
         self.shutdown = shutdown;
     }
 
-    pub fn shutdown_requested(&self) -> bool {
-        self.shutdown
-    }
-
     /// Finish every observer (recording closed, trace flushed): the first error.
     pub fn finish_observers(&mut self) -> anyhow::Result<()> {
         self.observers.finish()
-    }
-
-    /// The run did not start: abort the observers (a half-made recording is removed).
-    pub fn abort_observers(&mut self) {
-        self.observers.abort();
     }
 
     /// Send what the supervisor allows. While the surface fallback climbs in ALT_HOLD,

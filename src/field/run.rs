@@ -244,14 +244,13 @@ fn observers(
         .filter(|_| opts.record.is_some())
         .map(Recorder::stats_handle);
     let mut list = Observers::new();
-    if let Err(e) = files(opts, &mut list) {
-        if let Some(r) = recorder {
-            r.abort();
-        }
-        return Err(e);
-    }
     if let Some(r) = recorder {
         list.push(r);
+    }
+    if let Err(e) = files(opts, &mut list) {
+        // Nothing half-made is left behind (the recording file is removed).
+        list.abort();
+        return Err(e);
     }
     Ok((list, stats, foxglove_addr))
 }

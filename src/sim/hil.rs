@@ -142,14 +142,13 @@ pub fn marker_spec(site: &LoadedSite) -> anyhow::Result<MarkerSpec> {
 /// The loop's start for a HIL run with `opts`: the site's, with the command line's
 /// exposure method and initial exposure where given.
 pub fn loop_start(site: &LoadedSite, opts: &HilOptions) -> LoopStart {
-    let s = &site.site;
+    let own = LoopStart::of_site(site);
     LoopStart {
-        method: opts.exposure.unwrap_or(s.exposure.method),
-        initial_exposure_us: site.limits().clamp(
-            opts.initial_exposure_us
-                .unwrap_or(s.camera.initial_exposure_us),
-        ),
-        site_mode: Some(s.link.mode.ardusub()),
+        method: opts.exposure.unwrap_or(own.method),
+        initial_exposure_us: opts
+            .initial_exposure_us
+            .map_or(own.initial_exposure_us, |t| site.limits().clamp(t)),
+        ..own
     }
 }
 
