@@ -356,50 +356,45 @@ impl LinkRelay {
     }
 
     fn send_back(&mut self, n: usize) -> Result<(), FaultError> {
-        match self.back.send_to(&self.buf[..n], self.vehicle) {
-            Ok(_) => {
-                self.stats.to_vehicle += 1;
-                Ok(())
-            }
-            // A full buffer or a vehicle not listening is a lost datagram, as on a wire.
-            Err(e)
-                if matches!(
-                    e.kind(),
-                    ErrorKind::WouldBlock | ErrorKind::ConnectionRefused
-                ) =>
-            {
-                self.stats.dropped += 1;
-                Ok(())
-            }
-            Err(e) => Err(FaultError::Relay {
-                op: "send to vehicle",
-                addr: self.vehicle,
-                source: e,
-            }),
+        match relay_send(&self.back, &self.buf[..n], self.vehicle, "send to vehicle")? {
+            true => self.stats.to_vehicle += 1,
+            false => self.stats.dropped += 1,
         }
+        Ok(())
     }
 
     fn send_front(&mut self, n: usize, client: SocketAddr) -> Result<(), FaultError> {
-        match self.front.send_to(&self.buf[..n], client) {
-            Ok(_) => {
-                self.stats.to_markhold += 1;
-                Ok(())
-            }
-            Err(e)
-                if matches!(
-                    e.kind(),
-                    ErrorKind::WouldBlock | ErrorKind::ConnectionRefused
-                ) =>
-            {
-                self.stats.dropped += 1;
-                Ok(())
-            }
-            Err(e) => Err(FaultError::Relay {
-                op: "send to markhold",
-                addr: client,
-                source: e,
-            }),
+        match relay_send(&self.front, &self.buf[..n], client, "send to markhold")? {
+            true => self.stats.to_markhold += 1,
+            false => self.stats.dropped += 1,
         }
+        Ok(())
+    }
+}
+
+/// Send one datagram: true if sent, false if lost as on a wire (a full buffer, or a peer
+/// not listening); other errors are the relay's.
+fn relay_send(
+    sock: &UdpSocket,
+    data: &[u8],
+    to: SocketAddr,
+    op: &'static str,
+) -> Result<bool, FaultError> {
+    match sock.send_to(data, to) {
+        Ok(_) => Ok(true),
+        Err(e)
+            if matches!(
+                e.kind(),
+                ErrorKind::WouldBlock | ErrorKind::ConnectionRefused
+            ) =>
+        {
+            Ok(false)
+        }
+        Err(source) => Err(FaultError::Relay {
+            op,
+            addr: to,
+            source,
+        }),
     }
 }
 
