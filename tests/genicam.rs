@@ -291,23 +291,26 @@ fn after_a_stall_the_next_frame_is_the_newest_not_a_queued_one() {
         "{} stale frames passed over",
         cam.frames_passed_over()
     );
-    // Keeping up again, each grab passes over exactly the frames that arrived since the
-    // last one but the newest (none when the loop keeps pace). Checked while fewer than
-    // the pool's 4 buffers filled, where the count is exact.
+    // Keeping up again, a grab passes over the frames that arrived since the last one but
+    // the newest: none when the loop keeps pace, and never more than arrived. A frame
+    // that arrived incomplete (lost packets) is skipped and counted there instead. The
+    // gap between stamps can also come from the camera itself (the fake camera runs late
+    // on a loaded host, with no frame between), so the count is bounded by the gap, not
+    // equal to it. Checked while fewer than the pool's 4 buffers filled.
     let period = 1.0 / cam.exposure_limits().fps;
     let mut last = f.meta.stamp_s;
     for _ in 0..5 {
-        let stale = cam.frames_passed_over();
+        let (stale, skipped) = (cam.frames_passed_over(), cam.skipped);
         cam.grab(&mut f).unwrap();
         let dt = f.meta.stamp_s - last;
         let arrived = (dt / period).round() as u64;
         assert!(arrived >= 1, "frame interval {dt:.3} s");
         if arrived < 4 {
-            assert_eq!(
-                cam.frames_passed_over() - stale,
-                arrived - 1,
-                "frame interval {dt:.3} s"
-            );
+            let (passed, incomplete) = (cam.frames_passed_over() - stale, cam.skipped - skipped);
+            let what =
+                format!("frame interval {dt:.3} s: {passed} passed over, {incomplete} incomplete");
+            // At pace (one period) this is exactly none.
+            assert!(passed + incomplete < arrived, "{what}");
         }
         last = f.meta.stamp_s;
     }
