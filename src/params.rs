@@ -164,6 +164,9 @@ pub struct Site {
     pub link: LinkConfig,
     #[serde(default)]
     pub vehicle: VehicleConfig,
+    /// How `--record` stores frames.
+    #[serde(default)]
+    pub record: crate::record::RecordSection,
 }
 
 /// A validated site with what was derived from it.
@@ -350,11 +353,22 @@ fn located(path: &Path, at: &Located<'_>, e: ConfigError) -> ParamsError {
 
 /// Read, parse and validate a site file.
 pub fn load(path: &Path) -> Result<LoadedSite, ParamsError> {
-    let text = std::fs::read_to_string(path).map_err(|source| ParamsError::Read {
-        file: path.to_path_buf(),
-        source,
-    })?;
+    let text = markhold_config::read_regular(path, markhold_config::MAX_CONFIG_FILE_BYTES)
+        .map_err(|source| ParamsError::Read {
+            file: path.to_path_buf(),
+            source,
+        })?;
     parse(path, &text)
+}
+
+/// A regular file of at most `max_bytes` (see [`markhold_config::open_regular`]).
+pub fn open_regular(path: &Path, max_bytes: u64) -> std::io::Result<std::fs::File> {
+    markhold_config::open_regular(path, max_bytes)
+}
+
+/// Check a site read from elsewhere than a site file (a recording) like a site file.
+pub fn check(site: &Site) -> Result<(), ConfigError> {
+    validate(site)
 }
 
 /// Parse and validate site text read from `path` (relative files resolve against it).
@@ -396,7 +410,8 @@ fn validate(site: &Site) -> Result<(), ConfigError> {
     site.exposure.validate()?;
     site.station.validate()?;
     site.controller.validate()?;
-    site.link.validate()
+    site.link.validate()?;
+    site.record.validate()
 }
 
 #[cfg(feature = "sim")]

@@ -215,7 +215,14 @@ fn observers(
                 options,
             )
             .map_err(record_err)?;
-            Some(Recorder::create(path, &info, RecordConfig::default()).map_err(record_err)?)
+            Some(
+                Recorder::create(
+                    path,
+                    &info,
+                    site.site.record.config(crate::record::ImageFormat::Jpeg),
+                )
+                .map_err(record_err)?,
+            )
         }
         None if opts.foxglove_port.is_some() => {
             Some(Recorder::live_only(RecordConfig::default()).map_err(record_err)?)

@@ -1,4 +1,4 @@
-//! Ctrl-C and SIGTERM for `markhold run`: the first sets a flag the loop reads once per
+//! Ctrl-C and SIGTERM for `markhold run` and `markhold hil`: the first sets a flag the loop reads once per
 //! frame (it then sends neutral input, closes the recording and exits 0); a second one
 //! ends the process at once, for a loop stuck waiting on a camera.
 
@@ -15,6 +15,10 @@ pub enum SignalError {
 
 /// Exit status of a second signal while the first is being handled (128 + SIGINT).
 pub const FORCED_EXIT: i32 = 130;
+
+/// Exit status of `hil` stopped by Ctrl-C or SIGTERM (the run's recording and summary
+/// are complete up to the stop; 128 + SIGINT, as a shell reports an interrupted command).
+pub const INTERRUPTED_EXIT: i32 = 130;
 
 /// Set once a shutdown was asked for.
 #[derive(Debug, Clone, Default)]

@@ -2,12 +2,13 @@
 //!
 //! The control thread only copies the frame into a pooled buffer and hands a fixed-size
 //! item to a bounded channel; a writer thread encodes the image (PNG, lossless so replay
-//! sees the same pixels) and writes every channel. When the pool or the channel is full
+//! sees the same pixels, or JPEG, a quarter of the size: `[record] image_format`) and
+//! writes every channel. When the pool or the channel is full
 //! the image (or the whole item) is dropped and counted: the loop never waits on the disk.
 //! A write error is reported once and the loop goes on.
 //!
 //! Channels (Foxglove well-known schemas where one fits, JSON otherwise):
-//! - [`TOPIC_IMAGE`] `foxglove.CompressedImage` (png), one per frame unless dropped;
+//! - [`TOPIC_IMAGE`] `foxglove.CompressedImage` (png or jpeg), one per frame unless dropped;
 //! - [`TOPIC_ANNOTATIONS`] `foxglove.ImageAnnotations`: marker corners and the metered
 //!   RoI drawn over the image, one per frame;
 //! - [`TOPIC_FRAME`] JSON: frame metadata, the vehicle heartbeat the supervisor saw and
@@ -188,6 +189,68 @@ impl RunInfo {
     }
 }
 
+/// How a recording stores the camera's frames.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum ImageFormat {
+    /// Lossless: `replay` sees the same pixels and gives bit-identical commands.
+    Png,
+    /// About a quarter of PNG's size; `replay` says it is not bit-exact.
+    Jpeg,
+}
+
+impl ImageFormat {
+    /// The `format` of a `foxglove.CompressedImage`.
+    pub fn name(self) -> &'static str {
+        match self {
+            Self::Png => "png",
+            Self::Jpeg => "jpeg",
+        }
+    }
+}
+
+/// `[record]` of a site file: how `--record` stores frames.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct RecordSection {
+    /// `png` or `jpeg`; left out: `png` for `hil` (replay-exact), `jpeg` for `run`.
+    #[serde(default)]
+    pub image_format: Option<ImageFormat>,
+    /// JPEG quality 1..100.
+    #[serde(default = "default_jpeg_quality")]
+    pub jpeg_quality: u8,
+}
+
+fn default_jpeg_quality() -> u8 {
+    90
+}
+
+impl Default for RecordSection {
+    fn default() -> Self {
+        Self {
+            image_format: None,
+            jpeg_quality: default_jpeg_quality(),
+        }
+    }
+}
+
+impl RecordSection {
+    pub fn validate(&self) -> Result<(), markhold_config::ConfigError> {
+        markhold_config::Checks::new("record")
+            .range("jpeg_quality", self.jpeg_quality, 1..=100, "a JPEG quality, 1..100")
+            .done()
+    }
+
+    /// The recorder's settings for a command whose default format is `default`.
+    pub fn config(&self, default: ImageFormat) -> RecordConfig {
+        RecordConfig {
+            image_format: self.image_format.unwrap_or(default),
+            jpeg_quality: i32::from(self.jpeg_quality),
+            ..RecordConfig::default()
+        }
+    }
+}
+
 /// Recorder sizing.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
@@ -201,6 +264,10 @@ pub struct RecordConfig {
     /// Wait for the writer instead of dropping: for simulated time (`hil`), where the
     /// loop's clock waits too and a lossless recording keeps replay exact.
     pub wait_when_full: bool,
+    /// How frames are stored.
+    pub image_format: ImageFormat,
+    /// JPEG quality 1..100 (with `image_format` jpeg).
+    pub jpeg_quality: i32,
 }
 
 impl Default for RecordConfig {
@@ -210,6 +277,8 @@ impl Default for RecordConfig {
             queue_frames: 64,
             png_level: 1,
             wait_when_full: false,
+            image_format: ImageFormat::Png,
+            jpeg_quality: 90,
         }
     }
 }
@@ -228,6 +297,13 @@ impl RecordConfig {
                 key: "png_level",
                 value: self.png_level.to_string(),
                 expected: "0..9",
+            });
+        }
+        if !(1..=100).contains(&self.jpeg_quality) {
+            return Err(RecordError::Options {
+                key: "jpeg_quality",
+                value: self.jpeg_quality.to_string(),
+                expected: "1..100",
             });
         }
         Ok(())
@@ -438,7 +514,11 @@ impl Recorder {
             let _ = free_tx.try_send(Vec::new());
         }
         let shared_w = shared.clone();
-        let png_level = cfg.png_level;
+        let (ext, params) = match cfg.image_format {
+            ImageFormat::Png => (".png", [opencv::imgcodecs::IMWRITE_PNG_COMPRESSION, cfg.png_level]),
+            ImageFormat::Jpeg => (".jpg", [opencv::imgcodecs::IMWRITE_JPEG_QUALITY, cfg.jpeg_quality]),
+        };
+        let format = cfg.image_format;
         let thread = std::thread::Builder::new()
             .name("markhold-recorder".into())
             .spawn(move || {
@@ -446,10 +526,9 @@ impl Recorder {
                     channels,
                     shared: shared_w,
                     png: opencv::core::Vector::new(),
-                    png_params: opencv::core::Vector::from_slice(&[
-                        opencv::imgcodecs::IMWRITE_PNG_COMPRESSION,
-                        png_level,
-                    ]),
+                    png_params: opencv::core::Vector::from_slice(&params),
+                    ext,
+                    format,
                     json: Vec::with_capacity(4096),
                     raw: Vec::with_capacity(1 + 280),
                 };
@@ -792,8 +871,12 @@ impl Channels {
 struct WriterThread {
     channels: Channels,
     shared: Arc<Shared>,
+    /// The encoded image and the encoder's parameters.
     png: opencv::core::Vector<u8>,
     png_params: opencv::core::Vector<i32>,
+    /// `.png` or `.jpg`, for OpenCV's encoder.
+    ext: &'static str,
+    format: ImageFormat,
     json: Vec<u8>,
     raw: Vec<u8>,
 }
@@ -842,7 +925,7 @@ impl WriterThread {
         let img =
             opencv::core::Mat::new_rows_cols_with_data::<u8>(height as i32, width as i32, pixels)?;
         self.png.clear();
-        opencv::imgcodecs::imencode(".png", &img, &mut self.png, &self.png_params)?;
+        opencv::imgcodecs::imencode(self.ext, &img, &mut self.png, &self.png_params)?;
         let _ = img.typ();
         Ok(())
     }
@@ -939,7 +1022,7 @@ impl WriterThread {
                     timestamp: Some(timestamp(it.meta.stamp_s)),
                     frame_id: "camera".into(),
                     data: foxglove::bytes::Bytes::copy_from_slice(self.png.as_slice()),
-                    format: "png".into(),
+                    format: self.format.name().into(),
                 };
                 self.channels
                     .image

@@ -2,6 +2,7 @@
 //! the recorded clock, with a link that only keeps the commands; each command is
 //! compared bit for bit with the recorded one.
 
+use std::collections::{BTreeMap, HashMap};
 use std::path::{Path, PathBuf};
 
 use anyhow::{bail, Context as _};
@@ -114,13 +115,72 @@ pub struct ReplaySummary {
     pub commands_compared: u64,
     pub commands_match: bool,
     pub first_mismatch: Option<Mismatch>,
+    /// The file ended early (truncated or never finalized): what was replayed is what its
+    /// complete chunks held.
+    pub recovered: Option<Recovered>,
+    /// Images recorded lossy (JPEG): the loop saw other pixels than when recording, so
+    /// the commands are not expected to match bit for bit.
+    pub lossy_images: u64,
+}
+
+/// A recording read up to its last complete chunk.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct Recovered {
+    pub file_bytes: u64,
+    /// Why reading stopped.
+    pub reason: String,
 }
 
 fn mcap_err(path: &Path) -> impl Fn(mcap::McapError) -> anyhow::Error + '_ {
     move |e| anyhow::anyhow!("{}: not a readable MCAP file: {e}", path.display())
 }
 
-/// Read the run description and rebuild its site.
+/// The largest record replay accepts (a chunk holds a few frames; a hostile length
+/// must not become an allocation).
+const MAX_RECORD_BYTES: usize = 256 << 20;
+
+/// The run description of a recording's metadata record, checked like a site file.
+pub fn run_info_of(
+    path: &Path,
+    metadata: &BTreeMap<String, String>,
+) -> anyhow::Result<(RunInfo, LoadedSite)> {
+    let info = RunInfo::from_metadata(metadata)
+        .map_err(|k| anyhow::anyhow!("{}: run metadata key {k} missing or bad", path.display()))?;
+    let site: Site = toml::from_str(&info.site_toml)
+        .with_context(|| format!("{}: the recorded site", path.display()))?;
+    crate::params::check(&site)
+        .with_context(|| format!("{}: the recorded site is not valid", path.display()))?;
+    let calibration: CameraCalibration = toml::from_str(&info.calibration_toml)
+        .with_context(|| format!("{}: the recorded calibration", path.display()))?;
+    calibration
+        .check_resolution(site.camera.width_px, site.camera.height_px)
+        .with_context(|| format!("{}: the recorded calibration", path.display()))?;
+    calibration
+        .validate()
+        .with_context(|| format!("{}: the recorded calibration", path.display()))?;
+    let limits = ExposureLimits {
+        min_us: site.camera.exposure_min_us,
+        max_us: site.camera.exposure_max_us,
+        fps: site.camera.fps,
+    };
+    anyhow::ensure!(
+        info.initial_exposure_us.is_finite()
+            && (limits.min_us..=limits.max_us).contains(&info.initial_exposure_us),
+        "{}: the recorded initial exposure {} us is outside the recorded site's limits",
+        path.display(),
+        info.initial_exposure_us
+    );
+    Ok((
+        info,
+        LoadedSite {
+            path: path.to_path_buf(),
+            site,
+            calibration,
+        },
+    ))
+}
+
+/// Read the run description of a whole recording held in memory (its summary section).
 pub fn read_run_info(path: &Path, buf: &[u8]) -> anyhow::Result<(RunInfo, LoadedSite)> {
     let summary = mcap::Summary::read(buf)
         .map_err(mcap_err(path))?
@@ -141,29 +201,24 @@ pub fn read_run_info(path: &Path, buf: &[u8]) -> anyhow::Result<(RunInfo, Loaded
             )
         })?;
     let meta = mcap::read::metadata(buf, idx).map_err(mcap_err(path))?;
-    let info = RunInfo::from_metadata(&meta.metadata)
-        .map_err(|k| anyhow::anyhow!("{}: run metadata key {k} missing or bad", path.display()))?;
-    let site: Site = toml::from_str(&info.site_toml)
-        .with_context(|| format!("{}: the recorded site", path.display()))?;
-    let calibration: CameraCalibration = toml::from_str(&info.calibration_toml)
-        .with_context(|| format!("{}: the recorded calibration", path.display()))?;
-    Ok((
-        info,
-        LoadedSite {
-            path: path.to_path_buf(),
-            site,
-            calibration,
-        },
-    ))
+    run_info_of(path, &meta.metadata)
 }
 
-fn decode_png(png: &[u8], out: &mut Frame) -> anyhow::Result<()> {
-    let buf = opencv::core::Mat::from_slice(png)?;
+/// A recorded PNG or JPEG into `out`, which has the recorded site's size.
+fn decode_image(encoded: &[u8], out: &mut Frame) -> anyhow::Result<()> {
+    let buf = opencv::core::Mat::from_slice(encoded)?;
     let img = opencv::imgcodecs::imdecode(&buf, opencv::imgcodecs::IMREAD_UNCHANGED)?;
     if img.empty() || img.channels() != 1 || img.depth() != opencv::core::CV_8U {
-        bail!("not an 8-bit grey PNG");
+        bail!("not an 8-bit grey image");
     }
     let (w, h) = (img.cols() as u32, img.rows() as u32);
+    if (w, h) != (out.width, out.height) {
+        bail!(
+            "a {w}x{h} image in a recording of a {}x{} camera",
+            out.width,
+            out.height
+        );
+    }
     out.resize(w, h);
     let bytes = img.data_bytes()?;
     let n = (w * h) as usize;
@@ -225,29 +280,112 @@ pub fn build_loop(
     Pipeline::new(site, start, SinkLink::default(), Observers::new())
 }
 
-/// Replay a recording and compare its commands.
+/// The topics replay reads.
+#[derive(Debug, Clone, Copy)]
+enum Topic {
+    Image,
+    Frame,
+    Command,
+    Other,
+}
+
+/// Replay a recording and compare its commands. The file is read record by record
+/// (memory does not grow with its length); a file that ends early (a crash, a full disk,
+/// a copy cut short) is replayed up to its last complete chunk and the summary says so.
 pub fn replay(path: &Path) -> anyhow::Result<ReplaySummary> {
-    let buf = std::fs::read(path).with_context(|| format!("reading {}", path.display()))?;
-    let (info, site) = read_run_info(path, &buf)?;
-    let method: ExposureMethod = info.exposure_method.parse().map_err(|e| {
-        anyhow::anyhow!(
-            "{}: exposure_method {}: {e}",
-            path.display(),
-            info.exposure_method
-        )
-    })?;
-    let pipeline = build_loop(&site, method, &info).context("rebuilding the recorded loop")?;
-    let mut replayer = Replayer::new(path, pipeline, &site, &info);
-    for msg in mcap::MessageStream::new(&buf).map_err(mcap_err(path))? {
-        let msg = msg.map_err(mcap_err(path))?;
-        match msg.channel.topic.as_str() {
-            TOPIC_IMAGE => replayer.image(msg.log_time, &msg.data)?,
-            TOPIC_FRAME => replayer.frame(msg.log_time, &msg.data)?,
-            TOPIC_COMMAND => replayer.command(&msg.data)?,
+    use mcap::records::Record;
+    use mcap::sans_io::linear_reader::{LinearReadEvent, LinearReader, LinearReaderOptions};
+    use std::io::Read;
+
+    let file = crate::params::open_regular(path, u64::MAX)
+        .with_context(|| format!("reading {}", path.display()))?;
+    let size = file.metadata().map(|m| m.len()).unwrap_or(0);
+    let mut src = std::io::BufReader::with_capacity(1 << 20, file);
+    // Chunks are checked whole (CRC) before any of their messages is replayed: a chunk
+    // cut short by the end of the file gives nothing.
+    let mut reader = LinearReader::new_with_options(
+        LinearReaderOptions::default()
+            .with_prevalidate_chunk_crcs(true)
+            .with_record_length_limit(MAX_RECORD_BYTES),
+    );
+    let mut topics: HashMap<u16, Topic> = HashMap::new();
+    let mut replayer: Option<Replayer<'_>> = None;
+    let mut ended_early: Option<String> = None;
+    while let Some(event) = reader.next_event() {
+        let (opcode, data) = match event {
+            Ok(LinearReadEvent::ReadRequest(n)) => {
+                let got = src
+                    .read(reader.insert(n.min(MAX_RECORD_BYTES)))
+                    .with_context(|| format!("reading {}", path.display()))?;
+                reader.notify_read(got);
+                continue;
+            }
+            Ok(LinearReadEvent::Record { opcode, data }) => (opcode, data),
+            Err(e) => {
+                ended_early = Some(e.to_string());
+                break;
+            }
+        };
+        let record = match mcap::parse_record(opcode, data) {
+            Ok(r) => r,
+            Err(e) => {
+                ended_early = Some(e.to_string());
+                break;
+            }
+        };
+        match record {
+            Record::Channel(c) => {
+                let topic = match c.topic.as_str() {
+                    TOPIC_IMAGE => Topic::Image,
+                    TOPIC_FRAME => Topic::Frame,
+                    TOPIC_COMMAND => Topic::Command,
+                    _ => Topic::Other,
+                };
+                topics.insert(c.id, topic);
+            }
+            Record::Metadata(m) if m.name == METADATA_NAME && replayer.is_none() => {
+                let (info, site) = run_info_of(path, &m.metadata)?;
+                replayer = Some(Replayer::start(path, &site, &info)?);
+            }
+            Record::Message { header, data } => {
+                let Some(r) = replayer.as_mut() else {
+                    anyhow::bail!(
+                        "{}: messages before the `{METADATA_NAME}` metadata: not a markhold recording",
+                        path.display()
+                    );
+                };
+                match topics.get(&header.channel_id) {
+                    Some(Topic::Image) => r.image(header.log_time, &data)?,
+                    Some(Topic::Frame) => r.frame(header.log_time, &data)?,
+                    Some(Topic::Command) => r.command(&data)?,
+                    Some(Topic::Other) => {}
+                    None => anyhow::bail!(
+                        "{}: a message on channel {} that was never described",
+                        path.display(),
+                        header.channel_id
+                    ),
+                }
+            }
             _ => {}
         }
     }
-    Ok(replayer.finish())
+    let Some(r) = replayer else {
+        return Err(match ended_early {
+            Some(e) => anyhow::anyhow!("{}: not a readable MCAP file: {e}", path.display()),
+            None => anyhow::anyhow!(
+                "{}: no `{METADATA_NAME}` metadata: not a markhold recording",
+                path.display()
+            ),
+        });
+    };
+    let mut out = r.finish();
+    if let Some(why) = ended_early {
+        out.recovered = Some(Recovered {
+            file_bytes: size,
+            reason: why,
+        });
+    }
+    Ok(out)
 }
 
 /// The replay in progress: the loop, its camera, the last image and the last command
@@ -266,6 +404,19 @@ struct Replayer<'a> {
 }
 
 impl<'a> Replayer<'a> {
+    /// The recorded loop, ready for the recorded frames.
+    fn start(path: &'a Path, site: &LoadedSite, info: &RunInfo) -> anyhow::Result<Self> {
+        let method: ExposureMethod = info.exposure_method.parse().map_err(|e| {
+            anyhow::anyhow!(
+                "{}: exposure_method {}: {e}",
+                path.display(),
+                info.exposure_method
+            )
+        })?;
+        let pipeline = build_loop(site, method, info).context("rebuilding the recorded loop")?;
+        Ok(Self::new(path, pipeline, site, info))
+    }
+
     fn new(
         path: &'a Path,
         pipeline: Pipeline<SinkLink>,
@@ -290,6 +441,8 @@ impl<'a> Replayer<'a> {
                 commands_compared: 0,
                 commands_match: true,
                 first_mismatch: None,
+                recovered: None,
+                lossy_images: 0,
             },
             image: None,
             replayed: None,
@@ -300,7 +453,19 @@ impl<'a> Replayer<'a> {
     fn image(&mut self, log_time: u64, data: &[u8]) -> anyhow::Result<()> {
         let img = CompressedImage::decode(data)
             .map_err(|e| anyhow::anyhow!("{}: image at {log_time} ns: {e}", self.path.display()))?;
-        self.image = Some((log_time, img.data.to_vec()));
+        match img.format.as_str() {
+            "png" => {}
+            "jpeg" => self.out.lossy_images += 1,
+            other => bail!(
+                "{}: image at {log_time} ns: format {other:?}: expected png or jpeg",
+                self.path.display()
+            ),
+        }
+        // The buffer of the last image is reused: nothing grows with the file.
+        let mut buf = self.image.take().map(|(_, b)| b).unwrap_or_default();
+        buf.clear();
+        buf.extend_from_slice(&img.data);
+        self.image = Some((log_time, buf));
         Ok(())
     }
 
@@ -330,7 +495,7 @@ impl<'a> Replayer<'a> {
                 return Ok(());
             }
         };
-        decode_png(&png, &mut self.camera.frame)
+        decode_image(&png, &mut self.camera.frame)
             .with_context(|| format!("{}: image of frame {}", path.display(), f.seq))?;
         self.camera.frame.meta = FrameMeta {
             seq: f.seq,

@@ -189,9 +189,10 @@ pub fn sim_vehicle_hint(addr: std::net::SocketAddr) -> String {
 pub fn hil(args: HilArgs) -> anyhow::Result<()> {
     let site = params::load(&args.site)?;
     anyhow::ensure!(
-        args.seconds > 0.0 && args.seconds.is_finite(),
-        "--seconds {}: expected a positive number of simulated seconds",
-        args.seconds
+        args.seconds > 0.0 && args.seconds <= super::summary::MAX_SECONDS,
+        "--seconds {}: expected a positive number of simulated seconds, at most {} (a day)",
+        args.seconds,
+        super::summary::MAX_SECONDS
     );
     anyhow::ensure!(
         args.record.is_none() || args.vehicle.is_none(),
@@ -210,6 +211,8 @@ pub fn hil(args: HilArgs) -> anyhow::Result<()> {
         faults: args.faults.clone(),
         render_loops: args.render_loops,
         plots_dir: args.plots.clone(),
+        // Ctrl-C / SIGTERM: neutral input, the recording finalized, exit 130.
+        stop: Some(crate::field::signal::install()?),
         ..HilOptions::default()
     };
     if let Some(dir) = &args.plots {
@@ -224,6 +227,10 @@ pub fn hil(args: HilArgs) -> anyhow::Result<()> {
     print_table(&site.site.site.name, &summary);
     if let Some(path) = &args.summary {
         crate::write_summary(path, &summary)?;
+    }
+    if summary.interrupted {
+        eprintln!("markhold: stopped by a signal after {:.1} simulated seconds", summary.sim_seconds);
+        std::process::exit(crate::field::signal::INTERRUPTED_EXIT);
     }
     Ok(())
 }

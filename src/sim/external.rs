@@ -217,7 +217,13 @@ pub fn run_external(
     // run's), and runs until it reaches the run's length: frames the loop was too slow
     // for are passed over, not made up for afterwards.
     cam.started = Instant::now();
-    while cam.frames < frames {
+    let mut interrupted = false;
+    while cam.frames < frames && !interrupted {
+        if opts.stop.as_ref().is_some_and(|s| s.is_set()) {
+            // This frame sends neutral input and is the last.
+            pipeline.set_shutdown(true);
+            interrupted = true;
+        }
         if let Some(p) = pose_from_telemetry(pipeline.link().state()) {
             cam.set_vehicle_pose(p);
         }
@@ -234,13 +240,14 @@ pub fn run_external(
             "external vehicle: camera frames the loop was too slow for"
         );
     }
-    let summary = stats.summary(
+    let mut summary = stats.summary(
         method,
         scenario,
         opts.seed,
         started.elapsed().as_secs_f64(),
         0,
     );
+    summary.interrupted = interrupted;
     // Truth here is the vehicle's telemetry: the plots show where it said it was.
     super::hil::write_plots_of(site, opts, &stats, &summary)?;
     Ok(summary)

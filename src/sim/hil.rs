@@ -21,7 +21,7 @@ use super::faults::{
 use super::summary::{RunStats, Summary};
 use crate::params::LoadedSite;
 use crate::pipeline::{FrameRecord, LoopStart, Observers, Pipeline};
-use crate::record::{RecordConfig, RecordError, Recorder, RunInfo};
+use crate::record::{ImageFormat, RecordConfig, RecordError, Recorder, RunInfo};
 
 /// Options of one HIL run (the command line's flags, or an experiment of `compare`).
 #[derive(Debug, Clone)]
@@ -48,6 +48,9 @@ pub struct HilOptions {
     /// The renderer's loops, up to this build (`--render-loops`); None: the widest the CPU
     /// runs. Every build renders the same frames; only the world's speed differs.
     pub render_loops: Option<RenderLoops>,
+    /// Set by Ctrl-C / SIGTERM: the next frame sends neutral input and the run ends
+    /// there (the recording is finalized, the summary says `interrupted`).
+    pub stop: Option<crate::field::signal::ShutdownFlag>,
 }
 
 impl Default for HilOptions {
@@ -66,6 +69,7 @@ impl Default for HilOptions {
             faults: Vec::new(),
             vehicle_signing_key_file: None,
             render_loops: None,
+            stop: None,
         }
     }
 }
@@ -182,7 +186,7 @@ pub fn open_recorder(
     let info = RunInfo::new("hil", site, method, initial, options)?;
     let cfg = RecordConfig {
         wait_when_full: true,
-        ..RecordConfig::default()
+        ..site.site.record.config(ImageFormat::Png)
     };
     Recorder::create(path, &info, cfg)
 }
@@ -383,7 +387,17 @@ pub fn run_hil(
     run.arm(site.site.link.mode.ardusub())?;
     let frames = (opts.seconds * site.site.camera.fps).round().max(1.0) as u64;
     let mut stats = RunStats::new(frames as usize, run.t_world_marker, run.t_marker_station);
+    let mut interrupted = false;
     let stepped = (0..frames).try_for_each(|_| {
+        if interrupted {
+            return anyhow::Ok(());
+        }
+        if opts.stop.as_ref().is_some_and(|s| s.is_set()) {
+            // This frame sends neutral input (the supervisor's shutdown directive) and
+            // is the last.
+            run.pipeline.set_shutdown(true);
+            interrupted = true;
+        }
         let (rec, truth) = run.step()?;
         stats.push(&rec, &truth);
         anyhow::Ok(())
@@ -400,7 +414,8 @@ pub fn run_hil(
         f.pump_relay(now)?;
     }
     observed?;
-    let summary = run.summary(&stats, opts, wall_seconds);
+    let mut summary = run.summary(&stats, opts, wall_seconds);
+    summary.interrupted = interrupted;
     write_plots_of(site, opts, &stats, &summary)?;
     Ok(summary)
 }

@@ -44,7 +44,16 @@ pub struct Summary {
     pub lockstep_timeouts: u64,
     /// Injected faults (`--fault`) with their timings and what the loop did.
     pub faults: Vec<super::faults::FaultReport>,
+    /// Ended early by Ctrl-C / SIGTERM (the last frame sent neutral input).
+    pub interrupted: bool,
 }
+
+/// Frames whose series are reserved up front: a longer run grows them (a day at 30 fps
+/// is 2.6 M frames; `--seconds` itself is bounded by [`MAX_SECONDS`]).
+const RESERVED_FRAMES: usize = 1 << 16;
+
+/// The longest run `hil` accepts, simulated seconds (one day).
+pub const MAX_SECONDS: f64 = 86_400.0;
 
 /// Per-frame series kept during a run (allocated once at the start); the summary and
 /// `hil --plots` read them after the run.
@@ -72,6 +81,7 @@ impl RunStats {
         t_world_marker: Isometry3<f64>,
         t_marker_station: Isometry3<f64>,
     ) -> Self {
+        let frames = frames.min(RESERVED_FRAMES);
         Self {
             t_world_marker,
             t_marker_station,
@@ -173,6 +183,7 @@ impl RunStats {
             loop_latency_p99_ms: percentile(&self.latency_s, 0.99) * 1e3,
             measured_position_cov_det: cov_det(&self.measured),
             lockstep_timeouts,
+            interrupted: false,
             faults: Vec::new(),
         }
     }

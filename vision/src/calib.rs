@@ -68,10 +68,11 @@ impl CameraCalibration {
     /// `image_width`, `image_height`) or a ROS camera_info YAML file. Errors name the
     /// file and the field.
     pub fn load(path: &Path) -> Result<Self, VisionError> {
-        let text = std::fs::read_to_string(path).map_err(|source| VisionError::Io {
-            path: path.to_path_buf(),
-            source,
-        })?;
+        let text = markhold_config::read_regular(path, markhold_config::MAX_CONFIG_FILE_BYTES)
+            .map_err(|source| VisionError::Io {
+                path: path.to_path_buf(),
+                source,
+            })?;
         Self::parse(&text, path)
     }
 
