@@ -219,6 +219,7 @@ fn a_slow_writer_drops_images_and_counts_them_without_blocking() {
         queue_frames: 4,
         png_level: 9,
         wait_when_full: false,
+        ..RecordConfig::default()
     };
     let mut rec = Recorder::create(&path, &site_info(), cfg).unwrap();
     let frame = noisy_frame(0);
@@ -364,4 +365,182 @@ fn cli_hil_record_then_replay_summary() {
         .unwrap();
     assert_eq!(o.status.code(), Some(2));
     assert!(String::from_utf8_lossy(&o.stderr).contains("junk.mcap"));
+}
+
+/// A recording cut short (a crash, a full disk, a copy interrupted) replays up to its
+/// last complete chunk and says it ended early; one byte short loses nothing.
+#[test]
+fn a_truncated_recording_replays_up_to_its_last_complete_chunk() {
+    let path = temp_path("whole.mcap");
+    let r = record_hil(&path, 1.0, &|_| {});
+    let bytes = std::fs::read(&path).unwrap();
+
+    let short = temp_path("one-byte-short.mcap");
+    std::fs::write(&short, &bytes[..bytes.len() - 1]).unwrap();
+    let out = replay(&short).unwrap();
+    assert_eq!(out.frames_replayed, r.frames, "{out:?}");
+    assert!(out.commands_match, "{out:?}");
+    assert!(out.recovered.is_some(), "the early end is reported");
+
+    let half = temp_path("half.mcap");
+    std::fs::write(&half, &bytes[..bytes.len() / 2]).unwrap();
+    let out = replay(&half).unwrap();
+    assert!(
+        out.frames_replayed > 0 && out.frames_replayed < r.frames,
+        "{out:?}"
+    );
+    assert_eq!(out.frames_replayed, out.commands_compared);
+    assert!(out.first_mismatch.is_none(), "{out:?}");
+    let rec = out.recovered.expect("the early end is reported");
+    assert_eq!(rec.file_bytes, (bytes.len() / 2) as u64);
+
+    // Only the header: nothing to replay is an error that names the file.
+    let stub = temp_path("stub.mcap");
+    std::fs::write(&stub, &bytes[..20]).unwrap();
+    let e = replay(&stub).unwrap_err();
+    assert!(format!("{e:#}").contains("stub.mcap"), "{e:#}");
+}
+
+/// Peak resident memory of a child process, read from /proc while it runs (bounded).
+fn replay_peak_rss_kb(file: &Path) -> u64 {
+    let mut child = std::process::Command::new(env!("CARGO_BIN_EXE_markhold"))
+        .arg("replay")
+        .arg(file)
+        .stdout(std::process::Stdio::null())
+        .stderr(std::process::Stdio::null())
+        .spawn()
+        .unwrap();
+    let status = format!("/proc/{}/status", child.id());
+    let mut peak = 0;
+    let deadline = std::time::Instant::now() + std::time::Duration::from_secs(120);
+    loop {
+        if let Ok(s) = std::fs::read_to_string(&status) {
+            if let Some(kb) = s
+                .lines()
+                .find_map(|l| l.strip_prefix("VmHWM:"))
+                .and_then(|v| v.trim().trim_end_matches("kB").trim().parse::<u64>().ok())
+            {
+                peak = peak.max(kb);
+            }
+        }
+        if child.try_wait().unwrap().is_some() {
+            break;
+        }
+        assert!(std::time::Instant::now() < deadline, "replay did not end");
+        std::thread::sleep(std::time::Duration::from_millis(5));
+    }
+    peak
+}
+
+/// Replay reads record by record: a recording ten times as long needs about the same
+/// peak memory (loading it whole would add its size to the peak).
+#[test]
+fn replay_memory_does_not_grow_with_the_file() {
+    let short = temp_path("mem-short.mcap");
+    let long = temp_path("mem-long.mcap");
+    record_hil(&short, 0.5, &|_| {});
+    record_hil(&long, 5.0, &|_| {});
+    let (s, l) = (
+        std::fs::metadata(&short).unwrap().len() / 1024,
+        std::fs::metadata(&long).unwrap().len() / 1024,
+    );
+    assert!(l > s + 15_000, "the long file is 15 MB larger: {s} kB vs {l} kB");
+    let (ps, pl) = (replay_peak_rss_kb(&short), replay_peak_rss_kb(&long));
+    assert!(ps > 0 && pl > 0, "peak RSS read from /proc");
+    assert!(
+        pl < ps + (l - s) / 3,
+        "peak RSS {ps} kB for {s} kB of file, {pl} kB for {l} kB"
+    );
+}
+
+fn jpeg_site() -> PathBuf {
+    let p = temp_path("jpeg-site.toml");
+    let mut text = std::fs::read_to_string(SITE).unwrap();
+    text.push_str("\n[record]\nimage_format = \"jpeg\"\njpeg_quality = 90\n");
+    std::fs::write(&p, text).unwrap();
+    p
+}
+
+/// `[record] image_format = "jpeg"`: images are `jpeg` CompressedImages, the file is
+/// smaller than PNG's, and replay says it is not bit-exact instead of failing.
+#[test]
+fn a_jpeg_recording_is_smaller_and_replay_says_it_is_not_exact() {
+    let site = params::load(&jpeg_site()).unwrap();
+    let opts = HilOptions {
+        seconds: 0.5,
+        ..HilOptions::default()
+    };
+    let jpeg = temp_path("jpeg.mcap");
+    let png = temp_path("png.mcap");
+    for (path, site) in [
+        (&jpeg, site.clone()),
+        (&png, params::load(Path::new(SITE)).unwrap()),
+    ] {
+        let mut rec = markhold::sim::hil::open_recorder(&site, &opts, path).unwrap();
+        let mut run = HilRun::build(&site, &opts, Observers::new()).unwrap();
+        run.arm(site.site.link.mode.ardusub()).unwrap();
+        for _ in 0..15 {
+            let (fr, _) = run.step().unwrap();
+            rec.frame(&run.pipeline.view(&fr));
+        }
+        rec.finish().unwrap();
+    }
+    let buf = std::fs::read(&jpeg).unwrap();
+    let mut formats = BTreeMap::<String, u64>::new();
+    for m in mcap::MessageStream::new(&buf).unwrap() {
+        let m = m.unwrap();
+        if m.channel.topic == TOPIC_IMAGE {
+            use foxglove::Decode;
+            let img = foxglove::schemas::CompressedImage::decode(&m.data[..]).unwrap();
+            *formats.entry(img.format).or_default() += 1;
+        }
+    }
+    assert_eq!(formats.get("jpeg"), Some(&15), "{formats:?}");
+    let (j, p) = (
+        std::fs::metadata(&jpeg).unwrap().len(),
+        std::fs::metadata(&png).unwrap().len(),
+    );
+    assert!(j * 2 < p, "JPEG {j} bytes vs PNG {p} bytes");
+    let out = replay(&jpeg).unwrap();
+    assert_eq!(out.lossy_images, 15, "{out:?}");
+    assert_eq!(out.frames_replayed, 15, "{out:?}");
+    let out = replay(&png).unwrap();
+    assert_eq!(out.lossy_images, 0);
+    assert!(out.commands_match);
+}
+
+/// SIGTERM during `hil --record`: the file is finalized, the exit status is 130 and the
+/// recording replays.
+#[test]
+fn sigterm_during_a_recorded_hil_run_finalizes_the_file() {
+    let rec = temp_path("sigterm.mcap");
+    let mut child = std::process::Command::new(env!("CARGO_BIN_EXE_markhold"))
+        .args(["hil", "--quiet", "--seconds", "600", "--site", SITE, "--record"])
+        .arg(&rec)
+        .stdout(std::process::Stdio::null())
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .unwrap();
+    // Wait (bounded) until frames are being written.
+    let deadline = std::time::Instant::now() + std::time::Duration::from_secs(60);
+    while std::fs::metadata(&rec).map(|m| m.len()).unwrap_or(0) < 5_000_000 {
+        assert!(std::time::Instant::now() < deadline, "no recording grew");
+        assert!(child.try_wait().unwrap().is_none(), "hil ended early");
+        std::thread::sleep(std::time::Duration::from_millis(20));
+    }
+    let kill = std::process::Command::new("kill")
+        .args(["-TERM", &child.id().to_string()])
+        .status()
+        .unwrap();
+    assert!(kill.success());
+    let out = child.wait_with_output().unwrap();
+    assert_eq!(
+        out.status.code(),
+        Some(130),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let r = replay(&rec).unwrap();
+    assert!(r.recovered.is_none(), "a finalized file: {r:?}");
+    assert!(r.frames_replayed > 0 && r.commands_match, "{r:?}");
 }
