@@ -395,3 +395,75 @@ fn every_listener_binds_loopback_by_default_and_the_configured_address_when_give
         assert_bound(url, proto, link.local_addr().unwrap(), a2);
     }
 }
+
+fn heartbeat_from(system_id: u8, component_id: u8, seq: u8) -> Vec<u8> {
+    use mavlink::dialects::ardupilotmega::{
+        HEARTBEAT_DATA, MavAutopilot, MavModeFlag, MavState, MavType,
+    };
+    let msg = MavMessage::HEARTBEAT(HEARTBEAT_DATA {
+        custom_mode: 19,
+        mavtype: MavType::MAV_TYPE_SUBMARINE,
+        autopilot: MavAutopilot::MAV_AUTOPILOT_ARDUPILOTMEGA,
+        base_mode: MavModeFlag::MAV_MODE_FLAG_CUSTOM_MODE_ENABLED,
+        system_status: MavState::MAV_STATE_STANDBY,
+        mavlink_version: 3,
+    });
+    let h = MavHeader {
+        system_id: system_id.into(),
+        component_id,
+        sequence: seq,
+    };
+    let mut out = Vec::new();
+    mavlink::write_v2_msg(&mut out, h, &msg).unwrap();
+    out
+}
+
+/// Datagrams waiting on `sock` (non-blocking drain).
+fn drain(sock: &UdpSocket) -> u64 {
+    let mut buf = [0u8; 2048];
+    let mut n = 0;
+    while sock.recv_from(&mut buf).is_ok() {
+        n += 1;
+    }
+    n
+}
+
+/// A `udpin:` link follows only the vehicle: a local sender of junk bytes (and of valid
+/// heartbeats from another system id) that speaks first and keeps speaking at 50 Hz
+/// receives nothing, the vehicle receives the link's output.
+#[test]
+fn udpin_is_not_hijacked_by_a_junk_sender() {
+    let mut link = VehicleLink::connect(&LinkConfig {
+        url: "udpin:127.0.0.1:0".into(),
+        ..Default::default()
+    })
+    .unwrap();
+    let addr = link.local_addr().unwrap();
+    let junk = UdpSocket::bind("127.0.0.1:0").unwrap();
+    let vehicle = UdpSocket::bind("127.0.0.1:0").unwrap();
+    junk.set_nonblocking(true).unwrap();
+    vehicle.set_nonblocking(true).unwrap();
+    let (mut to_junk, mut to_vehicle) = (0u64, 0u64);
+    let mut now = 0.0;
+    for i in 0..150u32 {
+        // The junk sender first in every round, so it is always "the last that spoke"
+        // before the link writes.
+        junk.send_to(&[0xfd, 1, 2, 3, 4, 5, 6, 7], addr).unwrap();
+        junk.send_to(&heartbeat_from(42, 1, i as u8), addr).unwrap();
+        if i % 3 == 0 {
+            vehicle.send_to(&heartbeat_from(1, 1, i as u8), addr).unwrap();
+        }
+        junk.send_to(&[0x55; 8], addr).unwrap();
+        link.tick(now).unwrap();
+        now += 0.02;
+        std::thread::sleep(Duration::from_millis(2));
+        to_junk += drain(&junk);
+        to_vehicle += drain(&vehicle);
+    }
+    std::thread::sleep(Duration::from_millis(20));
+    to_junk += drain(&junk);
+    to_vehicle += drain(&vehicle);
+    assert!(link.state().heartbeat_ok, "{:?}", link.state());
+    assert!(to_vehicle > 20, "the vehicle received {to_vehicle} datagrams");
+    assert_eq!(to_junk, 0, "the junk sender received {to_junk} datagrams");
+}

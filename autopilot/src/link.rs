@@ -400,7 +400,12 @@ impl VehicleLink {
             }
             None => None,
         };
-        let transport = Transport::open(&cfg.url, signing.clone(), cfg.udp_receive_on_tick)?;
+        let transport = Transport::open(
+            &cfg.url,
+            signing.clone(),
+            cfg.udp_receive_on_tick,
+            (cfg.vehicle_system_id, cfg.vehicle_component_id),
+        )?;
         let mut state = VehicleState::new(cfg);
         state.transport_connected = transport.always_connected;
         tracing::info!(url = %cfg.url, gcs_sysid = cfg.gcs_system_id, "vehicle link open");

@@ -447,10 +447,80 @@ pub(crate) struct Transport {
 /// Read-ahead for datagrams read in `tick`: several full datagrams.
 const TICK_READ_CAPACITY: usize = 64 * 1024;
 
-/// Non-blocking datagram source for the frame reader; remembers the udpin peer.
+/// The peer of a listening UDP link (`udpin:`): nobody until a CRC-valid frame (with a
+/// verified signature when signing is on) comes from the expected vehicle system and
+/// component ids; that sender is then the peer for good, and datagrams from any other
+/// address are dropped before they are parsed. Before that, only such frames pass.
+#[derive(Debug)]
+pub(crate) struct PeerGate {
+    /// Where replies go (shared with the writer).
+    dest: Arc<Mutex<Option<SocketAddr>>>,
+    /// Sender of the datagram read last (the one that completed the frame being parsed).
+    last_from: Option<SocketAddr>,
+    adopted: Option<SocketAddr>,
+    vehicle: (u8, u8),
+}
+
+impl PeerGate {
+    pub(crate) fn new(dest: Arc<Mutex<Option<SocketAddr>>>, vehicle: (u8, u8)) -> Self {
+        Self {
+            dest,
+            last_from: None,
+            adopted: None,
+            vehicle,
+        }
+    }
+
+    /// A datagram from `from` arrived: false when it must be dropped unread.
+    pub(crate) fn datagram(&mut self, from: SocketAddr) -> bool {
+        match self.adopted {
+            Some(peer) if peer != from => false,
+            _ => {
+                self.last_from = Some(from);
+                true
+            }
+        }
+    }
+
+    /// A valid frame with `header` was parsed from the last datagram: whether it may go
+    /// to the link. The first one from the vehicle's ids makes its sender the peer.
+    pub(crate) fn frame(&mut self, header: &MavHeader) -> bool {
+        if self.adopted.is_some() {
+            return true;
+        }
+        if (header.system_id, header.component_id) != (u32::from(self.vehicle.0), self.vehicle.1) {
+            return false;
+        }
+        let Some(from) = self.last_from else {
+            return false;
+        };
+        self.adopted = Some(from);
+        if let Ok(mut d) = self.dest.lock() {
+            *d = Some(from);
+        }
+        tracing::info!(peer = %from, "udpin: vehicle peer adopted");
+        true
+    }
+}
+
+fn gate_datagram(gate: &Option<Arc<Mutex<PeerGate>>>, from: SocketAddr) -> bool {
+    match gate {
+        Some(g) => g.lock().map(|mut g| g.datagram(from)).unwrap_or(false),
+        None => true,
+    }
+}
+
+fn gate_frame(gate: Option<&Mutex<PeerGate>>, header: &MavHeader) -> bool {
+    match gate {
+        Some(g) => g.lock().map(|mut g| g.frame(header)).unwrap_or(false),
+        None => true,
+    }
+}
+
+/// Non-blocking datagram source for the frame reader; for udpin, filtered by the gate.
 struct UdpSrc {
     sock: std::net::UdpSocket,
-    peer: Option<Arc<Mutex<Option<SocketAddr>>>>,
+    gate: Option<Arc<Mutex<PeerGate>>>,
 }
 
 impl std::io::Read for UdpSrc {
@@ -458,10 +528,8 @@ impl std::io::Read for UdpSrc {
         loop {
             match self.sock.recv_from(buf) {
                 Ok((n, addr)) => {
-                    if let Some(p) = &self.peer {
-                        if let Ok(mut g) = p.lock() {
-                            *g = Some(addr);
-                        }
+                    if !gate_datagram(&self.gate, addr) {
+                        continue;
                     }
                     return Ok(n);
                 }
@@ -475,6 +543,7 @@ impl std::io::Read for UdpSrc {
 
 struct TickReceiver {
     reader: MavlinkReader<UdpSrc>,
+    gate: Option<Arc<Mutex<PeerGate>>>,
     signing: Option<Arc<SigningData>>,
     /// The bytes of the last frame `poll_tick` returned (for a raw tap).
     last: [u8; MAX_FRAME],
@@ -504,6 +573,7 @@ fn push(tx: &SyncSender<Incoming>, counters: &TaskCounters, m: Incoming) {
 async fn pump<R: AsyncRead + Unpin>(
     reader: &mut AsyncMavlinkReader<R>,
     signing: Option<&SigningData>,
+    gate: Option<&Mutex<PeerGate>>,
     tx: &SyncSender<Incoming>,
     counters: &TaskCounters,
 ) -> String {
@@ -511,7 +581,9 @@ async fn pump<R: AsyncRead + Unpin>(
         match reader.read_any_raw_message::<MavMessage>().await {
             Ok(raw) => {
                 if let Some((h, m)) = accept(&raw, signing, counters) {
-                    push(tx, counters, Incoming::Msg(h, m, FrameBytes::of(&raw)));
+                    if gate_frame(gate, &h) {
+                        push(tx, counters, Incoming::Msg(h, m, FrameBytes::of(&raw)));
+                    }
                 }
             }
             Err(MessageReadError::Io(e)) => return e.to_string(),
@@ -523,10 +595,10 @@ async fn pump<R: AsyncRead + Unpin>(
     }
 }
 
-/// Datagram source for the frame reader; remembers the last sender for udpin replies.
+/// Datagram source for the frame reader; for udpin, filtered by the gate.
 struct UdpRead {
     sock: Arc<tokio::net::UdpSocket>,
-    peer: Option<Arc<Mutex<Option<SocketAddr>>>>,
+    gate: Option<Arc<Mutex<PeerGate>>>,
 }
 
 impl AsyncRead for UdpRead {
@@ -537,10 +609,11 @@ impl AsyncRead for UdpRead {
     ) -> Poll<std::io::Result<()>> {
         match self.sock.poll_recv_from(cx, buf) {
             Poll::Ready(Ok(addr)) => {
-                if let Some(p) = &self.peer {
-                    if let Ok(mut g) = p.lock() {
-                        *g = Some(addr);
-                    }
+                if !gate_datagram(&self.gate, addr) {
+                    // Dropped: nothing was read; look at the next datagram.
+                    buf.clear();
+                    cx.waker().wake_by_ref();
+                    return Poll::Pending;
                 }
                 Poll::Ready(Ok(()))
             }
@@ -600,6 +673,18 @@ fn open_err(what: &'static str, target: &str) -> impl FnOnce(std::io::Error) -> 
     }
 }
 
+/// A listening link bound to every address is reachable from any network the machine
+/// is on: say so (the link still only adopts the vehicle as its peer).
+fn warn_wildcard(url: &str, local: Option<SocketAddr>) {
+    if local.is_some_and(|a| a.ip().is_unspecified()) {
+        tracing::warn!(
+            "{url}: listening on every network interface; any host that can reach this \
+             port can talk to the link (bind the vehicle network's own address, or use \
+             MAVLink signing)"
+        );
+    }
+}
+
 /// The UDP socket of `udpin:`/`udpout:`, bound (and for udpout connected), non-blocking;
 /// with the destination (None for udpin until a peer speaks).
 fn bind_udp(
@@ -630,18 +715,23 @@ fn bind_udp(
 impl Transport {
     /// Opens the endpoint: sockets that must exist (udp, tcpin listener) are bound here so
     /// errors surface at once; stream connections are made by the task.
+    /// `vehicle`: the vehicle's system and component ids, the only sender a listening
+    /// link (udpin, tcpin) takes as its peer.
     pub(crate) fn open(
         url: &str,
         signing: Option<Arc<SigningData>>,
         receive_on_tick: bool,
+        vehicle: (u8, u8),
     ) -> Result<Self, AutopilotError> {
         let ep = Endpoint::parse(url)?;
         let parts = Parts::new(url, signing)?;
         match ep {
-            Endpoint::UdpIn(hp) => Self::open_udp(parts, url, &hp, true, receive_on_tick),
-            Endpoint::UdpOut(hp) => Self::open_udp(parts, url, &hp, false, receive_on_tick),
+            Endpoint::UdpIn(hp) => {
+                Self::open_udp(parts, url, &hp, Some(vehicle), receive_on_tick)
+            }
+            Endpoint::UdpOut(hp) => Self::open_udp(parts, url, &hp, None, receive_on_tick),
             Endpoint::TcpOut(hp) => Self::open_tcp_out(parts, url, &hp),
-            Endpoint::TcpIn(hp) => Self::open_tcp_in(parts, url, &hp),
+            Endpoint::TcpIn(hp) => Self::open_tcp_in(parts, url, &hp, vehicle),
             Endpoint::Serial { path, baud } => Ok(Self::open_serial(parts, path, baud)),
         }
     }
@@ -650,21 +740,31 @@ impl Transport {
         p: Parts,
         url: &str,
         hp: &str,
-        udpin: bool,
+        udpin: Option<(u8, u8)>,
         receive_on_tick: bool,
     ) -> Result<Self, AutopilotError> {
-        let (sock, dest) = bind_udp(url, hp, udpin)?;
+        let (sock, dest) = bind_udp(url, hp, udpin.is_some())?;
         let udp_recv_buffer = grow_recv_buffer(&sock);
         let local = sock.local_addr().ok();
+        if udpin.is_some() {
+            warn_wildcard(url, local);
+        }
         let wsock = sock.try_clone().map_err(open_err("udp socket", hp))?;
         let dest = Arc::new(Mutex::new(dest));
-        let peer = udpin.then(|| dest.clone());
+        let gate = udpin.map(|ids| Arc::new(Mutex::new(PeerGate::new(dest.clone(), ids))));
         let tick_rx = if receive_on_tick {
             // Datagrams are read by `tick` on the caller's thread: on loopback (HIL)
             // everything the vehicle sent before the tick is seen in that tick, so
             // the link state does not depend on thread scheduling.
             Some(TickReceiver {
-                reader: MavlinkReader::with_capacity(TICK_READ_CAPACITY, UdpSrc { sock, peer }),
+                reader: MavlinkReader::with_capacity(
+                    TICK_READ_CAPACITY,
+                    UdpSrc {
+                        sock,
+                        gate: gate.clone(),
+                    },
+                ),
+                gate,
                 signing: p.signing.clone(),
                 last: [0; MAX_FRAME],
                 last_len: 0,
@@ -678,10 +778,11 @@ impl Transport {
             p.rt.spawn(async move {
                 let mut reader = AsyncMavlinkReader::new(UdpRead {
                     sock: Arc::new(asock),
-                    peer,
+                    gate: gate.clone(),
                 });
                 loop {
-                    let why = pump(&mut reader, signing.as_deref(), &tx, &c).await;
+                    let why =
+                        pump(&mut reader, signing.as_deref(), gate.as_deref(), &tx, &c).await;
                     tracing::warn!(%why, "udp receive error");
                     tokio::time::sleep(RECONNECT_BACKOFF).await;
                 }
@@ -693,7 +794,7 @@ impl Transport {
             writer: Writer::Udp {
                 sock: wsock,
                 dest,
-                connected: !udpin,
+                connected: udpin.is_none(),
             },
             rx: p.rx,
             counters: p.counters,
@@ -718,7 +819,7 @@ impl Transport {
                     .await
                 {
                     Ok(Ok(s)) => {
-                        serve_tcp(s, &s2, signing.as_deref(), &tx, &c, &rc).await;
+                        serve_tcp(s, &s2, signing.as_deref(), None, &tx, &c, &rc).await;
                         c.reconnects.fetch_add(1, Ordering::Relaxed);
                     }
                     Ok(Err(e)) => tracing::debug!(%addr, error = %e, "tcp connect failed"),
@@ -730,12 +831,18 @@ impl Transport {
         Ok(Self::tcp(p.rt, p.rx, p.counters, p.reconnect, slot, None))
     }
 
-    fn open_tcp_in(p: Parts, url: &str, hp: &str) -> Result<Self, AutopilotError> {
+    fn open_tcp_in(
+        p: Parts,
+        url: &str,
+        hp: &str,
+        vehicle: (u8, u8),
+    ) -> Result<Self, AutopilotError> {
         let addr = resolve(url, hp)?;
         let l = std::net::TcpListener::bind(addr).map_err(open_err("tcp listener", hp))?;
         l.set_nonblocking(true)
             .map_err(open_err("tcp listener", hp))?;
         let local = l.local_addr().ok();
+        warn_wildcard(url, local);
         let listener = {
             let _g = p.rt.enter();
             tokio::net::TcpListener::from_std(l).map_err(open_err("tcp listener", hp))?
@@ -750,7 +857,7 @@ impl Transport {
                 match listener.accept().await {
                     Ok((s, peer)) => {
                         tracing::info!(%peer, "tcp client connected");
-                        serve_tcp(s, &s2, signing.as_deref(), &tx, &c, &rc).await;
+                        serve_tcp(s, &s2, signing.as_deref(), Some(vehicle), &tx, &c, &rc).await;
                         c.reconnects.fetch_add(1, Ordering::Relaxed);
                     }
                     Err(e) => {
@@ -803,7 +910,7 @@ impl Transport {
                         let (r, mut w) = tokio::io::split(port);
                         let mut reader = AsyncMavlinkReader::new(r);
                         let why = tokio::select! {
-                            why = pump(&mut reader, signing.as_deref(), &tx, &c) => why,
+                            why = pump(&mut reader, signing.as_deref(), None, &tx, &c) => why,
                             why = async {
                                 while let Some((f, n)) = wrx.recv().await {
                                     if let Err(e) = w.write_all(&f[..n]).await {
@@ -845,6 +952,9 @@ impl Transport {
             match rx.reader.read_any_raw_message::<MavMessage>() {
                 Ok(raw) => {
                     if let Some(m) = accept(&raw, rx.signing.as_deref(), &self.counters) {
+                        if !gate_frame(rx.gate.as_deref(), &m.0) {
+                            continue;
+                        }
                         let bytes = match &raw {
                             MAVLinkMessageRaw::V1(r) => r.raw_bytes(),
                             MAVLinkMessageRaw::V2(r) => r.raw_bytes(),
@@ -890,10 +1000,53 @@ impl Transport {
     }
 }
 
+/// A tcpin client that has not sent a valid frame from the vehicle's ids by then is
+/// closed, so a silent or foreign client cannot hold the listener.
+const TCP_ADOPT_TIMEOUT: Duration = Duration::from_secs(5);
+
+/// Wait (bounded) for the first valid frame from `vehicle` on a tcpin client; it goes
+/// to the link. Why not, when the client is to be closed.
+async fn adopt_tcp<R: AsyncRead + Unpin>(
+    reader: &mut AsyncMavlinkReader<R>,
+    signing: Option<&SigningData>,
+    vehicle: (u8, u8),
+    tx: &SyncSender<Incoming>,
+    c: &TaskCounters,
+) -> Result<(), String> {
+    let wait = async {
+        loop {
+            match reader.read_any_raw_message::<MavMessage>().await {
+                Ok(raw) => {
+                    if let Some((h, m)) = accept(&raw, signing, c) {
+                        if (h.system_id, h.component_id) == (u32::from(vehicle.0), vehicle.1) {
+                            push(tx, c, Incoming::Msg(h, m, FrameBytes::of(&raw)));
+                            return Ok(());
+                        }
+                    }
+                }
+                Err(MessageReadError::Io(e)) => return Err(e.to_string()),
+                Err(MessageReadError::Parse(_)) => {
+                    c.parse_errors.fetch_add(1, Ordering::Relaxed);
+                }
+            }
+        }
+    };
+    match tokio::time::timeout(TCP_ADOPT_TIMEOUT, wait).await {
+        Ok(r) => r,
+        Err(_) => Err(format!(
+            "no valid frame from vehicle {}/{} within {} s",
+            vehicle.0,
+            vehicle.1,
+            TCP_ADOPT_TIMEOUT.as_secs()
+        )),
+    }
+}
+
 async fn serve_tcp(
     s: tokio::net::TcpStream,
     slot: &Mutex<TcpSlot>,
     signing: Option<&SigningData>,
+    adopt: Option<(u8, u8)>,
     tx: &SyncSender<Incoming>,
     c: &TaskCounters,
     reconnect: &Notify,
@@ -925,14 +1078,23 @@ async fn serve_tcp(
             return;
         }
     };
+    let mut reader = AsyncMavlinkReader::new(s);
+    if let Some(vehicle) = adopt {
+        // tcpin: the client is the vehicle only once it says so with a valid frame;
+        // until then nothing is sent to it.
+        if let Err(why) = adopt_tcp(&mut reader, signing, vehicle, tx, c).await {
+            tracing::warn!(%peer, %why, "tcp client closed: not the vehicle");
+            let _ = w.shutdown(std::net::Shutdown::Both);
+            return;
+        }
+    }
     if let Ok(mut g) = slot.lock() {
         g.stream = Some(w);
         g.gen += 1;
     }
     push(tx, c, Incoming::Connected(peer.clone()));
-    let mut reader = AsyncMavlinkReader::new(s);
     let why = tokio::select! {
-        why = pump(&mut reader, signing, tx, c) => why,
+        why = pump(&mut reader, signing, None, tx, c) => why,
         _ = reconnect.notified() => "reconnect requested".to_string(),
     };
     if let Ok(mut g) = slot.lock() {
