@@ -5,6 +5,29 @@
 //! ([`observe`], [`record`]). [`field`] runs it on a real vehicle; [`sim`] (feature
 //! `sim`, on by default) against the simulated world.
 
+/// `println!` for the command's report: a closed stdout (`markhold ... | head -1`)
+/// ends the program quietly with status 0 instead of a panic; other write errors are
+/// reported on stderr once the report is done.
+#[macro_export]
+macro_rules! outln {
+    ($($arg:tt)*) => {
+        $crate::print_report(format_args!($($arg)*))
+    };
+}
+
+/// One line of a command's report on stdout (see [`outln!`]).
+pub fn print_report(args: std::fmt::Arguments<'_>) {
+    use std::io::Write;
+    let mut out = std::io::stdout().lock();
+    if let Err(e) = out.write_fmt(args).and_then(|()| out.write_all(b"\n")) {
+        if e.kind() == std::io::ErrorKind::BrokenPipe {
+            // The reader has gone: nobody is left to tell.
+            std::process::exit(0);
+        }
+        eprintln!("markhold: writing to stdout: {e}");
+    }
+}
+
 pub mod cli_docs;
 pub mod field;
 pub mod observe;

@@ -219,7 +219,7 @@ fn run(cli: Cli) -> anyhow::Result<()> {
         }
         Command::Man { out: Some(dir) } => {
             for page in markhold::cli_docs::man_pages_to(Cli::command(), &dir)? {
-                println!("{}", page.display());
+                markhold::outln!("{}", page.display());
             }
             Ok(())
         }
@@ -230,33 +230,33 @@ fn params_check(file: &Path) -> anyhow::Result<()> {
     let site = params::load(file)?;
     let text =
         toml::to_string_pretty(&site.effective()).context("printing the effective values")?;
-    println!(
+    markhold::outln!(
         "# {}: valid. Effective values, defaults filled in:",
         file.display()
     );
     match &site.site.camera.calibration_file {
-        Some(calib) => println!(
+        Some(calib) => markhold::outln!(
             "# camera intrinsics and distortion from {} ({} coefficients)",
             calib.display(),
             site.calibration.dist.len()
         ),
-        None => println!(
+        None => markhold::outln!(
             "# camera intrinsics from [camera] (defaults: centred, 62-degree field of view)"
         ),
     }
     if site.calibration.dist.len() > 5 {
-        println!("# full distortion: {:?}", site.calibration.dist);
+        markhold::outln!("# full distortion: {:?}", site.calibration.dist);
     }
     if let Some(note) = params::SIM_SECTIONS_NOTE {
-        println!("# {note}");
+        markhold::outln!("# {note}");
     }
-    println!("\n{text}");
+    markhold::outln!("\n{text}");
     Ok(())
 }
 
 fn replay(args: ReplayArgs) -> anyhow::Result<()> {
     let out = markhold::record::replay::replay(&args.file)?;
-    println!(
+    markhold::outln!(
         "markhold replay {}: {} frames replayed of {}, {} commands compared, commands_match: {}",
         args.file.display(),
         out.frames_replayed,
@@ -265,20 +265,20 @@ fn replay(args: ReplayArgs) -> anyhow::Result<()> {
         out.commands_match
     );
     if let Some(m) = &out.first_mismatch {
-        println!(
+        markhold::outln!(
             "  first mismatch: frame {} at {:.3} s, {}: recorded {}, replayed {}",
             m.seq, m.stamp_s, m.field, m.recorded, m.replayed
         );
     }
     if let Some(r) = &out.recovered {
-        println!(
+        markhold::outln!(
             "  the file ends early ({} bytes; {}): replayed what its complete chunks hold, \
              {} frames",
             r.file_bytes, r.reason, out.frames_recorded
         );
     }
     if out.lossy_images > 0 {
-        println!(
+        markhold::outln!(
             "  not bit-exact: {} images were recorded as JPEG (lossy), so the loop saw other \
              pixels than when recording; record with image_format = \"png\" for an exact replay",
             out.lossy_images
@@ -316,12 +316,12 @@ fn run_cmd(args: RunArgs) -> anyhow::Result<()> {
         frames_every: args.record_frames_every.max(1),
     };
     let report = markhold::field::run::run_live(&site, &opts, &stop)?;
-    println!(
+    markhold::outln!(
         "markhold run: {} frames, marker in {}, {:.1} s of camera time, stopped by {:?}",
         report.frames, report.detected, report.loop_seconds, report.stopped_by
     );
     if report.frames_passed_over > 0 {
-        println!(
+        markhold::outln!(
             "  {} camera frames passed over: the loop was slower than the camera and acted on the newest",
             report.frames_passed_over
         );

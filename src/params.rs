@@ -366,6 +366,21 @@ pub fn open_regular(path: &Path, max_bytes: u64) -> std::io::Result<std::fs::Fil
     markhold_config::open_regular(path, max_bytes)
 }
 
+/// A command line's `--initial-exposure-us`, checked as the site's
+/// `camera.initial_exposure_us` would be (and finite); the error names the flag.
+pub fn check_initial_exposure(site: &Site, value: f64) -> Result<(), ParamsError> {
+    let mut s = site.clone();
+    s.camera.initial_exposure_us = value;
+    let flag = "--initial-exposure-us";
+    if !value.is_finite() {
+        return Err(ConfigError::new(flag, value, "a positive exposure in microseconds").into());
+    }
+    validate_site(&s).map_err(|mut e| {
+        e.key = flag.into();
+        ParamsError::Config(e)
+    })
+}
+
 /// Check a site read from elsewhere than a site file (a recording) like a site file.
 pub fn check(site: &Site) -> Result<(), ConfigError> {
     validate(site)

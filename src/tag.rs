@@ -511,7 +511,7 @@ pub fn cli(args: TagArgs) -> anyhow::Result<()> {
     } else {
         String::new()
     };
-    println!(
+    crate::outln!(
         "markhold tag: {}: {family} id {id}, black square {} mm (marker.size_m = {}), \
          quiet zone {} mm, page {} x {} mm{res}; print at 100 % and measure the black square",
         args.out.display(),

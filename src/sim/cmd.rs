@@ -134,7 +134,7 @@ pub fn sitl(args: SitlArgs) -> anyhow::Result<()> {
                 n,
                 std::time::Duration::from_secs_f64(args.max_seconds.clamp(0.0, 86_400.0)),
             )?;
-            println!(
+            crate::outln!(
                 "markhold sitl: {} packets, {} replies, {} steps, {} repeated, {} resets, {} rejected",
                 stats.packets, stats.replies, stats.steps, stats.repeated, stats.resets, stats.rejected
             );
@@ -194,6 +194,9 @@ pub fn hil(args: HilArgs) -> anyhow::Result<()> {
         args.seconds,
         super::summary::MAX_SECONDS
     );
+    if let Some(v) = args.initial_exposure_us {
+        params::check_initial_exposure(&site.site, v)?;
+    }
     anyhow::ensure!(
         args.record.is_none() || args.vehicle.is_none(),
         "--record with --vehicle is not supported: record a simulated run, or use `markhold run`"
@@ -319,10 +322,10 @@ pub fn print_table(site: &str, s: &Summary) {
             format!("{:.2} ms", s.loop_latency_p99_ms),
         ),
     ];
-    println!("markhold hil");
+    crate::outln!("markhold hil");
     let width = rows.iter().map(|(k, _)| k.len()).max().unwrap_or(0);
     for (k, v) in rows {
-        println!("  {k:<width$} {v}");
+        crate::outln!("  {k:<width$} {v}");
     }
     print_faults(&s.faults);
 }
@@ -331,7 +334,7 @@ fn print_faults(faults: &[super::faults::FaultReport]) {
     let at = |v: Option<f64>| v.map_or("-".to_string(), |t| format!("{t:.2} s"));
     for f in faults {
         let end = f.end_s.map_or("end".to_string(), |t| format!("{t:.2} s"));
-        println!("  fault {} {:.2} s .. {end}", f.kind, f.start_s);
+        crate::outln!("  fault {} {:.2} s .. {end}", f.kind, f.start_s);
         let rows = [
             ("silent (no vehicle) at", at(f.silent_at_s)),
             ("neutral at", at(f.neutral_at_s)),
@@ -352,7 +355,7 @@ fn print_faults(faults: &[super::faults::FaultReport]) {
             ),
         ];
         for (k, v) in rows {
-            println!("    {k:<24} {v}");
+            crate::outln!("    {k:<24} {v}");
         }
     }
 }

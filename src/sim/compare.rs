@@ -1218,7 +1218,7 @@ pub fn cli(args: CompareArgs) -> anyhow::Result<()> {
     let out = run_compare(&site, &opts, &bar)?;
     drop(bar); // clears the bar
     let files = write_outputs(&out, &args.out)?;
-    println!(
+    crate::outln!(
         "markhold compare: {} runs of {} s on {}; wrote {} files to {}",
         out.series.len(),
         opts.seconds,
@@ -1227,7 +1227,7 @@ pub fn cli(args: CompareArgs) -> anyhow::Result<()> {
         args.out.display()
     );
     for f in files {
-        println!("  {}", args.out.join(f).display());
+        crate::outln!("  {}", args.out.join(f).display());
     }
     Ok(())
 }
