@@ -79,7 +79,22 @@ fn split_flow(s: &str) -> Vec<&str> {
     out.into_iter().filter(|p| !p.trim().is_empty()).collect()
 }
 
-fn parse_flow(text: &str, line: usize) -> Result<Node, ParseError> {
+/// Nesting (block mappings by indentation, and flow mappings) deeper than this is an
+/// error: a calibration file needs three levels, and recursion must not overflow the
+/// stack on a hostile file.
+pub(crate) const MAX_DEPTH: usize = 32;
+
+fn too_deep(line: usize) -> ParseError {
+    ParseError {
+        line,
+        reason: format!("nested deeper than {MAX_DEPTH} levels"),
+    }
+}
+
+fn parse_flow(text: &str, line: usize, depth: usize) -> Result<Node, ParseError> {
+    if depth > MAX_DEPTH {
+        return Err(too_deep(line));
+    }
     let t = text.trim();
     let err = |reason: &str| ParseError {
         line,
@@ -106,7 +121,7 @@ fn parse_flow(text: &str, line: usize) -> Result<Node, ParseError> {
             let (k, v) = p
                 .split_once(':')
                 .ok_or_else(|| err("expected 'key: value' in a flow mapping"))?;
-            entries.push((unquote(k), parse_flow(v, line)?));
+            entries.push((unquote(k), parse_flow(v, line, depth + 1)?));
         }
         Ok(Node::Map(entries))
     } else {
@@ -126,7 +141,7 @@ fn strip_tag(s: &str) -> &str {
     }
 }
 
-fn bracket_balance(s: &str) -> i32 {
+fn bracket_balance(s: &str) -> i64 {
     s.chars().fold(0, |d, c| match c {
         '[' | '{' => d + 1,
         ']' | '}' => d - 1,
@@ -158,7 +173,7 @@ pub(crate) fn parse(text: &str) -> Result<Node, ParseError> {
         });
     }
     let mut pos = 0;
-    let root = parse_map(&lines, &mut pos, 0)?;
+    let root = parse_map(&lines, &mut pos, 0, 0)?;
     if let Some(l) = lines.get(pos) {
         return Err(ParseError {
             line: l.no,
@@ -168,9 +183,19 @@ pub(crate) fn parse(text: &str) -> Result<Node, ParseError> {
     Ok(root)
 }
 
-fn parse_map(lines: &[Line<'_>], pos: &mut usize, indent: usize) -> Result<Node, ParseError> {
+fn parse_map(
+    lines: &[Line<'_>],
+    pos: &mut usize,
+    indent: usize,
+    depth: usize,
+) -> Result<Node, ParseError> {
     let mut entries: Vec<(String, Node)> = Vec::new();
+    // Keys seen, for the duplicate check in constant time per key.
+    let mut keys = std::collections::HashSet::new();
     while let Some(l) = lines.get(*pos) {
+        if depth > MAX_DEPTH {
+            return Err(too_deep(l.no));
+        }
         if l.indent < indent {
             break;
         }
@@ -191,7 +216,7 @@ fn parse_map(lines: &[Line<'_>], pos: &mut usize, indent: usize) -> Result<Node,
             reason: format!("expected 'key: value', found '{}'", l.text),
         })?;
         let key = unquote(key);
-        if entries.iter().any(|(k, _)| *k == key) {
+        if !keys.insert(key.clone()) {
             return Err(ParseError {
                 line: l.no,
                 reason: format!("duplicate key '{key}'"),
@@ -204,14 +229,17 @@ fn parse_map(lines: &[Line<'_>], pos: &mut usize, indent: usize) -> Result<Node,
             match lines.get(*pos) {
                 Some(next) if next.indent > indent => {
                     let child_indent = next.indent;
-                    parse_map(lines, pos, child_indent)?
+                    parse_map(lines, pos, child_indent, depth + 1)?
                 }
                 _ => Node::Scalar(String::new()),
             }
         } else if rest.starts_with('[') || rest.starts_with('{') {
             // A flow collection may continue over the following lines.
+            // The balance is kept as lines are added (counting the whole text again
+            // on every line would be quadratic in an unterminated collection).
             let mut text = rest.to_string();
-            while bracket_balance(&text) > 0 {
+            let mut balance = bracket_balance(&text);
+            while balance > 0 {
                 let Some(next) = lines.get(*pos) else {
                     return Err(ParseError {
                         line: start_line,
@@ -220,9 +248,10 @@ fn parse_map(lines: &[Line<'_>], pos: &mut usize, indent: usize) -> Result<Node,
                 };
                 text.push(' ');
                 text.push_str(next.text);
+                balance += bracket_balance(next.text);
                 *pos += 1;
             }
-            parse_flow(&text, start_line)?
+            parse_flow(&text, start_line, depth + 1)?
         } else {
             Node::Scalar(unquote(rest))
         };
@@ -234,6 +263,39 @@ fn parse_map(lines: &[Line<'_>], pos: &mut usize, indent: usize) -> Result<Node,
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn deep_nesting_is_an_error_not_a_stack_overflow() {
+        let mut doc = String::new();
+        for i in 0..100_000 {
+            doc.push_str(&" ".repeat(i.min(200_000)));
+            doc.push_str("k:\n");
+            if i > 2000 {
+                break;
+            }
+        }
+        let e = parse(&doc).unwrap_err();
+        assert!(e.reason.contains("deeper"), "{e:?}");
+        let flow = format!("k: {}1{}\n", "{a: ".repeat(50_000), "}".repeat(50_000));
+        let e = parse(&flow).unwrap_err();
+        assert!(e.reason.contains("deeper"), "{e:?}");
+    }
+
+    #[test]
+    fn an_unterminated_list_over_many_lines_is_one_linear_pass() {
+        // 200 k lines after an unterminated '[': counted once each (the old count of
+        // the whole text per line took minutes here).
+        let mut doc = String::from("data: [\n");
+        for _ in 0..200_000 {
+            doc.push_str("  1.0,\n");
+        }
+        let e = parse(&doc).unwrap_err();
+        assert!(e.reason.contains("unterminated"), "{e:?}");
+        assert_eq!(e.line, 1);
+        // As many distinct keys: the duplicate check is not quadratic either.
+        let keys: String = (0..200_000).map(|i| format!("k{i}: 1\n")).collect();
+        assert!(parse(&keys).is_ok());
+    }
 
     #[test]
     fn parses_opencv_and_ros_shapes() {
