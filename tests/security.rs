@@ -467,3 +467,89 @@ fn udpin_is_not_hijacked_by_a_junk_sender() {
     assert!(to_vehicle > 20, "the vehicle received {to_vehicle} datagrams");
     assert_eq!(to_junk, 0, "the junk sender received {to_junk} datagrams");
 }
+
+/// Run the built binary with `args`, bounded to 60 s; (status code, stderr).
+fn run_bounded(args: &[&str]) -> (Option<i32>, String) {
+    let mut child = std::process::Command::new(env!("CARGO_BIN_EXE_markhold"))
+        .args(args)
+        .stdout(std::process::Stdio::null())
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .unwrap();
+    let deadline = std::time::Instant::now() + Duration::from_secs(60);
+    while child.try_wait().unwrap().is_none() {
+        if std::time::Instant::now() > deadline {
+            let _ = child.kill();
+            panic!("markhold {args:?} did not end");
+        }
+        std::thread::sleep(Duration::from_millis(10));
+    }
+    let out = child.wait_with_output().unwrap();
+    (out.status.code(), String::from_utf8_lossy(&out.stderr).into_owned())
+}
+
+/// A device or a FIFO as a site or calibration file is refused at once (exit 78), not
+/// read without end or waited on.
+#[test]
+fn devices_and_fifos_are_refused_as_site_and_calibration_files() {
+    let dir = scratch("special-files");
+    let fifo = dir.join("site.fifo");
+    let _ = std::fs::remove_file(&fifo);
+    assert!(std::process::Command::new("mkfifo")
+        .arg(&fifo)
+        .status()
+        .unwrap()
+        .success());
+    for file in ["/dev/zero", fifo.to_str().unwrap()] {
+        let (code, err) = run_bounded(&["params", "check", file]);
+        assert_eq!(code, Some(78), "{file}: {err}");
+        assert!(err.contains("not a regular file"), "{file}: {err}");
+    }
+    // A calibration file that is /dev/zero.
+    let site = dir.join("site.toml");
+    let text = std::fs::read_to_string(
+        Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/fixtures/pool-640.toml"),
+    )
+    .unwrap()
+    .replace("[camera]", "[camera]\ncalibration_file = \"/dev/zero\"");
+    std::fs::write(&site, text).unwrap();
+    let (code, err) = run_bounded(&["params", "check", site.to_str().unwrap()]);
+    assert_eq!(code, Some(78), "{err}");
+    assert!(err.contains("calibration_file") && err.contains("not a regular file"), "{err}");
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
+/// Out-of-range durations and overrides are errors, not aborts or silent clamps.
+#[test]
+fn hil_refuses_absurd_seconds_and_bad_initial_exposure() {
+    let site = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/fixtures/pool-640.toml");
+    let site = site.to_str().unwrap();
+    let (code, err) = run_bounded(&["hil", "--quiet", "--site", site, "--seconds", "1e12"]);
+    assert_eq!(code, Some(2), "{err}");
+    assert!(err.contains("--seconds"), "{err}");
+    for v in ["nan", "inf", "0", "-5"] {
+        let flag = format!("--initial-exposure-us={v}");
+        let (code, err) = run_bounded(&["hil", "--quiet", "--site", site, "--seconds", "0.1", &flag]);
+        assert_eq!(code, Some(78), "{v}: {err}");
+        assert!(err.contains("--initial-exposure-us"), "{v}: {err}");
+    }
+}
+
+/// `markhold params check FILE | head -1`: stdout closed before the report is written
+/// ends the program quietly with status 0, no panic.
+#[test]
+fn a_closed_stdout_ends_quietly() {
+    let (reader, writer) = std::io::pipe().unwrap();
+    drop(reader);
+    let site = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/fixtures/pool-640.toml");
+    let out = std::process::Command::new(env!("CARGO_BIN_EXE_markhold"))
+        .args(["params", "check"])
+        .arg(&site)
+        .stdout(writer)
+        .stderr(std::process::Stdio::piped())
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(0), "{err}");
+    assert!(!err.contains("panicked"), "{err}");
+}
