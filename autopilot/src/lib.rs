@@ -10,6 +10,8 @@
 
 pub mod config;
 pub mod error;
+#[doc(hidden)]
+pub mod fuzzing;
 pub mod keeper;
 pub mod link;
 pub mod pilot;

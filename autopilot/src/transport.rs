@@ -232,7 +232,7 @@ pub(crate) struct TaskCounters {
 
 /// Verify (with signing on) and parse one CRC-valid raw frame; rejections are counted.
 /// MAVLink 1 and unsigned MAVLink 2 follow the config's `allow_unsigned` (false here).
-fn accept(
+pub(crate) fn accept(
     raw: &MAVLinkMessageRaw,
     signing: Option<&SigningData>,
     counters: &TaskCounters,
@@ -503,14 +503,14 @@ impl PeerGate {
     }
 }
 
-fn gate_datagram(gate: &Option<Arc<Mutex<PeerGate>>>, from: SocketAddr) -> bool {
+pub(crate) fn gate_datagram(gate: &Option<Arc<Mutex<PeerGate>>>, from: SocketAddr) -> bool {
     match gate {
         Some(g) => g.lock().map(|mut g| g.datagram(from)).unwrap_or(false),
         None => true,
     }
 }
 
-fn gate_frame(gate: Option<&Mutex<PeerGate>>, header: &MavHeader) -> bool {
+pub(crate) fn gate_frame(gate: Option<&Mutex<PeerGate>>, header: &MavHeader) -> bool {
     match gate {
         Some(g) => g.lock().map(|mut g| g.frame(header)).unwrap_or(false),
         None => true,

@@ -293,14 +293,21 @@ enum Topic {
 /// (memory does not grow with its length); a file that ends early (a crash, a full disk,
 /// a copy cut short) is replayed up to its last complete chunk and the summary says so.
 pub fn replay(path: &Path) -> anyhow::Result<ReplaySummary> {
-    use mcap::records::Record;
-    use mcap::sans_io::linear_reader::{LinearReadEvent, LinearReader, LinearReaderOptions};
-    use std::io::Read;
-
     let file = crate::params::open_regular(path, u64::MAX)
         .with_context(|| format!("reading {}", path.display()))?;
     let size = file.metadata().map(|m| m.len()).unwrap_or(0);
-    let mut src = std::io::BufReader::with_capacity(1 << 20, file);
+    replay_from(path, std::io::BufReader::with_capacity(1 << 20, file), size)
+}
+
+/// [`replay`] of the recording `src` (`size` bytes long), named `path` in messages.
+pub fn replay_from(
+    path: &Path,
+    mut src: impl std::io::Read,
+    size: u64,
+) -> anyhow::Result<ReplaySummary> {
+    use mcap::records::Record;
+    use mcap::sans_io::linear_reader::{LinearReadEvent, LinearReader, LinearReaderOptions};
+
     // Chunks are checked whole (CRC) before any of their messages is replayed: a chunk
     // cut short by the end of the file gives nothing.
     let mut reader = LinearReader::new_with_options(
