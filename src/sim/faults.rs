@@ -787,9 +787,11 @@ pub struct FaultReport {
     /// The supervisor's marker-lost and marker-lost-action times.
     pub marker_lost_at_s: Option<f64>,
     pub marker_lost_action_at_s: Option<f64>,
-    /// First detection at or after the end.
+    /// First detection at or after the end, after a miss (none when the marker was
+    /// never missed).
     pub marker_detected_again_at_s: Option<f64>,
-    /// First time after the end the vehicle was within the station tolerance and stayed
+    /// After the vehicle left the station tolerance (none when it never did): the first
+    /// time after the end it was back within it and stayed
     /// there for `STATION_HOLD_S`.
     pub station_regained_at_s: Option<f64>,
     /// Largest station error (truth) from the start to station regained (or the end).
@@ -895,43 +897,45 @@ impl FaultMonitor {
             .norm();
         let disarmed_now = self.was_armed && !link_armed;
         self.was_armed = link_armed;
-        for (r, tol) in self.reports.iter_mut().zip(self.in_tol_since.iter_mut()) {
+        // What happens on this frame (a directive, a miss, an event) belongs to the fault
+        // started most recently at or before it: with several faults in a run, an
+        // effect is listed under the fault that caused it, not under every earlier one.
+        let owner = self
+            .reports
+            .iter()
+            .enumerate()
+            .filter(|(_, r)| r.start_s <= t)
+            .max_by(|(_, a), (_, b)| a.start_s.total_cmp(&b.start_s))
+            .map(|(i, _)| i);
+        for (i, (r, tol)) in self
+            .reports
+            .iter_mut()
+            .zip(self.in_tol_since.iter_mut())
+            .enumerate()
+        {
             if t < r.start_s {
                 continue;
             }
             let end = r.end_s.unwrap_or(f64::INFINITY);
-            let in_window = t < end;
-            if in_window {
+            if t < end {
                 r.exposure_min_us = r.exposure_min_us.min(rec.exposure.exposure_us);
                 r.exposure_max_us = r.exposure_max_us.max(rec.exposure.exposure_us);
-                match rec.directive {
-                    Directive::Silent if r.silent_at_s.is_none() => r.silent_at_s = Some(t),
-                    Directive::Neutral if r.neutral_at_s.is_none() => r.neutral_at_s = Some(t),
-                    _ => {}
-                }
             }
             if r.station_regained_at_s.is_none() {
                 r.max_position_error_m = r.max_position_error_m.max(err);
             }
-            if rec.directive == Directive::Command && !heartbeat_ok {
-                r.commands_while_unheard += 1;
+            if owner == Some(i) {
+                r.note_frame(rec, t, end, heartbeat_ok, disarmed_now);
+                for e in events {
+                    r.note_event(e);
+                }
+                for tr in transitions {
+                    r.note_transition(tr);
+                }
             }
-            if disarmed_now && r.vehicle_disarmed_at_s.is_none() {
-                r.vehicle_disarmed_at_s = Some(t);
-            }
-            if !rec.detected && r.marker_missed_at_s.is_none() {
-                r.marker_missed_at_s = Some(t);
-            }
-            if rec.detected && t >= end && r.marker_detected_again_at_s.is_none() {
-                r.marker_detected_again_at_s = Some(t);
-            }
-            for e in events {
-                r.note_event(e);
-            }
-            for tr in transitions {
-                r.note_transition(tr);
-            }
-            if t >= end && r.station_regained_at_s.is_none() {
+            // Station regained: only after it was lost (the error left the tolerance).
+            let lost_station = r.max_position_error_m > STATION_TOL_M;
+            if t >= end && lost_station && r.station_regained_at_s.is_none() {
                 if err <= STATION_TOL_M {
                     let since = *tol.get_or_insert(t);
                     if t - since >= STATION_HOLD_S {
@@ -954,6 +958,39 @@ impl FaultMonitor {
 }
 
 impl FaultReport {
+    /// One frame of this fault's: its directive, detection and the vehicle's state.
+    fn note_frame(
+        &mut self,
+        rec: &FrameRecord,
+        t: f64,
+        end: f64,
+        heartbeat_ok: bool,
+        disarmed_now: bool,
+    ) {
+        match rec.directive {
+            Directive::Silent if self.silent_at_s.is_none() => self.silent_at_s = Some(t),
+            Directive::Neutral if self.neutral_at_s.is_none() => self.neutral_at_s = Some(t),
+            _ => {}
+        }
+        if rec.directive == Directive::Command && !heartbeat_ok {
+            self.commands_while_unheard += 1;
+        }
+        if disarmed_now && self.vehicle_disarmed_at_s.is_none() {
+            self.vehicle_disarmed_at_s = Some(t);
+        }
+        if !rec.detected && self.marker_missed_at_s.is_none() {
+            self.marker_missed_at_s = Some(t);
+        }
+        // Detected again: only after a miss, once the fault is over.
+        if rec.detected
+            && t >= end
+            && self.marker_missed_at_s.is_some()
+            && self.marker_detected_again_at_s.is_none()
+        {
+            self.marker_detected_again_at_s = Some(t);
+        }
+    }
+
     /// The first time each failsafe event of the supervisor was seen in this fault.
     fn note_event(&mut self, e: &FailsafeEvent) {
         match *e {
