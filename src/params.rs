@@ -47,10 +47,11 @@ pub const EXIT_CONFIG: i32 = 78;
 
 #[derive(Debug, thiserror::Error)]
 pub enum ParamsError {
-    #[error("{file}: cannot read: {source}")]
+    /// The OS error is in the message and not a `source`, so `{:#}` prints it once.
+    #[error("{file}: cannot read: {error}")]
     Read {
         file: PathBuf,
-        source: std::io::Error,
+        error: std::io::Error,
     },
     #[error("{file}:{line}:{column}: {key}{message}")]
     Parse {
@@ -354,9 +355,9 @@ fn located(path: &Path, at: &Located<'_>, e: ConfigError) -> ParamsError {
 /// Read, parse and validate a site file.
 pub fn load(path: &Path) -> Result<LoadedSite, ParamsError> {
     let text = markhold_config::read_regular(path, markhold_config::MAX_CONFIG_FILE_BYTES)
-        .map_err(|source| ParamsError::Read {
+        .map_err(|error| ParamsError::Read {
             file: path.to_path_buf(),
-            source,
+            error,
         })?;
     parse(path, &text)
 }
@@ -409,6 +410,24 @@ pub fn parse(path: &Path, text: &str) -> Result<LoadedSite, ParamsError> {
         site.camera.calibration_file = Some(full.clone());
     }
     let calibration = calibration_of(path, &at, &site.camera)?;
+    if let Some(rel) = &site.link.signing_key_file {
+        // Relative to the site file, like the calibration file; checked here so a
+        // missing or malformed key is a config error before anything starts.
+        let full = base.join(rel);
+        let p = at.position_of_key("link.signing_key_file");
+        let referenced = |reason: String| ParamsError::ReferencedFile {
+            file: path.to_path_buf(),
+            line: p.line,
+            column: p.column,
+            key: "link.signing_key_file".into(),
+            value: rel.display().to_string(),
+            reason,
+        };
+        markhold_config::open_regular(&full, 1024)
+            .map_err(|e| referenced(format!("{}: {e}", full.display())))?;
+        markhold_autopilot::link::read_key(&full).map_err(|e| referenced(e.to_string()))?;
+        site.link.signing_key_file = Some(full);
+    }
     Ok(LoadedSite {
         path: path.to_path_buf(),
         site,

@@ -553,3 +553,41 @@ fn a_closed_stdout_ends_quietly() {
     assert_eq!(out.status.code(), Some(0), "{err}");
     assert!(!err.contains("panicked"), "{err}");
 }
+
+/// The signing key file is resolved against the site file and checked by `params
+/// check`: missing, or 10 bytes long, is a config error (exit 78) naming the key.
+#[test]
+fn params_check_checks_the_signing_key() {
+    let dir = scratch("key-check");
+    let fixture = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/fixtures/pool-640.toml");
+    let text = std::fs::read_to_string(fixture).unwrap();
+    let with_key = |key: &str| {
+        let site = dir.join("site.toml");
+        let t = text.replace("[link]", &format!("[link]\nsigning_key_file = \"{key}\""));
+        std::fs::write(&site, t).unwrap();
+        site
+    };
+    let site = with_key("missing.key");
+    let (code, err) = run_bounded(&["params", "check", site.to_str().unwrap()]);
+    assert_eq!(code, Some(78), "{err}");
+    assert!(err.contains("link.signing_key_file"), "{err}");
+    std::fs::write(dir.join("short.key"), [7u8; 10]).unwrap();
+    let site = with_key("short.key");
+    let (code, err) = run_bounded(&["params", "check", site.to_str().unwrap()]);
+    assert_eq!(code, Some(78), "{err}");
+    assert!(err.contains("10 bytes"), "{err}");
+    // A good key next to the site file, named relative to it, from another directory.
+    key_file(&dir, "good.key", 3);
+    let site = with_key("good.key");
+    let (code, err) = run_bounded(&["params", "check", site.to_str().unwrap()]);
+    assert_eq!(code, Some(0), "{err}");
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
+/// A missing site file: exit 78, the OS error said once.
+#[test]
+fn a_missing_site_file_names_the_os_error_once() {
+    let (code, err) = run_bounded(&["hil", "--site", "nope-does-not-exist.toml"]);
+    assert_eq!(code, Some(78), "{err}");
+    assert_eq!(err.matches("No such file or directory").count(), 1, "{err}");
+}

@@ -349,7 +349,8 @@ pub struct VehicleLink {
     tap_dropped: u64,
 }
 
-fn read_key(path: &std::path::Path) -> Result<[u8; 32], AutopilotError> {
+/// A MAVLink 2 signing key file: 32 raw bytes, or 64 hex digits.
+pub fn read_key(path: &std::path::Path) -> Result<[u8; 32], AutopilotError> {
     let p = path.display().to_string();
     let bytes = std::fs::read(path).map_err(|e| AutopilotError::SigningKey {
         path: p.clone(),

@@ -1134,4 +1134,130 @@ mod tests {
         assert!(!paint_marker(&mut f, &proj, &behind, 0.1));
         assert_eq!(f.data[0], 7);
     }
+
+    /// The monitor on hand-made frames: `off_station_m` of error and `detected` per
+    /// frame at 10 fps, with `events` on the frames given.
+    fn monitor_run(
+        specs: &[&str],
+        seconds: f64,
+        frame: &dyn Fn(f64) -> (bool, f64, Directive),
+        events: &dyn Fn(f64) -> Vec<FailsafeEvent>,
+    ) -> Vec<FaultReport> {
+        let plan = FaultPlan {
+            specs: specs.iter().map(|s| s.parse().unwrap()).collect(),
+            seed: 1,
+        };
+        let mut m = FaultMonitor::new(&plan, Isometry3::identity(), Isometry3::identity());
+        let n = (seconds * 10.0).round() as u64;
+        for i in 1..=n {
+            let t = i as f64 / 10.0;
+            let (detected, err, directive) = frame(t);
+            let rec = FrameRecord {
+                seq: i,
+                stamp_s: t,
+                exposure_used_us: 2000.0,
+                exposure: markhold_exposure::ExposureStep {
+                    exposure_us: 2000.0,
+                    metric: 0.5,
+                    used_frame: true,
+                    roi: None,
+                },
+                detected,
+                corners: None,
+                t_cam_marker: None,
+                cov_cam: None,
+                reproj_rms_px: f64::NAN,
+                effort: Default::default(),
+                directive,
+                latency_s: 0.0,
+            };
+            let at = Isometry3::translation(err, 0.0, 0.0);
+            let truth = Truth {
+                time_s: t,
+                t_world_vehicle: at,
+                t_world_cam: at,
+                t_cam_marker: Isometry3::identity(),
+                velocity_world_mps: [0.0; 3],
+                armed: true,
+                mode: 19,
+                pwm: [1500; 8],
+                lockstep_timeouts: 0,
+            };
+            m.observe(&rec, &truth, &events(t), &[], true, true);
+        }
+        m.into_reports()
+    }
+
+    /// A fault with no effect (the marker seen, the vehicle on station all along): no
+    /// loss, so nothing "again" or "regained".
+    #[test]
+    fn a_fault_with_no_effect_reports_no_recovery() {
+        for kind in ["exposure_ignored", "lamp_off", "late_frames", "drop_frames"] {
+            let r = monitor_run(
+                &[&format!("{kind}@2+1")],
+                6.0,
+                &|_| (true, 0.01, Directive::Command),
+                &|_| Vec::new(),
+            );
+            let r = &r[0];
+            assert_eq!(r.marker_missed_at_s, None, "{kind}: {r:?}");
+            assert_eq!(r.marker_detected_again_at_s, None, "{kind}: {r:?}");
+            assert_eq!(r.station_regained_at_s, None, "{kind}: {r:?}");
+            assert_eq!(r.neutral_at_s, None, "{kind}: {r:?}");
+        }
+    }
+
+    /// An occlusion: missed, neutral (also when it comes after the window, as the
+    /// supervisor's hold time runs out), detected again, station regained after a loss.
+    #[test]
+    fn an_occlusion_reports_its_loss_and_recovery() {
+        let r = monitor_run(
+            &["occlude@2+0.5"],
+            8.0,
+            &|t| {
+                let hidden = (2.0..2.5).contains(&t);
+                let directive = if (2.5..3.0).contains(&t) {
+                    Directive::Neutral
+                } else {
+                    Directive::Command
+                };
+                let err = if (2.0..4.0).contains(&t) { 0.3 } else { 0.01 };
+                (!hidden, err, directive)
+            },
+            &|_| Vec::new(),
+        );
+        let r = &r[0];
+        assert_eq!(r.marker_missed_at_s, Some(2.0), "{r:?}");
+        assert_eq!(r.neutral_at_s, Some(2.5), "{r:?}");
+        assert_eq!(r.marker_detected_again_at_s, Some(2.5), "{r:?}");
+        assert_eq!(r.station_regained_at_s, Some(4.0), "{r:?}");
+    }
+
+    /// Two faults: what happens during the second is listed under the second only.
+    #[test]
+    fn events_are_listed_under_the_fault_that_caused_them() {
+        let r = monitor_run(
+            &["link_cut@1+0.5", "occlude@4+1"],
+            7.0,
+            &|t| (!(4.0..=4.6).contains(&t), 0.01, Directive::Command),
+            &|t| {
+                if (t - 1.2).abs() < 1e-9 {
+                    vec![FailsafeEvent::VehicleHeartbeatLost { at_s: t, age_s: 1.0 }]
+                } else if (t - 4.5).abs() < 1e-9 {
+                    vec![FailsafeEvent::MarkerLost {
+                        at_s: t,
+                        last_seen_s: 3.4,
+                    }]
+                } else {
+                    Vec::new()
+                }
+            },
+        );
+        assert_eq!(r[0].heartbeat_lost_at_s, Some(1.2), "{:?}", r[0]);
+        assert_eq!(r[0].marker_lost_at_s, None, "{:?}", r[0]);
+        assert_eq!(r[0].marker_missed_at_s, None, "{:?}", r[0]);
+        assert_eq!(r[1].marker_lost_at_s, Some(4.5), "{:?}", r[1]);
+        assert!(r[1].marker_missed_at_s.is_some(), "{:?}", r[1]);
+        assert_eq!(r[1].heartbeat_lost_at_s, None, "{:?}", r[1]);
+    }
 }
