@@ -544,3 +544,50 @@ fn sigterm_during_a_recorded_hil_run_finalizes_the_file() {
     assert!(r.recovered.is_none(), "a finalized file: {r:?}");
     assert!(r.frames_replayed > 0 && r.commands_match, "{r:?}");
 }
+
+/// A recording whose run description is hostile (a site no site file could hold, an
+/// initial exposure of NaN) is refused with an error naming it, never replayed.
+#[test]
+fn replay_validates_the_recorded_site_like_a_site_file() {
+    let good = site_info();
+    let cases: [(&str, RunInfo); 3] = [
+        (
+            "fps",
+            RunInfo {
+                site_toml: good.site_toml.replace("fps = 30.0", "fps = -1.0"),
+                ..good.clone()
+            },
+        ),
+        (
+            "width",
+            RunInfo {
+                site_toml: good.site_toml.replace("width_px = 640", "width_px = 0"),
+                ..good.clone()
+            },
+        ),
+        (
+            "initial",
+            RunInfo {
+                initial_exposure_us: f64::NAN,
+                ..good.clone()
+            },
+        ),
+    ];
+    for (name, info) in cases {
+        assert_ne!(info, good, "{name}: the case changes the description");
+        let path = temp_path(&format!("hostile-{name}.mcap"));
+        let mut rec = Recorder::create(&path, &info, RecordConfig::default()).unwrap();
+        let link = LinkSnapshot {
+            heartbeat_s: None,
+            vehicle: None,
+        };
+        for seq in 0..3 {
+            rec.record(&dummy_record(seq), &noisy_frame(seq), &link, false, &[]);
+        }
+        rec.finish().unwrap();
+        let e = replay(&path).expect_err(name);
+        let msg = format!("{e:#}");
+        assert!(msg.contains(&format!("hostile-{name}.mcap")), "{msg}");
+        assert!(msg.contains("recorded"), "{name}: {msg}");
+    }
+}
