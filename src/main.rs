@@ -267,14 +267,20 @@ fn replay(args: ReplayArgs) -> anyhow::Result<()> {
     if let Some(m) = &out.first_mismatch {
         markhold::outln!(
             "  first mismatch: frame {} at {:.3} s, {}: recorded {}, replayed {}",
-            m.seq, m.stamp_s, m.field, m.recorded, m.replayed
+            m.seq,
+            m.stamp_s,
+            m.field,
+            m.recorded,
+            m.replayed
         );
     }
     if let Some(r) = &out.recovered {
         markhold::outln!(
             "  the file ends early ({} bytes; {}): replayed what its complete chunks hold, \
              {} frames",
-            r.file_bytes, r.reason, out.frames_recorded
+            r.file_bytes,
+            r.reason,
+            out.frames_recorded
         );
     }
     if out.lossy_images > 0 {
@@ -318,7 +324,10 @@ fn run_cmd(args: RunArgs) -> anyhow::Result<()> {
     let report = markhold::field::run::run_live(&site, &opts, &stop)?;
     markhold::outln!(
         "markhold run: {} frames, marker in {}, {:.1} s of camera time, stopped by {:?}",
-        report.frames, report.detected, report.loop_seconds, report.stopped_by
+        report.frames,
+        report.detected,
+        report.loop_seconds,
+        report.stopped_by
     );
     if report.frames_passed_over > 0 {
         markhold::outln!(

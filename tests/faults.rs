@@ -89,7 +89,10 @@ fn station_regained_or_never_lost(r: &FaultReport, end: f64, within_s: f64) {
         let regained = r.station_regained_at_s.expect("station not regained");
         assert!(regained - end < within_s, "{r:?}");
     } else {
-        assert_eq!(r.station_regained_at_s, None, "nothing lost, nothing regained: {r:?}");
+        assert_eq!(
+            r.station_regained_at_s, None,
+            "nothing lost, nothing regained: {r:?}"
+        );
     }
 }
 

@@ -444,7 +444,10 @@ fn replay_memory_does_not_grow_with_the_file() {
         std::fs::metadata(&short).unwrap().len() / 1024,
         std::fs::metadata(&long).unwrap().len() / 1024,
     );
-    assert!(l > s + 15_000, "the long file is 15 MB larger: {s} kB vs {l} kB");
+    assert!(
+        l > s + 15_000,
+        "the long file is 15 MB larger: {s} kB vs {l} kB"
+    );
     let (ps, pl) = (replay_peak_rss_kb(&short), replay_peak_rss_kb(&long));
     assert!(ps > 0 && pl > 0, "peak RSS read from /proc");
     assert!(
@@ -515,7 +518,15 @@ fn a_jpeg_recording_is_smaller_and_replay_says_it_is_not_exact() {
 fn sigterm_during_a_recorded_hil_run_finalizes_the_file() {
     let rec = temp_path("sigterm.mcap");
     let mut child = std::process::Command::new(env!("CARGO_BIN_EXE_markhold"))
-        .args(["hil", "--quiet", "--seconds", "600", "--site", SITE, "--record"])
+        .args([
+            "hil",
+            "--quiet",
+            "--seconds",
+            "600",
+            "--site",
+            SITE,
+            "--record",
+        ])
         .arg(&rec)
         .stdout(std::process::Stdio::null())
         .stderr(std::process::Stdio::piped())

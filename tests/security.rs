@@ -398,7 +398,7 @@ fn every_listener_binds_loopback_by_default_and_the_configured_address_when_give
 
 fn heartbeat_from(system_id: u8, component_id: u8, seq: u8) -> Vec<u8> {
     use mavlink::dialects::ardupilotmega::{
-        HEARTBEAT_DATA, MavAutopilot, MavModeFlag, MavState, MavType,
+        MavAutopilot, MavModeFlag, MavState, MavType, HEARTBEAT_DATA,
     };
     let msg = MavMessage::HEARTBEAT(HEARTBEAT_DATA {
         custom_mode: 19,
@@ -451,7 +451,9 @@ fn udpin_is_not_hijacked_by_a_junk_sender() {
         junk.send_to(&[0xfd, 1, 2, 3, 4, 5, 6, 7], addr).unwrap();
         junk.send_to(&heartbeat_from(42, 1, i as u8), addr).unwrap();
         if i % 3 == 0 {
-            vehicle.send_to(&heartbeat_from(1, 1, i as u8), addr).unwrap();
+            vehicle
+                .send_to(&heartbeat_from(1, 1, i as u8), addr)
+                .unwrap();
         }
         junk.send_to(&[0x55; 8], addr).unwrap();
         link.tick(now).unwrap();
@@ -464,7 +466,10 @@ fn udpin_is_not_hijacked_by_a_junk_sender() {
     to_junk += drain(&junk);
     to_vehicle += drain(&vehicle);
     assert!(link.state().heartbeat_ok, "{:?}", link.state());
-    assert!(to_vehicle > 20, "the vehicle received {to_vehicle} datagrams");
+    assert!(
+        to_vehicle > 20,
+        "the vehicle received {to_vehicle} datagrams"
+    );
     assert_eq!(to_junk, 0, "the junk sender received {to_junk} datagrams");
 }
 
@@ -485,7 +490,10 @@ fn run_bounded(args: &[&str]) -> (Option<i32>, String) {
         std::thread::sleep(Duration::from_millis(10));
     }
     let out = child.wait_with_output().unwrap();
-    (out.status.code(), String::from_utf8_lossy(&out.stderr).into_owned())
+    (
+        out.status.code(),
+        String::from_utf8_lossy(&out.stderr).into_owned(),
+    )
 }
 
 /// A device or a FIFO as a site or calibration file is refused at once (exit 78), not
@@ -515,7 +523,10 @@ fn devices_and_fifos_are_refused_as_site_and_calibration_files() {
     std::fs::write(&site, text).unwrap();
     let (code, err) = run_bounded(&["params", "check", site.to_str().unwrap()]);
     assert_eq!(code, Some(78), "{err}");
-    assert!(err.contains("calibration_file") && err.contains("not a regular file"), "{err}");
+    assert!(
+        err.contains("calibration_file") && err.contains("not a regular file"),
+        "{err}"
+    );
     std::fs::remove_dir_all(&dir).unwrap();
 }
 
@@ -529,7 +540,8 @@ fn hil_refuses_absurd_seconds_and_bad_initial_exposure() {
     assert!(err.contains("--seconds"), "{err}");
     for v in ["nan", "inf", "0", "-5"] {
         let flag = format!("--initial-exposure-us={v}");
-        let (code, err) = run_bounded(&["hil", "--quiet", "--site", site, "--seconds", "0.1", &flag]);
+        let (code, err) =
+            run_bounded(&["hil", "--quiet", "--site", site, "--seconds", "0.1", &flag]);
         assert_eq!(code, Some(78), "{v}: {err}");
         assert!(err.contains("--initial-exposure-us"), "{v}: {err}");
     }

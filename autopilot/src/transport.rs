@@ -726,9 +726,7 @@ impl Transport {
         let ep = Endpoint::parse(url)?;
         let parts = Parts::new(url, signing)?;
         match ep {
-            Endpoint::UdpIn(hp) => {
-                Self::open_udp(parts, url, &hp, Some(vehicle), receive_on_tick)
-            }
+            Endpoint::UdpIn(hp) => Self::open_udp(parts, url, &hp, Some(vehicle), receive_on_tick),
             Endpoint::UdpOut(hp) => Self::open_udp(parts, url, &hp, None, receive_on_tick),
             Endpoint::TcpOut(hp) => Self::open_tcp_out(parts, url, &hp),
             Endpoint::TcpIn(hp) => Self::open_tcp_in(parts, url, &hp, vehicle),
@@ -781,8 +779,7 @@ impl Transport {
                     gate: gate.clone(),
                 });
                 loop {
-                    let why =
-                        pump(&mut reader, signing.as_deref(), gate.as_deref(), &tx, &c).await;
+                    let why = pump(&mut reader, signing.as_deref(), gate.as_deref(), &tx, &c).await;
                     tracing::warn!(%why, "udp receive error");
                     tokio::time::sleep(RECONNECT_BACKOFF).await;
                 }

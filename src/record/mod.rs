@@ -237,7 +237,12 @@ impl Default for RecordSection {
 impl RecordSection {
     pub fn validate(&self) -> Result<(), markhold_config::ConfigError> {
         markhold_config::Checks::new("record")
-            .range("jpeg_quality", self.jpeg_quality, 1..=100, "a JPEG quality, 1..100")
+            .range(
+                "jpeg_quality",
+                self.jpeg_quality,
+                1..=100,
+                "a JPEG quality, 1..100",
+            )
             .done()
     }
 
@@ -515,8 +520,14 @@ impl Recorder {
         }
         let shared_w = shared.clone();
         let (ext, params) = match cfg.image_format {
-            ImageFormat::Png => (".png", [opencv::imgcodecs::IMWRITE_PNG_COMPRESSION, cfg.png_level]),
-            ImageFormat::Jpeg => (".jpg", [opencv::imgcodecs::IMWRITE_JPEG_QUALITY, cfg.jpeg_quality]),
+            ImageFormat::Png => (
+                ".png",
+                [opencv::imgcodecs::IMWRITE_PNG_COMPRESSION, cfg.png_level],
+            ),
+            ImageFormat::Jpeg => (
+                ".jpg",
+                [opencv::imgcodecs::IMWRITE_JPEG_QUALITY, cfg.jpeg_quality],
+            ),
         };
         let format = cfg.image_format;
         let thread = std::thread::Builder::new()

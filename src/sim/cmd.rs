@@ -232,7 +232,10 @@ pub fn hil(args: HilArgs) -> anyhow::Result<()> {
         crate::write_summary(path, &summary)?;
     }
     if summary.interrupted {
-        eprintln!("markhold: stopped by a signal after {:.1} simulated seconds", summary.sim_seconds);
+        eprintln!(
+            "markhold: stopped by a signal after {:.1} simulated seconds",
+            summary.sim_seconds
+        );
         std::process::exit(crate::field::signal::INTERRUPTED_EXIT);
     }
     Ok(())

@@ -1242,7 +1242,10 @@ mod tests {
             &|t| (!(4.0..=4.6).contains(&t), 0.01, Directive::Command),
             &|t| {
                 if (t - 1.2).abs() < 1e-9 {
-                    vec![FailsafeEvent::VehicleHeartbeatLost { at_s: t, age_s: 1.0 }]
+                    vec![FailsafeEvent::VehicleHeartbeatLost {
+                        at_s: t,
+                        age_s: 1.0,
+                    }]
                 } else if (t - 4.5).abs() < 1e-9 {
                     vec![FailsafeEvent::MarkerLost {
                         at_s: t,
