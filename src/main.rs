@@ -241,7 +241,7 @@ fn params_check(file: &Path) -> anyhow::Result<()> {
             site.calibration.dist.len()
         ),
         None => markhold::outln!(
-            "# camera intrinsics from [camera] (defaults: centred, 62-degree field of view)"
+            "# camera intrinsics from [camera]"
         ),
     }
     if site.calibration.dist.len() > 5 {

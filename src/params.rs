@@ -483,16 +483,28 @@ fn calibration_of(
             .map_err(|e| referenced(e.to_string()))?;
         return Ok(calib);
     }
-    // Inline intrinsics; a centred principal point and a 62-degree horizontal field of
-    // view when left out.
-    let fx = cam.fx_px.unwrap_or(cam.width_px as f64 / 1.2);
+    // Inline intrinsics, all four: a guessed focal length would scale every pose.
+    let need = |key: &str, v: Option<f64>| {
+        v.ok_or_else(|| {
+            located(
+                path,
+                at,
+                ConfigError::new(
+                    format!("camera.{key}"),
+                    "missing",
+                    "the camera's intrinsics in pixels (fx_px, fy_px, cx_px, cy_px), \
+                     or camera.calibration_file",
+                ),
+            )
+        })
+    };
     Ok(CameraCalibration {
         width: cam.width_px,
         height: cam.height_px,
-        fx,
-        fy: cam.fy_px.unwrap_or(fx),
-        cx: cam.cx_px.unwrap_or(cam.width_px as f64 / 2.0),
-        cy: cam.cy_px.unwrap_or(cam.height_px as f64 / 2.0),
+        fx: need("fx_px", cam.fx_px)?,
+        fy: need("fy_px", cam.fy_px)?,
+        cx: need("cx_px", cam.cx_px)?,
+        cy: need("cy_px", cam.cy_px)?,
         dist: cam.distortion.to_vec(),
     })
 }
@@ -548,6 +560,21 @@ mod tests {
             .position(|l| l == "[camera]")
             .expect("pool has [camera]")
             + 2
+    }
+
+    #[test]
+    fn missing_intrinsics_are_an_error_not_a_default() {
+        for key in ["fx_px", "fy_px", "cx_px", "cy_px"] {
+            let text: String = POOL
+                .lines()
+                .filter(|l| !l.starts_with(key))
+                .map(|l| format!("{l}\n"))
+                .collect();
+            let e = parse(Path::new("/sites/pool.toml"), &text)
+                .expect_err(key)
+                .to_string();
+            assert!(e.contains(&format!("camera.{key}")), "{e}");
+        }
     }
 
     #[test]
