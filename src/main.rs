@@ -240,9 +240,7 @@ fn params_check(file: &Path) -> anyhow::Result<()> {
             calib.display(),
             site.calibration.dist.len()
         ),
-        None => markhold::outln!(
-            "# camera intrinsics from [camera]"
-        ),
+        None => markhold::outln!("# camera intrinsics from [camera]"),
     }
     if site.calibration.dist.len() > 5 {
         markhold::outln!("# full distortion: {:?}", site.calibration.dist);

@@ -309,6 +309,49 @@ impl Checks {
     }
 }
 
+/// Open a file that must be a regular file (not a device such as `/dev/zero`, a FIFO
+/// that blocks until a writer comes, or a directory) no larger than `max_bytes`.
+pub fn open_regular(path: &std::path::Path, max_bytes: u64) -> std::io::Result<std::fs::File> {
+    use std::io::{Error, ErrorKind};
+    // The type is checked before opening: opening a FIFO would wait for a writer.
+    let meta = std::fs::metadata(path)?;
+    if !meta.is_file() {
+        return Err(Error::new(
+            ErrorKind::InvalidInput,
+            "not a regular file (a device, FIFO or directory)",
+        ));
+    }
+    let file = std::fs::File::open(path)?;
+    let len = file.metadata()?.len();
+    if len > max_bytes {
+        return Err(Error::new(
+            ErrorKind::InvalidInput,
+            format!("{len} bytes: larger than the {max_bytes} bytes accepted"),
+        ));
+    }
+    Ok(file)
+}
+
+/// The text of a regular file of at most `max_bytes` ([`open_regular`]); a file that
+/// grows while it is read is cut at the cap and refused.
+pub fn read_regular(path: &std::path::Path, max_bytes: u64) -> std::io::Result<String> {
+    use std::io::Read;
+    let file = open_regular(path, max_bytes)?;
+    let mut text = String::new();
+    file.take(max_bytes.saturating_add(1))
+        .read_to_string(&mut text)?;
+    if text.len() as u64 > max_bytes {
+        return Err(std::io::Error::new(
+            std::io::ErrorKind::InvalidInput,
+            format!("larger than the {max_bytes} bytes accepted"),
+        ));
+    }
+    Ok(text)
+}
+
+/// The largest site or calibration file accepted, bytes.
+pub const MAX_CONFIG_FILE_BYTES: u64 = 4 << 20;
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -415,46 +458,3 @@ mod tests {
         assert_eq!(e.key, "x.y");
     }
 }
-
-/// Open a file that must be a regular file (not a device such as `/dev/zero`, a FIFO
-/// that blocks until a writer comes, or a directory) no larger than `max_bytes`.
-pub fn open_regular(path: &std::path::Path, max_bytes: u64) -> std::io::Result<std::fs::File> {
-    use std::io::{Error, ErrorKind};
-    // The type is checked before opening: opening a FIFO would wait for a writer.
-    let meta = std::fs::metadata(path)?;
-    if !meta.is_file() {
-        return Err(Error::new(
-            ErrorKind::InvalidInput,
-            "not a regular file (a device, FIFO or directory)",
-        ));
-    }
-    let file = std::fs::File::open(path)?;
-    let len = file.metadata()?.len();
-    if len > max_bytes {
-        return Err(Error::new(
-            ErrorKind::InvalidInput,
-            format!("{len} bytes: larger than the {max_bytes} bytes accepted"),
-        ));
-    }
-    Ok(file)
-}
-
-/// The text of a regular file of at most `max_bytes` ([`open_regular`]); a file that
-/// grows while it is read is cut at the cap and refused.
-pub fn read_regular(path: &std::path::Path, max_bytes: u64) -> std::io::Result<String> {
-    use std::io::Read;
-    let file = open_regular(path, max_bytes)?;
-    let mut text = String::new();
-    file.take(max_bytes.saturating_add(1))
-        .read_to_string(&mut text)?;
-    if text.len() as u64 > max_bytes {
-        return Err(std::io::Error::new(
-            std::io::ErrorKind::InvalidInput,
-            format!("larger than the {max_bytes} bytes accepted"),
-        ));
-    }
-    Ok(text)
-}
-
-/// The largest site or calibration file accepted, bytes.
-pub const MAX_CONFIG_FILE_BYTES: u64 = 4 << 20;
