@@ -603,3 +603,39 @@ fn a_missing_site_file_names_the_os_error_once() {
     assert_eq!(code, Some(78), "{err}");
     assert_eq!(err.matches("No such file or directory").count(), 1, "{err}");
 }
+
+/// A vehicle that cannot be reached is said at once, with the cause, not after a 15 s
+/// wait for a pose.
+#[test]
+fn an_unreachable_vehicle_is_reported_with_its_cause() {
+    // A port nobody listens on: bind one, note it, close it.
+    let port = std::net::TcpListener::bind("127.0.0.1:0")
+        .unwrap()
+        .local_addr()
+        .unwrap()
+        .port();
+    let site = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/fixtures/pool-640.toml");
+    let site = site.to_str().unwrap();
+    let tcp = format!("tcpout:127.0.0.1:{port}");
+    for (url, cause) in [
+        (tcp.as_str(), "Connection refused"),
+        (
+            "serial:/dev/nonexistent-markhold:115200",
+            "No such file or directory",
+        ),
+    ] {
+        let (code, err) = run_bounded(&[
+            "hil",
+            "--quiet",
+            "--site",
+            site,
+            "--seconds",
+            "1",
+            "--vehicle",
+            url,
+        ]);
+        assert_eq!(code, Some(2), "{url}: {err}");
+        assert!(err.contains(cause), "{url}: {err}");
+        assert!(!err.contains("no pose"), "{url}: {err}");
+    }
+}

@@ -385,6 +385,12 @@ pub fn read_key(path: &std::path::Path) -> Result<[u8; 32], AutopilotError> {
 }
 
 impl VehicleLink {
+    /// Why the last connect (tcp) or open (serial) failed, until one succeeds: so a
+    /// caller waiting for the vehicle can say "connection refused" at once.
+    pub fn transport_error(&self) -> Option<String> {
+        self.transport.last_error()
+    }
+
     /// Opens the transport named by `cfg.url` (validated first; a bad URL is a clear
     /// error). Sockets that must exist are bound here; TCP/serial connect in the background.
     pub fn connect(cfg: &LinkConfig) -> Result<Self, AutopilotError> {

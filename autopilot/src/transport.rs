@@ -228,6 +228,16 @@ pub(crate) struct TaskCounters {
     pub(crate) bad_signature: AtomicU64,
     /// Frames dropped by signing: unsigned (or MAVLink 1) while signing is on.
     pub(crate) unsigned: AtomicU64,
+    /// Why the last connect (tcp) or open (serial) failed; cleared when one succeeds.
+    pub(crate) last_error: Mutex<Option<String>>,
+}
+
+impl TaskCounters {
+    fn set_error(&self, e: Option<String>) {
+        if let Ok(mut g) = self.last_error.lock() {
+            *g = e;
+        }
+    }
 }
 
 /// Verify (with signing on) and parse one CRC-valid raw frame; rejections are counted.
@@ -816,11 +826,18 @@ impl Transport {
                     .await
                 {
                     Ok(Ok(s)) => {
+                        c.set_error(None);
                         serve_tcp(s, &s2, signing.as_deref(), None, &tx, &c, &rc).await;
                         c.reconnects.fetch_add(1, Ordering::Relaxed);
                     }
-                    Ok(Err(e)) => tracing::debug!(%addr, error = %e, "tcp connect failed"),
-                    Err(_) => tracing::debug!(%addr, "tcp connect timed out"),
+                    Ok(Err(e)) => {
+                        tracing::debug!(%addr, error = %e, "tcp connect failed");
+                        c.set_error(Some(format!("connecting to {addr}: {e}")));
+                    }
+                    Err(_) => {
+                        tracing::debug!(%addr, "tcp connect timed out");
+                        c.set_error(Some(format!("connecting to {addr}: timed out")));
+                    }
                 }
                 tokio::time::sleep(RECONNECT_BACKOFF).await;
             }
@@ -903,6 +920,7 @@ impl Transport {
                 let builder = tokio_serial::new(path.as_str(), baud);
                 match tokio_serial::SerialStream::open(&builder) {
                     Ok(port) => {
+                        c.set_error(None);
                         push(&tx, &c, Incoming::Connected(path.clone()));
                         let (r, mut w) = tokio::io::split(port);
                         let mut reader = AsyncMavlinkReader::new(r);
@@ -921,7 +939,10 @@ impl Transport {
                         push(&tx, &c, Incoming::Disconnected(why));
                         c.reconnects.fetch_add(1, Ordering::Relaxed);
                     }
-                    Err(e) => tracing::debug!(%path, error = %e, "serial open failed"),
+                    Err(e) => {
+                        tracing::debug!(%path, error = %e, "serial open failed");
+                        c.set_error(Some(format!("opening {path}: {e}")));
+                    }
                 }
                 // Frames queued while the port was down are stale: drop them.
                 while wrx.try_recv().is_ok() {}
@@ -982,6 +1003,11 @@ impl Transport {
             Some(rx) => &rx.last[..rx.last_len],
             None => &[],
         }
+    }
+
+    /// Why the stream transport's last connect or open failed (none once one worked).
+    pub(crate) fn last_error(&self) -> Option<String> {
+        self.counters.last_error.lock().ok().and_then(|g| g.clone())
     }
 
     /// Local socket address (udp, tcpin), useful with port 0.

@@ -119,6 +119,12 @@ fn wait_for_pose(link: &mut VehicleLink, started: Instant) -> anyhow::Result<Iso
     let deadline = started + Duration::from_secs(15);
     while Instant::now() < deadline {
         link.tick(started.elapsed().as_secs_f64())?;
+        if !link.state().discovered {
+            // Refused, no such device: nothing to wait for.
+            if let Some(e) = link.transport_error() {
+                anyhow::bail!("the vehicle link: {e}");
+            }
+        }
         if let Some(p) = pose_from_telemetry(link.state()) {
             if link.state().discovered {
                 return Ok(p);
