@@ -458,10 +458,14 @@ fn replay_memory_does_not_grow_with_the_file() {
 
 fn jpeg_site() -> PathBuf {
     let p = temp_path("jpeg-site.toml");
-    let text = std::fs::read_to_string(SITE)
-        .unwrap()
-        .replace("image_format = \"png\"", "image_format = \"jpeg\"\njpeg_quality = 90");
-    assert!(text.contains("\"jpeg\""), "the fixture names its image format");
+    let text = std::fs::read_to_string(SITE).unwrap().replace(
+        "image_format = \"png\"",
+        "image_format = \"jpeg\"\njpeg_quality = 90",
+    );
+    assert!(
+        text.contains("\"jpeg\""),
+        "the fixture names its image format"
+    );
     std::fs::write(&p, text).unwrap();
     p
 }
