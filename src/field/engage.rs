@@ -21,8 +21,9 @@ use serde::Serialize;
 
 use crate::pipeline::CommandLink;
 
-/// Neutral input lasts this long after a disengage before the override is released, s
-/// (loop time: the first tick at or after it releases, so at 30 frames/s 2 frames).
+/// After a disengage one neutral input goes out and holds (ArduSub keeps an override
+/// until it is released or RC_OVERRIDE_TIME passes) this long before the release, s
+/// (loop time: the first tick at or after it releases, so at 30 frames/s 2 frames later).
 pub const NEUTRAL_BEFORE_RELEASE_S: f64 = 0.05;
 /// The same marker / camera / exposure message is not repeated within this, s.
 pub const FLAP_INTERVAL_S: f64 = 5.0;
@@ -182,7 +183,8 @@ impl Engager {
     pub fn observe(&mut self, v: &VehicleState, now_s: f64) -> Option<Transition> {
         let mode_changed = v.mode_changes != self.mode_changes;
         let disarmed = self.armed && !v.armed;
-        let deflected = v.pilot.deflected_s.is_some() && v.pilot.deflected_s != self.pilot_deflected_s;
+        let deflected =
+            v.pilot.deflected_s.is_some() && v.pilot.deflected_s != self.pilot_deflected_s;
         let cond = v.armed && v.mode == Some(self.mode);
         let rising = cond && !self.armed_in_mode;
         self.mode_changes = v.mode_changes;
@@ -479,8 +481,10 @@ impl EngagedLink {
         if !self.engager.engaged() || !self.announcer.named_value_due(now_s) {
             return Ok(());
         }
-        self.link.send_named_value("mh_err_m", err_m as f32, now_s)?;
-        self.link.send_named_value("mh_yaw_deg", yaw_deg as f32, now_s)?;
+        self.link
+            .send_named_value("mh_err_m", err_m as f32, now_s)?;
+        self.link
+            .send_named_value("mh_yaw_deg", yaw_deg as f32, now_s)?;
         Ok(())
     }
 }
@@ -497,9 +501,10 @@ impl CommandLink for EngagedLink {
     }
 
     fn send_effort(&mut self, effort: &Effort, now_s: f64) -> anyhow::Result<()> {
+        // While releasing, the neutral sent at the disengage holds (an override stays
+        // until released), so nothing more goes out.
         match self.engager.state {
             EngageState::Engaged => Ok(self.link.send_effort(effort, now_s)?),
-            EngageState::Releasing { .. } => Ok(self.link.send_neutral(now_s)?),
             _ => {
                 self.withheld += 1;
                 Ok(())
@@ -509,9 +514,7 @@ impl CommandLink for EngagedLink {
 
     fn send_neutral(&mut self, now_s: f64) -> anyhow::Result<()> {
         match self.engager.state {
-            EngageState::Engaged | EngageState::Releasing { .. } => {
-                Ok(self.link.send_neutral(now_s)?)
-            }
+            EngageState::Engaged => Ok(self.link.send_neutral(now_s)?),
             _ => {
                 self.withheld += 1;
                 Ok(())
@@ -567,11 +570,17 @@ mod tests {
         let alt = ArduSubMode::AltHold;
         let mut e = Engager::new(alt, false, 5.0);
         // Already armed in the mode when markhold starts: ready, not engaged.
-        assert_eq!(e.observe(&vehicle(true, alt, 0), 0.0), Some(Transition::Ready));
+        assert_eq!(
+            e.observe(&vehicle(true, alt, 0), 0.0),
+            Some(Transition::Ready)
+        );
         assert_eq!(e.observe(&vehicle(true, alt, 0), 0.1), None);
         // The pilot switches away and back: engaged.
         e.observe(&vehicle(true, ArduSubMode::Manual, 1), 1.0);
-        assert_eq!(e.observe(&vehicle(true, alt, 2), 2.0), Some(Transition::Engaged));
+        assert_eq!(
+            e.observe(&vehicle(true, alt, 2), 2.0),
+            Some(Transition::Engaged)
+        );
         // The pilot switches away: disengaged, and staying in the mode never re-engages.
         assert_eq!(
             e.observe(&vehicle(true, ArduSubMode::Manual, 3), 3.0),
@@ -589,7 +598,10 @@ mod tests {
     fn disarm_and_stick_disengage() {
         let alt = ArduSubMode::AltHold;
         let mut e = Engager::new(alt, true, 5.0);
-        assert_eq!(e.observe(&vehicle(true, alt, 0), 0.0), Some(Transition::Engaged));
+        assert_eq!(
+            e.observe(&vehicle(true, alt, 0), 0.0),
+            Some(Transition::Engaged)
+        );
         let mut v = vehicle(true, alt, 0);
         v.pilot.deflected_s = Some(1.0);
         assert_eq!(

@@ -123,14 +123,24 @@ fn wanted(setpoint: bool) -> Vec<&'static str> {
         "FRAME_CONFIG",
     ];
     if setpoint {
-        v.extend(["EK3_SRC1_POSXY", "EK3_SRC1_VELXY", "EK3_SRC1_YAW", "VISO_TYPE"]);
+        v.extend([
+            "EK3_SRC1_POSXY",
+            "EK3_SRC1_VELXY",
+            "EK3_SRC1_YAW",
+            "VISO_TYPE",
+        ]);
     }
     v
 }
 
 /// Read the parameters (by name, re-sent, then the whole list for any still missing),
 /// bounded by `PARAM_WAIT_S`. Returns the first read's round trip.
-fn read_params(link: &mut VehicleLink, names: &[&str], t0: f64, stop: &ShutdownFlag) -> Option<f64> {
+fn read_params(
+    link: &mut VehicleLink,
+    names: &[&str],
+    t0: f64,
+    stop: &ShutdownFlag,
+) -> Option<f64> {
     let started = Instant::now();
     let now = |s: Instant| t0 + s.elapsed().as_secs_f64();
     let mut rtt = None;
@@ -210,7 +220,10 @@ pub fn check(link: &mut VehicleLink, site: &LoadedSite, t0: f64, stop: &Shutdown
         Some(v) => list.add(
             "gcs id",
             Verdict::Fail,
-            format!("SYSID_MYGCS = {v}, markhold sends as system {}", cfg.gcs_system_id),
+            format!(
+                "SYSID_MYGCS = {v}, markhold sends as system {}",
+                cfg.gcs_system_id
+            ),
             &format!(
                 "ArduSub drops pilot input from any other system id: set SYSID_MYGCS = {} \
                  in QGroundControl, or link.gcs_system_id = {v} in the site file",
@@ -238,16 +251,23 @@ pub fn check(link: &mut VehicleLink, site: &LoadedSite, t0: f64, stop: &Shutdown
             "set FS_PILOT_INPUT = 2 (disarm): with it off, nothing stops the thrusters \
              if markhold and the pilot's joystick both go quiet",
         ),
-        None => list.add("pilot failsafe", Verdict::Fail, not_read("FS_PILOT_INPUT"), "check the ArduSub version"),
+        None => list.add(
+            "pilot failsafe",
+            Verdict::Fail,
+            not_read("FS_PILOT_INPUT"),
+            "check the ArduSub version",
+        ),
     }
     let frame_period = 1.0 / site.site.camera.fps;
     match p("FS_PILOT_TIMEOUT") {
-        Some(v) if f64::from(v) >= 3.0 * frame_period.max(1.0 / cfg.pilot_input_hz) && v <= 5.0 => list.add(
-            "pilot timeout",
-            Verdict::Pass,
-            format!("FS_PILOT_TIMEOUT = {v} s"),
-            "",
-        ),
+        Some(v) if f64::from(v) >= 3.0 * frame_period.max(1.0 / cfg.pilot_input_hz) && v <= 5.0 => {
+            list.add(
+                "pilot timeout",
+                Verdict::Pass,
+                format!("FS_PILOT_TIMEOUT = {v} s"),
+                "",
+            )
+        }
         Some(v) => list.add(
             "pilot timeout",
             Verdict::Warn,
@@ -255,7 +275,12 @@ pub fn check(link: &mut VehicleLink, site: &LoadedSite, t0: f64, stop: &Shutdown
             "use 1..5 s (default 3): shorter trips on a camera hiccup, longer leaves \
              the vehicle running on a dead link",
         ),
-        None => list.add("pilot timeout", Verdict::Warn, not_read("FS_PILOT_TIMEOUT"), "set FS_PILOT_TIMEOUT = 3"),
+        None => list.add(
+            "pilot timeout",
+            Verdict::Warn,
+            not_read("FS_PILOT_TIMEOUT"),
+            "set FS_PILOT_TIMEOUT = 3",
+        ),
     }
     match p("FS_GCS_ENABLE") {
         Some(v) if v.round() as i64 != 0 => list.add(
@@ -270,7 +295,12 @@ pub fn check(link: &mut VehicleLink, site: &LoadedSite, t0: f64, stop: &Shutdown
             format!("FS_GCS_ENABLE = {v} (disabled)"),
             "set FS_GCS_ENABLE = 2 (disarm) or 4 (surface) so a lost tether is handled",
         ),
-        None => list.add("gcs failsafe", Verdict::Warn, not_read("FS_GCS_ENABLE"), "set FS_GCS_ENABLE = 2"),
+        None => list.add(
+            "gcs failsafe",
+            Verdict::Warn,
+            not_read("FS_GCS_ENABLE"),
+            "set FS_GCS_ENABLE = 2",
+        ),
     }
     check_frame(&mut list, p("FRAME_CONFIG"), site_frame(site));
     check_vehicle(&mut list, link, site);
@@ -278,14 +308,24 @@ pub fn check(link: &mut VehicleLink, site: &LoadedSite, t0: f64, stop: &Shutdown
         check_setpoint(&mut list, &p);
     }
     match list.param_round_trip_ms {
-        Some(ms) if ms <= 100.0 => list.add("link latency", Verdict::Pass, format!("{ms:.1} ms (param read round trip)"), ""),
+        Some(ms) if ms <= 100.0 => list.add(
+            "link latency",
+            Verdict::Pass,
+            format!("{ms:.1} ms (param read round trip)"),
+            "",
+        ),
         Some(ms) => list.add(
             "link latency",
             Verdict::Warn,
             format!("{ms:.1} ms (param read round trip)"),
             "over 100 ms: check the tether and that markhold runs beside the vehicle (BlueOS)",
         ),
-        None => list.add("link latency", Verdict::Warn, "no parameter read answered".into(), "check the link"),
+        None => list.add(
+            "link latency",
+            Verdict::Warn,
+            "no parameter read answered".into(),
+            "check the link",
+        ),
     }
     list
 }
@@ -318,7 +358,12 @@ fn check_frame(list: &mut Checklist, frame_config: Option<f32>, site: Option<Str
             format!("FRAME_CONFIG = {v}, no [vehicle] frame in the site"),
             "name the frame in the site file ([vehicle] frame = \"heavy\" | \"standard\")",
         ),
-        (None, _) => list.add("frame", Verdict::Warn, "FRAME_CONFIG not reported".into(), "check the ArduSub version"),
+        (None, _) => list.add(
+            "frame",
+            Verdict::Warn,
+            "FRAME_CONFIG not reported".into(),
+            "check the ArduSub version",
+        ),
     }
 }
 
@@ -330,21 +375,31 @@ fn check_vehicle(list: &mut Checklist, link: &VehicleLink, site: &LoadedSite) {
         list.add(
             "mode",
             Verdict::Pass,
-            format!("{mode:?} ({}) on an ArduSub vehicle (MAV_TYPE_SUBMARINE)", mode.number()),
+            format!(
+                "{mode:?} ({}) on an ArduSub vehicle (MAV_TYPE_SUBMARINE)",
+                mode.number()
+            ),
             "",
         );
     } else {
         list.add(
             "mode",
             Verdict::Fail,
-            format!("the vehicle's heartbeat says MAV_TYPE {}, not a submarine (12)", st.vehicle_type),
+            format!(
+                "the vehicle's heartbeat says MAV_TYPE {}, not a submarine (12)",
+                st.vehicle_type
+            ),
             "connect to the ArduSub autopilot (is this the right link?)",
         );
     }
     match st.flight_sw_version {
         Some(v) => {
             let (major, minor, patch) = (v >> 24, (v >> 16) & 0xff, (v >> 8) & 0xff);
-            let verdict = if major >= 4 { Verdict::Pass } else { Verdict::Warn };
+            let verdict = if major >= 4 {
+                Verdict::Pass
+            } else {
+                Verdict::Warn
+            };
             list.add(
                 "ardusub version",
                 verdict,
@@ -364,10 +419,30 @@ fn check_vehicle(list: &mut Checklist, link: &VehicleLink, site: &LoadedSite) {
 /// Setpoint mode needs the EKF on external navigation and MAVLink visual odometry.
 fn check_setpoint(list: &mut Checklist, p: &dyn Fn(&str) -> Option<f32>) {
     let items: [(&'static str, &str, &[i64], &str); 4] = [
-        ("ekf xy source", "EK3_SRC1_POSXY", &[6], "set EK3_SRC1_POSXY = 6 (ExternalNav)"),
-        ("ekf velocity src", "EK3_SRC1_VELXY", &[6, 0], "set EK3_SRC1_VELXY = 6 (ExternalNav) or 0"),
-        ("ekf yaw source", "EK3_SRC1_YAW", &[6, 1], "set EK3_SRC1_YAW = 6 (ExternalNav) or 1 (compass)"),
-        ("visual odometry", "VISO_TYPE", &[1], "set VISO_TYPE = 1 (MAVLink) and reboot"),
+        (
+            "ekf xy source",
+            "EK3_SRC1_POSXY",
+            &[6],
+            "set EK3_SRC1_POSXY = 6 (ExternalNav)",
+        ),
+        (
+            "ekf velocity src",
+            "EK3_SRC1_VELXY",
+            &[6, 0],
+            "set EK3_SRC1_VELXY = 6 (ExternalNav) or 0",
+        ),
+        (
+            "ekf yaw source",
+            "EK3_SRC1_YAW",
+            &[6, 1],
+            "set EK3_SRC1_YAW = 6 (ExternalNav) or 1 (compass)",
+        ),
+        (
+            "visual odometry",
+            "VISO_TYPE",
+            &[1],
+            "set VISO_TYPE = 1 (MAVLink) and reboot",
+        ),
     ];
     for (name, param, ok, fix) in items {
         match p(param) {
@@ -410,5 +485,10 @@ pub fn preflight(
         );
         std::thread::sleep(Duration::from_millis(10));
     }
-    Ok(check(&mut link, site, started.elapsed().as_secs_f64(), stop))
+    Ok(check(
+        &mut link,
+        site,
+        started.elapsed().as_secs_f64(),
+        stop,
+    ))
 }

@@ -491,12 +491,17 @@ pub fn run_live(
     let neutral = pipeline.link_mut().send_neutral(n.last_stamp);
     let disarm_policy = pipeline.link().inner().config().disarms_on_exit();
     let (disarm, hand_back) = if stopped.is_ok() && (n.disarm_asked || disarm_policy) {
-        let _ = pipeline.link_mut().disengage(super::engage::Disengage::Stopped, n.last_stamp);
+        let _ = pipeline
+            .link_mut()
+            .disengage(super::engage::Disengage::Stopped, n.last_stamp);
         let link = pipeline.link_mut().inner_mut();
         link.set_pilot_keepalive(true);
         (Some(disarm_on_exit(link, n.last_stamp)), None)
     } else {
-        (None, Some(hand_back(pipeline.link_mut(), was_engaged, n.last_stamp)))
+        (
+            None,
+            Some(hand_back(pipeline.link_mut(), was_engaged, n.last_stamp)),
+        )
     };
     let observers_done = pipeline.finish_observers();
     let stopped_by = stopped?;
@@ -545,7 +550,11 @@ fn hand_back(link: &mut EngagedLink, was_engaged: bool, t0: f64) -> HandBack {
         tracing::warn!(error = %e, "disengage on exit");
     }
     let timeout = link.inner().config().hand_back_timeout_s;
-    say(link, Severity::Warning, "markhold stopped: take the controls");
+    say(
+        link,
+        Severity::Warning,
+        "markhold stopped: take the controls",
+    );
     eprintln!("markhold run: handing back: neutral until the pilot's input is heard (at most {timeout} s)");
     let inner = link.inner_mut();
     inner.set_pilot_keepalive(true);
@@ -576,7 +585,11 @@ fn hand_back(link: &mut EngagedLink, was_engaged: bool, t0: f64) -> HandBack {
             outcome
         }
         _ => {
-            say(link, Severity::Critical, "markhold: no pilot input, disarming");
+            say(
+                link,
+                Severity::Critical,
+                "markhold: no pilot input, disarming",
+            );
             let t = t0 + started.elapsed().as_secs_f64();
             let status = disarm_on_exit(link.inner_mut(), t);
             if let Err(e) = link.inner_mut().release_pilot() {

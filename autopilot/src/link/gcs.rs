@@ -5,8 +5,8 @@
 
 use mavlink::dialects::ardupilotmega::{
     MavCmd, MavMessage, MavSeverity, AUTOPILOT_VERSION_DATA, MANUAL_CONTROL_DATA,
-    NAMED_VALUE_FLOAT_DATA, PARAM_REQUEST_LIST_DATA, PARAM_REQUEST_READ_DATA,
-    PARAM_VALUE_DATA, RC_CHANNELS_OVERRIDE_DATA, STATUSTEXT_DATA, SYS_STATUS_DATA,
+    NAMED_VALUE_FLOAT_DATA, PARAM_REQUEST_LIST_DATA, PARAM_REQUEST_READ_DATA, PARAM_VALUE_DATA,
+    RC_CHANNELS_OVERRIDE_DATA, STATUSTEXT_DATA, SYS_STATUS_DATA,
 };
 use mavlink::MavHeader;
 
@@ -145,8 +145,8 @@ impl VehicleLink {
     }
 
     fn apply_sys_status(&mut self, s: &SYS_STATUS_DATA) {
-        let unhealthy = s.onboard_control_sensors_enabled.bits()
-            & !s.onboard_control_sensors_health.bits();
+        let unhealthy =
+            s.onboard_control_sensors_enabled.bits() & !s.onboard_control_sensors_health.bits();
         if unhealthy != self.state.sensors_unhealthy {
             if unhealthy != 0 {
                 tracing::warn!(
@@ -171,7 +171,11 @@ impl VehicleLink {
     }
 
     /// STATUSTEXT to every ground station: `text` cut to 50 bytes (at a char boundary).
-    pub fn send_statustext(&mut self, severity: Severity, text: &str) -> Result<(), AutopilotError> {
+    pub fn send_statustext(
+        &mut self,
+        severity: Severity,
+        text: &str,
+    ) -> Result<(), AutopilotError> {
         let mut end = text.len().min(STATUSTEXT_MAX);
         while !text.is_char_boundary(end) {
             end -= 1;
@@ -190,7 +194,12 @@ impl VehicleLink {
     }
 
     /// NAMED_VALUE_FLOAT `name` (at most 10 bytes; QGroundControl can plot it).
-    pub fn send_named_value(&mut self, name: &str, value: f32, now_s: f64) -> Result<(), AutopilotError> {
+    pub fn send_named_value(
+        &mut self,
+        name: &str,
+        value: f32,
+        now_s: f64,
+    ) -> Result<(), AutopilotError> {
         let name = &name[..name.len().min(NAMED_VALUE_MAX)];
         let msg = MavMessage::NAMED_VALUE_FLOAT(NAMED_VALUE_FLOAT_DATA {
             time_boot_ms: (now_s.max(0.0) * 1e3) as u32,

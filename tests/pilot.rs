@@ -1,0 +1,283 @@
+//! `markhold run` beside a pilot: a pymavlink vehicle (autopilot/tests/pymav_vehicle.py,
+//! `--scenario pilot`) plays ArduSub with QGroundControl (system 255, component 190)
+//! beside it. The pilot engages by arming in the site's mode, switches mode away (markhold
+//! must go quiet within 100 ms and stay quiet), switches back (engaged again), moves a
+//! stick (markhold lets go), engages a third time; markhold then stops at the end of its
+//! frames and hands back. `markhold preflight` against the same vehicle passes on a good
+//! parameter set and fails on FS_PILOT_INPUT = 0 and on a SYSID_MYGCS mismatch.
+#![cfg(feature = "sim")]
+#![allow(clippy::unwrap_used)] // Tests fail loudly on a broken setup, by design.
+
+mod common;
+
+use std::io::{BufRead, BufReader, Read};
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, Stdio};
+use std::sync::OnceLock;
+
+use common::{markhold, repo, site_path, station_rig, tmp_path};
+use markhold_exposure::{Camera, Frame};
+use markhold_vision::FrameRecorder;
+
+fn tmp(name: &str) -> PathBuf {
+    tmp_path("pilot", name)
+}
+
+/// 8 s of frames on station (the pilot's plan takes about 4 s), made once.
+fn frames_dir() -> &'static Path {
+    static DIR: OnceLock<PathBuf> = OnceLock::new();
+    DIR.get_or_init(|| {
+        let dir = tmp("frames");
+        let mut rig = station_rig(false);
+        rig.set_exposure_us(3000.0).unwrap();
+        let mut rec = FrameRecorder::create(&dir).unwrap();
+        let mut f = Frame::default();
+        for _ in 0..240 {
+            rig.grab(&mut f).unwrap();
+            rec.write(&f).unwrap();
+        }
+        dir
+    })
+}
+
+fn ensure_pymavlink() {
+    let ok = Command::new("python3")
+        .args(["-c", "import pymavlink.dialects.v20.ardupilotmega"])
+        .status()
+        .is_ok_and(|s| s.success());
+    if !ok {
+        let install = Command::new("python3")
+            .args(["-m", "pip", "install", "--quiet", "pymavlink"])
+            .status();
+        assert!(
+            install.is_ok_and(|s| s.success()),
+            "pymavlink is not importable and `python3 -m pip install pymavlink` did not fix it"
+        );
+    }
+}
+
+/// The pymavlink vehicle; killed on drop if still running.
+struct Vehicle(Child);
+
+impl Drop for Vehicle {
+    fn drop(&mut self) {
+        let _ = self.0.kill();
+        let _ = self.0.wait();
+    }
+}
+
+/// Start the vehicle with `args`; its UDP port.
+fn vehicle(args: &[&str]) -> (Vehicle, u16) {
+    ensure_pymavlink();
+    let mut child = Command::new("python3")
+        .arg(repo("autopilot/tests/pymav_vehicle.py"))
+        .args(["--deadline", "40"])
+        .args(args)
+        .stdout(Stdio::piped())
+        .stderr(Stdio::inherit())
+        .spawn()
+        .expect("spawn python3");
+    let mut line = String::new();
+    BufReader::new(child.stdout.as_mut().unwrap())
+        .read_line(&mut line)
+        .unwrap();
+    let port = line
+        .trim()
+        .strip_prefix("UDP ")
+        .unwrap_or_else(|| panic!("vehicle said {line:?}"))
+        .parse()
+        .unwrap();
+    (Vehicle(child), port)
+}
+
+/// The vehicle's verdict (it ends 1.5 s after markhold falls silent).
+fn verdict(v: &mut Vehicle) -> serde_json::Value {
+    let mut out = String::new();
+    v.0.stdout
+        .as_mut()
+        .unwrap()
+        .read_to_string(&mut out)
+        .unwrap();
+    let _ = v.0.wait();
+    let last = out.lines().last().unwrap_or_default();
+    serde_json::from_str(last).unwrap_or_else(|e| panic!("verdict {out:?}: {e}"))
+}
+
+fn texts(v: &serde_json::Value) -> Vec<String> {
+    v["texts"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|t| t[2].as_str().unwrap().to_string())
+        .collect()
+}
+
+/// The fixture site with extra `[link]` keys, written next to the original (its paths
+/// are relative to it).
+fn site_with(name: &str, link_keys: &str) -> PathBuf {
+    let text = std::fs::read_to_string(site_path()).unwrap();
+    let text = text.replacen("[link]\n", &format!("[link]\n{link_keys}\n"), 1);
+    let p = tmp(name);
+    std::fs::write(&p, text).unwrap();
+    p
+}
+
+fn run(site: &Path, port: u16, summary: &Path) -> std::process::Output {
+    markhold()
+        .args(["run", "--site"])
+        .arg(site)
+        .arg("--camera")
+        .arg(format!("frames:{}", frames_dir().display()))
+        .arg("--link")
+        .arg(format!("udpout:127.0.0.1:{port}"))
+        .arg("--summary")
+        .arg(summary)
+        .output()
+        .unwrap()
+}
+
+#[test]
+fn the_pilot_engages_takes_over_and_gets_the_vehicle_back() {
+    let (mut v, port) = vehicle(&["--scenario", "pilot"]);
+    let summary = tmp("pilot.json");
+    let o = run(&site_path(), port, &summary);
+    let stderr = String::from_utf8_lossy(&o.stderr);
+    assert!(o.status.success(), "{stderr}");
+    let verdict = verdict(&mut v);
+    let said = texts(&verdict);
+    assert_eq!(
+        verdict["failures"],
+        serde_json::json!([]),
+        "{verdict}\n{stderr}"
+    );
+    assert_eq!(
+        verdict["step"], 11,
+        "the pilot's plan did not finish: {verdict}"
+    );
+    // Every engagement change said once, in order.
+    let changes: Vec<&str> = said
+        .iter()
+        .map(String::as_str)
+        .filter(|t| !t.starts_with("markhold: marker") && !t.starts_with("markhold: exposure"))
+        .collect();
+    assert_eq!(
+        changes,
+        [
+            "markhold ready: arm, select MANUAL",
+            "markhold on: holding station",
+            "markhold off: mode changed",
+            "markhold on: holding station",
+            "markhold off: pilot input",
+            "markhold on: holding station",
+            "markhold off: stopped",
+            "markhold stopped: take the controls",
+            "markhold: pilot has control",
+        ],
+        "{verdict}"
+    );
+    // After the mode change: what was in flight and one neutral, then only the release.
+    let after = verdict["inputs_after_mode_change"].as_array().unwrap();
+    let pilot_inputs = after.iter().filter(|k| *k != "release").count();
+    assert!(pilot_inputs <= 2, "{after:?}");
+    assert_eq!(verdict["release_seen"], true, "{verdict}");
+    assert_eq!(verdict["inputs_while_off"], 0, "{verdict}");
+    // Handed back: still armed, the failsafe never fired.
+    assert_eq!(verdict["failsafe"], serde_json::json!([]), "{verdict}");
+    assert_eq!(verdict["armed_at_end"], true, "{verdict}");
+    assert_eq!(
+        verdict["named"],
+        serde_json::json!(["mh_err_m", "mh_yaw_deg"])
+    );
+    // The preflight ran (parameter reads) before the loop.
+    assert!(verdict["param_reads"].as_u64().unwrap() >= 5, "{verdict}");
+    let s: serde_json::Value = serde_json::from_slice(&std::fs::read(&summary).unwrap()).unwrap();
+    assert_eq!(s["engagements"], 3, "{s}");
+    assert_eq!(s["hand_back"], "pilot_took_over", "{s}");
+    assert!(s["withheld"].as_u64().unwrap() > 0, "{s}");
+}
+
+#[test]
+fn with_nobody_at_the_joystick_the_hand_back_disarms_and_says_so() {
+    let site = site_with("handback.toml", "hand_back_timeout_s = 1.0");
+    let (mut v, port) = vehicle(&["--scenario", "pilot", "--no-pilot-after-exit"]);
+    let summary = tmp("handback.json");
+    let o = run(&site, port, &summary);
+    let stderr = String::from_utf8_lossy(&o.stderr);
+    assert!(o.status.success(), "{stderr}");
+    let verdict = verdict(&mut v);
+    let said = texts(&verdict);
+    assert_eq!(verdict["failures"], serde_json::json!([]), "{verdict}");
+    assert!(
+        said.iter()
+            .any(|t| t == "markhold: no pilot input, disarming"),
+        "{said:?}"
+    );
+    assert_eq!(verdict["armed_at_end"], false, "{verdict}");
+    // markhold disarmed it; ArduSub's failsafe did not have to.
+    assert_eq!(verdict["failsafe"], serde_json::json!([]), "{verdict}");
+    let s: serde_json::Value = serde_json::from_slice(&std::fs::read(&summary).unwrap()).unwrap();
+    assert_eq!(s["hand_back"]["disarmed"], "Accepted", "{s}");
+}
+
+fn preflight(extra: &[&str]) -> (std::process::Output, serde_json::Value) {
+    let mut args = vec!["--scenario", "params"];
+    for p in extra {
+        args.extend(["--param", p]);
+    }
+    let (mut v, port) = vehicle(&args);
+    let o = markhold()
+        .args(["preflight", "--site"])
+        .arg(site_path())
+        .arg("--link")
+        .arg(format!("udpout:127.0.0.1:{port}"))
+        .output()
+        .unwrap();
+    (o, verdict(&mut v))
+}
+
+#[test]
+fn preflight_passes_a_good_vehicle_and_fails_a_bad_one_with_the_fix() {
+    let (o, v) = preflight(&[]);
+    let out = String::from_utf8_lossy(&o.stdout);
+    assert!(
+        o.status.success(),
+        "{out}\n{}",
+        String::from_utf8_lossy(&o.stderr)
+    );
+    assert!(out.contains("0 fail"), "{out}");
+    assert!(out.contains("[pass] gcs id"), "{out}");
+    assert!(out.contains("[pass] ardusub version"), "{out}");
+    assert!(out.contains("4.1.2"), "{out}");
+    assert!(v["param_reads"].as_u64().unwrap() >= 5, "{v}");
+
+    let (o, _) = preflight(&["FS_PILOT_INPUT=0"]);
+    let out = String::from_utf8_lossy(&o.stdout);
+    assert_eq!(o.status.code(), Some(1), "{out}");
+    assert!(out.contains("[FAIL] pilot failsafe"), "{out}");
+    assert!(out.contains("fix: set FS_PILOT_INPUT = 2"), "{out}");
+
+    let (o, _) = preflight(&["SYSID_MYGCS=254"]);
+    let out = String::from_utf8_lossy(&o.stdout);
+    assert_eq!(o.status.code(), Some(1), "{out}");
+    assert!(out.contains("[FAIL] gcs id"), "{out}");
+    assert!(out.contains("set SYSID_MYGCS = 255"), "{out}");
+
+    // The frame the site names must be the vehicle's.
+    let (o, _) = preflight(&["FRAME_CONFIG=1"]);
+    let out = String::from_utf8_lossy(&o.stdout);
+    assert_eq!(o.status.code(), Some(1), "{out}");
+    assert!(out.contains("[FAIL] frame"), "{out}");
+}
+
+#[test]
+fn run_refuses_to_start_on_a_failed_preflight() {
+    let (mut v, port) = vehicle(&["--scenario", "params", "--param", "FS_PILOT_INPUT=0"]);
+    let o = run(&site_path(), port, &tmp("refused.json"));
+    let stderr = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(2), "{stderr}");
+    assert!(stderr.contains("failed the preflight check"), "{stderr}");
+    assert!(stderr.contains("--no-preflight"), "{stderr}");
+    let verdict = verdict(&mut v);
+    // Nothing but parameter traffic: no pilot input, no arming.
+    assert_eq!(verdict["armed_at_end"], false, "{verdict}");
+}
