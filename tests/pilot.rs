@@ -281,3 +281,146 @@ fn run_refuses_to_start_on_a_failed_preflight() {
     // Nothing but parameter traffic: no pilot input, no arming.
     assert_eq!(verdict["armed_at_end"], false, "{verdict}");
 }
+
+/// The pilot's QGroundControl on a second TCP connection to the external vehicle:
+/// switches mode away at `away_s`, pushes the vehicle forward with its own overrides,
+/// releases them and switches back at `back_s` (wall seconds from the start).
+fn pilot_on_tcp(
+    addr: std::net::SocketAddr,
+    away_s: f64,
+    back_s: f64,
+) -> std::thread::JoinHandle<()> {
+    use markhold_autopilot::mavlink::{
+        self,
+        dialects::ardupilotmega::{
+            MavCmd, MavMessage, COMMAND_LONG_DATA, RC_CHANNELS_OVERRIDE_DATA,
+        },
+        MavHeader,
+    };
+    use std::time::{Duration, Instant};
+    std::thread::spawn(move || {
+        let mut s = std::net::TcpStream::connect(addr).unwrap();
+        // Drain what the vehicle sends to every client.
+        let mut r = s.try_clone().unwrap();
+        r.set_read_timeout(Some(Duration::from_millis(200)))
+            .unwrap();
+        let stop = std::sync::Arc::new(std::sync::atomic::AtomicBool::new(false));
+        let stopped = stop.clone();
+        let drain = std::thread::spawn(move || {
+            let mut buf = [0u8; 4096];
+            while !stopped.load(std::sync::atomic::Ordering::Relaxed) {
+                if matches!(r.read(&mut buf), Ok(0)) {
+                    break;
+                }
+            }
+        });
+        let mut seq = 0u8;
+        let mut send = |s: &mut std::net::TcpStream, m: &MavMessage| {
+            let h = MavHeader {
+                system_id: 255,
+                component_id: 190,
+                sequence: seq,
+            };
+            seq = seq.wrapping_add(1);
+            mavlink::write_v2_msg(s, h, m).unwrap();
+        };
+        let mode = |m: f32| {
+            MavMessage::COMMAND_LONG(COMMAND_LONG_DATA {
+                command: MavCmd::MAV_CMD_DO_SET_MODE,
+                param1: 1.0,
+                param2: m,
+                target_system: 1,
+                target_component: 1,
+                ..Default::default()
+            })
+        };
+        let push = |fwd: u16| {
+            MavMessage::RC_CHANNELS_OVERRIDE(RC_CHANNELS_OVERRIDE_DATA {
+                chan1_raw: if fwd == 0 { 0 } else { 1500 },
+                chan2_raw: if fwd == 0 { 0 } else { 1500 },
+                chan3_raw: if fwd == 0 { 0 } else { 1500 },
+                chan4_raw: if fwd == 0 { 0 } else { 1500 },
+                chan5_raw: fwd,
+                chan6_raw: if fwd == 0 { 0 } else { 1500 },
+                target_system: 1,
+                target_component: 1,
+                ..Default::default()
+            })
+        };
+        let t0 = Instant::now();
+        let at = |t: f64| {
+            if let Some(w) = Duration::from_secs_f64(t).checked_sub(t0.elapsed()) {
+                std::thread::sleep(w);
+            }
+        };
+        at(away_s);
+        send(&mut s, &mode(0.0)); // STABILIZE
+                                  // The pilot nudges it off station (not so far that the marker leaves the view).
+        while t0.elapsed().as_secs_f64() < back_s - 0.5 {
+            let fwd = if t0.elapsed().as_secs_f64() < away_s + 0.8 {
+                1600
+            } else {
+                1500
+            };
+            send(&mut s, &push(fwd));
+            std::thread::sleep(Duration::from_millis(50));
+        }
+        send(&mut s, &push(0));
+        at(back_s);
+        send(&mut s, &mode(19.0)); // MANUAL: the site's mode, markhold engages again
+        stop.store(true, std::sync::atomic::Ordering::Relaxed);
+        let _ = drain.join();
+    })
+}
+
+#[test]
+fn hil_on_an_external_vehicle_hands_over_to_the_pilot_and_regains_station() {
+    use common::RealTimeVehicle;
+    use markhold::params;
+    use markhold_hil::{EndpointConfig, HilRig, HilSetup, VehicleMotion};
+    let site = params::load(&site_path()).unwrap();
+    let s = &site.site;
+    let t_world_station = site.t_world_marker() * s.station.t_marker_vehicle();
+    let rig = HilRig::new(HilSetup {
+        vehicle: s.vehicle.clone(),
+        endpoint: EndpointConfig {
+            tcp_enabled: true,
+            ..EndpointConfig::default()
+        },
+        water: s.water.clone(),
+        lighting: s.lighting.clone(),
+        camera: markhold::sim::hil::camera_model(&site, site.limits()),
+        t_vehicle_cam: site.t_vehicle_cam(),
+        marker: markhold::sim::hil::marker_spec(&site).unwrap(),
+        t_world_marker: site.t_world_marker(),
+        // hil --vehicle places the marker for a vehicle starting this far off station.
+        t_world_vehicle_start: t_world_station * markhold::sim::hil::start_offset(&s.vehicle),
+        motion: VehicleMotion::Free,
+        seed: 3,
+        lock_step: false,
+    })
+    .unwrap();
+    let tcp = rig.mavlink_tcp_addr().expect("tcp endpoint");
+    let sim = RealTimeVehicle::start(rig);
+    let pilot = pilot_on_tcp(tcp, 4.0, 7.5);
+    let out = tmp("hil-pilot.json");
+    let o = markhold()
+        .args(["hil", "--quiet", "--seconds", "16", "--site"])
+        .arg(site_path())
+        .arg("--vehicle")
+        .arg(format!("tcp:{tcp}"))
+        .arg("--summary")
+        .arg(&out)
+        .output()
+        .unwrap();
+    pilot.join().unwrap();
+    let truth = sim.finish().truth;
+    let stderr = String::from_utf8_lossy(&o.stderr);
+    assert!(o.status.success(), "{stderr}");
+    // Let go when the pilot switched away, engaged again when the pilot came back.
+    assert!(stderr.contains("disengaged why=ModeChanged"), "{stderr}");
+    assert!(stderr.contains("engaged 2 times"), "{stderr}");
+    let err =
+        (t_world_station.translation.vector - truth.t_world_vehicle.translation.vector).norm();
+    assert!(err < 0.15, "{err:.3} m from station at the end\n{stderr}");
+}

@@ -478,7 +478,7 @@ fn a_snapshot_plays_back_as_a_camera_with_the_same_detections() {
 
     let v = vehicle();
     let o = markhold()
-        .args(["run", "--no-pace", "--site"])
+        .args(["run", "--engage", "--no-preflight", "--no-pace", "--site"])
         .arg(site_path())
         .arg("--camera")
         .arg(format!("frames:{}", snap.display()))
