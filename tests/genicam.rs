@@ -6,7 +6,7 @@
 //! The simulated camera draws a diagonal ramp `((x + y + frame_id) % 255) * s` with
 //! `s = 1 + gain + log10(exposure_us / 10000)` (clamped to 0..255), so an image's mean
 //! tells the exposure it was really taken with.
-#![cfg(feature = "sim")]
+#![cfg(all(feature = "sim", feature = "genicam"))]
 #![allow(clippy::unwrap_used)] // Tests fail loudly on a broken setup, by design.
 
 mod common;
