@@ -488,7 +488,7 @@ pub struct LinkConfig {
 impl Default for LinkConfig {
     fn default() -> Self {
         Self {
-            url: "udpout:127.0.0.1:14550".into(),
+            url: "tcp:127.0.0.1:5777".into(),
             gcs_system_id: 255,
             gcs_component_id: 191,
             vehicle_system_id: 1,
