@@ -206,8 +206,44 @@ pub fn check(link: &mut VehicleLink, site: &LoadedSite, t0: f64, stop: &Shutdown
         ..Checklist::default()
     };
     let p = |n: &str| link.param(n).map(|(v, _)| v);
-    let not_read = |n: &str| format!("{n} not reported by the vehicle");
 
+    check_ids_and_failsafes(&mut list, &p, &cfg, site);
+    check_frame(&mut list, p("FRAME_CONFIG"), site_frame(site));
+    check_vehicle(&mut list, link, site);
+    if setpoint {
+        check_setpoint(&mut list, &p);
+    }
+    match list.param_round_trip_ms {
+        Some(ms) if ms <= 100.0 => list.add(
+            "link latency",
+            Verdict::Pass,
+            format!("{ms:.1} ms (param read round trip)"),
+            "",
+        ),
+        Some(ms) => list.add(
+            "link latency",
+            Verdict::Warn,
+            format!("{ms:.1} ms (param read round trip)"),
+            "over 100 ms: check the tether and that markhold runs beside the vehicle (BlueOS)",
+        ),
+        None => list.add(
+            "link latency",
+            Verdict::Warn,
+            "no parameter read answered".into(),
+            "check the link",
+        ),
+    }
+    list
+}
+
+/// The GCS id and the failsafe parameters.
+fn check_ids_and_failsafes(
+    list: &mut Checklist,
+    p: &dyn Fn(&str) -> Option<f32>,
+    cfg: &markhold_autopilot::LinkConfig,
+    site: &LoadedSite,
+) {
+    let not_read = |n: &str| format!("{n} not reported by the vehicle");
     // Pilot input is dropped unless it comes from the GCS id.
     let gcs = p("SYSID_MYGCS").or_else(|| p("MAV_GCS_SYSID"));
     match gcs {
@@ -302,32 +338,6 @@ pub fn check(link: &mut VehicleLink, site: &LoadedSite, t0: f64, stop: &Shutdown
             "set FS_GCS_ENABLE = 2",
         ),
     }
-    check_frame(&mut list, p("FRAME_CONFIG"), site_frame(site));
-    check_vehicle(&mut list, link, site);
-    if setpoint {
-        check_setpoint(&mut list, &p);
-    }
-    match list.param_round_trip_ms {
-        Some(ms) if ms <= 100.0 => list.add(
-            "link latency",
-            Verdict::Pass,
-            format!("{ms:.1} ms (param read round trip)"),
-            "",
-        ),
-        Some(ms) => list.add(
-            "link latency",
-            Verdict::Warn,
-            format!("{ms:.1} ms (param read round trip)"),
-            "over 100 ms: check the tether and that markhold runs beside the vehicle (BlueOS)",
-        ),
-        None => list.add(
-            "link latency",
-            Verdict::Warn,
-            "no parameter read answered".into(),
-            "check the link",
-        ),
-    }
-    list
 }
 
 /// FRAME_CONFIG against the site's `[vehicle] frame`: 1 = vectored (BlueROV2, 6
