@@ -350,6 +350,9 @@ def pilot_main(args):
                 st["armed"] = False
         if args.scenario == "pilot":
             step_plan(plan, now, said, pilot_mode, pilot_arm, mh_inputs, change_t, failures)
+            if plan.pop("vehicle_text", False):
+                # What ArduSub says on a leak: markhold must log it.
+                veh.statustext_send(mav2.MAV_SEVERITY_CRITICAL, b"Leak Detected!")
         r, _, _ = select.select([sock], [], [], 0.005)
         if not r:
             if last_heard[0] is not None and now - last_heard[0] > 1.5:
@@ -442,6 +445,7 @@ def step_plan(plan, now, said, pilot_mode, pilot_arm, mh_inputs, change_t, failu
         plan["step"], plan["at"] = 1, now
     elif s == 1 and said("markhold on", 1):
         plan["step"], plan["at"] = 2, now
+        plan["vehicle_text"] = True
     elif s == 2 and now - plan["at"] > 0.5:
         pilot_mode(STABILIZE)
         plan["step"], plan["at"] = 3, now
