@@ -190,6 +190,7 @@ fn the_pilot_engages_takes_over_and_gets_the_vehicle_back() {
     );
     // The vehicle's own STATUSTEXT lands in markhold's log.
     assert!(stderr.contains("vehicle says: Leak Detected!"), "{stderr}");
+    assert!(stderr.contains("vehicle reports a failsafe"), "{stderr}");
     // The preflight ran (parameter reads) before the loop.
     assert!(verdict["param_reads"].as_u64().unwrap() >= 5, "{verdict}");
     let s: serde_json::Value = serde_json::from_slice(&std::fs::read(&summary).unwrap()).unwrap();

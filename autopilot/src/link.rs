@@ -290,6 +290,9 @@ pub struct VehicleState {
     pub param_count: Option<u16>,
     /// AUTOPILOT_VERSION.flight_sw_version (major << 24 | minor << 16 | patch << 8 | type).
     pub flight_sw_version: Option<u32>,
+    /// The heartbeat's system_status is CRITICAL or EMERGENCY: ArduSub sets CRITICAL while
+    /// any failsafe (pilot input, battery, GCS, EKF, terrain) is active.
+    pub vehicle_failsafe: bool,
 }
 
 impl VehicleState {
@@ -321,6 +324,7 @@ impl VehicleState {
             sensors_unhealthy: 0,
             param_count: None,
             flight_sw_version: None,
+            vehicle_failsafe: false,
         }
     }
 }
@@ -712,6 +716,18 @@ impl VehicleLink {
         }
         self.state.mode = mode;
         self.state.custom_mode = hb.custom_mode;
+        let failsafe = matches!(
+            hb.system_status,
+            MavState::MAV_STATE_CRITICAL | MavState::MAV_STATE_EMERGENCY
+        );
+        if failsafe != self.state.vehicle_failsafe {
+            if failsafe {
+                tracing::warn!(status = ?hb.system_status, "vehicle reports a failsafe (heartbeat system_status)");
+            } else {
+                tracing::info!("vehicle failsafe cleared (heartbeat system_status)");
+            }
+            self.state.vehicle_failsafe = failsafe;
+        }
         self.state.last_vehicle_heartbeat_s = Some(now_s);
         self.state.heartbeats += 1;
         self.heard(was_ok, now_s);

@@ -332,7 +332,9 @@ def pilot_main(args):
         if now - last_hb >= 0.1 or st.pop("hb_now", False):
             last_hb = now
             base = mav2.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED | (mav2.MAV_MODE_FLAG_SAFETY_ARMED if st["armed"] else 0)
-            veh.heartbeat_send(mav2.MAV_TYPE_SUBMARINE, mav2.MAV_AUTOPILOT_ARDUPILOTMEGA, base, st["mode"], mav2.MAV_STATE_ACTIVE)
+            # ArduSub reports CRITICAL while a failsafe is active (here: after the leak).
+            status = mav2.MAV_STATE_CRITICAL if now < st.get("critical_until", 0) else mav2.MAV_STATE_ACTIVE
+            veh.heartbeat_send(mav2.MAV_TYPE_SUBMARINE, mav2.MAV_AUTOPILOT_ARDUPILOTMEGA, base, st["mode"], status)
             veh.attitude_send(1234, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
         # The pilot's joystick: QGroundControl sends MANUAL_CONTROL all the time, centred
         # unless the pilot deflects it.
@@ -353,6 +355,7 @@ def pilot_main(args):
             if plan.pop("vehicle_text", False):
                 # What ArduSub says on a leak: markhold must log it.
                 veh.statustext_send(mav2.MAV_SEVERITY_CRITICAL, b"Leak Detected!")
+                st["critical_until"] = now + 0.3
         r, _, _ = select.select([sock], [], [], 0.005)
         if not r:
             if last_heard[0] is not None and now - last_heard[0] > 1.5:
