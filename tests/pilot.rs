@@ -180,6 +180,10 @@ fn the_pilot_engages_takes_over_and_gets_the_vehicle_back() {
     let pilot_inputs = after.iter().filter(|k| *k != "release").count();
     assert!(pilot_inputs <= 2, "{after:?}");
     assert_eq!(verdict["release_seen"], true, "{verdict}");
+    eprintln!(
+        "pilot: last pilot input {} ms after the pilot's mode change (wall clock, loopback)",
+        verdict["last_input_after_mode_change_ms"]
+    );
     assert_eq!(verdict["inputs_while_off"], 0, "{verdict}");
     // Handed back: still armed, the failsafe never fired.
     assert_eq!(verdict["failsafe"], serde_json::json!([]), "{verdict}");

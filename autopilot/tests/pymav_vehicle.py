@@ -431,6 +431,7 @@ def pilot_main(args):
         "inputs_after_mode_change": plan.get("after_change"),
         "inputs_while_off": plan.get("while_off"),
         "release_seen": plan.get("release"),
+        "last_input_after_mode_change_ms": plan.get("last_input_ms"),
     }
     print(json.dumps(verdict), flush=True)
     sys.exit(0 if not failures else 1)
@@ -457,6 +458,8 @@ def step_plan(plan, now, said, pilot_mode, pilot_arm, mh_inputs, change_t, failu
         # and one neutral; then nothing but the release.
         after = [k for t, k in mh_inputs if t > change_t[0]]
         plan["after_change"] = after
+        pilot_after = [t for t, k in mh_inputs if t > change_t[0] and k != "release"]
+        plan["last_input_ms"] = round((max(pilot_after) - change_t[0]) * 1e3, 1) if pilot_after else 0.0
         plan["release"] = "release" in after
         late = [k for t, k in mh_inputs if t > change_t[0] + 0.1 and k != "release"]
         if late:

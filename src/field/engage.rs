@@ -422,8 +422,12 @@ impl EngagedLink {
         let text = self.announcer.transition(t, self.mode);
         match t {
             Transition::Engaged => self.link.set_pilot_keepalive(true),
-            // Centre the sticks at once; the release follows after a short neutral.
-            Transition::Disengaged(_) => self.link.send_neutral(now_s)?,
+            // Centre the sticks at once (an override holds until released); nothing
+            // more until the release follows.
+            Transition::Disengaged(_) => {
+                self.link.send_neutral(now_s)?;
+                self.link.set_pilot_keepalive(false);
+            }
             Transition::Ready => {}
         }
         self.say(text)
