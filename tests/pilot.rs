@@ -289,94 +289,66 @@ fn run_refuses_to_start_on_a_failed_preflight() {
     assert_eq!(verdict["armed_at_end"], false, "{verdict}");
 }
 
-/// The pilot's QGroundControl on a second TCP connection to the external vehicle:
-/// switches mode away at `away_s`, pushes the vehicle forward with its own overrides,
-/// releases them and switches back at `back_s` (wall seconds from the start).
+/// The pilot's QGroundControl on a second TCP connection to the external vehicle, as
+/// system 255, component 190 (a `VehicleLink` with QGroundControl's ids): switches mode
+/// away at `away_s`, pushes the vehicle sideways with its own overrides, releases them and
+/// switches back at `back_s` (wall seconds from the start). Returns how far the vehicle
+/// moved from where it was at `away_s` (its LOCAL_POSITION_NED), metres.
 fn pilot_on_tcp(
     addr: std::net::SocketAddr,
     away_s: f64,
     back_s: f64,
-) -> std::thread::JoinHandle<()> {
-    use markhold_autopilot::mavlink::{
-        self,
-        dialects::ardupilotmega::{
-            MavCmd, MavMessage, COMMAND_LONG_DATA, RC_CHANNELS_OVERRIDE_DATA,
-        },
-        MavHeader,
-    };
+) -> std::thread::JoinHandle<f64> {
+    use markhold_autopilot::{ArduSubMode, Effort, LinkConfig, VehicleLink};
     use std::time::{Duration, Instant};
     std::thread::spawn(move || {
-        let mut s = std::net::TcpStream::connect(addr).unwrap();
-        // Drain what the vehicle sends to every client.
-        let mut r = s.try_clone().unwrap();
-        r.set_read_timeout(Some(Duration::from_millis(200)))
-            .unwrap();
-        let stop = std::sync::Arc::new(std::sync::atomic::AtomicBool::new(false));
-        let stopped = stop.clone();
-        let drain = std::thread::spawn(move || {
-            let mut buf = [0u8; 4096];
-            while !stopped.load(std::sync::atomic::Ordering::Relaxed) {
-                if matches!(r.read(&mut buf), Ok(0)) {
-                    break;
-                }
-            }
-        });
-        let mut seq = 0u8;
-        let mut send = |s: &mut std::net::TcpStream, m: &MavMessage| {
-            let h = MavHeader {
-                system_id: 255,
-                component_id: 190,
-                sequence: seq,
-            };
-            seq = seq.wrapping_add(1);
-            mavlink::write_v2_msg(s, h, m).unwrap();
+        let cfg = LinkConfig {
+            url: format!("tcp:{addr}"),
+            gcs_component_id: 190,
+            ..LinkConfig::default()
         };
-        let mode = |m: f32| {
-            MavMessage::COMMAND_LONG(COMMAND_LONG_DATA {
-                command: MavCmd::MAV_CMD_DO_SET_MODE,
-                param1: 1.0,
-                param2: m,
-                target_system: 1,
-                target_component: 1,
-                ..Default::default()
-            })
-        };
-        let push = |fwd: u16| {
-            MavMessage::RC_CHANNELS_OVERRIDE(RC_CHANNELS_OVERRIDE_DATA {
-                chan1_raw: if fwd == 0 { 0 } else { 1500 },
-                chan2_raw: if fwd == 0 { 0 } else { 1500 },
-                chan3_raw: if fwd == 0 { 0 } else { 1500 },
-                chan4_raw: if fwd == 0 { 0 } else { 1500 },
-                chan5_raw: fwd,
-                chan6_raw: if fwd == 0 { 0 } else { 1500 },
-                target_system: 1,
-                target_component: 1,
-                ..Default::default()
-            })
-        };
+        let mut qgc = VehicleLink::connect(&cfg).unwrap();
+        qgc.set_pilot_keepalive(false);
         let t0 = Instant::now();
-        let at = |t: f64| {
-            if let Some(w) = Duration::from_secs_f64(t).checked_sub(t0.elapsed()) {
-                std::thread::sleep(w);
+        let (mut step, mut at_away, mut moved) = (0, None::<[f64; 3]>, 0.0f64);
+        while step < 4 && t0.elapsed() < Duration::from_secs(30) {
+            let t = t0.elapsed().as_secs_f64();
+            qgc.tick(t).unwrap();
+            let pos = qgc.state().local_position.map(|p| p.position);
+            if let (Some(a), Some(p)) = (at_away, pos) {
+                let d =
+                    ((p[0] - a[0]).powi(2) + (p[1] - a[1]).powi(2) + (p[2] - a[2]).powi(2)).sqrt();
+                moved = moved.max(d);
             }
-        };
-        at(away_s);
-        send(&mut s, &mode(0.0)); // STABILIZE
-                                  // The pilot nudges it off station (not so far that the marker leaves the view).
-        while t0.elapsed().as_secs_f64() < back_s - 0.5 {
-            let fwd = if t0.elapsed().as_secs_f64() < away_s + 0.8 {
-                1600
-            } else {
-                1500
-            };
-            send(&mut s, &push(fwd));
-            std::thread::sleep(Duration::from_millis(50));
+            match step {
+                0 if t >= away_s => {
+                    qgc.request_mode(ArduSubMode::Stabilize, t).unwrap();
+                    at_away = pos;
+                    step = 1;
+                }
+                // The pilot nudges it off station (not so far that the marker leaves the view).
+                1 if t < away_s + 1.2 => {
+                    let push = Effort {
+                        sway: 0.6,
+                        ..Effort::NEUTRAL
+                    };
+                    qgc.send_effort(&push, t).unwrap();
+                }
+                1 => {
+                    qgc.release_pilot().unwrap();
+                    step = 2;
+                }
+                2 if t >= back_s => {
+                    // The site's mode: markhold engages again.
+                    qgc.request_mode(ArduSubMode::Manual, t).unwrap();
+                    step = 3;
+                }
+                3 if t >= back_s + 1.0 => step = 4,
+                _ => {}
+            }
+            std::thread::sleep(Duration::from_millis(20));
         }
-        send(&mut s, &push(0));
-        at(back_s);
-        send(&mut s, &mode(19.0)); // MANUAL: the site's mode, markhold engages again
-        stop.store(true, std::sync::atomic::Ordering::Relaxed);
-        let _ = drain.join();
+        moved
     })
 }
 
@@ -420,14 +392,22 @@ fn hil_on_an_external_vehicle_hands_over_to_the_pilot_and_regains_station() {
         .arg(&out)
         .output()
         .unwrap();
-    pilot.join().unwrap();
+    let moved = pilot.join().unwrap();
     let truth = sim.finish().truth;
     let stderr = String::from_utf8_lossy(&o.stderr);
     assert!(o.status.success(), "{stderr}");
     // Let go when the pilot switched away, engaged again when the pilot came back.
     assert!(stderr.contains("disengaged why=ModeChanged"), "{stderr}");
     assert!(stderr.contains("engaged 2 times"), "{stderr}");
+    // The vehicle really left its station while markhold was off (the pilot's sideways
+    // push, about 0.2 m, plus its positive buoyancy) ...
+    assert!(
+        moved > 0.15,
+        "the vehicle moved {moved:.3} m while markhold was off"
+    );
     let err =
         (t_world_station.translation.vector - truth.t_world_vehicle.translation.vector).norm();
+    // ... and markhold brought it back after the pilot engaged it again.
     assert!(err < 0.15, "{err:.3} m from station at the end\n{stderr}");
+    eprintln!("hil pilot: pushed {moved:.2} m off, {err:.3} m from station at the end");
 }
