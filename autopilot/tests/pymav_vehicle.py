@@ -461,9 +461,12 @@ def step_plan(plan, now, said, pilot_mode, pilot_arm, mh_inputs, change_t, failu
         pilot_after = [t for t, k in mh_inputs if t > change_t[0] and k != "release"]
         plan["last_input_ms"] = round((max(pilot_after) - change_t[0]) * 1e3, 1) if pilot_after else 0.0
         plan["release"] = "release" in after
-        late = [k for t, k in mh_inputs if t > change_t[0] + 0.1 and k != "release"]
-        if late:
-            failures.append("pilot input %r more than 100 ms after the pilot's mode change" % late[:5])
+        # Judged by order, not by the wall clock (a loaded host delays everything): after
+        # the change, at most the input already in flight and the one neutral, then
+        # nothing but the release. At 30 frames/s that is within 2 frames (67 ms) of
+        # markhold hearing the change; last_input_ms reports the wall-clock figure.
+        if len([k for k in after if k != "release"]) > 2 or (after and after[-1] != "release"):
+            failures.append("pilot input after the pilot's mode change: %r" % after[:8])
         if not said("markhold off: mode changed"):
             failures.append("no 'markhold off: mode changed'")
         plan["step"], plan["at"], plan["mark"] = 4, now, len(mh_inputs)
