@@ -409,5 +409,7 @@ fn hil_on_an_external_vehicle_hands_over_to_the_pilot_and_regains_station() {
         (t_world_station.translation.vector - truth.t_world_vehicle.translation.vector).norm();
     // ... and markhold brought it back after the pilot engaged it again.
     assert!(err < 0.15, "{err:.3} m from station at the end\n{stderr}");
-    eprintln!("hil pilot: moved {moved:.2} m while markhold was off, {err:.3} m from station at the end");
+    eprintln!(
+        "hil pilot: moved {moved:.2} m while markhold was off, {err:.3} m from station at the end"
+    );
 }
