@@ -13,6 +13,7 @@ use super::run::StartupError;
 use super::signal::ShutdownFlag;
 use crate::params::LoadedSite;
 
+#[cfg(feature = "genicam")]
 pub mod genicam;
 
 /// Where frames come from.
@@ -166,6 +167,16 @@ pub fn open_camera(
             }
             (Box::new(c), pace)
         }
+        #[cfg(not(feature = "genicam"))]
+        CameraUrl::Genicam(_) => {
+            return Err(StartupError::Camera {
+                url: name,
+                reason: "this build has no GenICam support (built without the cargo feature \
+                         `genicam`, which needs Aravis)"
+                    .into(),
+            })
+        }
+        #[cfg(feature = "genicam")]
         CameraUrl::Genicam(id) => {
             let cfg = genicam::GenicamConfig {
                 width: site.calibration.width,
