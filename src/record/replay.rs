@@ -280,6 +280,38 @@ pub fn build_loop(
     Pipeline::new(site, start, SinkLink::default(), Observers::new())
 }
 
+/// Whether every string and map length a Channel or Metadata record declares lies
+/// within the record (other records: true).
+fn lengths_fit(opcode: u8, data: &[u8]) -> bool {
+    fn prefixed(data: &[u8], at: &mut usize, end: usize) -> Option<()> {
+        let len_end = at.checked_add(4).filter(|e| *e <= end)?;
+        let n = u32::from_le_bytes(data.get(*at..len_end)?.try_into().ok()?) as usize;
+        *at = len_end.checked_add(n).filter(|e| *e <= end)?;
+        Some(())
+    }
+    let check = || -> Option<()> {
+        let (mut at, strings) = match opcode {
+            mcap::records::op::CHANNEL => (4, 2),
+            mcap::records::op::METADATA => (0, 1),
+            _ => return Some(()),
+        };
+        for _ in 0..strings {
+            prefixed(data, &mut at, data.len())?;
+        }
+        // The map: its byte length, then key and value strings within it.
+        let map_start = at;
+        prefixed(data, &mut at, data.len())?;
+        let end = at;
+        at = map_start + 4;
+        while at < end {
+            prefixed(data, &mut at, end)?;
+            prefixed(data, &mut at, end)?;
+        }
+        Some(())
+    };
+    check().is_some()
+}
+
 /// The topics replay reads.
 #[derive(Debug, Clone, Copy)]
 enum Topic {
@@ -333,6 +365,21 @@ pub fn replay_from(
                 break;
             }
         };
+        // Only the records replay reads are parsed, and only when every length they
+        // declare fits in them: the mcap crate reserves a declared string length before
+        // reading it (a hostile 4 GB length in a 20-byte record).
+        if !matches!(
+            opcode,
+            mcap::records::op::CHANNEL | mcap::records::op::METADATA | mcap::records::op::MESSAGE
+        ) {
+            continue;
+        }
+        if !lengths_fit(opcode, data) {
+            ended_early = Some(format!(
+                "a record (opcode {opcode:#04x}) declares a string longer than itself"
+            ));
+            break;
+        }
         let record = match mcap::parse_record(opcode, data) {
             Ok(r) => r,
             Err(e) => {
@@ -550,5 +597,40 @@ impl<'a> Replayer<'a> {
         out.commands_match = out.first_mismatch.is_none() && out.frames_replayed > 0;
         let _ = self.camera.requested_us;
         out
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::lengths_fit;
+    use mcap::records::op;
+
+    #[test]
+    fn declared_lengths_must_fit_in_the_record() {
+        // Metadata: name "ab", a map of one pair "k" -> "v".
+        let mut ok = Vec::new();
+        ok.extend_from_slice(&2u32.to_le_bytes());
+        ok.extend_from_slice(b"ab");
+        ok.extend_from_slice(&10u32.to_le_bytes());
+        ok.extend_from_slice(&1u32.to_le_bytes());
+        ok.extend_from_slice(b"k");
+        ok.extend_from_slice(&1u32.to_le_bytes());
+        ok.extend_from_slice(b"v");
+        assert!(lengths_fit(op::METADATA, &ok));
+        // A name that claims 4 GB; a map entry past the map's end; a truncated map.
+        let mut huge = ok.clone();
+        huge[..4].copy_from_slice(&u32::MAX.to_le_bytes());
+        assert!(!lengths_fit(op::METADATA, &huge));
+        let mut past = ok.clone();
+        past[6..10].copy_from_slice(&9u32.to_le_bytes());
+        assert!(!lengths_fit(op::METADATA, &past));
+        assert!(!lengths_fit(op::METADATA, &ok[..ok.len() - 1]));
+        // Channel: ids, then two strings and the map.
+        let mut chan = vec![1, 0, 0, 0];
+        chan.extend_from_slice(&0u32.to_le_bytes());
+        chan.extend_from_slice(&ok);
+        assert!(lengths_fit(op::CHANNEL, &chan));
+        chan[4..8].copy_from_slice(&1_000_000u32.to_le_bytes());
+        assert!(!lengths_fit(op::CHANNEL, &chan));
     }
 }
