@@ -44,6 +44,12 @@ pub struct Summary {
     pub lockstep_timeouts: u64,
     /// Injected faults (`--fault`) with their timings and what the loop did.
     pub faults: Vec<super::faults::FaultReport>,
+    /// `h264-rtp` when the camera came through the stream stack (absent: in process).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub camera_transport: Option<String>,
+    /// The stream camera's estimate of the command-to-frame delay, frames.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub stream_delay_estimate_frames: Option<u32>,
 }
 
 /// Per-frame series kept during a run (allocated once at the start); the summary and
@@ -174,6 +180,8 @@ impl RunStats {
             measured_position_cov_det: cov_det(&self.measured),
             lockstep_timeouts,
             faults: Vec::new(),
+            camera_transport: None,
+            stream_delay_estimate_frames: None,
         }
     }
 }
