@@ -278,15 +278,17 @@ fn serve(mut conn: TcpStream, controls: &Mutex<SimControls>) -> std::io::Result<
     conn.flush()
 }
 
-/// The H.264 encoder and RTP sender of rendered frames.
-struct Sender {
+/// The H.264 encoder (x264enc) and RTP sender of rendered frames, to a loopback UDP
+/// port.
+pub struct Sender {
     pipeline: gst::Pipeline,
     src: gst_app::AppSrc,
     buffer_size: usize,
 }
 
 impl Sender {
-    fn start(width: u32, height: u32, fps: f64, port: u16) -> anyhow::Result<Self> {
+    pub fn start(width: u32, height: u32, fps: f64, port: u16) -> anyhow::Result<Self> {
+        crate::field::camera::stream::init().map_err(anyhow::Error::msg)?;
         let fps_n = (fps * 1000.0).round() as i32;
         let desc = format!(
             "appsrc name=src is-live=true format=time do-timestamp=false \
@@ -314,7 +316,8 @@ impl Sender {
         })
     }
 
-    fn push(&self, frame: &Frame, stamp_s: f64) -> anyhow::Result<()> {
+    /// Encodes and sends `frame`, stamped `stamp_s` (its RTP timestamp).
+    pub fn push(&self, frame: &Frame, stamp_s: f64) -> anyhow::Result<()> {
         let mut buf = gst::Buffer::with_size(self.buffer_size).context("a frame buffer")?;
         {
             let b = buf.get_mut().context("a fresh buffer is writable")?;
