@@ -28,10 +28,11 @@ pub const EXPOSURE_MANUAL: i64 = 1;
 pub const V4L2_EXPOSURE_UNIT_US: f64 = 100.0;
 
 /// `[camera.control]` of a site file.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, tag = "kind", rename_all = "snake_case")]
 pub enum ControlConfig {
     /// Leave exposure to the camera.
+    #[default]
     None,
     /// BlueOS camera manager REST API at `url` (e.g. `http://192.168.2.2:6020`), for
     /// the source `device` (empty: the first one with an absolute exposure control).
@@ -40,12 +41,6 @@ pub enum ControlConfig {
         #[serde(default)]
         device: String,
     },
-}
-
-impl Default for ControlConfig {
-    fn default() -> Self {
-        Self::None
-    }
 }
 
 #[derive(Debug, thiserror::Error)]
