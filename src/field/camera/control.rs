@@ -10,6 +10,9 @@
 //!   The ids are V4L2 control ids: `auto_exposure` (V4L2_CID_EXPOSURE_AUTO, 0x009a0901;
 //!   1 = manual, 3 = aperture priority) and `exposure_time_absolute`
 //!   (V4L2_CID_EXPOSURE_ABSOLUTE, 0x009a0902, units of 100 us).
+//! - `v4l2`: the same two controls through a control-only handle on `/dev/videoN`
+//!   (VIDIOC_QUERYCTRL / VIDIOC_S_CTRL / VIDIOC_G_CTRL), while the camera manager keeps
+//!   streaming from it (V4L2 allows several opens; only the streaming one owns buffers).
 //! - `none`: the exposure is left to the camera.
 
 use std::io::{Read, Write};
@@ -41,12 +44,16 @@ pub enum ControlConfig {
         #[serde(default)]
         device: String,
     },
+    /// V4L2 controls on `device` (e.g. `/dev/video2`), beside the camera manager.
+    V4l2 { device: String },
 }
 
 #[derive(Debug, thiserror::Error)]
 pub enum ControlError {
     #[error("camera manager at {url}: {reason}")]
     Rest { url: String, reason: String },
+    #[error("V4L2 controls of {device}: {reason}")]
+    V4l2 { device: String, reason: String },
 }
 
 /// Sets the camera's exposure, in its own units.
@@ -350,5 +357,204 @@ impl ExposureControl for BlueosRest {
     }
     fn describe(&self) -> String {
         format!("{} ({})", self.url, self.device)
+    }
+}
+
+/// `struct v4l2_control`.
+#[repr(C)]
+#[derive(Debug, Clone, Copy, Default)]
+struct V4l2Ctrl {
+    id: u32,
+    value: i32,
+}
+
+/// `struct v4l2_queryctrl`.
+#[repr(C)]
+#[derive(Debug, Clone, Copy)]
+struct V4l2QueryCtrl {
+    id: u32,
+    kind: u32,
+    name: [u8; 32],
+    minimum: i32,
+    maximum: i32,
+    step: i32,
+    default_value: i32,
+    flags: u32,
+    reserved: [u32; 2],
+}
+
+/// `_IOWR('V', nr, size)`.
+const fn iowr(nr: u32, size: usize) -> libc::c_ulong {
+    ((3u32 << 30) | ((size as u32) << 16) | ((b'V' as u32) << 8) | nr) as libc::c_ulong
+}
+const VIDIOC_G_CTRL: libc::c_ulong = iowr(27, std::mem::size_of::<V4l2Ctrl>());
+const VIDIOC_S_CTRL: libc::c_ulong = iowr(28, std::mem::size_of::<V4l2Ctrl>());
+const VIDIOC_QUERYCTRL: libc::c_ulong = iowr(36, std::mem::size_of::<V4l2QueryCtrl>());
+
+/// Exposure through V4L2 controls on a handle that does not stream.
+pub struct V4l2Control {
+    device: String,
+    file: std::fs::File,
+    step_us: f64,
+    min_units: i64,
+    max_units: i64,
+    current_us: f64,
+}
+
+impl V4l2Control {
+    /// Opens `device`, reads the exposure control's range, switches to manual exposure
+    /// and sets `initial_us`, reading both back.
+    pub fn open(device: &str, initial_us: f64) -> Result<Self, ControlError> {
+        use std::os::unix::fs::OpenOptionsExt;
+        let file = std::fs::OpenOptions::new()
+            .read(true)
+            .write(true)
+            .custom_flags(libc::O_NONBLOCK)
+            .open(device)
+            .map_err(|e| ControlError::V4l2 {
+                device: device.to_string(),
+                reason: format!("cannot open it: {e}"),
+            })?;
+        let mut c = Self {
+            device: device.to_string(),
+            file,
+            step_us: V4L2_EXPOSURE_UNIT_US,
+            min_units: 1,
+            max_units: i64::MAX,
+            current_us: initial_us,
+        };
+        let q = c.query(CID_EXPOSURE_ABSOLUTE)?;
+        c.step_us = V4L2_EXPOSURE_UNIT_US * f64::from(q.step.max(1));
+        c.min_units = i64::from(q.minimum.max(1));
+        c.max_units = i64::from(q.maximum);
+        c.set(CID_EXPOSURE_AUTO, EXPOSURE_MANUAL)?;
+        let units = ((initial_us / c.step_us).round() * (c.step_us / V4L2_EXPOSURE_UNIT_US)) as i64;
+        c.set(CID_EXPOSURE_ABSOLUTE, units.clamp(c.min_units, c.max_units))?;
+        let auto = c.get(CID_EXPOSURE_AUTO)?;
+        if auto != EXPOSURE_MANUAL {
+            return Err(c.err(format!(
+                "auto_exposure reads {auto} after setting manual ({EXPOSURE_MANUAL})"
+            )));
+        }
+        c.current_us = c.get(CID_EXPOSURE_ABSOLUTE)? as f64 * V4L2_EXPOSURE_UNIT_US;
+        Ok(c)
+    }
+
+    fn err(&self, reason: String) -> ControlError {
+        ControlError::V4l2 {
+            device: self.device.clone(),
+            reason,
+        }
+    }
+
+    fn ioctl<T>(&self, req: libc::c_ulong, arg: &mut T, what: &str) -> Result<(), ControlError> {
+        use std::os::fd::AsRawFd;
+        // SAFETY: `arg` is the `#[repr(C)]` struct the request's size encodes, borrowed
+        // mutably for the call; the fd is open for the lifetime of `self.file`.
+        let r = unsafe { libc::ioctl(self.file.as_raw_fd(), req, std::ptr::from_mut(arg)) };
+        if r < 0 {
+            return Err(self.err(format!("{what}: {}", std::io::Error::last_os_error())));
+        }
+        Ok(())
+    }
+
+    fn query(&self, id: u64) -> Result<V4l2QueryCtrl, ControlError> {
+        let mut q = V4l2QueryCtrl {
+            id: id as u32,
+            kind: 0,
+            name: [0; 32],
+            minimum: 0,
+            maximum: 0,
+            step: 0,
+            default_value: 0,
+            flags: 0,
+            reserved: [0; 2],
+        };
+        self.ioctl(
+            VIDIOC_QUERYCTRL,
+            &mut q,
+            &format!("VIDIOC_QUERYCTRL 0x{id:08x} (exposure_time_absolute)"),
+        )?;
+        Ok(q)
+    }
+
+    fn set(&self, id: u64, value: i64) -> Result<(), ControlError> {
+        let mut c = V4l2Ctrl {
+            id: id as u32,
+            value: value.clamp(i64::from(i32::MIN), i64::from(i32::MAX)) as i32,
+        };
+        self.ioctl(VIDIOC_S_CTRL, &mut c, "VIDIOC_S_CTRL")
+    }
+
+    fn get(&self, id: u64) -> Result<i64, ControlError> {
+        let mut c = V4l2Ctrl {
+            id: id as u32,
+            value: 0,
+        };
+        self.ioctl(VIDIOC_G_CTRL, &mut c, "VIDIOC_G_CTRL")?;
+        Ok(i64::from(c.value))
+    }
+}
+
+impl ExposureControl for V4l2Control {
+    fn set_exposure_us(&mut self, exposure_us: f64) -> Result<f64, ControlError> {
+        let step_units = (self.step_us / V4L2_EXPOSURE_UNIT_US).max(1.0);
+        let units =
+            (((exposure_us / V4L2_EXPOSURE_UNIT_US) / step_units).round() * step_units) as i64;
+        let units = units.clamp(self.min_units, self.max_units.max(self.min_units));
+        let want = units as f64 * V4L2_EXPOSURE_UNIT_US;
+        if (want - self.current_us).abs() < 0.5 {
+            return Ok(self.current_us);
+        }
+        self.set(CID_EXPOSURE_ABSOLUTE, units)?;
+        self.current_us = want;
+        Ok(want)
+    }
+    fn step_us(&self) -> f64 {
+        self.step_us
+    }
+    fn describe(&self) -> String {
+        self.device.clone()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn ioctl_numbers_match_videodev2() {
+        // From linux/videodev2.h on x86_64 and aarch64.
+        assert_eq!(VIDIOC_G_CTRL, 0xc008_561b);
+        assert_eq!(VIDIOC_S_CTRL, 0xc008_561c);
+        assert_eq!(VIDIOC_QUERYCTRL, 0xc044_5624);
+    }
+
+    #[test]
+    fn v4l2_errors_name_the_device() {
+        let e = V4l2Control::open("/no/such/video9", 1000.0)
+            .err()
+            .map(|e| e.to_string());
+        assert!(
+            e.as_deref().is_some_and(|e| e.contains("/no/such/video9")),
+            "{e:?}"
+        );
+        // Not a V4L2 device: the ioctl is refused, and the error says which.
+        let e = V4l2Control::open("/dev/null", 1000.0)
+            .err()
+            .map(|e| e.to_string());
+        assert!(
+            e.as_deref()
+                .is_some_and(|e| e.contains("/dev/null") && e.contains("VIDIOC_QUERYCTRL")),
+            "{e:?}"
+        );
+    }
+
+    #[test]
+    fn quantizes_to_the_step() {
+        assert_eq!(quantize(3049.0, 100.0), 3000.0);
+        assert_eq!(quantize(3050.0, 100.0), 3100.0);
+        assert_eq!(quantize(10.0, 100.0), 100.0);
+        assert_eq!(quantize(1234.5, 0.0), 1234.5);
     }
 }

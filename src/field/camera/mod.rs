@@ -255,6 +255,14 @@ fn open_stream(
                 }
             })?,
         ),
+        control::ControlConfig::V4l2 { device } => {
+            Box::new(control::V4l2Control::open(device, initial_us).map_err(|e| {
+                StartupError::Camera {
+                    url: name.to_string(),
+                    reason: format!("exposure control: {e}"),
+                }
+            })?)
+        }
     };
     let cfg = stream::StreamConfig {
         fps: cam.fps,
