@@ -285,3 +285,23 @@ fn a_stream_that_dies_mid_run_goes_neutral_within_1_s_and_says_why() {
         .unwrap_or_else(|| panic!("no age in {line}"));
     assert!(age < 1.0, "{line}");
 }
+
+#[test]
+fn a_stream_hil_run_repeats_for_a_seed() {
+    let a = hil_stream(
+        "rep-a",
+        &["--camera-transport", "h264-rtp", "--seconds", "3"],
+    );
+    let b = hil_stream(
+        "rep-b",
+        &["--camera-transport", "h264-rtp", "--seconds", "3"],
+    );
+    for k in [
+        "final_position_error_m",
+        "final_exposure_us",
+        "measured_position_cov_det",
+        "detection_rate",
+    ] {
+        assert_eq!(a[k], b[k], "{k}: {a} vs {b}");
+    }
+}

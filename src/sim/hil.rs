@@ -254,7 +254,10 @@ impl HilRun {
         }
         rig.set_exposure_us(initial_us)?;
         let stream = if stream_transport {
-            Some(super::stream::StreamHil::start(&rig, limits, initial_us)?)
+            let frames = (opts.seconds * s.camera.fps).round().max(1.0) as usize;
+            Some(super::stream::StreamHil::start(
+                &rig, limits, initial_us, frames,
+            )?)
         } else {
             None
         };
@@ -476,6 +479,14 @@ impl HilRun {
         if let Some(s) = &self.stream {
             summary.camera_transport = Some(opts.camera_transport.to_string());
             summary.stream_delay_estimate_frames = s.delay_estimate_frames();
+            let mut l = s.added_latency_s.clone();
+            l.sort_by(f64::total_cmp);
+            let at = |q: f64| {
+                l.get(((l.len() as f64 - 1.0) * q).round() as usize)
+                    .map(|v| v * 1e3)
+            };
+            summary.stream_added_latency_p50_ms = at(0.5);
+            summary.stream_added_latency_p99_ms = at(0.99);
         }
         summary
     }

@@ -294,7 +294,7 @@ impl Sender {
             "appsrc name=src is-live=true format=time do-timestamp=false \
              caps=video/x-raw,format=GRAY8,width={width},height={height},framerate={fps_n}/1000 \
              ! videoconvert ! video/x-raw,format=I420 \
-             ! x264enc tune=zerolatency speed-preset=ultrafast key-int-max=30 bitrate=8000 \
+             ! x264enc tune=zerolatency speed-preset=ultrafast key-int-max=30 bitrate=8000 threads=1 \
              ! rtph264pay config-interval=1 pt=96 mtu=1400 \
              ! udpsink host=127.0.0.1 port={port} sync=false async=false"
         );
@@ -353,6 +353,9 @@ pub struct StreamHil {
     applied_units: i64,
     /// The first frame came through.
     started: bool,
+    /// Wall time from handing a rendered frame to the encoder to having it decoded, per
+    /// frame, seconds (allocated for the run at the start).
+    pub added_latency_s: Vec<f64>,
 }
 
 /// How long the loop waits for a sent frame to come back through the stream.
@@ -361,7 +364,12 @@ const RECEIVE_TIMEOUT: Duration = Duration::from_secs(3);
 impl StreamHil {
     /// Starts the simulated camera manager, the receiver (the loop's stream camera, with
     /// the REST control) and the sender.
-    pub fn start(rig: &HilRig, limits: ExposureLimits, initial_us: f64) -> anyhow::Result<Self> {
+    pub fn start(
+        rig: &HilRig,
+        limits: ExposureLimits,
+        initial_us: f64,
+        frames: usize,
+    ) -> anyhow::Result<Self> {
         crate::field::camera::stream::init().map_err(anyhow::Error::msg)?;
         let model = rig.camera_model();
         let manager = SimCameraManager::start(limits, initial_us)
@@ -390,6 +398,7 @@ impl StreamHil {
             rendered: Frame::new(model.width, model.height),
             applied_units,
             started: false,
+            added_latency_s: Vec::with_capacity(frames),
         })
     }
 
@@ -440,6 +449,7 @@ impl Camera for StreamLoopCamera<'_> {
             seq: h.rendered.meta.seq,
             reason,
         };
+        let t0 = Instant::now();
         h.sender
             .push(&h.rendered, stamp)
             .map_err(|e| err(e.to_string()))?;
@@ -459,6 +469,9 @@ impl Camera for StreamLoopCamera<'_> {
             }
         }
         h.started = true;
+        if h.added_latency_s.len() < h.added_latency_s.capacity() {
+            h.added_latency_s.push(t0.elapsed().as_secs_f64());
+        }
         // Frames the receiver passed over were sent too: their stamps go.
         for _ in 0..(h.receiver.frames_passed_over() - before) {
             h.sent.pop_front();

@@ -1,6 +1,7 @@
 //! Stream cameras: H.264 over RTP/UDP (BlueOS's default stream), RTSP, or any GStreamer
 //! pipeline ending in an appsink, decoded to 8-bit grey.
 //!
+//! The decoder's output is used as it comes: its first (luma) plane is the grey image.
 //! GStreamer through gstreamer-rs: appsink hands over each frame with its timestamp
 //! (the pipeline's running time) and, with `drop=true max-buffers=1`, keeps only the
 //! newest decoded frame, so the loop never works through a backlog. Frames it passed
@@ -73,7 +74,8 @@ impl StreamSource {
 
     /// The GStreamer pipeline description.
     pub fn pipeline(&self) -> String {
-        const DECODE: &str = "rtph264depay ! h264parse ! avdec_h264 max-threads=1 ! videoconvert ! video/x-raw,format=GRAY8 ! appsink name=markhold_sink";
+        const DECODE: &str =
+            "rtph264depay ! h264parse ! avdec_h264 max-threads=1 ! appsink name=markhold_sink";
         match self {
             Self::Udp { host, port } => {
                 let addr = host
@@ -215,9 +217,11 @@ impl StreamCamera {
         sink.set_drop(true);
         sink.set_max_buffers(1);
         sink.set_sync(false);
+        // Grey, or planar YUV whose first plane is the grey image (no conversion: a
+        // 1080p videoconvert to GRAY8 costs several times the decode).
         sink.set_caps(Some(
             &gst::Caps::builder("video/x-raw")
-                .field("format", "GRAY8")
+                .field("format", gst::List::new(LUMA_FIRST_FORMATS))
                 .build(),
         ));
         let bus = pipeline.bus().ok_or_else(|| gst_err("no bus".into()))?;
@@ -319,6 +323,10 @@ fn find_appsink(pipeline: &gst::Pipeline) -> Option<gst_app::AppSink> {
         .find_map(|e| e.downcast::<gst_app::AppSink>().ok())
 }
 
+/// Raw formats whose first plane is 8-bit luma in rows padded to 4 bytes (GStreamer's
+/// default layout, which appsink gets: it does not ask for custom strides).
+const LUMA_FIRST_FORMATS: [&str; 7] = ["GRAY8", "I420", "YV12", "NV12", "NV21", "Y42B", "Y444"];
+
 /// The grab's failure when no frame came within one tick (the stall clock runs on).
 pub const NO_FRAME_REASON: &str = "no frame within the grab tick";
 
@@ -381,9 +389,8 @@ impl Camera for StreamCamera {
             .map_readable()
             .map_err(|e| self.read_err(format!("cannot map the buffer: {e}")))?;
         let n = w as usize * h as usize;
-        // GRAY8 rows are padded to 4 bytes by videoconvert.
-        let stride = if h > 0 { map.len() / h as usize } else { 0 };
-        if stride < w as usize {
+        let stride = (w as usize).next_multiple_of(4);
+        if map.len() < stride * h as usize {
             return Err(self.read_err(format!("{} bytes for {w}x{h}", map.len())));
         }
         if frame.data.len() != n {
