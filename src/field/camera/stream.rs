@@ -141,6 +141,37 @@ pub struct StreamCamera {
     warned_control: bool,
     /// The first frame, pulled while waiting for it at start-up.
     held: Option<gst::Sample>,
+    /// Luma to grey, for the range the stream's caps say (video or full).
+    lut: [u8; 256],
+    lut_limited: bool,
+}
+
+/// True when the caps' luma is video range (16..235): YUV unless its colorimetry says
+/// full range (`jpeg`, `sRGB`, or a `range:matrix:transfer:primaries` string starting
+/// with 1).
+fn limited_range(format: &str, colorimetry: Option<&str>) -> bool {
+    if format == "GRAY8" {
+        return false;
+    }
+    match colorimetry {
+        Some("jpeg" | "sRGB") => false,
+        Some(c) if c.contains(':') => !c.starts_with("1:"),
+        _ => true,
+    }
+}
+
+fn range_lut(limited: bool) -> [u8; 256] {
+    let mut lut = [0u8; 256];
+    for (i, v) in lut.iter_mut().enumerate() {
+        *v = if limited {
+            ((i as f64 - 16.0) * 255.0 / 219.0)
+                .round()
+                .clamp(0.0, 255.0) as u8
+        } else {
+            i as u8
+        };
+    }
+    lut
 }
 
 #[derive(Debug, thiserror::Error)]
@@ -246,6 +277,8 @@ impl StreamCamera {
             stopped: None,
             warned_control: false,
             held: None,
+            lut: range_lut(false),
+            lut_limited: false,
         };
         cam.pipeline.set_state(gst::State::Playing).map_err(|_| {
             let why = bus_problem(&cam.bus).unwrap_or_else(|| "state change failed".into());
@@ -379,11 +412,23 @@ impl Camera for StreamCamera {
         let buffer = sample
             .buffer()
             .ok_or_else(|| self.read_err("a sample without a buffer".into()))?;
-        let (w, h) = sample
+        let st = sample
             .caps()
             .and_then(|c| c.structure(0))
-            .and_then(|s| Some((s.get::<i32>("width").ok()?, s.get::<i32>("height").ok()?)))
+            .ok_or_else(|| self.read_err("a sample without caps".into()))?;
+        let (w, h) = st
+            .get::<i32>("width")
+            .ok()
+            .zip(st.get::<i32>("height").ok())
             .ok_or_else(|| self.read_err("a sample without width/height caps".into()))?;
+        let limited = limited_range(
+            st.get::<&str>("format").unwrap_or("GRAY8"),
+            st.get::<&str>("colorimetry").ok(),
+        );
+        if limited != self.lut_limited {
+            self.lut = range_lut(limited);
+            self.lut_limited = limited;
+        }
         let (w, h) = (w.max(0) as u32, h.max(0) as u32);
         let map = buffer
             .map_readable()
@@ -404,7 +449,10 @@ impl Camera for StreamCamera {
             .chunks_exact_mut(w as usize)
             .zip(map.chunks(stride))
         {
-            dst.copy_from_slice(&src[..w as usize]);
+            // Video-range luma (16..235) to full-range grey (0..255), as a table.
+            for (d, &v) in dst.iter_mut().zip(&src[..w as usize]) {
+                *d = self.lut[usize::from(v)];
+            }
             // Every 8th pixel is enough for the step response.
             sum += dst.iter().step_by(8).map(|&v| u64::from(v)).sum::<u64>();
         }
@@ -472,5 +520,21 @@ mod tests {
             assert!(matches!(StreamSource::parse(bad), Some(Err(_))), "{bad}");
         }
         assert!(StreamSource::parse("v4l2:/dev/video0").is_none());
+    }
+
+    #[test]
+    fn video_range_luma_is_expanded_to_full_range_grey() {
+        assert!(limited_range("I420", Some("bt709")));
+        assert!(limited_range("I420", None));
+        assert!(limited_range("NV12", Some("2:3:5:1")));
+        assert!(!limited_range("I420", Some("jpeg")));
+        assert!(!limited_range("I420", Some("1:4:0:0")));
+        assert!(!limited_range("GRAY8", Some("bt709")));
+        let lut = range_lut(true);
+        assert_eq!(
+            (lut[0], lut[16], lut[126], lut[235], lut[255]),
+            (0, 0, 128, 255, 255)
+        );
+        assert_eq!(range_lut(false)[77], 77);
     }
 }
