@@ -351,8 +351,6 @@ pub struct StreamHil {
     rendered: Frame,
     /// The exposure last applied to the simulated camera, 100 us units.
     applied_units: i64,
-    /// The first frame came through.
-    started: bool,
     /// Wall time from handing a rendered frame to the encoder to having it decoded, per
     /// frame, seconds (allocated for the run at the start).
     pub added_latency_s: Vec<f64>,
@@ -397,7 +395,6 @@ impl StreamHil {
             sent: VecDeque::with_capacity(64),
             rendered: Frame::new(model.width, model.height),
             applied_units,
-            started: false,
             added_latency_s: Vec::with_capacity(frames),
         })
     }
@@ -468,7 +465,6 @@ impl Camera for StreamLoopCamera<'_> {
                 Err(_) => {}
             }
         }
-        h.started = true;
         if h.added_latency_s.len() < h.added_latency_s.capacity() {
             h.added_latency_s.push(t0.elapsed().as_secs_f64());
         }
