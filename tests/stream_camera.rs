@@ -305,3 +305,53 @@ fn a_stream_hil_run_repeats_for_a_seed() {
         assert_eq!(a[k], b[k], "{k}: {a} vs {b}");
     }
 }
+
+#[test]
+fn a_gst_pipeline_camera_gives_stamped_grey_frames_and_counts_those_passed_over() {
+    use markhold::field::camera::control::NoControl;
+    use markhold::field::camera::stream::{StreamCamera, StreamConfig, StreamSource};
+    let src = StreamSource::parse(
+        "gst:videotestsrc is-live=true pattern=gradient ! video/x-raw,format=GRAY8,width=320,height=240,framerate=30/1 ! appsink",
+    )
+    .unwrap()
+    .unwrap();
+    let cfg = StreamConfig {
+        fps: 30.0,
+        limits: ExposureLimits {
+            min_us: 100.0,
+            max_us: 33300.0,
+            fps: 30.0,
+        },
+        initial_us: 2000.0,
+        first_frame_timeout: Duration::from_secs(5),
+    };
+    let mut cam = StreamCamera::open(&src, &cfg, Box::new(NoControl)).unwrap();
+    let mut f = Frame::default();
+    let mut stamps = Vec::new();
+    for _ in 0..5 {
+        cam.grab(&mut f).unwrap();
+        stamps.push((f.meta.seq, f.meta.stamp_s));
+    }
+    assert_eq!((f.width, f.height, f.data.len()), (320, 240, 320 * 240));
+    // The gradient pattern: dark at the top, bright at the bottom (GRAY8 as it comes).
+    let column: Vec<u8> = f.data.iter().step_by(320 * 20).copied().collect();
+    assert!(column[0] < 40 && column[11] > 200, "{column:?}");
+    assert!(
+        stamps
+            .windows(2)
+            .all(|w| w[1].0 > w[0].0 && w[1].1 > w[0].1),
+        "{stamps:?}"
+    );
+    // A loop slower than the camera acts on the newest frame and counts the others.
+    std::thread::sleep(Duration::from_millis(300));
+    let before = cam.frames_passed_over();
+    let seq0 = f.meta.seq;
+    cam.grab(&mut f).unwrap();
+    cam.grab(&mut f).unwrap();
+    assert!(
+        cam.frames_passed_over() >= before + 5,
+        "{}",
+        cam.frames_passed_over()
+    );
+    assert!(f.meta.seq >= seq0 + 7, "{} -> {}", seq0, f.meta.seq);
+}
