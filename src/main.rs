@@ -39,6 +39,9 @@ enum Command {
     Replay(ReplayArgs),
     /// Hold station on a real vehicle with a real camera (Ctrl-C: neutral input, exit 0).
     Run(RunArgs),
+    /// Check that the vehicle is set up for markhold (parameters, version, mode, link
+    /// latency): a checklist with the fix for each item; exit 1 on a fail.
+    Preflight(PreflightArgs),
     /// The paper's four experiments for every exposure method x lighting x seed, in HIL:
     /// report.md, results.json and plots.
     #[cfg(feature = "sim")]
@@ -71,11 +74,19 @@ struct RunArgs {
     #[arg(long)]
     site: PathBuf,
     /// MAVLink connection string of the vehicle, as pymavlink reads it (default: the
-    /// site's [link] url): udpout:HOST:PORT sends to (BlueOS: udpout:192.168.2.2:14550),
-    /// udpin: or udp:HOST:PORT listens, tcp:HOST:PORT connects, tcpin: accepts,
-    /// /dev/ttyACM0,115200 or serial:/dev/ttyACM0:115200 is a serial port.
+    /// site's [link] url): tcp:HOST:PORT connects (on the BlueOS Pi: tcp:127.0.0.1:5777),
+    /// udpin: or udp:HOST:PORT listens (topside: udpin:0.0.0.0:14551), udpout:HOST:PORT
+    /// sends to, tcpin: accepts, /dev/ttyACM0,115200 or serial:/dev/ttyACM0:115200 is a
+    /// serial port.
     #[arg(long, value_name = "URL")]
     link: Option<String>,
+    /// Engage at once when the vehicle is heard (default: the pilot engages by arming in
+    /// the site's [link] mode, or switching to it while armed, after markhold says ready).
+    #[arg(long)]
+    engage: bool,
+    /// Skip the preflight check of the vehicle's parameters before arming.
+    #[arg(long)]
+    no_preflight: bool,
     /// Camera: v4l2:/dev/videoN, genicam:<device id> (Aravis; empty: the first camera
     /// found), or frames:DIR (a recorded-frames folder).
     #[arg(long, value_name = "URL")]
@@ -114,6 +125,22 @@ struct RunArgs {
     /// With --record-frames: save every n-th frame.
     #[arg(long, default_value_t = 1)]
     record_frames_every: u64,
+}
+
+#[derive(clap::Args)]
+struct PreflightArgs {
+    /// Dive-site file.
+    #[arg(long)]
+    site: PathBuf,
+    /// MAVLink connection string of the vehicle (default: the site's [link] url).
+    #[arg(long, value_name = "URL")]
+    link: Option<String>,
+    /// Wall seconds to wait for the vehicle's heartbeat.
+    #[arg(long, default_value_t = 5.0)]
+    heartbeat_timeout_s: f64,
+    /// Also write the checklist as JSON.
+    #[arg(long)]
+    summary: Option<PathBuf>,
 }
 
 #[derive(clap::Args)]
@@ -208,6 +235,7 @@ fn run(cli: Cli) -> anyhow::Result<()> {
         Command::Sitl(args) => markhold::sim::cmd::sitl(args),
         Command::Replay(args) => replay(args),
         Command::Run(args) => run_cmd(args),
+        Command::Preflight(args) => preflight_cmd(args),
         #[cfg(feature = "sim")]
         Command::Compare(args) => markhold::sim::compare::cli(args),
         Command::Tag(args) => markhold::tag::cli(args),
@@ -300,6 +328,8 @@ fn run_cmd(args: RunArgs) -> anyhow::Result<()> {
         trace: args.trace.clone(),
         frames_dir: args.record_frames.clone(),
         frames_every: args.record_frames_every.max(1),
+        engage: args.engage,
+        preflight: !args.no_preflight,
     };
     let report = markhold::field::run::run_live(&site, &opts, &stop)?;
     println!(
@@ -317,6 +347,31 @@ fn run_cmd(args: RunArgs) -> anyhow::Result<()> {
     }
     if let Some(path) = &args.summary {
         markhold::write_summary(path, &report)?;
+    }
+    Ok(())
+}
+
+fn preflight_cmd(args: PreflightArgs) -> anyhow::Result<()> {
+    let site = params::load(&args.site)?;
+    anyhow::ensure!(
+        args.heartbeat_timeout_s.is_finite() && args.heartbeat_timeout_s >= 0.0,
+        "--heartbeat-timeout-s {}: expected a non-negative number of seconds",
+        args.heartbeat_timeout_s
+    );
+    let stop = markhold::field::signal::install()?;
+    let list = markhold::field::preflight::preflight(
+        &site,
+        args.link.as_deref(),
+        args.heartbeat_timeout_s,
+        &stop,
+    )?;
+    print!("{}", list.render());
+    if let Some(path) = &args.summary {
+        markhold::write_summary(path, &list)?;
+    }
+    if list.failed() > 0 {
+        // The vehicle is not ready; the tool itself worked.
+        std::process::exit(1);
     }
     Ok(())
 }

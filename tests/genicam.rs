@@ -6,7 +6,7 @@
 //! The simulated camera draws a diagonal ramp `((x + y + frame_id) % 255) * s` with
 //! `s = 1 + gain + log10(exposure_us / 10000)` (clamped to 0..255), so an image's mean
 //! tells the exposure it was really taken with.
-#![cfg(feature = "sim")]
+#![cfg(all(feature = "sim", feature = "genicam"))]
 #![allow(clippy::unwrap_used)] // Tests fail loudly on a broken setup, by design.
 
 mod common;
@@ -396,7 +396,14 @@ fn run_with_fake_genicam_camera_on_hil_vehicle() {
     let rec = tmp("run.mcap");
     let summary = tmp("run.json");
     let mut child = markhold()
-        .args(["run", "--seconds", "2", "--site"])
+        .args([
+            "run",
+            "--engage",
+            "--no-preflight",
+            "--seconds",
+            "2",
+            "--site",
+        ])
         .arg(site_path())
         .args(["--camera", "genicam:127.0.0.1", "--link"])
         .arg(format!("udpout:{}", v.addr))
@@ -493,7 +500,7 @@ fn run_with_a_missing_genicam_camera_exits_2_naming_it() {
     assert!(!gvcp_answers(Duration::from_millis(200)));
     let rec = tmp("never.mcap");
     let o = markhold()
-        .args(["run", "--site"])
+        .args(["run", "--engage", "--no-preflight", "--site"])
         .arg(site_path())
         .args(["--camera", "genicam:127.0.0.1", "--record"])
         .arg(&rec)

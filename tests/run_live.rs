@@ -67,7 +67,7 @@ fn run_on_hil_vehicle_with_recorded_frames_end_to_end() {
     // ahead of the vehicle's messages and a stall of its thread read as a silent link
     // (9 of 90 frames silent).
     let o = markhold()
-        .args(["run", "--site"])
+        .args(["run", "--engage", "--no-preflight", "--site"])
         .arg(site_path())
         .arg("--camera")
         .arg(format!("frames:{}", frames.display()))
@@ -113,7 +113,7 @@ fn sigterm_sends_neutral_closes_the_recording_and_exits_0() {
     let v = vehicle();
     let rec = tmp("sigterm.mcap");
     let mut child = markhold()
-        .args(["run", "--site"])
+        .args(["run", "--engage", "--no-preflight", "--site"])
         .arg(site_path())
         .arg("--camera")
         .arg(format!("frames:{}", frames.display()))
@@ -173,7 +173,7 @@ fn missing_camera_unreachable_link_and_bad_record_path_exit_2_leaving_nothing() 
     let rec = tmp("never.mcap");
 
     let o = markhold()
-        .args(["run", "--site"])
+        .args(["run", "--engage", "--no-preflight", "--site"])
         .arg(site_path())
         .args(["--camera", "frames:/no/such/folder", "--record"])
         .arg(&rec)
@@ -189,7 +189,14 @@ fn missing_camera_unreachable_link_and_bad_record_path_exit_2_leaving_nothing() 
         .unwrap()
         .port();
     let o = markhold()
-        .args(["run", "--heartbeat-timeout-s", "0.5", "--site"])
+        .args([
+            "run",
+            "--engage",
+            "--no-preflight",
+            "--heartbeat-timeout-s",
+            "0.5",
+            "--site",
+        ])
         .arg(site_path())
         .arg("--camera")
         .arg(format!("frames:{}", frames.display()))
@@ -204,7 +211,7 @@ fn missing_camera_unreachable_link_and_bad_record_path_exit_2_leaving_nothing() 
 
     let bad = tmp("no-such-dir").join("x.mcap");
     let o = markhold()
-        .args(["run", "--site"])
+        .args(["run", "--engage", "--no-preflight", "--site"])
         .arg(site_path())
         .arg("--camera")
         .arg(format!("frames:{}", frames.display()))
@@ -218,7 +225,7 @@ fn missing_camera_unreachable_link_and_bad_record_path_exit_2_leaving_nothing() 
     // 640x480 frames against a site calibrated for 1440x1080.
     let pool = Path::new(env!("CARGO_MANIFEST_DIR")).join("params/pool.toml");
     let o = markhold()
-        .args(["run", "--site"])
+        .args(["run", "--engage", "--no-preflight", "--site"])
         .arg(pool)
         .arg("--camera")
         .arg(format!("frames:{}", frames.display()))
@@ -319,7 +326,7 @@ fn camera_stall_goes_neutral_on_loop_time_then_resumes() {
     let rec = tmp("stall.mcap");
     let summary = tmp("stall.json");
     let o = markhold()
-        .args(["run", "--site"])
+        .args(["run", "--engage", "--no-preflight", "--site"])
         .arg(site_path())
         .arg("--camera")
         .arg(format!("frames:{}", frames.display()))
@@ -377,7 +384,7 @@ fn sigterm_with_disarm_on_exit_sends_neutral_then_disarms() {
     );
     std::fs::write(&site, text).unwrap();
     let mut child = markhold()
-        .args(["run", "--arm", "--site"])
+        .args(["run", "--arm", "--engage", "--no-preflight", "--site"])
         .arg(&site)
         .arg("--camera")
         .arg(format!("frames:{}", frames.display()))
@@ -471,7 +478,7 @@ fn a_snapshot_plays_back_as_a_camera_with_the_same_detections() {
 
     let v = vehicle();
     let o = markhold()
-        .args(["run", "--no-pace", "--site"])
+        .args(["run", "--engage", "--no-preflight", "--no-pace", "--site"])
         .arg(site_path())
         .arg("--camera")
         .arg(format!("frames:{}", snap.display()))

@@ -192,9 +192,17 @@ fn bad_urls_and_pipelines_exit_2_with_a_clear_error() {
     let site = site_path();
     let site = site.to_str().unwrap();
     let run = |cam: &str| -> Vec<String> {
-        ["run", "--site", site, "--camera", cam]
-            .map(String::from)
-            .to_vec()
+        [
+            "run",
+            "--engage",
+            "--no-preflight",
+            "--site",
+            site,
+            "--camera",
+            cam,
+        ]
+        .map(String::from)
+        .to_vec()
     };
     assert_exit_2(&run("udp:0"), "expected udp:PORT");
     assert_exit_2(&run("udp:99999"), "expected udp:PORT");
@@ -224,7 +232,7 @@ fn a_stream_that_dies_mid_run_goes_neutral_within_1_s_and_says_why() {
         .port();
     let summary = tmp_path("stream", "dies.json");
     let mut child = markhold()
-        .args(["run", "--site"])
+        .args(["run", "--engage", "--no-preflight", "--site"])
         .arg(site_path())
         .arg("--camera")
         .arg(format!("udp:127.0.0.1:{port}"))

@@ -394,6 +394,18 @@ impl LinkMode {
     }
 }
 
+/// What markhold leaves behind when it stops (`link.on_exit`).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum OnExit {
+    /// Neutral input until the pilot's own input is heard, then none, the vehicle left
+    /// armed and the pilot told (STATUSTEXT); with no pilot input within
+    /// `hand_back_timeout_s`, disarm and say so.
+    HandBack,
+    /// Neutral input, then disarm.
+    Disarm,
+}
+
 /// `[link]`: the MAVLink connection to ArduSub and how it is driven.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
@@ -405,7 +417,8 @@ pub struct LinkConfig {
     pub url: String,
     /// Our system id; ArduSub drops pilot input from any id but SYSID_MYGCS (255).
     pub gcs_system_id: u8,
-    /// Our component id (190 = MAV_COMP_ID_MISSIONPLANNER).
+    /// Our component id (191 = MAV_COMP_ID_ONBOARD_COMPUTER), so the vehicle and the
+    /// pilot tell our packets from QGroundControl's (system 255, component 190).
     pub gcs_component_id: u8,
     /// Vehicle system id used until its heartbeat is seen.
     pub vehicle_system_id: u8,
@@ -441,8 +454,13 @@ pub struct LinkConfig {
     pub vehicle_timeout_s: f64,
     /// Wait for COMMAND_ACK this long before retrying, seconds.
     pub command_timeout_s: f64,
-    /// On Ctrl-C / SIGTERM, disarm after sending neutral pilot input.
+    /// On Ctrl-C / SIGTERM, disarm after sending neutral pilot input (the same as
+    /// `on_exit = "disarm"`).
     pub disarm_on_exit: bool,
+    /// At the end of a run: `hand_back` (default) or `disarm`.
+    pub on_exit: OnExit,
+    /// `hand_back`: disarm if no pilot input is heard this long after markhold stops, s.
+    pub hand_back_timeout_s: f64,
     /// Retries after the first COMMAND_LONG.
     pub command_retries: u32,
     /// Thruster dead band half-width around 1500 us that compensation skips, us.
@@ -470,9 +488,9 @@ pub struct LinkConfig {
 impl Default for LinkConfig {
     fn default() -> Self {
         Self {
-            url: "udpout:127.0.0.1:14550".into(),
+            url: "tcp:127.0.0.1:5777".into(),
             gcs_system_id: 255,
-            gcs_component_id: 190,
+            gcs_component_id: 191,
             vehicle_system_id: 1,
             vehicle_component_id: 1,
             command: CommandKind::Effort,
@@ -488,6 +506,8 @@ impl Default for LinkConfig {
             vehicle_timeout_s: 0.9,
             command_timeout_s: 1.0,
             disarm_on_exit: false,
+            on_exit: OnExit::HandBack,
+            hand_back_timeout_s: 10.0,
             command_retries: 3,
             thruster_deadband_us: 28.0,
             input_deadzone_us: 30.0,
@@ -504,6 +524,11 @@ impl Default for LinkConfig {
 }
 
 impl LinkConfig {
+    /// Disarm when markhold stops: `on_exit = "disarm"` or `disarm_on_exit = true`.
+    pub fn disarms_on_exit(&self) -> bool {
+        self.disarm_on_exit || self.on_exit == OnExit::Disarm
+    }
+
     /// Checks every key (the URL is parsed too).
     #[rustfmt::skip]
     pub fn validate(&self) -> Result<(), ConfigError> {
@@ -528,6 +553,7 @@ impl LinkConfig {
             .positive("vehicle_timeout_s", self.vehicle_timeout_s, POSITIVE)
             .check("vehicle_timeout_s", self.vehicle_timeout_s, timeout_covers, covers_4)
             .positive("command_timeout_s", self.command_timeout_s, POSITIVE)
+            .range("hand_back_timeout_s", self.hand_back_timeout_s, 1.0..=60.0, "must lie in 1..60 s")
             .non_negative("thruster_deadband_us", self.thruster_deadband_us, NON_NEGATIVE)
             .range("thruster_deadband_us", self.thruster_deadband_us, ..200.0, below_200)
             .non_negative("input_deadzone_us", self.input_deadzone_us, NON_NEGATIVE)

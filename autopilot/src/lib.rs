@@ -18,12 +18,12 @@ pub mod transport;
 pub mod types;
 
 pub use config::{
-    AxisConfig, CommandKind, ControllerConfig, LinkConfig, LinkMode, MarkerLostAction, PilotInput,
-    StationConfig,
+    AxisConfig, CommandKind, ControllerConfig, LinkConfig, LinkMode, MarkerLostAction, OnExit,
+    PilotInput, StationConfig,
 };
 pub use error::AutopilotError;
 pub use keeper::{KeeperStatus, PoseMeasurement, StationKeeper};
-pub use link::{CommandStatus, RawFrame, VehicleLink, VehicleState};
+pub use link::{CommandStatus, PilotSeen, RawFrame, Severity, VehicleLink, VehicleState};
 pub use markhold_config::ConfigError;
 /// The mavlink crate the link is built on (same version and features), for callers that
 /// build or check frames themselves (tests, tools).

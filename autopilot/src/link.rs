@@ -34,6 +34,9 @@ use crate::transport::{Incoming, Transport, WriteOutcome, MAX_FRAME};
 pub use crate::types::ArduSubMode;
 use crate::types::{wrap_pi, Effort};
 
+mod gcs;
+pub use gcs::{PilotSeen, Severity, NAMED_VALUE_MAX, STATUSTEXT_MAX};
+
 /// One MAVLink frame as it crossed the wire, for a recorder: fixed size, copied into a
 /// bounded channel (no allocation per message; dropped and counted when the channel is
 /// full, so the loop never waits on the recorder).
@@ -225,6 +228,8 @@ pub struct LinkCounters {
     pub receive_batch_full: u64,
     /// Stream transport reconnections.
     pub reconnects: u64,
+    /// STATUSTEXT messages written.
+    pub statustexts_sent: u64,
 }
 
 /// What the link knows about the vehicle.
@@ -273,6 +278,21 @@ pub struct VehicleState {
     pub mode_command: CommandStatus,
     /// Traffic counters.
     pub counters: LinkCounters,
+    /// The pilot's own input (another sender's MANUAL_CONTROL / RC override).
+    pub pilot: PilotSeen,
+    /// STATUSTEXT messages the vehicle sent.
+    pub statustexts: u64,
+    /// The vehicle's last STATUSTEXT.
+    pub last_statustext: Option<String>,
+    /// SYS_STATUS: sensors enabled but not healthy (MAV_SYS_STATUS_SENSOR bits).
+    pub sensors_unhealthy: u32,
+    /// PARAM_VALUE.param_count: how many parameters the vehicle has.
+    pub param_count: Option<u16>,
+    /// AUTOPILOT_VERSION.flight_sw_version (major << 24 | minor << 16 | patch << 8 | type).
+    pub flight_sw_version: Option<u32>,
+    /// The heartbeat's system_status is CRITICAL or EMERGENCY: ArduSub sets CRITICAL while
+    /// any failsafe (pilot input, battery, GCS, EKF, terrain) is active.
+    pub vehicle_failsafe: bool,
 }
 
 impl VehicleState {
@@ -298,6 +318,13 @@ impl VehicleState {
             arm_command: CommandStatus::Idle,
             mode_command: CommandStatus::Idle,
             counters: LinkCounters::default(),
+            pilot: PilotSeen::default(),
+            statustexts: 0,
+            last_statustext: None,
+            sensors_unhealthy: 0,
+            param_count: None,
+            flight_sw_version: None,
+            vehicle_failsafe: false,
         }
     }
 }
@@ -347,6 +374,8 @@ pub struct VehicleLink {
     /// Raw traffic tap (a recorder), and the frames it could not take.
     tap: Option<std::sync::mpsc::SyncSender<RawFrame>>,
     tap_dropped: u64,
+    /// PARAM_VALUE answers: value and the loop time they arrived.
+    params: std::collections::BTreeMap<String, (f32, f64)>,
 }
 
 fn read_key(path: &std::path::Path) -> Result<[u8; 32], AutopilotError> {
@@ -426,6 +455,7 @@ impl VehicleLink {
             signing_reported: 0,
             tap: None,
             tap_dropped: 0,
+            params: std::collections::BTreeMap::new(),
         })
     }
 
@@ -619,6 +649,9 @@ impl VehicleLink {
             self.apply_heartbeat(h, hb, now_s);
             return;
         }
+        if self.observe_pilot(h, msg, now_s) {
+            return;
+        }
         if !self.state.discovered || h.system_id != u32::from(self.state.system_id) {
             return;
         }
@@ -639,7 +672,7 @@ impl VehicleLink {
                 self.state.servo_outputs = Some(ServoOutputs::of(s, now_s));
             }
             MavMessage::COMMAND_ACK(ack) => self.apply_ack(ack),
-            _ => {}
+            _ => self.apply_gcs(msg, now_s),
         }
     }
 
@@ -683,6 +716,18 @@ impl VehicleLink {
         }
         self.state.mode = mode;
         self.state.custom_mode = hb.custom_mode;
+        let failsafe = matches!(
+            hb.system_status,
+            MavState::MAV_STATE_CRITICAL | MavState::MAV_STATE_EMERGENCY
+        );
+        if failsafe != self.state.vehicle_failsafe {
+            if failsafe {
+                tracing::warn!(status = ?hb.system_status, "vehicle reports a failsafe (heartbeat system_status)");
+            } else {
+                tracing::info!("vehicle failsafe cleared (heartbeat system_status)");
+            }
+            self.state.vehicle_failsafe = failsafe;
+        }
         self.state.last_vehicle_heartbeat_s = Some(now_s);
         self.state.heartbeats += 1;
         self.heard(was_ok, now_s);

@@ -130,7 +130,7 @@ impl Supervisor {
             hold_s: ctl.marker_lost_hold_s,
             action_after_s: ctl.marker_lost_action_after_s,
             action: ctl.marker_lost_action,
-            disarm_on_exit: link.disarm_on_exit,
+            disarm_on_exit: link.disarms_on_exit(),
             vehicle_seen: false,
             heartbeat_lost_at: None,
             vision_stalled: false,

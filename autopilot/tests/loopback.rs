@@ -211,7 +211,7 @@ fn udp_arm_mode_hold_station_and_neutral_on_exit() {
     // GCS heartbeats: from 255, type GCS, autopilot invalid, ~1 Hz of loop time.
     assert!(!r.gcs_heartbeats.is_empty());
     for (sys, comp, hb) in &r.gcs_heartbeats {
-        assert_eq!((*sys, *comp), (255, 190));
+        assert_eq!((*sys, *comp), (255, 191));
         assert_eq!(hb.mavtype, MavType::MAV_TYPE_GCS);
         assert_eq!(hb.autopilot, MavAutopilot::MAV_AUTOPILOT_INVALID);
     }
@@ -221,11 +221,11 @@ fn udp_arm_mode_hold_station_and_neutral_on_exit() {
         "{n_hb} heartbeats in {} s",
         h.now
     );
-    // Pilot input: RC overrides from 255/190 to 1/1, PWM in range, >= 20 Hz.
+    // Pilot input: RC overrides from 255/191 to 1/1, PWM in range, >= 20 Hz.
     assert!(r
         .rc
         .iter()
-        .all(|rc| rc.sysid == 255 && rc.compid == 190 && rc.target == (1, 1)));
+        .all(|rc| rc.sysid == 255 && rc.compid == 191 && rc.target == (1, 1)));
     assert!(r
         .rc
         .iter()

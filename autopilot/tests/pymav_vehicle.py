@@ -7,6 +7,12 @@ acknowledges arm / mode / stream commands, and checks what the link sends: sende
 id, GCS heartbeat type and rate, pilot-input channel map, PWM ranges and rate, neutral
 before the final disarm. The run ends at the disarm (or the deadline); the verdict is a
 JSON line on stdout and the exit status (0 = all checks passed).
+
+`--scenario pilot` plays an ArduSub vehicle with a pilot beside it (QGroundControl as
+system 255, component 190, seen through a router) for `markhold run`: it answers the
+parameter protocol, emulates the pilot-input failsafe, captures markhold's STATUSTEXT,
+and drives the pilot's actions from what markhold says (see pilot_main).
+`--scenario params` answers heartbeats and parameters only, for `markhold preflight`.
 """
 import argparse
 import json
@@ -34,7 +40,12 @@ def main():
     ap.add_argument("--mode", choices=["udp", "pty"], default="udp")
     ap.add_argument("--pilot", choices=["rc", "manual"], default="rc")
     ap.add_argument("--deadline", type=float, default=30.0)
+    ap.add_argument("--scenario", choices=["interop", "pilot", "params"], default="interop")
+    ap.add_argument("--param", action="append", default=[], help="NAME=VALUE override")
+    ap.add_argument("--no-pilot-after-exit", action="store_true")
     args = ap.parse_args()
+    if args.scenario != "interop":
+        return pilot_main(args)
 
     peer = [None]
     if args.mode == "udp":
@@ -236,6 +247,255 @@ def main():
     }
     print(json.dumps(verdict), flush=True)
     sys.exit(0 if not failures else 1)
+
+
+# ArduSub parameters a BlueROV2 Heavy set up for markhold has (names as in ArduSub).
+PARAMS = {
+    "SYSID_MYGCS": 255.0,
+    "FS_PILOT_INPUT": 2.0,
+    "FS_PILOT_TIMEOUT": 3.0,
+    "FS_GCS_ENABLE": 2.0,
+    "FRAME_CONFIG": 2.0,
+    "RC_OVERRIDE_TIME": 3.0,
+    "EK3_SRC1_POSXY": 6.0,
+    "EK3_SRC1_VELXY": 6.0,
+    "EK3_SRC1_YAW": 1.0,
+    "VISO_TYPE": 1.0,
+}
+PILOT = (255, 190)  # QGroundControl
+MANUAL, STABILIZE = 19, 0
+
+
+def pilot_main(args):
+    params = dict(PARAMS)
+    for kv in args.param:
+        k, v = kv.split("=", 1)
+        params[k] = float(v)
+    names = sorted(params)
+    sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    sock.bind(("127.0.0.1", 0))
+    sock.setblocking(False)
+    print("UDP %d" % sock.getsockname()[1], flush=True)
+    peer = [None]
+
+    def send(b):
+        if peer[0] is not None:
+            sock.sendto(b, peer[0])
+
+    veh = mav2.MAVLink(Out(send), srcSystem=1, srcComponent=1)
+    veh.robust_parsing = True
+    # The pilot's QGroundControl: its packets reach markhold through the router.
+    qgc = mav2.MAVLink(Out(send), srcSystem=PILOT[0], srcComponent=PILOT[1])
+    sysid_mygcs = int(params["SYSID_MYGCS"])
+
+    failures = []
+    st = {"armed": False, "mode": MANUAL if args.scenario == "pilot" else STABILIZE}
+    texts = []  # (t, severity, text) from markhold
+    log = []  # (t, event)
+    mh_inputs = []  # (t, kind) kind: "cmd" (non-neutral), "neutral", "release"
+    last_accepted_input = [None]
+    failsafe = []
+    param_reads = [0]
+    named = set()
+    t0 = time.time()
+    last_hb = 0.0
+    last_js = 0.0
+    last_heard = [None]
+    # The pilot's plan, driven by what markhold says.
+    plan = {"step": 0, "at": None, "deflect_until": None, "js": args.scenario == "pilot",
+            "no_js_after_exit": args.no_pilot_after_exit}
+    change_t = [None]
+
+    def pilot_mode(m):
+        now = time.time()
+        log.append((round(now - t0, 3), "pilot mode %d" % m))
+        # COMMAND_LONG from QGroundControl: the vehicle switches; the router shows it to
+        # markhold too.
+        qgc.command_long_send(1, 1, mav2.MAV_CMD_DO_SET_MODE, 0, 1, m, 0, 0, 0, 0, 0)
+        st["mode"] = m
+        st["hb_now"] = True
+        change_t[0] = now
+
+    def pilot_arm():
+        log.append((round(time.time() - t0, 3), "pilot arm"))
+        qgc.command_long_send(1, 1, mav2.MAV_CMD_COMPONENT_ARM_DISARM, 0, 1, 0, 0, 0, 0, 0, 0)
+        st["armed"] = True
+
+    def said(prefix, n=1):
+        return sum(1 for _, _, x in texts if x.startswith(prefix)) >= n
+
+    while time.time() - t0 < args.deadline:
+        now = time.time()
+        # ArduSub heartbeats at 1 Hz, and at once on a mode change (Sub::set_mode sends
+        # MSG_HEARTBEAT): here the 1 Hz is 10 Hz to keep the run short, and a change sets
+        # st["hb_now"].
+        if now - last_hb >= 0.1 or st.pop("hb_now", False):
+            last_hb = now
+            base = mav2.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED | (mav2.MAV_MODE_FLAG_SAFETY_ARMED if st["armed"] else 0)
+            # ArduSub reports CRITICAL while a failsafe is active (here: after the leak).
+            status = mav2.MAV_STATE_CRITICAL if now < st.get("critical_until", 0) else mav2.MAV_STATE_ACTIVE
+            veh.heartbeat_send(mav2.MAV_TYPE_SUBMARINE, mav2.MAV_AUTOPILOT_ARDUPILOTMEGA, base, st["mode"], status)
+            veh.attitude_send(1234, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
+        # The pilot's joystick: QGroundControl sends MANUAL_CONTROL all the time, centred
+        # unless the pilot deflects it.
+        if plan["js"] and st["armed"] and now - last_js >= 0.05:
+            last_js = now
+            x = 600 if plan["deflect_until"] and now < plan["deflect_until"] else 0
+            qgc.manual_control_send(1, x, 0, 500, 0, 0)
+            if PILOT[0] == sysid_mygcs:
+                last_accepted_input[0] = now
+        # The pilot-input failsafe (FS_PILOT_INPUT), as ArduSub runs it.
+        if st["armed"] and params["FS_PILOT_INPUT"] != 0 and last_accepted_input[0] is not None:
+            if now - last_accepted_input[0] > params["FS_PILOT_TIMEOUT"]:
+                failsafe.append(round(now - t0, 3))
+                veh.statustext_send(mav2.MAV_SEVERITY_CRITICAL, b"Lost manual control")
+                st["armed"] = False
+        if args.scenario == "pilot":
+            step_plan(plan, now, said, pilot_mode, pilot_arm, mh_inputs, change_t, failures)
+            if plan.pop("vehicle_text", False):
+                # What ArduSub says on a leak: markhold must log it.
+                veh.statustext_send(mav2.MAV_SEVERITY_CRITICAL, b"Leak Detected!")
+                st["critical_until"] = now + 0.3
+        r, _, _ = select.select([sock], [], [], 0.005)
+        if not r:
+            if last_heard[0] is not None and now - last_heard[0] > 1.5:
+                break
+            continue
+        data, addr = sock.recvfrom(4096)
+        peer[0] = addr
+        last_heard[0] = now
+        try:
+            msgs = veh.parse_buffer(data) or []
+        except Exception as e:
+            failures.append("parse error: %r" % (e,))
+            continue
+        for m in msgs:
+            t = m.get_type()
+            src = (m.get_srcSystem(), m.get_srcComponent())
+            if t == "BAD_DATA":
+                failures.append("bad data from link")
+                continue
+            if src == PILOT:
+                failures.append("markhold sent as QGroundControl's ids %r" % (src,))
+            if t == "STATUSTEXT":
+                text = m.text if isinstance(m.text, str) else m.text.decode()
+                texts.append((round(now - t0, 3), m.severity, text))
+                if len(text.encode()) >= 50:
+                    failures.append("statustext of %d bytes" % len(text.encode()))
+            elif t == "NAMED_VALUE_FLOAT":
+                named.add(m.name if isinstance(m.name, str) else m.name.decode())
+            elif t == "RC_CHANNELS_OVERRIDE":
+                ch = [m.chan1_raw, m.chan2_raw, m.chan3_raw, m.chan4_raw, m.chan5_raw, m.chan6_raw]
+                kind = "release" if ch == [0] * 6 else ("neutral" if ch == [1500] * 6 else "cmd")
+                mh_inputs.append((now, kind))
+                if kind != "release" and src[0] == sysid_mygcs:
+                    last_accepted_input[0] = now
+            elif t == "MANUAL_CONTROL":
+                kind = "neutral" if (m.x, m.y, m.z, m.r) == (0, 0, 500, 0) else "cmd"
+                mh_inputs.append((now, kind))
+                if src[0] == sysid_mygcs:
+                    last_accepted_input[0] = now
+            elif t == "PARAM_REQUEST_READ":
+                param_reads[0] += 1
+                pid = m.param_id if isinstance(m.param_id, str) else m.param_id.decode()
+                if pid in params:
+                    veh.param_value_send(pid.encode(), params[pid], mav2.MAV_PARAM_TYPE_REAL32, len(names), names.index(pid))
+            elif t == "PARAM_REQUEST_LIST":
+                for i, n in enumerate(names):
+                    veh.param_value_send(n.encode(), params[n], mav2.MAV_PARAM_TYPE_REAL32, len(names), i)
+            elif t == "COMMAND_LONG":
+                result = mav2.MAV_RESULT_ACCEPTED
+                if m.command == mav2.MAV_CMD_COMPONENT_ARM_DISARM:
+                    st["armed"] = m.param1 > 0.5
+                    log.append((round(now - t0, 3), "markhold arm %d" % st["armed"]))
+                elif m.command == mav2.MAV_CMD_DO_SET_MODE:
+                    st["mode"] = int(m.param2)
+                    st["hb_now"] = True
+                    log.append((round(now - t0, 3), "markhold mode %d" % st["mode"]))
+                elif m.command == mav2.MAV_CMD_REQUEST_MESSAGE and int(m.param1) == 148:
+                    veh.autopilot_version_send(0, (4 << 24) | (1 << 16) | (2 << 8) | 255, 0, 0, 0,
+                                               [0] * 8, [0] * 8, [0] * 8, 0, 0, 0)
+                veh.command_ack_send(m.command, result)
+
+    verdict = {
+        "ok": not failures,
+        "failures": failures[:20],
+        "texts": texts,
+        "log": log,
+        "failsafe": failsafe,
+        "armed_at_end": st["armed"],
+        "mode_at_end": st["mode"],
+        "param_reads": param_reads[0],
+        "named": sorted(named),
+        "step": plan["step"],
+        "inputs_after_mode_change": plan.get("after_change"),
+        "inputs_while_off": plan.get("while_off"),
+        "release_seen": plan.get("release"),
+        "last_input_after_mode_change_ms": plan.get("last_input_ms"),
+    }
+    print(json.dumps(verdict), flush=True)
+    sys.exit(0 if not failures else 1)
+
+
+def step_plan(plan, now, said, pilot_mode, pilot_arm, mh_inputs, change_t, failures):
+    """The pilot: arm and select MANUAL when markhold is ready; switch away (STABILIZE)
+    once engaged; watch that markhold goes quiet; switch back (engaged again); move the
+    stick (markhold lets go); switch away and back (engaged a third time); then markhold
+    stops by itself at the end of its frames and hands back."""
+    s = plan["step"]
+    if s == 0 and said("markhold ready"):
+        pilot_arm()
+        # Already in MANUAL: switch away and back is not needed; arming in it engages.
+        plan["step"], plan["at"] = 1, now
+    elif s == 1 and said("markhold on", 1):
+        plan["step"], plan["at"] = 2, now
+        plan["vehicle_text"] = True
+    elif s == 2 and now - plan["at"] > 0.5:
+        pilot_mode(STABILIZE)
+        plan["step"], plan["at"] = 3, now
+    elif s == 3 and now - plan["at"] > 1.0:
+        # What markhold sent after the pilot's mode change: at most what was in flight
+        # and one neutral; then nothing but the release.
+        after = [k for t, k in mh_inputs if t > change_t[0]]
+        plan["after_change"] = after
+        pilot_after = [t for t, k in mh_inputs if t > change_t[0] and k != "release"]
+        plan["last_input_ms"] = round((max(pilot_after) - change_t[0]) * 1e3, 1) if pilot_after else 0.0
+        plan["release"] = "release" in after
+        # Judged by order, not by the wall clock (a loaded host delays everything): after
+        # the change, at most the input already in flight and the one neutral, then
+        # nothing but the release. At 30 frames/s that is within 2 frames (67 ms) of
+        # markhold hearing the change; last_input_ms reports the wall-clock figure.
+        if len([k for k in after if k != "release"]) > 2 or (after and after[-1] != "release"):
+            failures.append("pilot input after the pilot's mode change: %r" % after[:8])
+        if not said("markhold off: mode changed"):
+            failures.append("no 'markhold off: mode changed'")
+        plan["step"], plan["at"], plan["mark"] = 4, now, len(mh_inputs)
+    elif s == 4 and now - plan["at"] > 1.0:
+        # Left alone for a second in STABILIZE: markhold must not come back by itself.
+        quiet = [k for _, k in mh_inputs[plan["mark"]:] if k != "release"]
+        plan["while_off"] = len(quiet)
+        if quiet or said("markhold on", 2):
+            failures.append("markhold commanded while disengaged: %r" % quiet[:5])
+        pilot_mode(MANUAL)
+        plan["step"], plan["at"] = 5, now
+    elif s == 5 and said("markhold on", 2):
+        plan["step"], plan["at"] = 6, now
+    elif s == 6 and now - plan["at"] > 0.5:
+        plan["deflect_until"] = now + 0.3
+        plan["step"], plan["at"] = 7, now
+    elif s == 7 and said("markhold off: pilot input"):
+        plan["step"], plan["at"] = 8, now
+    elif s == 8 and now - plan["at"] > 0.4:
+        pilot_mode(STABILIZE)
+        plan["step"], plan["at"] = 9, now
+    elif s == 9 and now - plan["at"] > 0.3:
+        pilot_mode(MANUAL)
+        plan["step"], plan["at"] = 10, now
+    elif s == 10 and said("markhold on", 3):
+        plan["step"] = 11
+        if plan["no_js_after_exit"]:
+            # Nobody at the joystick when markhold stops.
+            plan["js"] = False
 
 
 if __name__ == "__main__":

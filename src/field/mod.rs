@@ -2,5 +2,7 @@
 //! imports simulation code.
 
 pub mod camera;
+pub mod engage;
+pub mod preflight;
 pub mod run;
 pub mod signal;

@@ -7,15 +7,17 @@
 use std::path::PathBuf;
 use std::time::{Duration, Instant};
 
-use markhold_autopilot::{CommandStatus, Directive, FailsafeEvent, VehicleLink};
+use markhold_autopilot::{CommandStatus, Directive, FailsafeEvent, Severity, VehicleLink};
 use markhold_exposure::{Camera, CameraError};
 use serde::Serialize;
 
 use super::camera::{open_camera, CameraUrl, LiveCamera};
+use super::engage::{EngagedLink, Transition};
+use super::preflight::{self, Checklist};
 use super::signal::ShutdownFlag;
 use crate::observe::{Snapshots, TraceWriter};
 use crate::params::LoadedSite;
-use crate::pipeline::{LoopStart, Observers, Pipeline};
+use crate::pipeline::{CommandLink, LoopStart, Observers, Pipeline};
 use crate::record::{RecordConfig, RecordStats, RecordStatsHandle, Recorder, RunInfo};
 
 /// `markhold run`'s options.
@@ -41,6 +43,10 @@ pub struct RunOptions {
     /// `--camera frames:DIR` plays back).
     pub frames_dir: Option<PathBuf>,
     pub frames_every: u64,
+    /// Engage as soon as the vehicle is heard (else the pilot engages from the console).
+    pub engage: bool,
+    /// Check the vehicle's parameters before arming (`markhold preflight`).
+    pub preflight: bool,
 }
 
 impl Default for RunOptions {
@@ -57,6 +63,8 @@ impl Default for RunOptions {
             trace: None,
             frames_dir: None,
             frames_every: 1,
+            engage: false,
+            preflight: true,
         }
     }
 }
@@ -98,6 +106,12 @@ pub enum StartupError {
     LiveView { reason: String },
     #[error("{flag}: {reason}")]
     Output { flag: &'static str, reason: String },
+    #[error("link {url}: the vehicle failed the preflight check ({fails} failed: {names}); fix it or run with --no-preflight")]
+    Preflight {
+        url: String,
+        fails: usize,
+        names: String,
+    },
 }
 
 /// Why the loop ended.
@@ -128,6 +142,30 @@ pub struct RunReport {
     pub disarm: Option<CommandStatus>,
     /// Frames the camera took that the loop was too slow to see (it acts on the newest).
     pub frames_passed_over: u64,
+    /// Times the pilot (or `--engage`) engaged markhold.
+    pub engagements: u64,
+    /// Engagement changes with their loop time.
+    pub engagement: Vec<(f64, Transition)>,
+    /// Pilot input the loop computed while disengaged (not sent).
+    pub withheld: u64,
+    /// STATUSTEXT messages sent to the pilot.
+    pub statustexts: u64,
+    /// `on_exit = "hand_back"`: how the hand-back ended.
+    pub hand_back: Option<HandBack>,
+    /// The preflight checklist, when it ran.
+    pub preflight: Option<Checklist>,
+}
+
+/// How a hand-back at the end of a run ended.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
+#[serde(rename_all = "snake_case")]
+pub enum HandBack {
+    /// markhold was not commanding (or the vehicle was disarmed): released at once.
+    NotCommanding,
+    /// The pilot's input (or a mode change / disarm) was heard: released.
+    PilotTookOver,
+    /// No pilot input within `hand_back_timeout_s`: disarmed.
+    Disarmed(CommandStatus),
 }
 
 /// Open the link and wait (wall clock, bounded) for the vehicle's heartbeat; `now_s`
@@ -137,6 +175,7 @@ fn open_link(
     opts: &RunOptions,
     now_s: f64,
     stop: &ShutdownFlag,
+    checklist_out: &mut Option<Checklist>,
 ) -> Result<VehicleLink, StartupError> {
     let mut cfg = site.site.link.clone();
     if let Some(u) = &opts.link_url {
@@ -148,6 +187,8 @@ fn open_link(
         reason,
     };
     let mut link = VehicleLink::connect(&cfg).map_err(|e| link_err(e.to_string()))?;
+    // No pilot input before the pilot (or --engage) engages.
+    link.set_pilot_keepalive(false);
     let timeout = Duration::from_secs_f64(opts.heartbeat_timeout_s.clamp(0.0, 600.0));
     let deadline = Instant::now() + timeout;
     loop {
@@ -162,6 +203,18 @@ fn open_link(
             });
         }
         std::thread::sleep(Duration::from_millis(10));
+    }
+    if opts.preflight {
+        let list = preflight::check(&mut link, site, now_s, stop);
+        eprint!("{}", list.render());
+        if list.failed() > 0 {
+            return Err(StartupError::Preflight {
+                url,
+                fails: list.failed(),
+                names: list.failed_names(),
+            });
+        }
+        checklist_out.replace(list);
     }
     if opts.arm {
         let mode = site.site.link.mode.ardusub();
@@ -274,12 +327,13 @@ fn files(opts: &RunOptions, list: &mut Observers) -> Result<(), StartupError> {
     Ok(())
 }
 
-/// The loop of a live run: the site's start, a real link, the run's observers.
-pub fn build_loop(
+/// The loop of a live run: the site's start, a real link (behind engagement in `run`),
+/// the run's observers.
+pub fn build_loop<L: CommandLink>(
     site: &LoadedSite,
-    link: VehicleLink,
+    link: L,
     observers: Observers,
-) -> anyhow::Result<Pipeline> {
+) -> anyhow::Result<Pipeline<L>> {
     Pipeline::new(site, LoopStart::of_site(site), link, observers)
 }
 
@@ -292,12 +346,46 @@ struct Counts {
     last_stamp: f64,
     vision_stalls: u64,
     disarm_asked: bool,
+    /// The last frame's supervisor events (a buffer reused every frame).
+    events: Vec<FailsafeEvent>,
+}
+
+/// What the pilot is told after a frame (or a tick without one): the supervisor's
+/// transitions, exposure at a limit, and the station error while engaged.
+fn tell_pilot(
+    pipeline: &mut Pipeline<EngagedLink>,
+    site: &LoadedSite,
+    rec: Option<&crate::pipeline::FrameRecord>,
+    now_s: f64,
+    events: &mut Vec<FailsafeEvent>,
+) -> anyhow::Result<()> {
+    // A copy into a buffer kept across frames (no allocation): the link is borrowed
+    // mutably while the events are read.
+    events.clear();
+    events.extend_from_slice(pipeline.events());
+    pipeline.link_mut().on_events(events, now_s)?;
+    let Some(rec) = rec else { return Ok(()) };
+    let limits = site.limits();
+    let e = rec.exposure.exposure_us;
+    let at_limit = e <= limits.min_us * 1.001 || e >= limits.effective_max_us() * 0.999;
+    pipeline.link_mut().exposure_at_limit(at_limit, now_s)?;
+    if let Some(t_cam_marker) = rec.t_cam_marker {
+        let meas = (site.t_vehicle_cam() * t_cam_marker).inverse();
+        let goal = site.site.station.t_marker_vehicle();
+        let err = markhold_autopilot::keeper::body_error(&meas, &goal);
+        let dist = (err[0] * err[0] + err[1] * err[1] + err[2] * err[2]).sqrt();
+        pipeline
+            .link_mut()
+            .station_error(dist, err[5].to_degrees(), now_s)?;
+    }
+    Ok(())
 }
 
 /// Step until a signal, the end of a recorded stream or `max_seconds`.
 fn drive(
-    pipeline: &mut Pipeline,
+    pipeline: &mut Pipeline<EngagedLink>,
     cam: &mut LiveCamera,
+    site: &LoadedSite,
     opts: &RunOptions,
     stop: &ShutdownFlag,
     n: &mut Counts,
@@ -320,6 +408,7 @@ fn drive(
                     .iter()
                     .filter(|e| matches!(e, FailsafeEvent::VisionStalled { .. }))
                     .count() as u64;
+                tell_pilot(pipeline, site, None, now, &mut n.events)?;
                 if let Directive::Shutdown { disarm } = d {
                     n.disarm_asked = disarm;
                     return Ok(StopReason::Signal);
@@ -332,6 +421,7 @@ fn drive(
         n.frames += 1;
         n.detected += u64::from(rec.detected);
         n.last_stamp = rec.stamp_s;
+        tell_pilot(pipeline, site, Some(&rec), rec.stamp_s, &mut n.events)?;
         let t0 = *n.first_stamp.get_or_insert(rec.stamp_s);
         if let Directive::Shutdown { disarm } = rec.directive {
             n.disarm_asked = disarm;
@@ -345,8 +435,8 @@ fn drive(
 
 /// Run the loop until a signal, the end of a recorded stream or `max_seconds`.
 /// Start-up checks come first, in the order: record path, camera (opens, accepts
-/// exposure, resolution matches the calibration), vehicle heartbeat. A failed check
-/// removes the recording it had started.
+/// exposure, resolution matches the calibration), vehicle heartbeat, preflight. A failed
+/// check removes the recording it had started.
 pub fn run_live(
     site: &LoadedSite,
     opts: &RunOptions,
@@ -354,6 +444,7 @@ pub fn run_live(
 ) -> anyhow::Result<RunReport> {
     let start = LoopStart::of_site(site);
     let (mut observers, record_stats, foxglove_addr) = observers(site, opts, &start)?;
+    let mut checklist = None;
     let started = (|| -> anyhow::Result<(LiveCamera, VehicleLink)> {
         let cam = open_camera(
             site,
@@ -362,7 +453,7 @@ pub fn run_live(
             stop,
             opts.pace_frames,
         )?;
-        let link = open_link(site, opts, cam.next.meta.stamp_s, stop)?;
+        let link = open_link(site, opts, cam.next.meta.stamp_s, stop, &mut checklist)?;
         Ok((cam, link))
     })();
     let (mut cam, link) = match started {
@@ -372,26 +463,50 @@ pub fn run_live(
             return Err(e);
         }
     };
+    let link = EngagedLink::new(link, opts.engage);
     let mut pipeline = build_loop(site, link, observers)?;
     tracing::info!(camera = %opts.camera, "running");
     eprintln!(
-        "markhold run: running (camera {}, Ctrl-C to stop)",
-        opts.camera
+        "markhold run: running (camera {}, {}, Ctrl-C to stop)",
+        opts.camera,
+        if opts.engage {
+            "engaged at start".to_string()
+        } else {
+            format!(
+                "the pilot engages by arming in {:?}",
+                site.site.link.mode.ardusub()
+            )
+        }
     );
     let mut n = Counts {
         last_stamp: cam.next.meta.stamp_s,
+        events: Vec::with_capacity(16),
         ..Counts::default()
     };
-    let stopped = drive(&mut pipeline, &mut cam, opts, stop, &mut n);
-    // Leave the vehicle with neutral pilot input, whatever ended the loop; disarm if
-    // asked; then close the recording (it keeps the disarm's MAVLink), also after an
-    // error.
+    let stopped = drive(&mut pipeline, &mut cam, site, opts, stop, &mut n);
+    // Leave the vehicle as the site says, whatever ended the loop: neutral while markhold
+    // was commanding, then disarm or hand back; then close the recording (it keeps the
+    // exit's MAVLink), also after an error.
+    let was_engaged = pipeline.link().engager().engaged();
     let neutral = pipeline.link_mut().send_neutral(n.last_stamp);
-    let disarm = (stopped.is_ok() && n.disarm_asked)
-        .then(|| disarm_on_exit(pipeline.link_mut(), n.last_stamp));
+    let disarm_policy = pipeline.link().inner().config().disarms_on_exit();
+    let (disarm, hand_back) = if stopped.is_ok() && (n.disarm_asked || disarm_policy) {
+        let _ = pipeline
+            .link_mut()
+            .disengage(super::engage::Disengage::Stopped, n.last_stamp);
+        let link = pipeline.link_mut().inner_mut();
+        link.set_pilot_keepalive(true);
+        (Some(disarm_on_exit(link, n.last_stamp)), None)
+    } else {
+        (
+            None,
+            Some(hand_back(pipeline.link_mut(), was_engaged, n.last_stamp)),
+        )
+    };
     let observers_done = pipeline.finish_observers();
     let stopped_by = stopped?;
     neutral?;
+    let link = pipeline.link();
     Ok(RunReport {
         frames: n.frames,
         detected: n.detected,
@@ -403,7 +518,86 @@ pub fn run_live(
         vision_stalls: n.vision_stalls,
         disarm,
         frames_passed_over: cam.frames_passed_over(),
+        engagements: link.engager().engagements(),
+        engagement: link.transitions.clone(),
+        withheld: link.withheld,
+        statustexts: link.inner().state().counters.statustexts_sent,
+        hand_back,
+        preflight: checklist,
     })
+}
+
+/// `on_exit = "hand_back"`: if markhold was commanding an armed vehicle, keep its sticks
+/// centred and tell the pilot, until the pilot's own input is heard (or the pilot changes
+/// mode or disarms); then release and stop. Nothing heard within `hand_back_timeout_s`:
+/// disarm and say so, so an armed vehicle is never left with nobody commanding it
+/// without a word. Loop time is `t0` plus the time waited (no frames come any more).
+fn hand_back(link: &mut EngagedLink, was_engaged: bool, t0: f64) -> HandBack {
+    let say = |l: &mut EngagedLink, sev, text| {
+        if let Err(e) = l.inner_mut().send_statustext(sev, text) {
+            tracing::warn!(error = %e, "statustext");
+        }
+    };
+    let armed = link.inner().state().armed;
+    if !was_engaged || !armed {
+        if let Err(e) = link.stop(t0) {
+            tracing::warn!(error = %e, "release on exit");
+        }
+        say(link, Severity::Info, "markhold stopped");
+        return HandBack::NotCommanding;
+    }
+    if let Err(e) = link.disengage(super::engage::Disengage::Stopped, t0) {
+        tracing::warn!(error = %e, "disengage on exit");
+    }
+    let timeout = link.inner().config().hand_back_timeout_s;
+    say(
+        link,
+        Severity::Warning,
+        "markhold stopped: take the controls",
+    );
+    eprintln!("markhold run: handing back: neutral until the pilot's input is heard (at most {timeout} s)");
+    let inner = link.inner_mut();
+    inner.set_pilot_keepalive(true);
+    let before = inner.state().clone();
+    let started = Instant::now();
+    let outcome = loop {
+        let t = t0 + started.elapsed().as_secs_f64();
+        if let Err(e) = inner.tick(t) {
+            tracing::warn!(error = %e, "hand back: link");
+        }
+        let st = inner.state();
+        let pilot = st.pilot.last_s.is_some_and(|p| p > t0) && st.pilot.count > before.pilot.count;
+        if pilot || st.mode_changes != before.mode_changes || !st.armed {
+            break HandBack::PilotTookOver;
+        }
+        if t - t0 >= timeout {
+            break HandBack::Disarmed(CommandStatus::TimedOut);
+        }
+        std::thread::sleep(Duration::from_millis(10));
+    };
+    match outcome {
+        HandBack::PilotTookOver => {
+            if let Err(e) = inner.release_pilot() {
+                tracing::warn!(error = %e, "release on exit");
+            }
+            say(link, Severity::Notice, "markhold: pilot has control");
+            eprintln!("markhold run: handed back: the pilot has control");
+            outcome
+        }
+        _ => {
+            say(
+                link,
+                Severity::Critical,
+                "markhold: no pilot input, disarming",
+            );
+            let t = t0 + started.elapsed().as_secs_f64();
+            let status = disarm_on_exit(link.inner_mut(), t);
+            if let Err(e) = link.inner_mut().release_pilot() {
+                tracing::warn!(error = %e, "release on exit");
+            }
+            HandBack::Disarmed(status)
+        }
+    }
 }
 
 /// After the shutdown's neutral input: disarm, acknowledged and retried by the link, on

@@ -79,7 +79,8 @@ pub struct HilArgs {
     #[arg(long)]
     pub quiet: bool,
     /// Camera-in-the-loop on an external MAVLink vehicle (e.g. ArduSub SITL:
-    /// tcpout:127.0.0.1:5760): its telemetry places the camera, markhold controls it.
+    /// tcp:127.0.0.1:5762, the SITL port MAVProxy leaves free): its telemetry places the
+    /// camera, markhold controls it.
     #[arg(long, value_name = "MAVLINK_URL")]
     pub vehicle: Option<String>,
     /// Inject a fault on simulation time, repeatable: KIND@START[+DURATION] seconds, KIND

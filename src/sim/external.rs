@@ -17,8 +17,9 @@ use nalgebra::{Isometry3, Translation3, UnitQuaternion};
 
 use super::hil::{camera_model, lighting_of, loop_start, marker_spec, start_offset, HilOptions};
 use super::summary::{RunStats, Summary};
+use crate::field::engage::EngagedLink;
 use crate::params::LoadedSite;
-use crate::pipeline::{Observers, Pipeline};
+use crate::pipeline::{CommandLink, Observers, Pipeline};
 
 /// The vehicle's pose from its telemetry (world = its local NED frame).
 pub fn pose_from_telemetry(state: &VehicleState) -> Option<Isometry3<f64>> {
@@ -137,12 +138,12 @@ fn wait_for_pose(link: &mut VehicleLink, started: Instant) -> anyhow::Result<Iso
 }
 
 /// The loop of an external-vehicle run: the HIL run's start, the vehicle's link.
-pub fn build_loop(
+pub fn build_loop<L: CommandLink>(
     site: &LoadedSite,
     opts: &HilOptions,
-    link: VehicleLink,
+    link: L,
     observers: Observers,
-) -> anyhow::Result<Pipeline> {
+) -> anyhow::Result<Pipeline<L>> {
     Pipeline::new(site, loop_start(site, opts), link, observers)
 }
 
@@ -210,7 +211,11 @@ pub fn run_external(
         std::thread::sleep(Duration::from_millis(10));
     }
 
+    // Engaged from the start (markhold armed it in the mode); a pilot beside it takes
+    // over and gives back as on a real vehicle (src/field/engage.rs).
+    let link = EngagedLink::new(link, true);
     let mut pipeline = build_loop(site, opts, link, observers)?;
+    let mut events = Vec::with_capacity(16);
     let frames = (opts.seconds * fps).round().max(1.0) as u64;
     let mut stats = RunStats::new(frames as usize, t_world_marker, t_marker_station);
     // The camera's clock starts with the loop (arming took wall time that is not the
@@ -218,15 +223,22 @@ pub fn run_external(
     // for are passed over, not made up for afterwards.
     cam.started = Instant::now();
     while cam.frames < frames {
-        if let Some(p) = pose_from_telemetry(pipeline.link().state()) {
+        if let Some(p) = pose_from_telemetry(pipeline.link().inner().state()) {
             cam.set_vehicle_pose(p);
         }
         let rec = pipeline.step(&mut cam)?;
+        events.clear();
+        events.extend_from_slice(pipeline.events());
+        pipeline.link_mut().on_events(&events, rec.stamp_s)?;
         stats.push_external(&rec, &cam.t_world_vehicle, &cam.t_vehicle_cam);
     }
     let now = cam.frames as f64 / fps;
     pipeline.link_mut().send_neutral(now)?;
+    pipeline.link_mut().stop(now)?;
     pipeline.finish_observers()?;
+    let engaged = pipeline.link().engager().engagements();
+    tracing::info!(engaged, "external vehicle: engagements");
+    eprintln!("markhold hil: engaged {engaged} times");
     if cam.frames_passed_over() > 0 {
         tracing::info!(
             passed_over = cam.frames_passed_over(),

@@ -15,6 +15,7 @@ use crate::params::LoadedSite;
 
 pub mod attribution;
 pub mod control;
+#[cfg(feature = "genicam")]
 pub mod genicam;
 pub mod stream;
 
@@ -182,6 +183,16 @@ pub fn open_camera(
             }
             (Box::new(c), pace)
         }
+        #[cfg(not(feature = "genicam"))]
+        CameraUrl::Genicam(_) => {
+            return Err(StartupError::Camera {
+                url: name,
+                reason: "this build has no GenICam support (built without the cargo feature \
+                         `genicam`, which needs Aravis)"
+                    .into(),
+            })
+        }
+        #[cfg(feature = "genicam")]
         CameraUrl::Genicam(id) => {
             let cfg = genicam::GenicamConfig {
                 width: site.calibration.width,
