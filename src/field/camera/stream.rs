@@ -141,6 +141,8 @@ pub struct StreamCamera {
     warned_control: bool,
     /// The first frame, pulled while waiting for it at start-up.
     held: Option<gst::Sample>,
+    /// A frame was delivered already.
+    delivered: bool,
     /// Luma to grey, for the range the stream's caps say (video or full).
     lut: [u8; 256],
     lut_limited: bool,
@@ -277,6 +279,7 @@ impl StreamCamera {
             stopped: None,
             warned_control: false,
             held: None,
+            delivered: false,
             lut: range_lut(false),
             lut_limited: false,
         };
@@ -467,10 +470,14 @@ impl Camera for StreamCamera {
             }
             _ => 1,
         };
-        if self.last_pts.is_some() {
-            self.passed_over += gap - 1;
+        if self.delivered {
+            // The first frame is seq 0, as with every camera.
+            if self.last_pts.is_some() {
+                self.passed_over += gap - 1;
+            }
+            self.seq += gap;
         }
-        self.seq += gap;
+        self.delivered = true;
         self.last_pts = pts.or(self.last_pts);
         frame.meta.seq = self.seq;
         frame.meta.stamp_s = pts.map_or(self.seq as f64 / self.fps, |p| p.nseconds() as f64 * 1e-9);
