@@ -8,6 +8,7 @@ FROM debian:bookworm AS build
 RUN apt-get update \
     && apt-get install -y --no-install-recommends \
        ca-certificates curl build-essential pkg-config libopencv-dev libclang-dev clang \
+       libgstreamer1.0-dev libgstreamer-plugins-base1.0-dev \
     && rm -rf /var/lib/apt/lists/*
 # The toolchain the project is tested with (rust-version in Cargo.toml is the floor).
 ARG RUST_VERSION=1.95.0
@@ -23,11 +24,13 @@ RUN cargo build --release --locked -p markhold --no-default-features --features 
 
 FROM debian:bookworm-slim
 # OpenCV 4.6 runtime libraries for the modules markhold links (core, imgproc, calib3d,
-# aruco from contrib, imgcodecs, videoio).
+# aruco from contrib, imgcodecs, videoio); GStreamer for the stock camera's H.264 stream
+# (udp/rtp/rtsp from -good, h264parse from -bad, avdec_h264 from -libav).
 RUN apt-get update \
     && apt-get install -y --no-install-recommends \
        libopencv-core406 libopencv-imgproc406 libopencv-calib3d406 libopencv-contrib406 \
        libopencv-imgcodecs406 libopencv-videoio406 \
+       gstreamer1.0-plugins-base gstreamer1.0-plugins-good gstreamer1.0-plugins-bad gstreamer1.0-libav \
     && rm -rf /var/lib/apt/lists/*
 COPY --from=build /usr/local/bin/markhold /usr/local/bin/markhold
 COPY blueos/entrypoint.sh /usr/local/bin/markhold-extension

@@ -130,6 +130,9 @@ pub struct CameraSection {
     /// Sensor noise and sensitivity (used by the HIL camera).
     #[serde(default)]
     pub sensor: SensorConfig,
+    /// How exposure reaches a stream camera (`[camera.control]`).
+    #[serde(default)]
+    pub control: crate::field::camera::control::ControlConfig,
 }
 
 fn default_initial_exposure() -> f64 {

@@ -103,6 +103,15 @@ pub struct HilArgs {
     /// the same; only the world's speed differs (the summary says which ran).
     #[arg(long, value_name = "BUILD")]
     pub render_loops: Option<RenderLoops>,
+    /// How the camera reaches the loop: in-process, or h264-rtp (H.264 encoded with
+    /// GStreamer into RTP on loopback UDP, received by the same stream camera as `run`,
+    /// exposure through a loopback camera-manager REST API).
+    #[arg(long, value_name = "TRANSPORT", default_value = "in-process")]
+    pub camera_transport: crate::sim::stream::CameraTransport,
+    /// The simulated camera's exposure actuation delay, frames (0..=8; default: the
+    /// site's camera.actuation_delay_frames).
+    #[arg(long, value_name = "N")]
+    pub camera_delay_frames: Option<u32>,
 }
 
 pub fn sitl(args: SitlArgs) -> anyhow::Result<()> {
@@ -206,6 +215,11 @@ pub fn hil(args: HilArgs) -> anyhow::Result<()> {
         !args.foxglove || args.vehicle.is_none(),
         "--foxglove with --vehicle is not supported: watch a simulated run, or use `markhold run`"
     );
+    anyhow::ensure!(
+        args.camera_transport == crate::sim::stream::CameraTransport::InProcess
+            || args.vehicle.is_none(),
+        "--camera-transport h264-rtp with --vehicle is not supported: the stream carries the simulated camera"
+    );
     let opts = HilOptions {
         seconds: args.seconds,
         seed: args.seed,
@@ -217,6 +231,8 @@ pub fn hil(args: HilArgs) -> anyhow::Result<()> {
         plots_dir: args.plots.clone(),
         // Ctrl-C / SIGTERM: neutral input, the recording finalized, exit 130.
         stop: Some(crate::field::signal::install()?),
+        camera_transport: args.camera_transport,
+        camera_delay_frames: args.camera_delay_frames,
         ..HilOptions::default()
     };
     if let Some(dir) = &args.plots {

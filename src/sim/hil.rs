@@ -51,6 +51,11 @@ pub struct HilOptions {
     /// Set by Ctrl-C / SIGTERM: the next frame sends neutral input and the run ends
     /// there (the recording is finalized, the summary says `interrupted`).
     pub stop: Option<crate::field::signal::ShutdownFlag>,
+    /// How the camera's frames and exposure commands travel (`--camera-transport`).
+    pub camera_transport: super::stream::CameraTransport,
+    /// The simulated camera's actuation delay, frames (`--camera-delay-frames`); None:
+    /// the site's `camera.actuation_delay_frames`.
+    pub camera_delay_frames: Option<u32>,
 }
 
 impl Default for HilOptions {
@@ -70,6 +75,8 @@ impl Default for HilOptions {
             vehicle_signing_key_file: None,
             render_loops: None,
             stop: None,
+            camera_transport: super::stream::CameraTransport::InProcess,
+            camera_delay_frames: None,
         }
     }
 }
@@ -84,6 +91,8 @@ pub struct HilRun {
     pub t_marker_station: Isometry3<f64>,
     /// Fault injection, when `HilOptions::faults` is not empty.
     pub faults: Option<FaultRig>,
+    /// The H.264/RTP transport (`--camera-transport h264-rtp`).
+    pub stream: Option<super::stream::StreamHil>,
 }
 
 /// The site's initial offset from the station, in the station (vehicle body) frame.
@@ -206,7 +215,15 @@ impl HilRun {
         let limits = site.limits();
         let initial_us = start.initial_exposure_us;
 
-        let model = camera_model(site, limits);
+        let mut model = camera_model(site, limits);
+        if let Some(d) = opts.camera_delay_frames {
+            model.delay_frames = d;
+        }
+        let stream_transport = opts.camera_transport == super::stream::CameraTransport::H264Rtp;
+        anyhow::ensure!(
+            !stream_transport || opts.faults.is_empty(),
+            "--camera-transport h264-rtp with --fault is not supported"
+        );
         let t_marker_station = s.station.t_marker_vehicle();
         let t_world_marker = site.t_world_marker();
         let setup = HilSetup {
@@ -240,6 +257,14 @@ impl HilRun {
             }
         }
         rig.set_exposure_us(initial_us)?;
+        let stream = if stream_transport {
+            let frames = (opts.seconds * s.camera.fps).round().max(1.0) as usize;
+            Some(super::stream::StreamHil::start(
+                &rig, limits, initial_us, frames,
+            )?)
+        } else {
+            None
+        };
         let faults = if opts.faults.is_empty() {
             None
         } else {
@@ -274,6 +299,7 @@ impl HilRun {
             t_world_marker,
             t_marker_station,
             faults,
+            stream,
         })
     }
 
@@ -308,6 +334,10 @@ impl HilRun {
 
     /// One frame of the loop, with the world's truth after it.
     pub fn step(&mut self) -> anyhow::Result<(FrameRecord, Truth)> {
+        if let Some(s) = self.stream.as_mut() {
+            let rec = self.pipeline.step(&mut s.camera(&mut self.rig))?;
+            return Ok((rec, self.rig.truth()));
+        }
         let Some(f) = self.faults.as_mut() else {
             let rec = self.pipeline.step(&mut self.rig)?;
             return Ok((rec, self.rig.truth()));
@@ -460,6 +490,18 @@ impl HilRun {
         }
         if let Some(f) = self.faults.take() {
             summary.faults = f.monitor.into_reports();
+        }
+        if let Some(s) = &self.stream {
+            summary.camera_transport = Some(opts.camera_transport.to_string());
+            summary.stream_delay_estimate_frames = s.delay_estimate_frames();
+            let mut l = s.added_latency_s.clone();
+            l.sort_by(f64::total_cmp);
+            let at = |q: f64| {
+                l.get(((l.len() as f64 - 1.0) * q).round() as usize)
+                    .map(|v| v * 1e3)
+            };
+            summary.stream_added_latency_p50_ms = at(0.5);
+            summary.stream_added_latency_p99_ms = at(0.99);
         }
         summary
     }

@@ -9,4 +9,5 @@ pub mod faults;
 pub mod hil;
 pub mod plots;
 pub mod run_plots;
+pub mod stream;
 pub mod summary;

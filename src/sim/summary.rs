@@ -1,6 +1,6 @@
 //! Run statistics and the `--summary` JSON. Everything but the wall-clock fields
 //! (`wall_seconds`, `realtime_factor`, `world_wall_seconds`, `world_realtime_factor`,
-//! `loop_latency_p99_ms`) is a function of the seed: the same seed gives the same numbers.
+//! `loop_latency_p99_ms`, `stream_added_latency_*`) is a function of the seed: the same seed gives the same numbers.
 
 use markhold_exposure::ExposureMethod;
 use markhold_hil::scene::LightingScenario;
@@ -46,6 +46,18 @@ pub struct Summary {
     pub faults: Vec<super::faults::FaultReport>,
     /// Ended early by Ctrl-C / SIGTERM (the last frame sent neutral input).
     pub interrupted: bool,
+    /// `h264-rtp` when the camera came through the stream stack (absent: in process).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub camera_transport: Option<String>,
+    /// The stream camera's estimate of the command-to-frame delay, frames.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub stream_delay_estimate_frames: Option<u32>,
+    /// Wall time the stream adds per frame (encode, RTP over loopback UDP, decode,
+    /// convert to grey), percentiles, milliseconds. Wall-clock fields, like the latency.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub stream_added_latency_p50_ms: Option<f64>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub stream_added_latency_p99_ms: Option<f64>,
 }
 
 /// Frames whose series are reserved up front: a longer run grows them (a day at 30 fps
@@ -185,6 +197,10 @@ impl RunStats {
             lockstep_timeouts,
             interrupted: false,
             faults: Vec::new(),
+            camera_transport: None,
+            stream_delay_estimate_frames: None,
+            stream_added_latency_p50_ms: None,
+            stream_added_latency_p99_ms: None,
         }
     }
 }
