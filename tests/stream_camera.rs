@@ -363,3 +363,82 @@ fn a_gst_pipeline_camera_gives_stamped_grey_frames_and_counts_those_passed_over(
     );
     assert!(f.meta.seq >= seq0 + 7, "{} -> {}", seq0, f.meta.seq);
 }
+
+/// An RTSP server on loopback (gst-rtsp-server, the server GStreamer ships) streaming
+/// H.264 the way the camera manager's RTSP endpoint does; the camera reads it through
+/// `rtsp://` exactly as `run --camera rtsp://...` would.
+#[test]
+fn an_rtsp_camera_gives_stamped_grey_frames_from_a_loopback_server() {
+    use gstreamer::glib;
+    use gstreamer_rtsp_server::prelude::*;
+    use markhold::field::camera::control::NoControl;
+    use markhold::field::camera::stream::{
+        StreamCamera, StreamConfig, StreamSource, NO_FRAME_REASON,
+    };
+
+    gstreamer::init().unwrap();
+    let server = gstreamer_rtsp_server::RTSPServer::new();
+    server.set_address("127.0.0.1");
+    server.set_service("0");
+    let factory = gstreamer_rtsp_server::RTSPMediaFactory::new();
+    factory.set_launch(
+        "( videotestsrc is-live=true pattern=gradient ! video/x-raw,width=320,height=240,framerate=30/1 \
+         ! x264enc tune=zerolatency speed-preset=ultrafast key-int-max=15 threads=1 ! rtph264pay name=pay0 pt=96 )",
+    );
+    factory.set_shared(true);
+    server.mount_points().unwrap().add_factory("/cam", factory);
+    let ctx = glib::MainContext::new();
+    let _source = server.attach(Some(&ctx)).unwrap();
+    let port = server.bound_port();
+    assert!(port > 0, "the RTSP server did not bind: {port}");
+    let main_loop = glib::MainLoop::new(Some(&ctx), false);
+    let serving = {
+        let main_loop = main_loop.clone();
+        std::thread::spawn(move || main_loop.run())
+    };
+
+    let url = format!("rtsp://127.0.0.1:{port}/cam");
+    let src = StreamSource::parse(&url).unwrap().unwrap();
+    assert_eq!(src, StreamSource::Rtsp(url.clone()));
+    let cfg = StreamConfig {
+        fps: 30.0,
+        limits: ExposureLimits {
+            min_us: 100.0,
+            max_us: 33300.0,
+            fps: 30.0,
+        },
+        initial_us: 2000.0,
+        first_frame_timeout: Duration::from_secs(10),
+    };
+    let opened = StreamCamera::open(&src, &cfg, Box::new(NoControl));
+    let result = opened.map(|mut cam| {
+        // As `run` grabs: a tick without a frame is not an error (RTP over RTSP arrives
+        // in bursts), a stall is; ten frames must come within 5 s.
+        let mut f = Frame::default();
+        let mut stamps = Vec::new();
+        let deadline = Instant::now() + Duration::from_secs(5);
+        while stamps.len() < 10 && Instant::now() < deadline {
+            match cam.grab(&mut f) {
+                Ok(()) => stamps.push((f.meta.seq, f.meta.stamp_s)),
+                Err(e) if e.to_string().contains(NO_FRAME_REASON) => {}
+                Err(e) => panic!("{e}"),
+            }
+        }
+        (f, stamps)
+    });
+    main_loop.quit();
+    serving.join().unwrap();
+    let (f, stamps) = result.unwrap_or_else(|e| panic!("{url}: {e}"));
+    assert_eq!(stamps.len(), 10, "frames within 5 s: {stamps:?}");
+    assert_eq!((f.width, f.height, f.data.len()), (320, 240, 320 * 240));
+    // The gradient pattern survives H.264 and the luma range expansion: dark at the top,
+    // bright at the bottom.
+    let column: Vec<u8> = f.data.iter().step_by(320 * 20).copied().collect();
+    assert!(column[0] < 60 && column[11] > 190, "{column:?}");
+    assert!(
+        stamps
+            .windows(2)
+            .all(|w| w[1].0 > w[0].0 && w[1].1 > w[0].1),
+        "{stamps:?}"
+    );
+}
