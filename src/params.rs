@@ -429,6 +429,10 @@ pub fn parse(path: &Path, text: &str) -> Result<LoadedSite, ParamsError> {
         markhold_config::open_regular(&full, 1024)
             .map_err(|e| referenced(format!("{}: {e}", full.display())))?;
         markhold_autopilot::link::read_key(&full).map_err(|e| referenced(e.to_string()))?;
+        // The saved signing timestamp beside the key (absent on a first start).
+        let state = markhold_autopilot::signing_clock::state_path(&full);
+        markhold_autopilot::signing_clock::read_state(&state)
+            .map_err(|e| referenced(e.to_string()))?;
         site.link.signing_key_file = Some(full);
     }
     Ok(LoadedSite {

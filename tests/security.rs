@@ -593,6 +593,17 @@ fn params_check_checks_the_signing_key() {
     let site = with_key("good.key");
     let (code, err) = run_bounded(&["params", "check", site.to_str().unwrap()]);
     assert_eq!(code, Some(0), "{err}");
+    // A saved signing timestamp beside it that is not a number: refused, naming the file.
+    std::fs::write(dir.join("good.key.timestamp"), "garbage\n").unwrap();
+    let (code, err) = run_bounded(&["params", "check", site.to_str().unwrap()]);
+    assert_eq!(code, Some(78), "{err}");
+    assert!(
+        err.contains("good.key.timestamp") && err.contains("garbage"),
+        "{err}"
+    );
+    std::fs::write(dir.join("good.key.timestamp"), "123456789\n").unwrap();
+    let (code, err) = run_bounded(&["params", "check", site.to_str().unwrap()]);
+    assert_eq!(code, Some(0), "{err}");
     std::fs::remove_dir_all(&dir).unwrap();
 }
 

@@ -35,6 +35,15 @@ pub enum AutopilotError {
         /// What is wrong.
         reason: String,
     },
+    /// The signing timestamp state file beside the key cannot be read, holds no
+    /// timestamp, or cannot be written.
+    #[error("signing timestamp file `{path}`: {reason}")]
+    SigningTimestamp {
+        /// Path of the state file.
+        path: String,
+        /// What is wrong.
+        reason: String,
+    },
     /// Writing to the transport failed for a reason other than a full buffer.
     #[error("send of {message} failed: {source}")]
     Send {

@@ -15,6 +15,7 @@ pub mod fuzzing;
 pub mod keeper;
 pub mod link;
 pub mod pilot;
+pub mod signing_clock;
 pub mod supervisor;
 pub mod transport;
 pub mod types;

@@ -23,7 +23,7 @@ use mavlink::dialects::ardupilotmega::{
     SERVO_OUTPUT_RAW_DATA, SET_GPS_GLOBAL_ORIGIN_DATA, SET_POSITION_TARGET_LOCAL_NED_DATA,
     VISION_POSITION_ESTIMATE_DATA,
 };
-use mavlink::{MavHeader, Message, SigningConfig, SigningData};
+use mavlink::{MavHeader, Message, SigningData};
 use nalgebra::{Isometry3, UnitQuaternion};
 use serde::Serialize;
 
@@ -352,6 +352,8 @@ pub struct VehicleLink {
     map: PilotMap,
     transport: Transport,
     signing: Option<Arc<SigningData>>,
+    /// Saves the signing timestamps used beside the key (signing on only).
+    signing_clock: Option<crate::signing_clock::TimestampKeeper>,
     seq: u8,
     state: VehicleState,
     last_hb_sent_s: Option<f64>,
@@ -424,17 +426,14 @@ impl VehicleLink {
     /// error). Sockets that must exist are bound here; TCP/serial connect in the background.
     pub fn connect(cfg: &LinkConfig) -> Result<Self, AutopilotError> {
         cfg.validate()?;
-        let signing = match &cfg.signing_key_file {
+        let (signing, signing_clock) = match &cfg.signing_key_file {
             Some(path) => {
                 let key = read_key(path)?;
-                Some(Arc::new(SigningData::from_config(SigningConfig::new(
-                    key,
-                    cfg.signing_link_id,
-                    true,
-                    false,
-                ))))
+                let (keeper, start) = crate::signing_clock::TimestampKeeper::open(path)?;
+                let sd = crate::signing_clock::signing_data_from(key, cfg.signing_link_id, start);
+                (Some(Arc::new(sd)), Some(keeper))
             }
-            None => None,
+            None => (None, None),
         };
         let transport = Transport::open(
             &cfg.url,
@@ -450,6 +449,7 @@ impl VehicleLink {
             map: PilotMap::from_config(cfg),
             transport,
             signing,
+            signing_clock,
             seq: 0,
             state,
             last_hb_sent_s: None,
@@ -565,6 +565,9 @@ impl VehicleLink {
                 message: msg.message_name(),
                 source: std::io::Error::other(e.to_string()),
             })?;
+        if let Some(clock) = &mut self.signing_clock {
+            clock.used(&buf[..n]);
+        }
         match self.transport.writer.write(&buf[..n]) {
             Ok(WriteOutcome::Sent) => {
                 self.state.counters.sent += 1;
