@@ -89,11 +89,18 @@ pub fn read_state(path: &Path) -> Result<Option<u64>, AutopilotError> {
     }
 }
 
-/// Writes `value` to `path` atomically: `<path>.tmp`, fsync, rename.
+/// Writes `value` to `path` atomically: `<path>.<pid>.<n>.tmp` (unique, so links of
+/// several runs sharing a key never write into each other's file), fsync, rename.
 pub fn write_state(path: &Path, value: u64) -> std::io::Result<()> {
     use std::io::Write;
+    use std::sync::atomic::{AtomicU64, Ordering};
+    static NEXT: AtomicU64 = AtomicU64::new(0);
     let mut tmp = path.as_os_str().to_owned();
-    tmp.push(".tmp");
+    tmp.push(format!(
+        ".{}.{}.tmp",
+        std::process::id(),
+        NEXT.fetch_add(1, Ordering::Relaxed)
+    ));
     let tmp = PathBuf::from(tmp);
     {
         let mut f = std::fs::File::create(&tmp)?;
