@@ -326,13 +326,18 @@ fn replay(args: ReplayArgs) -> anyhow::Result<()> {
     Ok(())
 }
 
+/// `--heartbeat-timeout-s`: finite and not negative.
+fn check_heartbeat_timeout(s: f64) -> anyhow::Result<()> {
+    anyhow::ensure!(
+        s.is_finite() && s >= 0.0,
+        "--heartbeat-timeout-s {s}: expected a non-negative number of seconds"
+    );
+    Ok(())
+}
+
 fn run_cmd(args: RunArgs) -> anyhow::Result<()> {
     let site = params::load(&args.site)?;
-    anyhow::ensure!(
-        args.heartbeat_timeout_s.is_finite() && args.heartbeat_timeout_s >= 0.0,
-        "--heartbeat-timeout-s {}: expected a non-negative number of seconds",
-        args.heartbeat_timeout_s
-    );
+    check_heartbeat_timeout(args.heartbeat_timeout_s)?;
     let stop = markhold::field::signal::install()?;
     let opts = markhold::field::run::RunOptions {
         link_url: args.link.clone(),
@@ -374,11 +379,7 @@ fn run_cmd(args: RunArgs) -> anyhow::Result<()> {
 
 fn preflight_cmd(args: PreflightArgs) -> anyhow::Result<()> {
     let site = params::load(&args.site)?;
-    anyhow::ensure!(
-        args.heartbeat_timeout_s.is_finite() && args.heartbeat_timeout_s >= 0.0,
-        "--heartbeat-timeout-s {}: expected a non-negative number of seconds",
-        args.heartbeat_timeout_s
-    );
+    check_heartbeat_timeout(args.heartbeat_timeout_s)?;
     let stop = markhold::field::signal::install()?;
     let list = markhold::field::preflight::preflight(
         &site,

@@ -15,9 +15,7 @@ use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};
 use std::sync::OnceLock;
 
-use common::{markhold, repo, site_path, station_rig, tmp_path};
-use markhold_exposure::{Camera, Frame};
-use markhold_vision::FrameRecorder;
+use common::{markhold, repo, site_path, station_frames, tmp_path};
 
 fn tmp(name: &str) -> PathBuf {
     tmp_path("pilot", name)
@@ -26,18 +24,7 @@ fn tmp(name: &str) -> PathBuf {
 /// 8 s of frames on station (the pilot's plan takes about 4 s), made once.
 fn frames_dir() -> &'static Path {
     static DIR: OnceLock<PathBuf> = OnceLock::new();
-    DIR.get_or_init(|| {
-        let dir = tmp("frames");
-        let mut rig = station_rig(false);
-        rig.set_exposure_us(3000.0).unwrap();
-        let mut rec = FrameRecorder::create(&dir).unwrap();
-        let mut f = Frame::default();
-        for _ in 0..240 {
-            rig.grab(&mut f).unwrap();
-            rec.write(&f).unwrap();
-        }
-        dir
-    })
+    DIR.get_or_init(|| station_frames(tmp("frames"), 240))
 }
 
 fn ensure_pymavlink() {

@@ -12,7 +12,9 @@ use std::process::{Command, Stdio};
 use std::sync::OnceLock;
 use std::time::{Duration, Instant};
 
-use common::{markhold, site_path, station_rig, tmp_path, ws_read_frame, RealTimeVehicle};
+use common::{
+    markhold, site_path, station_frames, station_rig, tmp_path, ws_read_frame, RealTimeVehicle,
+};
 use markhold::record::{CommandMsg, TOPIC_COMMAND};
 use markhold_exposure::{Camera, Frame};
 use markhold_vision::FrameRecorder;
@@ -24,18 +26,7 @@ fn tmp(name: &str) -> PathBuf {
 /// 90 frames (3 s) rendered on station, as a recorded-frames folder; made once.
 fn frames_dir() -> &'static Path {
     static DIR: OnceLock<PathBuf> = OnceLock::new();
-    DIR.get_or_init(|| {
-        let dir = tmp("frames");
-        let mut rig = station_rig(false);
-        rig.set_exposure_us(3000.0).unwrap();
-        let mut rec = FrameRecorder::create(&dir).unwrap();
-        let mut f = Frame::default();
-        for _ in 0..90 {
-            rig.grab(&mut f).unwrap();
-            rec.write(&f).unwrap();
-        }
-        dir
-    })
+    DIR.get_or_init(|| station_frames(tmp("frames"), 90))
 }
 
 /// hil's vehicle on its own thread in real time.

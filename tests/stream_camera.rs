@@ -314,16 +314,11 @@ fn a_stream_hil_run_repeats_for_a_seed() {
     }
 }
 
-#[test]
-fn a_gst_pipeline_camera_gives_stamped_grey_frames_and_counts_those_passed_over() {
-    use markhold::field::camera::control::NoControl;
-    use markhold::field::camera::stream::{StreamCamera, StreamConfig, StreamSource};
-    let src = StreamSource::parse(
-        "gst:videotestsrc is-live=true pattern=gradient ! video/x-raw,format=GRAY8,width=320,height=240,framerate=30/1 ! appsink",
-    )
-    .unwrap()
-    .unwrap();
-    let cfg = StreamConfig {
+/// A 30 fps stream camera with the stock camera's exposure range, starting at 2000 us.
+fn stream_config_30fps(
+    first_frame_timeout: Duration,
+) -> markhold::field::camera::stream::StreamConfig {
+    markhold::field::camera::stream::StreamConfig {
         fps: 30.0,
         limits: ExposureLimits {
             min_us: 100.0,
@@ -331,8 +326,20 @@ fn a_gst_pipeline_camera_gives_stamped_grey_frames_and_counts_those_passed_over(
             fps: 30.0,
         },
         initial_us: 2000.0,
-        first_frame_timeout: Duration::from_secs(5),
-    };
+        first_frame_timeout,
+    }
+}
+
+#[test]
+fn a_gst_pipeline_camera_gives_stamped_grey_frames_and_counts_those_passed_over() {
+    use markhold::field::camera::control::NoControl;
+    use markhold::field::camera::stream::{StreamCamera, StreamSource};
+    let src = StreamSource::parse(
+        "gst:videotestsrc is-live=true pattern=gradient ! video/x-raw,format=GRAY8,width=320,height=240,framerate=30/1 ! appsink",
+    )
+    .unwrap()
+    .unwrap();
+    let cfg = stream_config_30fps(Duration::from_secs(5));
     let mut cam = StreamCamera::open(&src, &cfg, Box::new(NoControl)).unwrap();
     let mut f = Frame::default();
     let mut stamps = Vec::new();
@@ -372,9 +379,7 @@ fn an_rtsp_camera_gives_stamped_grey_frames_from_a_loopback_server() {
     use gstreamer::glib;
     use gstreamer_rtsp_server::prelude::*;
     use markhold::field::camera::control::NoControl;
-    use markhold::field::camera::stream::{
-        StreamCamera, StreamConfig, StreamSource, NO_FRAME_REASON,
-    };
+    use markhold::field::camera::stream::{StreamCamera, StreamSource, NO_FRAME_REASON};
 
     gstreamer::init().unwrap();
     let server = gstreamer_rtsp_server::RTSPServer::new();
@@ -400,16 +405,7 @@ fn an_rtsp_camera_gives_stamped_grey_frames_from_a_loopback_server() {
     let url = format!("rtsp://127.0.0.1:{port}/cam");
     let src = StreamSource::parse(&url).unwrap().unwrap();
     assert_eq!(src, StreamSource::Rtsp(url.clone()));
-    let cfg = StreamConfig {
-        fps: 30.0,
-        limits: ExposureLimits {
-            min_us: 100.0,
-            max_us: 33300.0,
-            fps: 30.0,
-        },
-        initial_us: 2000.0,
-        first_frame_timeout: Duration::from_secs(10),
-    };
+    let cfg = stream_config_30fps(Duration::from_secs(10));
     let opened = StreamCamera::open(&src, &cfg, Box::new(NoControl));
     let result = opened.map(|mut cam| {
         // As `run` grabs: a tick without a frame is not an error (RTP over RTSP arrives

@@ -76,6 +76,20 @@ pub fn station_rig(lock_step: bool) -> HilRig {
     rig_at(&site, start, 5, lock_step)
 }
 
+/// `n` frames rendered on station at 3000 us, written as a recorded-frames folder `dir`
+/// (what `--camera frames:DIR` plays back).
+pub fn station_frames(dir: PathBuf, n: usize) -> PathBuf {
+    let mut rig = station_rig(false);
+    rig.set_exposure_us(3000.0).unwrap();
+    let mut rec = markhold_vision::FrameRecorder::create(&dir).unwrap();
+    let mut f = Frame::default();
+    for _ in 0..n {
+        rig.grab(&mut f).unwrap();
+        rec.write(&f).unwrap();
+    }
+    dir
+}
+
 /// What a [`RealTimeVehicle`] reports when stopped.
 #[derive(Debug)]
 pub struct VehicleEnd {
