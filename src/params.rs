@@ -417,15 +417,7 @@ pub fn parse(path: &Path, text: &str) -> Result<LoadedSite, ParamsError> {
         // Relative to the site file, like the calibration file; checked here so a
         // missing or malformed key is a config error before anything starts.
         let full = base.join(rel);
-        let p = at.position_of_key("link.signing_key_file");
-        let referenced = |reason: String| ParamsError::ReferencedFile {
-            file: path.to_path_buf(),
-            line: p.line,
-            column: p.column,
-            key: "link.signing_key_file".into(),
-            value: rel.display().to_string(),
-            reason,
-        };
+        let referenced = referenced_file(path, &at, "link.signing_key_file", rel);
         markhold_config::open_regular(&full, 1024)
             .map_err(|e| referenced(format!("{}: {e}", full.display())))?;
         markhold_autopilot::link::read_key(&full).map_err(|e| referenced(e.to_string()))?;
@@ -469,21 +461,34 @@ fn validate_sim(_: &Site) -> Result<(), ConfigError> {
     Ok(())
 }
 
+/// The error for a file a site key names (`key = value` at its line in `path`) that
+/// cannot be used, with the reason.
+fn referenced_file(
+    path: &Path,
+    at: &Located<'_>,
+    key: &'static str,
+    value: &Path,
+) -> impl Fn(String) -> ParamsError {
+    let p = at.position_of_key(key);
+    let file = path.to_path_buf();
+    let value = value.display().to_string();
+    move |reason| ParamsError::ReferencedFile {
+        file: file.clone(),
+        line: p.line,
+        column: p.column,
+        key: key.into(),
+        value: value.clone(),
+        reason,
+    }
+}
+
 fn calibration_of(
     path: &Path,
     at: &Located<'_>,
     cam: &CameraSection,
 ) -> Result<CameraCalibration, ParamsError> {
     if let Some(file) = &cam.calibration_file {
-        let p = at.position_of_key("camera.calibration_file");
-        let referenced = |reason: String| ParamsError::ReferencedFile {
-            file: path.to_path_buf(),
-            line: p.line,
-            column: p.column,
-            key: "camera.calibration_file".into(),
-            value: file.display().to_string(),
-            reason,
-        };
+        let referenced = referenced_file(path, at, "camera.calibration_file", file);
         let calib = CameraCalibration::load(file).map_err(|e| referenced(e.to_string()))?;
         calib
             .check_resolution(cam.width_px, cam.height_px)
