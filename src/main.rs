@@ -94,7 +94,8 @@ struct RunArgs {
     /// Record the run to this MCAP file (must not exist).
     #[arg(long, value_name = "FILE.mcap")]
     record: Option<PathBuf>,
-    /// Serve a Foxglove WebSocket live view on 127.0.0.1.
+    /// Serve a Foxglove WebSocket live view on 127.0.0.1 (browser pages only from the
+    /// site's [live] allowed_origins).
     #[arg(long)]
     foxglove: bool,
     /// Port of the live view (0: any free port).

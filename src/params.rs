@@ -171,6 +171,9 @@ pub struct Site {
     /// How `--record` stores frames.
     #[serde(default)]
     pub record: crate::record::RecordSection,
+    /// Who may open the live view (`--foxglove`).
+    #[serde(default)]
+    pub live: crate::record::live::LiveSection,
 }
 
 /// A validated site with what was derived from it.
@@ -444,7 +447,8 @@ fn validate(site: &Site) -> Result<(), ConfigError> {
     site.station.validate()?;
     site.controller.validate()?;
     site.link.validate()?;
-    site.record.validate()
+    site.record.validate()?;
+    site.live.validate()
 }
 
 #[cfg(feature = "sim")]

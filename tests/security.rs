@@ -341,7 +341,7 @@ fn every_listener_binds_loopback_by_default_and_the_configured_address_when_give
 
     // Foxglove live view.
     let mut rec = markhold::record::Recorder::live_only(Default::default()).unwrap();
-    let port = rec.serve_live(0).unwrap();
+    let port = rec.serve_live(0, &Default::default()).unwrap();
     assert_bound("foxglove", "tcp", SocketAddr::from((lo, port)), lo);
     drop(rec);
 

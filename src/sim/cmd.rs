@@ -92,7 +92,8 @@ pub struct HilArgs {
     /// pose, commands, vehicle state, failsafe events; `markhold replay` reads it.
     #[arg(long, value_name = "FILE.mcap")]
     pub record: Option<PathBuf>,
-    /// Serve a Foxglove WebSocket live view on 127.0.0.1 (the same channels as --record).
+    /// Serve a Foxglove WebSocket live view on 127.0.0.1 (the same channels as --record;
+    /// browser pages only from the site's [live] allowed_origins).
     #[arg(long)]
     pub foxglove: bool,
     /// Port of the live view (0: any free port).
@@ -281,7 +282,7 @@ fn hil_observers(
     };
     if let (true, Some(r)) = (args.foxglove, recorder.as_mut()) {
         let port = r
-            .serve_live(args.foxglove_port)
+            .serve_live(args.foxglove_port, &site.site.live)
             .with_context(|| format!("--foxglove-port {}", args.foxglove_port))?;
         eprintln!("markhold: Foxglove live view on ws://127.0.0.1:{port}");
     }
