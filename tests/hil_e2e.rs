@@ -32,6 +32,9 @@ fn run_summary(args: &[&str], out: &Path) -> serde_json::Value {
     serde_json::from_str(&std::fs::read_to_string(out).unwrap()).unwrap()
 }
 
+/// The README's pool row (`markhold hil --site params/pool.toml --seconds 60 --seed 1`):
+/// position RMS 2.0 mm, final error 1.0 mm, detection 100 %. Checked within 2x of those
+/// figures (the run is the same on every CPU for a seed).
 #[test]
 fn pool_station_keeping_settles() {
     let d = tmpdir("settle");
@@ -42,7 +45,7 @@ fn pool_station_keeping_settles() {
             "--site",
             pool.to_str().unwrap(),
             "--seconds",
-            "30",
+            "60",
             "--seed",
             "1",
         ],
@@ -52,10 +55,11 @@ fn pool_station_keeping_settles() {
         s[k].as_f64()
             .unwrap_or_else(|| panic!("summary has no number {k}: {s}"))
     };
-    assert!(f("final_position_error_m") < 0.05, "{s}");
+    assert!(f("final_position_error_m") < 0.002, "{s}");
+    assert!(f("position_rms_m") < 0.004, "{s}");
     assert!(f("final_yaw_error_deg") < 3.0, "{s}");
-    assert!(f("detection_rate") > 0.95, "{s}");
-    assert_eq!(s["frames"].as_u64(), Some(900), "{s}");
+    assert!(f("detection_rate") > 0.999, "{s}");
+    assert_eq!(s["frames"].as_u64(), Some(1800), "{s}");
     // The world's own time is part of the loop's: positive, and less than the whole.
     assert!(
         f("world_wall_seconds") > 0.0 && f("world_wall_seconds") < f("wall_seconds"),
