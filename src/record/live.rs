@@ -91,34 +91,42 @@ impl LiveSection {
                     "allowed_origins",
                     format!("{o:?}"),
                     is_origin(o),
-                    "origins as a browser sends them: http:// or https://, a host, an \
-                     optional :port, no path or trailing slash",
+                    "origins as a browser sends them: scheme://host[:port] (no path or \
+                     trailing slash; an empty host only for schemes other than http and \
+                     https) or null",
                 )
             })
             .done()
     }
 }
 
-/// `scheme://host[:port]` with nothing else (the form of an `Origin` header).
+/// An `Origin` header's value: `scheme://host[:port]` with nothing else (an empty host
+/// only for schemes other than http and https, as a desktop app's `file://`), or `null`
+/// (which browsers also send for sandboxed pages of any site).
 fn is_origin(s: &str) -> bool {
-    let Some(rest) = s
-        .strip_prefix("https://")
-        .or_else(|| s.strip_prefix("http://"))
-    else {
+    if s == "null" {
+        return true;
+    }
+    let Some((scheme, rest)) = s.split_once("://") else {
         return false;
     };
+    let scheme_ok = scheme.starts_with(|c: char| c.is_ascii_lowercase())
+        && scheme
+            .chars()
+            .all(|c| c.is_ascii_lowercase() || c.is_ascii_digit() || "+-.".contains(c));
+    let web = scheme == "http" || scheme == "https";
     let (host, port) = match rest.rsplit_once(':') {
         // An IPv6 literal's colons sit inside the brackets.
         Some((h, p)) if !p.contains(']') => (h, Some(p)),
         _ => (rest, None),
     };
-    let host_ok = !host.is_empty()
+    let host_ok = (!host.is_empty() || (!web && port.is_none()))
         && host.len() <= 253
         && host
             .chars()
             .all(|c| c.is_ascii_alphanumeric() || "-.[]:".contains(c));
     let port_ok = port.is_none_or(|p| !p.is_empty() && p.len() <= 5 && p.parse::<u16>().is_ok());
-    host_ok && port_ok
+    scheme_ok && host_ok && port_ok
 }
 
 /// The running live view; stops (and leaves the recorder's context) when dropped.
@@ -620,6 +628,9 @@ mod tests {
             "http://localhost:8080",
             "http://127.0.0.1:3000",
             "http://[::1]:8080",
+            "file://",
+            "app://foxglove",
+            "null",
         ] {
             assert!(is_origin(ok), "{ok}");
         }
@@ -629,11 +640,14 @@ mod tests {
             "https://",
             "https://app.foxglove.dev/",
             "https://app.foxglove.dev/path",
-            "ftp://host",
+            "https:/host",
             "https://host:99999",
             "https://host:",
             "https://a b",
             "*",
+            "https://*.example",
+            "HTTPS://host",
+            "nul",
         ] {
             assert!(!is_origin(bad), "{bad}");
         }
