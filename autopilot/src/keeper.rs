@@ -23,6 +23,19 @@ pub struct PoseMeasurement {
     pub cov_cam: Matrix6<f64>,
 }
 
+/// The camera's image edges as undistorted normalized coordinates (x/z, y/z; x right,
+/// y down, so `left` and `top` are negative), and the marker's half edge: what the keeper
+/// needs to keep the marker in view (`StationKeeper::set_view`).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct ViewLimits {
+    pub left: f64,
+    pub right: f64,
+    pub top: f64,
+    pub bottom: f64,
+    /// Half the marker's edge, metres.
+    pub marker_half_m: f64,
+}
+
 /// Where the keeper stands with respect to the marker.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize)]
 pub enum KeeperStatus {
