@@ -205,10 +205,15 @@ fn describe(v: &MarkerView, half: &[f64; 4]) -> String {
     } else {
         half[1]
     };
+    let half_v = if v.elevation_deg < 0.0 {
+        half[2]
+    } else {
+        half[3]
+    };
     format!(
         "marker centre at bearing {:.1} deg ({:.1} deg {side} of the optical axis; half field \
-         of view {half_h:.1} deg), elevation {:.1} deg, {:.2} m ahead of the camera; nearest \
-         corner {:.0} px {} the {} edge (margin {:.1} %)",
+         of view {half_h:.1} deg), elevation {:.1} deg (half field of view {half_v:.1} deg), \
+         {:.2} m ahead of the camera; nearest corner {:.0} px {} the {} edge (margin {:.1} %)",
         tenth(v.bearing_deg),
         v.bearing_deg.abs(),
         tenth(v.elevation_deg),
@@ -236,8 +241,9 @@ fn station_value(st: &StationConfig, setup: &ViewSetup<'_>) -> String {
 
 /// Checks the station (and the way from `start`, the simulator's start pose in the
 /// marker frame, with the keys that place it): refused (the error names `station` and
-/// the bearing and margin) when the marker at the station is outside the safe region, or
-/// the marker leaves the image on the way from the start; a warning when a margin is thin.
+/// the bearing and margin) when the marker at the station is outside the safe region; a
+/// warning when its margin is thin, or when the marker leaves the safe region on the way
+/// from the start.
 pub fn check(
     setup: &ViewSetup<'_>,
     station: &StationConfig,
@@ -290,21 +296,16 @@ pub fn check(
                 _ => Some(v),
             });
         if let Some(w) = worst {
-            if !(w.margin >= 0.0) {
-                return Err(ConfigError::new(
-                    keys,
-                    station_value(station, setup),
-                    format!(
-                        "the marker in the image on the way from the start pose to the \
-                         station; at the worst pose the {}",
-                        describe(&w, &half)
-                    ),
-                ));
-            }
+            // The start pose is the simulator's: a warning, never a refusal of the site.
             if w.margin < REFUSE_MARGIN {
+                let what = if w.margin < 0.0 {
+                    "leaves the view"
+                } else {
+                    "comes near the edge of the view"
+                };
                 warnings.push(format!(
-                    "{keys}: on the way from the start pose to the station the marker comes \
-                     near the edge of the view: {}",
+                    "{keys}: on the way from the simulator's start pose to the station the \
+                     marker {what}: {}",
                     describe(&w, &half)
                 ));
             }
@@ -335,7 +336,9 @@ pub fn check_site(
     check(
         &setup,
         &site.station,
-        start.as_ref().map(|t| (t, "vehicle.initial_offset_m")),
+        start
+            .as_ref()
+            .map(|t| (t, "vehicle.initial_offset_m, vehicle.initial_offset_deg")),
     )
 }
 
