@@ -181,7 +181,8 @@ impl<L: CommandLink> Pipeline<L> {
         let tracker = MarkerTracker::new(&s.marker, &s.vision, calib.clone())?;
         let exposure =
             build_controller(&s.exposure, start.method, limits, start.initial_exposure_us)?;
-        let keeper = StationKeeper::new(&s.station, &s.controller, site.t_vehicle_cam())?;
+        let mut keeper = StationKeeper::new(&s.station, &s.controller, site.t_vehicle_cam())?;
+        keeper.set_view(crate::feasibility::view_limits(calib, s.marker.size_m));
         if let Some(tap) = observers.mavlink_tap() {
             link.set_raw_tap(Some(tap));
         }
@@ -345,6 +346,10 @@ impl<L: CommandLink> Pipeline<L> {
                 self.mode_changes_seen = changes;
                 self.keeper.reset();
             }
+        }
+        // The heading for the way back when the marker slips out of view.
+        if let Some(a) = self.link.vehicle_state().and_then(|v| v.attitude) {
+            self.keeper.set_heading(a.yaw);
         }
         let effort = self.keeper.update(stamp, meas.as_ref());
         if obs.is_some() {

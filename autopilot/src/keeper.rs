@@ -7,6 +7,8 @@
 use nalgebra::{Isometry3, Matrix3, Matrix6, UnitQuaternion, Vector3};
 use serde::Serialize;
 
+mod view;
+
 use crate::config::{AxisConfig, ControllerConfig, StationConfig};
 use crate::error::AutopilotError;
 pub use crate::types::{wrap_pi, Effort};
@@ -45,6 +47,9 @@ pub enum KeeperStatus {
     Tracking,
     /// Marker missed, within `marker_lost_hold_s`: last command held.
     Holding,
+    /// Marker slipped out of view: the bounded way back (turn toward where it was last
+    /// seen, then hold) runs.
+    Searching,
     /// Marker lost longer than the hold: neutral.
     Lost,
 }
@@ -290,6 +295,11 @@ pub struct StationKeeper {
     att_now: Option<UnitQuaternion<f64>>,
     att_prev: Option<UnitQuaternion<f64>>,
     rejected: u64,
+    /// The PIDs' output before the view guard.
+    pid_out: Effort,
+    view: Option<view::ViewGuard>,
+    last_view: Option<view::LastSeen>,
+    heading: Option<f64>,
 }
 
 impl StationKeeper {
@@ -345,6 +355,10 @@ impl StationKeeper {
             att_now: None,
             att_prev: None,
             rejected: 0,
+            pid_out: Effort::NEUTRAL,
+            view: None,
+            last_view: None,
+            heading: None,
         })
     }
 
@@ -429,34 +443,66 @@ impl StationKeeper {
                 self.last_seen = Some(stamp_s);
                 self.status = KeeperStatus::Tracking;
                 self.run_pids(dt);
+                if let Some(g) = &self.view {
+                    let seen = g.last_seen(&m.t_cam_marker, self.heading);
+                    g.apply(&mut self.out, &seen.edge);
+                    self.last_view = Some(seen);
+                }
             }
         }
         if !seen {
-            // Missed, or rejected by the gate: hold (or bridge), then neutral.
-            let age = self.last_seen.map(|t| stamp_s - t);
-            match age {
-                Some(a) if a <= self.hold_s && self.status != KeeperStatus::Lost => {
-                    self.status = KeeperStatus::Holding;
-                    if bridged {
-                        // The attitude-propagated error keeps the loop closed.
-                        self.acc += dt;
-                        self.run_pids(dt);
+            self.missed(stamp_s, dt, bridged);
+        }
+        self.out
+    }
+
+    /// A frame without a usable measurement: the way back when the marker slipped out at
+    /// an edge (or the hold is over), else hold (or bridge), then neutral.
+    fn missed(&mut self, stamp_s: f64, dt: f64, bridged: bool) {
+        let age = self.last_seen.map(|t| stamp_s - t);
+        if let (Some(a), Some(g), Some(seen)) = (age, &self.view, &self.last_view) {
+            let at_edge = seen.edge.margin < g.guard;
+            if self.status != KeeperStatus::Lost && (at_edge || a > self.hold_s) {
+                match g.search(seen, a, self.heading) {
+                    Some(e) => {
+                        if self.status != KeeperStatus::Searching {
+                            tracing::info!(stamp_s, "station keeper: marker out of view, way back");
+                        }
+                        self.status = KeeperStatus::Searching;
+                        self.out = e;
+                        return;
                     }
-                }
-                Some(_) => {
-                    if self.status != KeeperStatus::Lost {
-                        tracing::info!(stamp_s, "station keeper: marker lost, neutral");
+                    None if a <= self.hold_s => {
+                        // Turned back (or nothing to turn): hold still.
+                        self.status = KeeperStatus::Searching;
+                        self.out = Effort::NEUTRAL;
+                        return;
                     }
-                    self.status = KeeperStatus::Lost;
-                    self.out = Effort::NEUTRAL;
-                }
-                None => {
-                    self.status = KeeperStatus::NoFix;
-                    self.out = Effort::NEUTRAL;
+                    None => {}
                 }
             }
         }
-        self.out
+        match age {
+            Some(a) if a <= self.hold_s && self.status != KeeperStatus::Lost => {
+                self.status = KeeperStatus::Holding;
+                if bridged {
+                    // The attitude-propagated error keeps the loop closed.
+                    self.acc += dt;
+                    self.run_pids(dt);
+                }
+            }
+            Some(_) => {
+                if self.status != KeeperStatus::Lost {
+                    tracing::info!(stamp_s, "station keeper: marker lost, neutral");
+                }
+                self.status = KeeperStatus::Lost;
+                self.out = Effort::NEUTRAL;
+            }
+            None => {
+                self.status = KeeperStatus::NoFix;
+                self.out = Effort::NEUTRAL;
+            }
+        }
     }
 
     /// Steps the PIDs on the filtered error for the controller periods due.
@@ -476,11 +522,40 @@ impl StationKeeper {
             for (i, a) in self.axes.iter_mut().enumerate() {
                 o[i] = a.step(x[i]);
             }
-            self.out = Effort::from_array(o);
+            self.pid_out = Effort::from_array(o);
             self.acc -= self.dt_step;
             steps += 1;
         }
         self.acc = self.acc.clamp(0.0, self.dt_step);
+        self.out = self.pid_out;
+    }
+
+    /// The camera's field of view and the marker's size: from now on the keeper keeps the
+    /// marker's image out of a guard band along the image edges, and after the marker
+    /// slipped out it turns back toward where it was last seen (with `set_heading`).
+    pub fn set_view(&mut self, limits: ViewLimits) {
+        let a = &self.axes;
+        let out_limit = [0, 1, 2, 3, 4, 5].map(|i| a[i].cfg.output_limit);
+        self.view = Some(view::ViewGuard::new(
+            limits,
+            &self.t_vehicle_cam,
+            &self.t_marker_goal,
+            out_limit,
+        ));
+    }
+
+    /// The vehicle's heading from telemetry (ATTITUDE yaw, rad), given before `update`
+    /// for the same frame: the way back turns on it. Unlike `set_attitude` it does not
+    /// feed the pose filter.
+    pub fn set_heading(&mut self, yaw_rad: f64) {
+        if yaw_rad.is_finite() {
+            self.heading = Some(yaw_rad);
+        }
+    }
+
+    /// Where the guard band starts: a fraction of the image inside its edges.
+    pub fn view_guard_margin(&self) -> Option<f64> {
+        self.view.as_ref().map(|v| v.guard)
     }
 
     /// Vehicle attitude from telemetry (ATTITUDE roll, pitch, yaw in rad, FRD body in the
@@ -560,8 +635,10 @@ impl StationKeeper {
         self.filter.reset();
         self.acc = 0.0;
         self.out = Effort::NEUTRAL;
+        self.pid_out = Effort::NEUTRAL;
         self.status = KeeperStatus::NoFix;
         self.last_seen = None;
+        self.last_view = None;
         self.att_prev = None;
     }
 
