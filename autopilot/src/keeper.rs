@@ -299,7 +299,8 @@ pub struct StationKeeper {
     pid_out: Effort,
     view: Option<view::ViewGuard>,
     last_view: Option<view::LastSeen>,
-    heading: Option<f64>,
+    nav: view::Nav,
+    search_max_s: f64,
 }
 
 impl StationKeeper {
@@ -358,7 +359,8 @@ impl StationKeeper {
             pid_out: Effort::NEUTRAL,
             view: None,
             last_view: None,
-            heading: None,
+            nav: view::Nav::default(),
+            search_max_s: ctl.marker_lost_action_after_s,
         })
     }
 
@@ -444,7 +446,7 @@ impl StationKeeper {
                 self.status = KeeperStatus::Tracking;
                 self.run_pids(dt);
                 if let Some(g) = &self.view {
-                    let seen = g.last_seen(&m.t_cam_marker, self.heading);
+                    let seen = g.last_seen(&self.t_vehicle_cam, &m.t_cam_marker, self.nav);
                     g.apply(&mut self.out, &seen.edge);
                     self.last_view = Some(seen);
                 }
@@ -463,7 +465,7 @@ impl StationKeeper {
         if let (Some(a), Some(g), Some(seen)) = (age, &self.view, &self.last_view) {
             let at_edge = seen.edge.margin < g.guard;
             if self.status != KeeperStatus::Lost && (at_edge || a > self.hold_s) {
-                match g.search(seen, a, self.heading) {
+                match g.search(seen, a, self.search_max_s, self.nav) {
                     Some(e) => {
                         if self.status != KeeperStatus::Searching {
                             tracing::info!(stamp_s, "station keeper: marker out of view, way back");
@@ -548,9 +550,15 @@ impl StationKeeper {
     /// for the same frame: the way back turns on it. Unlike `set_attitude` it does not
     /// feed the pose filter.
     pub fn set_heading(&mut self, yaw_rad: f64) {
-        if yaw_rad.is_finite() {
-            self.heading = Some(yaw_rad);
-        }
+        self.nav.heading_rad = yaw_rad.is_finite().then_some(yaw_rad);
+    }
+
+    /// The vehicle's local position (north, east, m) from telemetry, when it has a
+    /// position source (LOCAL_POSITION_NED), given before `update` for the same frame:
+    /// the way back then turns toward where the marker is after the vehicle drifted,
+    /// not only toward where it was seen. `None` when there is none.
+    pub fn set_position_ne(&mut self, ne: Option<[f64; 2]>) {
+        self.nav.position_ne = ne.filter(|p| p.iter().all(|v| v.is_finite()));
     }
 
     /// Where the guard band starts: a fraction of the image inside its edges.
@@ -931,6 +939,132 @@ mod tests {
         t += 1.0 / 30.0;
         let e = k.update(t, Some(&meas_for(t, &moved)));
         assert!(e.surge > 0.3, "{e:?}");
+    }
+
+    /// 62 x 48 degree view (the pool camera), 0.15 m marker.
+    fn pool_view() -> ViewLimits {
+        ViewLimits {
+            left: -0.6,
+            right: 0.6,
+            top: -0.45,
+            bottom: 0.45,
+            marker_half_m: 0.075,
+        }
+    }
+
+    #[test]
+    fn guard_takes_out_the_push_toward_the_edge_and_pushes_back() {
+        let goal = StationConfig::default().t_marker_vehicle();
+        // Left of the station and turned 40 degrees right: the marker's image is near
+        // the left edge.
+        let turned = goal.rotation * UnitQuaternion::from_axis_angle(&Vector3::z_axis(), 0.7);
+        let t = Isometry3::from_parts(Translation3::new(-0.25, 0.0, 1.0), turned);
+        let run = |view: bool| {
+            let mut k = keeper();
+            if view {
+                k.set_view(pool_view());
+            }
+            let e = k.update(0.0, Some(&meas_for(0.0, &t)));
+            (e, k.view_guard_margin())
+        };
+        let (plain, none) = run(false);
+        let (guarded, guard) = run(true);
+        assert_eq!(none, None);
+        assert!((guard.unwrap() - 0.12).abs() < 1e-9, "{guard:?}");
+        // The PIDs turn left (here at the limit) and translate forward-right toward the
+        // station, which slides the image out at the left edge: the guard keeps the turn
+        // and takes that translation out (here it reverses it: point first, then move).
+        assert!(
+            plain.yaw < 0.0 && guarded.yaw <= plain.yaw,
+            "{plain:?} vs {guarded:?}"
+        );
+        assert!(plain.surge > 0.05 && plain.sway > 0.05, "{plain:?}");
+        assert!(guarded.surge < 0.0 && guarded.sway < 0.0, "{guarded:?}");
+    }
+
+    #[test]
+    fn guard_leaves_a_centred_marker_alone() {
+        let goal = StationConfig::default().t_marker_vehicle();
+        let t = Isometry3::from_parts(Translation3::new(0.05, 0.02, 1.2), goal.rotation);
+        let mut a = keeper();
+        let mut b = keeper();
+        b.set_view(pool_view());
+        for i in 0..20 {
+            let ts = i as f64 / 30.0;
+            assert_eq!(
+                a.update(ts, Some(&meas_for(ts, &t))),
+                b.update(ts, Some(&meas_for(ts, &t)))
+            );
+        }
+    }
+
+    #[test]
+    fn way_back_turns_toward_where_the_marker_left_then_holds() {
+        let goal = StationConfig::default().t_marker_vehicle();
+        // Marker near the left edge: the vehicle turned 25 degrees right of facing it.
+        let turned = goal.rotation * UnitQuaternion::from_axis_angle(&Vector3::z_axis(), 0.45);
+        let t = Isometry3::from_parts(goal.translation, turned);
+        let mut k = keeper();
+        k.set_view(pool_view());
+        k.set_heading(0.45);
+        k.update(0.0, Some(&meas_for(0.0, &t)));
+        assert_eq!(k.status(), KeeperStatus::Tracking);
+        // Gone at the left edge: at once (no hold of the last command) a left turn.
+        k.set_heading(0.45);
+        let e = k.update(1.0 / 30.0, None);
+        assert_eq!(k.status(), KeeperStatus::Searching);
+        assert!(e.yaw < -0.1, "{e:?}");
+        assert!(e.surge == 0.0 && e.sway == 0.0, "{e:?}");
+        // Turned to where it was seen (the camera's axis on the marker): hold still.
+        let bearing = {
+            let c = (forward_cam() * meas_for(0.0, &t).t_cam_marker)
+                .translation
+                .vector;
+            c.y.atan2(c.x)
+        };
+        k.set_heading(0.45 + bearing);
+        let e = k.update(2.0 / 30.0, None);
+        assert!(e.is_neutral(), "{e:?}");
+        // Bounded: past the marker-loss action time the keeper is lost and neutral.
+        let after = ControllerConfig::default().marker_lost_action_after_s;
+        let mut ts = 2.0 / 30.0;
+        let mut e = Effort::NEUTRAL;
+        while ts < after + 0.1 {
+            ts += 1.0 / 30.0;
+            k.set_heading(0.0);
+            e = k.update(ts, None);
+        }
+        assert!(e.is_neutral(), "{e:?}");
+        assert_eq!(k.status(), KeeperStatus::Lost);
+    }
+
+    #[test]
+    fn way_back_without_heading_holds_still() {
+        let goal = StationConfig::default().t_marker_vehicle();
+        let turned = goal.rotation * UnitQuaternion::from_axis_angle(&Vector3::z_axis(), 0.45);
+        let t = Isometry3::from_parts(goal.translation, turned);
+        let mut k = keeper();
+        k.set_view(pool_view());
+        k.update(0.0, Some(&meas_for(0.0, &t)));
+        let e = k.update(1.0 / 30.0, None);
+        assert!(e.is_neutral(), "{e:?}");
+    }
+
+    #[test]
+    fn way_back_follows_the_drift_with_a_position() {
+        // Seen straight ahead, then the vehicle drifts 0.6 m to the right (east, the
+        // marker's +x) with its heading held: the marker is now to the left.
+        let goal = StationConfig::default().t_marker_vehicle();
+        let mut k = keeper();
+        k.set_view(pool_view());
+        k.set_heading(0.0);
+        k.set_position_ne(Some([-1.0, 0.0]));
+        k.update(0.0, Some(&meas_for(0.0, &goal)));
+        k.set_heading(0.0);
+        k.set_position_ne(Some([-1.0, 0.6]));
+        let e = k.update(1.0, None);
+        assert_eq!(k.status(), KeeperStatus::Searching);
+        assert!(e.yaw < -0.1, "{e:?}");
     }
 
     mod props {

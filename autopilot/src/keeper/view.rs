@@ -28,8 +28,6 @@ const SEARCH_YAW_GAIN: f64 = 0.8;
 const SEARCH_YAW_LIMIT: f64 = 0.3;
 /// The turn is done within this heading error; then hold.
 const SEARCH_DONE_RAD: f64 = 0.05;
-/// The way back gives up (neutral) this long after the marker was last seen, seconds.
-pub(super) const SEARCH_MAX_S: f64 = 4.0;
 /// Heave toward a marker that left at the top or bottom edge: effort and duration.
 const SEARCH_HEAVE: f64 = 0.12;
 const SEARCH_HEAVE_S: f64 = 1.0;
@@ -55,6 +53,17 @@ pub(super) struct LastSeen {
     pub turn_rad: f64,
     /// The vehicle's heading then (telemetry), if known.
     pub heading_rad: Option<f64>,
+    /// The marker's horizontal position (north, east) in the vehicle's local frame, when
+    /// heading and local position (telemetry) were known.
+    pub marker_ne: Option<[f64; 2]>,
+}
+
+/// The vehicle's navigation telemetry on a frame: heading (rad) and, when it has a
+/// position source, local position north and east (m).
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub(super) struct Nav {
+    pub heading_rad: Option<f64>,
+    pub position_ne: Option<[f64; 2]>,
 }
 
 #[derive(Clone, Debug)]
@@ -166,33 +175,56 @@ impl ViewGuard {
         *e = Effort::from_array(a);
     }
 
-    /// What the way back needs from a measurement: the nearest edge, and the turn that
-    /// puts the marker centre on the camera's axis.
-    pub fn last_seen(&self, t_cam_marker: &Isometry3<f64>, heading_rad: Option<f64>) -> LastSeen {
-        let c = self.r_body_cam * t_cam_marker.translation.vector;
-        let axis = self.r_body_cam * Vector3::z();
-        let turn_rad = wrap_pi(c.y.atan2(c.x) - axis.y.atan2(axis.x));
+    /// What the way back needs from a measurement: the nearest edge, the turn that puts
+    /// the marker centre on the camera's axis, and where the marker is in the local frame.
+    pub fn last_seen(
+        &self,
+        t_vehicle_cam: &Isometry3<f64>,
+        t_cam_marker: &Isometry3<f64>,
+        nav: Nav,
+    ) -> LastSeen {
+        let c = (t_vehicle_cam * t_cam_marker).translation.vector;
+        let turn_rad = wrap_pi(c.y.atan2(c.x) - self.axis_yaw());
+        let marker_ne = match (nav.heading_rad, nav.position_ne) {
+            (Some(psi), Some([n, e])) => {
+                let (sn, cs) = psi.sin_cos();
+                Some([n + cs * c.x - sn * c.y, e + sn * c.x + cs * c.y])
+            }
+            _ => None,
+        };
         LastSeen {
             edge: self.nearest_edge(t_cam_marker),
             turn_rad,
-            heading_rad,
+            heading_rad: nav.heading_rad,
+            marker_ne,
         }
     }
 
-    /// The way back `age_s` after the marker was last seen, with the vehicle's heading
-    /// now: turn toward where the marker was (closed on the heading telemetry, at most
-    /// `SEARCH_MAX_TURN_RAD`), heave toward it briefly if it left at the top or bottom,
-    /// then hold. None when there is nothing to do (neutral).
-    pub fn search(&self, seen: &LastSeen, age_s: f64, heading_rad: Option<f64>) -> Option<Effort> {
-        if !(0.0..=SEARCH_MAX_S).contains(&age_s) {
+    /// Heading of the camera's axis in the body frame, rad (+ right).
+    fn axis_yaw(&self) -> f64 {
+        let axis = self.r_body_cam * Vector3::z();
+        axis.y.atan2(axis.x)
+    }
+
+    /// The way back `age_s` after the marker was last seen (at most `max_s`), with the
+    /// vehicle's navigation now: turn the camera toward where the marker is (from the
+    /// local position when known, else where it was last seen), closed on the heading
+    /// telemetry and at most `SEARCH_MAX_TURN_RAD` from the heading then; heave toward it
+    /// briefly if it left at the top or bottom; then hold. None when there is nothing to
+    /// do (neutral).
+    pub fn search(&self, seen: &LastSeen, age_s: f64, max_s: f64, nav: Nav) -> Option<Effort> {
+        if !(0.0..=max_s).contains(&age_s) {
             return None;
         }
         let mut e = Effort::NEUTRAL;
-        if let (Some(then), Some(now)) = (seen.heading_rad, heading_rad) {
-            let target = then
-                + seen
-                    .turn_rad
-                    .clamp(-SEARCH_MAX_TURN_RAD, SEARCH_MAX_TURN_RAD);
+        if let (Some(then), Some(now)) = (seen.heading_rad, nav.heading_rad) {
+            let turn = match (seen.marker_ne, nav.position_ne) {
+                (Some([mn, me]), Some([n, en])) => {
+                    wrap_pi((me - en).atan2(mn - n) - self.axis_yaw() - then)
+                }
+                _ => seen.turn_rad,
+            };
+            let target = then + turn.clamp(-SEARCH_MAX_TURN_RAD, SEARCH_MAX_TURN_RAD);
             let err = wrap_pi(target - now);
             if err.abs() > SEARCH_DONE_RAD {
                 e.yaw = (SEARCH_YAW_GAIN * err).clamp(-SEARCH_YAW_LIMIT, SEARCH_YAW_LIMIT);
