@@ -258,7 +258,8 @@ pub fn check(
         setup.marker_size_m,
     );
     let mut warnings = Vec::new();
-    if !(at_station.margin >= REFUSE_MARGIN) {
+    // NaN (a degenerate pose) is refused too.
+    if at_station.margin.is_nan() || at_station.margin < REFUSE_MARGIN {
         return Err(ConfigError::new(
             "station",
             station_value(station, setup),
@@ -283,7 +284,13 @@ pub fn check(
         let worst = (0..PATH_SAMPLES)
             .map(|i| {
                 let s = i as f64 / PATH_SAMPLES as f64;
-                let pose = t_start.lerp_slerp(&goal, s);
+                // try_slerp: half a turn apart has no single way between (slerp panics).
+                let rotation = t_start
+                    .rotation
+                    .try_slerp(&goal.rotation, s, 1e-9)
+                    .unwrap_or(t_start.rotation);
+                let translation = t_start.translation.vector.lerp(&goal.translation.vector, s);
+                let pose = Isometry3::from_parts(translation.into(), rotation);
                 marker_view(
                     setup.calib,
                     &setup.t_vehicle_cam,
@@ -447,6 +454,27 @@ mod tests {
             let v = view(m, y, l);
             assert!(v.margin < 0.0 && v.edge == Edge::Left, "{m} {y} {l}: {v:?}");
         }
+    }
+
+    #[test]
+    fn a_start_half_a_turn_away_is_checked_without_a_panic() {
+        let setup = ViewSetup {
+            calib: &pool(),
+            t_vehicle_cam: mount(0.0, 0.0),
+            mount_rpy_deg: [0.0; 3],
+            mount_position_m: [0.2, 0.0, 0.0],
+            marker_size_m: 0.15,
+        };
+        let st = StationConfig::default();
+        let turned = st.t_marker_vehicle()
+            * Isometry3::rotation(nalgebra::Vector3::z() * std::f64::consts::PI);
+        let f = check(&setup, &st, Some((&turned, "vehicle.initial_offset_deg"))).unwrap();
+        assert!(f.worst_on_way.unwrap().margin < 0.0);
+        assert!(
+            f.warnings.iter().any(|w| w.contains("leaves the view")),
+            "{:?}",
+            f.warnings
+        );
     }
 
     #[test]
