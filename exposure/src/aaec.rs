@@ -141,7 +141,7 @@ pub struct AaecConfig {
     /// band) to see whether the optimum is still inside. Each confirmation doubles the
     /// interval (up to 64 frames).
     pub probe_frames: u32,
-    /// Grey level from which a pixel counts as clipped, 128..=255 (official AEC: 250;
+    /// Grey level from which a pixel counts as clipped, 128..=255 (official AEC: 252;
     /// ours: 255, the only level a linear sensor really clips at).
     pub saturation_grey: u8,
     /// A clipped pixel's `dG` becomes `-penalty * max(|dG|, 0.5)`, [0, 10] (official AEC:
