@@ -275,7 +275,7 @@ impl ExposureController for AaecPaper {
             exposure_us: self.commanded_us,
             metric: f64::NAN,
             used_frame: false,
-            roi: self.roi,
+            roi: None,
         };
         if !frame.is_consistent() {
             return hold;
@@ -286,11 +286,12 @@ impl ExposureController for AaecPaper {
                 self.roi = Some(r);
             }
         }
-        let Some(roi) = self.roi else {
+        // The kept RoI of an earlier frame, within this one (a camera can change size).
+        let Some(roi) = self.roi.map(|r| r.clamp_to(frame.width, frame.height)) else {
             return hold;
         };
-        if !exposed_as_commanded(frame, self.commanded_us) {
-            return hold;
+        if roi.is_empty() || !exposed_as_commanded(frame, self.commanded_us) {
+            return ExposureStep { roi: None, ..hold };
         }
         let view = frame.view().crop(roi);
         let Some(v) = self.eval.evaluate(view, self.commanded_us, &self.cfg) else {

@@ -140,12 +140,16 @@ impl ExposureController for GecPaper {
             exposure_us: self.commanded_us,
             metric: f64::NAN,
             used_frame: false,
-            roi: self.roi,
+            roi: None,
         };
         if !exposed_as_commanded(frame, self.commanded_us) || !frame.is_consistent() {
             return hold;
         }
-        let roi = self.roi.unwrap_or_else(|| frame.full_roi());
+        // The kept region of an earlier frame, within this one (a camera can change size).
+        let kept = self.roi.map(|r| r.clamp_to(frame.width, frame.height));
+        let roi = kept
+            .filter(|r| !r.is_empty())
+            .unwrap_or_else(|| frame.full_roi());
         let view = frame.view().crop(roi);
         if !self.scorer.scores_into(view, &mut self.scores) {
             return hold;
@@ -160,7 +164,7 @@ impl ExposureController for GecPaper {
             exposure_us: self.commanded_us,
             metric: self.scores[GEC_PAPER_ANCHORS / 2],
             used_frame: true,
-            roi: self.roi,
+            roi: Some(roi),
         }
     }
 

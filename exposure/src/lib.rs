@@ -178,7 +178,10 @@ pub struct ExposureConfig {
     pub gec: GecConfig,
     /// Parameters of the paper's GEC baseline.
     pub gec_paper: GecPaperConfig,
-    /// The camera response the gradient controllers assume (and HIL renders with).
+    /// The camera response the gradient controllers assume (and HIL renders with). Not
+    /// a key of `[exposure]`: a site file gives it as `[camera] response`, and the binary
+    /// sets it from there.
+    #[serde(skip)]
     pub response: ResponseModel,
 }
 

@@ -134,7 +134,7 @@ pub fn camera_model(site: &LoadedSite, limits: markhold_exposure::ExposureLimits
         limits,
         gain_db: s.camera.gain_db,
         delay_frames: s.camera.actuation_delay_frames,
-        response: s.exposure.response.clone(),
+        response: s.camera.response.clone(),
         sensor: s.camera.sensor.clone(),
     }
 }
@@ -505,4 +505,49 @@ impl HilRun {
         }
         summary
     }
+}
+
+/// Frames of the site's marker seen from the station by the site's HIL camera (the
+/// site's lighting, `seed`), at `steps` exposures spaced geometrically over the
+/// camera's range: the exposure sweep `markhold response fit` calibrates from.
+pub fn exposure_sweep(
+    site: &LoadedSite,
+    seed: u64,
+    steps: usize,
+) -> anyhow::Result<Vec<markhold_exposure::Frame>> {
+    use markhold_hil::camera::UnderwaterCamera;
+    use markhold_hil::scene::Scene;
+    anyhow::ensure!(steps >= 2, "--steps {steps}: expected 2 or more exposures");
+    let s = &site.site;
+    let limits = site.limits();
+    let t_world_marker = site.t_world_marker();
+    let scene = Scene::new(
+        &s.water,
+        &s.lighting,
+        marker_spec(site)?,
+        t_world_marker,
+        seed,
+    )?;
+    let t_world_vehicle = t_world_marker * s.station.t_marker_vehicle();
+    let t_world_cam = t_world_vehicle * site.t_vehicle_cam();
+    let mut camera = UnderwaterCamera::new(camera_model(site, limits), seed)?;
+    let (lo, hi) = (limits.min_us, limits.effective_max_us());
+    let dt = 1.0 / s.camera.fps;
+    let mut time_s = 0.0;
+    let mut out = Vec::with_capacity(steps);
+    for k in 0..steps {
+        let t = lo * (hi / lo).powf(k as f64 / (steps - 1) as f64);
+        let t = camera.set_exposure_us(t);
+        let mut frame = markhold_exposure::Frame::new(1, 1);
+        // A new exposure takes effect a few frames late: render until it has.
+        for _ in 0..=s.camera.actuation_delay_frames + 1 {
+            camera.render(&scene, &t_world_cam, &t_world_vehicle, time_s, &mut frame);
+            time_s += dt;
+            if (frame.meta.exposure_us - t).abs() <= 1e-6 * t {
+                break;
+            }
+        }
+        out.push(frame);
+    }
+    Ok(out)
 }
