@@ -97,7 +97,7 @@ pub fn fit_polynomial(frames: &[Frame], degree: usize) -> anyhow::Result<Respons
                 continue;
             }
             k += 1;
-            if k % stride != 0 {
+            if !k.is_multiple_of(stride) {
                 continue;
             }
             lo = lo.min(ia.min(ib));

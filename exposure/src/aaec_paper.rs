@@ -167,7 +167,7 @@ impl PaperMetricEval {
         cfg: &AaecPaperConfig,
     ) -> Option<PaperMetricValue> {
         let (w, h) = (view.width, view.height);
-        if w < 3 || h < 3 || !(t_us > 0.0) {
+        if w < 3 || h < 3 || t_us.is_nan() || t_us <= 0.0 {
             return None;
         }
         let t_s = t_us * 1e-6;
@@ -225,7 +225,7 @@ impl PaperMetricEval {
             m += wi * p.0;
             dm += wi * p.2;
         }
-        if !(wsum > 0.0) {
+        if wsum.is_nan() || wsum <= 0.0 {
             return None;
         }
         Some(PaperMetricValue {
