@@ -451,6 +451,13 @@ pub fn parse(path: &Path, text: &str) -> Result<LoadedSite, ParamsError> {
 /// Every section of a parsed site, in file order of the usual site file.
 fn validate(site: &Site) -> Result<(), ConfigError> {
     validate_site(site)?;
+    if site.exposure.response != ResponseModel::Linear {
+        return Err(ConfigError::new(
+            "exposure.response",
+            AsDebug(&site.exposure.response),
+            "no response here: the camera response is `[camera] response`",
+        ));
+    }
     site.camera.response.validate()?;
     validate_sim(site)?;
     site.marker.validate()?;

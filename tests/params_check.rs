@@ -231,3 +231,14 @@ fn camera_response_polynomial_not_positive() {
         )
     });
 }
+
+#[test]
+fn camera_response_under_exposure_is_named() {
+    bad_case("response_under_exposure", |t| {
+        t.replacen(
+            "[exposure]\n",
+            "[exposure]\nresponse = { model = \"gamma\", gamma = 2.2 }\n",
+            1,
+        )
+    });
+}

@@ -178,10 +178,11 @@ pub struct ExposureConfig {
     pub gec: GecConfig,
     /// Parameters of the paper's GEC baseline.
     pub gec_paper: GecPaperConfig,
-    /// The camera response the gradient controllers assume (and HIL renders with). Not
-    /// a key of `[exposure]`: a site file gives it as `[camera] response`, and the binary
-    /// sets it from there.
-    #[serde(skip)]
+    /// The camera response the gradient controllers assume (and HIL renders with). A
+    /// site file gives it as `[camera] response` and the binary sets it from there; it
+    /// is never written, and read only so that the binary can name it when a file still
+    /// has it here.
+    #[serde(skip_serializing)]
     pub response: ResponseModel,
 }
 
