@@ -29,6 +29,7 @@ pub fn print_report(args: std::fmt::Arguments<'_>) {
 }
 
 pub mod cli_docs;
+pub mod feasibility;
 pub mod field;
 pub mod observe;
 pub mod params;

@@ -279,6 +279,7 @@ fn params_check(file: &Path) -> anyhow::Result<()> {
     if site.calibration.dist.len() > 5 {
         markhold::outln!("# full distortion: {:?}", site.calibration.dist);
     }
+    markhold::feasibility::print_check(&site);
     if let Some(note) = params::SIM_SECTIONS_NOTE {
         markhold::outln!("# {note}");
     }
@@ -343,6 +344,7 @@ fn check_heartbeat_timeout(s: f64) -> anyhow::Result<()> {
 
 fn run_cmd(args: RunArgs) -> anyhow::Result<()> {
     let site = params::load(&args.site)?;
+    markhold::feasibility::warn_site(&site);
     check_heartbeat_timeout(args.heartbeat_timeout_s)?;
     let stop = markhold::field::signal::install()?;
     let opts = markhold::field::run::RunOptions {

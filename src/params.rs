@@ -427,6 +427,8 @@ pub fn parse(path: &Path, text: &str) -> Result<LoadedSite, ParamsError> {
         site.camera.calibration_file = Some(full.clone());
     }
     let calibration = calibration_of(path, &at, &site.camera)?;
+    // The marker must be in view at the station (docs/frames.md).
+    crate::feasibility::check_site(&site, &calibration).map_err(|e| located(path, &at, e))?;
     if let Some(rel) = &site.link.signing_key_file {
         // Relative to the site file, like the calibration file; checked here so a
         // missing or malformed key is a config error before anything starts.

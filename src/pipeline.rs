@@ -189,7 +189,8 @@ impl<L: CommandLink> Pipeline<L> {
             limits,
             start.initial_exposure_us,
         )?;
-        let keeper = StationKeeper::new(&s.station, &s.controller, site.t_vehicle_cam())?;
+        let mut keeper = StationKeeper::new(&s.station, &s.controller, site.t_vehicle_cam())?;
+        keeper.set_view(crate::feasibility::view_limits(calib, s.marker.size_m));
         if let Some(tap) = observers.mavlink_tap() {
             link.set_raw_tap(Some(tap));
         }
@@ -353,6 +354,19 @@ impl<L: CommandLink> Pipeline<L> {
                 self.mode_changes_seen = changes;
                 self.keeper.reset();
             }
+        }
+        // Heading and position for the way back when the marker slips out of view
+        // (telemetry no older than a second).
+        if let Some(v) = self.link.vehicle_state() {
+            let fresh = |t: f64| (0.0..=1.0).contains(&(stamp - t));
+            if let Some(a) = v.attitude.filter(|a| fresh(a.stamp_s)) {
+                self.keeper.set_heading(a.yaw);
+            }
+            let ne = v
+                .local_position
+                .filter(|p| fresh(p.stamp_s))
+                .map(|p| [p.position[0], p.position[1]]);
+            self.keeper.set_position_ne(ne);
         }
         let effort = self.keeper.update(stamp, meas.as_ref());
         if obs.is_some() {

@@ -7,6 +7,8 @@
 use nalgebra::{Isometry3, Matrix3, Matrix6, UnitQuaternion, Vector3};
 use serde::Serialize;
 
+mod view;
+
 use crate::config::{AxisConfig, ControllerConfig, StationConfig};
 use crate::error::AutopilotError;
 pub use crate::types::{wrap_pi, Effort};
@@ -23,6 +25,19 @@ pub struct PoseMeasurement {
     pub cov_cam: Matrix6<f64>,
 }
 
+/// The camera's image edges as undistorted normalized coordinates (x/z, y/z; x right,
+/// y down, so `left` and `top` are negative), and the marker's half edge: what the keeper
+/// needs to keep the marker in view (`StationKeeper::set_view`).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct ViewLimits {
+    pub left: f64,
+    pub right: f64,
+    pub top: f64,
+    pub bottom: f64,
+    /// Half the marker's edge, metres.
+    pub marker_half_m: f64,
+}
+
 /// Where the keeper stands with respect to the marker.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize)]
 pub enum KeeperStatus {
@@ -32,6 +47,9 @@ pub enum KeeperStatus {
     Tracking,
     /// Marker missed, within `marker_lost_hold_s`: last command held.
     Holding,
+    /// Marker slipped out of view: the bounded way back (turn toward where it was last
+    /// seen, then hold) runs.
+    Searching,
     /// Marker lost longer than the hold: neutral.
     Lost,
 }
@@ -277,6 +295,12 @@ pub struct StationKeeper {
     att_now: Option<UnitQuaternion<f64>>,
     att_prev: Option<UnitQuaternion<f64>>,
     rejected: u64,
+    /// The PIDs' output before the view guard.
+    pid_out: Effort,
+    view: Option<view::ViewGuard>,
+    last_view: Option<view::LastSeen>,
+    nav: view::Nav,
+    search_max_s: f64,
 }
 
 impl StationKeeper {
@@ -332,6 +356,11 @@ impl StationKeeper {
             att_now: None,
             att_prev: None,
             rejected: 0,
+            pid_out: Effort::NEUTRAL,
+            view: None,
+            last_view: None,
+            nav: view::Nav::default(),
+            search_max_s: ctl.marker_lost_action_after_s,
         })
     }
 
@@ -416,34 +445,66 @@ impl StationKeeper {
                 self.last_seen = Some(stamp_s);
                 self.status = KeeperStatus::Tracking;
                 self.run_pids(dt);
+                if let Some(g) = &self.view {
+                    let seen = g.last_seen(&self.t_vehicle_cam, &m.t_cam_marker, self.nav);
+                    g.apply(&mut self.out, &seen.edge);
+                    self.last_view = Some(seen);
+                }
             }
         }
         if !seen {
-            // Missed, or rejected by the gate: hold (or bridge), then neutral.
-            let age = self.last_seen.map(|t| stamp_s - t);
-            match age {
-                Some(a) if a <= self.hold_s && self.status != KeeperStatus::Lost => {
-                    self.status = KeeperStatus::Holding;
-                    if bridged {
-                        // The attitude-propagated error keeps the loop closed.
-                        self.acc += dt;
-                        self.run_pids(dt);
+            self.missed(stamp_s, dt, bridged);
+        }
+        self.out
+    }
+
+    /// A frame without a usable measurement: the way back when the marker slipped out at
+    /// an edge (or the hold is over), else hold (or bridge), then neutral.
+    fn missed(&mut self, stamp_s: f64, dt: f64, bridged: bool) {
+        let age = self.last_seen.map(|t| stamp_s - t);
+        if let (Some(a), Some(g), Some(seen)) = (age, &self.view, &self.last_view) {
+            let at_edge = seen.edge.margin < g.guard;
+            if self.status != KeeperStatus::Lost && (at_edge || a > self.hold_s) {
+                match g.search(seen, a, self.search_max_s, self.nav) {
+                    Some(e) => {
+                        if self.status != KeeperStatus::Searching {
+                            tracing::info!(stamp_s, "station keeper: marker out of view, way back");
+                        }
+                        self.status = KeeperStatus::Searching;
+                        self.out = e;
+                        return;
                     }
-                }
-                Some(_) => {
-                    if self.status != KeeperStatus::Lost {
-                        tracing::info!(stamp_s, "station keeper: marker lost, neutral");
+                    None if a <= self.hold_s => {
+                        // Turned back (or nothing to turn): hold still.
+                        self.status = KeeperStatus::Searching;
+                        self.out = Effort::NEUTRAL;
+                        return;
                     }
-                    self.status = KeeperStatus::Lost;
-                    self.out = Effort::NEUTRAL;
-                }
-                None => {
-                    self.status = KeeperStatus::NoFix;
-                    self.out = Effort::NEUTRAL;
+                    None => {}
                 }
             }
         }
-        self.out
+        match age {
+            Some(a) if a <= self.hold_s && self.status != KeeperStatus::Lost => {
+                self.status = KeeperStatus::Holding;
+                if bridged {
+                    // The attitude-propagated error keeps the loop closed.
+                    self.acc += dt;
+                    self.run_pids(dt);
+                }
+            }
+            Some(_) => {
+                if self.status != KeeperStatus::Lost {
+                    tracing::info!(stamp_s, "station keeper: marker lost, neutral");
+                }
+                self.status = KeeperStatus::Lost;
+                self.out = Effort::NEUTRAL;
+            }
+            None => {
+                self.status = KeeperStatus::NoFix;
+                self.out = Effort::NEUTRAL;
+            }
+        }
     }
 
     /// Steps the PIDs on the filtered error for the controller periods due.
@@ -463,11 +524,46 @@ impl StationKeeper {
             for (i, a) in self.axes.iter_mut().enumerate() {
                 o[i] = a.step(x[i]);
             }
-            self.out = Effort::from_array(o);
+            self.pid_out = Effort::from_array(o);
             self.acc -= self.dt_step;
             steps += 1;
         }
         self.acc = self.acc.clamp(0.0, self.dt_step);
+        self.out = self.pid_out;
+    }
+
+    /// The camera's field of view and the marker's size: from now on the keeper keeps the
+    /// marker's image out of a guard band along the image edges, and after the marker
+    /// slipped out it turns back toward where it was last seen (with `set_heading`).
+    pub fn set_view(&mut self, limits: ViewLimits) {
+        let a = &self.axes;
+        let out_limit = [0, 1, 2, 3, 4, 5].map(|i| a[i].cfg.output_limit);
+        self.view = Some(view::ViewGuard::new(
+            limits,
+            &self.t_vehicle_cam,
+            &self.t_marker_goal,
+            out_limit,
+        ));
+    }
+
+    /// The vehicle's heading from telemetry (ATTITUDE yaw, rad), given before `update`
+    /// for the same frame: the way back turns on it. Unlike `set_attitude` it does not
+    /// feed the pose filter.
+    pub fn set_heading(&mut self, yaw_rad: f64) {
+        self.nav.heading_rad = yaw_rad.is_finite().then_some(yaw_rad);
+    }
+
+    /// The vehicle's local position (north, east, m) from telemetry, when it has a
+    /// position source (LOCAL_POSITION_NED), given before `update` for the same frame:
+    /// the way back then turns toward where the marker is after the vehicle drifted,
+    /// not only toward where it was seen. `None` when there is none.
+    pub fn set_position_ne(&mut self, ne: Option<[f64; 2]>) {
+        self.nav.position_ne = ne.filter(|p| p.iter().all(|v| v.is_finite()));
+    }
+
+    /// Where the guard band starts: a fraction of the image inside its edges.
+    pub fn view_guard_margin(&self) -> Option<f64> {
+        self.view.as_ref().map(|v| v.guard)
     }
 
     /// Vehicle attitude from telemetry (ATTITUDE roll, pitch, yaw in rad, FRD body in the
@@ -547,8 +643,10 @@ impl StationKeeper {
         self.filter.reset();
         self.acc = 0.0;
         self.out = Effort::NEUTRAL;
+        self.pid_out = Effort::NEUTRAL;
         self.status = KeeperStatus::NoFix;
         self.last_seen = None;
+        self.last_view = None;
         self.att_prev = None;
     }
 
@@ -841,6 +939,132 @@ mod tests {
         t += 1.0 / 30.0;
         let e = k.update(t, Some(&meas_for(t, &moved)));
         assert!(e.surge > 0.3, "{e:?}");
+    }
+
+    /// 62 x 48 degree view (the pool camera), 0.15 m marker.
+    fn pool_view() -> ViewLimits {
+        ViewLimits {
+            left: -0.6,
+            right: 0.6,
+            top: -0.45,
+            bottom: 0.45,
+            marker_half_m: 0.075,
+        }
+    }
+
+    #[test]
+    fn guard_takes_out_the_push_toward_the_edge_and_pushes_back() {
+        let goal = StationConfig::default().t_marker_vehicle();
+        // Left of the station and turned 40 degrees right: the marker's image is near
+        // the left edge.
+        let turned = goal.rotation * UnitQuaternion::from_axis_angle(&Vector3::z_axis(), 0.7);
+        let t = Isometry3::from_parts(Translation3::new(-0.25, 0.0, 1.0), turned);
+        let run = |view: bool| {
+            let mut k = keeper();
+            if view {
+                k.set_view(pool_view());
+            }
+            let e = k.update(0.0, Some(&meas_for(0.0, &t)));
+            (e, k.view_guard_margin())
+        };
+        let (plain, none) = run(false);
+        let (guarded, guard) = run(true);
+        assert_eq!(none, None);
+        assert!((guard.unwrap() - 0.12).abs() < 1e-9, "{guard:?}");
+        // The PIDs turn left (here at the limit) and translate forward-right toward the
+        // station, which slides the image out at the left edge: the guard keeps the turn
+        // and takes that translation out (here it reverses it: point first, then move).
+        assert!(
+            plain.yaw < 0.0 && guarded.yaw <= plain.yaw,
+            "{plain:?} vs {guarded:?}"
+        );
+        assert!(plain.surge > 0.05 && plain.sway > 0.05, "{plain:?}");
+        assert!(guarded.surge < 0.0 && guarded.sway < 0.0, "{guarded:?}");
+    }
+
+    #[test]
+    fn guard_leaves_a_centred_marker_alone() {
+        let goal = StationConfig::default().t_marker_vehicle();
+        let t = Isometry3::from_parts(Translation3::new(0.05, 0.02, 1.2), goal.rotation);
+        let mut a = keeper();
+        let mut b = keeper();
+        b.set_view(pool_view());
+        for i in 0..20 {
+            let ts = i as f64 / 30.0;
+            assert_eq!(
+                a.update(ts, Some(&meas_for(ts, &t))),
+                b.update(ts, Some(&meas_for(ts, &t)))
+            );
+        }
+    }
+
+    #[test]
+    fn way_back_turns_toward_where_the_marker_left_then_holds() {
+        let goal = StationConfig::default().t_marker_vehicle();
+        // Marker near the left edge: the vehicle turned 25 degrees right of facing it.
+        let turned = goal.rotation * UnitQuaternion::from_axis_angle(&Vector3::z_axis(), 0.45);
+        let t = Isometry3::from_parts(goal.translation, turned);
+        let mut k = keeper();
+        k.set_view(pool_view());
+        k.set_heading(0.45);
+        k.update(0.0, Some(&meas_for(0.0, &t)));
+        assert_eq!(k.status(), KeeperStatus::Tracking);
+        // Gone at the left edge: at once (no hold of the last command) a left turn.
+        k.set_heading(0.45);
+        let e = k.update(1.0 / 30.0, None);
+        assert_eq!(k.status(), KeeperStatus::Searching);
+        assert!(e.yaw < -0.1, "{e:?}");
+        assert!(e.surge == 0.0 && e.sway == 0.0, "{e:?}");
+        // Turned to where it was seen (the camera's axis on the marker): hold still.
+        let bearing = {
+            let c = (forward_cam() * meas_for(0.0, &t).t_cam_marker)
+                .translation
+                .vector;
+            c.y.atan2(c.x)
+        };
+        k.set_heading(0.45 + bearing);
+        let e = k.update(2.0 / 30.0, None);
+        assert!(e.is_neutral(), "{e:?}");
+        // Bounded: past the marker-loss action time the keeper is lost and neutral.
+        let after = ControllerConfig::default().marker_lost_action_after_s;
+        let mut ts = 2.0 / 30.0;
+        let mut e = Effort::NEUTRAL;
+        while ts < after + 0.1 {
+            ts += 1.0 / 30.0;
+            k.set_heading(0.0);
+            e = k.update(ts, None);
+        }
+        assert!(e.is_neutral(), "{e:?}");
+        assert_eq!(k.status(), KeeperStatus::Lost);
+    }
+
+    #[test]
+    fn way_back_without_heading_holds_still() {
+        let goal = StationConfig::default().t_marker_vehicle();
+        let turned = goal.rotation * UnitQuaternion::from_axis_angle(&Vector3::z_axis(), 0.45);
+        let t = Isometry3::from_parts(goal.translation, turned);
+        let mut k = keeper();
+        k.set_view(pool_view());
+        k.update(0.0, Some(&meas_for(0.0, &t)));
+        let e = k.update(1.0 / 30.0, None);
+        assert!(e.is_neutral(), "{e:?}");
+    }
+
+    #[test]
+    fn way_back_follows_the_drift_with_a_position() {
+        // Seen straight ahead, then the vehicle drifts 0.6 m to the right (east, the
+        // marker's +x) with its heading held: the marker is now to the left.
+        let goal = StationConfig::default().t_marker_vehicle();
+        let mut k = keeper();
+        k.set_view(pool_view());
+        k.set_heading(0.0);
+        k.set_position_ne(Some([-1.0, 0.0]));
+        k.update(0.0, Some(&meas_for(0.0, &goal)));
+        k.set_heading(0.0);
+        k.set_position_ne(Some([-1.0, 0.6]));
+        let e = k.update(1.0, None);
+        assert_eq!(k.status(), KeeperStatus::Searching);
+        assert!(e.yaw < -0.1, "{e:?}");
     }
 
     mod props {

@@ -199,6 +199,7 @@ pub fn sim_vehicle_hint(addr: std::net::SocketAddr) -> String {
 /// `markhold hil`: check the options, attach the observers asked for, run, report.
 pub fn hil(args: HilArgs) -> anyhow::Result<()> {
     let site = params::load(&args.site)?;
+    crate::feasibility::warn_site(&site);
     anyhow::ensure!(
         args.seconds > 0.0 && args.seconds <= super::summary::MAX_SECONDS,
         "--seconds {}: expected a positive number of simulated seconds, at most {} (a day)",
