@@ -1,8 +1,9 @@
 //! markhold-exposure: frames, the camera seam, and exposure controllers.
 //!
-//! Pure Rust, no OpenCV. The controllers follow `docs/reference/exposure-spec.md`: AAEC (the
-//! paper's method, RoI + momentum on a soft-percentile gradient metric), AEC
-//! (Zhang et al. 2017), GEC (Shim et al.) and a camera's mean-intensity AE.
+//! Pure Rust, no OpenCV. The controllers follow `docs/reference/exposure-spec.md`: AAEC as
+//! published (`aaec_paper`: RoI + momentum on a soft-percentile gradient metric) and
+//! markhold's own AAEC (`aaec`), AEC (Zhang et al. 2017), GEC with Shim's constants and as
+//! the AAEC paper ran it, and a camera's mean-intensity AE.
 
 mod aaec;
 mod aaec_paper;
