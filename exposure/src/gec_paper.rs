@@ -206,6 +206,43 @@ mod tests {
     }
 
     #[test]
+    fn meters_the_padded_marker_region_and_keeps_it() {
+        let limits = ExposureLimits {
+            min_us: 10.0,
+            max_us: 20_000.0,
+            fps: 30.0,
+        };
+        let mut g = GecPaper::new(GecPaperConfig::default(), limits, 1000.0).unwrap();
+        let mut f = Frame::new(160, 120);
+        for (i, p) in f.data.iter_mut().enumerate() {
+            *p = ((i * 37 + i / 160 * 11) % 200) as u8;
+        }
+        f.meta.exposure_us = 1000.0;
+        // Before a detection: the whole frame.
+        assert_eq!(g.update(&f, None).roi, Some(f.full_roi()));
+        let c = [[40.0, 30.0], [80.0, 30.0], [80.0, 70.0], [40.0, 70.0]];
+        let step = g.update(&f, Some(&c));
+        let want = Roi {
+            x: 15,
+            y: 5,
+            width: 90,
+            height: 90,
+        };
+        assert_eq!(step.roi, Some(want));
+        // Its metric is the middle anchor's (gamma 1) score of that region.
+        let mut sc = GecScorer::with_gammas(
+            &GecPaperConfig::default().scorer_config(),
+            &gec_paper_gammas(),
+        );
+        let mut scores = [0.0; GEC_PAPER_ANCHORS];
+        assert!(sc.scores_into(f.view().crop(want), &mut scores));
+        assert_eq!(step.metric, scores[5]);
+        // Lost: the region is kept.
+        f.meta.exposure_us = g.commanded_us();
+        assert_eq!(g.update(&f, None).roi, Some(want));
+    }
+
+    #[test]
     fn the_papers_gain_barely_moves() {
         // Kp 1e-8: even the largest correction changes the exposure by < 1e-7.
         let r = gec_ratio(1.0 / 1.9, 1e-8, 0.1);
