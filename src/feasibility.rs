@@ -189,6 +189,8 @@ pub struct ViewSetup<'a> {
 #[derive(Debug, Clone)]
 pub struct Feasibility {
     pub station: MarkerView,
+    /// The view at the simulator's start pose itself.
+    pub at_start: Option<MarkerView>,
     pub worst_on_way: Option<MarkerView>,
     pub warnings: Vec<String>,
 }
@@ -280,7 +282,14 @@ pub fn check(
         ));
     }
     let mut worst_on_way = None;
+    let mut at_start = None;
     if let Some((t_start, keys)) = start {
+        at_start = Some(marker_view(
+            setup.calib,
+            &setup.t_vehicle_cam,
+            t_start,
+            setup.marker_size_m,
+        ));
         let worst = (0..PATH_SAMPLES)
             .map(|i| {
                 let s = i as f64 / PATH_SAMPLES as f64;
@@ -321,43 +330,114 @@ pub fn check(
     }
     Ok(Feasibility {
         station: at_station,
+        at_start,
         worst_on_way,
         warnings,
     })
 }
 
-/// The check of a site: its station, and in a build with the simulator the way from the
-/// simulator's start pose (`[vehicle] initial_offset_m`, `initial_offset_deg`).
-pub fn check_site(
-    site: &crate::params::Site,
-    calib: &CameraCalibration,
-) -> Result<Feasibility, ConfigError> {
-    let setup = ViewSetup {
+/// The setup of a site's camera, for [`check`].
+fn setup_of<'a>(site: &crate::params::Site, calib: &'a CameraCalibration) -> ViewSetup<'a> {
+    ViewSetup {
         calib,
         t_vehicle_cam: crate::params::t_vehicle_cam(&site.camera),
         mount_rpy_deg: site.camera.mount_rpy_deg,
         mount_position_m: site.camera.mount_position_m,
         marker_size_m: site.marker.size_m,
-    };
-    let start = start_pose(site);
+    }
+}
+
+/// The keys that place the simulator's start pose, for messages.
+const START_KEYS: &str = "vehicle.initial_offset_m, vehicle.initial_offset_deg";
+
+/// The check of a site: its station, and (given by the simulator, in the marker frame)
+/// the way from its start pose. The field never passes a start: the start pose is the
+/// simulator's (`[vehicle] initial_offset_m`, `initial_offset_deg`).
+pub fn check_site(
+    site: &crate::params::Site,
+    calib: &CameraCalibration,
+    start: Option<&Isometry3<f64>>,
+) -> Result<Feasibility, ConfigError> {
     check(
-        &setup,
+        &setup_of(site, calib),
         &site.station,
-        start
-            .as_ref()
-            .map(|t| (t, "vehicle.initial_offset_m, vehicle.initial_offset_deg")),
+        start.map(|t| (t, START_KEYS)),
     )
 }
 
-/// `params check`'s lines about the view: the marker at the station, on the way from the
-/// start pose, and the warnings.
-pub fn print_check(site: &crate::params::LoadedSite) {
-    // The site loaded, so the check passed; it is repeated for its figures.
-    let Ok(f) = check_site(&site.site, &site.calibration) else {
+/// The simulator's start: refused when the marker at the start pose is outside the safe
+/// region, since a run that starts blind has nothing to hold (on a vehicle, the pilot
+/// engages with the marker in view). `start_at(offset_m)` is the start pose in the marker
+/// frame for an `initial_offset_m`; the error names the largest offset, at the site's
+/// `initial_offset_deg`, that starts in view.
+pub fn check_start(
+    site: &crate::params::Site,
+    calib: &CameraCalibration,
+    offset_m: f64,
+    offset_deg: f64,
+    start_at: impl Fn(f64) -> Isometry3<f64>,
+) -> Result<(), ConfigError> {
+    let setup = setup_of(site, calib);
+    let margin_at = |d: f64| {
+        marker_view(
+            setup.calib,
+            &setup.t_vehicle_cam,
+            &start_at(d),
+            setup.marker_size_m,
+        )
+    };
+    let v = margin_at(offset_m);
+    if v.margin >= REFUSE_MARGIN {
+        return Ok(());
+    }
+    // Bisection on the offset: the station itself is in the safe region (checked at
+    // load), so the margin at 0 is at least REFUSE_MARGIN.
+    let (mut lo, mut hi) = (0.0, offset_m);
+    for _ in 0..30 {
+        let mid = 0.5 * (lo + hi);
+        if margin_at(mid).margin >= REFUSE_MARGIN {
+            lo = mid;
+        } else {
+            hi = mid;
+        }
+    }
+    Err(ConfigError::new(
+        "vehicle.initial_offset_m",
+        offset_m,
+        format!(
+            "a simulator start pose from which the camera sees the marker (every corner at \
+             least {:.0} % of the image inside its edges; a run that starts blind has \
+             nothing to hold); here, with vehicle.initial_offset_deg {}, the {}; an \
+             initial_offset_m of at most {:.3} starts in view",
+            100.0 * REFUSE_MARGIN,
+            offset_deg,
+            describe(&v, &half_fov_deg(calib)),
+            (lo * 1000.0).floor() / 1000.0
+        ),
+    ))
+}
+
+/// `params check`'s lines about the view: the marker at the station, at and on the way
+/// from the simulator's start pose (when given), and the warnings.
+pub fn print_check(site: &crate::params::LoadedSite, start: Option<&Isometry3<f64>>) {
+    // The site loaded, so the station check passed; it is repeated for its figures.
+    let Ok(f) = check_site(&site.site, &site.calibration, start) else {
         return;
     };
     let half = half_fov_deg(&site.calibration);
     crate::outln!("# view at the station: {}", describe(&f.station, &half));
+    if let Some(v) = &f.at_start {
+        crate::outln!(
+            "# view at the simulator's start pose: {}",
+            describe(v, &half)
+        );
+        if v.margin.is_nan() || v.margin < REFUSE_MARGIN {
+            crate::outln!(
+                "# warning: {START_KEYS}: `markhold hil` refuses this start: the marker is \
+                 outside the safe region at the simulator's start pose"
+            );
+        }
+    }
     if let Some(w) = &f.worst_on_way {
         crate::outln!(
             "# view on the way from the simulator's start pose, worst: {}",
@@ -369,24 +449,14 @@ pub fn print_check(site: &crate::params::LoadedSite) {
     }
 }
 
-/// Logs the site's view warnings (a run starting on a thin margin).
-pub fn warn_site(site: &crate::params::LoadedSite) {
-    if let Ok(f) = check_site(&site.site, &site.calibration) {
+/// Logs the site's view warnings (a run starting on a thin margin; the way from the
+/// simulator's start pose when given).
+pub fn warn_site(site: &crate::params::LoadedSite, start: Option<&Isometry3<f64>>) {
+    if let Ok(f) = check_site(&site.site, &site.calibration, start) {
         for w in &f.warnings {
             tracing::warn!("{}: {w}", site.path.display());
         }
     }
-}
-
-#[cfg(feature = "sim")]
-fn start_pose(site: &crate::params::Site) -> Option<Isometry3<f64>> {
-    Some(site.station.t_marker_vehicle() * crate::sim::hil::start_offset(&site.vehicle))
-}
-
-/// Without the simulator there is no start pose to check.
-#[cfg(not(feature = "sim"))]
-fn start_pose(_: &crate::params::Site) -> Option<Isometry3<f64>> {
-    None
 }
 
 #[cfg(test)]
@@ -468,13 +538,37 @@ mod tests {
         let st = StationConfig::default();
         let turned = st.t_marker_vehicle()
             * Isometry3::rotation(nalgebra::Vector3::z() * std::f64::consts::PI);
-        let f = check(&setup, &st, Some((&turned, "vehicle.initial_offset_deg"))).unwrap();
+        let f = check(&setup, &st, Some((&turned, START_KEYS))).unwrap();
         assert!(f.worst_on_way.unwrap().margin < 0.0);
         assert!(
             f.warnings.iter().any(|w| w.contains("leaves the view")),
             "{:?}",
             f.warnings
         );
+    }
+
+    #[test]
+    fn a_blind_start_is_refused_with_an_offset_that_sees() {
+        let mut site: crate::params::Site =
+            toml::from_str(include_str!("../params/pool.toml")).unwrap();
+        site.camera.mount_rpy_deg = [0.0, -10.0, 0.0];
+        let calib = pool();
+        // Straight below the station: the marker rises out of the top of the image.
+        let start_at =
+            |d: f64| site.station.t_marker_vehicle() * Isometry3::translation(0.0, 0.0, d);
+        let e = check_start(&site, &calib, 0.5, 0.0, start_at).unwrap_err();
+        assert_eq!(e.key, "vehicle.initial_offset_m");
+        let at_most: f64 = e
+            .expected
+            .split("at most ")
+            .nth(1)
+            .and_then(|t| t.split_whitespace().next())
+            .unwrap()
+            .parse()
+            .unwrap();
+        assert!(at_most > 0.0 && at_most < 0.5, "{e}");
+        assert!(check_start(&site, &calib, at_most, 0.0, start_at).is_ok());
+        assert!(check_start(&site, &calib, at_most + 0.01, 0.0, start_at).is_err());
     }
 
     #[test]

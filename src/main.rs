@@ -99,7 +99,8 @@ struct RunArgs {
     /// Record the run to this MCAP file (must not exist).
     #[arg(long, value_name = "FILE.mcap")]
     record: Option<PathBuf>,
-    /// Serve a Foxglove WebSocket live view on 127.0.0.1.
+    /// Serve a Foxglove WebSocket live view on 127.0.0.1 (browser pages only from the
+    /// site's [live] allowed_origins).
     #[arg(long)]
     foxglove: bool,
     /// Port of the live view (0: any free port).
@@ -279,7 +280,15 @@ fn params_check(file: &Path) -> anyhow::Result<()> {
     if site.calibration.dist.len() > 5 {
         markhold::outln!("# full distortion: {:?}", site.calibration.dist);
     }
-    markhold::feasibility::print_check(&site);
+    // The simulator's start pose, in a build that has the simulator.
+    #[cfg(feature = "sim")]
+    let start = Some(markhold::sim::hil::start_in_marker(
+        &site.site,
+        site.site.vehicle.initial_offset_m,
+    ));
+    #[cfg(not(feature = "sim"))]
+    let start = None;
+    markhold::feasibility::print_check(&site, start.as_ref());
     if let Some(note) = params::SIM_SECTIONS_NOTE {
         markhold::outln!("# {note}");
     }
@@ -344,7 +353,7 @@ fn check_heartbeat_timeout(s: f64) -> anyhow::Result<()> {
 
 fn run_cmd(args: RunArgs) -> anyhow::Result<()> {
     let site = params::load(&args.site)?;
-    markhold::feasibility::warn_site(&site);
+    markhold::feasibility::warn_site(&site, None);
     check_heartbeat_timeout(args.heartbeat_timeout_s)?;
     let stop = markhold::field::signal::install()?;
     let opts = markhold::field::run::RunOptions {

@@ -176,6 +176,9 @@ pub struct Site {
     /// How `--record` stores frames.
     #[serde(default)]
     pub record: crate::record::RecordSection,
+    /// Who may open the live view (`--foxglove`).
+    #[serde(default)]
+    pub live: crate::record::live::LiveSection,
 }
 
 /// A validated site with what was derived from it.
@@ -390,6 +393,15 @@ pub fn check_initial_exposure(site: &Site, value: f64) -> Result<(), ParamsError
     })
 }
 
+/// A configuration error found after loading (by a command's own check), located in the
+/// site file when the file can still be read.
+pub fn locate(path: &Path, e: ConfigError) -> ParamsError {
+    match markhold_config::read_regular(path, markhold_config::MAX_CONFIG_FILE_BYTES) {
+        Ok(text) => located(path, &Located::new(&text), e),
+        Err(_) => ParamsError::Config(e.at(path, 1)),
+    }
+}
+
 /// Check a site read from elsewhere than a site file (a recording) like a site file.
 pub fn check(site: &Site) -> Result<(), ConfigError> {
     validate(site)
@@ -428,7 +440,7 @@ pub fn parse(path: &Path, text: &str) -> Result<LoadedSite, ParamsError> {
     }
     let calibration = calibration_of(path, &at, &site.camera)?;
     // The marker must be in view at the station (docs/frames.md).
-    crate::feasibility::check_site(&site, &calibration).map_err(|e| located(path, &at, e))?;
+    crate::feasibility::check_site(&site, &calibration, None).map_err(|e| located(path, &at, e))?;
     if let Some(rel) = &site.link.signing_key_file {
         // Relative to the site file, like the calibration file; checked here so a
         // missing or malformed key is a config error before anything starts.
@@ -468,7 +480,8 @@ fn validate(site: &Site) -> Result<(), ConfigError> {
     site.station.validate()?;
     site.controller.validate()?;
     site.link.validate()?;
-    site.record.validate()
+    site.record.validate()?;
+    site.live.validate()
 }
 
 #[cfg(feature = "sim")]

@@ -244,6 +244,43 @@ fn reduced_geometry_sweep() {
     assert!(accepted >= 5, "the grid should accept several combinations");
 }
 
+/// A camera pitched 10 degrees down: the station is fine (the site is accepted), but the
+/// simulator's default start, 0.17 m below the station, sees the marker above the top
+/// edge. `params check` says `hil` refuses that start; `hil` exits 78 naming
+/// `vehicle.initial_offset_m` and the largest offset that starts in view; from that
+/// offset the run sees the marker from the first frame and holds.
+#[test]
+fn a_blind_simulator_start_is_refused_with_the_offset_that_sees() {
+    let g = geo(0.0, -10.0, 0.0, 0.0);
+    let base = "tests/fixtures/pool-640.toml";
+    let site = variant(base, "blind-start", g, Some("alt_hold"), "");
+    let (code, text) = check(&site);
+    assert_eq!(code, 0, "{text}");
+    assert!(text.contains("`markhold hil` refuses this start"), "{text}");
+    let (code, text) = markhold(&[
+        "hil",
+        "--site",
+        site.to_str().unwrap(),
+        "--seconds",
+        "1",
+        "--quiet",
+    ]);
+    assert_eq!(code, 78, "{text}");
+    assert!(text.contains("vehicle.initial_offset_m = 0.3"), "{text}");
+    let at_most = text
+        .split("initial_offset_m of at most ")
+        .nth(1)
+        .and_then(|t| t.split_whitespace().next())
+        .and_then(|t| t.parse::<f64>().ok())
+        .unwrap_or_else(|| panic!("no suggested offset: {text}"));
+    assert!(at_most > 0.05 && at_most < 0.3, "{at_most}");
+    let offset = format!("initial_offset_m = {at_most}");
+    let site = variant(base, "seeing-start", g, Some("alt_hold"), &offset);
+    let (code, text) = check(&site);
+    assert!(code == 0 && !text.contains("refuses this start"), "{text}");
+    assert_holds("seeing start", &hil(&site, 20.0, &[]));
+}
+
 /// The marker is covered while a current (0.15 m/s across the view) carries the vehicle
 /// 0.8 m sideways, well beyond where a camera keeping its heading would still see it
 /// (0.38 m at this station). The way back turns the camera toward where the marker is

@@ -510,6 +510,18 @@ fn a_jpeg_recording_is_smaller_and_replay_says_it_is_not_exact() {
         std::fs::metadata(&png).unwrap().len(),
     );
     assert!(j * 2 < p, "JPEG {j} bytes vs PNG {p} bytes");
+    // The README's rates at 640x480 and 30 fps, PNG about 265 and JPEG about 69 MB per
+    // minute: these 15 frames (0.5 s of camera time) within 2x of them.
+    let per_minute = |bytes: u64| bytes as f64 / 0.5 * 60.0 / 1e6;
+    let (jr, pr) = (per_minute(j), per_minute(p));
+    assert!(
+        pr > 265.0 / 2.0 && pr < 265.0 * 2.0,
+        "PNG {pr:.0} MB per minute"
+    );
+    assert!(
+        jr > 69.0 / 2.0 && jr < 69.0 * 2.0,
+        "JPEG {jr:.0} MB per minute"
+    );
     let out = replay(&jpeg).unwrap();
     assert_eq!(out.lossy_images, 15, "{out:?}");
     assert_eq!(out.frames_replayed, 15, "{out:?}");

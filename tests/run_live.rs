@@ -233,7 +233,7 @@ fn live_view_advertises_every_channel_over_foxglove_websocket() {
     use std::io::Write;
     let mut rec =
         markhold::record::Recorder::live_only(markhold::record::RecordConfig::default()).unwrap();
-    let port = rec.serve_live(0).unwrap();
+    let port = rec.serve_live(0, &Default::default()).unwrap();
     assert_ne!(port, 0);
     let mut s = std::net::TcpStream::connect(("127.0.0.1", port)).unwrap();
     s.set_read_timeout(Some(Duration::from_secs(5))).unwrap();

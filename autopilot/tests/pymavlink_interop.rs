@@ -3,7 +3,7 @@
 //! RC overrides and over a pseudo-terminal (the serial transport) with MANUAL_CONTROL.
 //! A second script (tests/pymav_connection.py) opens pymavlink's own
 //! `mavutil.mavlink_connection(URL)`, to check that `udp:` means listen on both sides.
-//! pymavlink is installed with pip when missing; the test fails if it cannot be.
+//! pymavlink comes from scripts/install-deps; without it the tests fail and say so.
 
 #![allow(clippy::unwrap_used)] // Tests fail loudly on a broken setup, by design.
 
@@ -16,26 +16,19 @@ use markhold_autopilot::*;
 
 const FRAME_S: f64 = 1.0 / 30.0;
 
+/// pymavlink must be installed (scripts/install-deps does it); a test never installs
+/// anything, and a missing pymavlink fails the test rather than skipping it.
 fn ensure_pymavlink() {
-    let ok = |out: std::io::Result<std::process::Output>| {
-        out.map(|o| o.status.success()).unwrap_or(false)
-    };
-    let probe = || {
-        Command::new("python3")
-            .args(["-c", "import pymavlink.dialects.v20.ardupilotmega"])
-            .output()
-    };
-    if ok(probe()) {
-        return;
-    }
-    let install = Command::new("python3")
-        .args(["-m", "pip", "install", "--quiet", "pymavlink"])
+    let probe = Command::new("python3")
+        .args(["-c", "import pymavlink.dialects.v20.ardupilotmega"])
         .output();
-    if !ok(probe()) {
-        panic!(
-            "pymavlink is not importable and `python3 -m pip install pymavlink` did not fix it \
-             (python3 and pip with access to PyPI are needed for this test): {install:?}"
-        );
+    match probe {
+        Ok(o) if o.status.success() => {}
+        Ok(o) => panic!(
+            "pymavlink is not importable: run scripts/install-deps ({})",
+            String::from_utf8_lossy(&o.stderr).trim()
+        ),
+        Err(e) => panic!("python3 cannot be run ({e}): run scripts/install-deps"),
     }
 }
 

@@ -284,7 +284,7 @@ fn observers(
     };
     let mut foxglove_addr = None;
     if let (Some(port), Some(r)) = (opts.foxglove_port, recorder.as_mut()) {
-        match r.serve_live(port) {
+        match r.serve_live(port, &site.site.live) {
             Ok(p) => {
                 eprintln!("markhold run: Foxglove live view on ws://127.0.0.1:{p}");
                 foxglove_addr = Some(format!("127.0.0.1:{p}"));

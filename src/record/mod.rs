@@ -47,6 +47,7 @@ use serde::{Deserialize, Serialize};
 use crate::params::LoadedSite;
 use crate::pipeline::{FrameRecord, FrameView, Observer};
 
+pub mod live;
 pub mod replay;
 
 pub const TOPIC_IMAGE: &str = "/camera/image";
@@ -102,10 +103,7 @@ pub enum RecordError {
     #[error("the recorder's writer thread failed")]
     WriterThread,
     #[error("starting the live view on 127.0.0.1:{port}: {source}")]
-    Live {
-        port: u16,
-        source: foxglove::FoxgloveError,
-    },
+    Live { port: u16, source: std::io::Error },
     #[error("writing the recording: {reason}")]
     Write { reason: String },
 }
@@ -434,7 +432,7 @@ pub struct Recorder {
     path: Option<PathBuf>,
     spare: Option<Vec<u8>>,
     wait_when_full: bool,
-    live: Option<foxglove::WebSocketServerHandle>,
+    live: Option<live::LiveServer>,
     /// The recorder's foxglove context: a live view can attach to the same channels.
     context: Arc<Context>,
     /// Sender side of the raw MAVLink tap (handed to the link).
@@ -492,16 +490,17 @@ impl Recorder {
     }
 
     /// Serve the channels to Foxglove over WebSocket on 127.0.0.1 (`port` 0: any free
-    /// port); returns the port. The server stops with the recorder.
-    pub fn serve_live(&mut self, port: u16) -> Result<u16, RecordError> {
-        let handle = foxglove::WebSocketServer::new()
-            .name("markhold")
-            .bind("127.0.0.1", port)
-            .context(&self.context)
-            .start_blocking()
+    /// port) to clients the site's `[live]` section lets in ([`live`]); returns the port.
+    /// The server stops with the recorder.
+    pub fn serve_live(
+        &mut self,
+        port: u16,
+        access: &live::LiveSection,
+    ) -> Result<u16, RecordError> {
+        let server = live::LiveServer::start(&self.context, port, access)
             .map_err(|source| RecordError::Live { port, source })?;
-        let port = handle.port();
-        self.live = Some(handle);
+        let port = server.port();
+        self.live = Some(server);
         Ok(port)
     }
 
@@ -677,9 +676,7 @@ impl Recorder {
     /// Write what is queued, finalize the file and return what was recorded.
     pub fn finish(mut self) -> Result<RecordStats, RecordError> {
         self.tx = None;
-        if let Some(live) = self.live.take() {
-            drop(live.stop());
-        }
+        drop(self.live.take());
         let joined = match self.thread.take() {
             Some(t) => t.join().map_err(|_| RecordError::WriterThread)?,
             None => Ok(()),

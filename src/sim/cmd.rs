@@ -93,7 +93,8 @@ pub struct HilArgs {
     /// pose, commands, vehicle state, failsafe events; `markhold replay` reads it.
     #[arg(long, value_name = "FILE.mcap")]
     pub record: Option<PathBuf>,
-    /// Serve a Foxglove WebSocket live view on 127.0.0.1 (the same channels as --record).
+    /// Serve a Foxglove WebSocket live view on 127.0.0.1 (the same channels as --record;
+    /// browser pages only from the site's [live] allowed_origins).
     #[arg(long)]
     pub foxglove: bool,
     /// Port of the live view (0: any free port).
@@ -199,7 +200,9 @@ pub fn sim_vehicle_hint(addr: std::net::SocketAddr) -> String {
 /// `markhold hil`: check the options, attach the observers asked for, run, report.
 pub fn hil(args: HilArgs) -> anyhow::Result<()> {
     let site = params::load(&args.site)?;
-    crate::feasibility::warn_site(&site);
+    let start = super::hil::start_in_marker(&site.site, site.site.vehicle.initial_offset_m);
+    crate::feasibility::warn_site(&site, Some(&start));
+    super::hil::check_start(&site)?;
     anyhow::ensure!(
         args.seconds > 0.0 && args.seconds <= super::summary::MAX_SECONDS,
         "--seconds {}: expected a positive number of simulated seconds, at most {} (a day)",
@@ -283,7 +286,7 @@ fn hil_observers(
     };
     if let (true, Some(r)) = (args.foxglove, recorder.as_mut()) {
         let port = r
-            .serve_live(args.foxglove_port)
+            .serve_live(args.foxglove_port, &site.site.live)
             .with_context(|| format!("--foxglove-port {}", args.foxglove_port))?;
         eprintln!("markhold: Foxglove live view on ws://127.0.0.1:{port}");
     }

@@ -109,6 +109,30 @@ pub fn start_offset(v: &markhold_hil::VehicleConfig) -> Isometry3<f64> {
     )
 }
 
+/// The simulator's start pose in the marker frame for an `initial_offset_m` (with the
+/// site's `initial_offset_deg`).
+pub fn start_in_marker(site: &crate::params::Site, offset_m: f64) -> Isometry3<f64> {
+    let v = markhold_hil::VehicleConfig {
+        initial_offset_m: offset_m,
+        ..site.vehicle.clone()
+    };
+    site.station.t_marker_vehicle() * start_offset(&v)
+}
+
+/// Refuses a start from which the camera does not see the marker
+/// ([`crate::feasibility::check_start`]); the error is located in the site file.
+pub fn check_start(site: &LoadedSite) -> Result<(), crate::params::ParamsError> {
+    let v = &site.site.vehicle;
+    crate::feasibility::check_start(
+        &site.site,
+        &site.calibration,
+        v.initial_offset_m,
+        v.initial_offset_deg,
+        |d| start_in_marker(&site.site, d),
+    )
+    .map_err(|e| crate::params::locate(&site.path, e))
+}
+
 /// The vehicle's start pose: the station, displaced by the site's initial offset.
 fn start_pose(site: &LoadedSite, station: &Isometry3<f64>, on_station: bool) -> Isometry3<f64> {
     let t_world_station = site.t_world_marker() * station;
