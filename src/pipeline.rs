@@ -241,6 +241,11 @@ impl<L: CommandLink> Pipeline<L> {
         &self.frame
     }
 
+    /// The station keeper's state after the last frame.
+    pub fn keeper_status(&self) -> markhold_autopilot::KeeperStatus {
+        self.keeper.status()
+    }
+
     /// Supervisor transitions of the last frame or tick.
     pub fn events(&self) -> &[FailsafeEvent] {
         &self.events

@@ -244,6 +244,9 @@ pub struct Announcer {
     camera: Limited,
     exposure: Limited,
     last_named_s: Option<f64>,
+    /// The keeper's way back is running, and when it was last announced.
+    searching: bool,
+    search_said_s: Option<f64>,
     /// Messages sent.
     pub sent: u64,
     /// Flapping state changes not sent (coalesced).
@@ -337,6 +340,29 @@ impl Announcer {
     /// The exposure controller is (or is no longer) pinned at a camera limit.
     pub fn exposure_at_limit(&mut self, at_limit: bool, now_s: f64) -> Option<Text> {
         self.flap(Flap::Exposure, at_limit, now_s)
+    }
+
+    /// The keeper's way back runs (or no longer does): said when it starts, at most once
+    /// per `FLAP_INTERVAL_S`; its end is told by "marker regained" or "marker lost".
+    pub fn searching(&mut self, on: bool, now_s: f64) -> Option<Text> {
+        let start = on && !self.searching;
+        self.searching = on;
+        if !start {
+            return None;
+        }
+        if self
+            .search_said_s
+            .is_some_and(|t| now_s - t < FLAP_INTERVAL_S && now_s >= t)
+        {
+            self.suppressed += 1;
+            return None;
+        }
+        self.search_said_s = Some(now_s);
+        self.sent += 1;
+        Some((
+            Severity::Warning,
+            "markhold: marker out of view, turning back",
+        ))
     }
 
     /// NAMED_VALUE_FLOAT is due at `now_s` (`NAMED_VALUE_HZ`).
@@ -474,6 +500,16 @@ impl EngagedLink {
     /// The exposure is (or is no longer) at a camera limit.
     pub fn exposure_at_limit(&mut self, at_limit: bool, now_s: f64) -> anyhow::Result<()> {
         match self.announcer.exposure_at_limit(at_limit, now_s) {
+            Some(t) => self.say(t),
+            None => Ok(()),
+        }
+    }
+
+    /// The station keeper's way back toward a marker that slipped out of view runs (or
+    /// no longer does); said only while engaged, when it moves the vehicle.
+    pub fn searching(&mut self, on: bool, now_s: f64) -> anyhow::Result<()> {
+        let on = on && self.engager.engaged();
+        match self.announcer.searching(on, now_s) {
             Some(t) => self.say(t),
             None => Ok(()),
         }
@@ -658,5 +694,22 @@ mod tests {
         ] {
             assert!(d.text().len() < 50);
         }
+    }
+
+    #[test]
+    fn the_way_back_is_said_when_it_starts_at_most_once_per_window() {
+        let mut a = Announcer::default();
+        assert_eq!(a.searching(false, 0.0), None);
+        let (sev, text) = a.searching(true, 1.0).unwrap();
+        assert_eq!(sev, Severity::Warning);
+        assert!(text.contains("turning back") && text.len() < 50, "{text}");
+        // Still searching: nothing more; found and lost again within the window: nothing.
+        assert_eq!(a.searching(true, 1.1), None);
+        assert_eq!(a.searching(false, 1.5), None);
+        assert_eq!(a.searching(true, 2.0), None);
+        assert_eq!(a.suppressed, 1);
+        // After the window a new start is said again.
+        a.searching(false, 3.0);
+        assert!(a.searching(true, 1.0 + FLAP_INTERVAL_S + 0.1).is_some());
     }
 }

@@ -371,6 +371,8 @@ fn tell_pilot(
     events.clear();
     events.extend_from_slice(pipeline.events());
     pipeline.link_mut().on_events(events, now_s)?;
+    let searching = pipeline.keeper_status() == markhold_autopilot::KeeperStatus::Searching;
+    pipeline.link_mut().searching(searching, now_s)?;
     let Some(rec) = rec else { return Ok(()) };
     let limits = site.limits();
     let e = rec.exposure.exposure_us;
