@@ -35,6 +35,7 @@ pub mod observe;
 pub mod params;
 pub mod pipeline;
 pub mod record;
+pub mod response_fit;
 #[cfg(feature = "sim")]
 pub mod sim;
 pub mod tag;

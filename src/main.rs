@@ -48,6 +48,11 @@ enum Command {
     Compare(markhold::sim::compare::CompareArgs),
     /// A printable marker at exact physical size (SVG, PDF or PNG) with its caption.
     Tag(markhold::tag::TagArgs),
+    /// The camera response: fit the paper's polynomial form from an exposure sweep.
+    Response {
+        #[command(subcommand)]
+        command: markhold::response_fit::ResponseCommand,
+    },
     /// Print a shell completion script: bash, zsh, fish, elvish or powershell.
     Completions {
         /// The shell to complete for.
@@ -240,6 +245,7 @@ fn run(cli: Cli) -> anyhow::Result<()> {
         #[cfg(feature = "sim")]
         Command::Compare(args) => markhold::sim::compare::cli(args),
         Command::Tag(args) => markhold::tag::cli(args),
+        Command::Response { command } => markhold::response_fit::cli(command),
         Command::Completions { shell } => {
             markhold::cli_docs::completions(Cli::command(), shell, &mut std::io::stdout())
         }

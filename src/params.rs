@@ -7,7 +7,7 @@ use std::path::{Path, PathBuf};
 
 use markhold_autopilot::{ControllerConfig, LinkConfig, StationConfig};
 use markhold_config::{above, open_closed, AsDebug, Checks, ConfigError};
-use markhold_exposure::{ExposureConfig, ExposureLimits};
+use markhold_exposure::{ExposureConfig, ExposureLimits, ResponseModel};
 use markhold_vision::{CameraCalibration, DetectorConfig, MarkerConfig};
 use nalgebra::{Isometry3, Matrix3, Rotation3, Translation3, UnitQuaternion, Vector3};
 use serde::{Deserialize, Serialize};
@@ -133,6 +133,11 @@ pub struct CameraSection {
     /// How exposure reaches a stream camera (`[camera.control]`).
     #[serde(default)]
     pub control: crate::field::camera::control::ControlConfig,
+    /// The camera response (`linear` by default; `polynomial` as calibrated by
+    /// `markhold response fit`), used by every exposure method that needs one and by
+    /// the HIL camera. A table file is relative to the site file.
+    #[serde(default)]
+    pub response: ResponseModel,
 }
 
 fn default_initial_exposure() -> f64 {
@@ -420,6 +425,15 @@ pub fn parse(path: &Path, text: &str) -> Result<LoadedSite, ParamsError> {
     validate(&site).map_err(|e| located(path, &at, e))?;
 
     let base = path.parent().unwrap_or(Path::new("."));
+    site.camera.response = site.camera.response.relative_to(base);
+    if let ResponseModel::Table { file } = &site.camera.response {
+        // Read once here so a missing or malformed table is a config error at start.
+        let referenced = referenced_file(path, &at, "camera.response", file);
+        site.camera
+            .response
+            .load()
+            .map_err(|e| referenced(e.to_string()))?;
+    }
     if let Some(rel) = &site.camera.calibration_file {
         let full = base.join(rel);
         site.camera.calibration_file = Some(full.clone());
@@ -451,6 +465,14 @@ pub fn parse(path: &Path, text: &str) -> Result<LoadedSite, ParamsError> {
 /// Every section of a parsed site, in file order of the usual site file.
 fn validate(site: &Site) -> Result<(), ConfigError> {
     validate_site(site)?;
+    if site.exposure.response != ResponseModel::Linear {
+        return Err(ConfigError::new(
+            "exposure.response",
+            AsDebug(&site.exposure.response),
+            "no response here: the camera response is `[camera] response`",
+        ));
+    }
+    site.camera.response.validate()?;
     validate_sim(site)?;
     site.marker.validate()?;
     site.vision.validate()?;

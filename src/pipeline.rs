@@ -179,8 +179,16 @@ impl<L: CommandLink> Pipeline<L> {
             ..start
         };
         let tracker = MarkerTracker::new(&s.marker, &s.vision, calib.clone())?;
-        let exposure =
-            build_controller(&s.exposure, start.method, limits, start.initial_exposure_us)?;
+        let exposure_cfg = markhold_exposure::ExposureConfig {
+            response: s.camera.response.clone(),
+            ..s.exposure.clone()
+        };
+        let exposure = build_controller(
+            &exposure_cfg,
+            start.method,
+            limits,
+            start.initial_exposure_us,
+        )?;
         let mut keeper = StationKeeper::new(&s.station, &s.controller, site.t_vehicle_cam())?;
         keeper.set_view(crate::feasibility::view_limits(calib, s.marker.size_m));
         if let Some(tap) = observers.mavlink_tap() {

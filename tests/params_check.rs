@@ -219,3 +219,26 @@ fn an_error_names_line_and_column_inside_an_inline_table() {
     assert!(err.contains(&place), "expected `{place}` in {err}");
     let _ = std::fs::remove_dir_all(&dir);
 }
+
+#[test]
+fn camera_response_polynomial_not_positive() {
+    // g'(I) = 0.01 - 1e-4 I is negative above level 100.
+    bad_case("response_polynomial", |t| {
+        t.replacen(
+            "[camera]\n",
+            "[camera]\nresponse = { model = \"polynomial\", coefficients = [0.01, -1e-4] }\n",
+            1,
+        )
+    });
+}
+
+#[test]
+fn camera_response_under_exposure_is_named() {
+    bad_case("response_under_exposure", |t| {
+        t.replacen(
+            "[exposure]\n",
+            "[exposure]\nresponse = { model = \"gamma\", gamma = 2.2 }\n",
+            1,
+        )
+    });
+}

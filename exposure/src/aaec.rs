@@ -1,5 +1,6 @@
-//! AAEC: Adaptive Active Exposure Control (Ren, Lensgraf, Quattrini Li, ISER 2023),
-//! with the fixes `docs/reference/exposure-spec.md` asks for.
+//! markhold's AAEC: the RoI and metric of Adaptive Active Exposure Control (Ren,
+//! Lensgraf, Quattrini Li, ISER 2023) with an optimiser of its own; the paper's method as
+//! published is `aaec_paper.rs`.
 //!
 //! Per used frame: RoI = the marker's corner box padded by `roi_pad_frac` on each side,
 //! `M` and `dM/d(ln t)` on it, then a momentum step in log exposure on the scale-free
@@ -26,8 +27,9 @@
 //!   there while `M` is flat within its noise, instead of wandering on the plateau;
 //! - the per-frame change is bounded by `max_ratio_per_frame`.
 //!
-//! With `adaptive_step = false` it is the paper's plain momentum ascent (same metric,
-//! same bounds), kept to show the difference.
+//! With `adaptive_step = false` it is a plain momentum ascent in log exposure (same
+//! metric, same bounds, markhold's other changes kept), kept to show the difference. The
+//! paper's own law is `aaec_paper.rs`.
 
 use crate::metric::{GradientMetric, MetricParams};
 use crate::{
@@ -111,7 +113,8 @@ pub struct AaecConfig {
     pub dead_band_us: f64,
     /// Largest ratio between two consecutive commands, (1, 100].
     pub max_ratio_per_frame: f64,
-    /// Adapt the step (our design); false = the paper's plain momentum.
+    /// Adapt the step (our design); false = plain momentum in log exposure (not the
+    /// paper's linear law: that is `aaec-paper`).
     pub adaptive_step: bool,
     /// Step scale factor on a sign change of the slope, (0, 1).
     pub step_shrink: f64,
@@ -141,7 +144,7 @@ pub struct AaecConfig {
     /// band) to see whether the optimum is still inside. Each confirmation doubles the
     /// interval (up to 64 frames).
     pub probe_frames: u32,
-    /// Grey level from which a pixel counts as clipped, 128..=255 (official AEC: 250;
+    /// Grey level from which a pixel counts as clipped, 128..=255 (official AEC: 252;
     /// ours: 255, the only level a linear sensor really clips at).
     pub saturation_grey: u8,
     /// A clipped pixel's `dG` becomes `-penalty * max(|dG|, 0.5)`, [0, 10] (official AEC:

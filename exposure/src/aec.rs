@@ -55,7 +55,7 @@ pub struct AecConfig {
     pub over_grey: u8,
     /// Over-exposed fraction above which the intensity fallback runs (official: 0.5).
     pub over_frac_max: f64,
-    /// Saturation level and penalty of the metric (official: 250, 3).
+    /// Saturation level and penalty of the metric (official: 252, 3).
     pub saturation_grey: u8,
     pub saturation_penalty: f64,
     /// Exposure range of the method, microseconds (official: 20, 15000), intersected
@@ -81,7 +81,7 @@ impl Default for AecConfig {
             target_grey: 127.0,
             over_grey: 251,
             over_frac_max: 0.5,
-            saturation_grey: 250,
+            saturation_grey: 252,
             saturation_penalty: 3.0,
             exposure_min_us: 20.0,
             exposure_max_us: 15_000.0,

@@ -80,6 +80,14 @@ pub fn gec_ratio(gamma_hat: f64, kp: f64, d: f64) -> f64 {
 /// Least-squares polynomial of degree 5 through `(x, y)` (7 points), in powers of
 /// `x - 1`; `None` if the system is singular.
 pub fn fit_quintic(x: &[f64; 7], y: &[f64; 7]) -> Option<[f64; 6]> {
+    fit_quintic_points(x, y)
+}
+
+/// [`fit_quintic`] through any number (>= 6) of points.
+pub fn fit_quintic_points(x: &[f64], y: &[f64]) -> Option<[f64; 6]> {
+    if x.len() < 6 || x.len() != y.len() {
+        return None;
+    }
     // Normal equations A^T A c = A^T y, 6x6, Gaussian elimination with partial pivoting.
     let mut a = [[0.0f64; 7]; 6];
     for (xi, yi) in x.iter().zip(y) {
@@ -154,7 +162,7 @@ pub fn best_gamma(c: &[f64; 6]) -> f64 {
 #[derive(Debug, Clone)]
 pub struct GecScorer {
     /// Gamma-mapped grey for each anchor.
-    maps: [[u8; 256]; 7],
+    maps: Vec<[u8; 256]>,
     /// `m_bar` in 1/65536 by a key of `sx^2 + sy^2` (its f32 bits: exact below 512,
     /// 1/256 relative above), so the inner loop has no sqrt, no log and an integer sum.
     info: Vec<u32>,
@@ -197,8 +205,13 @@ fn info_key_value(k: usize) -> f64 {
 
 impl GecScorer {
     pub fn new(cfg: &GecConfig) -> Self {
-        let mut maps = [[0u8; 256]; 7];
-        for (map, &g) in maps.iter_mut().zip(GEC_GAMMAS.iter()) {
+        Self::with_gammas(cfg, &GEC_GAMMAS)
+    }
+
+    /// A scorer with other anchor gammas than the published seven.
+    pub fn with_gammas(cfg: &GecConfig, gammas: &[f64]) -> Self {
+        let mut maps = vec![[0u8; 256]; gammas.len()];
+        for (map, &g) in maps.iter_mut().zip(gammas.iter()) {
             for (i, v) in map.iter_mut().enumerate() {
                 *v = (255.0 * (i as f64 / 255.0).powf(g)).round() as u8;
             }
@@ -223,16 +236,22 @@ impl GecScorer {
 
     /// Information score of `view` mapped by each anchor gamma.
     pub fn scores(&mut self, view: ImageView<'_>) -> Option<[f64; 7]> {
+        let mut out = [0.0f64; 7];
+        (self.maps.len() == 7 && self.scores_into(view, &mut out)).then_some(out)
+    }
+
+    /// Information score of `view` mapped by each anchor gamma into `out` (one per
+    /// anchor); false when the view is smaller than 3x3 or `out` has another length.
+    pub fn scores_into(&mut self, view: ImageView<'_>, out: &mut [f64]) -> bool {
         let (w, h) = (view.width, view.height);
-        if w < 3 || h < 3 {
-            return None;
+        if w < 3 || h < 3 || out.len() != self.maps.len() {
+            return false;
         }
         for r in &mut self.rows {
             if r.len() < w {
                 r.resize(w, 0);
             }
         }
-        let mut out = [0.0f64; 7];
         for (gi, map) in self.maps.iter().enumerate() {
             for k in 0..2 {
                 for (d, &p) in self.rows[k][..w].iter_mut().zip(view.row(k)) {
@@ -254,7 +273,7 @@ impl GecScorer {
             }
             out[gi] = acc as f64 / INFO_ONE;
         }
-        Some(out)
+        true
     }
 }
 

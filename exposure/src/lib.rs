@@ -1,13 +1,16 @@
 //! markhold-exposure: frames, the camera seam, and exposure controllers.
 //!
-//! Pure Rust, no OpenCV. The controllers follow `docs/reference/exposure-spec.md`: AAEC (the
-//! paper's method, RoI + momentum on a soft-percentile gradient metric), AEC
-//! (Zhang et al. 2017), GEC (Shim et al.) and a camera's mean-intensity AE.
+//! Pure Rust, no OpenCV. The controllers follow `docs/reference/exposure-spec.md`: AAEC as
+//! published (`aaec_paper`: RoI + momentum on a soft-percentile gradient metric) and
+//! markhold's own AAEC (`aaec`), AEC (Zhang et al. 2017), GEC with Shim's constants and as
+//! the AAEC paper ran it, and a camera's mean-intensity AE.
 
 mod aaec;
+mod aaec_paper;
 mod aec;
 mod frame;
 mod gec;
+mod gec_paper;
 mod mean;
 pub mod metric;
 pub mod pyramid;
@@ -15,9 +18,15 @@ pub mod reference;
 mod response;
 
 pub use aaec::{Aaec, AaecConfig, AaecFallback};
+pub use aaec_paper::{
+    AaecPaper, AaecPaperConfig, PaperMetric, PaperMetricEval, PaperMetricValue, PaperMomentum,
+};
 pub use aec::{Aec, AecConfig};
 pub use frame::{Camera, CameraError, Corners, ExposureLimits, Frame, FrameMeta, ImageView, Roi};
-pub use gec::{best_gamma, fit_quintic, gec_ratio, Gec, GecConfig, GecScorer, GEC_GAMMAS};
+pub use gec::{
+    best_gamma, fit_quintic, fit_quintic_points, gec_ratio, Gec, GecConfig, GecScorer, GEC_GAMMAS,
+};
+pub use gec_paper::{gec_paper_gammas, GecPaper, GecPaperConfig, GEC_PAPER_ANCHORS};
 pub use mean::{MeanAe, MeanAeConfig};
 pub use metric::{soft_percentile_weights, GradientMetric, MetricParams, MetricValue, RankWeights};
 pub use response::{Response, ResponseModel};
@@ -59,22 +68,38 @@ pub enum ExposureError {
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize)]
 #[serde(rename_all = "lowercase")]
 pub enum ExposureMethod {
-    /// Adaptive Active Exposure Control (the paper's method).
+    /// markhold's AAEC: the paper's RoI and metric with a log-domain, bracketing
+    /// optimiser and safety nets of its own (`aaec.rs`).
     Aaec,
+    /// Adaptive Active Exposure Control exactly as published (`aaec_paper.rs`).
+    #[serde(rename = "aaec-paper")]
+    AaecPaper,
     /// Active exposure control, Zhang, Forster & Scaramuzza 2017.
     Aec,
-    /// Gamma-based exposure control, Shim et al.
+    /// Gamma-based exposure control, Shim et al., with the published constants.
     Gec,
+    /// GEC as the AAEC paper ran it (marker region + 25 px, 11 anchors, Kp 1e-8).
+    #[serde(rename = "gec-paper")]
+    GecPaper,
     /// A camera's built-in mean-intensity auto exposure ("Default" in the paper).
     Default,
 }
 
 impl ExposureMethod {
-    pub const ALL: [ExposureMethod; 4] = [Self::Aaec, Self::Gec, Self::Aec, Self::Default];
+    pub const ALL: [ExposureMethod; 6] = [
+        Self::AaecPaper,
+        Self::Aaec,
+        Self::GecPaper,
+        Self::Gec,
+        Self::Aec,
+        Self::Default,
+    ];
 
     pub fn as_str(self) -> &'static str {
         match self {
             Self::Aaec => "aaec",
+            Self::AaecPaper => "aaec-paper",
+            Self::GecPaper => "gec-paper",
             Self::Aec => "aec",
             Self::Gec => "gec",
             Self::Default => "default",
@@ -93,11 +118,13 @@ impl std::str::FromStr for ExposureMethod {
     fn from_str(s: &str) -> Result<Self, Self::Err> {
         match s.to_ascii_lowercase().as_str() {
             "aaec" => Ok(Self::Aaec),
+            "aaec-paper" => Ok(Self::AaecPaper),
+            "gec-paper" => Ok(Self::GecPaper),
             "aec" => Ok(Self::Aec),
             "gec" => Ok(Self::Gec),
             "default" | "mean" => Ok(Self::Default),
             other => Err(format!(
-                "unknown exposure method '{other}': expected one of aaec, aec, gec, default"
+                "unknown exposure method '{other}': expected one of aaec-paper, aaec, gec-paper, gec, aec, default"
             )),
         }
     }
@@ -142,13 +169,21 @@ pub struct ExposureConfig {
     pub method: ExposureMethod,
     /// Parameters of the mean-intensity AE ("default").
     pub default: MeanAeConfig,
-    /// Parameters of AAEC.
+    /// Parameters of markhold's AAEC.
     pub aaec: AaecConfig,
+    /// Parameters of the paper's AAEC.
+    pub aaec_paper: AaecPaperConfig,
     /// Parameters of AEC (also AAEC's fallback when `aaec.fallback = "aec"`).
     pub aec: AecConfig,
     /// Parameters of GEC.
     pub gec: GecConfig,
-    /// The camera response the gradient controllers assume (and HIL renders with).
+    /// Parameters of the paper's GEC baseline.
+    pub gec_paper: GecPaperConfig,
+    /// The camera response the gradient controllers assume (and HIL renders with). A
+    /// site file gives it as `[camera] response` and the binary sets it from there; it
+    /// is never written, and read only so that the binary can name it when a file still
+    /// has it here.
+    #[serde(skip_serializing)]
     pub response: ResponseModel,
 }
 
@@ -158,8 +193,10 @@ impl Default for ExposureConfig {
             method: ExposureMethod::Aaec,
             default: MeanAeConfig::default(),
             aaec: AaecConfig::default(),
+            aaec_paper: AaecPaperConfig::default(),
             aec: AecConfig::default(),
             gec: GecConfig::default(),
+            gec_paper: GecPaperConfig::default(),
             response: ResponseModel::default(),
         }
     }
@@ -171,8 +208,10 @@ impl ExposureConfig {
     pub fn validate(&self) -> Result<(), ConfigError> {
         self.default.validate()?;
         self.aaec.validate()?;
+        self.aaec_paper.validate()?;
         self.aec.validate()?;
         self.gec.validate()?;
+        self.gec_paper.validate()?;
         self.response.validate()
     }
 }
@@ -192,6 +231,20 @@ pub fn build_controller(
             initial_us,
         )?)),
         ExposureMethod::Gec => Ok(Box::new(Gec::new(cfg.gec.clone(), limits, initial_us)?)),
+        ExposureMethod::GecPaper => Ok(Box::new(GecPaper::new(
+            cfg.gec_paper.clone(),
+            limits,
+            initial_us,
+        )?)),
+        ExposureMethod::AaecPaper => {
+            let response = cfg.response.load()?;
+            Ok(Box::new(AaecPaper::new(
+                cfg.aaec_paper.clone(),
+                &response,
+                limits,
+                initial_us,
+            )?))
+        }
         ExposureMethod::Aec => {
             let response = cfg.response.load()?;
             Ok(Box::new(Aec::new(

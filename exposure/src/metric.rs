@@ -21,7 +21,7 @@ pub struct MetricParams {
     pub percentile: f64,
     /// Exponent `k` of the sine weights: an odd integer (1..=9); published value 5.
     pub weight_power: u32,
-    /// Grey level from which a pixel counts as saturated (official AEC: 250).
+    /// Grey level from which a pixel counts as saturated (official AEC: 252).
     pub saturation_grey: u8,
     /// `dG` of a saturated pixel becomes `-penalty * max(|dG|, floor)`.
     pub saturation_penalty: f64,
@@ -34,7 +34,7 @@ impl Default for MetricParams {
         Self {
             percentile: 0.7,
             weight_power: 5,
-            saturation_grey: 250,
+            saturation_grey: 252,
             saturation_penalty: 3.0,
             saturation_floor: 0.5,
         }

@@ -10,7 +10,7 @@ use markhold_config::{Checks, ConfigError};
 use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
 
-/// The `response` key of the `[exposure]` section.
+/// The `response` key of the site file's `[camera]` section.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize, Default)]
 #[serde(tag = "model", rename_all = "lowercase", deny_unknown_fields)]
 pub enum ResponseModel {
@@ -19,6 +19,10 @@ pub enum ResponseModel {
     Linear,
     /// `I = 255 x^(1/gamma)` (gamma 2.2 is the usual display encoding; 1 is linear).
     Gamma { gamma: f64 },
+    /// The paper's calibrated form: `g'(I) = sum_j coefficients[j] * I^j` (lowest order
+    /// first, `I` the grey level 0..=255), positive at every level. `markhold response
+    /// fit` computes the coefficients from an exposure sweep.
+    Polynomial { coefficients: Vec<f64> },
     /// A calibrated curve: a text file of 256 values of `g'(I) = d ln f^-1 / dI` for
     /// I = 0..=255, whitespace or comma separated, `#` starts a comment.
     Table { file: PathBuf },
@@ -29,6 +33,9 @@ impl ResponseModel {
     pub fn validate(&self) -> Result<(), ConfigError> {
         match self {
             ResponseModel::Gamma { gamma } => check_gamma(*gamma),
+            ResponseModel::Polynomial { coefficients } => {
+                polynomial_table(coefficients).map(|_| ())
+            }
             ResponseModel::Linear | ResponseModel::Table { .. } => Ok(()),
         }
     }
@@ -50,13 +57,70 @@ impl ResponseModel {
         match self {
             ResponseModel::Linear => Ok(Response::linear()),
             ResponseModel::Gamma { gamma } => Response::gamma(*gamma),
+            ResponseModel::Polynomial { coefficients } => {
+                Ok(Response::integrate(polynomial_table(coefficients)?))
+            }
             ResponseModel::Table { file } => Response::from_table_file(file),
         }
     }
 }
 
+/// Most coefficients of a polynomial response (degree 15).
+pub const MAX_POLYNOMIAL_COEFFICIENTS: usize = 16;
+
+/// `g'(I) = sum_j c_j I^j` at one grey level (Horner).
+pub fn polynomial_g_prime(coefficients: &[f64], grey: f64) -> f64 {
+    coefficients
+        .iter()
+        .rev()
+        .fold(0.0, |acc, &c| acc * grey + c)
+}
+
+/// The 256-entry `g'` table of a polynomial response; the error names the key, and the
+/// first grey level where `g'` is not finite and positive.
+fn polynomial_table(coefficients: &[f64]) -> Result<[f64; 256], ConfigError> {
+    let key = "coefficients";
+    let n = coefficients.len();
+    Checks::new("camera.response")
+        .check(
+            key,
+            format!("{n} values"),
+            (1..=MAX_POLYNOMIAL_COEFFICIENTS).contains(&n),
+            "1 to 16 coefficients, lowest order first",
+        )
+        .done()?;
+    if let Some(j) = coefficients.iter().position(|c| !c.is_finite()) {
+        return Checks::new("camera.response")
+            .check(
+                &format!("{key}[{j}]"),
+                coefficients[j],
+                false,
+                "a finite number",
+            )
+            .done()
+            .map(|_| [0.0; 256]);
+    }
+    let mut table = [0.0; 256];
+    for (i, v) in table.iter_mut().enumerate() {
+        *v = polynomial_g_prime(coefficients, i as f64);
+        if !(v.is_finite() && *v > 0.0) {
+            let value = format!("g'({i}) = {v:e}");
+            return Checks::new("camera.response")
+                .check(
+                    key,
+                    value,
+                    false,
+                    "coefficients whose g'(I) is positive at every grey level 0..=255",
+                )
+                .done()
+                .map(|_| [0.0; 256]);
+        }
+    }
+    Ok(table)
+}
+
 fn check_gamma(gamma: f64) -> Result<(), ConfigError> {
-    Checks::new("exposure.response")
+    Checks::new("camera.response")
         .range("gamma", gamma, 0.2..=5.0, "a gamma in [0.2, 5]")
         .done()
 }
@@ -113,7 +177,7 @@ impl Response {
     pub fn from_g_prime(g_prime: [f64; 256]) -> Result<Self, ExposureError> {
         let bad = g_prime.iter().position(|v| !(v.is_finite() && *v > 0.0));
         if let Some(i) = bad {
-            Checks::new("exposure.response")
+            Checks::new("camera.response")
                 .positive(&format!("table[{i}]"), g_prime[i], "a finite g' > 0")
                 .done()?;
         }

@@ -5,7 +5,6 @@ use markhold_exposure::*;
 fn full_section_parses_and_builds_every_method() {
     let text = r#"
         method = "aaec"
-        response = { model = "gamma", gamma = 2.2 }
         [default]
         target_grey = 110.0
         [aaec]
@@ -17,7 +16,10 @@ fn full_section_parses_and_builds_every_method() {
         [gec]
         kp = 0.4
     "#;
-    let cfg: ExposureConfig = toml::from_str(text).unwrap();
+    let mut cfg: ExposureConfig = toml::from_str(text).unwrap();
+    // The response comes from the site's [camera] section, not from [exposure].
+    assert_eq!(cfg.response, ResponseModel::Linear);
+    cfg.response = ResponseModel::Gamma { gamma: 2.2 };
     assert_eq!(cfg.aaec.percentile, 0.8);
     assert_eq!(cfg.aaec.fallback, AaecFallback::Aec);
     assert_eq!(cfg.aec.rate, 0.3);
@@ -195,7 +197,7 @@ fn bad_values_name_the_key() {
                 response: ResponseModel::Gamma { gamma: -1.0 },
                 ..Default::default()
             },
-            "exposure.response.gamma = -1",
+            "camera.response.gamma = -1",
         ),
     ];
     for (cfg, want) in cases {

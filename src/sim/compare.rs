@@ -801,12 +801,14 @@ mod paper {
     use markhold_hil::scene::LightingScenario;
 
     /// Static marker in a river, 1 minute: det(cov) m^6, detection %, max distance m.
-    pub fn static_precision(m: ExposureMethod) -> (f64, f64, f64) {
+    /// The paper ran its own AAEC and GEC; markhold's variants have no paper numbers.
+    pub fn static_precision(m: ExposureMethod) -> Option<(f64, f64, f64)> {
         match m {
-            ExposureMethod::Aaec => (1.65e-23, 100.0, 0.0040),
-            ExposureMethod::Gec => (1.02e-20, 100.0, 0.0273),
-            ExposureMethod::Aec => (1.38e-20, 100.0, 0.0598),
-            ExposureMethod::Default => (3.82e-20, 99.6, 0.0462),
+            ExposureMethod::AaecPaper => Some((1.65e-23, 100.0, 0.0040)),
+            ExposureMethod::GecPaper => Some((1.02e-20, 100.0, 0.0273)),
+            ExposureMethod::Aec => Some((1.38e-20, 100.0, 0.0598)),
+            ExposureMethod::Default => Some((3.82e-20, 99.6, 0.0462)),
+            ExposureMethod::Aaec | ExposureMethod::Gec => None,
         }
     }
 
@@ -815,22 +817,24 @@ mod paper {
         if l != LightingScenario::Adversarial {
             return None;
         }
-        Some(
-            match m {
-                ExposureMethod::Aaec => "0.0058 m / 99.32 %",
-                ExposureMethod::Gec => "0.0490 m / 29.29 %",
-                ExposureMethod::Aec | ExposureMethod::Default => "no detection",
-            }
-            .to_string(),
-        )
+        let s = match m {
+            ExposureMethod::AaecPaper => "0.0058 m / 99.32 %",
+            ExposureMethod::GecPaper => "0.0490 m / 29.29 %",
+            ExposureMethod::Aec | ExposureMethod::Default => "no detection",
+            ExposureMethod::Aaec | ExposureMethod::Gec => return None,
+        };
+        Some(s.to_string())
     }
 
     /// Convergence seconds (the paper's AAEC is momentum + RoI; no GEC or Default row).
     pub fn convergence_s(m: ExposureMethod, l: LightingScenario) -> Option<f64> {
         let row = match m {
-            ExposureMethod::Aaec => [4.0, 3.0, 6.0],
+            ExposureMethod::AaecPaper => [4.0, 3.0, 6.0],
             ExposureMethod::Aec => [63.0, 43.0, 72.0],
-            ExposureMethod::Gec | ExposureMethod::Default => return None,
+            ExposureMethod::Aaec
+            | ExposureMethod::Gec
+            | ExposureMethod::GecPaper
+            | ExposureMethod::Default => return None,
         };
         match l {
             LightingScenario::Adversarial => Some(row[0]),
@@ -929,8 +933,10 @@ fn table(
 /// The paper's spelling of the method names.
 pub fn method_name(m: ExposureMethod) -> &'static str {
     match m {
-        ExposureMethod::Aaec => "AAEC",
-        ExposureMethod::Gec => "GEC",
+        ExposureMethod::AaecPaper => "AAEC (paper)",
+        ExposureMethod::Aaec => "AAEC (markhold)",
+        ExposureMethod::GecPaper => "GEC (paper)",
+        ExposureMethod::Gec => "GEC (Shim)",
         ExposureMethod::Aec => "AEC",
         ExposureMethod::Default => "Default",
     }
@@ -959,8 +965,10 @@ fn report_header(o: &mut String, r: &CompareResults) {
         o,
         "Site file `{}`, {}x{} px at {} fps, {} simulated seconds per run, seeds {:?}. \
          Cells are mean ± sample standard deviation over {} seed(s) (no spread with one \
-         seed); `-` where the metric is undefined (no detection). The paper's numbers are \
-         from its own camera and water; ours are from the HIL world.\n",
+         seed); `-` where the metric is undefined (no detection). AAEC (paper) and GEC \
+         (paper) are the methods as the paper ran them; AAEC (markhold) and GEC (Shim) are \
+         markhold's AAEC and GEC with Shim's published constants. The paper's numbers \
+         are from its own camera and water; ours are from the HIL world.\n",
         r.site_file, r.width_px, r.height_px, r.fps, r.seconds, r.seeds, seeds
     );
 }
@@ -978,8 +986,8 @@ fn report_static_precision(o: &mut String, r: &CompareResults) {
     for &l in &r.lightings {
         let _ = writeln!(o, "### Static precision, {l} lighting\n");
         let p = |m| {
-            let (d, rate, max) = paper::static_precision(m);
-            Some(format!("{d:.2e} / {rate} % / {max:.4} m"))
+            paper::static_precision(m)
+                .map(|(d, rate, max)| format!("{d:.2e} / {rate} % / {max:.4} m"))
         };
         table(
             o,
@@ -1050,7 +1058,7 @@ fn report_convergence(o: &mut String, r: &CompareResults) {
          settled: it stayed there for at least the last second; oscillates: it crossed the \
          band from one side to the other at least twice; final / reference: where it ended over \
          where the static run settled (1.00: back where it belongs; a method can also \
-         settle, within 5%, at a camera limit). Paper: AAEC with momentum and RoI, \
+         settle, within 5%, at a camera limit). Paper: its AAEC with momentum and RoI, \
          AEC; it has no GEC or Default convergence numbers.\n"
     );
     for &l in &r.lightings {
@@ -1177,7 +1185,7 @@ pub struct CompareArgs {
     /// Simulated seconds of each experiment run.
     #[arg(long, default_value_t = 60.0)]
     pub seconds: f64,
-    /// Exposure methods, comma-separated (default all: aaec,gec,aec,default).
+    /// Exposure methods, comma-separated (default all: aaec-paper,aaec,gec-paper,gec,aec,default).
     #[arg(long, value_delimiter = ',')]
     pub methods: Vec<ExposureMethod>,
     /// Lightings, comma-separated (default all: adversarial,normal,low,caustics).

@@ -158,7 +158,7 @@ pub fn camera_model(site: &LoadedSite, limits: markhold_exposure::ExposureLimits
         limits,
         gain_db: s.camera.gain_db,
         delay_frames: s.camera.actuation_delay_frames,
-        response: s.exposure.response.clone(),
+        response: s.camera.response.clone(),
         sensor: s.camera.sensor.clone(),
     }
 }
@@ -529,4 +529,77 @@ impl HilRun {
         }
         summary
     }
+}
+
+/// Frames of the site's marker seen from the station by the site's HIL camera (the
+/// site's lighting, `seed`), at `steps` exposures spaced geometrically over the
+/// camera's range: the exposure sweep `markhold response fit` calibrates from.
+pub fn exposure_sweep(
+    site: &LoadedSite,
+    seed: u64,
+    steps: usize,
+) -> anyhow::Result<Vec<markhold_exposure::Frame>> {
+    anyhow::ensure!(steps >= 2, "--steps {steps}: expected 2 or more exposures");
+    let limits = site.limits();
+    let (lo, hi) = (limits.min_us, limits.effective_max_us());
+    let exposures: Vec<f64> = (0..steps)
+        .map(|k| lo * (hi / lo).powf(k as f64 / (steps - 1) as f64))
+        .collect();
+    station_frames(site, seed, &site.site.lighting, &exposures)
+}
+
+/// The site's marker seen from the station (vehicle on station, not moving) by the
+/// site's HIL camera in `lighting`, one frame at each of `exposures` (clamped to the
+/// camera's limits), and the marker's corners in those frames (projected, not detected).
+pub fn station_frames(
+    site: &LoadedSite,
+    seed: u64,
+    lighting: &LightingConfig,
+    exposures: &[f64],
+) -> anyhow::Result<Vec<markhold_exposure::Frame>> {
+    use markhold_hil::camera::UnderwaterCamera;
+    use markhold_hil::scene::Scene;
+    let s = &site.site;
+    let limits = site.limits();
+    let t_world_marker = site.t_world_marker();
+    let scene = Scene::new(&s.water, lighting, marker_spec(site)?, t_world_marker, seed)?;
+    let t_world_vehicle = t_world_marker * s.station.t_marker_vehicle();
+    let t_world_cam = t_world_vehicle * site.t_vehicle_cam();
+    let mut camera = UnderwaterCamera::new(camera_model(site, limits), seed)?;
+    let dt = 1.0 / s.camera.fps;
+    let mut time_s = 0.0;
+    let mut out = Vec::with_capacity(exposures.len());
+    for &want in exposures {
+        let t = camera.set_exposure_us(want);
+        let mut frame = markhold_exposure::Frame::new(1, 1);
+        // A new exposure takes effect a few frames late: render until it has.
+        for _ in 0..=s.camera.actuation_delay_frames + 1 {
+            camera.render(&scene, &t_world_cam, &t_world_vehicle, time_s, &mut frame);
+            time_s += dt;
+            if (frame.meta.exposure_us - t).abs() <= 1e-6 * t {
+                break;
+            }
+        }
+        out.push(frame);
+    }
+    Ok(out)
+}
+
+/// The marker's corners (aruco order) as the site's camera sees them from the station.
+pub fn station_corners(site: &LoadedSite) -> Option<markhold_exposure::Corners> {
+    let s = &site.site;
+    let half = s.marker.size_m / 2.0;
+    let t_world_vehicle = site.t_world_marker() * s.station.t_marker_vehicle();
+    let t_cam_marker = (t_world_vehicle * site.t_vehicle_cam()).inverse() * site.t_world_marker();
+    let model = camera_model(site, site.limits());
+    let mut corners = [[0f32; 2]; 4];
+    for (c, (x, y)) in
+        corners
+            .iter_mut()
+            .zip([(-half, half), (half, half), (half, -half), (-half, -half)])
+    {
+        let p = model.project(&(t_cam_marker * nalgebra::Point3::new(x, y, 0.0)))?;
+        *c = [p[0] as f32, p[1] as f32];
+    }
+    Some(corners)
 }

@@ -27,7 +27,9 @@ const SIZE: (u32, u32) = (900, 640);
 pub fn method_color(m: ExposureMethod) -> RGBColor {
     match m {
         ExposureMethod::Aaec => RGBColor(214, 39, 40),
+        ExposureMethod::AaecPaper => RGBColor(255, 127, 14),
         ExposureMethod::Gec => RGBColor(31, 119, 180),
+        ExposureMethod::GecPaper => RGBColor(23, 190, 207),
         ExposureMethod::Aec => RGBColor(44, 160, 44),
         ExposureMethod::Default => RGBColor(148, 103, 189),
     }

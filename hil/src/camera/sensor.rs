@@ -122,7 +122,7 @@ impl SensorTables {
         let linear = match model.response {
             ResponseModel::Linear => true,
             ResponseModel::Gamma { gamma } => gamma == 1.0,
-            ResponseModel::Table { .. } => false,
+            ResponseModel::Table { .. } | ResponseModel::Polynomial { .. } => false,
         };
         Self {
             half_gauss,
