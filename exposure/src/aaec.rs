@@ -872,12 +872,7 @@ impl ExposureController for Aaec {
             if self.cfg.sweep_after_frames > 0 && self.lost_frames > self.sweep_at {
                 if let Some(t) = self.sweep_step() {
                     self.commanded_us = t;
-                    return ExposureStep {
-                        exposure_us: t,
-                        metric: f64::NAN,
-                        used_frame: false,
-                        roi: None,
-                    };
+                    return ExposureStep::skipped(t);
                 }
             }
             let t = self.commanded_us;
@@ -907,10 +902,8 @@ impl ExposureController for Aaec {
             }
         }
         let hold = ExposureStep {
-            exposure_us: self.commanded_us,
-            metric: f64::NAN,
-            used_frame: false,
             roi: Some(roi),
+            ..ExposureStep::skipped(self.commanded_us)
         };
         if !exposed_as_commanded(frame, self.commanded_us) || !frame.is_consistent() {
             return hold;

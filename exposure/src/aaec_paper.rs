@@ -271,12 +271,7 @@ impl ExposureController for AaecPaper {
     }
 
     fn update(&mut self, frame: &Frame, marker: Option<&Corners>) -> ExposureStep {
-        let hold = ExposureStep {
-            exposure_us: self.commanded_us,
-            metric: f64::NAN,
-            used_frame: false,
-            roi: None,
-        };
+        let hold = ExposureStep::skipped(self.commanded_us);
         if !frame.is_consistent() {
             return hold;
         }

@@ -196,12 +196,7 @@ impl ExposureController for Aec {
     }
 
     fn update(&mut self, frame: &Frame, _marker: Option<&Corners>) -> ExposureStep {
-        let hold = ExposureStep {
-            exposure_us: self.commanded_us,
-            metric: f64::NAN,
-            used_frame: false,
-            roi: None,
-        };
+        let hold = ExposureStep::skipped(self.commanded_us);
         if !exposed_as_commanded(frame, self.commanded_us) || !frame.is_consistent() {
             return hold;
         }

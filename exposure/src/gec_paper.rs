@@ -136,12 +136,7 @@ impl ExposureController for GecPaper {
                 self.roi = Some(r);
             }
         }
-        let hold = ExposureStep {
-            exposure_us: self.commanded_us,
-            metric: f64::NAN,
-            used_frame: false,
-            roi: None,
-        };
+        let hold = ExposureStep::skipped(self.commanded_us);
         if !exposed_as_commanded(frame, self.commanded_us) || !frame.is_consistent() {
             return hold;
         }

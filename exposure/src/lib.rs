@@ -143,6 +143,18 @@ pub struct ExposureStep {
     pub roi: Option<Roi>,
 }
 
+impl ExposureStep {
+    /// A frame the controller did not use: the exposure stays at `exposure_us`.
+    pub fn skipped(exposure_us: f64) -> Self {
+        Self {
+            exposure_us,
+            metric: f64::NAN,
+            used_frame: false,
+            roi: None,
+        }
+    }
+}
+
 /// An exposure controller: fed every frame, it decides the next exposure.
 pub trait ExposureController: Send {
     fn method(&self) -> ExposureMethod;

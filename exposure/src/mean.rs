@@ -96,18 +96,14 @@ impl ExposureController for MeanAe {
         let metered = roi.unwrap_or_else(|| frame.full_roi());
         if !exposed_as_commanded(frame, self.commanded_us) || !frame.is_consistent() {
             return ExposureStep {
-                exposure_us: self.commanded_us,
-                metric: f64::NAN,
-                used_frame: false,
                 roi,
+                ..ExposureStep::skipped(self.commanded_us)
             };
         }
         let Some(mean) = Self::mean_grey(frame, metered, self.cfg.subsample) else {
             return ExposureStep {
-                exposure_us: self.commanded_us,
-                metric: f64::NAN,
-                used_frame: false,
                 roi,
+                ..ExposureStep::skipped(self.commanded_us)
             };
         };
         // Half a grey level keeps ln finite on an all-black frame.
