@@ -37,20 +37,7 @@ fn run_summary(args: &[&str], out: &Path) -> serde_json::Value {
 /// figures (the run is the same on every CPU for a seed); the other sites' rows below.
 #[test]
 fn pool_station_keeping_settles() {
-    let d = tmpdir("settle");
-    let pool = repo("params/pool.toml");
-    let s = run_summary(
-        &[
-            "hil",
-            "--site",
-            pool.to_str().unwrap(),
-            "--seconds",
-            "60",
-            "--seed",
-            "1",
-        ],
-        &d.join("s.json"),
-    );
+    let s = readme_site_run("pool");
     let f = |k: &str| {
         s[k].as_f64()
             .unwrap_or_else(|| panic!("summary has no number {k}: {s}"))
@@ -83,6 +70,25 @@ fn pool_station_keeping_settles() {
     }
 }
 
+/// The summary of the README's results command for a shipped site
+/// (`markhold hil --site params/SITE.toml --seconds 60 --seed 1`).
+fn readme_site_run(site: &str) -> serde_json::Value {
+    let d = tmpdir(site);
+    let path = repo(&format!("params/{site}.toml"));
+    run_summary(
+        &[
+            "hil",
+            "--site",
+            path.to_str().unwrap(),
+            "--seconds",
+            "60",
+            "--seed",
+            "1",
+        ],
+        &d.join("s.json"),
+    )
+}
+
 /// `value` within a factor of 2 of the figure the README states.
 fn within_2x(what: &str, value: f64, stated: f64, s: &serde_json::Value) {
     assert!(
@@ -95,20 +101,7 @@ fn within_2x(what: &str, value: f64, stated: f64, s: &serde_json::Value) {
 /// 60 --seed 1`): position RMS and final error within 2x, detection within the table's
 /// 0.1 % rounding.
 fn site_as_the_readme_states(site: &str, rms_m: f64, final_m: f64, detection: f64) {
-    let d = tmpdir(site);
-    let path = repo(&format!("params/{site}.toml"));
-    let s = run_summary(
-        &[
-            "hil",
-            "--site",
-            path.to_str().unwrap(),
-            "--seconds",
-            "60",
-            "--seed",
-            "1",
-        ],
-        &d.join("s.json"),
-    );
+    let s = readme_site_run(site);
     let f = |k: &str| {
         s[k].as_f64()
             .unwrap_or_else(|| panic!("summary has no number {k}: {s}"))
