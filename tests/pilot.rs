@@ -27,22 +27,6 @@ fn frames_dir() -> &'static Path {
     DIR.get_or_init(|| station_frames(tmp("frames"), 240))
 }
 
-/// pymavlink must be installed (scripts/install-deps does it); a test never installs
-/// anything, and a missing pymavlink fails the test rather than skipping it.
-fn ensure_pymavlink() {
-    let probe = Command::new("python3")
-        .args(["-c", "import pymavlink.dialects.v20.ardupilotmega"])
-        .output();
-    match probe {
-        Ok(o) if o.status.success() => {}
-        Ok(o) => panic!(
-            "pymavlink is not importable: run scripts/install-deps ({})",
-            String::from_utf8_lossy(&o.stderr).trim()
-        ),
-        Err(e) => panic!("python3 cannot be run ({e}): run scripts/install-deps"),
-    }
-}
-
 /// The pymavlink vehicle; killed on drop if still running.
 struct Vehicle(Child);
 
@@ -55,7 +39,7 @@ impl Drop for Vehicle {
 
 /// Start the vehicle with `args`; its UDP port.
 fn vehicle(args: &[&str]) -> (Vehicle, u16) {
-    ensure_pymavlink();
+    markhold_testkit::require_pymavlink();
     let mut child = Command::new("python3")
         .arg(repo("autopilot/tests/pymav_vehicle.py"))
         .args(["--deadline", "40"])

@@ -16,22 +16,6 @@ use markhold_autopilot::*;
 
 const FRAME_S: f64 = 1.0 / 30.0;
 
-/// pymavlink must be installed (scripts/install-deps does it); a test never installs
-/// anything, and a missing pymavlink fails the test rather than skipping it.
-fn ensure_pymavlink() {
-    let probe = Command::new("python3")
-        .args(["-c", "import pymavlink.dialects.v20.ardupilotmega"])
-        .output();
-    match probe {
-        Ok(o) if o.status.success() => {}
-        Ok(o) => panic!(
-            "pymavlink is not importable: run scripts/install-deps ({})",
-            String::from_utf8_lossy(&o.stderr).trim()
-        ),
-        Err(e) => panic!("python3 cannot be run ({e}): run scripts/install-deps"),
-    }
-}
-
 struct Vehicle {
     child: Child,
     lines: mpsc::Receiver<String>,
@@ -47,7 +31,7 @@ impl Drop for Vehicle {
 /// Run a pymavlink script from tests/ with `args`; the script and the first line it
 /// prints (its address), within 20 s.
 fn spawn_script(script: &str, args: &[&str], what: &str) -> (Vehicle, String) {
-    ensure_pymavlink();
+    markhold_testkit::require_pymavlink();
     let path = format!("{}/tests/{script}", env!("CARGO_MANIFEST_DIR"));
     let mut child = Command::new("python3")
         .arg(path)

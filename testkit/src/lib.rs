@@ -77,6 +77,23 @@ unsafe impl GlobalAlloc for CountingAlloc {
     }
 }
 
+/// Panics unless pymavlink can be imported: scripts/install-deps installs it, a test never
+/// installs anything, and a missing pymavlink fails the test rather than skipping it.
+#[allow(clippy::panic)] // A test helper: failing loudly is its job.
+pub fn require_pymavlink() {
+    let probe = std::process::Command::new("python3")
+        .args(["-c", "import pymavlink.dialects.v20.ardupilotmega"])
+        .output();
+    match probe {
+        Ok(o) if o.status.success() => {}
+        Ok(o) => panic!(
+            "pymavlink is not importable: run scripts/install-deps ({})",
+            String::from_utf8_lossy(&o.stderr).trim()
+        ),
+        Err(e) => panic!("python3 cannot be run ({e}): run scripts/install-deps"),
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
