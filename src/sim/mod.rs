@@ -2,6 +2,7 @@
 //! fault injection, the paper's experiments (`compare`) and their plots, the plots of one
 //! run (`hil --plots`), and the HIL summary.
 
+pub mod claims;
 pub mod cmd;
 pub mod compare;
 pub mod external;
@@ -9,5 +10,7 @@ pub mod faults;
 pub mod hil;
 pub mod plots;
 pub mod run_plots;
+pub mod shard;
+pub mod stats;
 pub mod stream;
 pub mod summary;
