@@ -165,8 +165,7 @@ fn assert_results_json(out: &Path) -> CompareResults {
     assert_eq!(r.stats.len(), 2);
     // Wall times apart (not a function of the seed): one per run.
     let t: serde_json::Value =
-        serde_json::from_str(&std::fs::read_to_string(out.join("timings.json")).unwrap())
-            .unwrap();
+        serde_json::from_str(&std::fs::read_to_string(out.join("timings.json")).unwrap()).unwrap();
     assert_eq!(t.as_array().map(Vec::len), Some(2 * 5));
     assert!(raw.get("timings").is_none());
     r

@@ -66,12 +66,14 @@ fn runs() -> &'static Runs {
     RUNS.get_or_init(|| {
         let reference = tmp("shard-reference");
         let parts = tmp("shard-parts");
-        let mut args = SWEEP.to_vec();
+        let mut args = vec!["compare"];
+        args.extend(SWEEP);
         args.extend(["--jobs", "2", "--out"]);
         ok(&markhold(&args, &[&reference]), "unsharded compare");
         for i in 1..=3 {
             let s = format!("{i}/3");
-            let mut a = SWEEP.to_vec();
+            let mut a = vec!["compare"];
+            a.extend(SWEEP);
             a.extend(["--jobs", "2", "--shard", &s, "--out"]);
             ok(&markhold(&a, &[&parts]), &format!("compare --shard {s}"));
         }
@@ -113,18 +115,26 @@ fn sharded_then_merged_equals_unsharded() {
         assert!(r.parts.join(format!("shard-{i}-of-3.json")).is_file());
     }
     let merged = tmp("shard-merged");
-    let out = markhold(&["compare", "merge"], &[&r.parts, Path::new("--out"), &merged]);
+    let out = markhold(
+        &["compare", "merge"],
+        &[&r.parts, Path::new("--out"), &merged],
+    );
     ok(&out, "compare merge");
     assert_same_outputs(&r.reference, &merged);
     let report = String::from_utf8(read(&merged.join("report.md"))).unwrap();
     assert!(report.contains("## 5. The paper's claims, paired over seeds"));
-    assert!(report.contains("| detects the marker more often, static | adversarial | AAEC (markhold) | Default |"));
+    assert!(report.contains(
+        "| detects the marker more often, static | adversarial | AAEC (markhold) | Default |"
+    ));
 }
 
 fn merge_err(dirs: &[&Path]) -> String {
     let out_dir = tmp("shard-merge-err-out");
     let mut c = Command::new(env!("CARGO_BIN_EXE_markhold"));
-    c.args(["compare", "merge"]).args(dirs).arg("--out").arg(&out_dir);
+    c.args(["compare", "merge"])
+        .args(dirs)
+        .arg("--out")
+        .arg(&out_dir);
     let out = c.output().unwrap();
     assert!(!out.status.success(), "merge of {dirs:?} succeeded");
     assert!(
@@ -161,7 +171,8 @@ fn merge_refuses_missing_duplicate_and_foreign_shards() {
 
     // Shard 2 of another sweep (other seconds): refused, the files and the field named.
     let c = tmp("shard-err-c");
-    let mut args = SWEEP.to_vec();
+    let mut args = vec!["compare"];
+    args.extend(SWEEP);
     for (k, v) in [("--seconds", "0.2")] {
         let i = args.iter().position(|x| *x == k).unwrap();
         args[i + 1] = v;
@@ -171,7 +182,10 @@ fn merge_refuses_missing_duplicate_and_foreign_shards() {
     copy_shards(&r.parts, &c, &[1, 3]);
     let e = merge_err(&[&c]);
     assert!(e.contains("shards of different sweeps"), "{e}");
-    assert!(e.contains("seconds 5 vs 0.2") || e.contains("seconds 0.2 vs 5"), "{e}");
+    assert!(
+        e.contains("seconds 5 vs 0.2") || e.contains("seconds 0.2 vs 5"),
+        "{e}"
+    );
     assert!(e.contains("shard-2-of-3.json"), "{e}");
 
     let empty = tmp("shard-err-empty");
@@ -225,11 +239,17 @@ fn tail(p: &Path) -> String {
 
 impl Slurm {
     fn logs(&self) -> String {
-        ["munged.log", "slurmctld.log", "slurmd.log", "slurmctld.out", "slurmd.out"]
-            .iter()
-            .map(|f| tail(&self.dir.join(f)))
-            .collect::<Vec<_>>()
-            .join("\n")
+        [
+            "munged.log",
+            "slurmctld.log",
+            "slurmd.log",
+            "slurmctld.out",
+            "slurmd.out",
+        ]
+        .iter()
+        .map(|f| tail(&self.dir.join(f)))
+        .collect::<Vec<_>>()
+        .join("\n")
     }
 
     fn spawn(&mut self, name: &'static str, program: &Path, args: &[String]) {
@@ -254,7 +274,11 @@ impl Slurm {
     /// Start the cluster; panics (the test fails) naming what is missing or what failed.
     fn start() -> Slurm {
         let need = ["munged", "slurmctld", "slurmd", "sbatch", "squeue", "sinfo"];
-        let missing: Vec<&str> = need.iter().copied().filter(|p| which(p).is_none()).collect();
+        let missing: Vec<&str> = need
+            .iter()
+            .copied()
+            .filter(|p| which(p).is_none())
+            .collect();
         assert!(
             missing.is_empty(),
             "the SLURM test needs Debian's slurm-wlm and munge (scripts/install-deps \
@@ -271,8 +295,11 @@ impl Slurm {
         std::fs::set_permissions(&munge, std::fs::Permissions::from_mode(0o711)).unwrap();
         let key = munge.join("munge.key");
         let mut bytes = vec![0u8; 1024];
-        std::io::Read::read_exact(&mut std::fs::File::open("/dev/urandom").unwrap(), &mut bytes)
-            .unwrap();
+        std::io::Read::read_exact(
+            &mut std::fs::File::open("/dev/urandom").unwrap(),
+            &mut bytes,
+        )
+        .unwrap();
         std::fs::write(&key, &bytes).unwrap();
         std::fs::set_permissions(&key, std::fs::Permissions::from_mode(0o400)).unwrap();
         let user = String::from_utf8(Command::new("id").arg("-un").output().unwrap().stdout)
@@ -359,10 +386,12 @@ impl Slurm {
     fn wait_for(&mut self, what: &str, limit: Duration, ready: impl Fn(&Slurm) -> bool) {
         let t0 = Instant::now();
         while !ready(self) {
-            for (name, c) in &mut self.children {
-                if let Ok(Some(st)) = c.try_wait() {
-                    panic!("{name} exited ({st}) waiting for {what}\n{}", self.logs());
-                }
+            let exited = self
+                .children
+                .iter_mut()
+                .find_map(|(name, c)| c.try_wait().ok().flatten().map(|st| (*name, st)));
+            if let Some((name, st)) = exited {
+                panic!("{name} exited ({st}) waiting for {what}\n{}", self.logs());
             }
             assert!(
                 t0.elapsed() < limit,
@@ -423,7 +452,10 @@ fn slurm_job_array_runs_the_shards_and_the_merge_matches() {
     }
     drop(slurm);
     let merged = tmp("slurm-merged");
-    let out = markhold(&["compare", "merge"], &[&parts, Path::new("--out"), &merged]);
+    let out = markhold(
+        &["compare", "merge"],
+        &[&parts, Path::new("--out"), &merged],
+    );
     ok(&out, "compare merge of the SLURM shards");
     assert_same_outputs(&r.reference, &merged);
 }

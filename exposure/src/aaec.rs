@@ -47,7 +47,8 @@ const SCENE_TEST_MAX_MOVE: f64 = 0.25;
 const MAX_PROBE_FRAMES: u32 = 64;
 /// A bracket narrower than this (in ln t) has collapsed onto its zero.
 const COLLAPSED_WIDTH: f64 = 0.005;
-/// Smallest step scale of an ascent that restarts from a dropped bracket.
+/// Step scale of an ascent that restarts from a dropped bracket (grows while the sign
+/// holds): a drifting optimum is followed, not jumped past.
 const RESTART_STEP_SCALE: f64 = 0.1;
 
 /// Grey level from which the highlight guard takes a pixel as clipped.
@@ -753,7 +754,7 @@ impl Aaec {
         if (inverted && strong) || aged {
             tracing::debug!(inverted, aged, "aaec: bracket dropped, climbing again");
             self.bracket = None;
-            self.step_scale = self.step_scale.max(RESTART_STEP_SCALE);
+            self.step_scale = RESTART_STEP_SCALE;
             self.v = 0.0;
             return;
         }
@@ -944,15 +945,32 @@ impl ExposureController for Aaec {
             }
             let view = frame.view().crop(roi);
             let last = std::mem::replace(&mut self.last_knee, KneeStep::None);
-            let d = if let Some(d) = self.knee_held(s) {
-                d
+            let (d, why) = if let Some(d) = self.knee_held(s) {
+                (d, "knee hold")
             } else if last == KneeStep::Landing && self.hold_knee(mv.saturated_frac, s) {
-                0.0
+                (0.0, "knee hold begins")
             } else if let Some(d) = self.knee_step(view, x, s, mv.saturated_frac, last) {
-                d
+                (d, "knee landing")
             } else {
-                self.ascent_step(x, s)
+                let d = self.ascent_step(x, s);
+                (
+                    d,
+                    if self.bracket.is_some() {
+                        "bracket"
+                    } else {
+                        "ascent"
+                    },
+                )
             };
+            tracing::trace!(
+                t,
+                s,
+                m = mv.m,
+                clipped = mv.saturated_frac,
+                step = d,
+                why,
+                "aaec"
+            );
             self.prev = Some(Sample { x, s, ln_m });
             d
         };

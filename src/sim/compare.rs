@@ -794,7 +794,10 @@ fn case_results(
         series
             .iter()
             .find(|s| {
-                s.method == c.method && s.lighting == c.lighting && s.seed == c.seed && s.kind == kind
+                s.method == c.method
+                    && s.lighting == c.lighting
+                    && s.seed == c.seed
+                    && s.kind == kind
             })
             .with_context(|| {
                 format!(
@@ -1374,9 +1377,11 @@ pub struct CompareArgs {
     /// Number of seeds (1..=N) per method and lighting.
     #[arg(long, default_value_t = 1)]
     pub seeds: u64,
-    /// Output folder: report.md, results.json, plots (PNG and SVG).
-    #[arg(long)]
-    pub out: std::path::PathBuf,
+    /// Output folder: report.md, results.json, timings.json, plots (PNG and SVG); with
+    /// --shard, shard-I-of-N.json only. (Required; optional here only because `merge`
+    /// has its own.)
+    #[arg(long, required = true)]
+    pub out: Option<std::path::PathBuf>,
     /// Simulated seconds of each experiment run.
     #[arg(long, default_value_t = 60.0)]
     pub seconds: f64,
@@ -1429,6 +1434,9 @@ pub fn cli(args: CompareArgs) -> anyhow::Result<()> {
         }
         return Ok(());
     }
+    let Some(out_dir) = args.out.as_deref() else {
+        anyhow::bail!("--out DIR: required");
+    };
     let site = crate::params::load(&args.site)?;
     let mut opts = CompareOptions {
         seeds: (1..=args.seeds).collect(),
@@ -1452,21 +1460,21 @@ pub fn cli(args: CompareArgs) -> anyhow::Result<()> {
         args.quiet,
     );
     if let Some(shard) = args.shard {
-        return run_shard(&site, &opts, shard, &args.out, &bar);
+        return run_shard(&site, &opts, shard, out_dir, &bar);
     }
     let out = run_compare(&site, &opts, &bar)?;
     drop(bar); // clears the bar
-    let files = write_outputs(&out, &args.out)?;
+    let files = write_outputs(&out, out_dir)?;
     crate::outln!(
         "markhold compare: {} runs of {} s on {}; wrote {} files to {}",
         out.series.len(),
         opts.seconds,
         site.site.site.name,
         files.len(),
-        args.out.display()
+        out_dir.display()
     );
     for f in files {
-        crate::outln!("  {}", args.out.join(f).display());
+        crate::outln!("  {}", out_dir.join(f).display());
     }
     Ok(())
 }

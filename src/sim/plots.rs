@@ -521,7 +521,11 @@ fn spread<DB: DrawingBackend>(
             "motion.mean_distance_to_trajectory_m",
             1e3,
         ),
-        ("Convergence from 10x long [s]", "convergence.long.seconds", 1.0),
+        (
+            "Convergence from 10x long [s]",
+            "convergence.long.seconds",
+            1.0,
+        ),
         ("Station: position RMS [mm]", "station.position_rms_m", 1e3),
     ];
     for (area, (title, key, scale)) in panels.iter().zip(defs) {

@@ -200,8 +200,8 @@ fn is_shard_name(name: &str) -> bool {
 fn read_shards(dirs: &[PathBuf]) -> anyhow::Result<Vec<(PathBuf, ShardFile)>> {
     let mut paths = Vec::new();
     for d in dirs {
-        let entries =
-            std::fs::read_dir(d).with_context(|| format!("reading shard folder {}", d.display()))?;
+        let entries = std::fs::read_dir(d)
+            .with_context(|| format!("reading shard folder {}", d.display()))?;
         let before = paths.len();
         for e in entries {
             let e = e.with_context(|| format!("reading shard folder {}", d.display()))?;
@@ -218,7 +218,8 @@ fn read_shards(dirs: &[PathBuf]) -> anyhow::Result<Vec<(PathBuf, ShardFile)>> {
     paths.sort();
     let mut out = Vec::with_capacity(paths.len());
     for p in paths {
-        let text = std::fs::read_to_string(&p).with_context(|| format!("reading {}", p.display()))?;
+        let text =
+            std::fs::read_to_string(&p).with_context(|| format!("reading {}", p.display()))?;
         let f: ShardFile = serde_json::from_str(&text)
             .with_context(|| format!("{}: not a markhold compare shard file", p.display()))?;
         anyhow::ensure!(
@@ -354,10 +355,7 @@ mod tests {
 
     #[test]
     fn shard_arguments_and_slices() {
-        assert_eq!(
-            "2/3".parse::<Shard>(),
-            Ok(Shard { index: 2, count: 3 })
-        );
+        assert_eq!("2/3".parse::<Shard>(), Ok(Shard { index: 2, count: 3 }));
         for bad in ["0/3", "4/3", "3", "a/3", "1/0", ""] {
             assert!(bad.parse::<Shard>().is_err(), "{bad}");
         }
