@@ -93,7 +93,11 @@ fn the_published_aaec_converges_in_hil_through_the_papers_camera_response() {
             end / best_t,
             100.0 * s.detection_rate
         );
-        assert!(s.detection_rate > 0.95, "{method}: detection {}", s.detection_rate);
+        assert!(
+            s.detection_rate > 0.95,
+            "{method}: detection {}",
+            s.detection_rate
+        );
         match at_least {
             Some(bound) => assert!(
                 got >= bound,
