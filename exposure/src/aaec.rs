@@ -52,8 +52,7 @@ const MAX_PROBE_FRAMES: u32 = 64;
 const LINEAR_LEARNING_RATE: f64 = 1e-9;
 /// A bracket narrower than this (in ln t) has collapsed onto its zero.
 const COLLAPSED_WIDTH: f64 = 0.005;
-/// Step scale of an ascent that restarts from a dropped bracket (grows while the sign
-/// holds): a drifting optimum is followed, not jumped past.
+/// Smallest step scale of an ascent that restarts from a dropped bracket.
 const RESTART_STEP_SCALE: f64 = 0.1;
 
 /// Grey level from which the highlight guard takes a pixel as clipped.
@@ -805,7 +804,7 @@ impl Aaec {
         if (inverted && strong) || aged {
             tracing::debug!(inverted, aged, "aaec: bracket dropped, climbing again");
             self.bracket = None;
-            self.step_scale = RESTART_STEP_SCALE;
+            self.step_scale = self.step_scale.max(RESTART_STEP_SCALE);
             self.v = 0.0;
             return;
         }
