@@ -504,6 +504,9 @@ fn exposure_time<DB: DrawingBackend>(
     Ok(())
 }
 
+/// A method's column of a spread panel: the seeds' values and (low, mean, high).
+type SpreadColumn = (ExposureMethod, Vec<f64>, Option<(f64, f64, f64)>);
+
 /// The spread over seeds of four headline metrics (a panel each): every seed's value as a
 /// dot, the mean as a bar with its 95 % confidence interval, a column per method.
 fn spread<DB: DrawingBackend>(
@@ -530,7 +533,7 @@ fn spread<DB: DrawingBackend>(
     ];
     for (area, (title, key, scale)) in panels.iter().zip(defs) {
         // Per method: the seeds' values and the stat.
-        let cols: Vec<(ExposureMethod, Vec<f64>, Option<(f64, f64, f64)>)> = r
+        let cols: Vec<SpreadColumn> = r
             .methods
             .iter()
             .map(|&m| {

@@ -173,7 +173,7 @@ pub fn paired_t(diffs: &[f64]) -> Option<Paired> {
     let n = diffs.len();
     let (t, p) = match m.sd {
         None => (None, None),
-        Some(sd) if sd == 0.0 => {
+        Some(0.0) => {
             if m.mean == 0.0 {
                 (None, None)
             } else {
