@@ -173,10 +173,8 @@ fn merge_refuses_missing_duplicate_and_foreign_shards() {
     let c = tmp("shard-err-c");
     let mut args = vec!["compare"];
     args.extend(SWEEP);
-    for (k, v) in [("--seconds", "0.2")] {
-        let i = args.iter().position(|x| *x == k).unwrap();
-        args[i + 1] = v;
-    }
+    let i = args.iter().position(|x| *x == "--seconds").unwrap();
+    args[i + 1] = "0.2";
     args.extend(["--shard", "2/3", "--jobs", "2", "--out"]);
     ok(&markhold(&args, &[&c]), "foreign shard");
     copy_shards(&r.parts, &c, &[1, 3]);
