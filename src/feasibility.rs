@@ -346,7 +346,7 @@ pub fn check(
 }
 
 /// The setup of a site's camera, for [`check`].
-fn setup_of<'a>(site: &crate::params::Site, calib: &'a CameraCalibration) -> ViewSetup<'a> {
+fn setup_of<'a>(site: &'a crate::params::Site, calib: &'a CameraCalibration) -> ViewSetup<'a> {
     ViewSetup {
         calib,
         t_vehicle_cam: crate::params::t_vehicle_cam(&site.camera),

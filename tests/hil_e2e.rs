@@ -286,3 +286,43 @@ fn unknown_render_loops_are_named() {
     );
     assert!(err.contains("portable, avx2, avx512"), "{err}");
 }
+
+/// A map of one is the single marker of before: pool with two more markers in its map,
+/// one in view beside the origin marker and one far out of view, runs exactly as pool
+/// (the simulated world draws the origin marker only, so the map's window for the marker
+/// in view is searched every frame and finds nothing, and the pose is the origin
+/// marker's, bit for bit).
+#[test]
+fn a_map_whose_other_markers_are_not_seen_runs_as_its_origin_marker() {
+    let d = tmpdir("map-of-one");
+    let map = d.join("pool-map.toml");
+    std::fs::write(
+        &map,
+        format!(
+            "{}\n[[marker.map]]\nid = 5\nsize_m = 0.15\nposition_m = [0.3, 0.0, 0.0]\n\n\
+             [[marker.map]]\nid = 6\nsize_m = 0.15\nposition_m = [40.0, 0.0, 0.0]\n",
+            pool_text()
+        ),
+    )
+    .unwrap();
+    let run = |site: &Path, name: &str| {
+        let args = [
+            "hil",
+            "--site",
+            site.to_str().unwrap(),
+            "--seconds",
+            "3",
+            "--seed",
+            "2",
+        ];
+        let mut s = run_summary(&args, &d.join(name));
+        for k in WALL_FIELDS {
+            s.as_object_mut().unwrap().remove(k);
+        }
+        s
+    };
+    let a = run(&repo("params/pool.toml"), "pool.json");
+    let b = run(&map, "map.json");
+    assert!(a["detection_rate"].as_f64().unwrap() > 0.9, "{a}");
+    assert_eq!(a, b);
+}
