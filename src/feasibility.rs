@@ -392,9 +392,7 @@ pub fn check_start(
         others: &[],
         ..setup_of(site, calib)
     };
-    let margin_at = |d: f64| {
-        setup.view(&start_at(d))
-    };
+    let margin_at = |d: f64| setup.view(&start_at(d));
     let v = margin_at(offset_m);
     if v.margin >= REFUSE_MARGIN {
         return Ok(());

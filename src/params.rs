@@ -710,7 +710,10 @@ mod tests {
         );
         // Printed back as written (what `params check` shows).
         let text = toml::to_string_pretty(&site.effective()).expect("toml");
-        assert!(text.contains("[[marker.map]]") && text.contains("rpy_deg"), "{text}");
+        assert!(
+            text.contains("[[marker.map]]") && text.contains("rpy_deg"),
+            "{text}"
+        );
         // A map of one prints no map.
         let pool = parse(Path::new("/sites/pool.toml"), POOL).expect("pool");
         let text = toml::to_string_pretty(&pool.effective()).expect("toml");

@@ -282,6 +282,9 @@ fn params_check_lists_the_marker_map() {
     assert_eq!(out.matches("[[marker.map]]").count(), 2, "{out}");
     // A map of one lists no map.
     let (_, out, _) = check(&repo("params/pool.toml"));
-    assert!(!out.contains("marker map") && !out.contains("marker.map"), "{out}");
+    assert!(
+        !out.contains("marker map") && !out.contains("marker.map"),
+        "{out}"
+    );
     std::fs::remove_dir_all(&dir).ok();
 }

@@ -3,8 +3,8 @@
 use markhold_config::{above, open, open_closed, Checks, ConfigError};
 
 use crate::VisionError;
-use opencv::aruco::PREDEFINED_DICTIONARY_NAME as D;
 use nalgebra::{Isometry3, Translation3, UnitQuaternion, Vector3};
+use opencv::aruco::PREDEFINED_DICTIONARY_NAME as D;
 use serde::{Deserialize, Serialize};
 
 /// Marker dictionaries OpenCV 4.6's aruco module knows.

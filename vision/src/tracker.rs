@@ -12,9 +12,7 @@ use crate::pose::{
 };
 use crate::{CameraCalibration, VisionError};
 use markhold_exposure::{Corners, Frame, Roi};
-use nalgebra::{
-    Isometry3, Matrix6, Point3, Translation3, UnitQuaternion, Vector2, Vector3,
-};
+use nalgebra::{Isometry3, Matrix6, Point3, Translation3, UnitQuaternion, Vector2, Vector3};
 use opencv::{aruco, calib3d, core, imgproc, prelude::*};
 
 /// One pose of the site frame from the markers of the map in view.
@@ -557,8 +555,7 @@ impl MarkerTracker {
             if count == 0 {
                 continue;
             }
-            let Some(sol) = refine_pose_joint(&self.calib, &self.joint, &self.used, &pose)
-            else {
+            let Some(sol) = refine_pose_joint(&self.calib, &self.joint, &self.used, &pose) else {
                 continue;
             };
             let tie = match previous {
@@ -621,7 +618,11 @@ impl MarkerTracker {
             t_cam_marker: t_cam_site,
             cov_cam,
             reproj_rms_px: sol.reproj_rms_px,
-            tracked: self.best_used.iter().zip(&self.slots).any(|(u, s)| *u && s.found_tracked),
+            tracked: self
+                .best_used
+                .iter()
+                .zip(&self.slots)
+                .any(|(u, s)| *u && s.found_tracked),
             markers_used: count as u32,
             outliers,
         };
@@ -1035,7 +1036,9 @@ impl Detector {
         .cv("detect_markers")?;
         let mut count = 0;
         for (i, id) in self.ids.iter().enumerate() {
-            let Some(&slot) = usize::try_from(id).ok().and_then(|id| self.index_of_id.get(id))
+            let Some(&slot) = usize::try_from(id)
+                .ok()
+                .and_then(|id| self.index_of_id.get(id))
             else {
                 continue;
             };

@@ -74,11 +74,7 @@ fn render(
 /// The site 1.6 m ahead, slightly off-axis and turned.
 fn view(k: usize) -> Isometry3<f64> {
     let s = k as f64;
-    pose(
-        [0.04 + 0.002 * s, -0.03, 1.6],
-        12.0 + 0.3 * s,
-        -8.0,
-    )
+    pose([0.04 + 0.002 * s, -0.03, 1.6], 12.0 + 0.3 * s, -8.0)
 }
 
 fn tracker(m: &MarkerConfig) -> MarkerTracker {
@@ -121,7 +117,10 @@ fn every_marker_in_view_makes_one_tighter_pose() {
     println!("position RMS: joint {rms_joint:.5} m, origin marker alone {rms_single:.5} m");
     assert!(rms_joint < 0.5 * rms_single, "{rms_joint} vs {rms_single}");
     let st = joint.stats();
-    assert_eq!((st.detections, st.markers_used, st.outliers), (n as u64, 5 * n as u64, 0));
+    assert_eq!(
+        (st.detections, st.markers_used, st.outliers),
+        (n as u64, 5 * n as u64, 0)
+    );
 }
 
 #[test]
@@ -146,7 +145,10 @@ fn a_moved_marker_and_a_wrong_id_are_left_out_and_counted() {
             "frame {k}: {}",
             position_error(&o.t_cam_marker, &truth)
         );
-        assert!(rotation_error_deg(&o.t_cam_marker, &truth) < 0.3, "frame {k}");
+        assert!(
+            rotation_error_deg(&o.t_cam_marker, &truth) < 0.3,
+            "frame {k}"
+        );
     }
     assert_eq!(t.stats().outliers, 8);
     // The same frames with the outlier test off (an infinite gate) give a pose pulled
