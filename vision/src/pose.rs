@@ -263,12 +263,14 @@ pub fn marker_rms_px(
 
 /// Whitened normal equations of the markers selected by `used`: (J^T J, J^T r, whitened
 /// cost, raw squared residual, corners used).
+type JointSystem = (Matrix6<f64>, Vector6<f64>, f64, f64, usize);
+
 fn joint_system(
     calib: &CameraCalibration,
     markers: &[MarkerCorners],
     used: &[bool],
     pose: &Isometry3<f64>,
-) -> Option<(Matrix6<f64>, Vector6<f64>, f64, f64, usize)> {
+) -> Option<JointSystem> {
     let mut jtj = Matrix6::zeros();
     let mut g = Vector6::zeros();
     let (mut cost, mut raw, mut n) = (0.0, 0.0, 0);

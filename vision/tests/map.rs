@@ -3,6 +3,8 @@
 //! found where the map puts them, without a full-frame search; nothing allocated per
 //! frame.
 
+#![allow(clippy::unwrap_used)] // Tests fail loudly on a broken setup, by design.
+
 mod common;
 
 use common::*;
