@@ -579,6 +579,39 @@ mod tests {
         assert!(check_start(&site, &calib, at_most + 0.01, 0.0, start_at).is_err());
     }
 
+    /// A station in front of a marker of the map, with the origin marker out of view:
+    /// refused for the origin alone, accepted with the map.
+    #[test]
+    fn a_station_in_front_of_another_marker_of_the_map_is_accepted() {
+        let calib = pool();
+        let others = [markhold_vision::MapMarker {
+            id: 1,
+            size_m: 0.15,
+            position_m: [1.5, 0.0, 0.0],
+            rpy_deg: [0.0; 3],
+        }];
+        let setup = ViewSetup {
+            calib: &calib,
+            t_vehicle_cam: mount(0.0, 0.0),
+            mount_rpy_deg: [0.0; 3],
+            mount_position_m: [0.2, 0.0, 0.0],
+            marker_size_m: 0.15,
+            others: &others,
+        };
+        let st = StationConfig {
+            lateral_m: 1.5,
+            ..StationConfig::default()
+        };
+        let f = check(&setup, &st, None).unwrap();
+        assert!(f.station.margin > 0.3, "{:?}", f.station);
+        let alone = ViewSetup {
+            others: &[],
+            ..setup
+        };
+        let e = check(&alone, &st, None).unwrap_err();
+        assert_eq!(e.key, "station");
+    }
+
     #[test]
     fn behind_the_camera_is_outside() {
         let v = view(180.0, 0.0, 0.0);
