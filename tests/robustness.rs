@@ -68,16 +68,18 @@ fn current_and_tether_are_taken_out_by_the_integrators() {
 }
 
 /// At rest in the still pool the keeper's command changes sign at most twice the
-/// measured rate (README: `markhold robustness --site params/pool.toml --cells nominal`).
+/// measured rate, and it holds within 2x of the measured RMS (docs/design/autopilot.md:
+/// `markhold robustness --site params/pool.toml --cells nominal --seconds 60`).
 #[test]
 fn chatter_at_rest_on_the_pool_is_bounded() {
     let site = pool();
-    let r = run(&site, &Cell::nominal(&site), 30.0);
+    let r = run(&site, &Cell::nominal(&site), 60.0);
     assert!(r.chatter_max_hz <= 2.0 * CHATTER_AT_REST_HZ, "{r:?}");
+    assert!(r.position_rms_m < 2.0 * 0.0031, "{r:?}");
 }
 
-/// The measured chatter at rest on the pool (largest axis), sign changes a second.
-const CHATTER_AT_REST_HZ: f64 = 1.0;
+/// The measured chatter at rest on the pool (largest axis, sway), sign changes a second.
+const CHATTER_AT_REST_HZ: f64 = 1.7;
 
 /// A reduced grid (short runs, a few cells with the errors piled up) holds with the
 /// pool's gains; the same cells with the horizontal gains zeroed do not.

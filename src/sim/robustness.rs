@@ -268,14 +268,14 @@ pub fn run_cell(
             bounds.detection * 100.0
         ));
     }
-    if !(position_rms_m <= bounds.rms_m) {
+    if position_rms_m.is_nan() || position_rms_m > bounds.rms_m {
         failed.push(format!(
             "position RMS {:.1} mm > {:.0} mm",
             position_rms_m * 1e3,
             bounds.rms_m * 1e3
         ));
     }
-    if !(worst_excursion_m <= bounds.excursion_m) {
+    if worst_excursion_m.is_nan() || worst_excursion_m > bounds.excursion_m {
         failed.push(format!(
             "worst excursion {:.1} mm > {:.0} mm",
             worst_excursion_m * 1e3,
