@@ -1159,7 +1159,7 @@ mod tests {
         proptest! {
             #[test]
             fn pid_output_within_limits(cfg in axis_cfg(), errs in prop::collection::vec(-100.0..100.0f64, 1..200), wrap in any::<bool>()) {
-                let mut a = Axis::new(&cfg, 0.02, wrap);
+                let mut a = Axis::new(&cfg, 0.02, wrap, 0.0);
                 for e in errs {
                     a.observe(e, 0.033, 0.3);
                     let o = a.step(e);
@@ -1173,7 +1173,7 @@ mod tests {
                 // A large constant error saturates the output; the integral must stay within
                 // its clamp and stop growing once saturated, so a reversed error brings the
                 // output off the limit within a few steps.
-                let mut a = Axis::new(&cfg, 0.02, false);
+                let mut a = Axis::new(&cfg, 0.02, false, 0.0);
                 let mut i_at_sat = None;
                 for _ in 0..n {
                     let o = a.step(big);
@@ -1212,7 +1212,7 @@ mod tests {
                 // Same angle modulo 2 pi (both ends of the range are the same heading).
                 prop_assert!(wrap_pi(e[5] - want).abs() < 1e-9, "{} vs {}", e[5], want);
                 // The shortest way round: the P term pushes toward the goal.
-                let mut a = Axis::new(&AxisConfig { kp: 1.0, ki: 0.0, kd: 0.0, ..Default::default() }, 0.02, true);
+                let mut a = Axis::new(&AxisConfig { kp: 1.0, ki: 0.0, kd: 0.0, ..Default::default() }, 0.02, true, 0.0);
                 let o = a.step(e[5]);
                 if e[5].abs() > 1e-6 {
                     prop_assert_eq!(o.signum(), e[5].signum());
