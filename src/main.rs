@@ -46,6 +46,11 @@ enum Command {
     /// report.md, results.json and plots.
     #[cfg(feature = "sim")]
     Compare(markhold::sim::compare::CompareArgs),
+    /// The station keeper with the site's gains against a grid of model errors and
+    /// disturbances, in HIL: report.md, results.json and a heat map; exit 1 when a cell
+    /// did not hold.
+    #[cfg(feature = "sim")]
+    Robustness(markhold::sim::robustness::RobustnessArgs),
     /// A printable marker at exact physical size (SVG, PDF or PNG) with its caption.
     Tag(markhold::tag::TagArgs),
     /// The camera response: fit the paper's polynomial form from an exposure sweep.
@@ -244,6 +249,8 @@ fn run(cli: Cli) -> anyhow::Result<()> {
         Command::Preflight(args) => preflight_cmd(args),
         #[cfg(feature = "sim")]
         Command::Compare(args) => markhold::sim::compare::cli(args),
+        #[cfg(feature = "sim")]
+        Command::Robustness(args) => markhold::sim::robustness::cli(args),
         Command::Tag(args) => markhold::tag::cli(args),
         Command::Response { command } => markhold::response_fit::cli(command),
         Command::Completions { shell } => {
