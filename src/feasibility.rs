@@ -182,6 +182,30 @@ pub struct ViewSetup<'a> {
     pub mount_rpy_deg: [f64; 3],
     pub mount_position_m: [f64; 3],
     pub marker_size_m: f64,
+    /// The map's other markers (`[[marker.map]]`), placed in the site frame.
+    pub others: &'a [markhold_vision::MapMarker],
+}
+
+impl ViewSetup<'_> {
+    /// The view of the site from a vehicle at `t_site_vehicle`: the origin marker's,
+    /// unless another marker of the map lies further inside the image (then that one's).
+    pub fn view(&self, t_site_vehicle: &Isometry3<f64>) -> MarkerView {
+        let origin = marker_view(
+            self.calib,
+            &self.t_vehicle_cam,
+            t_site_vehicle,
+            self.marker_size_m,
+        );
+        self.others.iter().fold(origin, |best, m| {
+            let t_marker_vehicle = m.t_site_marker().inverse() * t_site_vehicle;
+            let v = marker_view(self.calib, &self.t_vehicle_cam, &t_marker_vehicle, m.size_m);
+            if v.margin > best.margin || best.margin.is_nan() && !v.margin.is_nan() {
+                v
+            } else {
+                best
+            }
+        })
+    }
 }
 
 /// What the check found: the view at the station, the worst view on the way from the
@@ -253,12 +277,7 @@ pub fn check(
 ) -> Result<Feasibility, ConfigError> {
     let half = half_fov_deg(setup.calib);
     let goal = station.t_marker_vehicle();
-    let at_station = marker_view(
-        setup.calib,
-        &setup.t_vehicle_cam,
-        &goal,
-        setup.marker_size_m,
-    );
+    let at_station = setup.view(&goal);
     let mut warnings = Vec::new();
     // NaN (a degenerate pose) is refused too.
     if at_station.margin.is_nan() || at_station.margin < REFUSE_MARGIN {
@@ -284,12 +303,7 @@ pub fn check(
     let mut worst_on_way = None;
     let mut at_start = None;
     if let Some((t_start, keys)) = start {
-        at_start = Some(marker_view(
-            setup.calib,
-            &setup.t_vehicle_cam,
-            t_start,
-            setup.marker_size_m,
-        ));
+        at_start = Some(setup.view(t_start));
         let worst = (0..PATH_SAMPLES)
             .map(|i| {
                 let s = i as f64 / PATH_SAMPLES as f64;
@@ -300,12 +314,7 @@ pub fn check(
                     .unwrap_or(t_start.rotation);
                 let translation = t_start.translation.vector.lerp(&goal.translation.vector, s);
                 let pose = Isometry3::from_parts(translation.into(), rotation);
-                marker_view(
-                    setup.calib,
-                    &setup.t_vehicle_cam,
-                    &pose,
-                    setup.marker_size_m,
-                )
+                setup.view(&pose)
             })
             .fold(None::<MarkerView>, |w, v| match w {
                 Some(w) if w.margin <= v.margin => Some(w),
@@ -337,13 +346,14 @@ pub fn check(
 }
 
 /// The setup of a site's camera, for [`check`].
-fn setup_of<'a>(site: &crate::params::Site, calib: &'a CameraCalibration) -> ViewSetup<'a> {
+fn setup_of<'a>(site: &'a crate::params::Site, calib: &'a CameraCalibration) -> ViewSetup<'a> {
     ViewSetup {
         calib,
         t_vehicle_cam: crate::params::t_vehicle_cam(&site.camera),
         mount_rpy_deg: site.camera.mount_rpy_deg,
         mount_position_m: site.camera.mount_position_m,
         marker_size_m: site.marker.size_m,
+        others: &site.marker.map,
     }
 }
 
@@ -377,15 +387,12 @@ pub fn check_start(
     offset_deg: f64,
     start_at: impl Fn(f64) -> Isometry3<f64>,
 ) -> Result<(), ConfigError> {
-    let setup = setup_of(site, calib);
-    let margin_at = |d: f64| {
-        marker_view(
-            setup.calib,
-            &setup.t_vehicle_cam,
-            &start_at(d),
-            setup.marker_size_m,
-        )
+    // The simulated world draws the origin marker only: the start must see that one.
+    let setup = ViewSetup {
+        others: &[],
+        ..setup_of(site, calib)
     };
+    let margin_at = |d: f64| setup.view(&start_at(d));
     let v = margin_at(offset_m);
     if v.margin >= REFUSE_MARGIN {
         return Ok(());
@@ -534,6 +541,7 @@ mod tests {
             mount_rpy_deg: [0.0; 3],
             mount_position_m: [0.2, 0.0, 0.0],
             marker_size_m: 0.15,
+            others: &[],
         };
         let st = StationConfig::default();
         let turned = st.t_marker_vehicle()
@@ -569,6 +577,39 @@ mod tests {
         assert!(at_most > 0.0 && at_most < 0.5, "{e}");
         assert!(check_start(&site, &calib, at_most, 0.0, start_at).is_ok());
         assert!(check_start(&site, &calib, at_most + 0.01, 0.0, start_at).is_err());
+    }
+
+    /// A station in front of a marker of the map, with the origin marker out of view:
+    /// refused for the origin alone, accepted with the map.
+    #[test]
+    fn a_station_in_front_of_another_marker_of_the_map_is_accepted() {
+        let calib = pool();
+        let others = [markhold_vision::MapMarker {
+            id: 1,
+            size_m: 0.15,
+            position_m: [1.5, 0.0, 0.0],
+            rpy_deg: [0.0; 3],
+        }];
+        let setup = ViewSetup {
+            calib: &calib,
+            t_vehicle_cam: mount(0.0, 0.0),
+            mount_rpy_deg: [0.0; 3],
+            mount_position_m: [0.2, 0.0, 0.0],
+            marker_size_m: 0.15,
+            others: &others,
+        };
+        let st = StationConfig {
+            lateral_m: 1.5,
+            ..StationConfig::default()
+        };
+        let f = check(&setup, &st, None).unwrap();
+        assert!(f.station.margin > 0.3, "{:?}", f.station);
+        let alone = ViewSetup {
+            others: &[],
+            ..setup
+        };
+        let e = check(&alone, &st, None).unwrap_err();
+        assert_eq!(e.key, "station");
     }
 
     #[test]

@@ -46,6 +46,11 @@ enum Command {
     /// report.md, results.json and plots.
     #[cfg(feature = "sim")]
     Compare(markhold::sim::compare::CompareArgs),
+    /// The station keeper with the site's gains against a grid of model errors and
+    /// disturbances, in HIL: report.md, results.json and a heat map; exit 1 when a cell
+    /// did not hold.
+    #[cfg(feature = "sim")]
+    Robustness(markhold::sim::robustness::RobustnessArgs),
     /// A printable marker at exact physical size (SVG, PDF or PNG) with its caption.
     Tag(markhold::tag::TagArgs),
     /// The camera response: fit the paper's polynomial form from an exposure sweep.
@@ -244,6 +249,8 @@ fn run(cli: Cli) -> anyhow::Result<()> {
         Command::Preflight(args) => preflight_cmd(args),
         #[cfg(feature = "sim")]
         Command::Compare(args) => markhold::sim::compare::cli(args),
+        #[cfg(feature = "sim")]
+        Command::Robustness(args) => markhold::sim::robustness::cli(args),
         Command::Tag(args) => markhold::tag::cli(args),
         Command::Response { command } => markhold::response_fit::cli(command),
         Command::Completions { shell } => {
@@ -289,11 +296,37 @@ fn params_check(file: &Path) -> anyhow::Result<()> {
     #[cfg(not(feature = "sim"))]
     let start = None;
     markhold::feasibility::print_check(&site, start.as_ref());
+    print_map(&site.site.marker);
     if let Some(note) = params::SIM_SECTIONS_NOTE {
         markhold::outln!("# {note}");
     }
     markhold::outln!("\n{text}");
     Ok(())
+}
+
+/// `params check`'s lines about a marker map (nothing for a map of one).
+fn print_map(m: &markhold_vision::MarkerConfig) {
+    if m.map.is_empty() {
+        return;
+    }
+    markhold::outln!(
+        "# marker map: {} markers of {}; the site frame is marker {}'s (x right, y up, z out \
+         of its face)",
+        m.len(),
+        m.family,
+        m.id
+    );
+    markhold::outln!("#   id {:>4}  size {:.3} m  origin", m.id, m.size_m);
+    for e in &m.map {
+        let [x, y, z] = e.position_m;
+        let [r, p, w] = e.rpy_deg;
+        markhold::outln!(
+            "#   id {:>4}  size {:.3} m  at ({x:.3}, {y:.3}, {z:.3}) m  rpy ({r:.1}, {p:.1}, \
+             {w:.1}) deg",
+            e.id,
+            e.size_m
+        );
+    }
 }
 
 fn replay(args: ReplayArgs) -> anyhow::Result<()> {

@@ -670,6 +670,124 @@ mod tests {
         assert_eq!(e.line, Some(text.lines().count()));
     }
 
+    /// Pool with `entries` (`[[marker.map]]` tables) appended, and its parse result.
+    fn with_map(entries: &str) -> (String, Result<LoadedSite, ParamsError>) {
+        let text = format!("{POOL}\n{entries}");
+        let r = parse(Path::new("/sites/pool.toml"), &text);
+        (text, r)
+    }
+
+    /// Line (1-based) of the `n`th line of `text` that starts with `prefix`.
+    fn nth_line(text: &str, prefix: &str, n: usize) -> usize {
+        text.lines()
+            .enumerate()
+            .filter(|(_, l)| l.starts_with(prefix))
+            .nth(n)
+            .map(|(i, _)| i + 1)
+            .expect("line")
+    }
+
+    const RIGHT: &str = "[[marker.map]]\nid = 1\nsize_m = 0.1\nposition_m = [0.3, 0.0, 0.0]\n";
+
+    #[test]
+    fn a_marker_map_loads_with_its_poses() {
+        let (_, r) = with_map(&format!(
+            "{RIGHT}[[marker.map]]\nid = 2\nsize_m = 0.2\nposition_m = [-0.4, 0.1, 0.05]\n\
+             rpy_deg = [0.0, 90.0, 0.0]\n"
+        ));
+        let site = r.expect("a valid map");
+        let m = &site.site.marker;
+        assert_eq!(m.len(), 3);
+        let placed: Vec<_> = m.markers().collect();
+        assert_eq!(placed[0].t_site_marker, Isometry3::identity());
+        assert_eq!((placed[1].id, placed[1].size_m), (1, 0.1));
+        // Turned 90 degrees about the site's y (up): its face (z) points along site +x.
+        let z = placed[2].t_site_marker.rotation * Vector3::z();
+        assert!((z - Vector3::x()).norm() < 1e-12, "{z}");
+        assert_eq!(
+            placed[2].t_site_marker.translation.vector,
+            Vector3::new(-0.4, 0.1, 0.05)
+        );
+        // Printed back as written (what `params check` shows).
+        let text = toml::to_string_pretty(&site.effective()).expect("toml");
+        assert!(
+            text.contains("[[marker.map]]") && text.contains("rpy_deg"),
+            "{text}"
+        );
+        // A map of one prints no map.
+        let pool = parse(Path::new("/sites/pool.toml"), POOL).expect("pool");
+        let text = toml::to_string_pretty(&pool.effective()).expect("toml");
+        assert!(!text.contains("marker.map"), "{text}");
+    }
+
+    /// A bad map is refused with file, line, key and value.
+    #[test]
+    fn a_bad_marker_map_names_file_line_key_and_value() {
+        let cases: [(&str, &str, usize, &str, &str); 6] = [
+            // A second marker with the origin's id.
+            (
+                "[[marker.map]]\nid = 0\nsize_m = 0.1\nposition_m = [0.3, 0.0, 0.0]\n",
+                "id = ",
+                0,
+                "marker.map[0].id = 0",
+                "an id no other marker of the map has",
+            ),
+            // Two map markers with one id: the second is reported.
+            (
+                "[[marker.map]]\nid = 1\nsize_m = 0.1\nposition_m = [0.3, 0.0, 0.0]\n\
+                 [[marker.map]]\nid = 1\nsize_m = 0.1\nposition_m = [0.6, 0.0, 0.0]\n",
+                "id = ",
+                1,
+                "marker.map[1].id = 1",
+                "an id no other marker",
+            ),
+            (
+                "[[marker.map]]\nid = 587\nsize_m = 0.1\nposition_m = [0.3, 0.0, 0.0]\n",
+                "id = ",
+                0,
+                "marker.map[0].id = 587",
+                "an id of apriltag_36h11 in 0..587",
+            ),
+            (
+                "[[marker.map]]\nid = 1\nsize_m = 0.0\nposition_m = [0.3, 0.0, 0.0]\n",
+                "size_m = 0.0",
+                0,
+                "marker.map[0].size_m = 0",
+                "a size > 0 in metres",
+            ),
+            (
+                "[[marker.map]]\nid = 1\nsize_m = 0.1\nposition_m = [nan, 0.0, 0.0]\n",
+                "position_m = [nan",
+                0,
+                "marker.map[0].position_m = [NaN, 0.0, 0.0]",
+                "a position in the site frame",
+            ),
+            (
+                "[[marker.map]]\nid = 1\nsize_m = 0.1\nposition_m = [0.3, 0.0, 0.0]\n\
+                 rpy_deg = [0.0, 400.0, 0.0]\n",
+                "rpy_deg",
+                0,
+                "marker.map[0].rpy_deg = [0.0, 400.0, 0.0]",
+                "angles in degrees within -180..180",
+            ),
+        ];
+        for (entries, prefix, nth, key_value, expected) in cases {
+            let (text, r) = with_map(entries);
+            // The origin's own `id = 0` line in [marker] comes first.
+            let skip = usize::from(prefix == "id = ");
+            let line = nth_line(&text, prefix, nth + skip);
+            let Err(ParamsError::Config(e)) = r else {
+                panic!("{entries}: not refused as a range error");
+            };
+            let msg = e.to_string();
+            assert!(
+                msg.starts_with(&format!("/sites/pool.toml:{line}:"))
+                    && msg.contains(&format!("{key_value}: expected {expected}")),
+                "{entries}: {msg}"
+            );
+        }
+    }
+
     #[test]
     fn a_key_left_out_is_reported_at_its_table() {
         let at = Located::new("[site]\nname = \"x\"\n\n[camera]\nfps = 1.0\n");

@@ -246,6 +246,12 @@ impl<L: CommandLink> Pipeline<L> {
         self.keeper.status()
     }
 
+    /// The station keeper's integral terms after the last frame (surge, sway, heave,
+    /// roll, pitch, yaw; effort).
+    pub fn keeper_integrals(&self) -> [f64; 6] {
+        self.keeper.integrals()
+    }
+
     /// Supervisor transitions of the last frame or tick.
     pub fn events(&self) -> &[FailsafeEvent] {
         &self.events

@@ -33,7 +33,7 @@ fn run_summary(args: &[&str], out: &Path) -> serde_json::Value {
 }
 
 /// The README's pool row (`markhold hil --site params/pool.toml --seconds 60 --seed 1`):
-/// position RMS 2.0 mm, final error 1.0 mm, detection 100 %. Checked within 2x of those
+/// position RMS 3.1 mm, final error 1.8 mm, detection 100 %. Checked within 2x of those
 /// figures (the run is the same on every CPU for a seed); the other sites' rows below.
 #[test]
 fn pool_station_keeping_settles() {
@@ -42,8 +42,8 @@ fn pool_station_keeping_settles() {
         s[k].as_f64()
             .unwrap_or_else(|| panic!("summary has no number {k}: {s}"))
     };
-    within_2x("pool final error", f("final_position_error_m"), 0.0010, &s);
-    within_2x("pool position RMS", f("position_rms_m"), 0.0020, &s);
+    within_2x("pool final error", f("final_position_error_m"), 0.0018, &s);
+    within_2x("pool position RMS", f("position_rms_m"), 0.0031, &s);
     assert!(f("final_yaw_error_deg") < 3.0, "{s}");
     assert!(f("detection_rate") > 0.999, "{s}");
     assert_eq!(s["frames"].as_u64(), Some(1800), "{s}");
@@ -127,17 +127,17 @@ fn site_as_the_readme_states(site: &str, rms_m: f64, final_m: f64, detection: f6
 
 #[test]
 fn connecticut_river_as_the_readme_states() {
-    site_as_the_readme_states("connecticut-river", 0.0058, 0.0035, 1.0);
+    site_as_the_readme_states("connecticut-river", 0.0070, 0.0057, 1.0);
 }
 
 #[test]
 fn night_harbor_as_the_readme_states() {
-    site_as_the_readme_states("night-harbor", 0.0019, 0.0005, 0.999);
+    site_as_the_readme_states("night-harbor", 0.0020, 0.0014, 0.999);
 }
 
 #[test]
 fn reef_caustics_as_the_readme_states() {
-    site_as_the_readme_states("reef-caustics", 0.0652, 0.0856, 0.979);
+    site_as_the_readme_states("reef-caustics", 0.0633, 0.0396, 0.980);
 }
 
 #[test]
@@ -285,4 +285,44 @@ fn unknown_render_loops_are_named() {
         "{err}"
     );
     assert!(err.contains("portable, avx2, avx512"), "{err}");
+}
+
+/// A map of one is the single marker of before: pool with two more markers in its map,
+/// one in view beside the origin marker and one far out of view, runs exactly as pool
+/// (the simulated world draws the origin marker only, so the map's window for the marker
+/// in view is searched every frame and finds nothing, and the pose is the origin
+/// marker's, bit for bit).
+#[test]
+fn a_map_whose_other_markers_are_not_seen_runs_as_its_origin_marker() {
+    let d = tmpdir("map-of-one");
+    let map = d.join("pool-map.toml");
+    std::fs::write(
+        &map,
+        format!(
+            "{}\n[[marker.map]]\nid = 5\nsize_m = 0.15\nposition_m = [0.3, 0.0, 0.0]\n\n\
+             [[marker.map]]\nid = 6\nsize_m = 0.15\nposition_m = [40.0, 0.0, 0.0]\n",
+            pool_text()
+        ),
+    )
+    .unwrap();
+    let run = |site: &Path, name: &str| {
+        let args = [
+            "hil",
+            "--site",
+            site.to_str().unwrap(),
+            "--seconds",
+            "3",
+            "--seed",
+            "2",
+        ];
+        let mut s = run_summary(&args, &d.join(name));
+        for k in WALL_FIELDS {
+            s.as_object_mut().unwrap().remove(k);
+        }
+        s
+    };
+    let a = run(&repo("params/pool.toml"), "pool.json");
+    let b = run(&map, "map.json");
+    assert!(a["detection_rate"].as_f64().unwrap() > 0.9, "{a}");
+    assert_eq!(a, b);
 }

@@ -242,3 +242,49 @@ fn camera_response_under_exposure_is_named() {
         )
     });
 }
+
+/// Pool with a marker map (two markers beside the origin) appended.
+fn with_map(pool: &str, second_id: u32, second_rpy: &str) -> String {
+    format!(
+        "{pool}\n[[marker.map]]\nid = 1\nsize_m = 0.15\nposition_m = [0.4, 0.0, 0.0]\n\n\
+         [[marker.map]]\nid = {second_id}\nsize_m = 0.1\nposition_m = [-0.4, 0.1, 0.0]\n\
+         rpy_deg = {second_rpy}\n"
+    )
+}
+
+#[test]
+fn marker_map_with_a_repeated_id() {
+    bad_case("map_duplicate_id", |t| with_map(t, 1, "[0.0, 0.0, 0.0]"));
+}
+
+#[test]
+fn marker_map_with_a_bad_pose() {
+    bad_case("map_bad_pose", |t| with_map(t, 2, "[0.0, 0.0, 270.0]"));
+}
+
+#[test]
+fn params_check_lists_the_marker_map() {
+    let dir = std::env::temp_dir().join(format!("markhold-map-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let pool = std::fs::read_to_string(repo("params/pool.toml")).unwrap();
+    let path = dir.join("map.toml");
+    std::fs::write(&path, with_map(&pool, 2, "[0.0, 30.0, 0.0]")).unwrap();
+    let (code, out, err) = check(&path);
+    assert_eq!(code, 0, "{err}");
+    for line in [
+        "# marker map: 3 markers of apriltag_36h11",
+        "#   id    0  size 0.150 m  origin",
+        "#   id    1  size 0.150 m  at (0.400, 0.000, 0.000) m  rpy (0.0, 0.0, 0.0) deg",
+        "#   id    2  size 0.100 m  at (-0.400, 0.100, 0.000) m  rpy (0.0, 30.0, 0.0) deg",
+    ] {
+        assert!(out.contains(line), "no `{line}` in\n{out}");
+    }
+    assert_eq!(out.matches("[[marker.map]]").count(), 2, "{out}");
+    // A map of one lists no map.
+    let (_, out, _) = check(&repo("params/pool.toml"));
+    assert!(
+        !out.contains("marker map") && !out.contains("marker.map"),
+        "{out}"
+    );
+    std::fs::remove_dir_all(&dir).ok();
+}

@@ -213,10 +213,15 @@ struct Axis {
     rate: f64,
     last_out: f64,
     last_i: f64,
+    /// Output dead band with hysteresis: the axis starts commanding at `band` and stops
+    /// below `band / 2` (effort; 0 = off).
+    band: f64,
+    /// The axis commands (outside the band, or inside it but not yet below the release).
+    active: bool,
 }
 
 impl Axis {
-    fn new(cfg: &AxisConfig, dt_step: f64, wrap: bool) -> Self {
+    fn new(cfg: &AxisConfig, dt_step: f64, wrap: bool, band: f64) -> Self {
         let ki_step = cfg.ki * dt_step;
         let mut pid = pid::Pid::new(0.0, f64::MAX);
         pid.p(cfg.kp, cfg.p_limit).i(ki_step, cfg.i_limit);
@@ -229,6 +234,8 @@ impl Axis {
             rate: 0.0,
             last_out: 0.0,
             last_i: 0.0,
+            band,
+            active: false,
         }
     }
 
@@ -238,6 +245,7 @@ impl Axis {
         self.rate = 0.0;
         self.last_out = 0.0;
         self.last_i = 0.0;
+        self.active = false;
     }
 
     /// New error sample at frame rate: updates the filtered error rate. The goal is fixed,
@@ -270,7 +278,30 @@ impl Axis {
         self.last_i = o.i;
         let out = (o.p + o.i + d).clamp(-lim, lim);
         self.last_out = if out.is_finite() { out } else { 0.0 };
-        self.last_out
+        self.banded(self.last_out)
+    }
+
+    /// The output through the dead band: zero until it leaves the band, then passed on
+    /// until it falls below half the band. Noise on a command near zero then no longer
+    /// flips its sign each step (each flip is a jump across the dead zones the link
+    /// compensates), and a standing disturbance, which the integral carries out of the
+    /// band, is still opposed. The PID itself (and its anti-windup) sees the unbanded
+    /// output.
+    fn banded(&mut self, out: f64) -> f64 {
+        if self.band <= 0.0 {
+            return out;
+        }
+        let mag = out.abs();
+        self.active = if self.active {
+            mag >= 0.5 * self.band
+        } else {
+            mag >= self.band
+        };
+        if self.active {
+            out
+        } else {
+            0.0
+        }
     }
 }
 
@@ -325,13 +356,14 @@ impl StationKeeper {
         }
         let dt_step = 1.0 / ctl.rate_hz;
         let a = ctl.axes_named();
+        let band = ctl.output_deadband;
         let axes = [
-            Axis::new(a[0].1, dt_step, false),
-            Axis::new(a[1].1, dt_step, false),
-            Axis::new(a[2].1, dt_step, false),
-            Axis::new(a[3].1, dt_step, true),
-            Axis::new(a[4].1, dt_step, true),
-            Axis::new(a[5].1, dt_step, true),
+            Axis::new(a[0].1, dt_step, false, band),
+            Axis::new(a[1].1, dt_step, false, band),
+            Axis::new(a[2].1, dt_step, false, band),
+            Axis::new(a[3].1, dt_step, true, band),
+            Axis::new(a[4].1, dt_step, true, band),
+            Axis::new(a[5].1, dt_step, true, band),
         ];
         Ok(Self {
             axes,
@@ -611,6 +643,12 @@ impl StationKeeper {
         }
     }
 
+    /// The integral terms of the six axes (effort; surge, sway, heave, roll, pitch, yaw)
+    /// after the last PID step: what the keeper has learned of a standing disturbance.
+    pub fn integrals(&self) -> [f64; 6] {
+        [0, 1, 2, 3, 4, 5].map(|i| self.axes[i].last_i)
+    }
+
     /// Last unfiltered body-frame error from a measurement.
     pub fn raw_error(&self) -> Option<[f64; 6]> {
         self.raw_error
@@ -692,6 +730,30 @@ mod tests {
             forward_cam(),
         )
         .unwrap()
+    }
+
+    #[test]
+    fn output_dead_band_has_hysteresis() {
+        let cfg = AxisConfig {
+            kp: 1.0,
+            ki: 0.0,
+            kd: 0.0,
+            p_limit: 1.0,
+            i_limit: 0.0,
+            d_limit: 0.5,
+            output_limit: 1.0,
+        };
+        let mut a = Axis::new(&cfg, 0.02, false, 0.01);
+        // Inside the band from rest: nothing; out of it: passed on; back down to half
+        // the band: still passed on; below half: nothing again.
+        let outs: Vec<f64> = [0.008, -0.008, 0.012, 0.006, -0.004, -0.009, -0.011]
+            .iter()
+            .map(|e| a.step(*e))
+            .collect();
+        assert_eq!(outs, vec![0.0, 0.0, 0.012, 0.006, 0.0, 0.0, -0.011]);
+        // Off: everything passes.
+        let mut a = Axis::new(&cfg, 0.02, false, 0.0);
+        assert_eq!(a.step(0.001), 0.001);
     }
 
     #[test]
@@ -1097,7 +1159,7 @@ mod tests {
         proptest! {
             #[test]
             fn pid_output_within_limits(cfg in axis_cfg(), errs in prop::collection::vec(-100.0..100.0f64, 1..200), wrap in any::<bool>()) {
-                let mut a = Axis::new(&cfg, 0.02, wrap);
+                let mut a = Axis::new(&cfg, 0.02, wrap, 0.0);
                 for e in errs {
                     a.observe(e, 0.033, 0.3);
                     let o = a.step(e);
@@ -1111,7 +1173,7 @@ mod tests {
                 // A large constant error saturates the output; the integral must stay within
                 // its clamp and stop growing once saturated, so a reversed error brings the
                 // output off the limit within a few steps.
-                let mut a = Axis::new(&cfg, 0.02, false);
+                let mut a = Axis::new(&cfg, 0.02, false, 0.0);
                 let mut i_at_sat = None;
                 for _ in 0..n {
                     let o = a.step(big);
@@ -1150,7 +1212,7 @@ mod tests {
                 // Same angle modulo 2 pi (both ends of the range are the same heading).
                 prop_assert!(wrap_pi(e[5] - want).abs() < 1e-9, "{} vs {}", e[5], want);
                 // The shortest way round: the P term pushes toward the goal.
-                let mut a = Axis::new(&AxisConfig { kp: 1.0, ki: 0.0, kd: 0.0, ..Default::default() }, 0.02, true);
+                let mut a = Axis::new(&AxisConfig { kp: 1.0, ki: 0.0, kd: 0.0, ..Default::default() }, 0.02, true, 0.0);
                 let o = a.step(e[5]);
                 if e[5].abs() > 1e-6 {
                     prop_assert_eq!(o.signum(), e[5].signum());

@@ -8,10 +8,15 @@
 //! control is scaled by the joystick gain, the stabilized modes apply a 30 us input dead
 //! zone (40 us on yaw), disarm after 3 s without pilot input and 5 s after the GCS
 //! heartbeat was lost.
+//!
+//! Telemetry can be sent late (`set_telemetry_latency`): attitude, position, depth and
+//! the other sensor messages then report the vehicle's state that much simulation time
+//! ago, stamped with the time they are sent, like an estimate that lags its sensors.
 
 mod control;
 pub mod signing;
 
+use std::collections::VecDeque;
 use std::io::ErrorKind;
 use std::net::{IpAddr, SocketAddr, TcpListener, TcpStream, UdpSocket};
 use std::path::PathBuf;
@@ -353,6 +358,11 @@ pub struct VehicleEndpoint {
     signing: Option<Signing>,
     now_s: f64,
     tx: [u8; 300],
+    /// Telemetry latency, simulation seconds (0 = report the state of the tick).
+    telemetry_latency_s: f64,
+    /// The states of the last `telemetry_latency_s`, oldest first (capacity reserved when
+    /// the latency is set: no allocation per step).
+    history: VecDeque<VehicleState>,
 }
 
 fn socket_err(
@@ -423,7 +433,43 @@ impl VehicleEndpoint {
             signing,
             now_s: 0.0,
             tx: [0; 300],
+            telemetry_latency_s: 0.0,
+            history: VecDeque::with_capacity(2),
         })
+    }
+
+    /// Report the vehicle's state `latency_s` late (simulation time) in telemetry, for
+    /// ticks every `step_s` (the physics step): room for the states in between is
+    /// reserved now.
+    pub fn set_telemetry_latency(&mut self, latency_s: f64, step_s: f64) {
+        self.telemetry_latency_s = if latency_s.is_finite() {
+            latency_s.max(0.0)
+        } else {
+            0.0
+        };
+        let steps = if step_s > 0.0 && step_s.is_finite() {
+            (self.telemetry_latency_s / step_s).ceil() as usize
+        } else {
+            0
+        };
+        self.history = VecDeque::with_capacity(steps + 2);
+    }
+
+    /// The state telemetry reports at `state.time_s`: the newest one at least the
+    /// latency old (the oldest kept, before a full latency has passed).
+    fn reported_state(&mut self, state: &VehicleState) -> VehicleState {
+        if self.history.back().is_some_and(|b| b.time_s > state.time_s) {
+            // Time went back (SITL reset, teleport with a new clock): start over.
+            self.history.clear();
+        }
+        if self.history.back().is_none_or(|b| b.time_s < state.time_s) {
+            self.history.push_back(*state);
+        }
+        let due = state.time_s - self.telemetry_latency_s + 1e-9;
+        while self.history.len() > 1 && self.history[1].time_s <= due {
+            self.history.pop_front();
+        }
+        self.history.front().copied().unwrap_or(*state)
     }
 
     pub fn config(&self) -> &EndpointConfig {
@@ -1070,6 +1116,7 @@ impl VehicleEndpoint {
     pub fn tick(&mut self, state: &VehicleState, pwm: &[u16; MAX_MOTORS]) -> Result<(), HilError> {
         let now = state.time_s;
         self.now_s = now;
+        let reported = self.reported_state(state);
         let mut outbox = std::mem::take(&mut self.outbox);
         for m in outbox.drain(..) {
             self.send(&m)?;
@@ -1092,7 +1139,7 @@ impl VehicleEndpoint {
                 i += 1;
                 continue;
             }
-            let msg = self.telemetry(id, state, pwm);
+            let msg = self.telemetry(id, now, &reported, pwm);
             if let Some(m) = msg {
                 self.send(&m)?;
             }
@@ -1133,13 +1180,14 @@ impl VehicleEndpoint {
         })
     }
 
+    /// Message `id` sent at `now`, reporting `state` (late by the telemetry latency).
     fn telemetry(
         &self,
         id: u32,
+        now: f64,
         state: &VehicleState,
         pwm: &[u16; MAX_MOTORS],
     ) -> Option<MavMessage> {
-        let now = state.time_s;
         let t_ms = (now * 1000.0).max(0.0) as u32;
         let (roll, pitch, yaw) = state.t_world_vehicle.rotation.euler_angles();
         let w = state.angvel_body_rps;
@@ -1292,6 +1340,36 @@ impl VehicleEndpoint {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn telemetry_reports_the_state_the_latency_ago_without_allocating() {
+        let mut ep = VehicleEndpoint::bind(&EndpointConfig::default()).unwrap();
+        let dt = 0.0025;
+        ep.set_telemetry_latency(0.1, dt);
+        let cap = ep.history.capacity();
+        let state = |t: f64| VehicleState {
+            time_s: t,
+            t_world_vehicle: Isometry3::translation(0.0, 0.0, t),
+            velocity_world_mps: Vector3::zeros(),
+            angvel_body_rps: Vector3::zeros(),
+            specific_force_body_mps2: Vector3::zeros(),
+            water_velocity_world_mps: Vector3::zeros(),
+        };
+        for i in 0..2000 {
+            let t = i as f64 * dt;
+            let r = ep.reported_state(&state(t));
+            let expect = (t - 0.1).max(0.0);
+            assert!((r.time_s - expect).abs() < 1e-9, "at {t}: {}", r.time_s);
+            assert!((r.t_world_vehicle.translation.z - expect).abs() < 1e-9);
+        }
+        assert_eq!(ep.history.capacity(), cap);
+        // A clock restarted at zero (SITL reset) starts the history over.
+        assert_eq!(ep.reported_state(&state(0.0)).time_s, 0.0);
+        // Without latency: the state of the tick.
+        ep.set_telemetry_latency(0.0, dt);
+        assert_eq!(ep.reported_state(&state(1.0)).time_s, 1.0);
+        assert_eq!(ep.reported_state(&state(1.0025)).time_s, 1.0025);
+    }
 
     #[test]
     fn config_errors_name_the_key_and_unknown_keys_are_refused() {

@@ -5,6 +5,7 @@
 //! based underwater camera; and ArduPilot's SITL JSON physics server.
 
 pub mod camera;
+pub mod disturbance;
 pub mod endpoint;
 mod error;
 pub mod mixer;
@@ -14,6 +15,7 @@ pub mod sitl;
 pub mod thruster;
 pub mod vehicle;
 
+pub use disturbance::{ModelError, TetherConfig};
 pub use endpoint::{EndpointConfig, VehicleEndpoint};
 pub use error::HilError;
 pub use markhold_config::ConfigError;

@@ -122,7 +122,8 @@ impl HilRig {
             setup.seed.wrapping_add(0x6A09_E667_F3BC_C908),
         )?;
         vehicle.set_motion(setup.motion);
-        let endpoint = VehicleEndpoint::bind(&setup.endpoint)?;
+        let mut endpoint = VehicleEndpoint::bind(&setup.endpoint)?;
+        endpoint.set_telemetry_latency(setup.vehicle.telemetry_latency_ms / 1000.0, vehicle.dt_s());
         let idle = vehicle.mixer().mix_pwm(&[0.0; 6], false);
         Ok(Self {
             physics_hz: setup.vehicle.physics_hz,

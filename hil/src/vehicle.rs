@@ -10,7 +10,9 @@
 //! - damping `-(Dl + Dq |nu_r|) nu_r` per axis on the velocity relative to the water;
 //! - weight at the CG against buoyancy at the CB: a net vertical force and a righting
 //!   moment; buoyancy fades out as the vehicle breaches the surface (world z = 0);
-//! - thrusters at their mounts (see [`crate::mixer`]).
+//! - thrusters at their mounts (see [`crate::mixer`]), scaled by the model error;
+//! - tether drag at the tether's attachment point, and a constant external force and
+//!   moment (see [`crate::disturbance`]).
 //!
 //! Gravity is applied by hand (rapier's gravity is zero) so that the added-mass scaling
 //! applies to it too. World frame is NED (docs/frames.md); rapier works in f32 inside.
@@ -23,6 +25,7 @@ use rapier3d::math::{Pose as RPose, Rotation as RRot, Vector as RVec};
 use rapier3d::pipeline::PhysicsWorld;
 use serde::{Deserialize, Serialize};
 
+use crate::disturbance::{ModelError, TetherConfig};
 use crate::mixer::{Frame6Dof, Mixer, MAX_MOTORS};
 use crate::thruster::{Thruster, ThrusterConfig};
 use crate::HilError;
@@ -109,6 +112,17 @@ pub struct VehicleConfig {
     pub initial_offset_m: f64,
     /// Start offset from the station: yaw, degrees.
     pub initial_offset_deg: f64,
+    /// The tether (`[vehicle.tether]`; absent = no tether).
+    pub tether: Option<TetherConfig>,
+    /// Constant external force on the centre of gravity, world NED, newtons.
+    pub external_force_n: [f64; 3],
+    /// Constant external moment, world NED axes, newton metres.
+    pub external_moment_nm: [f64; 3],
+    /// How the vehicle differs from its model (`[vehicle.model_error]`).
+    pub model_error: ModelError,
+    /// Age of what the vehicle's telemetry reports (attitude, position, depth) when it is
+    /// sent, milliseconds of simulation time.
+    pub telemetry_latency_ms: f64,
 }
 
 impl Default for VehicleConfig {
@@ -132,6 +146,11 @@ impl Default for VehicleConfig {
             wave_direction_deg: 0.0,
             initial_offset_m: 0.3,
             initial_offset_deg: 10.0,
+            tether: None,
+            external_force_n: [0.0; 3],
+            external_moment_nm: [0.0; 3],
+            model_error: ModelError::default(),
+            telemetry_latency_ms: 0.0,
         }
     }
 }
@@ -181,10 +200,18 @@ impl VehicleConfig {
             .finite("wave_direction_deg", self.wave_direction_deg, "finite numbers")
             .with(|c| non_negative(c, "initial_offset_m", &[self.initial_offset_m]))
             .finite("initial_offset_deg", self.initial_offset_deg, "finite numbers")
+            .opt(self.tether.as_ref(), |c, t| c.then(|| t.validate()))
+            .each_finite("external_force_n", &self.external_force_n, "finite numbers")
+            .each("external_force_n", &self.external_force_n, -1000.0..=1000.0, "-1000..=1000 N")
+            .each_finite("external_moment_nm", &self.external_moment_nm, "finite numbers")
+            .each("external_moment_nm", &self.external_moment_nm, -500.0..=500.0, "-500..=500 N m")
+            .then(|| self.model_error.validate())
+            .finite_range("telemetry_latency_ms", self.telemetry_latency_ms, 0.0..=1000.0, "0..=1000 ms")
             .done()
     }
 
-    /// The frame's published table with this config's overrides applied.
+    /// The frame's published table with this config's overrides and the model error's
+    /// buoyancy offset applied.
     pub fn hydrodynamics(&self) -> Hydrodynamics {
         let mut h = Hydrodynamics::for_frame(self.frame);
         if let Some(v) = self.mass_kg {
@@ -208,6 +235,7 @@ impl VehicleConfig {
         if let Some(v) = self.damping_quadratic {
             h.damping_quadratic = v;
         }
+        h.buoyancy_n = (h.buoyancy_n + self.model_error.buoyancy_offset_n).max(0.0);
         h
     }
 
@@ -412,7 +440,8 @@ impl Vehicle {
 
     /// Thrust each motor delivers now, newtons.
     pub fn thrusts_n(&self) -> [f64; MAX_MOTORS] {
-        self.thrusters.map(|t| t.thrust_n())
+        let k = self.cfg.model_error.thrust_scale;
+        self.thrusters.map(|t| t.thrust_n() * k)
     }
 
     /// Put the vehicle at `pose`, at rest, with idle thrusters (time continues).
@@ -456,6 +485,31 @@ impl Vehicle {
         w
     }
 
+    /// Tether drag and the constant external force and moment, body FRD about the CG.
+    fn external_wrench_body(
+        cfg: &VehicleConfig,
+        water_world: &Vector3<f64>,
+        r: &UnitQuaternion<f64>,
+        v_world: &Vector3<f64>,
+    ) -> (Vector3<f64>, Vector3<f64>) {
+        let mut f = r.inverse_transform_vector(&Vector3::from(cfg.external_force_n));
+        let mut m = r.inverse_transform_vector(&Vector3::from(cfg.external_moment_nm));
+        if let Some(t) = &cfg.tether {
+            let ft = r.inverse_transform_vector(&t.force_world_n(water_world, v_world));
+            f += ft;
+            m += Vector3::from(t.attachment_m).cross(&ft);
+        }
+        (f, m)
+    }
+
+    /// The tether's pull on the vehicle now, world NED, newtons (zero without a tether).
+    pub fn tether_force_world_n(&self) -> Vector3<f64> {
+        match (&self.cfg.tether, self.world.bodies.get(self.body)) {
+            (Some(t), Some(rb)) => t.force_world_n(&self.water_world, &from_rvec(rb.linvel())),
+            _ => Vector3::zeros(),
+        }
+    }
+
     /// Advance one physics step with the given servo outputs (1500 = idle).
     pub fn step(&mut self, pwm: &[u16; MAX_MOTORS]) {
         let dt = self.dt;
@@ -476,7 +530,8 @@ impl Vehicle {
             .enumerate()
             .take(self.mixer.motor_count())
         {
-            thrust[i] = th.step(&self.cfg.thruster, pwm[i] as f64, dt);
+            thrust[i] =
+                th.step(&self.cfg.thruster, pwm[i] as f64, dt) * self.cfg.model_error.thrust_scale;
         }
         let Some(pose) = self
             .world
@@ -526,13 +581,17 @@ impl Vehicle {
         let buoy_w = Vector3::new(0.0, 0.0, -h.buoyancy_n * submerged);
         let buoy_b = r.inverse_transform_vector(&buoy_w);
         let (f_thr, m_thr) = self.mixer.wrench(&thrust);
+        let (f_ext, m_ext) =
+            Self::external_wrench_body(&self.cfg, &self.water_world, &r, &v_before);
         let f_b = f_thr
             + Vector3::new(damp[0], damp[1], damp[2])
             + r.inverse_transform_vector(&weight_w)
-            + buoy_b;
+            + buoy_b
+            + f_ext;
         let m_b = m_thr
             + Vector3::new(damp[3], damp[4], damp[5])
-            + Vector3::from(h.cb_from_cg_m).cross(&buoy_b);
+            + Vector3::from(h.cb_from_cg_m).cross(&buoy_b)
+            + m_ext;
         let f_w = r.transform_vector(&f_b.component_mul(&self.axis_scale));
         let m_w = r.transform_vector(&m_b);
         rb.reset_forces(false);
@@ -714,6 +773,62 @@ mod tests {
     }
 
     #[test]
+    fn tether_and_external_force_push_the_vehicle_downstream() {
+        let still = VehicleConfig {
+            current_mps: [0.0, 0.2, 0.0],
+            ..Default::default()
+        };
+        let tethered = VehicleConfig {
+            tether: Some(TetherConfig::default()),
+            ..still.clone()
+        };
+        let pushed = VehicleConfig {
+            external_force_n: [0.0, 2.0, 0.0],
+            ..still.clone()
+        };
+        let speed = |cfg: &VehicleConfig| {
+            let mut v = Vehicle::new(cfg, &at(5.0), 1).unwrap();
+            run(&mut v, &[1500; 8], 15.0);
+            v.state().velocity_world_mps.y
+        };
+        let (a, b, c) = (speed(&still), speed(&tethered), speed(&pushed));
+        // Drifting with the current, the tether drag still pulls downstream (the surface
+        // end is fixed), so the tethered vehicle drifts faster, as does the pushed one.
+        assert!(b > a + 1e-3 && c > a + 0.05, "{a} {b} {c}");
+        let mut v = Vehicle::new(&tethered, &at(5.0), 1).unwrap();
+        run(&mut v, &[1500; 8], 1.0);
+        assert!(v.tether_force_world_n().y > 0.0);
+        assert_eq!(
+            Vehicle::new(&still, &at(5.0), 1)
+                .unwrap()
+                .tether_force_world_n(),
+            Vector3::zeros()
+        );
+    }
+
+    #[test]
+    fn model_error_scales_thrust_and_shifts_buoyancy() {
+        let weak = VehicleConfig {
+            model_error: ModelError {
+                thrust_scale: 0.8,
+                buoyancy_offset_n: -3.0,
+            },
+            ..Default::default()
+        };
+        let mut a = Vehicle::new(&VehicleConfig::default(), &at(5.0), 1).unwrap();
+        let mut b = Vehicle::new(&weak, &at(5.0), 1).unwrap();
+        let pwm = a.mixer().mix_pwm(&[0.5, 0.0, 0.0, 0.0, 0.0, 0.0], true);
+        run(&mut a, &pwm, 2.0);
+        run(&mut b, &pwm, 2.0);
+        let (ta, tb) = (a.thrusts_n(), b.thrusts_n());
+        for i in 0..8 {
+            assert!((tb[i] - 0.8 * ta[i]).abs() < 1e-9, "{ta:?} {tb:?}");
+        }
+        assert!((b.hydro().buoyancy_n - (a.hydro().buoyancy_n - 3.0)).abs() < 1e-9);
+        assert!(b.state().velocity_world_mps.x < a.state().velocity_world_mps.x);
+    }
+
+    #[test]
     fn fixed_and_kinematic_motion() {
         let cfg = VehicleConfig::default();
         let mut v = Vehicle::new(&cfg, &at(5.0), 1).unwrap();
@@ -772,6 +887,21 @@ mod tests {
         let toml_err: Result<VehicleConfig, _> =
             serde_json::from_str(r#"{"frame":"heavy","bogus":1}"#);
         assert!(toml_err.is_err());
+        let cfg = VehicleConfig {
+            tether: Some(TetherConfig {
+                length_m: -1.0,
+                ..Default::default()
+            }),
+            ..Default::default()
+        };
+        let e = cfg.validate().unwrap_err().to_string();
+        assert!(e.contains("vehicle.tether.length_m"), "{e}");
+        let cfg = VehicleConfig {
+            telemetry_latency_ms: -5.0,
+            ..Default::default()
+        };
+        let e = cfg.validate().unwrap_err().to_string();
+        assert!(e.contains("vehicle.telemetry_latency_ms"), "{e}");
         let ok: VehicleConfig = serde_json::from_str(r#"{"frame":"standard"}"#).unwrap();
         assert_eq!(ok.frame, Frame6Dof::Standard);
     }

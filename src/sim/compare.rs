@@ -441,16 +441,38 @@ fn run_jobs(
     frames: u64,
     progress: &Span,
 ) -> anyhow::Result<Vec<RunSeries>> {
+    run_parallel(
+        jobs,
+        opts.jobs,
+        |job| run_one(site, opts, job, frames, progress),
+        |job| {
+            format!(
+                "{:?} run, method {}, lighting {}, seed {}",
+                job.kind, job.method, job.lighting, job.seed
+            )
+        },
+    )
+}
+
+/// Run `run` on every job on up to `workers` threads (a shared work index, so the
+/// results do not depend on the thread count); results come back in job order. The
+/// first error stops handing out work and is returned with `describe`'s context.
+pub fn run_parallel<J: Sync, R: Send>(
+    jobs: &[J],
+    workers: usize,
+    run: impl Fn(&J) -> anyhow::Result<R> + Sync,
+    describe: impl Fn(&J) -> String,
+) -> anyhow::Result<Vec<R>> {
     let next = AtomicUsize::new(0);
-    let out: Mutex<Vec<Option<anyhow::Result<RunSeries>>>> =
+    let out: Mutex<Vec<Option<anyhow::Result<R>>>> =
         Mutex::new((0..jobs.len()).map(|_| None).collect());
-    let workers = opts.jobs.clamp(1, jobs.len().max(1));
+    let workers = workers.clamp(1, jobs.len().max(1));
     std::thread::scope(|scope| {
         for _ in 0..workers {
             scope.spawn(|| loop {
                 let i = next.fetch_add(1, Ordering::Relaxed);
                 let Some(job) = jobs.get(i) else { break };
-                let r = run_one(site, opts, job, frames, progress);
+                let r = run(job);
                 let failed = r.is_err();
                 if let Ok(mut o) = out.lock() {
                     o[i] = Some(r);
@@ -464,20 +486,15 @@ fn run_jobs(
     });
     let out = out
         .into_inner()
-        .map_err(|_| anyhow::anyhow!("a compare worker panicked"))?;
-    let mut series = Vec::with_capacity(jobs.len());
+        .map_err(|_| anyhow::anyhow!("a worker panicked"))?;
+    let mut results = Vec::with_capacity(jobs.len());
     for (r, job) in out.into_iter().zip(jobs) {
         match r {
-            Some(r) => series.push(r.with_context(|| {
-                format!(
-                    "{:?} run, method {}, lighting {}, seed {}",
-                    job.kind, job.method, job.lighting, job.seed
-                )
-            })?),
-            None => anyhow::bail!("a compare run was not executed (an earlier run failed)"),
+            Some(r) => results.push(r.with_context(|| describe(job))?),
+            None => anyhow::bail!("a run was not executed (an earlier run failed)"),
         }
     }
-    Ok(series)
+    Ok(results)
 }
 
 fn run_one(

@@ -1,6 +1,6 @@
 //! The simulation edge (feature `sim`): the HIL runner, the external-vehicle camera,
-//! fault injection, the paper's experiments (`compare`) and their plots, the plots of one
-//! run (`hil --plots`), and the HIL summary.
+//! fault injection, the paper's experiments (`compare`) and their plots, the robustness
+//! sweep (`robustness`), the plots of one run (`hil --plots`), and the HIL summary.
 
 pub mod claims;
 pub mod cmd;
@@ -9,6 +9,8 @@ pub mod external;
 pub mod faults;
 pub mod hil;
 pub mod plots;
+pub mod robustness;
+pub mod robustness_plot;
 pub mod run_plots;
 pub mod shard;
 pub mod stats;

@@ -22,11 +22,7 @@ fn calib() -> CameraCalibration {
 /// Detect in `frame` and check the id, and the distance along the optical axis within
 /// 1 % of where the page was placed.
 fn assert_seen_at(frame: &Frame, family: MarkerFamily, id: u32, size_mm: f64, distance_m: f64) {
-    let marker = MarkerConfig {
-        family,
-        id,
-        size_m: size_mm / 1000.0,
-    };
+    let marker = MarkerConfig::single(family, id, size_mm / 1000.0);
     let mut tracker = MarkerTracker::new(&marker, &DetectorConfig::default(), calib()).unwrap();
     let obs = tracker.process(frame).unwrap().expect("marker detected");
     let z = obs.t_cam_marker.translation.z;

@@ -15,11 +15,7 @@ use rand::{Rng, SeedableRng};
 
 fn scene(range_m: f64) -> (CameraCalibration, MarkerConfig, Frame) {
     let calib = CameraCalibration::pinhole(1440, 1080, 1000.0, 1000.0, 719.5, 539.5);
-    let marker = MarkerConfig {
-        family: MarkerFamily::AprilTag36h11,
-        id: 7,
-        size_m: 0.2,
-    };
+    let marker = MarkerConfig::single(MarkerFamily::AprilTag36h11, 7, 0.2);
     let bm = marker_bitmap(marker.family, marker.id).unwrap();
     let pose = Isometry3::from_parts(
         Translation3::new(0.1 * range_m, -0.05 * range_m, range_m),

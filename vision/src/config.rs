@@ -3,6 +3,7 @@
 use markhold_config::{above, open, open_closed, Checks, ConfigError};
 
 use crate::VisionError;
+use nalgebra::{Isometry3, Translation3, UnitQuaternion, Vector3};
 use opencv::aruco::PREDEFINED_DICTIONARY_NAME as D;
 use serde::{Deserialize, Serialize};
 
@@ -190,24 +191,128 @@ impl std::str::FromStr for MarkerFamily {
     }
 }
 
-/// The `[marker]` section: which marker to hold station on.
+/// The most markers a map holds (the origin marker included): bounds the work of a frame
+/// and the buffers sized at start-up.
+pub const MAX_MAP_MARKERS: usize = 32;
+
+/// The `[marker]` section: the marker the station is held on (the origin of the site
+/// frame) and, optionally, the other markers of the site (`[[marker.map]]`), all of one
+/// dictionary. The site frame is the origin marker's frame: x right, y up as printed, z
+/// out of its face, origin at its centre (docs/frames.md).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct MarkerConfig {
     pub family: MarkerFamily,
+    /// Id of the origin marker.
     pub id: u32,
-    /// Side of the black square (outer edge of the black border), metres.
+    /// Side of the origin marker's black square (outer edge of the black border), metres.
     pub size_m: f64,
+    /// The site's other markers, each placed in the site frame. Empty: a map of one.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub map: Vec<MapMarker>,
+}
+
+/// One `[[marker.map]]` entry: a marker of the site placed in the site frame.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct MapMarker {
+    pub id: u32,
+    /// Side of the black square, metres.
+    pub size_m: f64,
+    /// The marker's centre in the site frame (x right, y up, z out of the origin
+    /// marker's face), metres.
+    pub position_m: [f64; 3],
+    /// The marker's orientation in the site frame, degrees: turns about the site's x,
+    /// then y, then z axis (fixed axes). `[0, 0, 0]`: printed upright and facing the same
+    /// way as the origin marker; `[0, -90, 0]`: on a wall to the right of it, facing
+    /// left (toward the origin marker's axis).
+    #[serde(default)]
+    pub rpy_deg: [f64; 3],
+}
+
+impl MapMarker {
+    /// The marker's pose in the site frame.
+    pub fn t_site_marker(&self) -> Isometry3<f64> {
+        let [r, p, y] = self.rpy_deg.map(f64::to_radians);
+        Isometry3::from_parts(
+            Translation3::from(Vector3::from(self.position_m)),
+            UnitQuaternion::from_euler_angles(r, p, y),
+        )
+    }
+}
+
+/// A marker of the map as the tracker uses it.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct PlacedMarker {
+    pub id: u32,
+    pub size_m: f64,
+    /// Pose in the site frame (the identity for the origin marker).
+    pub t_site_marker: Isometry3<f64>,
 }
 
 impl MarkerConfig {
+    /// The origin marker alone (a map of one).
+    pub fn single(family: MarkerFamily, id: u32, size_m: f64) -> Self {
+        Self {
+            family,
+            id,
+            size_m,
+            map: Vec::new(),
+        }
+    }
+
+    /// Every marker of the map, the origin marker first.
+    pub fn markers(&self) -> impl Iterator<Item = PlacedMarker> + '_ {
+        std::iter::once(PlacedMarker {
+            id: self.id,
+            size_m: self.size_m,
+            t_site_marker: Isometry3::identity(),
+        })
+        .chain(self.map.iter().map(|m| PlacedMarker {
+            id: m.id,
+            size_m: m.size_m,
+            t_site_marker: m.t_site_marker(),
+        }))
+    }
+
+    /// Number of markers of the map (the origin marker included).
+    pub fn len(&self) -> usize {
+        1 + self.map.len()
+    }
+
+    /// Always false: the origin marker is always there.
+    pub fn is_empty(&self) -> bool {
+        false
+    }
+
+    /// Only the origin marker of this map.
+    pub fn origin_only(&self) -> Self {
+        Self {
+            map: Vec::new(),
+            ..self.clone()
+        }
+    }
+
     #[rustfmt::skip]
     pub fn validate(&self) -> Result<(), ConfigError> {
         let n = self.family.id_count();
+        let in_family = format!("an id of {} in 0..{n}", self.family);
         Checks::new("marker")
-            .range("id", self.id, ..n, &format!("an id of {} in 0..{n}", self.family))
+            .range("id", self.id, ..n, &in_family)
             .positive("size_m", self.size_m, "a size > 0 in metres")
-            .done()
+            .range("map", self.map.len(), ..MAX_MAP_MARKERS, &format!("at most {} markers besides the origin marker", MAX_MAP_MARKERS - 1))
+            .done()?;
+        for (i, m) in self.map.iter().enumerate() {
+            let unique = m.id != self.id && self.map[..i].iter().all(|o| o.id != m.id);
+            Checks::new(format!("marker.map[{i}]"))
+                .range("id", m.id, ..n, &in_family)
+                .check("id", m.id, unique, "an id no other marker of the map has (marker.id and every marker.map id differ)")
+                .positive("size_m", m.size_m, "a size > 0 in metres")
+                .all("position_m", &m.position_m, -1000.0..=1000.0, "a position in the site frame in metres, each coordinate finite within 1000")
+                .all("rpy_deg", &m.rpy_deg, -180.0..=180.0, "angles in degrees within -180..180")
+                .done()?;
+        }
+        Ok(())
     }
 }
 
@@ -277,6 +382,11 @@ pub struct DetectorConfig {
     pub track_max_age_s: f64,
     /// Detections whose reprojection RMS exceeds this are rejected, pixels.
     pub max_reproj_rms_px: f64,
+    /// A marker of a map whose corners reproject worse than this under the pose of all
+    /// the markers in view (RMS, pixels) is an outlier (a wrong id decode, a marker moved
+    /// since the map was measured): left out of the pose and counted. Sized for a map
+    /// measured by hand to a few millimetres, seen from 1 to 3 m.
+    pub map_outlier_rms_px: f64,
     /// OpenCV worker threads (process-wide setting; 0 leaves OpenCV's default).
     pub opencv_threads: i32,
 }
@@ -307,6 +417,7 @@ impl Default for DetectorConfig {
             ambiguity_ratio: 3.0,
             track_max_age_s: 0.5,
             max_reproj_rms_px: 3.0,
+            map_outlier_rms_px: 8.0,
             opencv_threads: 1,
         }
     }
@@ -343,6 +454,7 @@ impl DetectorConfig {
             .positive("track_max_age_s", self.track_max_age_s, "a time > 0 s")
             // An infinite RMS bound is allowed: it rejects no detection.
             .range("max_reproj_rms_px", self.max_reproj_rms_px, above(0.0), "an RMS > 0 px")
+            .positive("map_outlier_rms_px", self.map_outlier_rms_px, "a finite RMS > 0 px")
             .range("opencv_threads", self.opencv_threads, 0..=64, "a thread count in 0..=64 (0 = OpenCV's default)")
             .done()
     }
@@ -427,18 +539,10 @@ mod tests {
 
     #[test]
     fn marker_validate_names_key_and_value() {
-        let m = MarkerConfig {
-            family: MarkerFamily::Aruco4x4_50,
-            id: 50,
-            size_m: 0.2,
-        };
+        let m = MarkerConfig::single(MarkerFamily::Aruco4x4_50, 50, 0.2);
         let e = m.validate().unwrap_err().to_string();
         assert!(e.contains("marker.id") && e.contains("50"), "{e}");
-        let m = MarkerConfig {
-            family: MarkerFamily::AprilTag36h11,
-            id: 586,
-            size_m: -1.0,
-        };
+        let m = MarkerConfig::single(MarkerFamily::AprilTag36h11, 586, -1.0);
         let e = m.validate().unwrap_err().to_string();
         assert!(e.contains("marker.size_m") && e.contains("-1"), "{e}");
         let ok = MarkerConfig { size_m: 0.15, ..m };

@@ -23,7 +23,9 @@ mod yaml;
 
 pub use calib::CameraCalibration;
 pub use camera::{FrameRecorder, RecordedCamera, V4l2Camera, SIDECAR};
-pub use config::{DetectorConfig, MarkerConfig, MarkerFamily};
+pub use config::{
+    DetectorConfig, MapMarker, MarkerConfig, MarkerFamily, PlacedMarker, MAX_MAP_MARKERS,
+};
 pub use corners::CornerCov;
 pub use dict::{marker_bitmap, MarkerBitmap};
 pub use error::VisionError;

@@ -225,6 +225,129 @@ pub fn refine_pose(
     })
 }
 
+/// One marker's share of a joint pose: its corners as points of the common (site) frame,
+/// where they were seen, and the whitening of their covariance (`C^-1` for
+/// `Sigma = C C^T`, see [`whitening`]).
+#[derive(Debug, Clone, Copy)]
+pub struct MarkerCorners {
+    pub obj: [Point3<f64>; 4],
+    pub img: [Vector2<f64>; 4],
+    pub white: SMatrix<f64, 8, 8>,
+}
+
+impl Default for MarkerCorners {
+    fn default() -> Self {
+        Self {
+            obj: [Point3::origin(); 4],
+            img: [Vector2::zeros(); 4],
+            white: SMatrix::identity(),
+        }
+    }
+}
+
+/// `C^-1` for `corner_cov = C C^T` (Cholesky): whitened residuals have identity
+/// covariance. `None` when the covariance is not positive definite.
+pub fn whitening(corner_cov: &SMatrix<f64, 8, 8>) -> Option<SMatrix<f64, 8, 8>> {
+    corner_cov.cholesky()?.l().try_inverse()
+}
+
+/// RMS reprojection error of one marker's four corners under the common-frame pose
+/// `t_cam_frame`, pixels (`None`: a corner behind the camera).
+pub fn marker_rms_px(
+    calib: &CameraCalibration,
+    m: &MarkerCorners,
+    t_cam_frame: &Isometry3<f64>,
+) -> Option<f64> {
+    residuals(calib, &m.obj, &m.img, t_cam_frame).map(|(r, _)| (r.norm_squared() / 4.0).sqrt())
+}
+
+/// Whitened normal equations of the markers selected by `used`: (J^T J, J^T r, whitened
+/// cost, raw squared residual, corners used).
+type JointSystem = (Matrix6<f64>, Vector6<f64>, f64, f64, usize);
+
+fn joint_system(
+    calib: &CameraCalibration,
+    markers: &[MarkerCorners],
+    used: &[bool],
+    pose: &Isometry3<f64>,
+) -> Option<JointSystem> {
+    let mut jtj = Matrix6::zeros();
+    let mut g = Vector6::zeros();
+    let (mut cost, mut raw, mut n) = (0.0, 0.0, 0);
+    for (m, _) in markers.iter().zip(used).filter(|(_, u)| **u) {
+        let (r, j) = residuals(calib, &m.obj, &m.img, pose)?;
+        let (rw, jw) = (m.white * r, m.white * j);
+        jtj += jw.transpose() * jw;
+        g += jw.transpose() * rw;
+        cost += rw.norm_squared();
+        raw += r.norm_squared();
+        n += 4;
+    }
+    (n > 0).then_some((jtj, g, cost, raw, n))
+}
+
+/// Levenberg-Marquardt on the corners of every marker selected by `used` at once (the
+/// same weighted reprojection error as [`refine_pose`], summed over the markers), from
+/// `init`: the pose of the common frame in the camera frame, with its information for
+/// the covariance. `reproj_rms_px` is over all corners used.
+pub fn refine_pose_joint(
+    calib: &CameraCalibration,
+    markers: &[MarkerCorners],
+    used: &[bool],
+    init: &Isometry3<f64>,
+) -> Option<RefinedPose> {
+    let mut pose = *init;
+    let (mut jtj, mut g, mut cost, mut raw, n) = joint_system(calib, markers, used, &pose)?;
+    let mut lambda = 1e-6;
+    for _ in 0..30 {
+        let mut a = jtj;
+        for d in 0..6 {
+            a[(d, d)] += lambda * jtj[(d, d)].max(1e-12);
+        }
+        let Some(delta) = a.cholesky().map(|c| c.solve(&g)) else {
+            lambda *= 10.0;
+            continue;
+        };
+        let cand = apply(&pose, &delta);
+        match joint_system(calib, markers, used, &cand) {
+            Some((jtj2, g2, cost2, raw2, _)) if cost2 <= cost => {
+                let done = delta.norm() < 1e-12 || cost - cost2 < 1e-14 * cost.max(1e-30);
+                (pose, jtj, g, cost, raw) = (cand, jtj2, g2, cost2, raw2);
+                lambda = (lambda * 0.1).max(1e-12);
+                if done {
+                    break;
+                }
+            }
+            _ => {
+                lambda *= 10.0;
+                if lambda > 1e6 {
+                    break;
+                }
+            }
+        }
+    }
+    Some(RefinedPose {
+        t_cam_marker: pose,
+        reproj_rms_px: (raw / n as f64).sqrt(),
+        info: jtj,
+    })
+}
+
+/// Covariance of `t_cam_marker * t_marker_frame` (a frame fixed to the marker, e.g. the
+/// site frame seen through one of its markers) from that of `t_cam_marker` (same
+/// parameterisation: the rotation error is shared, the frame's origin moves with it by
+/// the lever arm `R t_marker_frame`).
+pub fn cov_through(
+    t_cam_marker: &Isometry3<f64>,
+    t_marker_frame: &Isometry3<f64>,
+    cov_cam: &Matrix6<f64>,
+) -> Matrix6<f64> {
+    let arm = t_cam_marker.rotation * t_marker_frame.translation.vector;
+    let mut b = Matrix6::identity();
+    b.fixed_view_mut::<3, 3>(0, 3).copy_from(&(-skew(&arm)));
+    b * cov_cam * b.transpose()
+}
+
 /// A pose covariance in the camera frame, rotated into frame `f`: the pose itself is
 /// unchanged, only the axes its errors are expressed on (`t_frame_cam` is taken as
 /// exact). Order (tx, ty, tz, rx, ry, rz).

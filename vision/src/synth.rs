@@ -50,6 +50,37 @@ pub fn render_marker(
     frame.resize(calib.width, calib.height);
     let bg = scene.background.round().clamp(0.0, 255.0) as u8;
     frame.data.fill(bg);
+    draw_marker(frame, calib, bitmap, size_m, t_cam_marker, scene)
+}
+
+/// Several markers in one frame (a marker map): the background, then each marker on its
+/// paper; returns each marker's exact corners as [`render_marker`] does. Papers that
+/// overlap in the image are drawn in the given order.
+pub fn render_markers(
+    frame: &mut Frame,
+    calib: &CameraCalibration,
+    markers: &[(&MarkerBitmap, f64, Isometry3<f64>)],
+    scene: &SceneParams,
+) -> Vec<[Option<[f64; 2]>; 4]> {
+    frame.resize(calib.width, calib.height);
+    let bg = scene.background.round().clamp(0.0, 255.0) as u8;
+    frame.data.fill(bg);
+    markers
+        .iter()
+        .map(|(bitmap, size_m, t)| draw_marker(frame, calib, bitmap, *size_m, t, scene))
+        .collect()
+}
+
+/// One marker over what `frame` holds: pixels that see only the background beyond its
+/// paper are left as they are.
+fn draw_marker(
+    frame: &mut Frame,
+    calib: &CameraCalibration,
+    bitmap: &MarkerBitmap,
+    size_m: f64,
+    t_cam_marker: &Isometry3<f64>,
+    scene: &SceneParams,
+) -> [Option<[f64; 2]>; 4] {
     let cells = bitmap.cells as f64;
     let cell_m = size_m / cells;
     let half_paper = size_m / 2.0 + scene.margin_cells * cell_m;
@@ -120,7 +151,11 @@ pub fn render_marker(
         for px in px0..px1 {
             let i = px - px0;
             let r = top[i];
-            let value = if r == top[i + 1] && r == bottom[i] && r == bottom[i + 1] {
+            let uniform = r == top[i + 1] && r == bottom[i] && r == bottom[i + 1];
+            if uniform && matches!(r, Region::Background(_)) {
+                continue;
+            }
+            let value = if uniform {
                 r.shade(bitmap, scene)
             } else {
                 let mut acc = 0.0;

@@ -1,34 +1,42 @@
-//! Detection of the configured marker (full-frame or RoI-tracked), sub-pixel corners,
-//! IPPE_SQUARE pose with ambiguity resolution, LM refinement and covariance.
+//! Detection of the markers of the site's map (full-frame or RoI-tracked, per marker),
+//! sub-pixel corners, IPPE_SQUARE pose per marker with ambiguity resolution, one joint
+//! pose over every marker in view with outliers left out, and its covariance.
 
-use crate::config::{DetectorConfig, MarkerConfig};
+use crate::config::{DetectorConfig, MarkerConfig, PlacedMarker};
 use crate::corners::{CornerCov, EdgeRefiner};
 use crate::dict::dictionary;
 use crate::error::CvContext;
 use crate::pose::{
-    cov_of_inverse, isotropic_corner_cov, marker_object_points, refine_pose, RefinedPose,
+    cov_of_inverse, cov_through, isotropic_corner_cov, marker_object_points, marker_rms_px,
+    refine_pose, refine_pose_joint, whitening, MarkerCorners, RefinedPose,
 };
 use crate::{CameraCalibration, VisionError};
 use markhold_exposure::{Corners, Frame, Roi};
 use nalgebra::{Isometry3, Matrix6, Point3, Translation3, UnitQuaternion, Vector2, Vector3};
 use opencv::{aruco, calib3d, core, imgproc, prelude::*};
 
-/// One detection of the configured marker and its pose.
+/// One pose of the site frame from the markers of the map in view.
 #[derive(Debug, Clone, PartialEq)]
 pub struct MarkerObservation {
+    /// The marker whose corners are given: the origin marker when it was used, else the
+    /// largest marker used.
     pub id: u32,
-    /// Sub-pixel corners in aruco order (top-left, top-right, bottom-right,
-    /// bottom-left as printed).
+    /// Sub-pixel corners of marker `id` in aruco order (top-left, top-right,
+    /// bottom-right, bottom-left as printed).
     pub corners: Corners,
-    /// Pose of the marker in the camera frame.
+    /// Pose of the site frame (the origin marker's frame) in the camera frame.
     pub t_cam_marker: Isometry3<f64>,
     /// Covariance of (tx, ty, tz, rx, ry, rz) of `t_cam_marker`, camera frame
     /// (translation m^2, rotation rad^2, left/global rotation error).
     pub cov_cam: Matrix6<f64>,
-    /// RMS reprojection error of the four corners, pixels.
+    /// RMS reprojection error of the corners of every marker used, pixels.
     pub reproj_rms_px: f64,
     /// Found by the RoI-tracked search (false: full-frame search).
     pub tracked: bool,
+    /// Markers of the map the pose was computed from.
+    pub markers_used: u32,
+    /// Markers of the map found in the frame but left out as outliers.
+    pub outliers: u32,
 }
 
 impl MarkerObservation {
@@ -67,15 +75,23 @@ pub enum Tracked {
 pub struct TrackerStats {
     pub frames: u64,
     pub full_searches: u64,
+    /// Windows searched by tracking (one per tracked marker, and one per marker the map
+    /// places in view without a track).
     pub tracked_searches: u64,
+    /// Markers found in those windows.
     pub tracked_hits: u64,
+    /// Frames with a pose.
     pub detections: u64,
-    /// Frames where both IPPE solutions fitted and continuity chose between them.
+    /// Marker poses where both IPPE solutions fitted and continuity chose between them.
     pub ambiguous: u64,
-    /// Detections rejected for their reprojection error.
+    /// Marker detections rejected for their reprojection error.
     pub rejected: u64,
     /// Detections whose edges could not be fitted (cornerSubPix corners used).
     pub subpix_fallbacks: u64,
+    /// Markers of the map used in poses, summed over frames.
+    pub markers_used: u64,
+    /// Markers of the map found but left out of the joint pose (`map_outlier_rms_px`).
+    pub outliers: u64,
 }
 
 #[derive(Debug, Clone, Copy)]
@@ -87,7 +103,27 @@ struct TrackState {
     t_cam_marker: Isometry3<f64>,
 }
 
-/// Detection + pose of one marker; owns its OpenCV buffers and the tracking state.
+/// One marker of the map: where it is, its object points, and this frame's findings.
+struct Slot {
+    placed: PlacedMarker,
+    /// Corners in the marker's own frame (for IPPE_SQUARE and its refinement).
+    obj: [Point3<f64>; 4],
+    obj_cv: core::Vector<core::Point3f>,
+    /// Corners in the site frame (for the joint pose and the map's prediction).
+    obj_site: [Point3<f64>; 4],
+    track: Option<TrackState>,
+    /// This frame: corners found (coarse, then refined), and whether by tracking.
+    found: Option<Corners>,
+    found_tracked: bool,
+    /// This frame: the full search's coarse corners.
+    coarse: Option<Corners>,
+    /// This frame: the marker's own pose and its corners for the joint pose.
+    single: Option<RefinedPose>,
+    joint: MarkerCorners,
+}
+
+/// Detection + pose over the site's marker map; owns its OpenCV buffers and the
+/// tracking state of every marker (all sized at start-up for the map).
 pub struct MarkerTracker {
     marker: MarkerConfig,
     cfg: DetectorConfig,
@@ -95,15 +131,20 @@ pub struct MarkerTracker {
     det: Detector,
     camera_matrix: core::Mat,
     dist_coeffs: core::Mat,
-    obj: [Point3<f64>; 4],
-    obj_cv: core::Vector<core::Point3f>,
+    slots: Vec<Slot>,
+    /// Per-slot buffers of the joint pose: corners, selected, best selection.
+    joint: Vec<MarkerCorners>,
+    used: Vec<bool>,
+    best_used: Vec<bool>,
     img_cv: core::Vector<core::Point2f>,
     rvecs: core::Vector<core::Mat>,
     tvecs: core::Vector<core::Mat>,
     reproj: core::Mat,
     small: core::Mat,
     edges: EdgeRefiner,
-    track: Option<TrackState>,
+    /// The last pose of the site frame (frame stamp, `t_cam_site`) while a marker is
+    /// tracked: places the untracked markers of the map in the image.
+    last_site: Option<(f64, Isometry3<f64>)>,
     frames_since_full: u32,
     last_search: Option<Roi>,
     stats: TrackerStats,
@@ -149,17 +190,42 @@ impl MarkerTracker {
                 .try_clone()
                 .cv("distortion coefficients")?
         };
-        let obj = marker_object_points(marker.size_m);
-        let obj_cv = obj
-            .iter()
-            .map(|p| core::Point3f::new(p.x as f32, p.y as f32, p.z as f32))
+        let slots: Vec<Slot> = marker
+            .markers()
+            .map(|placed| {
+                let obj = marker_object_points(placed.size_m);
+                Slot {
+                    placed,
+                    obj,
+                    obj_cv: obj
+                        .iter()
+                        .map(|p| core::Point3f::new(p.x as f32, p.y as f32, p.z as f32))
+                        .collect(),
+                    obj_site: obj.map(|p| placed.t_site_marker * p),
+                    track: None,
+                    found: None,
+                    found_tracked: false,
+                    coarse: None,
+                    single: None,
+                    joint: MarkerCorners::default(),
+                }
+            })
             .collect();
+        // Map index of each id of the dictionary (-1: not in the map).
+        let mut index_of_id = vec![-1_i16; marker.family.id_count() as usize];
+        for (i, s) in slots.iter().enumerate() {
+            if let Some(e) = index_of_id.get_mut(s.placed.id as usize) {
+                *e = i as i16;
+            }
+        }
+        let n = slots.len();
         Ok(Self {
             marker: marker.clone(),
             cfg: detector.clone(),
             calib,
             det: Detector {
-                marker_id: marker.id,
+                index_of_id,
+                found: vec![None; n],
                 max_perimeter_rate: detector.max_marker_perimeter_rate,
                 dict,
                 params,
@@ -169,15 +235,17 @@ impl MarkerTracker {
             },
             camera_matrix,
             dist_coeffs,
-            obj,
-            obj_cv,
+            slots,
+            joint: vec![MarkerCorners::default(); n],
+            used: vec![false; n],
+            best_used: vec![false; n],
             img_cv: core::Vector::with_capacity(4),
             rvecs: core::Vector::new(),
             tvecs: core::Vector::new(),
             reproj: core::Mat::default(),
             small: core::Mat::default(),
             edges: EdgeRefiner::new(),
-            track: None,
+            last_site: None,
             frames_since_full: 0,
             last_search: None,
             stats: TrackerStats::default(),
@@ -200,20 +268,24 @@ impl MarkerTracker {
         self.stats
     }
 
-    /// The window the last RoI-tracked search looked in (`None` after a full search).
+    /// The first window the last RoI-tracked search looked in (`None` after a full
+    /// search).
     pub fn last_search_roi(&self) -> Option<Roi> {
         self.last_search
     }
 
     /// Forget the tracking state: the next frame gets a full-frame search.
     pub fn reset(&mut self) {
-        self.track = None;
+        for s in &mut self.slots {
+            s.track = None;
+        }
+        self.last_site = None;
         self.frames_since_full = 0;
         self.last_search = None;
     }
 
-    /// Detect the configured marker id in `frame` and estimate its pose.
-    /// `Ok(None)`: not seen (or rejected for its reprojection error).
+    /// Detect the map's markers in `frame` and estimate the site frame's pose.
+    /// `Ok(None)`: none seen (or every one rejected).
     pub fn process(&mut self, frame: &Frame) -> Result<Option<MarkerObservation>, VisionError> {
         match self.process_tracked(frame)? {
             Tracked::Done(obs) => Ok(obs),
@@ -221,21 +293,30 @@ impl MarkerTracker {
         }
     }
 
-    /// The first half of [`Self::process`]: the RoI-tracked search only. When it cannot
-    /// answer (no track, the track lost, or a periodic full search due) it returns
-    /// [`Tracked::NeedsFullSearch`] and [`Self::process_full`] must follow on the same
-    /// frame; the loop can send its command in between, so that a full-frame search
+    /// The first half of [`Self::process`]: the RoI-tracked search only, in a window per
+    /// tracked marker and per marker the map places in view without a track. When it
+    /// finds no marker (no track, every track lost, or a periodic full search due) it
+    /// returns [`Tracked::NeedsFullSearch`] and [`Self::process_full`] must follow on the
+    /// same frame; the loop can send its command in between, so that a full-frame search
     /// (8 to 37 ms at 1440x1080) does not sit between the frame and the command.
     pub fn process_tracked(&mut self, frame: &Frame) -> Result<Tracked, VisionError> {
         let image = self.image_of(frame)?;
         self.stats.frames += 1;
         let _span = tracing::trace_span!("marker_tracker", seq = frame.meta.seq).entered();
         let stamp = frame.meta.stamp_s;
-        if let Some(t) = &self.track {
-            let age = stamp - t.stamp_s;
-            if !(age >= 0.0 && age <= self.cfg.track_max_age_s) {
-                self.track = None;
+        let fresh = |t: f64| {
+            let age = stamp - t;
+            age >= 0.0 && age <= self.cfg.track_max_age_s
+        };
+        for s in &mut self.slots {
+            if s.track.is_some_and(|t| !fresh(t.stamp_s)) {
+                s.track = None;
             }
+            s.found = None;
+            s.found_tracked = false;
+        }
+        if self.last_site.is_some_and(|(t, _)| !fresh(t)) {
+            self.last_site = None;
         }
 
         let period = self.cfg.full_search_period_frames;
@@ -244,17 +325,33 @@ impl MarkerTracker {
         if periodic_full {
             return Ok(Tracked::NeedsFullSearch);
         }
-        let Some(roi) = self.predicted_window(stamp) else {
+        let mut searched = false;
+        for i in 0..self.slots.len() {
+            if self.slots[i].found.is_some() {
+                // Already found in another marker's window.
+                continue;
+            }
+            let Some((roi, scale)) = self.predicted_window(i, stamp) else {
+                continue;
+            };
+            searched = true;
+            self.stats.tracked_searches += 1;
+            if self.last_search.is_none() {
+                self.last_search = Some(roi);
+            }
+            self.detect_window(&image, roi, scale)?;
+            self.take_found(true);
+        }
+        if !searched {
             return Ok(Tracked::NeedsFullSearch);
-        };
-        self.stats.tracked_searches += 1;
-        self.last_search = Some(roi);
-        let Some(corners) = self.detect_window(&image, roi, self.track_scale())? else {
+        }
+        let hits = self.slots.iter().filter(|s| s.found.is_some()).count();
+        if hits == 0 {
             return Ok(Tracked::NeedsFullSearch);
-        };
-        self.stats.tracked_hits += 1;
+        }
+        self.stats.tracked_hits += hits as u64;
         self.frames_since_full += 1;
-        Ok(Tracked::Done(self.finish(frame, &image, corners, true)?))
+        Ok(Tracked::Done(self.finish(frame, &image)?))
     }
 
     /// The second half of [`Self::process`] after [`Tracked::NeedsFullSearch`]: a
@@ -267,13 +364,23 @@ impl MarkerTracker {
         let image = self.image_of(frame)?;
         self.stats.full_searches += 1;
         self.frames_since_full = 0;
-        let Some(corners) = self.full_search(&image)? else {
-            if self.track.take().is_some() {
+        for s in &mut self.slots {
+            s.found = None;
+            s.found_tracked = false;
+        }
+        self.full_search(&image)?;
+        if self.slots.iter().all(|s| s.found.is_none()) {
+            let mut lost = false;
+            for s in &mut self.slots {
+                lost |= s.track.take().is_some();
+            }
+            self.last_site = None;
+            if lost {
                 tracing::debug!(seq = frame.meta.seq, "marker lost");
             }
             return Ok(None);
-        };
-        self.finish(frame, &image, corners, false)
+        }
+        self.finish(frame, &image)
     }
 
     /// The frame's pixels as an OpenCV matrix (no copy), after checking its size against
@@ -305,41 +412,240 @@ impl MarkerTracker {
             .cv("wrap frame")
     }
 
-    /// Sub-pixel corners, pose and covariance of a found marker; updates the track.
+    /// The detector's last findings into the slots not found yet this frame.
+    fn take_found(&mut self, tracked: bool) {
+        for (s, f) in self.slots.iter_mut().zip(self.det.found.iter()) {
+            if s.found.is_none() {
+                if let Some((_, c)) = f {
+                    s.found = Some(*c);
+                    s.found_tracked = tracked;
+                }
+            }
+        }
+    }
+
+    /// Sub-pixel corners and pose of every marker found this frame, then the site
+    /// frame's pose from them (outliers left out); updates the tracks.
     fn finish(
         &mut self,
         frame: &Frame,
         image: &(impl core::MatTraitConst + core::ToInputArray),
-        mut corners: Corners,
-        tracked: bool,
     ) -> Result<Option<MarkerObservation>, VisionError> {
         let stamp = frame.meta.stamp_s;
-        let corner_cov = self.refine_corners(frame, image, &mut corners)?;
-        let Some(sol) = self.estimate_pose(&corners, &corner_cov)? else {
-            self.stats.rejected += 1;
-            self.track = None;
-            return Ok(None);
+        let mut valid = 0;
+        for i in 0..self.slots.len() {
+            self.slots[i].single = None;
+            let Some(mut corners) = self.slots[i].found else {
+                self.slots[i].track = None;
+                continue;
+            };
+            let corner_cov = self.refine_corners(frame, image, &mut corners)?;
+            self.slots[i].found = Some(corners);
+            let pose = self.estimate_pose(i, &corners, &corner_cov)?;
+            let white = whitening(&corner_cov);
+            let s = &mut self.slots[i];
+            match (pose, white) {
+                (Some(p), Some(white)) => {
+                    s.single = Some(p);
+                    s.joint = MarkerCorners {
+                        obj: s.obj_site,
+                        img: corners.map(|c| Vector2::new(c[0] as f64, c[1] as f64)),
+                        white,
+                    };
+                    valid += 1;
+                }
+                _ => {
+                    self.stats.rejected += 1;
+                    s.track = None;
+                    s.found = None;
+                }
+            }
+        }
+        let result = match valid {
+            0 => None,
+            1 => self.single_pose(stamp),
+            _ => self.joint_pose(stamp),
         };
-        let Some(cov_cam) = sol.covariance() else {
+        if self.slots.iter().all(|s| s.track.is_none()) {
+            self.last_site = None;
+        }
+        Ok(result)
+    }
+
+    /// The site frame's pose from the one marker with a pose.
+    fn single_pose(&mut self, stamp: f64) -> Option<MarkerObservation> {
+        let i = self.slots.iter().position(|s| s.single.is_some())?;
+        let s = &mut self.slots[i];
+        let sol = s.single?;
+        let corners = s.found?;
+        let Some(cov) = sol.covariance() else {
             self.stats.rejected += 1;
-            self.track = None;
-            return Ok(None);
+            s.track = None;
+            return None;
         };
+        // The origin marker's frame is the site frame: its pose as measured.
+        let (t_cam_site, cov_cam) = if i == 0 {
+            (sol.t_cam_marker, cov)
+        } else {
+            let t_marker_site = s.placed.t_site_marker.inverse();
+            (
+                sol.t_cam_marker * t_marker_site,
+                cov_through(&sol.t_cam_marker, &t_marker_site, &cov),
+            )
+        };
+        let tracked = s.found_tracked;
+        let id = s.placed.id;
         self.stats.detections += 1;
-        self.update_track(&corners, stamp, sol.t_cam_marker);
-        Ok(Some(MarkerObservation {
-            id: self.marker.id,
+        self.stats.markers_used += 1;
+        self.update_track(i, &corners, stamp, sol.t_cam_marker);
+        self.last_site = Some((stamp, t_cam_site));
+        Some(MarkerObservation {
+            id,
             corners,
-            t_cam_marker: sol.t_cam_marker,
+            t_cam_marker: t_cam_site,
             cov_cam,
             reproj_rms_px: sol.reproj_rms_px,
             tracked,
-        }))
+            markers_used: 1,
+            outliers: 0,
+        })
     }
 
-    fn update_track(&mut self, corners: &Corners, stamp_s: f64, pose: Isometry3<f64>) {
+    /// The site frame's pose from every marker with a pose: each marker's pose proposes
+    /// one for the site, the markers whose corners fit it are refined together, and the
+    /// proposal that most markers fit wins (ties: the one nearer the last pose, else the
+    /// lower residual). The markers left over are outliers.
+    fn joint_pose(&mut self, stamp: f64) -> Option<MarkerObservation> {
+        let gate = self.cfg.map_outlier_rms_px;
+        for (j, s) in self.joint.iter_mut().zip(&self.slots) {
+            *j = s.joint;
+        }
+        let have: u32 = self.slots.iter().filter(|s| s.single.is_some()).count() as u32;
+        let previous = self.last_site.map(|(_, t)| t);
+        let mut best: Option<(usize, f64, RefinedPose)> = None;
+        for h in 0..self.slots.len() {
+            let Some(single) = self.slots[h].single else {
+                continue;
+            };
+            if best.is_some() && self.best_used[h] {
+                // Already in the best set: its proposal would find the same set.
+                continue;
+            }
+            let init = single.t_cam_marker * self.slots[h].placed.t_site_marker.inverse();
+            // A single marker's pose places the others less well than the joint one:
+            // a wider gate first, then the gate itself.
+            let mut pose = init;
+            let mut ok = true;
+            for g in [4.0 * gate, gate, gate] {
+                self.select(&pose, g);
+                self.used[h] |= g > gate;
+                match refine_pose_joint(&self.calib, &self.joint, &self.used, &pose) {
+                    Some(p) => pose = p.t_cam_marker,
+                    None => {
+                        ok = false;
+                        break;
+                    }
+                }
+            }
+            if !ok {
+                continue;
+            }
+            self.select(&pose, gate);
+            let count = self.used.iter().filter(|u| **u).count();
+            if count == 0 {
+                continue;
+            }
+            let Some(sol) = refine_pose_joint(&self.calib, &self.joint, &self.used, &pose) else {
+                continue;
+            };
+            let tie = match previous {
+                Some(p) => (sol.t_cam_marker.translation.vector - p.translation.vector).norm(),
+                None => sol.reproj_rms_px,
+            };
+            let better = match &best {
+                None => true,
+                Some((c, t, _)) => count > *c || (count == *c && tie < *t),
+            };
+            if better {
+                best = Some((count, tie, sol));
+                self.best_used.copy_from_slice(&self.used);
+            }
+        }
+        let Some((count, _, sol)) = best else {
+            for s in &mut self.slots {
+                if s.single.is_some() {
+                    s.track = None;
+                }
+            }
+            self.stats.rejected += have as u64;
+            return None;
+        };
+        let outliers = have - count as u32;
+        let Some(cov_cam) = sol.covariance() else {
+            self.stats.rejected += have as u64;
+            for s in &mut self.slots {
+                s.track = None;
+            }
+            return None;
+        };
+        let t_cam_site = sol.t_cam_marker;
+        // The corners given: the origin marker's when used, else the largest used.
+        let mut shown: Option<(usize, f64)> = None;
+        for i in 0..self.slots.len() {
+            let s = &self.slots[i];
+            let (Some(corners), true) = (s.found, s.single.is_some()) else {
+                continue;
+            };
+            if !self.best_used[i] {
+                // An outlier: not tracked on, so a wrong decode is not followed.
+                tracing::debug!(id = s.placed.id, "map marker left out as an outlier");
+                self.slots[i].track = None;
+                continue;
+            }
+            let side = if i == 0 { f64::MAX } else { side_px(&corners) };
+            if shown.is_none_or(|(_, b)| side > b) {
+                shown = Some((i, side));
+            }
+            // Continuity for the marker's own IPPE choice: its pose as the map puts it.
+            let t_cam_marker = t_cam_site * self.slots[i].placed.t_site_marker;
+            self.update_track(i, &corners, stamp, t_cam_marker);
+        }
+        let (i, _) = shown?;
+        let s = &self.slots[i];
+        let obs = MarkerObservation {
+            id: s.placed.id,
+            corners: s.found?,
+            t_cam_marker: t_cam_site,
+            cov_cam,
+            reproj_rms_px: sol.reproj_rms_px,
+            tracked: self
+                .best_used
+                .iter()
+                .zip(&self.slots)
+                .any(|(u, s)| *u && s.found_tracked),
+            markers_used: count as u32,
+            outliers,
+        };
+        self.stats.detections += 1;
+        self.stats.markers_used += count as u64;
+        self.stats.outliers += outliers as u64;
+        self.last_site = Some((stamp, t_cam_site));
+        Some(obs)
+    }
+
+    /// `used`: the markers with a pose whose corners reproject within `gate` pixels
+    /// (RMS) under the site pose `pose`.
+    fn select(&mut self, pose: &Isometry3<f64>, gate: f64) {
+        for ((u, s), j) in self.used.iter_mut().zip(&self.slots).zip(&self.joint) {
+            *u = s.single.is_some()
+                && marker_rms_px(&self.calib, j, pose).is_some_and(|r| r <= gate);
+        }
+    }
+
+    fn update_track(&mut self, i: usize, corners: &Corners, stamp_s: f64, pose: Isometry3<f64>) {
+        let s = &mut self.slots[i];
         let c = centre(corners);
-        let velocity_px_s = match &self.track {
+        let velocity_px_s = match &s.track {
             Some(prev) if stamp_s > prev.stamp_s => {
                 let p = centre(&prev.corners);
                 let dt = stamp_s - prev.stamp_s;
@@ -347,7 +653,7 @@ impl MarkerTracker {
             }
             _ => [0.0, 0.0],
         };
-        self.track = Some(TrackState {
+        s.track = Some(TrackState {
             corners: *corners,
             stamp_s,
             velocity_px_s,
@@ -355,29 +661,50 @@ impl MarkerTracker {
         });
     }
 
-    /// Downscale of the tracked search: about `track_target_side_px` pixels of
+    /// Downscale of a tracked search: about `track_target_side_px` pixels of
     /// marker side are enough to find and decode it; the edge fit then works at full
     /// resolution. Bounds the cost of tracking a close marker.
-    fn track_scale(&self) -> u32 {
-        let Some(t) = &self.track else { return 1 };
-        let s = (side_px(&t.corners) / self.cfg.track_target_side_px).floor();
+    fn track_scale(&self, side_px: f64) -> u32 {
+        let s = (side_px / self.cfg.track_target_side_px).floor();
         (s as u32).clamp(1, 4)
     }
 
-    /// Search window for this frame: the last corners moved by the predicted motion,
-    /// padded by a fraction of the marker's side and by the motion itself.
-    fn predicted_window(&self, stamp_s: f64) -> Option<Roi> {
-        let t = self.track.as_ref()?;
-        let dt = (stamp_s - t.stamp_s).max(0.0);
-        let (dx, dy) = (t.velocity_px_s[0] * dt, t.velocity_px_s[1] * dt);
-        let mut pred = t.corners;
-        for p in &mut pred {
-            p[0] += dx as f32;
-            p[1] += dy as f32;
-        }
-        let side = side_px(&t.corners);
+    /// Search window and scale for marker `i` this frame: its last corners moved by the
+    /// predicted motion, padded by a fraction of its side and by the motion itself; or,
+    /// without a track, where the last pose of the site puts it (every corner in the
+    /// image).
+    fn predicted_window(&self, i: usize, stamp_s: f64) -> Option<(Roi, u32)> {
+        let s = &self.slots[i];
+        let (pred, side, motion) = match &s.track {
+            Some(t) => {
+                let dt = (stamp_s - t.stamp_s).max(0.0);
+                let (dx, dy) = (t.velocity_px_s[0] * dt, t.velocity_px_s[1] * dt);
+                let mut pred = t.corners;
+                for p in &mut pred {
+                    p[0] += dx as f32;
+                    p[1] += dy as f32;
+                }
+                (pred, side_px(&t.corners), dx.hypot(dy))
+            }
+            None => {
+                let (_, t_cam_site) = self.last_site?;
+                let mut pred: Corners = [[0.0; 2]; 4];
+                for (p, o) in pred.iter_mut().zip(&s.obj_site) {
+                    let uv = self.calib.project(&(t_cam_site * o))?;
+                    let inside = uv.x >= 0.0
+                        && uv.y >= 0.0
+                        && uv.x < self.calib.width as f64
+                        && uv.y < self.calib.height as f64;
+                    if !inside {
+                        return None;
+                    }
+                    *p = [uv.x as f32, uv.y as f32];
+                }
+                (pred, side_px(&pred), 0.0)
+            }
+        };
         let pad = self.cfg.track_window_scale * side
-            + self.cfg.track_motion_gain * dx.hypot(dy)
+            + self.cfg.track_motion_gain * motion
             + 2.0 * self.cfg.subpix_window_px as f64;
         let (mut x0, mut y0, mut x1, mut y1) = (f64::MAX, f64::MAX, f64::MIN, f64::MIN);
         for p in &pred {
@@ -386,31 +713,38 @@ impl MarkerTracker {
             x1 = x1.max(p[0] as f64);
             y1 = y1.max(p[1] as f64);
         }
-        window(
+        let roi = window(
             x0 - pad,
             y0 - pad,
             x1 + pad,
             y1 + pad,
             self.calib.width,
             self.calib.height,
-        )
+        )?;
+        let scale = match &s.track {
+            Some(t) => self.track_scale(side_px(&t.corners)),
+            None => self.track_scale(side),
+        };
+        Some((roi, scale))
     }
 
-    /// Full-frame search, on a downscaled image when configured (then refined at full
-    /// resolution in a window around the coarse corners).
+    /// Full-frame search, on a downscaled image when configured (then each marker found
+    /// is searched again at full resolution in a window around its coarse corners).
     fn full_search(
         &mut self,
         image: &(impl core::MatTraitConst + core::ToInputArray),
-    ) -> Result<Option<Corners>, VisionError> {
+    ) -> Result<(), VisionError> {
+        let full = Roi {
+            x: 0,
+            y: 0,
+            width: self.calib.width,
+            height: self.calib.height,
+        };
         let s = self.cfg.full_search_downscale;
         if s <= 1 {
-            let full = Roi {
-                x: 0,
-                y: 0,
-                width: self.calib.width,
-                height: self.calib.height,
-            };
-            return self.detect_window(image, full, 1);
+            self.detect_window(image, full, 1)?;
+            self.take_found(false);
+            return Ok(());
         }
         let size = core::Size::new(
             (self.calib.width / s) as i32,
@@ -421,56 +755,62 @@ impl MarkerTracker {
         let coarse =
             self.det
                 .detect_in(&self.small, (0.0, 0.0), self.cfg.min_marker_perimeter_rate)?;
-        let Some(coarse) = coarse else {
+        if coarse == 0 {
             // Too small to be found at the reduced scale? Look at full resolution.
             if self.cfg.full_search_fallback_full_res {
-                let full = Roi {
-                    x: 0,
-                    y: 0,
-                    width: self.calib.width,
-                    height: self.calib.height,
-                };
-                return self.detect_window(image, full, 1);
+                self.detect_window(image, full, 1)?;
+                self.take_found(false);
             }
-            return Ok(None);
-        };
+            return Ok(());
+        }
+        for (slot, f) in self.slots.iter_mut().zip(self.det.found.iter()) {
+            slot.coarse = f.map(|(_, c)| c);
+        }
         // Small pixel i covers full pixels [s i, s i + s): its centre is s i + (s-1)/2.
         let sf = s as f64;
-        let mut full = coarse;
-        for p in &mut full {
-            p[0] = (p[0] as f64 * sf + (sf - 1.0) / 2.0) as f32;
-            p[1] = (p[1] as f64 * sf + (sf - 1.0) / 2.0) as f32;
+        for i in 0..self.slots.len() {
+            if self.slots[i].found.is_some() {
+                continue;
+            }
+            let Some(mut c) = self.slots[i].coarse else {
+                continue;
+            };
+            for p in &mut c {
+                p[0] = (p[0] as f64 * sf + (sf - 1.0) / 2.0) as f32;
+                p[1] = (p[1] as f64 * sf + (sf - 1.0) / 2.0) as f32;
+            }
+            let pad = 0.25 * side_px(&c) + 2.0 * sf + 2.0 * self.cfg.subpix_window_px as f64;
+            let (mut x0, mut y0, mut x1, mut y1) = (f64::MAX, f64::MAX, f64::MIN, f64::MIN);
+            for p in &c {
+                x0 = x0.min(p[0] as f64);
+                y0 = y0.min(p[1] as f64);
+                x1 = x1.max(p[0] as f64);
+                y1 = y1.max(p[1] as f64);
+            }
+            if let Some(roi) = window(
+                x0 - pad,
+                y0 - pad,
+                x1 + pad,
+                y1 + pad,
+                self.calib.width,
+                self.calib.height,
+            ) {
+                self.detect_window(image, roi, 1)?;
+                self.take_found(false);
+            }
         }
-        let pad = 0.25 * side_px(&full) + 2.0 * sf + 2.0 * self.cfg.subpix_window_px as f64;
-        let (mut x0, mut y0, mut x1, mut y1) = (f64::MAX, f64::MAX, f64::MIN, f64::MIN);
-        for p in &full {
-            x0 = x0.min(p[0] as f64);
-            y0 = y0.min(p[1] as f64);
-            x1 = x1.max(p[0] as f64);
-            y1 = y1.max(p[1] as f64);
-        }
-        match window(
-            x0 - pad,
-            y0 - pad,
-            x1 + pad,
-            y1 + pad,
-            self.calib.width,
-            self.calib.height,
-        ) {
-            Some(roi) => self.detect_window(image, roi, 1),
-            None => Ok(None),
-        }
+        Ok(())
     }
 
-    /// Detect in `roi` of the full-resolution image; corners in full-image pixels.
-    /// Detect in `roi`, on the window downscaled by `scale` when > 1 (corners are
-    /// only coarse here: the edge fit refines them at full resolution).
+    /// Detect in `roi` of the full-resolution image, on the window downscaled by `scale`
+    /// when > 1 (corners are only coarse then: the edge fit refines them at full
+    /// resolution). The markers found are in `self.det.found`, in full-image pixels.
     fn detect_window(
         &mut self,
         image: &impl core::MatTraitConst,
         roi: Roi,
         scale: u32,
-    ) -> Result<Option<Corners>, VisionError> {
+    ) -> Result<(), VisionError> {
         // A downscaled window is cropped to whole multiples of the scale (at most
         // `scale - 1` pixels off its right and bottom padding): then the ratio is an exact
         // integer, OpenCV's INTER_AREA takes its fast integer-block path instead of the
@@ -490,12 +830,13 @@ impl MarkerTracker {
         let roi_max = roi.width.max(roi.height).max(1) as f64;
         let min_rate = self.cfg.min_marker_perimeter_rate * full_max / roi_max;
         if min_rate >= 4.0 {
-            return Ok(None);
+            self.det.found.fill(None);
+            return Ok(());
         }
         if scale <= 1 {
-            return self
-                .det
-                .detect_in(&view, (roi.x as f64, roi.y as f64), min_rate);
+            self.det
+                .detect_in(&view, (roi.x as f64, roi.y as f64), min_rate)?;
+            return Ok(());
         }
         let size = core::Size::new(
             (roi.width / scale).max(1) as i32,
@@ -503,16 +844,16 @@ impl MarkerTracker {
         );
         imgproc::resize(&view, &mut self.small, size, 0.0, 0.0, imgproc::INTER_AREA)
             .cv("resize window")?;
-        let found = self.det.detect_in(&self.small, (0.0, 0.0), min_rate)?;
+        self.det.detect_in(&self.small, (0.0, 0.0), min_rate)?;
         // Small pixel i covers full pixels [s i, s i + s): its centre is s i + (s-1)/2.
         let sf = scale as f64;
-        Ok(found.map(|mut c| {
-            for p in &mut c {
+        for (_, c) in self.det.found.iter_mut().flatten() {
+            for p in c.iter_mut() {
                 p[0] = (roi.x as f64 + p[0] as f64 * sf + (sf - 1.0) / 2.0) as f32;
                 p[1] = (roi.y as f64 + p[1] as f64 * sf + (sf - 1.0) / 2.0) as f32;
             }
-            c
-        }))
+        }
+        Ok(())
     }
 
     /// Sub-pixel corners and their 8x8 covariance: edge-line fit (see `corners`),
@@ -569,10 +910,12 @@ impl MarkerTracker {
         Ok(isotropic_corner_cov(self.cfg.corner_sigma_px))
     }
 
-    /// Both IPPE solutions refined by LM; the better fit wins unless the two are
-    /// ambiguous, when the one closer to the previous pose wins.
+    /// Pose of marker `i` in its own frame: both IPPE solutions refined by LM; the better
+    /// fit wins unless the two are ambiguous, when the one closer to the marker's previous
+    /// pose wins.
     fn estimate_pose(
         &mut self,
+        i: usize,
         corners: &Corners,
         corner_cov: &CornerCov,
     ) -> Result<Option<RefinedPose>, VisionError> {
@@ -581,7 +924,7 @@ impl MarkerTracker {
             self.img_cv.push(core::Point2f::new(c[0], c[1]));
         }
         let n = calib3d::solve_pnp_generic(
-            &self.obj_cv,
+            &self.slots[i].obj_cv,
             &self.img_cv,
             &self.camera_matrix,
             &self.dist_coeffs,
@@ -595,19 +938,20 @@ impl MarkerTracker {
         )
         .cv("solvePnPGeneric")?;
         let img = corners.map(|c| Vector2::new(c[0] as f64, c[1] as f64));
+        let obj = self.slots[i].obj;
         let mut cands: [Option<RefinedPose>; 2] = [None, None];
-        for (i, cand) in cands
+        for (k, cand) in cands
             .iter_mut()
             .enumerate()
             .take((n.max(0) as usize).min(2))
         {
-            let r = self.rvecs.get(i).cv("rvec")?;
-            let t = self.tvecs.get(i).cv("tvec")?;
+            let r = self.rvecs.get(k).cv("rvec")?;
+            let t = self.tvecs.get(k).cv("tvec")?;
             let r = mat3(&r)?;
             let t = mat3(&t)?;
             let init =
                 Isometry3::from_parts(Translation3::from(t), UnitQuaternion::from_scaled_axis(r));
-            *cand = refine_pose(&self.calib, &self.obj, &img, &init, corner_cov);
+            *cand = refine_pose(&self.calib, &obj, &img, &init, corner_cov);
         }
         let [a, b] = cands;
         let (best, other) = match (a, b) {
@@ -617,7 +961,7 @@ impl MarkerTracker {
             (None, None) => return Ok(None),
         };
         let mut chosen = best;
-        if let (Some(other), Some(prev)) = (other, self.track.as_ref()) {
+        if let (Some(other), Some(prev)) = (other, self.slots[i].track.as_ref()) {
             let floor = best
                 .reproj_rms_px
                 .max(self.cfg.corner_sigma_floor_px)
@@ -650,7 +994,11 @@ impl MarkerTracker {
 
 /// OpenCV's aruco detector with its reused output buffers.
 struct Detector {
-    marker_id: u32,
+    /// Map index of each id of the dictionary (-1: not in the map).
+    index_of_id: Vec<i16>,
+    /// The last detection: per map marker, the largest copy's perimeter and corners
+    /// in full-image pixels.
+    found: Vec<Option<(f64, Corners)>>,
     max_perimeter_rate: f64,
     dict: core::Ptr<aruco::Dictionary>,
     params: core::Ptr<aruco::DetectorParameters>,
@@ -660,14 +1008,16 @@ struct Detector {
 }
 
 impl Detector {
-    /// Detect in `image`; corners of the configured id (largest copy) shifted by
-    /// `offset` into full-image pixels.
+    /// Detect in `image`; the corners of each marker of the map (its largest copy)
+    /// shifted by `offset` into full-image pixels go to `found`. Returns how many markers
+    /// of the map were found.
     fn detect_in(
         &mut self,
         image: &impl core::ToInputArray,
         offset: (f64, f64),
         min_perimeter_rate: f64,
-    ) -> Result<Option<Corners>, VisionError> {
+    ) -> Result<usize, VisionError> {
+        self.found.fill(None);
         let max_rate = self
             .max_perimeter_rate
             .max(min_perimeter_rate * 1.01)
@@ -684,11 +1034,17 @@ impl Detector {
             &mut self.rejected,
         )
         .cv("detect_markers")?;
-        let mut best: Option<(f64, Corners)> = None;
+        let mut count = 0;
         for (i, id) in self.ids.iter().enumerate() {
-            if id < 0 || id as u32 != self.marker_id {
+            let Some(&slot) = usize::try_from(id)
+                .ok()
+                .and_then(|id| self.index_of_id.get(id))
+            else {
                 continue;
-            }
+            };
+            let Ok(slot) = usize::try_from(slot) else {
+                continue;
+            };
             let quad = self.corners.get(i).cv("detect_markers corners")?;
             if quad.len() != 4 {
                 continue;
@@ -702,11 +1058,15 @@ impl Detector {
             }
             let perim = side_px(&c);
             // Several copies of the id: keep the largest.
+            let best = &mut self.found[slot];
+            if best.is_none() {
+                count += 1;
+            }
             if best.as_ref().is_none_or(|(b, _)| perim > *b) {
-                best = Some((perim, c));
+                *best = Some((perim, c));
             }
         }
-        Ok(best.map(|(_, c)| c))
+        Ok(count)
     }
 }
 

@@ -26,11 +26,7 @@ pub fn calib_distorted() -> CameraCalibration {
 }
 
 pub fn marker() -> MarkerConfig {
-    MarkerConfig {
-        family: MarkerFamily::AprilTag36h11,
-        id: 7,
-        size_m: 0.2,
-    }
+    MarkerConfig::single(MarkerFamily::AprilTag36h11, 7, 0.2)
 }
 
 pub fn bitmap(m: &MarkerConfig) -> MarkerBitmap {
