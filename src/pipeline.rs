@@ -10,8 +10,8 @@ use std::sync::mpsc::SyncSender;
 use std::time::Instant;
 
 use markhold_autopilot::{
-    ArduSubMode, Directive, Effort, FailsafeEvent, PoseMeasurement, RawFrame, StationKeeper,
-    Supervisor, SupervisorInput, VehicleLink, VehicleState,
+    ArduSubMode, CommandKind, Directive, Effort, FailsafeEvent, PoseMeasurement, RawFrame,
+    StationKeeper, Supervisor, SupervisorInput, VehicleLink, VehicleState, VisionPose,
 };
 use markhold_exposure::{
     build_controller, Camera, Corners, ExposureController, ExposureMethod, ExposureStep, Frame,
@@ -56,6 +56,17 @@ pub trait CommandLink {
     fn send_effort(&mut self, effort: &Effort, now_s: f64) -> anyhow::Result<()>;
     /// Send neutral pilot input (on exit, on failsafe).
     fn send_neutral(&mut self, now_s: f64) -> anyhow::Result<()>;
+    /// Setpoint mode: this frame's vehicle pose with its covariance (none when the
+    /// marker was not seen) and the goal, both in the marker frame. A link without a
+    /// vehicle (replay's sink) keeps nothing.
+    fn send_setpoint(
+        &mut self,
+        _meas: Option<&VisionPose>,
+        _goal: &Isometry3<f64>,
+        _now_s: f64,
+    ) -> anyhow::Result<()> {
+        Ok(())
+    }
     /// Loop time of the vehicle's last heartbeat, if one was heard.
     fn vehicle_heartbeat_s(&self) -> Option<f64>;
     /// The vehicle's state as the link knows it (for the recorder); none for a sink.
@@ -85,6 +96,14 @@ impl CommandLink for VehicleLink {
     }
     fn send_neutral(&mut self, now_s: f64) -> anyhow::Result<()> {
         Ok(VehicleLink::send_neutral(self, now_s)?)
+    }
+    fn send_setpoint(
+        &mut self,
+        meas: Option<&VisionPose>,
+        goal: &Isometry3<f64>,
+        now_s: f64,
+    ) -> anyhow::Result<()> {
+        Ok(VehicleLink::send_setpoint(self, meas, goal, now_s)?)
     }
     fn vehicle_heartbeat_s(&self) -> Option<f64> {
         self.state().last_heartbeat_s
@@ -160,6 +179,10 @@ pub struct Pipeline<L: CommandLink = VehicleLink> {
     observers: Observers,
     site_name: String,
     start: LoopStart,
+    /// `command = "setpoint"`: GUIDED targets and vision poses instead of efforts.
+    setpoint: bool,
+    /// Camera mount, for the vision pose of setpoint mode.
+    t_vehicle_cam: Isometry3<f64>,
 }
 
 impl<L: CommandLink> Pipeline<L> {
@@ -210,6 +233,8 @@ impl<L: CommandLink> Pipeline<L> {
             observers,
             site_name: s.site.name.clone(),
             start,
+            setpoint: s.link.command == CommandKind::Setpoint,
+            t_vehicle_cam: site.t_vehicle_cam(),
         })
     }
 
@@ -272,14 +297,21 @@ impl<L: CommandLink> Pipeline<L> {
     }
 
     /// Send what the supervisor allows. While the surface fallback climbs in ALT_HOLD,
-    /// its neutral becomes the climb (sent as a command, and recorded as one).
+    /// its neutral becomes the climb (sent as a command, and recorded as one). In setpoint
+    /// mode a command is the GUIDED target with this frame's vision pose (`vision`).
     fn send(
         &mut self,
         directive: Directive,
         effort: Effort,
+        vision: Option<&VisionPose>,
         now_s: f64,
     ) -> anyhow::Result<(Directive, Effort)> {
         Ok(match directive {
+            Directive::Command if self.setpoint => {
+                let goal = self.keeper.t_marker_vehicle_goal();
+                self.link.send_setpoint(vision, &goal, now_s)?;
+                (directive, effort)
+            }
             Directive::Neutral if self.failsafe.climbing() => {
                 let climb = Effort {
                     heave: SURFACE_CLIMB_EFFORT,
@@ -328,7 +360,7 @@ impl<L: CommandLink> Pipeline<L> {
             }
             Directive::Neutral | Directive::Shutdown { .. } => {
                 if self.failsafe.climbing() {
-                    self.send(Directive::Neutral, Effort::NEUTRAL, now_s)?;
+                    self.send(Directive::Neutral, Effort::NEUTRAL, None, now_s)?;
                 } else {
                     self.link.send_neutral(now_s)?;
                 }
@@ -396,7 +428,11 @@ impl<L: CommandLink> Pipeline<L> {
         );
         self.failsafe
             .update(&mut self.link, &mut self.keeper, &self.events, stamp)?;
-        let (directive, effort) = self.send(directive, effort, stamp)?;
+        // Setpoint mode: the vehicle's pose for the EKF, from the same measurement.
+        let vision = meas.as_ref().filter(|_| self.setpoint).map(|m| {
+            VisionPose::from_camera(m.stamp_s, &m.t_cam_marker, &m.cov_cam, &self.t_vehicle_cam)
+        });
+        let (directive, effort) = self.send(directive, effort, vision.as_ref(), stamp)?;
         let latency_s = t0.elapsed().as_secs_f64();
         self.last_frame_s = Some(stamp);
         // The full-frame search after the command: what it finds re-seeds tracking, the

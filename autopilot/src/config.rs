@@ -493,6 +493,9 @@ pub struct LinkConfig {
     pub origin_lon_deg: f64,
     /// SET_GPS_GLOBAL_ORIGIN altitude (AMSL), metres.
     pub origin_alt_m: f64,
+    /// Setpoint mode: the vision pose's covariance is multiplied by this before it goes to
+    /// the EKF (1 = as measured; above 1 trusts vision less).
+    pub vision_covariance_scale: f64,
 }
 
 impl Default for LinkConfig {
@@ -529,6 +532,7 @@ impl Default for LinkConfig {
             origin_lat_deg: 0.0,
             origin_lon_deg: 0.0,
             origin_alt_m: 0.0,
+            vision_covariance_scale: 1.0,
         }
     }
 }
@@ -578,6 +582,7 @@ impl LinkConfig {
             .range("origin_lat_deg", self.origin_lat_deg, -90.0..=90.0, "must lie in -90..90")
             .range("origin_lon_deg", self.origin_lon_deg, -180.0..=180.0, "must lie in -180..180")
             .finite("origin_alt_m", self.origin_alt_m, FINITE)
+            .range("vision_covariance_scale", self.vision_covariance_scale, 1e-6..=1e6, "must lie in 1e-6..1e6")
             .done()
     }
 }

@@ -19,6 +19,7 @@ pub mod signing_clock;
 pub mod supervisor;
 pub mod transport;
 pub mod types;
+pub mod vision_pose;
 
 pub use config::{
     AxisConfig, CommandKind, ControllerConfig, LinkConfig, LinkMode, MarkerLostAction, OnExit,
@@ -34,6 +35,7 @@ pub use mavlink;
 pub use pilot::PilotMap;
 pub use supervisor::{Directive, FailsafeEvent, Supervisor, SupervisorInput};
 pub use types::{wrap_pi, ArduSubMode, Effort};
+pub use vision_pose::VisionPose;
 
 #[cfg(test)]
 mod tests {

@@ -24,15 +24,16 @@ use mavlink::dialects::ardupilotmega::{
     VISION_POSITION_ESTIMATE_DATA,
 };
 use mavlink::{MavHeader, Message, SigningData};
-use nalgebra::{Isometry3, UnitQuaternion};
+use nalgebra::{Isometry3, Vector3};
 use serde::Serialize;
 
-use crate::config::{r_marker_body_facing, CommandKind, LinkConfig, PilotInput};
+use crate::config::{CommandKind, LinkConfig, PilotInput};
 use crate::error::AutopilotError;
 use crate::pilot::PilotMap;
 use crate::transport::{Incoming, Transport, WriteOutcome, MAX_FRAME};
 pub use crate::types::ArduSubMode;
 use crate::types::{wrap_pi, Effort};
+use crate::vision_pose::{t_vision_marker, upper_triangle, VisionPose};
 
 mod gcs;
 pub use gcs::{PilotSeen, Severity, NAMED_VALUE_MAX, STATUSTEXT_MAX};
@@ -366,6 +367,12 @@ pub struct VehicleLink {
     requested_mode: Option<ArduSubMode>,
     requested_arm: Option<bool>,
     origin_sent: bool,
+    /// Setpoint mode: the last target sent (LOCAL_NED position, yaw), repeated while the
+    /// marker is not seen.
+    last_target: Option<([f64; 3], f64)>,
+    /// Setpoint mode: vision estimates written / withheld for want of a covariance.
+    vision_sent: u64,
+    vision_withheld: u64,
     last_tick_s: Option<f64>,
     /// Keep-alive neutral pilot input while the vehicle's heartbeat is current.
     pilot_keepalive: bool,
@@ -461,6 +468,9 @@ impl VehicleLink {
             requested_mode: None,
             requested_arm: None,
             origin_sent: false,
+            last_target: None,
+            vision_sent: 0,
+            vision_withheld: 0,
             last_tick_s: None,
             pilot_keepalive: true,
             send_failing: false,
@@ -655,6 +665,8 @@ impl VehicleLink {
             // A returning (maybe rebooted) vehicle forgets its streams.
             self.last_streams_s = None;
             self.origin_sent = false;
+            // Its EKF's frame may have restarted: no stale target is repeated.
+            self.last_target = None;
         }
     }
 
@@ -1120,19 +1132,26 @@ impl VehicleLink {
         self.send_pilot(&Effort::NEUTRAL, now_s)
     }
 
-    /// Setpoint mode: the vehicle pose measured from the marker goes out as
-    /// VISION_POSITION_ESTIMATE and the goal as SET_POSITION_TARGET_LOCAL_NED (position +
-    /// yaw). Also sends SET_GPS_GLOBAL_ORIGIN once per vehicle boot. Call at >= 10 Hz.
+    /// Setpoint mode, once per camera frame. With this frame's measurement `meas`, the
+    /// vehicle pose goes out as VISION_POSITION_ESTIMATE with its covariance (scaled by
+    /// `vision_covariance_scale`) and the goal as SET_POSITION_TARGET_LOCAL_NED (position
+    /// + yaw). A measurement whose covariance cannot be stated (not finite, a zero
+    /// variance, pitch at +-90 degrees) sends no estimate: ArduSub would take NaN in any
+    /// variance but the first as NaN noise. Without a measurement no estimate goes out and
+    /// the last target is repeated, so the vehicle holds where it was sent while the
+    /// marker is briefly lost (ArduSub drops a target after 3 s). Also sends
+    /// SET_GPS_GLOBAL_ORIGIN once per vehicle boot.
     ///
-    /// Frames: the vision frame `L` is the marker frame turned so that a vehicle on station
-    /// facing the marker is level with yaw 0: x_L = -z_m, y_L = x_m, z_L = -y_m (NED-like,
-    /// origin at the marker). With ArduSub's EKF on external navigation for XY and yaw but
-    /// the barometer for Z, the target is sent as the EKF's own position
+    /// Frames (docs/frames.md, design/autopilot.md): the estimate is in the vision frame
+    /// `L`, the marker frame turned so that a vehicle on station facing the marker is
+    /// level with yaw 0: x_L = -z_m, y_L = x_m, z_L = -y_m (NED-like, origin at the
+    /// marker). With ArduSub's EKF on external navigation for XY and yaw but the
+    /// barometer for Z, the target is sent as the EKF's own position
     /// (LOCAL_POSITION_NED, ATTITUDE yaw) plus the remaining offset, so the two frames'
     /// origins need not agree; before that telemetry arrives the `L` goal is sent.
     pub fn send_setpoint(
         &mut self,
-        t_marker_vehicle_meas: &Isometry3<f64>,
+        meas: Option<&VisionPose>,
         t_marker_vehicle_goal: &Isometry3<f64>,
         now_s: f64,
     ) -> Result<(), AutopilotError> {
@@ -1155,36 +1174,36 @@ impl VehicleLink {
                 self.origin_sent = true;
             }
         }
-        let t_l_m = Isometry3::from_parts(
-            nalgebra::Translation3::identity(),
-            UnitQuaternion::from_rotation_matrix(&r_marker_body_facing().inverse()),
-        );
-        let meas = t_l_m * t_marker_vehicle_meas;
-        let goal = t_l_m * t_marker_vehicle_goal;
-        let (mr, mp, my) = meas.rotation.euler_angles();
-        let (_, _, gy) = goal.rotation.euler_angles();
-        let mt = meas.translation.vector;
-        let usec = (now_s.max(0.0) * 1e6) as u64;
+        let Some(meas) = meas else {
+            if let Some((target, yaw)) = self.last_target {
+                self.send_target(target, yaw, now_s)?;
+            }
+            return Ok(());
+        };
+        let Some((x, cov)) = meas.euler_with_covariance() else {
+            self.vision_withheld += 1;
+            return Ok(());
+        };
+        let usec = (meas.stamp_s.max(0.0) * 1e6) as u64;
         let vpe = MavMessage::VISION_POSITION_ESTIMATE(VISION_POSITION_ESTIMATE_DATA {
             usec,
-            x: mt.x as f32,
-            y: mt.y as f32,
-            z: mt.z as f32,
-            roll: mr as f32,
-            pitch: mp as f32,
-            yaw: my as f32,
-            // NaN in the first element: covariance unknown.
-            covariance: {
-                let mut c = [0.0f32; 21];
-                c[0] = f32::NAN;
-                c
-            },
+            x: x[0] as f32,
+            y: x[1] as f32,
+            z: x[2] as f32,
+            roll: x[3] as f32,
+            pitch: x[4] as f32,
+            yaw: x[5] as f32,
+            covariance: upper_triangle(&cov, self.cfg.vision_covariance_scale),
             reset_counter: 0,
         });
-        self.send(&vpe)?;
+        if self.send(&vpe)? {
+            self.vision_sent += 1;
+        }
 
-        let delta = goal.translation.vector - mt;
-        let dyaw = wrap_pi(gy - my);
+        let goal = t_vision_marker() * t_marker_vehicle_goal;
+        let (_, _, gy) = goal.rotation.euler_angles();
+        let delta = goal.translation.vector - Vector3::new(x[0], x[1], x[2]);
+        let dyaw = wrap_pi(gy - x[5]);
         let (target, yaw) = match (self.state.local_position, self.state.attitude) {
             (Some(lp), Some(att)) => (
                 [
@@ -1199,6 +1218,22 @@ impl VehicleLink {
                 ([g.x, g.y, g.z], wrap_pi(gy))
             }
         };
+        self.last_target = Some((target, yaw));
+        self.send_target(target, yaw, now_s)
+    }
+
+    /// Vision estimates written (setpoint mode), and measurements whose covariance could
+    /// not be stated (no estimate sent).
+    pub fn vision_estimates(&self) -> (u64, u64) {
+        (self.vision_sent, self.vision_withheld)
+    }
+
+    fn send_target(
+        &mut self,
+        target: [f64; 3],
+        yaw: f64,
+        now_s: f64,
+    ) -> Result<(), AutopilotError> {
         let mask = PositionTargetTypemask::POSITION_TARGET_TYPEMASK_VX_IGNORE
             | PositionTargetTypemask::POSITION_TARGET_TYPEMASK_VY_IGNORE
             | PositionTargetTypemask::POSITION_TARGET_TYPEMASK_VZ_IGNORE

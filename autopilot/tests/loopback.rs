@@ -488,14 +488,25 @@ fn setpoint_mode_sends_guided_targets_vision_and_origin_once() {
     let goal = StationConfig::default().t_marker_vehicle();
     let t0 = h.now;
     let sent0 = h.link.messages_sent();
+    // Marker-frame variances: x 1e-4, y 4e-4, z 9e-4 m^2; rotation 1e-6, 4e-6, 9e-6
+    // rad^2 about the marker's x, y, z, with a position-rotation term (x, ry).
+    let mut cov_marker =
+        Matrix6::from_diagonal(&nalgebra::Vector6::new(1e-4, 4e-4, 9e-4, 1e-6, 4e-6, 9e-6));
+    cov_marker[(0, 4)] = 1e-5;
+    cov_marker[(4, 0)] = 1e-5;
     for _ in 0..30 {
         h.now += STEP_S;
         h.link.tick(h.now).unwrap();
-        let meas = h.fake.rec().t_marker_vehicle();
-        h.link.send_setpoint(&meas, &goal, h.now).unwrap();
+        let meas = VisionPose {
+            stamp_s: h.now,
+            t_marker_vehicle: h.fake.rec().t_marker_vehicle(),
+            cov_marker,
+        };
+        h.link.send_setpoint(Some(&meas), &goal, h.now).unwrap();
         std::thread::sleep(Duration::from_millis(2));
     }
     assert!(h.link.messages_sent() >= sent0 + 60);
+    assert_eq!(h.link.vision_estimates(), (30, 0));
     let secs = h.now - t0;
     h.tick_until("setpoints received", |_, r| {
         r.setpoints.len() >= 30 && r.vision.len() >= 30
@@ -510,6 +521,26 @@ fn setpoint_mode_sends_guided_targets_vision_and_origin_once() {
         "{v:?}"
     );
     assert!(v.yaw.abs() < 1e-5 && v.roll.abs() < 1e-5 && v.pitch.abs() < 1e-5);
+    // The covariance on L's axes (x_L = -z_m, y_L = x_m, z_L = -y_m; level, so roll,
+    // pitch and yaw are the rotation about x_L, y_L, z_L), upper triangle row-major:
+    // var x_L = 9e-4, var y_L = 1e-4, var z_L = 4e-4, var roll = 9e-6, var pitch = 1e-6,
+    // var yaw = 4e-6; cov(y_L, yaw) = cov(x_m, -ry_m) = -1e-5 at row 1, column 5.
+    let c = v.covariance;
+    let close = |a: f32, b: f64| (f64::from(a) - b).abs() < 1e-9;
+    assert!(
+        close(c[0], 9e-4) && close(c[6], 1e-4) && close(c[11], 4e-4),
+        "{c:?}"
+    );
+    assert!(
+        close(c[15], 9e-6) && close(c[18], 1e-6) && close(c[20], 4e-6),
+        "{c:?}"
+    );
+    assert!(close(c[10], -1e-5), "{c:?}");
+    let others: f32 = [1, 2, 3, 4, 5, 7, 8, 9, 12, 13, 14, 16, 17, 19]
+        .iter()
+        .map(|&i| c[i].abs())
+        .sum();
+    assert!(others < 1e-12, "{c:?}");
     // Target = EKF position (-1.5, 0.3, 2.0) + remaining offset (0.5, -0.3, 0).
     let sp = r.setpoints.last().unwrap();
     assert!(
@@ -530,6 +561,30 @@ fn setpoint_mode_sends_guided_targets_vision_and_origin_once() {
     assert_eq!((sp.target_system, sp.target_component), (1, 1));
     // Origin exactly once, from the GCS id.
     assert_eq!(r.origins, vec![(255, 475_000_000, -1_222_500_000, -3000)]);
+    let (n_vision, n_targets) = (r.vision.len(), r.setpoints.len());
+    let last_sp = (sp.x, sp.y, sp.z, sp.yaw);
+    drop(r);
+
+    // No measurement: no estimate, the last target again. A measurement without a
+    // usable covariance (a zero variance): no estimate either, and counted.
+    h.now += STEP_S;
+    h.link.tick(h.now).unwrap();
+    h.link.send_setpoint(None, &goal, h.now).unwrap();
+    let flat = VisionPose {
+        stamp_s: h.now,
+        t_marker_vehicle: goal,
+        cov_marker: Matrix6::zeros(),
+    };
+    h.link.send_setpoint(Some(&flat), &goal, h.now).unwrap();
+    assert_eq!(h.link.vision_estimates(), (30, 1));
+    h.tick_until("the repeated target", |_, r| r.setpoints.len() > n_targets);
+    std::thread::sleep(Duration::from_millis(20));
+    h.link.tick(h.now).unwrap();
+    let r = h.fake.rec();
+    assert_eq!(r.vision.len(), n_vision);
+    assert_eq!(r.setpoints.len(), n_targets + 1);
+    let sp = r.setpoints.last().unwrap();
+    assert_eq!((sp.x, sp.y, sp.z, sp.yaw), last_sp);
 }
 
 #[test]

@@ -13,6 +13,7 @@
 //! the other sensor messages then report the vehicle's state that much simulation time
 //! ago, stamped with the time they are sent, like an estimate that lags its sensors.
 
+pub mod consistency;
 mod control;
 pub mod signing;
 
@@ -33,6 +34,7 @@ use mavlink::{MAVLinkMessageRaw, MavHeader, MavlinkReader, MavlinkVersion};
 use nalgebra::{Isometry3, Translation3, UnitQuaternion, Vector3};
 use serde::{Deserialize, Serialize};
 
+pub use consistency::VisionNees;
 pub use control::ControlGains;
 use control::{Controller, NavEstimate};
 use signing::{Signing, Verdict};
@@ -363,6 +365,8 @@ pub struct VehicleEndpoint {
     /// The states of the last `telemetry_latency_s`, oldest first (capacity reserved when
     /// the latency is set: no allocation per step).
     history: VecDeque<VehicleState>,
+    /// NEES of the vision estimates against the truth (`set_vision_frame` turns it on).
+    consistency: consistency::Consistency,
 }
 
 fn socket_err(
@@ -435,6 +439,7 @@ impl VehicleEndpoint {
             tx: [0; 300],
             telemetry_latency_s: 0.0,
             history: VecDeque::with_capacity(2),
+            consistency: consistency::Consistency::default(),
         })
     }
 
@@ -1024,6 +1029,26 @@ impl VehicleEndpoint {
             UnitQuaternion::from_euler_angles(v.roll as f64, v.pitch as f64, v.yaw as f64),
         );
         self.vision = Some((self.now_s, pose));
+        self.check_vision_covariance(v);
+    }
+
+    /// The estimate's covariance against the truth (when the vision frame is known).
+    fn check_vision_covariance(&mut self, v: &VISION_POSITION_ESTIMATE_DATA) {
+        let x = [v.x, v.y, v.z, v.roll, v.pitch, v.yaw].map(f64::from);
+        self.consistency
+            .observe(v.usec as f64 * 1e-6, x, &v.covariance);
+    }
+
+    /// Where the vision estimates' frame lies in the simulated world (`t_world_vision`):
+    /// from now on each estimate's covariance is checked against the vehicle's true pose
+    /// in that frame ([`Self::vision_nees`]).
+    pub fn set_vision_frame(&mut self, t_world_vision: Isometry3<f64>) {
+        self.consistency.set_frame(t_world_vision);
+    }
+
+    /// NEES of the vision estimates received since `set_vision_frame` (none before).
+    pub fn vision_nees(&self) -> Option<VisionNees> {
+        self.consistency.nees()
     }
 
     fn has_position(&self, now_s: f64) -> bool {
@@ -1116,6 +1141,7 @@ impl VehicleEndpoint {
     pub fn tick(&mut self, state: &VehicleState, pwm: &[u16; MAX_MOTORS]) -> Result<(), HilError> {
         let now = state.time_s;
         self.now_s = now;
+        self.consistency.set_truth(now, &state.t_world_vehicle);
         let reported = self.reported_state(state);
         let mut outbox = std::mem::take(&mut self.outbox);
         for m in outbox.drain(..) {

@@ -190,6 +190,17 @@ impl HilRig {
         self.endpoint.stats()
     }
 
+    /// Check each vision estimate the vehicle receives against the truth, its frame
+    /// lying at `t_world_vision` ([`VehicleEndpoint::set_vision_frame`]).
+    pub fn set_vision_frame(&mut self, t_world_vision: Isometry3<f64>) {
+        self.endpoint.set_vision_frame(t_world_vision);
+    }
+
+    /// NEES of the vision estimates received (none until `set_vision_frame`).
+    pub fn vision_nees(&self) -> Option<crate::endpoint::VisionNees> {
+        self.endpoint.vision_nees()
+    }
+
     pub fn scene(&self) -> &Scene {
         &self.scene
     }

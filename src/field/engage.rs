@@ -562,6 +562,21 @@ impl CommandLink for EngagedLink {
         }
     }
 
+    fn send_setpoint(
+        &mut self,
+        meas: Option<&markhold_autopilot::VisionPose>,
+        goal: &nalgebra::Isometry3<f64>,
+        now_s: f64,
+    ) -> anyhow::Result<()> {
+        match self.engager.state {
+            EngageState::Engaged => Ok(self.link.send_setpoint(meas, goal, now_s)?),
+            _ => {
+                self.withheld += 1;
+                Ok(())
+            }
+        }
+    }
+
     fn vehicle_heartbeat_s(&self) -> Option<f64> {
         self.link.state().last_heartbeat_s
     }

@@ -93,6 +93,9 @@ pub struct HilRun {
     pub faults: Option<FaultRig>,
     /// The H.264/RTP transport (`--camera-transport h264-rtp`).
     pub stream: Option<super::stream::StreamHil>,
+    /// Setpoint mode: GUIDED is requested once the vehicle has a vision estimate (it
+    /// refuses GUIDED without a position, like ArduSub).
+    guided_after_vision: bool,
 }
 
 /// The site's initial offset from the station, in the station (vehicle body) frame.
@@ -272,6 +275,12 @@ impl HilRun {
             lock_step: true,
         };
         let mut rig = HilRig::new(setup).context("building the HIL world")?;
+        if s.link.command == markhold_autopilot::CommandKind::Setpoint {
+            // The vehicle checks each vision estimate's covariance against the truth in
+            // the estimates' frame L (docs/frames.md).
+            let t_vision_marker = markhold_autopilot::vision_pose::t_vision_marker();
+            rig.set_vision_frame(t_world_marker * t_vision_marker.inverse());
+        }
         if let Some(want) = opts.render_loops {
             let got = rig.set_render_loops(want);
             if got != want {
@@ -324,14 +333,21 @@ impl HilRun {
             t_marker_station,
             faults,
             stream,
+            guided_after_vision: false,
         })
     }
 
     /// Arm in the configured mode before the first frame. The handshake is bounded by a
     /// wall-clock deadline: it waits on sockets, not on simulated time.
+    /// GUIDED needs a position estimate first: the vehicle is armed in its own mode and
+    /// GUIDED requested after the first vision estimate went out.
     pub fn arm(&mut self, mode: ArduSubMode) -> anyhow::Result<()> {
         let link = self.pipeline.link_mut();
-        link.request_mode(mode, 0.0)?;
+        if mode == ArduSubMode::Guided {
+            self.guided_after_vision = true;
+        } else {
+            link.request_mode(mode, 0.0)?;
+        }
         link.request_arm(true, 0.0)?;
         let deadline = Instant::now() + Duration::from_secs(5);
         while Instant::now() < deadline {
@@ -358,6 +374,13 @@ impl HilRun {
 
     /// One frame of the loop, with the world's truth after it.
     pub fn step(&mut self) -> anyhow::Result<(FrameRecord, Truth)> {
+        if self.guided_after_vision && self.pipeline.link().vision_estimates().0 > 0 {
+            let now_s = self.rig.sim_time_s();
+            self.pipeline
+                .link_mut()
+                .request_mode(ArduSubMode::Guided, now_s)?;
+            self.guided_after_vision = false;
+        }
         if let Some(s) = self.stream.as_mut() {
             let rec = self.pipeline.step(&mut s.camera(&mut self.rig))?;
             return Ok((rec, self.rig.truth()));
@@ -515,6 +538,10 @@ impl HilRun {
         if let Some(f) = self.faults.take() {
             summary.faults = f.monitor.into_reports();
         }
+        summary.vision_nees = self
+            .rig
+            .vision_nees()
+            .map(|n| super::summary::VisionNeesSummary::of(&n));
         if let Some(s) = &self.stream {
             summary.camera_transport = Some(opts.camera_transport.to_string());
             summary.stream_delay_estimate_frames = s.delay_estimate_frames();

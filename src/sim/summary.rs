@@ -61,6 +61,58 @@ pub struct Summary {
     pub stream_added_latency_p50_ms: Option<f64>,
     #[serde(skip_serializing_if = "Option::is_none")]
     pub stream_added_latency_p99_ms: Option<f64>,
+    /// Setpoint mode: the covariance sent with each vision estimate against the true
+    /// error, as the HIL vehicle received it (absent in effort mode).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub vision_nees: Option<VisionNeesSummary>,
+}
+
+/// NEES of the vision estimates the HIL vehicle received: position (3 dof) and yaw (1
+/// dof) against the vehicle's true pose in the estimates' frame. Consistent: each mean
+/// inside its bounds (the two-sided 95 % interval of the mean of `frames` independent
+/// chi-square draws), about 95 % of frames under the per-frame 95 % quantile.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
+pub struct VisionNeesSummary {
+    /// Estimates compared with the truth.
+    pub frames: u64,
+    /// Estimates without a usable covariance, and estimates matching no truth stamp.
+    pub without_covariance: u64,
+    pub unmatched: u64,
+    pub nees_pos_mean: f64,
+    pub nees_pos_mean_bounds_95: [f64; 2],
+    /// Fraction of frames with position NEES under chi-square(3)'s 95 % quantile (7.81).
+    pub nees_pos_inside_95: f64,
+    pub nees_yaw_mean: f64,
+    pub nees_yaw_mean_bounds_95: [f64; 2],
+    /// Fraction of frames with yaw NEES under chi-square(1)'s 95 % quantile (3.84).
+    pub nees_yaw_inside_95: f64,
+}
+
+impl VisionNeesSummary {
+    pub fn of(n: &markhold_hil::endpoint::VisionNees) -> Self {
+        use markhold_hil::endpoint::consistency::mean_bounds_95;
+        let (plo, phi) = mean_bounds_95(3.0, n.frames);
+        let (ylo, yhi) = mean_bounds_95(1.0, n.frames);
+        Self {
+            frames: n.frames,
+            without_covariance: n.without_covariance,
+            unmatched: n.unmatched,
+            nees_pos_mean: n.pos_mean(),
+            nees_pos_mean_bounds_95: [plo, phi],
+            nees_pos_inside_95: n.pos_inside_fraction(),
+            nees_yaw_mean: n.yaw_mean(),
+            nees_yaw_mean_bounds_95: [ylo, yhi],
+            nees_yaw_inside_95: n.yaw_inside_fraction(),
+        }
+    }
+
+    /// Both means inside their 95 % bounds.
+    pub fn consistent(&self) -> bool {
+        let inside = |m: f64, b: [f64; 2]| m >= b[0] && m <= b[1];
+        self.frames > 0
+            && inside(self.nees_pos_mean, self.nees_pos_mean_bounds_95)
+            && inside(self.nees_yaw_mean, self.nees_yaw_mean_bounds_95)
+    }
 }
 
 /// Frames whose series are reserved up front: a longer run grows them (a day at 30 fps
@@ -205,6 +257,7 @@ impl RunStats {
             stream_delay_estimate_frames: None,
             stream_added_latency_p50_ms: None,
             stream_added_latency_p99_ms: None,
+            vision_nees: None,
         }
     }
 }
