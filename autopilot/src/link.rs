@@ -1006,8 +1006,8 @@ impl VehicleLink {
         let not_too_fast = self
             .last_pilot_s
             .is_none_or(|p| now_s - p >= 0.5 / self.cfg.pilot_input_hz);
+        // In setpoint mode too: ArduSub's pilot-input failsafe does not look at the mode.
         if self.pilot_keepalive
-            && self.cfg.command == CommandKind::Effort
             && self.state.heartbeat_ok
             && idle
             && not_too_fast
