@@ -3,6 +3,7 @@
 //! chi-square bounds of their means); the same run with the covariance scaled by 1/100
 //! is caught as inconsistent. (With the shipped vision covariance the HIL's rendered
 //! corners are not consistent either: design/autopilot.md, "NEES in HIL".)
+#![cfg(feature = "sim")]
 #![allow(clippy::unwrap_used)] // Tests fail loudly on a broken setup, by design.
 
 mod common;
@@ -63,5 +64,8 @@ fn setpoint_mode_vehicle_receives_the_covariance_and_grades_it_against_the_truth
     let ratio = tight.nees_yaw_mean / n.nees_yaw_mean;
     assert!((ratio - 100.0).abs() < 0.1, "yaw NEES ratio {ratio}");
     assert!(!tight.consistent(), "a 1/100 covariance passed: {tight:?}");
-    assert!(tight.nees_pos_mean > tight.nees_pos_mean_bounds_95[1], "{tight:?}");
+    assert!(
+        tight.nees_pos_mean > tight.nees_pos_mean_bounds_95[1],
+        "{tight:?}"
+    );
 }

@@ -1007,11 +1007,7 @@ impl VehicleLink {
             .last_pilot_s
             .is_none_or(|p| now_s - p >= 0.5 / self.cfg.pilot_input_hz);
         // In setpoint mode too: ArduSub's pilot-input failsafe does not look at the mode.
-        if self.pilot_keepalive
-            && self.state.heartbeat_ok
-            && idle
-            && not_too_fast
-        {
+        if self.pilot_keepalive && self.state.heartbeat_ok && idle && not_too_fast {
             self.send_pilot(&Effort::NEUTRAL, now_s)?;
         }
         Ok(())
@@ -1135,7 +1131,7 @@ impl VehicleLink {
     /// Setpoint mode, once per camera frame. With this frame's measurement `meas`, the
     /// vehicle pose goes out as VISION_POSITION_ESTIMATE with its covariance (scaled by
     /// `vision_covariance_scale`) and the goal as SET_POSITION_TARGET_LOCAL_NED (position
-    /// + yaw). A measurement whose covariance cannot be stated (not finite, a zero
+    /// and yaw). A measurement whose covariance cannot be stated (not finite, a zero
     /// variance, pitch at +-90 degrees) sends no estimate: ArduSub would take NaN in any
     /// variance but the first as NaN noise. Without a measurement no estimate goes out and
     /// the last target is repeated, so the vehicle holds where it was sent while the
