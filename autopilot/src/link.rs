@@ -1176,25 +1176,9 @@ impl VehicleLink {
             }
             return Ok(());
         };
-        let Some((x, cov)) = meas.euler_with_covariance() else {
-            self.vision_withheld += 1;
+        let Some(x) = self.send_vision_estimate(meas)? else {
             return Ok(());
         };
-        let usec = (meas.stamp_s.max(0.0) * 1e6) as u64;
-        let vpe = MavMessage::VISION_POSITION_ESTIMATE(VISION_POSITION_ESTIMATE_DATA {
-            usec,
-            x: x[0] as f32,
-            y: x[1] as f32,
-            z: x[2] as f32,
-            roll: x[3] as f32,
-            pitch: x[4] as f32,
-            yaw: x[5] as f32,
-            covariance: upper_triangle(&cov, self.cfg.vision_covariance_scale),
-            reset_counter: 0,
-        });
-        if self.send(&vpe)? {
-            self.vision_sent += 1;
-        }
 
         let goal = t_vision_marker() * t_marker_vehicle_goal;
         let (_, _, gy) = goal.rotation.euler_angles();
@@ -1216,6 +1200,42 @@ impl VehicleLink {
         };
         self.last_target = Some((target, yaw));
         self.send_target(target, yaw, now_s)
+    }
+
+    /// The vision estimate alone (no target): what the vehicle's EKF needs before the
+    /// pilot can select GUIDED, so a field run sends it also while not engaged. Returns
+    /// the pose sent as (x, y, z, roll, pitch, yaw) in `L`, or none when its covariance
+    /// cannot be stated (nothing sent, counted).
+    pub fn send_vision_estimate(
+        &mut self,
+        meas: &VisionPose,
+    ) -> Result<Option<[f64; 6]>, AutopilotError> {
+        if self.cfg.command != CommandKind::Setpoint {
+            return Err(AutopilotError::WrongCommandMode {
+                configured: self.cfg.command.as_str(),
+                requested: "setpoint",
+            });
+        }
+        let Some((x, cov)) = meas.euler_with_covariance() else {
+            self.vision_withheld += 1;
+            return Ok(None);
+        };
+        let usec = (meas.stamp_s.max(0.0) * 1e6) as u64;
+        let vpe = MavMessage::VISION_POSITION_ESTIMATE(VISION_POSITION_ESTIMATE_DATA {
+            usec,
+            x: x[0] as f32,
+            y: x[1] as f32,
+            z: x[2] as f32,
+            roll: x[3] as f32,
+            pitch: x[4] as f32,
+            yaw: x[5] as f32,
+            covariance: upper_triangle(&cov, self.cfg.vision_covariance_scale),
+            reset_counter: 0,
+        });
+        if self.send(&vpe)? {
+            self.vision_sent += 1;
+        }
+        Ok(Some(x))
     }
 
     /// Vision estimates written (setpoint mode), and measurements whose covariance could

@@ -571,6 +571,11 @@ impl CommandLink for EngagedLink {
         match self.engager.state {
             EngageState::Engaged => Ok(self.link.send_setpoint(meas, goal, now_s)?),
             _ => {
+                // The estimate is not a command: the EKF needs it before the pilot can
+                // select GUIDED (the vehicle refuses GUIDED without a position).
+                if let Some(m) = meas {
+                    self.link.send_vision_estimate(m)?;
+                }
                 self.withheld += 1;
                 Ok(())
             }
