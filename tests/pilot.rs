@@ -460,7 +460,10 @@ fn the_smallest_forward_command_makes_the_thrust_the_keeper_intends() {
         let t200 = ThrusterConfig::default();
         let thrust = pwm.map(|p| t200.steady_thrust_n(f64::from(p), volts));
         let intended = mixer.wrench(&thrust).0.x;
-        assert!(intended > 0.0, "the keeper's smallest command makes no thrust: {pwm:?}");
+        assert!(
+            intended > 0.0,
+            "the keeper's smallest command makes no thrust: {pwm:?}"
+        );
 
         let verdict = thrust_run(link, e, "16");
         assert_eq!(verdict["ok"], true, "{verdict}");
@@ -469,7 +472,10 @@ fn the_smallest_forward_command_makes_the_thrust_the_keeper_intends() {
             .iter()
             .filter(|s| s["rc"][4].as_u64() != Some(1500))
             .collect();
-        assert!(!cmd.is_empty(), "no forward command reached the vehicle: {verdict}");
+        assert!(
+            !cmd.is_empty(),
+            "no forward command reached the vehicle: {verdict}"
+        );
         for s in cmd {
             let fx = s["fx_n"].as_f64().unwrap();
             assert!(

@@ -137,7 +137,13 @@ impl PilotMap {
 /// about `get_control_mid()`, in ArduSub's integer arithmetic (30 us and 100: 77 us).
 pub fn climb_dead_zone_us(rc3_dz_us: f64, thr_dz: f64) -> f64 {
     let low = 1100 + rc3_dz_us.clamp(0.0, 200.0) as i32;
-    let ctrl = |pwm: i32| if pwm > low { 1000 * (pwm - low) / (1900 - low) } else { 0 };
+    let ctrl = |pwm: i32| {
+        if pwm > low {
+            1000 * (pwm - low) / (1900 - low)
+        } else {
+            0
+        }
+    };
     let mid = f64::from(1000 * (1500 - low) / (1900 - low));
     let dz = thr_dz.clamp(0.0, 400.0).trunc();
     let climbs = |pwm: i32| {
@@ -228,7 +234,14 @@ mod tests {
                 mode,
                 ..Default::default()
             });
-            let e = Effort::from_array([1e-3 + 1e-9, -1e-3 - 1e-9, -1e-3 - 1e-9, 1e-3 + 1e-9, -1e-3 - 1e-9, 1e-3 + 1e-9]);
+            let e = Effort::from_array([
+                1e-3 + 1e-9,
+                -1e-3 - 1e-9,
+                -1e-3 - 1e-9,
+                1e-3 + 1e-9,
+                -1e-3 - 1e-9,
+                1e-3 + 1e-9,
+            ]);
             let c = m.rc_channels(&e);
             [
                 c[channel::FORWARD - 1],
@@ -242,9 +255,18 @@ mod tests {
         // Forward and lateral: only the ESC band (30 us), in every mode: the first PWM
         // past it. ALT_HOLD throttle: past THR_DZ (77 us with RC3_DZ 30, THR_DZ 100); roll
         // and pitch past RCn_DZ (30); yaw past RC4_DZ x gain (40 x 0.5 = 20).
-        assert_eq!(smallest(LinkMode::AltHold), [1531, 1469, 1578, 1531, 1469, 1521]);
-        assert_eq!(smallest(LinkMode::Stabilize), [1531, 1469, 1531, 1531, 1469, 1521]);
-        assert_eq!(smallest(LinkMode::Manual), [1531, 1469, 1531, 1531, 1469, 1531]);
+        assert_eq!(
+            smallest(LinkMode::AltHold),
+            [1531, 1469, 1578, 1531, 1469, 1521]
+        );
+        assert_eq!(
+            smallest(LinkMode::Stabilize),
+            [1531, 1469, 1531, 1531, 1469, 1521]
+        );
+        assert_eq!(
+            smallest(LinkMode::Manual),
+            [1531, 1469, 1531, 1531, 1469, 1531]
+        );
         assert_eq!(climb_dead_zone_us(30.0, 100.0), 77.0);
         assert_eq!(climb_dead_zone_us(30.0, 0.0), 0.0);
     }
@@ -280,13 +302,37 @@ mod tests {
             let x = f64::from(m.manual_control(&e)[0]);
             let rc = m.rc_channels(&e)[channel::FORWARD - 1];
             assert_eq!((1500.0 + x * 0.4 * 0.5).trunc() as u16, rc, "effort {k}e-3");
-            let z = f64::from(m.manual_control(&Effort::from_array([0.0, 0.0, k as f64 * 1e-3, 0.0, 0.0, 0.0]))[2]);
-            let thr = m.rc_channels(&Effort::from_array([0.0, 0.0, k as f64 * 1e-3, 0.0, 0.0, 0.0]))[channel::THROTTLE - 1];
-            assert_eq!((1500.0 + (z - 500.0) * 0.8 * 0.5).trunc() as u16, thr, "heave {k}e-3");
+            let z = f64::from(
+                m.manual_control(&Effort::from_array([
+                    0.0,
+                    0.0,
+                    k as f64 * 1e-3,
+                    0.0,
+                    0.0,
+                    0.0,
+                ]))[2],
+            );
+            let thr = m.rc_channels(&Effort::from_array([
+                0.0,
+                0.0,
+                k as f64 * 1e-3,
+                0.0,
+                0.0,
+                0.0,
+            ]))[channel::THROTTLE - 1];
+            assert_eq!(
+                (1500.0 + (z - 500.0) * 0.8 * 0.5).trunc() as u16,
+                thr,
+                "heave {k}e-3"
+            );
             let neg = Effort::from_array([-(k as f64) * 1e-3, 0.0, 0.0, 0.0, 0.0, 0.0]);
             let x = f64::from(m.manual_control(&neg)[0]);
             let rc = m.rc_channels(&neg)[channel::FORWARD - 1];
-            assert_eq!((1500.0 + x * 0.4 * 0.5).trunc() as u16, rc, "effort -{k}e-3");
+            assert_eq!(
+                (1500.0 + x * 0.4 * 0.5).trunc() as u16,
+                rc,
+                "effort -{k}e-3"
+            );
         }
     }
 }

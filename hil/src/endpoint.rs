@@ -778,7 +778,11 @@ impl VehicleEndpoint {
         // 1500 - 500 x s + z x s with s = 0.8 x gain (JS_THR_GAIN 1), truncated to
         // whole microseconds by the conversion to int16 and constrained to 1100..1900.
         let g = self.cfg.joystick_gain;
-        let axis = |v: i16| (1500.0 + f64::from(v) * 0.4 * g).trunc().clamp(1100.0, 1900.0) as u16;
+        let axis = |v: i16| {
+            (1500.0 + f64::from(v) * 0.4 * g)
+                .trunc()
+                .clamp(1100.0, 1900.0) as u16
+        };
         let s = 0.8 * g;
         let thr = (1500.0 - 500.0 * s + f64::from(m.z) * s)
             .trunc()

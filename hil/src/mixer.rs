@@ -269,7 +269,10 @@ mod tests {
         let (f, m) = wrench_of(Frame6Dof::Heavy, [1.0, 0.0, 0.0, 0.0, 0.0, 0.0]);
         // Two thrusters forward, two in reverse, all at 45 degrees (the T200 table at 16 V).
         let t = ThrusterConfig::default();
-        let (fwd, rev) = (t.steady_thrust_n(1900.0, 16.0), -t.steady_thrust_n(1100.0, 16.0));
+        let (fwd, rev) = (
+            t.steady_thrust_n(1900.0, 16.0),
+            -t.steady_thrust_n(1100.0, 16.0),
+        );
         let expect = (2.0 * fwd + 2.0 * rev) * std::f64::consts::FRAC_1_SQRT_2;
         assert!((f.x - expect).abs() < 1e-6, "{f:?}");
         assert!(f.y.abs() < 1e-9 && f.z.abs() < 1e-9);

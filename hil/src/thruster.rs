@@ -68,7 +68,11 @@ fn parse_sheet(text: &str, volts: f64) -> Result<T200Sheet, String> {
         }
         let f: Vec<f64> = line
             .split(',')
-            .map(|s| s.trim().parse::<f64>().map_err(|e| format!("{line:?}: {e}")))
+            .map(|s| {
+                s.trim()
+                    .parse::<f64>()
+                    .map_err(|e| format!("{line:?}: {e}"))
+            })
             .collect::<Result<_, _>>()?;
         if f.len() != 7 || n >= ROWS || f[0] != row_pwm(n) || f[3] != volts {
             return Err(format!("unexpected row {n} at {volts} V: {line:?}"));
@@ -122,7 +126,10 @@ impl T200Table {
             .rposition(|&t| t <= v)
             .unwrap_or(0)
             .min(4);
-        (i, (v - TABLE_VOLTS[i]) / (TABLE_VOLTS[i + 1] - TABLE_VOLTS[i]))
+        (
+            i,
+            (v - TABLE_VOLTS[i]) / (TABLE_VOLTS[i + 1] - TABLE_VOLTS[i]),
+        )
     }
 
     /// Table value at `pwm_us` (interpolated between rows) and `volts` (between sheets).
@@ -317,11 +324,20 @@ mod tests {
         for pwm in [1150.0, 1300.0, 1420.0, 1580.0, 1700.0, 1900.0] {
             let (lo, hi) = (c.steady_thrust_n(pwm, 14.0), c.steady_thrust_n(pwm, 16.0));
             let mid = c.steady_thrust_n(pwm, 14.8);
-            assert!(mid.abs() >= lo.abs() && mid.abs() <= hi.abs(), "{pwm}: {lo} {mid} {hi}");
+            assert!(
+                mid.abs() >= lo.abs() && mid.abs() <= hi.abs(),
+                "{pwm}: {lo} {mid} {hi}"
+            );
         }
         // Beyond the table: clamped, never extrapolated.
-        assert_eq!(c.steady_thrust_n(1900.0, 25.0), c.steady_thrust_n(1900.0, 20.0));
-        assert_eq!(c.steady_thrust_n(1900.0, 6.0), c.steady_thrust_n(1900.0, 10.0));
+        assert_eq!(
+            c.steady_thrust_n(1900.0, 25.0),
+            c.steady_thrust_n(1900.0, 20.0)
+        );
+        assert_eq!(
+            c.steady_thrust_n(1900.0, 6.0),
+            c.steady_thrust_n(1900.0, 10.0)
+        );
     }
 
     #[test]
@@ -343,8 +359,12 @@ mod tests {
         assert!(narrow.steady_thrust_n(1480.0, 16.0) < 0.0);
         let d = ThrusterConfig::default();
         for c in [wide, narrow] {
-            assert!((c.steady_thrust_n(1900.0, 16.0) - d.steady_thrust_n(1900.0, 16.0)).abs() < 1e-9);
-            assert!((c.steady_thrust_n(1100.0, 16.0) - d.steady_thrust_n(1100.0, 16.0)).abs() < 1e-9);
+            assert!(
+                (c.steady_thrust_n(1900.0, 16.0) - d.steady_thrust_n(1900.0, 16.0)).abs() < 1e-9
+            );
+            assert!(
+                (c.steady_thrust_n(1100.0, 16.0) - d.steady_thrust_n(1100.0, 16.0)).abs() < 1e-9
+            );
         }
         assert_eq!(d.steady_thrust_n(f64::NAN, 16.0), 0.0);
     }

@@ -576,7 +576,8 @@ impl Vehicle {
         }
         // The pack sags with the current drawn on the last step.
         let bat = &self.cfg.battery;
-        self.battery_v = (bat.open_circuit_v - bat.internal_resistance_ohm * self.current_a).max(0.0);
+        self.battery_v =
+            (bat.open_circuit_v - bat.internal_resistance_ohm * self.current_a).max(0.0);
         let mut thrust = [0.0; MAX_MOTORS];
         let mut current = 0.0;
         for (i, th) in self
@@ -894,7 +895,10 @@ mod tests {
         assert!((heavy("1000.0") - 0.0134 * 1000.0 * GRAVITY_MPS2).abs() < 1e-9);
         let bad: VehicleConfig = serde_json::from_str(r#"{"water_density":1500.0}"#).unwrap();
         let e = bad.validate().unwrap_err().to_string();
-        assert!(e.contains("vehicle.water_density") && e.contains("1500"), "{e}");
+        assert!(
+            e.contains("vehicle.water_density") && e.contains("1500"),
+            "{e}"
+        );
         assert!(serde_json::from_str::<VehicleConfig>(r#"{"water_density":"mud"}"#).is_err());
         // A sinking vehicle in the pool: idle, it goes down.
         let cfg = VehicleConfig {

@@ -514,7 +514,10 @@ mod tests {
             assert_eq!(read_input(m, &with(4, 1900), &P)[4], 1.0);
         }
         // MANUAL: the same channels are straight efforts.
-        assert_eq!(read_input(mode::MANUAL, &with(5, 1520), &P)[5], 20.0 / 400.0);
+        assert_eq!(
+            read_input(mode::MANUAL, &with(5, 1520), &P)[5],
+            20.0 / 400.0
+        );
     }
 
     #[test]
@@ -524,7 +527,11 @@ mod tests {
         // (1578 us), descend below 380 (1422 us).
         assert_eq!(rc::range_mid(30), 480);
         for pwm in [1423, 1500, 1540, 1577] {
-            assert_eq!(read_input(mode::ALT_HOLD, &with(2, pwm), &P)[2], 0.0, "{pwm}");
+            assert_eq!(
+                read_input(mode::ALT_HOLD, &with(2, pwm), &P)[2],
+                0.0,
+                "{pwm}"
+            );
         }
         assert!(read_input(mode::ALT_HOLD, &with(2, 1578), &P)[2] > 0.0);
         assert!(read_input(mode::ALT_HOLD, &with(2, 1422), &P)[2] < 0.0);
