@@ -647,6 +647,19 @@ mod tests {
         };
         assert!(l.validate().is_err());
 
+        let l = LinkConfig {
+            thr_dz: 500.0,
+            ..Default::default()
+        };
+        let e = l.validate().unwrap_err().to_string();
+        assert!(e.contains("link.thr_dz") && e.contains("500"), "{e}");
+        let l = LinkConfig {
+            thruster_deadband_us: -1.0,
+            ..Default::default()
+        };
+        let e = l.validate().unwrap_err().to_string();
+        assert!(e.contains("link.thruster_deadband_us"), "{e}");
+
         let s = StationConfig {
             distance_m: -1.0,
             ..Default::default()

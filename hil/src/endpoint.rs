@@ -1335,6 +1335,12 @@ mod tests {
             .to_string()
             .contains("endpoint.joystick_gain"));
         let c = EndpointConfig {
+            rc_dz_us: [30, 30, 250, 40],
+            ..Default::default()
+        };
+        let e = c.validate().unwrap_err().to_string();
+        assert!(e.contains("endpoint.rc_dz_us") && e.contains("250"), "{e}");
+        let c = EndpointConfig {
             initial_mode: 9,
             ..Default::default()
         };
