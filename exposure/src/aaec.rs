@@ -28,8 +28,10 @@
 //! - the per-frame change is bounded by `max_ratio_per_frame`.
 //!
 //! With `adaptive_step = false` it is a plain momentum ascent in log exposure (same
-//! metric, same bounds, markhold's other changes kept), kept to show the difference. The
-//! paper's own law is `aaec_paper.rs`.
+//! metric, same bounds, markhold's other changes kept), kept to show the difference;
+//! `step_law = "linear"` then makes that momentum the paper's linear law
+//! (`v = gamma v + eta dM/dt`, `t <- t + v`) on markhold's metric, so the log-domain step
+//! can be switched off on its own. The paper's whole method is `aaec_paper.rs`.
 
 use crate::metric::{GradientMetric, MetricParams};
 use crate::{
@@ -45,6 +47,9 @@ const SCENE_TEST_MAX_MOVE: f64 = 0.25;
 
 /// Longest interval between probes of a collapsed bracket, used frames.
 const MAX_PROBE_FRAMES: u32 = 64;
+
+/// Default eta of the linear step law (`step_law = "linear"`), s per unit of dM/dt.
+const LINEAR_LEARNING_RATE: f64 = 1e-9;
 /// A bracket narrower than this (in ln t) has collapsed onto its zero.
 const COLLAPSED_WIDTH: f64 = 0.005;
 /// Smallest step scale of an ascent that restarts from a dropped bracket.
@@ -93,6 +98,25 @@ pub enum AaecFallback {
     Aec,
 }
 
+/// Domain of the plain momentum step (`adaptive_step = false`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum StepLaw {
+    /// `v = gamma v + eta d ln M / d ln t`, `t <- t e^v` (markhold's).
+    Log,
+    /// `v = gamma v + eta_lin dM/dt`, `t <- t + v` (the paper's law).
+    Linear,
+}
+
+impl std::fmt::Display for StepLaw {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(match self {
+            Self::Log => "log",
+            Self::Linear => "linear",
+        })
+    }
+}
+
 /// The `[exposure.aaec]` section.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
@@ -116,6 +140,12 @@ pub struct AaecConfig {
     /// Adapt the step (our design); false = plain momentum in log exposure (not the
     /// paper's linear law: that is `aaec-paper`).
     pub adaptive_step: bool,
+    /// Domain of the plain momentum step, `"log"` (default) or `"linear"` (the paper's
+    /// law, with `linear_learning_rate`); `"linear"` needs `adaptive_step = false`.
+    pub step_law: StepLaw,
+    /// eta of the linear law: seconds of exposure per unit of `dM/dt`, `M` in this
+    /// metric's grey levels squared and `t` in seconds, (0, 1e-6].
+    pub linear_learning_rate: f64,
     /// Step scale factor on a sign change of the slope, (0, 1).
     pub step_shrink: f64,
     /// Step scale factor while the sign holds, [1, 4]; the scale never exceeds 1.
@@ -228,6 +258,8 @@ impl Default for AaecConfig {
             dead_band_us: 1.0,
             max_ratio_per_frame: 4.0,
             adaptive_step: true,
+            step_law: StepLaw::Log,
+            linear_learning_rate: LINEAR_LEARNING_RATE,
             step_shrink: 0.5,
             step_grow: 1.2,
             min_step_scale: 0.02,
@@ -265,6 +297,10 @@ impl AaecConfig {
             .range("learning_rate", self.learning_rate, open_closed(0.0, 10.0), "a rate in (0, 10]")
             .range("dead_band_us", self.dead_band_us, 0.0..=1000.0, "microseconds in [0, 1000]")
             .range("max_ratio_per_frame", self.max_ratio_per_frame, open_closed(1.0, 100.0), "a ratio in (1, 100]")
+            .check("step_law", self.step_law, self.step_law == StepLaw::Log || !self.adaptive_step,
+                "\"log\", or \"linear\" with adaptive_step = false (the adaptive step works in log exposure)")
+            .range("linear_learning_rate", self.linear_learning_rate, open_closed(0.0, 1e-6),
+                "a rate in (0, 1e-6] s per unit of dM/dt")
             .range("step_shrink", self.step_shrink, open(0.0, 1.0), "a factor in (0, 1)")
             .range("step_grow", self.step_grow, 1.0..=4.0, "a factor in [1, 4]")
             .range("min_step_scale", self.min_step_scale, open_closed(0.0, 1.0), "a scale in (0, 1]")
@@ -311,6 +347,8 @@ pub struct Aaec {
     commanded_us: f64,
     /// Momentum, in ln t.
     v: f64,
+    /// Momentum of the linear step law, microseconds.
+    v_us: f64,
     step_scale: f64,
     /// ln t and slope of the last used frame.
     prev: Option<Sample>,
@@ -353,6 +391,7 @@ impl Aaec {
             response,
             fallback,
             v: 0.0,
+            v_us: 0.0,
             step_scale: 1.0,
             prev: None,
             bracket: None,
@@ -376,6 +415,7 @@ impl Aaec {
     /// Forget the ascent (momentum, step scale, bracket) but keep the exposure.
     fn reset_ascent(&mut self) {
         self.v = 0.0;
+        self.v_us = 0.0;
         self.step_scale = 1.0;
         self.prev = None;
         self.bracket = None;
@@ -647,11 +687,22 @@ impl Aaec {
         Some(t * ratio.clamp(1.0 / bound, bound))
     }
 
-    /// One ascent step in ln t from the slope `s` at `x = ln t`.
-    fn ascent_step(&mut self, x: f64, s: f64) -> f64 {
+    /// One ascent step in ln t from the slope `s` at `x = ln t` (`dm_dlnt`: `s M`).
+    fn ascent_step(&mut self, x: f64, s: f64, dm_dlnt: f64) -> f64 {
         let bound = self.cfg.max_ratio_per_frame.ln();
         let gamma = self.cfg.momentum;
         let eta = self.cfg.learning_rate;
+        if !self.cfg.adaptive_step && self.cfg.step_law == StepLaw::Linear {
+            // The paper's law on this metric: dM/dt = (dM/d ln t) / t, t in seconds.
+            let t_us = x.exp();
+            let dm_dt = dm_dlnt / (t_us * 1e-6);
+            self.v_us = gamma * self.v_us + self.cfg.linear_learning_rate * dm_dt * 1e6;
+            let next = (t_us + self.v_us).max(t_us / self.cfg.max_ratio_per_frame);
+            let delta = (next / t_us).ln().clamp(-bound, bound);
+            // Never more momentum than the bound let through.
+            self.v_us = t_us * delta.exp_m1();
+            return delta;
+        }
         if !self.cfg.adaptive_step {
             // The paper: v = gamma v + eta M'; t += v.
             self.v = (gamma * self.v + eta * s).clamp(-bound, bound);
@@ -951,7 +1002,7 @@ impl ExposureController for Aaec {
             } else if let Some(d) = self.knee_step(view, x, s, mv.saturated_frac, last) {
                 d
             } else {
-                self.ascent_step(x, s)
+                self.ascent_step(x, s, mv.dm_dlnt)
             };
             self.prev = Some(Sample { x, s, ln_m });
             d
@@ -963,6 +1014,7 @@ impl ExposureController for Aaec {
         if (next - t * delta.exp()).abs() > 1e-9 * t {
             // Stopped by a camera limit: do not let momentum push against it.
             self.v = 0.0;
+            self.v_us = 0.0;
         }
         self.commanded_us = next;
         ExposureStep {
@@ -986,5 +1038,64 @@ impl ExposureController for Aaec {
         self.seen_us = None;
         self.sweep = None;
         self.fallback.reset(self.commanded_us);
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    #![allow(clippy::unwrap_used)]
+    use super::*;
+    use crate::{MeanAe, MeanAeConfig};
+
+    fn linear_law(eta: f64) -> Aaec {
+        let cfg = AaecConfig {
+            adaptive_step: false,
+            step_law: StepLaw::Linear,
+            linear_learning_rate: eta,
+            ..AaecConfig::default()
+        };
+        let limits = ExposureLimits {
+            min_us: 5.0,
+            max_us: 20000.0,
+            fps: 30.0,
+        };
+        let fallback = Box::new(MeanAe::new(MeanAeConfig::default(), limits, 1000.0).unwrap());
+        Aaec::new(cfg, Response::linear(), limits, 1000.0, fallback).unwrap()
+    }
+
+    #[test]
+    fn the_linear_step_law_follows_a_hand_computed_sequence() {
+        let mut a = linear_law(1e-10);
+        let mut t: f64 = 1000.0;
+        // dM/dt = (dM/d ln t) / t: 2000 / 1e-3 s = 2e6; v = 1e-10 * 2e6 s = 200 us.
+        // Then 1200 / 1.2e-3 = 1e6: v = 0.9 * 200 + 100 = 280 us.
+        // Then -4440 / 1.48e-3 = -3e6: v = 0.9 * 280 - 300 = -48 us.
+        for (dm_dlnt, want) in [(2000.0, 1200.0), (1200.0, 1480.0), (-4440.0, 1432.0)] {
+            let d = a.ascent_step(t.ln(), dm_dlnt / 1000.0, dm_dlnt);
+            t *= d.exp();
+            assert!((t - want).abs() < 1e-6, "{t} vs {want}");
+        }
+    }
+
+    #[test]
+    fn the_linear_step_is_bounded_per_frame_and_keeps_only_what_was_applied() {
+        let mut a = linear_law(1e-6);
+        // eta dM/dt = 1e-6 * 2e6 s = 2 s: bounded to 4x (1000 -> 4000 us).
+        let d = a.ascent_step(1000f64.ln(), 2.0, 2000.0);
+        assert!((d - 4f64.ln()).abs() < 1e-12, "{d}");
+        assert!((a.v_us - 3000.0).abs() < 1e-6, "{}", a.v_us);
+    }
+
+    #[test]
+    fn the_linear_step_law_needs_the_plain_momentum() {
+        let cfg = AaecConfig {
+            step_law: StepLaw::Linear,
+            ..AaecConfig::default()
+        };
+        let e = cfg.validate().unwrap_err().to_string();
+        assert!(
+            e.contains("exposure.aaec.step_law") && e.contains("adaptive_step = false"),
+            "{e}"
+        );
     }
 }

@@ -17,7 +17,7 @@ pub mod pyramid;
 pub mod reference;
 mod response;
 
-pub use aaec::{Aaec, AaecConfig, AaecFallback};
+pub use aaec::{Aaec, AaecConfig, AaecFallback, StepLaw};
 pub use aaec_paper::{
     AaecPaper, AaecPaperConfig, PaperMetric, PaperMetricEval, PaperMetricValue, PaperMomentum,
 };
