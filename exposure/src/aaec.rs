@@ -995,15 +995,32 @@ impl ExposureController for Aaec {
             }
             let view = frame.view().crop(roi);
             let last = std::mem::replace(&mut self.last_knee, KneeStep::None);
-            let d = if let Some(d) = self.knee_held(s) {
-                d
+            let (d, why) = if let Some(d) = self.knee_held(s) {
+                (d, "knee hold")
             } else if last == KneeStep::Landing && self.hold_knee(mv.saturated_frac, s) {
-                0.0
+                (0.0, "knee hold begins")
             } else if let Some(d) = self.knee_step(view, x, s, mv.saturated_frac, last) {
-                d
+                (d, "knee landing")
             } else {
-                self.ascent_step(x, s, mv.dm_dlnt)
+                let d = self.ascent_step(x, s, mv.dm_dlnt);
+                (
+                    d,
+                    if self.bracket.is_some() {
+                        "bracket"
+                    } else {
+                        "ascent"
+                    },
+                )
             };
+            tracing::trace!(
+                t,
+                s,
+                m = mv.m,
+                clipped = mv.saturated_frac,
+                step = d,
+                why,
+                "aaec"
+            );
             self.prev = Some(Sample { x, s, ln_m });
             d
         };

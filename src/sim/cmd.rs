@@ -338,7 +338,11 @@ pub fn print_table(site: &str, s: &Summary) {
             format!("{:.2} deg", s.final_yaw_error_deg),
         ),
         (
-            "exposure converged after",
+            "exposure first within 5 % after",
+            format!("{} frames", s.exposure_first_within_frames),
+        ),
+        (
+            "exposure stays within 5 % after",
             format!("{} frames", s.exposure_convergence_frames),
         ),
         ("final exposure", format!("{:.0} us", s.final_exposure_us)),

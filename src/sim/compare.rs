@@ -18,7 +18,7 @@ use tracing::Span;
 use tracing_indicatif::span_ext::IndicatifSpanExt;
 
 use super::hil::{HilOptions, HilRun};
-use super::summary::{convergence_frames, cov_det, rms};
+use super::summary::{convergence_frames, cov_det, first_within_frames, rms};
 use crate::params::LoadedSite;
 use crate::pipeline::Observers;
 
@@ -103,7 +103,7 @@ impl RunKind {
 }
 
 /// One frame of a run, as the experiments need it.
-#[derive(Debug, Clone, Copy, Serialize, Deserialize)]
+#[derive(Debug, Clone, Copy, Serialize, Deserialize, PartialEq)]
 pub struct Sample {
     pub time_s: f64,
     /// Exposure commanded after this frame.
@@ -119,8 +119,9 @@ pub struct Sample {
     pub station_error_m: f64,
 }
 
-/// The per-frame series of one run (kept for the plots, not written to JSON).
-#[derive(Debug, Clone)]
+/// The per-frame series of one run (kept for the plots; not in results.json, but in a
+/// shard's file for the plots of the merge).
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
 pub struct RunSeries {
     pub method: ExposureMethod,
     pub lighting: LightingScenario,
@@ -165,6 +166,9 @@ pub struct ConvergenceStart {
     /// Frames until the exposure stays within 5% of its final value.
     pub frames: u64,
     pub seconds: f64,
+    /// Frames and seconds until the exposure is first within 5% of its final value.
+    pub first_within_frames: u64,
+    pub first_within_seconds: f64,
     /// Stayed in the band for at least the last second of the run.
     pub settled: bool,
     /// Crossed from above the band to below it (or back) at least twice.
@@ -212,11 +216,15 @@ pub struct CaseResult {
     pub lockstep_timeouts: u64,
 }
 
-/// Mean and sample standard deviation of a metric over seeds (defined values only).
+/// Mean, sample standard deviation and 95 % confidence interval (Student t, see
+/// [`super::stats`]) of a metric over seeds (defined values only).
 #[derive(Debug, Clone, Copy, Serialize, Deserialize, PartialEq)]
 pub struct Stat {
     pub mean: Option<f64>,
     pub sd: Option<f64>,
+    /// 95 % confidence interval of the mean (needs two seeds).
+    pub ci95_low: Option<f64>,
+    pub ci95_high: Option<f64>,
     /// Seeds where the metric was defined.
     pub n: usize,
 }
@@ -224,25 +232,19 @@ pub struct Stat {
 impl Stat {
     pub fn of(values: &[Option<f64>]) -> Self {
         let v: Vec<f64> = values.iter().flatten().copied().collect();
-        if v.is_empty() {
-            return Self {
-                mean: None,
-                sd: None,
-                n: 0,
-            };
-        }
-        let n = v.len() as f64;
-        let mean = v.iter().sum::<f64>() / n;
-        let sd = if v.len() > 1 {
-            Some((v.iter().map(|x| (x - mean).powi(2)).sum::<f64>() / (n - 1.0)).sqrt())
-        } else {
-            None
-        };
+        let m = super::stats::mean_ci95(&v);
         Self {
-            mean: Some(mean),
-            sd,
+            mean: m.map(|m| m.mean),
+            sd: m.and_then(|m| m.sd),
+            ci95_low: m.and_then(|m| m.ci95).map(|c| c.0),
+            ci95_high: m.and_then(|m| m.ci95).map(|c| c.1),
             n: v.len(),
         }
+    }
+
+    /// Half-width of the 95 % interval.
+    pub fn ci95_half(&self) -> Option<f64> {
+        Some(0.5 * (self.ci95_high? - self.ci95_low?))
     }
 }
 
@@ -254,13 +256,15 @@ pub struct CaseStats {
     pub metrics: std::collections::BTreeMap<String, Stat>,
 }
 
-/// Wall time of one run (excluded from the determinism promise).
+/// Wall time of one run (`timings.json`: not a function of the seed, so not in
+/// results.json).
 #[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
 pub struct RunTiming {
     pub method: ExposureMethod,
     pub lighting: LightingScenario,
     pub seed: u64,
     pub kind: RunKind,
+    pub frames: u64,
     pub wall_seconds: f64,
 }
 
@@ -278,7 +282,8 @@ pub struct CompareResults {
     pub lightings: Vec<LightingScenario>,
     pub cases: Vec<CaseResult>,
     pub stats: Vec<CaseStats>,
-    pub timings: Vec<RunTiming>,
+    /// The paper's claims, each a paired comparison over seeds.
+    pub claims: Vec<super::claims::ClaimTest>,
 }
 
 impl CompareResults {
@@ -287,10 +292,11 @@ impl CompareResults {
     }
 }
 
-/// Everything `compare` produced: the numbers and the series for the plots.
+/// Everything `compare` produced: the numbers, the series for the plots, wall times.
 pub struct CompareOutput {
     pub results: CompareResults,
     pub series: Vec<RunSeries>,
+    pub timings: Vec<RunTiming>,
 }
 
 /// One queued run.
@@ -314,29 +320,76 @@ pub fn motion_traverse(site: &LoadedSite, seconds: f64) -> (f64, f64) {
     (span, span / seconds)
 }
 
+/// One method x lighting x seed: the unit of a shard (its five runs belong together: the
+/// convergence runs start from the static run's final exposure).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+pub struct CaseKey {
+    pub method: ExposureMethod,
+    pub lighting: LightingScenario,
+    pub seed: u64,
+}
+
+impl CompareOptions {
+    /// Every case of the sweep, in the order of results.json (method, lighting, seed).
+    pub fn cases(&self) -> Vec<CaseKey> {
+        let mut v = Vec::new();
+        for &method in &self.methods {
+            for &lighting in &self.lightings {
+                for &seed in &self.seeds {
+                    v.push(CaseKey {
+                        method,
+                        lighting,
+                        seed,
+                    });
+                }
+            }
+        }
+        v
+    }
+}
+
+/// What a set of cases produced: their results, the series the plots need, wall times.
+pub struct CasesRun {
+    pub cases: Vec<CaseResult>,
+    pub series: Vec<RunSeries>,
+    pub timings: Vec<RunTiming>,
+}
+
 /// Run every experiment; `progress` (a progress-bar span, or `Span::none()`) counts frames.
 pub fn run_compare(
     site: &LoadedSite,
     opts: &CompareOptions,
     progress: &Span,
 ) -> anyhow::Result<CompareOutput> {
+    let run = run_cases(site, opts, &opts.cases(), progress)?;
+    let results = assemble(CompareHeader::of(site, opts), run.cases);
+    Ok(CompareOutput {
+        results,
+        series: run.series,
+        timings: run.timings,
+    })
+}
+
+/// Run the five runs of each of `cases` (a whole sweep or one shard's slice of it).
+pub fn run_cases(
+    site: &LoadedSite,
+    opts: &CompareOptions,
+    cases: &[CaseKey],
+    progress: &Span,
+) -> anyhow::Result<CasesRun> {
     opts.validate()?;
     let fps = site.site.camera.fps;
     let frames = (opts.seconds * fps).round().max(1.0) as u64;
     let mut first = Vec::new();
-    for &method in &opts.methods {
-        for &lighting in &opts.lightings {
-            for &seed in &opts.seeds {
-                for kind in [RunKind::Static, RunKind::Motion, RunKind::Station] {
-                    first.push(Job {
-                        method,
-                        lighting,
-                        seed,
-                        kind,
-                        initial_exposure_us: None,
-                    });
-                }
-            }
+    for c in cases {
+        for kind in [RunKind::Static, RunKind::Motion, RunKind::Station] {
+            first.push(Job {
+                method: c.method,
+                lighting: c.lighting,
+                seed: c.seed,
+                kind,
+                initial_exposure_us: None,
+            });
         }
     }
     progress.pb_set_length(frames * first.len() as u64 * 5 / 3);
@@ -361,9 +414,23 @@ pub fn run_compare(
         }
     }
     series.extend(run_jobs(site, opts, &second, frames, progress)?);
-
-    let results = summarize(site, opts, &series)?;
-    Ok(CompareOutput { results, series })
+    let results = case_results(site, opts, cases, &series)?;
+    let timings = series
+        .iter()
+        .map(|s| RunTiming {
+            method: s.method,
+            lighting: s.lighting,
+            seed: s.seed,
+            kind: s.kind,
+            frames: s.samples.len() as u64,
+            wall_seconds: s.wall_seconds,
+        })
+        .collect();
+    Ok(CasesRun {
+        cases: results,
+        series,
+        timings,
+    })
 }
 
 /// Run jobs on `opts.jobs` threads; results come back in job order.
@@ -640,12 +707,15 @@ fn convergence_start(r: &RunSeries, fps: f64, reference_us: f64) -> ConvergenceS
     let e: Vec<f64> = r.samples.iter().map(|x| x.exposure_us).collect();
     let last = e.last().copied().unwrap_or(f64::NAN);
     let frames = convergence_frames(&e, CONVERGENCE_TOL);
+    let first = first_within_frames(&e, CONVERGENCE_TOL);
     let crossings = band_crossings(&e, last, CONVERGENCE_TOL);
     ConvergenceStart {
         initial_exposure_us: r.initial_exposure_us,
         final_exposure_us: last,
         frames,
         seconds: frames as f64 / fps,
+        first_within_frames: first,
+        first_within_seconds: first as f64 / fps,
         settled: (e.len() as u64).saturating_sub(frames) as f64 >= fps,
         oscillates: crossings >= 2,
         band_crossings: crossings,
@@ -689,6 +759,10 @@ pub fn metrics(c: &CaseResult) -> Vec<(&'static str, Option<f64>)> {
         ("motion.mean_error_m", m.mean_error_m),
         ("convergence.long.seconds", Some(cv.from_long.seconds)),
         ("convergence.long.frames", Some(cv.from_long.frames as f64)),
+        (
+            "convergence.long.first_within_seconds",
+            Some(cv.from_long.first_within_seconds),
+        ),
         ("convergence.long.settled", b(cv.from_long.settled)),
         ("convergence.long.oscillates", b(cv.from_long.oscillates)),
         (
@@ -699,6 +773,10 @@ pub fn metrics(c: &CaseResult) -> Vec<(&'static str, Option<f64>)> {
         (
             "convergence.short.frames",
             Some(cv.from_short.frames as f64),
+        ),
+        (
+            "convergence.short.first_within_seconds",
+            Some(cv.from_short.first_within_seconds),
         ),
         ("convergence.short.settled", b(cv.from_short.settled)),
         ("convergence.short.oscillates", b(cv.from_short.oscillates)),
@@ -720,59 +798,103 @@ pub fn metrics(c: &CaseResult) -> Vec<(&'static str, Option<f64>)> {
     ]
 }
 
-fn summarize(
+/// The results of each case from its five runs in `series`.
+fn case_results(
     site: &LoadedSite,
     opts: &CompareOptions,
+    cases: &[CaseKey],
     series: &[RunSeries],
-) -> anyhow::Result<CompareResults> {
+) -> anyhow::Result<Vec<CaseResult>> {
     let fps = site.site.camera.fps;
     let (span, speed) = motion_traverse(site, opts.seconds);
-    let find = |m, l, seed, kind| {
+    let find = |c: &CaseKey, kind| {
         series
             .iter()
-            .find(|s| s.method == m && s.lighting == l && s.seed == seed && s.kind == kind)
-            .with_context(|| format!("missing {kind:?} run for {m} / {l} / seed {seed}"))
+            .find(|s| {
+                s.method == c.method
+                    && s.lighting == c.lighting
+                    && s.seed == c.seed
+                    && s.kind == kind
+            })
+            .with_context(|| {
+                format!(
+                    "missing {kind:?} run for {} / {} / seed {}",
+                    c.method, c.lighting, c.seed
+                )
+            })
     };
-    let mut cases = Vec::new();
+    let mut out = Vec::with_capacity(cases.len());
+    for c in cases {
+        let st = find(c, RunKind::Static)?;
+        let long = find(c, RunKind::ConvergenceLong)?;
+        let short = find(c, RunKind::ConvergenceShort)?;
+        let static_precision = static_result(&st.samples);
+        let reference = static_precision.final_exposure_us;
+        out.push(CaseResult {
+            method: c.method,
+            lighting: c.lighting,
+            seed: c.seed,
+            convergence: ConvergenceResult {
+                reference_exposure_us: reference,
+                from_long: convergence_start(long, fps, reference),
+                from_short: convergence_start(short, fps, reference),
+            },
+            static_precision,
+            motion_tracking: motion_result(&find(c, RunKind::Motion)?.samples, span, speed),
+            station_keeping: station_result(&find(c, RunKind::Station)?.samples),
+            lockstep_timeouts: series
+                .iter()
+                .filter(|s| s.method == c.method && s.lighting == c.lighting && s.seed == c.seed)
+                .map(|s| s.lockstep_timeouts)
+                .sum(),
+        });
+    }
+    Ok(out)
+}
+
+/// What a sweep ran, the head of results.json.
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+pub struct CompareHeader {
+    pub site: String,
+    pub site_file: String,
+    pub width_px: u32,
+    pub height_px: u32,
+    pub fps: f64,
+    pub seconds: f64,
+    pub seeds: Vec<u64>,
+    pub methods: Vec<ExposureMethod>,
+    pub lightings: Vec<LightingScenario>,
+}
+
+impl CompareHeader {
+    pub fn of(site: &LoadedSite, opts: &CompareOptions) -> Self {
+        Self {
+            site: site.site.site.name.clone(),
+            site_file: site.path.display().to_string(),
+            width_px: site.calibration.width,
+            height_px: site.calibration.height,
+            fps: site.site.camera.fps,
+            seconds: opts.seconds,
+            seeds: opts.seeds.clone(),
+            methods: opts.methods.clone(),
+            lightings: opts.lightings.clone(),
+        }
+    }
+}
+
+/// results.json from the cases of a sweep (in sweep order): the statistics over seeds and
+/// the paired tests of the paper's claims. The one place both an unsharded run and a merge
+/// of shards go through, so both give the same file.
+pub fn assemble(h: CompareHeader, cases: Vec<CaseResult>) -> CompareResults {
     let mut stats = Vec::new();
-    for &m in &opts.methods {
-        for &l in &opts.lightings {
-            let mut per_seed = Vec::new();
-            for &seed in &opts.seeds {
-                let st = find(m, l, seed, RunKind::Static)?;
-                let long = find(m, l, seed, RunKind::ConvergenceLong)?;
-                let short = find(m, l, seed, RunKind::ConvergenceShort)?;
-                let static_precision = static_result(&st.samples);
-                let case = CaseResult {
-                    method: m,
-                    lighting: l,
-                    seed,
-                    convergence: ConvergenceResult {
-                        reference_exposure_us: static_precision.final_exposure_us,
-                        from_long: convergence_start(long, fps, static_precision.final_exposure_us),
-                        from_short: convergence_start(
-                            short,
-                            fps,
-                            static_precision.final_exposure_us,
-                        ),
-                    },
-                    static_precision,
-                    motion_tracking: motion_result(
-                        &find(m, l, seed, RunKind::Motion)?.samples,
-                        span,
-                        speed,
-                    ),
-                    station_keeping: station_result(&find(m, l, seed, RunKind::Station)?.samples),
-                    lockstep_timeouts: series
-                        .iter()
-                        .filter(|s| s.method == m && s.lighting == l && s.seed == seed)
-                        .map(|s| s.lockstep_timeouts)
-                        .sum(),
-                };
-                per_seed.push(case);
-            }
+    for &m in &h.methods {
+        for &l in &h.lightings {
+            let all: Vec<Vec<(&'static str, Option<f64>)>> = cases
+                .iter()
+                .filter(|c| c.method == m && c.lighting == l)
+                .map(metrics)
+                .collect();
             let mut map = std::collections::BTreeMap::new();
-            let all: Vec<Vec<(&'static str, Option<f64>)>> = per_seed.iter().map(metrics).collect();
             if let Some(firstm) = all.first() {
                 for (k, (key, _)) in firstm.iter().enumerate() {
                     let vals: Vec<Option<f64>> = all.iter().map(|v| v[k].1).collect();
@@ -784,32 +906,23 @@ fn summarize(
                 lighting: l,
                 metrics: map,
             });
-            cases.extend(per_seed);
         }
     }
-    Ok(CompareResults {
-        site: site.site.site.name.clone(),
-        site_file: site.path.display().to_string(),
-        width_px: site.calibration.width,
-        height_px: site.calibration.height,
-        fps,
-        seconds: opts.seconds,
-        seeds: opts.seeds.clone(),
-        methods: opts.methods.clone(),
-        lightings: opts.lightings.clone(),
+    let claims = super::claims::tests(&h, &cases);
+    CompareResults {
+        site: h.site,
+        site_file: h.site_file,
+        width_px: h.width_px,
+        height_px: h.height_px,
+        fps: h.fps,
+        seconds: h.seconds,
+        seeds: h.seeds,
+        methods: h.methods,
+        lightings: h.lightings,
         cases,
         stats,
-        timings: series
-            .iter()
-            .map(|s| RunTiming {
-                method: s.method,
-                lighting: s.lighting,
-                seed: s.seed,
-                kind: s.kind,
-                wall_seconds: s.wall_seconds,
-            })
-            .collect(),
-    })
+        claims,
+    }
 }
 
 /// The paper's numbers (docs/reference/exposure-spec.md, "What the paper measured"), for the report.
@@ -895,13 +1008,14 @@ fn fmt_value(v: f64, f: Fmt) -> String {
     }
 }
 
-/// `mean ± sd` over seeds; `-` where the metric is undefined (e.g. no detection).
+/// `mean ± h` over seeds, h the half-width of the 95 % interval (symmetric: Student t);
+/// `-` where the metric is undefined (e.g. no detection).
 fn fmt_stat(s: Option<&Stat>, f: Fmt) -> String {
     let Some(s) = s else { return "-".to_string() };
-    match (s.mean, s.sd, f) {
+    match (s.mean, s.ci95_half(), f) {
         (None, _, _) => "-".to_string(),
         (Some(m), _, Fmt::Flag) => fmt_value(m, f),
-        (Some(m), Some(sd), _) => format!("{} ± {}", fmt_value(m, f), fmt_value(sd, f)),
+        (Some(m), Some(h), _) => format!("{} ± {}", fmt_value(m, f), fmt_value(h, f)),
         (Some(m), None, _) => fmt_value(m, f),
     }
 }
@@ -968,6 +1082,7 @@ pub fn report_markdown(r: &CompareResults, plots: &[String]) -> String {
     report_motion_tracking(&mut o, r);
     report_convergence(&mut o, r);
     report_station_keeping(&mut o, r);
+    report_claims(&mut o, r);
     report_lockstep_timeouts(&mut o, r);
     report_plots(&mut o, plots);
     o
@@ -981,8 +1096,8 @@ fn report_header(o: &mut String, r: &CompareResults) {
     let _ = writeln!(
         o,
         "Site file `{}`, {}x{} px at {} fps, {} simulated seconds per run, seeds {:?}. \
-         Cells are mean ± sample standard deviation over {} seed(s) (no spread with one \
-         seed); `-` where the metric is undefined (no detection). AAEC (paper) and GEC \
+         Cells are the mean over {} seed(s) ± the half-width of its 95 % confidence \
+         interval (Student t with n - 1 degrees of freedom; none with one seed); `-` where the metric is undefined (no detection). AAEC (paper) and GEC \
          (paper) are the methods as the paper ran them; AAEC (markhold) and GEC (Shim) are \
          markhold's AAEC and GEC with Shim's published constants. The paper's numbers \
          are from its own camera and water; ours are from the HIL world.\n",
@@ -1071,7 +1186,9 @@ fn report_convergence(o: &mut String, r: &CompareResults) {
         o,
         "## 3. Convergence\n\nVehicle fixed on station; exposure started at 10x and 1/10 of \
          the exposure the method settled on in the static run (clamped to the camera's \
-         limits). Seconds until the exposure stays within 5% of the run's final value; \
+         limits). Seconds until the exposure is first within 5% of the run's final value, and \
+         until it stays there (an excursion after the first entry counts only in the \
+         second); \
          settled: it stayed there for at least the last second; oscillates: it crossed the \
          band from one side to the other at least twice; final / reference: where it ended over \
          where the static run settled (1.00: back where it belongs; a method can also \
@@ -1087,7 +1204,12 @@ fn report_convergence(o: &mut String, r: &CompareResults) {
             l,
             &[
                 (
-                    "From 10x long [s]",
+                    "From 10x long: first within [s]",
+                    "convergence.long.first_within_seconds",
+                    Fmt::Seconds,
+                ),
+                (
+                    "From 10x long: stays within [s]",
                     "convergence.long.seconds",
                     Fmt::Seconds,
                 ),
@@ -1099,7 +1221,12 @@ fn report_convergence(o: &mut String, r: &CompareResults) {
                     Fmt::Ratio,
                 ),
                 (
-                    "From 10x short [s]",
+                    "From 10x short: first within [s]",
+                    "convergence.short.first_within_seconds",
+                    Fmt::Seconds,
+                ),
+                (
+                    "From 10x short: stays within [s]",
                     "convergence.short.seconds",
                     Fmt::Seconds,
                 ),
@@ -1148,6 +1275,70 @@ fn report_station_keeping(o: &mut String, r: &CompareResults) {
     }
 }
 
+/// Section 5: the paper's claims, paired over seeds.
+fn report_claims(o: &mut String, r: &CompareResults) {
+    use super::claims::{Scale, Verdict};
+    use std::fmt::Write as _;
+    let _ = writeln!(
+        o,
+        "## 5. The paper's claims, paired over seeds\n\nEach AAEC against each other method \
+         on the same seeds: the mean of the per-seed difference (AAEC - other; log10 for \
+         determinants) with its 95 % confidence interval, and the two-sided paired-t p-value \
+         of no difference. n: seeds where both have the metric; AAEC only / other only: \
+         seeds where one of them has it (e.g. only it detects the marker). Holds: AAEC \
+         better on average with p < 0.05, or it has the metric on every seed and the other \
+         on none.\n"
+    );
+    if r.claims.is_empty() {
+        let _ = writeln!(
+            o,
+            "No claim applies: the sweep needs an AAEC and another method in a paper \
+             lighting.\n"
+        );
+        return;
+    }
+    let _ = writeln!(
+        o,
+        "| Claim | Lighting | AAEC | Other | n | AAEC only / other only | Mean difference [95 % CI] | p | Verdict |\n|---|---|---|---|---|---|---|---|---|"
+    );
+    for c in &r.claims {
+        let unit = match c.scale {
+            Scale::Log10 => " (log10)",
+            Scale::Linear => "",
+        };
+        let diff = match (c.mean_diff, c.ci95_low, c.ci95_high) {
+            (Some(d), Some(lo), Some(hi)) => format!("{d:.4} [{lo:.4}, {hi:.4}]{unit}"),
+            (Some(d), _, _) => format!("{d:.4}{unit}"),
+            _ => "-".to_string(),
+        };
+        let p = c.p.map_or("-".to_string(), |p| {
+            if p < 1e-4 {
+                format!("{p:.1e}")
+            } else {
+                format!("{p:.4}")
+            }
+        });
+        let verdict = match c.verdict {
+            Verdict::Holds => "holds",
+            Verdict::NotSignificant => "not significant",
+            Verdict::Against => "against",
+            Verdict::Untested => "untested",
+        };
+        let _ = writeln!(
+            o,
+            "| {} | {} | {} | {} | {} | {} / {} | {diff} | {p} | {verdict} |",
+            c.claim,
+            c.lighting,
+            method_name(c.method),
+            method_name(c.other),
+            c.n,
+            c.method_only,
+            c.other_only,
+        );
+    }
+    o.push('\n');
+}
+
 /// The lock-step timeouts over all runs.
 fn report_lockstep_timeouts(o: &mut String, r: &CompareResults) {
     use std::fmt::Write as _;
@@ -1178,6 +1369,10 @@ pub fn write_outputs(out: &CompareOutput, dir: &std::path::Path) -> anyhow::Resu
     let p = dir.join("results.json");
     std::fs::write(&p, json + "\n").with_context(|| format!("writing {}", p.display()))?;
     let mut files = vec!["results.json".to_string()];
+    let p = dir.join("timings.json");
+    let t = serde_json::to_string_pretty(&out.timings)?;
+    std::fs::write(&p, t + "\n").with_context(|| format!("writing {}", p.display()))?;
+    files.push("timings.json".to_string());
     let plots = super::plots::write_plots(out, dir)?;
     let md = report_markdown(&out.results, &plots);
     let p = dir.join("report.md");
@@ -1189,16 +1384,21 @@ pub fn write_outputs(out: &CompareOutput, dir: &std::path::Path) -> anyhow::Resu
 
 /// `markhold compare` on the command line.
 #[derive(Debug, Clone, clap::Args)]
+#[command(args_conflicts_with_subcommands = true, subcommand_negates_reqs = true)]
 pub struct CompareArgs {
+    #[command(subcommand)]
+    pub command: Option<CompareCommand>,
     /// Dive-site file.
     #[arg(long, default_value = "params/pool.toml")]
     pub site: std::path::PathBuf,
     /// Number of seeds (1..=N) per method and lighting.
     #[arg(long, default_value_t = 1)]
     pub seeds: u64,
-    /// Output folder: report.md, results.json, plots (PNG and SVG).
-    #[arg(long)]
-    pub out: std::path::PathBuf,
+    /// Output folder: report.md, results.json, timings.json, plots (PNG and SVG); with
+    /// --shard, shard-I-of-N.json only. (Required; optional here only because `merge`
+    /// has its own.)
+    #[arg(long, required = true)]
+    pub out: Option<std::path::PathBuf>,
     /// Simulated seconds of each experiment run.
     #[arg(long, default_value_t = 60.0)]
     pub seconds: f64,
@@ -1211,13 +1411,49 @@ pub struct CompareArgs {
     /// Parallel runs (default: the number of cores).
     #[arg(long)]
     pub jobs: Option<usize>,
+    /// Run only the I-th of N deterministic slices of the sweep (1 <= I <= N) and write
+    /// DIR/shard-I-of-N.json; `markhold compare merge` makes the report from all N.
+    #[arg(long, value_name = "I/N")]
+    pub shard: Option<super::shard::Shard>,
     /// No progress bar.
     #[arg(long)]
     pub quiet: bool,
 }
 
+#[derive(Debug, Clone, clap::Subcommand)]
+pub enum CompareCommand {
+    /// Merge the shard files (shard-I-of-N.json) of one sweep found in DIR... into the
+    /// report.md, results.json and plots of the unsharded sweep.
+    Merge {
+        /// Folders holding the shard files (the --out of each `compare --shard`).
+        #[arg(required = true)]
+        dirs: Vec<std::path::PathBuf>,
+        /// Output folder.
+        #[arg(long)]
+        out: std::path::PathBuf,
+    },
+}
+
 /// Run `markhold compare` and print where the outputs went.
 pub fn cli(args: CompareArgs) -> anyhow::Result<()> {
+    if let Some(CompareCommand::Merge { dirs, out }) = &args.command {
+        let merged = super::shard::merge(dirs)?;
+        let files = write_outputs(&merged, out)?;
+        crate::outln!(
+            "markhold compare merge: {} cases from {} folder(s); wrote {} files to {}",
+            merged.results.cases.len(),
+            dirs.len(),
+            files.len(),
+            out.display()
+        );
+        for f in files {
+            crate::outln!("  {}", out.join(f).display());
+        }
+        return Ok(());
+    }
+    let Some(out_dir) = args.out.as_deref() else {
+        anyhow::bail!("--out DIR: required");
+    };
     let site = crate::params::load(&args.site)?;
     let mut opts = CompareOptions {
         seeds: (1..=args.seeds).collect(),
@@ -1240,20 +1476,60 @@ pub fn cli(args: CompareArgs) -> anyhow::Result<()> {
         "{spinner} {elapsed_precise} [{bar:30}] {pos}/{len} frames, eta {eta}",
         args.quiet,
     );
+    if let Some(shard) = args.shard {
+        return run_shard(&site, &opts, shard, out_dir, &bar);
+    }
     let out = run_compare(&site, &opts, &bar)?;
     drop(bar); // clears the bar
-    let files = write_outputs(&out, &args.out)?;
+    let files = write_outputs(&out, out_dir)?;
     crate::outln!(
         "markhold compare: {} runs of {} s on {}; wrote {} files to {}",
         out.series.len(),
         opts.seconds,
         site.site.site.name,
         files.len(),
-        args.out.display()
+        out_dir.display()
     );
     for f in files {
-        crate::outln!("  {}", args.out.join(f).display());
+        crate::outln!("  {}", out_dir.join(f).display());
     }
+    Ok(())
+}
+
+/// `--shard I/N`: run the slice, write DIR/shard-I-of-N.json.
+fn run_shard(
+    site: &LoadedSite,
+    opts: &CompareOptions,
+    shard: super::shard::Shard,
+    dir: &std::path::Path,
+    bar: &Span,
+) -> anyhow::Result<()> {
+    let sweep = super::shard::Sweep::of(site, opts)?;
+    let cases = shard.cases(opts);
+    let run = run_cases(site, opts, &cases, bar)?;
+    let first_seed = opts.seeds.first().copied();
+    let file = super::shard::ShardFile {
+        format: super::shard::FORMAT,
+        shard,
+        sweep,
+        cases: run.cases,
+        series: run
+            .series
+            .into_iter()
+            .filter(|s| Some(s.seed) == first_seed)
+            .collect(),
+        timings: run.timings,
+    };
+    let path = super::shard::write_shard(dir, &file)?;
+    crate::outln!(
+        "markhold compare --shard {shard}: {} of {} cases ({} runs of {} s) on {}; wrote {}",
+        cases.len(),
+        opts.cases().len(),
+        5 * cases.len(),
+        opts.seconds,
+        site.site.site.name,
+        path.display()
+    );
     Ok(())
 }
 

@@ -2,6 +2,7 @@
 //! fault injection, the paper's experiments (`compare`) and their plots, the robustness
 //! sweep (`robustness`), the plots of one run (`hil --plots`), and the HIL summary.
 
+pub mod claims;
 pub mod cmd;
 pub mod compare;
 pub mod external;
@@ -11,5 +12,7 @@ pub mod plots;
 pub mod robustness;
 pub mod robustness_plot;
 pub mod run_plots;
+pub mod shard;
+pub mod stats;
 pub mod stream;
 pub mod summary;

@@ -504,6 +504,123 @@ fn exposure_time<DB: DrawingBackend>(
     Ok(())
 }
 
+/// A method's column of a spread panel: the seeds' values and (low, mean, high).
+type SpreadColumn = (ExposureMethod, Vec<f64>, Option<(f64, f64, f64)>);
+
+/// The spread over seeds of four headline metrics (a panel each): every seed's value as a
+/// dot, the mean as a bar with its 95 % confidence interval, a column per method.
+fn spread<DB: DrawingBackend>(
+    root: &DrawingArea<DB, Shift>,
+    out: &CompareOutput,
+    l: LightingScenario,
+) -> anyhow::Result<()> {
+    root.fill(&WHITE).map_err(plot_err)?;
+    let r = &out.results;
+    let panels = root.split_evenly((2, 2));
+    let defs: [(&str, &str, f64); 4] = [
+        ("Static detection [%]", "static.detection_rate", 100.0),
+        (
+            "Motion: distance to trajectory [mm]",
+            "motion.mean_distance_to_trajectory_m",
+            1e3,
+        ),
+        (
+            "Convergence from 10x long [s]",
+            "convergence.long.seconds",
+            1.0,
+        ),
+        ("Station: position RMS [mm]", "station.position_rms_m", 1e3),
+    ];
+    for (area, (title, key, scale)) in panels.iter().zip(defs) {
+        // Per method: the seeds' values and the stat.
+        let cols: Vec<SpreadColumn> = r
+            .methods
+            .iter()
+            .map(|&m| {
+                let vals = r
+                    .cases
+                    .iter()
+                    .filter(|c| c.method == m && c.lighting == l)
+                    .filter_map(|c| {
+                        super::compare::metrics(c)
+                            .into_iter()
+                            .find(|(k, _)| *k == key)
+                            .and_then(|(_, v)| v)
+                    })
+                    .map(|v| v * scale)
+                    .collect();
+                let st = r.case_stats(m, l).and_then(|s| s.metrics.get(key));
+                let bar = st.and_then(|s| {
+                    let mean = s.mean? * scale;
+                    Some((
+                        s.ci95_low.map_or(mean, |v| v * scale),
+                        mean,
+                        s.ci95_high.map_or(mean, |v| v * scale),
+                    ))
+                });
+                (m, vals, bar)
+            })
+            .collect();
+        let mut all: Vec<f64> = cols
+            .iter()
+            .flat_map(|(_, v, b)| v.iter().copied().chain(b.iter().flat_map(|b| [b.0, b.2])))
+            .filter(|v| v.is_finite())
+            .collect();
+        all.push(0.0);
+        let hi = all.iter().copied().fold(f64::NEG_INFINITY, f64::max);
+        let lo = all.iter().copied().fold(f64::INFINITY, f64::min);
+        let pad = ((hi - lo) * 0.08).max(1e-6);
+        let n = cols.len().max(1) as f64;
+        let mut chart = ChartBuilder::on(area)
+            .caption(format!("{title}, {l}"), ("sans-serif", 18))
+            .margin(10)
+            .x_label_area_size(30)
+            .y_label_area_size(55)
+            .build_cartesian_2d(-0.5..n - 0.5, (lo - pad)..(hi + pad))
+            .map_err(plot_err)?;
+        chart
+            .configure_mesh()
+            .disable_x_mesh()
+            .x_labels(cols.len().max(1))
+            .x_label_formatter(&|x| {
+                let i = x.round();
+                if (x - i).abs() > 1e-6 || i < 0.0 {
+                    return String::new();
+                }
+                r.methods
+                    .get(i as usize)
+                    .map_or(String::new(), |m| method_name(*m).to_string())
+            })
+            .draw()
+            .map_err(plot_err)?;
+        for (i, (m, vals, bar)) in cols.iter().enumerate() {
+            let c = method_color(*m);
+            let x = i as f64;
+            chart
+                .draw_series(
+                    vals.iter()
+                        .map(|v| Circle::new((x + 0.15, *v), 3, c.mix(0.6).filled())),
+                )
+                .map_err(plot_err)?;
+            if let Some((lo, mean, hi)) = *bar {
+                let style = Color::stroke_width(&BLACK, 2);
+                let path = |pts: Vec<(f64, f64)>| PathElement::new(pts, style);
+                chart
+                    .draw_series([
+                        path(vec![(x - 0.1, lo), (x - 0.1, hi)]),
+                        path(vec![(x - 0.18, lo), (x - 0.02, lo)]),
+                        path(vec![(x - 0.18, hi), (x - 0.02, hi)]),
+                    ])
+                    .map_err(plot_err)?;
+                chart
+                    .draw_series([Circle::new((x - 0.1, mean), 5, c.filled())])
+                    .map_err(plot_err)?;
+            }
+        }
+    }
+    Ok(())
+}
+
 /// Every plot of a compare run, per lighting; returns the file names (relative to `dir`).
 pub fn write_plots(out: &CompareOutput, dir: &Path) -> anyhow::Result<Vec<String>> {
     let mut files = Vec::new();
@@ -523,6 +640,12 @@ pub fn write_plots(out: &CompareOutput, dir: &Path) -> anyhow::Result<Vec<String
         let mut ex = runs_of(out, l, RunKind::ConvergenceLong);
         ex.extend(runs_of(out, l, RunKind::ConvergenceShort));
         files.extend(both!(dir, format!("exposure_{l}"), exposure_time(&ex, l)));
+        files.extend(both!(
+            dir,
+            format!("spread_{l}"),
+            (1100, 800),
+            spread(out, l)
+        ));
     }
     Ok(files)
 }

@@ -35,6 +35,9 @@ pub struct Summary {
     pub final_yaw_error_deg: f64,
     /// Frames until the exposure stays within 5% of its final value.
     pub exposure_convergence_frames: u64,
+    /// Frames until the exposure is first within 5% of its final value (an excursion
+    /// after that counts in `exposure_convergence_frames` only).
+    pub exposure_first_within_frames: u64,
     pub final_exposure_us: f64,
     /// Frame available -> command on the wire, 99th percentile, milliseconds.
     pub loop_latency_p99_ms: f64,
@@ -191,6 +194,7 @@ impl RunStats {
             final_position_error_m: self.pos_err_m.last().copied().unwrap_or(f64::NAN),
             final_yaw_error_deg: self.yaw_err_deg.last().copied().unwrap_or(f64::NAN),
             exposure_convergence_frames: convergence_frames(&self.exposure_us, 0.05),
+            exposure_first_within_frames: first_within_frames(&self.exposure_us, 0.05),
             final_exposure_us: self.exposure_us.last().copied().unwrap_or(f64::NAN),
             loop_latency_p99_ms: percentile(&self.latency_s, 0.99) * 1e3,
             measured_position_cov_det: cov_det(&self.measured),
@@ -225,6 +229,15 @@ pub fn convergence_frames(series: &[f64], tol: f64) -> u64 {
         }
     }
     first_in as u64
+}
+
+/// Frames until the series is first within `tol` (relative) of its last value.
+pub fn first_within_frames(series: &[f64], tol: f64) -> u64 {
+    let Some(&last) = series.last() else { return 0 };
+    series
+        .iter()
+        .position(|v| (v - last).abs() <= tol * last.abs())
+        .unwrap_or(series.len()) as u64
 }
 
 pub fn percentile(v: &[f64], q: f64) -> f64 {

@@ -706,21 +706,7 @@ impl MarkerTracker {
         let pad = self.cfg.track_window_scale * side
             + self.cfg.track_motion_gain * motion
             + 2.0 * self.cfg.subpix_window_px as f64;
-        let (mut x0, mut y0, mut x1, mut y1) = (f64::MAX, f64::MAX, f64::MIN, f64::MIN);
-        for p in &pred {
-            x0 = x0.min(p[0] as f64);
-            y0 = y0.min(p[1] as f64);
-            x1 = x1.max(p[0] as f64);
-            y1 = y1.max(p[1] as f64);
-        }
-        let roi = window(
-            x0 - pad,
-            y0 - pad,
-            x1 + pad,
-            y1 + pad,
-            self.calib.width,
-            self.calib.height,
-        )?;
+        let roi = padded_window(&pred, pad, self.calib.width, self.calib.height)?;
         let scale = match &s.track {
             Some(t) => self.track_scale(side_px(&t.corners)),
             None => self.track_scale(side),
@@ -780,21 +766,7 @@ impl MarkerTracker {
                 p[1] = (p[1] as f64 * sf + (sf - 1.0) / 2.0) as f32;
             }
             let pad = 0.25 * side_px(&c) + 2.0 * sf + 2.0 * self.cfg.subpix_window_px as f64;
-            let (mut x0, mut y0, mut x1, mut y1) = (f64::MAX, f64::MAX, f64::MIN, f64::MIN);
-            for p in &c {
-                x0 = x0.min(p[0] as f64);
-                y0 = y0.min(p[1] as f64);
-                x1 = x1.max(p[0] as f64);
-                y1 = y1.max(p[1] as f64);
-            }
-            if let Some(roi) = window(
-                x0 - pad,
-                y0 - pad,
-                x1 + pad,
-                y1 + pad,
-                self.calib.width,
-                self.calib.height,
-            ) {
+            if let Some(roi) = padded_window(&c, pad, self.calib.width, self.calib.height) {
                 self.detect_window(image, roi, 1)?;
                 self.take_found(false);
             }
@@ -1102,6 +1074,18 @@ fn side_px(c: &Corners) -> f64 {
 }
 
 /// Integer window of the box, clamped to the image; `None` when empty or not finite.
+/// The window around `c`'s bounding box grown by `pad` pixels on each side.
+fn padded_window(c: &Corners, pad: f64, w: u32, h: u32) -> Option<Roi> {
+    let (mut x0, mut y0, mut x1, mut y1) = (f64::MAX, f64::MAX, f64::MIN, f64::MIN);
+    for p in c {
+        x0 = x0.min(p[0] as f64);
+        y0 = y0.min(p[1] as f64);
+        x1 = x1.max(p[0] as f64);
+        y1 = y1.max(p[1] as f64);
+    }
+    window(x0 - pad, y0 - pad, x1 + pad, y1 + pad, w, h)
+}
+
 fn window(x0: f64, y0: f64, x1: f64, y1: f64, w: u32, h: u32) -> Option<Roi> {
     if ![x0, y0, x1, y1].iter().all(|v| v.is_finite()) {
         return None;
