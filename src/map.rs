@@ -124,7 +124,7 @@ fn read_frames(
             Err(CameraError::EndOfStream { .. }) => break,
             Err(e) => return Err(e).with_context(|| format!("{}", dir.display())),
         }
-        if index % every == 0 {
+        if index.is_multiple_of(every) {
             builder.detect(tracker, &frame).with_context(|| {
                 format!(
                     "{}: frame {} (seq {})",

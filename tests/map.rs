@@ -257,3 +257,67 @@ fn map_names_the_folder_and_the_markers_it_cannot_place() {
     let _ = std::fs::remove_dir_all(&dir);
     let _ = std::fs::remove_file(&site);
 }
+
+/// `--recording`: a HIL recording of the one-marker test pool. Its frames make no map
+/// (one marker), and the error names the recording and counts its images: every one, then
+/// every 4th with `--every 4`.
+#[cfg(feature = "sim")]
+#[test]
+fn map_reads_every_image_of_a_recording() {
+    let site = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/fixtures/pool-640.toml");
+    let rec = scratch("pool.mcap");
+    let summary = scratch("pool-hil.json");
+    let out = markhold(&[
+        "hil",
+        "--quiet",
+        "--seconds",
+        "1",
+        "--site",
+        site.to_str().unwrap(),
+        "--record",
+        rec.to_str().unwrap(),
+        "--summary",
+        summary.to_str().unwrap(),
+    ]);
+    assert!(out.status.success(), "{out:?}");
+    let h: toml::Value = serde_json::from_str(&std::fs::read_to_string(&summary).unwrap()).unwrap();
+    let frames = h["frames"].as_integer().unwrap() as u64;
+    assert!(frames >= 29, "{h}");
+    for (every, read) in [(1, frames), (4, frames.div_ceil(4))] {
+        let out = markhold(&[
+            "map",
+            "--site",
+            site.to_str().unwrap(),
+            "--recording",
+            rec.to_str().unwrap(),
+            "--every",
+            &every.to_string(),
+        ]);
+        assert!(!out.status.success(), "{out:?}");
+        let err = String::from_utf8(out.stderr).unwrap();
+        assert!(err.contains(rec.to_str().unwrap()), "{err}");
+        assert!(err.contains(site.to_str().unwrap()), "{err}");
+        assert!(
+            err.contains(&format!(
+                "no frame shows two or more of the map's markers together ({read} frames read)"
+            )),
+            "{err}"
+        );
+    }
+    // Not a recording: named.
+    let out = markhold(&[
+        "map",
+        "--site",
+        site.to_str().unwrap(),
+        "--recording",
+        site.to_str().unwrap(),
+    ]);
+    assert!(!out.status.success(), "{out:?}");
+    let err = String::from_utf8(out.stderr).unwrap();
+    assert!(
+        err.contains("pool-640.toml: not a readable MCAP file"),
+        "{err}"
+    );
+    let _ = std::fs::remove_file(&rec);
+    let _ = std::fs::remove_file(&summary);
+}

@@ -107,7 +107,7 @@ pub fn for_each_image(
                 };
                 let index = out.images;
                 out.images += 1;
-                if index % every != 0 {
+                if !index.is_multiple_of(every) {
                     continue;
                 }
                 let img = CompressedImage::decode(&*data)
