@@ -69,6 +69,15 @@ pub fn build(
 ) -> anyhow::Result<(String, MapEstimate, MapBuilder)> {
     let marker = &site.site.marker;
     let origin = args.origin.unwrap_or(marker.id);
+    // Checked before the frames are read (the estimator checks it again).
+    if !marker.markers().any(|m| m.id == origin) {
+        let ids: Vec<String> = marker.markers().map(|m| m.id.to_string()).collect();
+        anyhow::bail!(
+            "--origin {origin}: not a marker of {} (its markers: {})",
+            site.path.display(),
+            ids.join(", ")
+        );
+    }
     let mut tracker = MarkerTracker::new(marker, &site.site.vision, site.calibration.clone())
         .with_context(|| format!("{}: the marker detector", site.path.display()))?;
     let mut builder = MapBuilder::new(marker, site.calibration.clone());

@@ -137,6 +137,29 @@ fn entries(toml_text: &str) -> Vec<(u32, Vector3<f64>, [f64; 3])> {
         .collect()
 }
 
+/// Every `[[marker.map]]` entry of `truth` is in the section `text` within 5 mm and 0.5
+/// degree.
+fn check_layout(truth: &MarkerConfig, text: &str) {
+    let got = entries(text);
+    assert_eq!(got.len(), truth.map.len(), "{text}");
+    let q = |r: [f64; 3]| {
+        let [a, b, c] = r.map(f64::to_radians);
+        UnitQuaternion::from_euler_angles(a, b, c)
+    };
+    for t in &truth.map {
+        let (_, p, rpy) = got.iter().find(|(id, _, _)| *id == t.id).unwrap();
+        let dp = (p - Vector3::from(t.position_m)).norm();
+        assert!(
+            dp < 0.005,
+            "marker {}: {:.2} mm off\n{text}",
+            t.id,
+            dp * 1e3
+        );
+        let da = q(*rpy).angle_to(&q(t.rpy_deg)).to_degrees();
+        assert!(da < 0.5, "marker {}: {da:.3} deg off\n{text}", t.id);
+    }
+}
+
 #[test]
 fn map_recovers_the_layout_from_a_frames_folder() {
     let dir = scratch("frames-all");
@@ -162,24 +185,7 @@ fn map_recovers_the_layout_from_a_frames_folder() {
     assert!(text.contains("reprojection RMS"), "{text}");
 
     let truth = markhold::params::load(&fixture()).unwrap().site.marker;
-    let got = entries(&text);
-    assert_eq!(got.len(), 3, "{text}");
-    for t in &truth.map {
-        let (_, p, rpy) = got.iter().find(|(id, _, _)| *id == t.id).unwrap();
-        let dp = (p - Vector3::from(t.position_m)).norm();
-        assert!(
-            dp < 0.005,
-            "marker {}: {:.2} mm off\n{text}",
-            t.id,
-            dp * 1e3
-        );
-        let q = |r: [f64; 3]| {
-            let [a, b, c] = r.map(f64::to_radians);
-            UnitQuaternion::from_euler_angles(a, b, c)
-        };
-        let da = q(*rpy).angle_to(&q(t.rpy_deg)).to_degrees();
-        assert!(da < 0.5, "marker {}: {da:.3} deg off\n{text}", t.id);
-    }
+    check_layout(&truth, &text);
 
     // The section pasted under the fixture's [marker] makes a site that loads.
     let base = std::fs::read_to_string(&site).unwrap();
@@ -306,6 +312,22 @@ fn map_reads_every_image_of_a_recording() {
             "{err}"
         );
     }
+    // An origin the site does not have: refused before the frames are read.
+    let out = markhold(&[
+        "map",
+        "--site",
+        site.to_str().unwrap(),
+        "--recording",
+        rec.to_str().unwrap(),
+        "--origin",
+        "7",
+    ]);
+    assert!(!out.status.success(), "{out:?}");
+    let err = String::from_utf8(out.stderr).unwrap();
+    assert!(
+        err.contains("--origin 7: not a marker of") && err.contains("(its markers: 0)"),
+        "{err}"
+    );
     // Not a recording: named.
     let out = markhold(&[
         "map",
