@@ -6,6 +6,7 @@ use crate::config::{DetectorConfig, MarkerConfig, PlacedMarker};
 use crate::corners::{CornerCov, EdgeRefiner};
 use crate::dict::dictionary;
 use crate::error::CvContext;
+use crate::mapping::SeenMarker;
 use crate::pose::{
     cov_of_inverse, cov_through, isotropic_corner_cov, marker_object_points, marker_rms_px,
     refine_pose, refine_pose_joint, whitening, MarkerCorners, RefinedPose,
@@ -272,6 +273,22 @@ impl MarkerTracker {
     /// search).
     pub fn last_search_roi(&self) -> Option<Roi> {
         self.last_search
+    }
+
+    /// The markers of the map found in the last frame processed, each with its own pose
+    /// (from its four corners alone, not from where the map places it): what
+    /// [`crate::mapping::MapBuilder`] builds a map from.
+    pub fn seen_markers(&self) -> impl Iterator<Item = SeenMarker> + '_ {
+        self.slots.iter().filter_map(|s| {
+            s.found?;
+            let single = s.single?;
+            Some(SeenMarker {
+                id: s.placed.id,
+                img: s.joint.img,
+                white: s.joint.white,
+                t_cam_marker: single.t_cam_marker,
+            })
+        })
     }
 
     /// Forget the tracking state: the next frame gets a full-frame search.
