@@ -291,7 +291,8 @@ fn unknown_render_loops_are_named() {
 /// one in view beside the origin marker and one far out of view, runs exactly as pool
 /// (the simulated world draws the origin marker only, so the map's window for the marker
 /// in view is searched every frame and finds nothing, and the pose is the origin
-/// marker's, bit for bit).
+/// marker's, bit for bit). Its exposure meters the origin marker only (`regions =
+/// "single"`): by default it would also meter where the map places the marker in view.
 #[test]
 fn a_map_whose_other_markers_are_not_seen_runs_as_its_origin_marker() {
     let d = tmpdir("map-of-one");
@@ -300,7 +301,8 @@ fn a_map_whose_other_markers_are_not_seen_runs_as_its_origin_marker() {
         &map,
         format!(
             "{}\n[[marker.map]]\nid = 5\nsize_m = 0.15\nposition_m = [0.3, 0.0, 0.0]\n\n\
-             [[marker.map]]\nid = 6\nsize_m = 0.15\nposition_m = [40.0, 0.0, 0.0]\n",
+             [[marker.map]]\nid = 6\nsize_m = 0.15\nposition_m = [40.0, 0.0, 0.0]\n\n\
+             [exposure.aaec]\nregions = \"single\"\n",
             pool_text()
         ),
     )
