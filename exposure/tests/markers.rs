@@ -1,6 +1,7 @@
 //! AAEC over several markers in view: one marker under a lamp, one in shadow. The region
 //! (`[exposure.aaec] regions`) decides whether both stay readable; the single marker's
 //! RoI and the camera's mean-intensity AE are measured beside it.
+#![allow(clippy::unwrap_used)] // Tests fail loudly on a broken setup, by design.
 mod common;
 
 use common::{limits, FULL_WELL_US};
