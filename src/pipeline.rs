@@ -379,18 +379,17 @@ impl<L: CommandLink> Pipeline<L> {
                 self.keeper.reset();
             }
         }
-        // Heading and position for the way back when the marker slips out of view
+        // Heading, position and depth for the way back when the marker slips out of view
         // (telemetry no older than a second).
         if let Some(v) = self.link.vehicle_state() {
             let fresh = |t: f64| (0.0..=1.0).contains(&(stamp - t));
             if let Some(a) = v.attitude.filter(|a| fresh(a.stamp_s)) {
                 self.keeper.set_heading(a.yaw);
             }
-            let ne = v
-                .local_position
-                .filter(|p| fresh(p.stamp_s))
-                .map(|p| [p.position[0], p.position[1]]);
-            self.keeper.set_position_ne(ne);
+            let lp = v.local_position.filter(|p| fresh(p.stamp_s));
+            self.keeper
+                .set_position_ne(lp.map(|p| [p.position[0], p.position[1]]));
+            self.keeper.set_depth(lp.map(|p| p.position[2]));
         }
         let effort = self.keeper.update(stamp, meas.as_ref());
         if obs.is_some() {

@@ -156,12 +156,13 @@ fn vehicle_disarmed_by_its_own_failsafe_is_reported_not_fought() {
 
 /// How far from its pre-fault value the exposure may be 1 s after the marker is back.
 /// AAEC's optimum on this scene is flat and where it stops depends on the path: from
-/// above (the start) it settles at 7.0-8.6 ms; after the loss the fallback AE has taken
-/// it down to about 2.1 ms and it climbs back to 4.1-6.2 ms (8.5 ms once). Over seeds 1-6
-/// and both faults the ratio was 0.92-1.86 (`occlude` and `out_of_view`), so
-/// 1.5 held for some noise fields and not others. A runaway goes to a limit (20 us or
-/// 30 ms) and is caught here and by the limit check.
-const BACK_FACTOR: f64 = 2.0;
+/// above (the start) it lands on the knee at 3.8 ms; after the loss the reacquisition
+/// brings it back from below and 1 s after the return it is at 5.0-7.9 ms. Over seeds 1-6
+/// the ratio was 1.84-2.06 (`out_of_view@3+1.5`), 1.33-2.07 (`occlude@4+0.5`) and
+/// 1.33-1.75 (`occlude@4+3`), STABILIZE (`markhold hil --site F --fault SPEC --seed N
+/// --trace T.csv`, F = pool-640 in STABILIZE). A runaway goes to a limit (20 us or 30 ms,
+/// 8x away) and is caught here and by the limit check.
+const BACK_FACTOR: f64 = 2.5;
 
 /// No runaway: the exposure commanded during the window never goes near the camera's
 /// limits, and at `back_s` it is within `factor` of where it was before the start.
@@ -255,13 +256,7 @@ fn marker_occluded_long_policy_acts_exposure_holds() {
 
 #[test]
 fn marker_out_of_view_then_back() {
-    // The exposure's return depends on the vehicle's path (see `BACK_FACTOR`); measured
-    // with this keeper setting (with the 2 Hz filter and 0.005 band the exposure is 2.9x
-    // its pre-fault value 1 s after the marker is back, seed 1).
-    let s = site_with_controller(
-        "stabilize",
-        "derivative_filter_hz = 4.0\noutput_deadband = 0.0\n",
-    );
+    let s = site("stabilize");
     let o = run(&s, 8.0, &["out_of_view@3+1.5"], None);
     let r = &o.reports[0];
     assert!(o.stats.frames_out_of_view > 0);

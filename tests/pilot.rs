@@ -384,3 +384,112 @@ fn hil_on_an_external_vehicle_hands_over_to_the_pilot_and_regains_station() {
         "hil pilot: moved {moved:.2} m while markhold was off, {err:.3} m from station at the end"
     );
 }
+
+/// Drives the `--scenario thrust` vehicle with a `VehicleLink` configured like a site's
+/// `[link]`: selects `mode`, sends `effort` for 0.6 s, releases; the vehicle's verdict.
+fn thrust_run(
+    link: markhold_autopilot::LinkConfig,
+    effort: markhold_autopilot::Effort,
+    volts: &str,
+) -> serde_json::Value {
+    use markhold_autopilot::VehicleLink;
+    use std::time::{Duration, Instant};
+    let (mut v, port) = vehicle(&["--scenario", "thrust", "--volts", volts]);
+    let mode = link.mode.ardusub();
+    let mut l = VehicleLink::connect(&markhold_autopilot::LinkConfig {
+        url: format!("udpout:127.0.0.1:{port}"),
+        ..link
+    })
+    .unwrap();
+    let t0 = Instant::now();
+    let mut asked = false;
+    while t0.elapsed() < Duration::from_secs(10) {
+        let t = t0.elapsed().as_secs_f64();
+        l.tick(t).unwrap();
+        if l.state().discovered && !asked {
+            l.request_mode(mode, t).unwrap();
+            asked = true;
+        }
+        if l.state().mode == Some(mode) {
+            let start = Instant::now();
+            while start.elapsed() < Duration::from_millis(600) {
+                let t = t0.elapsed().as_secs_f64();
+                l.tick(t).unwrap();
+                l.send_effort(&effort, t).unwrap();
+                std::thread::sleep(Duration::from_millis(30));
+            }
+            l.release_pilot().unwrap();
+            break;
+        }
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    drop(l);
+    verdict(&mut v)
+}
+
+/// Against a vehicle that reads pilot input as ArduSub does and turns it into thrust
+/// from Blue Robotics' T200 table: the smallest forward command the station keeper sends
+/// (an effort just above `effort_epsilon`, in ALT_HOLD as every site runs, over RC
+/// overrides and over MANUAL_CONTROL) produces the thrust the keeper intends within
+/// 20 %. The keeper intends the T200 thrust at the PWM it aims for: 1500 + its ESC dead
+/// band (`thruster_deadband_us`, here the table's own 28 us at 16 V) + the effort; with
+/// an input dead zone added on forward (which ArduSub does not have) it would be several
+/// times that.
+#[test]
+fn the_smallest_forward_command_makes_the_thrust_the_keeper_intends() {
+    use markhold_autopilot::{Effort, LinkConfig, LinkMode, PilotInput, PilotMap};
+    use markhold_hil::mixer::{Frame6Dof, Mixer};
+    use markhold_hil::ThrusterConfig;
+    let volts = 16.0;
+    for pilot_input in [PilotInput::RcOverride, PilotInput::ManualControl] {
+        let link = LinkConfig {
+            mode: LinkMode::AltHold,
+            pilot_input,
+            thruster_deadband_us: 28.0,
+            ..LinkConfig::default()
+        };
+        let e = Effort {
+            surge: link.effort_epsilon * 1.01,
+            ..Effort::NEUTRAL
+        };
+        // What the keeper aims for: the forward channel's PWM straight into the mixer.
+        let rc = PilotMap::from_config(&link).rc_channels(&e);
+        let fwd = f64::from(rc[4]) - 1500.0;
+        let mixer = Mixer::new(Frame6Dof::Heavy);
+        let pwm = mixer.mix_pwm(&[fwd / 400.0, 0.0, 0.0, 0.0, 0.0, 0.0], true);
+        let t200 = ThrusterConfig::default();
+        let thrust = pwm.map(|p| t200.steady_thrust_n(f64::from(p), volts));
+        let intended = mixer.wrench(&thrust).0.x;
+        assert!(
+            intended > 0.0,
+            "the keeper's smallest command makes no thrust: {pwm:?}"
+        );
+
+        let verdict = thrust_run(link, e, "16");
+        assert_eq!(verdict["ok"], true, "{verdict}");
+        let samples = verdict["samples"].as_array().unwrap();
+        let cmd: Vec<_> = samples
+            .iter()
+            .filter(|s| s["rc"][4].as_u64() != Some(1500))
+            .collect();
+        assert!(
+            !cmd.is_empty(),
+            "no forward command reached the vehicle: {verdict}"
+        );
+        for s in cmd {
+            let fx = s["fx_n"].as_f64().unwrap();
+            assert!(
+                (fx - intended).abs() <= 0.2 * intended,
+                "{pilot_input:?}: the vehicle made {fx:.3} N forward, the keeper intended \
+                 {intended:.3} N (motors {:?} from {:?}, keeper aimed at {pwm:?})",
+                s["motors"],
+                s["rc"]
+            );
+            // Nothing else moved: no setpoint left its dead zone.
+            for (k, v) in s["setpoints"].as_object().unwrap() {
+                assert_eq!(v.as_f64(), Some(0.0), "{k} in {s}");
+            }
+        }
+        eprintln!("smallest forward command over {pilot_input:?}: {intended:.3} N intended");
+    }
+}

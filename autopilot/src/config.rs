@@ -398,7 +398,8 @@ impl LinkMode {
         }
     }
 
-    /// True where ArduSub applies its pilot-input dead zones.
+    /// True where ArduSub applies its pilot-input dead zones (to roll, pitch, yaw and
+    /// the ALT_HOLD throttle; forward and lateral have none in any mode).
     pub fn has_input_dead_zone(self) -> bool {
         matches!(self, Self::Stabilize | Self::AltHold)
     }
@@ -473,15 +474,25 @@ pub struct LinkConfig {
     pub hand_back_timeout_s: f64,
     /// Retries after the first COMMAND_LONG.
     pub command_retries: u32,
-    /// Thruster dead band half-width around 1500 us that compensation skips, us.
+    /// The thrusters' ESC dead band half-width around 1500 us that compensation skips
+    /// (the last offset with no thrust), us: measure it on the vehicle. 30 is a T200 on a
+    /// Basic ESC at a 4S pack's nominal 14.8 V in Blue Robotics' table (32 us at 14 V,
+    /// 28 us at 16 V).
     pub thruster_deadband_us: f64,
-    /// ArduSub's pilot-input dead zone in stabilized modes, us.
+    /// ArduSub's RC1_DZ..RC3_DZ (pitch, roll, throttle input dead zones), us: they apply
+    /// to roll and pitch in STABILIZE / ALT_HOLD and to the ALT_HOLD throttle, never to
+    /// forward and lateral.
     pub input_deadzone_us: f64,
-    /// ArduSub's yaw input dead zone in stabilized modes, us.
+    /// ArduSub's RC4_DZ (yaw input dead zone), us; STABILIZE / ALT_HOLD use it times the
+    /// joystick gain (`manual_control_gain`).
     pub yaw_deadzone_us: f64,
+    /// ArduSub's THR_DZ: the ALT_HOLD climb-rate dead band about centre throttle, in
+    /// throttle control units (0..1000 over the stick travel above RC3_DZ).
+    pub thr_dz: f64,
     /// Efforts below this magnitude are sent as exact neutral (no compensation).
     pub effort_epsilon: f64,
-    /// ArduSub's joystick gain (JS_GAIN_DEFAULT), undone for MANUAL_CONTROL.
+    /// ArduSub's joystick gain (JS_GAIN_DEFAULT), undone for MANUAL_CONTROL; it also
+    /// scales the yaw dead zone.
     pub manual_control_gain: f64,
     /// Surface air pressure for depth from SCALED_PRESSURE2, Pa.
     pub surface_pressure_pa: f64,
@@ -519,9 +530,10 @@ impl Default for LinkConfig {
             on_exit: OnExit::HandBack,
             hand_back_timeout_s: 10.0,
             command_retries: 3,
-            thruster_deadband_us: 28.0,
+            thruster_deadband_us: 30.0,
             input_deadzone_us: 30.0,
             yaw_deadzone_us: 40.0,
+            thr_dz: 100.0,
             effort_epsilon: 1e-3,
             manual_control_gain: 0.5,
             surface_pressure_pa: 101_325.0,
@@ -567,9 +579,11 @@ impl LinkConfig {
             .non_negative("thruster_deadband_us", self.thruster_deadband_us, NON_NEGATIVE)
             .range("thruster_deadband_us", self.thruster_deadband_us, ..200.0, below_200)
             .non_negative("input_deadzone_us", self.input_deadzone_us, NON_NEGATIVE)
-            .range("input_deadzone_us", self.input_deadzone_us, ..200.0, below_200)
+            .range("input_deadzone_us", self.input_deadzone_us, ..=200.0, "<= 200 us (ArduSub RCn_DZ range)")
             .non_negative("yaw_deadzone_us", self.yaw_deadzone_us, NON_NEGATIVE)
-            .range("yaw_deadzone_us", self.yaw_deadzone_us, ..200.0, below_200)
+            .range("yaw_deadzone_us", self.yaw_deadzone_us, ..=200.0, "<= 200 us (ArduSub RCn_DZ range)")
+            .non_negative("thr_dz", self.thr_dz, NON_NEGATIVE)
+            .range("thr_dz", self.thr_dz, ..=400.0, "<= 400 (ArduSub THR_DZ range)")
             .non_negative("effort_epsilon", self.effort_epsilon, NON_NEGATIVE)
             .range("effort_epsilon", self.effort_epsilon, ..0.5, "< 0.5")
             .positive("surface_pressure_pa", self.surface_pressure_pa, POSITIVE)
@@ -642,6 +656,19 @@ mod tests {
             ..Default::default()
         };
         assert!(l.validate().is_err());
+
+        let l = LinkConfig {
+            thr_dz: 500.0,
+            ..Default::default()
+        };
+        let e = l.validate().unwrap_err().to_string();
+        assert!(e.contains("link.thr_dz") && e.contains("500"), "{e}");
+        let l = LinkConfig {
+            thruster_deadband_us: -1.0,
+            ..Default::default()
+        };
+        let e = l.validate().unwrap_err().to_string();
+        assert!(e.contains("link.thruster_deadband_us"), "{e}");
 
         let s = StationConfig {
             distance_m: -1.0,

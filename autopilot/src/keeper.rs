@@ -506,8 +506,10 @@ impl StationKeeper {
                         self.out = e;
                         return;
                     }
-                    None if a <= self.hold_s => {
-                        // Turned back (or nothing to turn): hold still.
+                    None if a <= self.search_max_s => {
+                        // Turned back, or nothing to turn yet: hold still and look again
+                        // next frame (a drift can still make a turn worth it), until the
+                        // lost action is due.
                         self.status = KeeperStatus::Searching;
                         self.out = Effort::NEUTRAL;
                         return;
@@ -591,6 +593,13 @@ impl StationKeeper {
     /// not only toward where it was seen. `None` when there is none.
     pub fn set_position_ne(&mut self, ne: Option<[f64; 2]>) {
         self.nav.position_ne = ne.filter(|p| p.iter().all(|v| v.is_finite()));
+    }
+
+    /// The vehicle's depth (local position down, m) from telemetry, given before
+    /// `update` for the same frame: the way back returns to the depth the marker was
+    /// last seen from. `None` when unknown.
+    pub fn set_depth(&mut self, down_m: Option<f64>) {
+        self.nav.down_m = down_m.filter(|d| d.is_finite());
     }
 
     /// Where the guard band starts: a fraction of the image inside its edges.
@@ -1126,6 +1135,32 @@ mod tests {
         k.set_position_ne(Some([-1.0, 0.6]));
         let e = k.update(1.0, None);
         assert_eq!(k.status(), KeeperStatus::Searching);
+        assert!(e.yaw < -0.1, "{e:?}");
+    }
+
+    #[test]
+    fn way_back_returns_to_the_depth_and_keeps_looking_past_the_hold() {
+        // Hidden in mid-image (no edge), the vehicle floats up without drifting sideways:
+        // nothing to turn, so past the hold it keeps searching (not lost) and heaves down
+        // to the depth it saw the marker from; a later drift still gets its turn.
+        let goal = StationConfig::default().t_marker_vehicle();
+        let mut k = keeper();
+        k.set_view(pool_view());
+        k.set_heading(0.0);
+        k.set_position_ne(Some([-1.0, 0.0]));
+        k.set_depth(Some(3.0));
+        k.update(0.0, Some(&meas_for(0.0, &goal)));
+        let hold = ControllerConfig::default().marker_lost_hold_s;
+        k.set_depth(Some(2.8));
+        let e = k.update(hold + 0.5, None);
+        assert_eq!(k.status(), KeeperStatus::Searching);
+        assert!(e.heave > 0.05 && e.yaw == 0.0, "{e:?}");
+        k.set_depth(Some(2.99));
+        let e = k.update(hold + 0.6, None);
+        assert!(e.is_neutral(), "{e:?}");
+        assert_eq!(k.status(), KeeperStatus::Searching);
+        k.set_position_ne(Some([-1.0, 0.6]));
+        let e = k.update(hold + 1.0, None);
         assert!(e.yaw < -0.1, "{e:?}");
     }
 

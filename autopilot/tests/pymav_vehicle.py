@@ -13,6 +13,9 @@ system 255, component 190, seen through a router) for `markhold run`: it answers
 parameter protocol, emulates the pilot-input failsafe, captures markhold's STATUSTEXT,
 and drives the pilot's actions from what markhold says (see pilot_main).
 `--scenario params` answers heartbeats and parameters only, for `markhold preflight`.
+`--scenario thrust` reads pilot input as ArduSub does per mode and channel (see
+thrust_main) and turns it into T200 thrust from Blue Robotics' published table
+(hil/data/t200-*.csv) at `--volts`, for the keeper's dead-zone compensation test.
 """
 import argparse
 import json
@@ -40,10 +43,13 @@ def main():
     ap.add_argument("--mode", choices=["udp", "pty"], default="udp")
     ap.add_argument("--pilot", choices=["rc", "manual"], default="rc")
     ap.add_argument("--deadline", type=float, default=30.0)
-    ap.add_argument("--scenario", choices=["interop", "pilot", "params"], default="interop")
+    ap.add_argument("--scenario", choices=["interop", "pilot", "params", "thrust"], default="interop")
+    ap.add_argument("--volts", type=float, default=16.0, help="thrust scenario: supply voltage")
     ap.add_argument("--param", action="append", default=[], help="NAME=VALUE override")
     ap.add_argument("--no-pilot-after-exit", action="store_true")
     args = ap.parse_args()
+    if args.scenario == "thrust":
+        return thrust_main(args)
     if args.scenario != "interop":
         return pilot_main(args)
 
@@ -206,9 +212,9 @@ def main():
                 failures.append("several channels moved at once: %r" % (ch,))
             for i, s, mag in dev:
                 seen.add((i, s))
-                # Effort 0.5 in MANUAL: 28 us dead band + 0.5 * 372.
-                if mag != 214:
-                    failures.append("channel %d offset %d, expected 214" % (i, mag))
+                # Effort 0.5 in MANUAL: 30.5 us (past the 30 us dead band) + 0.5 * 369.5.
+                if mag != 215:
+                    failures.append("channel %d offset %d, expected 215" % (i, mag))
         last = neutral_before_disarm
         if last is None or [last[2].chan1_raw, last[2].chan2_raw, last[2].chan3_raw, last[2].chan4_raw,
                             last[2].chan5_raw, last[2].chan6_raw] != [1500] * 6:
@@ -496,6 +502,195 @@ def step_plan(plan, now, said, pilot_mode, pilot_arm, mh_inputs, change_t, failu
         if plan["no_js_after_exit"]:
             # Nobody at the joystick when markhold stops.
             plan["js"] = False
+
+
+# --- ArduSub's pilot-input handling (written from ArduSub's source, see
+# docs/design/hil.md): RC_Channel with MIN 1100, TRIM 1500, MAX 1900.
+RC_DZ = {1: 30, 2: 30, 3: 30, 4: 40}  # RC1_DZ..RC4_DZ defaults
+THR_DZ = 100
+JS_GAIN = 0.5
+ALT_HOLD = 2
+
+
+def norm_input(pwm):
+    """RC_Channel::norm_input: no dead zone."""
+    v = (pwm - 1500) / 400.0
+    return max(-1.0, min(1.0, v))
+
+
+def c_div(a, b):
+    """C integer division (truncates toward zero)."""
+    q = abs(a) // abs(b)
+    return q if (a >= 0) == (b > 0) else -q
+
+
+def angle_dz(pwm, dz):
+    """RC_Channel::pwm_to_angle_dz_trim: -4500..4500, zero within dz of trim."""
+    r = max(1100, min(1900, pwm))
+    hi, lo = 1500 + dz, 1500 - dz
+    if r > hi:
+        return c_div(4500 * (r - hi), 1900 - hi)
+    if r < lo:
+        return c_div(4500 * (r - lo), lo - 1100)
+    return 0
+
+
+def range_dz(pwm, dz):
+    """RC_Channel::pwm_to_range_dz: 0..1000, the dead zone at the bottom."""
+    r = max(1100, min(1900, pwm))
+    low = 1100 + dz
+    return c_div(1000 * (r - low), 1900 - low) if r > low else 0
+
+
+def climb(pwm):
+    """Sub::get_pilot_desired_climb_rate as a fraction of the speed limit."""
+    ctrl = range_dz(pwm, RC_DZ[3])
+    low = 1100 + RC_DZ[3]
+    mid = c_div(1000 * (1500 - low), 1900 - low)
+    top, bottom = mid + THR_DZ, mid - THR_DZ
+    if ctrl < bottom:
+        return (ctrl - bottom) / bottom
+    if ctrl > top:
+        return (ctrl - top) / (1000.0 - top)
+    return 0.0
+
+
+def mixer_inputs(mode, ch):
+    """What reaches AP_Motors6DOF (forward, lateral, throttle, roll, pitch, yaw) from the
+    channels ch[1..6] (1 pitch, 2 roll, 3 throttle, 4 yaw, 5 forward, 6 lateral). In the
+    stabilized modes roll, pitch and yaw are setpoints, throttle in ALT_HOLD a climb
+    rate: with the vehicle level and still, their loops ask nothing of the thrusters
+    unless the input passes its dead zone (reported as 'setpoints')."""
+    fwd, lat = norm_input(ch[5]), norm_input(ch[6])
+    if mode == MANUAL:
+        return (fwd, lat, norm_input(ch[3]), norm_input(ch[2]), norm_input(ch[1]), norm_input(ch[4])), {}
+    yaw_dz = int(RC_DZ[4] * JS_GAIN)
+    sp = {"roll": angle_dz(ch[2], RC_DZ[2]), "pitch": angle_dz(ch[1], RC_DZ[1]),
+          "yaw": angle_dz(ch[4], yaw_dz)}
+    thr = 0.0
+    if mode == STABILIZE:
+        thr = norm_input(ch[3])
+    else:
+        sp["climb"] = climb(ch[3])
+    return (fwd, lat, thr, 0.0, 0.0, 0.0), sp
+
+
+# Motors 1-4 of both BlueROV2 frames: (yaw, forward, lateral) factors and the thrust
+# direction's forward component (horizontal thrusters at 45 degrees).
+HORIZONTAL = [((1, -1, 1), -0.7071), ((-1, -1, -1), -0.7071), ((-1, 1, 1), 0.7071), ((1, 1, -1), 0.7071)]
+
+
+def load_t200(volts):
+    """Thrust (N) per PWM row of Blue Robotics' table, interpolated linearly in voltage."""
+    here = os.path.dirname(os.path.abspath(__file__))
+    sheets = {}
+    for v in (10, 12, 14, 16, 18, 20):
+        rows = {}
+        with open(os.path.join(here, "..", "..", "hil", "data", "t200-%dv.csv" % v)) as f:
+            for line in f:
+                if line[:1].isdigit():
+                    c = line.split(",")
+                    rows[int(c[0])] = float(c[5]) * 9.80665
+        sheets[v] = rows
+    volts = max(10.0, min(20.0, volts))
+    lo = max(v for v in sheets if v <= volts)
+    hi = min(v for v in sheets if v >= volts)
+    w = 0.0 if hi == lo else (volts - lo) / (hi - lo)
+    return {p: sheets[lo][p] + w * (sheets[hi][p] - sheets[lo][p]) for p in sheets[lo]}
+
+
+def thrust_at(table, pwm):
+    pwm = max(1100, min(1900, pwm))
+    r = 1100 + 4 * ((pwm - 1100) // 4)
+    if r == 1900:
+        return table[1900]
+    return table[r] + (pwm - r) / 4.0 * (table[r + 4] - table[r])
+
+
+def thrust_main(args):
+    """An ArduSub vehicle at rest: acknowledges mode and arm commands, reads pilot input
+    from the GCS id per mode, mixes the thruster channels as AP_Motors6DOF does (PWM =
+    1500 + 400 x output, truncated) and records the T200 thrust at `--volts`. Ends 1 s
+    after the link falls silent; the verdict lists every distinct input it saw."""
+    table = load_t200(args.volts)
+    sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    sock.bind(("127.0.0.1", 0))
+    sock.setblocking(False)
+    print("UDP %d" % sock.getsockname()[1], flush=True)
+    peer = [None]
+
+    def send(b):
+        if peer[0] is not None:
+            sock.sendto(b, peer[0])
+
+    veh = mav2.MAVLink(Out(send), srcSystem=1, srcComponent=1)
+    veh.robust_parsing = True
+    st = {"armed": False, "mode": MANUAL}
+    ch = {i: 1500 for i in range(1, 9)}
+    samples = {}
+    failures = []
+    t0 = time.time()
+    last_hb, last_heard = 0.0, None
+
+    def record(kind):
+        inputs, sp = mixer_inputs(st["mode"], ch)
+        fwd, lat, _, _, _, yaw = inputs
+        horz = [yaw * f[0] + fwd * f[1] + lat * f[2] for f, _ in HORIZONTAL]
+        scale = max([1.0] + [abs(h) for h in horz])
+        motors = [int(1500 + 400 * (h / scale)) for h in horz]
+        fx = sum(thrust_at(table, m) * dx for m, (_, dx) in zip(motors, HORIZONTAL))
+        key = (kind, st["mode"], tuple(ch[i] for i in range(1, 7)))
+        samples[key] = {"input": kind, "mode": st["mode"], "rc": [ch[i] for i in range(1, 7)],
+                        "motors": motors, "fx_n": fx, "setpoints": sp}
+
+    while time.time() - t0 < args.deadline:
+        now = time.time()
+        if now - last_hb >= 0.1:
+            last_hb = now
+            base = mav2.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED | (mav2.MAV_MODE_FLAG_SAFETY_ARMED if st["armed"] else 0)
+            veh.heartbeat_send(mav2.MAV_TYPE_SUBMARINE, mav2.MAV_AUTOPILOT_ARDUPILOTMEGA, base, st["mode"], mav2.MAV_STATE_ACTIVE)
+            veh.attitude_send(1234, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
+        r, _, _ = select.select([sock], [], [], 0.005)
+        if not r:
+            if last_heard is not None and now - last_heard > 1.0:
+                break
+            continue
+        data, addr = sock.recvfrom(4096)
+        peer[0], last_heard = addr, now
+        for m in veh.parse_buffer(data) or []:
+            t = m.get_type()
+            if m.get_srcSystem() != 255:
+                continue  # ArduSub uses pilot input from SYSID_MYGCS only
+            if t == "RC_CHANNELS_OVERRIDE":
+                raw = [m.chan1_raw, m.chan2_raw, m.chan3_raw, m.chan4_raw, m.chan5_raw, m.chan6_raw]
+                for i, v in enumerate(raw):
+                    if v not in (0, 65535):
+                        ch[i + 1] = v
+                if raw != [0] * 6:
+                    record("rc")
+            elif t == "MANUAL_CONTROL":
+                # Sub::transform_manual_control_to_rc_override: scaled by the gain,
+                # truncated by the conversion to int16.
+                rpy = 0.4 * JS_GAIN
+                thr = 0.8 * JS_GAIN
+                ax = lambda v: max(1100, min(1900, int(1500 + v * rpy)))
+                ch[3] = max(1100, min(1900, int(1500 - 500 * thr + m.z * thr)))
+                ch[4], ch[5], ch[6] = ax(m.r), ax(m.x), ax(m.y)
+                if m.enabled_extensions & 1:
+                    ch[1] = ax(m.s)
+                if m.enabled_extensions & 2:
+                    ch[2] = ax(m.t)
+                record("manual_control")
+            elif t == "COMMAND_LONG":
+                if m.command == mav2.MAV_CMD_COMPONENT_ARM_DISARM:
+                    st["armed"] = m.param1 > 0.5
+                elif m.command == mav2.MAV_CMD_DO_SET_MODE:
+                    st["mode"] = int(m.param2)
+                veh.command_ack_send(m.command, mav2.MAV_RESULT_ACCEPTED)
+    verdict = {"ok": not failures, "failures": failures, "volts": args.volts,
+               "samples": list(samples.values())}
+    print(json.dumps(verdict), flush=True)
+    sys.exit(0 if not failures else 1)
 
 
 if __name__ == "__main__":

@@ -46,7 +46,7 @@ impl NaiveFossen {
     fn step(&mut self, pwm: &[u16; 8], dt: f64) {
         let h = &self.h;
         for (i, t) in self.thrust.iter_mut().enumerate() {
-            let target = self.thr.steady_thrust_n(pwm[i] as f64);
+            let target = self.thr.steady_thrust_n(pwm[i] as f64, 14.8);
             *t += (1.0 - (-dt / self.thr.time_constant_s).exp()) * (target - *t);
         }
         let (f, m) = self.mixer.wrench(&self.thrust);

@@ -21,10 +21,6 @@ use serde::{Deserialize, Serialize};
 
 use markhold_config::{Checks, ConfigError};
 
-/// Density of fresh water, kg/m^3, used for the tether's drag (sea water is 2.5 %
-/// denser).
-pub const TETHER_WATER_DENSITY_KG_M3: f64 = 1000.0;
-
 /// Points of the midpoint rule along the tether (exact to 0.3 % for the quadratic load).
 const TETHER_POINTS: usize = 16;
 
@@ -66,13 +62,14 @@ impl TetherConfig {
     }
 
     /// Force the tether pulls on the vehicle with, world NED, newtons, given the water
-    /// velocity and the vehicle's velocity (world NED, m/s).
+    /// velocity and the vehicle's velocity (world NED, m/s) and the site's water density.
     pub fn force_world_n(
         &self,
         water_mps: &Vector3<f64>,
         vehicle_mps: &Vector3<f64>,
+        density_kg_m3: f64,
     ) -> Vector3<f64> {
-        let k = 0.5 * TETHER_WATER_DENSITY_KG_M3 * self.drag_coefficient * self.diameter_m;
+        let k = 0.5 * density_kg_m3 * self.drag_coefficient * self.diameter_m;
         let mut f = Vector3::zeros();
         for i in 0..TETHER_POINTS {
             let s = (i as f64 + 0.5) / TETHER_POINTS as f64;
@@ -126,7 +123,7 @@ mod tests {
     fn still_vehicle_carries_half_the_tether_drag() {
         let t = TetherConfig::default();
         let w = Vector3::new(0.1, 0.0, 0.05);
-        let f = t.force_world_n(&w, &Vector3::zeros());
+        let f = t.force_world_n(&w, &Vector3::zeros(), 1000.0);
         // Uniform load q L, half of it at each end; vertical flow does not load it.
         let q = 0.5 * 1000.0 * 1.2 * 0.0076 * 0.1 * 0.1;
         let expect = 0.5 * q * t.length_m;
@@ -139,7 +136,7 @@ mod tests {
     fn moving_vehicle_in_still_water_is_held_back() {
         let t = TetherConfig::default();
         let v = Vector3::new(0.0, 0.3, 0.0);
-        let f = t.force_world_n(&Vector3::zeros(), &v);
+        let f = t.force_world_n(&Vector3::zeros(), &v, 1000.0);
         // Exact: 1/2 rho Cd d L v^2 integral of s^3 ds = ... / 4.
         let expect = -0.5 * 1000.0 * 1.2 * 0.0076 * t.length_m * 0.09 / 4.0;
         assert!(

@@ -5,9 +5,10 @@
 //!
 //! Facts from ArduSub (see docs/reference/ardusub.md): pilot input only from the GCS system id,
 //! MANUAL_CONTROL's target must be our system id, RC overrides expire after 3 s, manual
-//! control is scaled by the joystick gain, the stabilized modes apply a 30 us input dead
-//! zone (40 us on yaw), disarm after 3 s without pilot input and 5 s after the GCS
-//! heartbeat was lost.
+//! control is scaled by the joystick gain, each mode reads each channel as ArduSub does
+//! (forward and lateral without a dead zone; roll, pitch, yaw and the ALT_HOLD throttle
+//! through their dead zones: see `control`), disarm after 3 s without pilot input and
+//! 5 s after the GCS heartbeat was lost.
 //!
 //! Telemetry can be sent late (`set_telemetry_latency`): attitude, position, depth and
 //! the other sensor messages then report the vehicle's state that much simulation time
@@ -93,8 +94,15 @@ pub struct EndpointConfig {
     /// With a key: also accept unsigned frames (MAVLink 1, unsigned MAVLink 2). False:
     /// signing is required and unsigned input is dropped.
     pub signing_accept_unsigned: bool,
-    /// MANUAL_CONTROL scaling (ArduSub's joystick gain): full stick = 400 us x gain.
+    /// MANUAL_CONTROL scaling (ArduSub's joystick gain, JS_GAIN_DEFAULT): full stick =
+    /// 400 us x gain; it also scales the yaw dead zone of the stabilized modes.
     pub joystick_gain: f64,
+    /// RC1_DZ .. RC4_DZ (pitch, roll, throttle, yaw input dead zones), us: ArduSub's
+    /// defaults 30, 30, 30, 40.
+    pub rc_dz_us: [u16; 4],
+    /// THR_DZ: the ALT_HOLD / POSHOLD climb-rate dead band about centre throttle, in
+    /// throttle control units (0..1000 over the stick travel above RC3_DZ); default 100.
+    pub thr_dz: u16,
     /// Disarm after this long without pilot input (FS_PILOT_TIMEOUT); 0 disables.
     pub pilot_timeout_s: f64,
     /// Disarm after this long without a GCS heartbeat once one was seen (FS_GCS_TIMEOUT);
@@ -128,6 +136,8 @@ impl Default for EndpointConfig {
             signing_link_id: 0,
             signing_accept_unsigned: false,
             joystick_gain: 0.5,
+            rc_dz_us: [30, 30, 30, 40],
+            thr_dz: 100,
             pilot_timeout_s: 3.0,
             gcs_timeout_s: 5.0,
             rc_override_timeout_s: 3.0,
@@ -151,6 +161,9 @@ impl EndpointConfig {
             .range("system_id", self.system_id, 1.., "1..=255")
             .check("bind_ip", ip, unicast, "one unicast address (127.0.0.1 by default; not 0.0.0.0)")
             .range("joystick_gain", self.joystick_gain, open_closed(0.0, 1.0), "0 < gain <= 1")
+            .range("rc_dz_us", self.rc_dz_us.iter().copied().max().unwrap_or(0), ..=200,
+                "each 0..=200 us (ArduSub RCn_DZ range)")
+            .range("thr_dz", self.thr_dz, ..=400, "0..=400 (ArduSub THR_DZ range)")
             .non_negative("pilot_timeout_s", self.pilot_timeout_s, "seconds >= 0 (0 disables)")
             .non_negative("gcs_timeout_s", self.gcs_timeout_s, "seconds >= 0 (0 disables)")
             .positive("rc_override_timeout_s", self.rc_override_timeout_s, positive)
@@ -427,7 +440,14 @@ impl VehicleEndpoint {
             streams: Vec::with_capacity(STREAMABLE_IDS.len()),
             next_heartbeat_s: 0.0,
             stats: EndpointStats::default(),
-            controller: Controller::new(cfg.gains.clone()),
+            controller: Controller::new(
+                cfg.gains.clone(),
+                control::InputParams {
+                    rc_dz_us: cfg.rc_dz_us,
+                    thr_dz: cfg.thr_dz,
+                    joystick_gain: cfg.joystick_gain,
+                },
+            ),
             outbox: Vec::with_capacity(16),
             rx_frames: Vec::with_capacity(64),
             signing,
@@ -799,10 +819,20 @@ impl VehicleEndpoint {
     }
 
     fn apply_manual_control(&mut self, m: &MANUAL_CONTROL_DATA) {
-        // ArduSub maps the joystick onto the RC input channels, scaled by the gain.
+        // ArduSub (Sub::transform_manual_control_to_rc_override, joystick.cpp) maps the
+        // joystick onto the RC input channels: 1500 + v x 0.4 x gain, throttle
+        // 1500 - 500 x s + z x s with s = 0.8 x gain (JS_THR_GAIN 1), truncated to
+        // whole microseconds by the conversion to int16 and constrained to 1100..1900.
         let g = self.cfg.joystick_gain;
-        let axis = |v: i16| (1500.0 + (v as f64).clamp(-1000.0, 1000.0) * 0.4 * g).round() as u16;
-        let thr = (1500.0f64 + ((m.z as f64).clamp(0.0, 1000.0) - 500.0) * 0.8 * g).round() as u16;
+        let axis = |v: i16| {
+            (1500.0 + f64::from(v) * 0.4 * g)
+                .trunc()
+                .clamp(1100.0, 1900.0) as u16
+        };
+        let s = 0.8 * g;
+        let thr = (1500.0 - 500.0 * s + f64::from(m.z) * s)
+            .trunc()
+            .clamp(1100.0, 1900.0) as u16;
         let now = self.now_s;
         let mut set = |ch: usize, pwm: u16| {
             self.rc.pwm[ch - 1] = pwm;
@@ -1382,6 +1412,12 @@ mod tests {
             .unwrap_err()
             .to_string()
             .contains("endpoint.joystick_gain"));
+        let c = EndpointConfig {
+            rc_dz_us: [30, 30, 250, 40],
+            ..Default::default()
+        };
+        let e = c.validate().unwrap_err().to_string();
+        assert!(e.contains("endpoint.rc_dz_us") && e.contains("250"), "{e}");
         let c = EndpointConfig {
             initial_mode: 9,
             ..Default::default()

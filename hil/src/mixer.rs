@@ -97,8 +97,18 @@ pub struct Mixer {
 impl Mixer {
     pub fn new(frame: Frame6Dof) -> Self {
         let s = std::f64::consts::FRAC_1_SQRT_2;
+        // Horizontal thrusters below the centre of gravity, where Wu 2018 and von Benzon
+        // et al. 2022 put them: (+-0.156, +-0.111, 0.085) m from the body origin (their
+        // thruster configuration matrix: roll / pitch arms 0.707 x 0.085 = 0.06 m, yaw arm
+        // 0.707 x (0.156 + 0.111) = 0.1888 m). The Heavy's CG is at the origin; the
+        // BlueROV2's is 0.02 m below it (Wu), so its thrusters sit 0.065 m below its CG.
+        // Surge therefore pitches the nose up.
+        let below_cg = match frame {
+            Frame6Dof::Heavy => 0.085,
+            Frame6Dof::Standard => 0.065,
+        };
         let horiz = |x: f64, y: f64, dx: f64, dy: f64| ThrusterMount {
-            position_m: Vector3::new(x, y, 0.0),
+            position_m: Vector3::new(x, y, below_cg),
             direction: Vector3::new(dx * s, dy * s, 0.0),
         };
         let vert = |x: f64, y: f64, z: f64| ThrusterMount {
@@ -112,10 +122,10 @@ impl Mixer {
         let mut factors = [[0.0; 6]; MAX_MOTORS];
         let mut mounts = [unused; MAX_MOTORS];
         factors[..4].copy_from_slice(&FACTORS_COMMON);
-        mounts[0] = horiz(0.14, 0.092, -1.0, 1.0);
-        mounts[1] = horiz(0.14, -0.092, -1.0, -1.0);
-        mounts[2] = horiz(-0.15, 0.092, 1.0, 1.0);
-        mounts[3] = horiz(-0.15, -0.092, 1.0, -1.0);
+        mounts[0] = horiz(0.156, 0.111, -1.0, 1.0);
+        mounts[1] = horiz(0.156, -0.111, -1.0, -1.0);
+        mounts[2] = horiz(-0.156, 0.111, 1.0, 1.0);
+        mounts[3] = horiz(-0.156, -0.111, 1.0, -1.0);
         match frame {
             Frame6Dof::Standard => {
                 factors[4..6].copy_from_slice(&FACTORS_VECTORED);
@@ -229,7 +239,7 @@ mod tests {
         let mixer = Mixer::new(frame);
         let t = ThrusterConfig::default();
         let pwm = mixer.mix_pwm(&efforts, true);
-        let thrust = pwm.map(|p| t.steady_thrust_n(p as f64));
+        let thrust = pwm.map(|p| t.steady_thrust_n(p as f64, 16.0));
         mixer.wrench(&thrust)
     }
 
@@ -257,11 +267,26 @@ mod tests {
     #[test]
     fn forward_effort_makes_no_side_force_or_yaw() {
         let (f, m) = wrench_of(Frame6Dof::Heavy, [1.0, 0.0, 0.0, 0.0, 0.0, 0.0]);
-        // Two thrusters forward, two in reverse, all at 45 degrees.
-        let expect = (2.0 * 51.4 + 2.0 * 39.9) * std::f64::consts::FRAC_1_SQRT_2;
+        // Two thrusters forward, two in reverse, all at 45 degrees (the T200 table at 16 V).
+        let t = ThrusterConfig::default();
+        let (fwd, rev) = (
+            t.steady_thrust_n(1900.0, 16.0),
+            -t.steady_thrust_n(1100.0, 16.0),
+        );
+        let expect = (2.0 * fwd + 2.0 * rev) * std::f64::consts::FRAC_1_SQRT_2;
         assert!((f.x - expect).abs() < 1e-6, "{f:?}");
         assert!(f.y.abs() < 1e-9 && f.z.abs() < 1e-9);
         assert!(m.z.abs() < 0.5, "yaw {m:?}");
+    }
+
+    #[test]
+    fn surge_pitches_the_nose_up_because_the_thrusters_sit_below_the_cg() {
+        for (frame, arm) in [(Frame6Dof::Heavy, 0.085), (Frame6Dof::Standard, 0.065)] {
+            let (f, m) = wrench_of(frame, [0.5, 0.0, 0.0, 0.0, 0.0, 0.0]);
+            assert!(f.x > 0.0);
+            // Pitch moment (FRD: + nose up) = arm below the CG x forward force.
+            assert!((m.y - arm * f.x).abs() < 1e-9, "{frame}: {m:?} {f:?}");
+        }
     }
 
     #[test]

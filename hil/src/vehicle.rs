@@ -39,6 +39,10 @@ pub const GRAVITY_MPS2: f64 = 9.81;
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 pub struct Hydrodynamics {
     pub mass_kg: f64,
+    /// Displaced volume, m^3: buoyancy is this x water density x g.
+    pub volume_m3: f64,
+    /// Buoyancy, N (in [`Hydrodynamics::for_frame`] for sea water; a site's
+    /// [`VehicleConfig::hydrodynamics`] uses its own water density).
     pub buoyancy_n: f64,
     /// Centre of buoyancy relative to the centre of gravity, body FRD, metres.
     pub cb_from_cg_m: [f64; 3],
@@ -53,13 +57,17 @@ pub struct Hydrodynamics {
 }
 
 impl Hydrodynamics {
-    /// Published tables: Wu 2018 (BlueROV2) and von Benzon et al. 2022 (Heavy; buoyancy
-    /// from its 0.0134 m^3 volume in sea water of 1025 kg/m^3).
+    /// Published tables: Wu 2018 (BlueROV2) and von Benzon et al. 2022 (Heavy, volume
+    /// 0.0134 m^3). Wu gives the buoyancy (114.8 N) rather than the volume; the volume
+    /// here is that buoyancy in fresh water of 1000 kg/m^3 (an assumption: the water is
+    /// not stated). Buoyancy is given for sea water (1025 kg/m^3).
     pub fn for_frame(frame: Frame6Dof) -> Self {
+        let sea = |volume_m3: f64| WaterDensity::SEA_KG_M3 * GRAVITY_MPS2 * volume_m3;
         match frame {
             Frame6Dof::Standard => Self {
                 mass_kg: 11.5,
-                buoyancy_n: 114.8,
+                volume_m3: 114.8 / (1000.0 * GRAVITY_MPS2),
+                buoyancy_n: sea(114.8 / (1000.0 * GRAVITY_MPS2)),
                 cb_from_cg_m: [0.0, 0.0, -0.02],
                 inertia_kgm2: [0.16, 0.16, 0.16],
                 added_mass: [5.5, 12.7, 14.57, 0.12, 0.12, 0.12],
@@ -68,13 +76,79 @@ impl Hydrodynamics {
             },
             Frame6Dof::Heavy => Self {
                 mass_kg: 13.5,
-                buoyancy_n: 1025.0 * GRAVITY_MPS2 * 0.0134,
+                volume_m3: 0.0134,
+                buoyancy_n: sea(0.0134),
                 cb_from_cg_m: [0.0, 0.0, -0.01],
                 inertia_kgm2: [0.26, 0.23, 0.37],
                 added_mass: [6.36, 7.12, 18.68, 0.189, 0.135, 0.222],
                 damping_linear: [13.7, 0.0, 33.0, 0.0, 0.8, 0.0],
                 damping_quadratic: [141.0, 217.0, 190.0, 1.19, 0.47, 1.50],
             },
+        }
+    }
+}
+
+/// The water the vehicle floats in (`vehicle.water_density`): `"fresh"`, `"brackish"`,
+/// `"sea"`, or a density in kg/m^3.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(untagged)]
+pub enum WaterDensity {
+    Named(WaterKind),
+    KgM3(f64),
+}
+
+/// Named waters of [`WaterDensity`].
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum WaterKind {
+    /// 997 kg/m^3 (fresh water at 25 C).
+    Fresh,
+    /// 1010 kg/m^3 (the middle of brackish water's 1005-1015).
+    Brackish,
+    /// 1025 kg/m^3 (sea water near the surface).
+    Sea,
+}
+
+impl WaterDensity {
+    pub const FRESH_KG_M3: f64 = 997.0;
+    pub const BRACKISH_KG_M3: f64 = 1010.0;
+    pub const SEA_KG_M3: f64 = 1025.0;
+
+    pub fn kg_m3(self) -> f64 {
+        match self {
+            Self::Named(WaterKind::Fresh) => Self::FRESH_KG_M3,
+            Self::Named(WaterKind::Brackish) => Self::BRACKISH_KG_M3,
+            Self::Named(WaterKind::Sea) => Self::SEA_KG_M3,
+            Self::KgM3(v) => v,
+        }
+    }
+}
+
+impl Default for WaterDensity {
+    fn default() -> Self {
+        Self::Named(WaterKind::Sea)
+    }
+}
+
+/// `[vehicle.battery]`: the pack the thrusters run from. Its voltage sags with the
+/// current the thrusters draw (the T200 table's current column): V = open circuit -
+/// internal resistance x current.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct BatteryConfig {
+    /// Open-circuit voltage, volts. 14.8 V: Blue Robotics' 4S lithium-ion packs' nominal
+    /// voltage (16.8 V full, 12.0 V empty; bluerobotics.com/learn/battery-info).
+    pub open_circuit_v: f64,
+    /// Internal resistance of the pack and its wiring, ohms. Blue Robotics publishes none:
+    /// 0.05 ohm is an assumption; measure yours from the drop under a known current.
+    pub internal_resistance_ohm: f64,
+}
+
+impl Default for BatteryConfig {
+    fn default() -> Self {
+        Self {
+            open_circuit_v: 14.8,
+            internal_resistance_ohm: 0.05,
         }
     }
 }
@@ -96,6 +170,10 @@ pub struct VehicleConfig {
     pub damping_linear: Option<[f64; 6]>,
     pub damping_quadratic: Option<[f64; 6]>,
     pub thruster: ThrusterConfig,
+    /// The pack the thrusters run from.
+    pub battery: BatteryConfig,
+    /// Water density for buoyancy: "fresh", "brackish", "sea" or kg/m^3.
+    pub water_density: WaterDensity,
     /// Constant water current, NED, m/s.
     pub current_mps: [f64; 3],
     /// Standard deviation of the gusts added to the current, per NED axis, m/s.
@@ -138,6 +216,8 @@ impl Default for VehicleConfig {
             damping_linear: None,
             damping_quadratic: None,
             thruster: ThrusterConfig::default(),
+            battery: BatteryConfig::default(),
+            water_density: WaterDensity::default(),
             current_mps: [0.0; 3],
             gust_std_mps: [0.0; 3],
             gust_time_constant_s: 5.0,
@@ -192,6 +272,11 @@ impl VehicleConfig {
                 non_negative(c, "damping_quadratic", v)
             })
             .then(|| self.thruster.validate())
+            .finite_range("water_density", self.water_density.kg_m3(), 900.0..=1100.0,
+                "\"fresh\", \"brackish\", \"sea\" or 900..=1100 kg/m^3")
+            .finite_range("battery.open_circuit_v", self.battery.open_circuit_v, 6.0..=30.0, "6..=30 V")
+            .finite_range("battery.internal_resistance_ohm", self.battery.internal_resistance_ohm,
+                0.0..=1.0, "0..=1 ohm")
             .each_finite("current_mps", &self.current_mps, "finite numbers")
             .with(|c| non_negative(c, "gust_std_mps", &self.gust_std_mps))
             .positive("gust_time_constant_s", self.gust_time_constant_s, "a positive number of seconds")
@@ -210,10 +295,12 @@ impl VehicleConfig {
             .done()
     }
 
-    /// The frame's published table with this config's overrides and the model error's
-    /// buoyancy offset applied.
+    /// The frame's published table in this site's water, with this config's overrides
+    /// applied (`buoyancy_n` wins over volume x density x g) and then the model error's
+    /// buoyancy offset.
     pub fn hydrodynamics(&self) -> Hydrodynamics {
         let mut h = Hydrodynamics::for_frame(self.frame);
+        h.buoyancy_n = h.volume_m3 * self.water_density.kg_m3() * GRAVITY_MPS2;
         if let Some(v) = self.mass_kg {
             h.mass_kg = v;
         }
@@ -303,6 +390,10 @@ pub struct Vehicle {
     water_world: Vector3<f64>,
     /// Per body axis: rigid mass / (rigid + added) mass.
     axis_scale: Vector3<f64>,
+    /// Battery voltage the thrusters see now, volts (sagged by `current_a`).
+    battery_v: f64,
+    /// Current all thrusters drew on the last step, amperes.
+    current_a: f64,
 }
 
 fn to_rvec(v: &Vector3<f64>) -> RVec {
@@ -368,6 +459,8 @@ impl Vehicle {
             hydro.mass_kg / (hydro.mass_kg + hydro.added_mass[1]),
             hydro.mass_kg / (hydro.mass_kg + hydro.added_mass[2]),
         );
+        // Parse the thruster table now, not on the first physics step.
+        crate::thruster::t200();
         let mut v = Self {
             cfg: cfg.clone(),
             hydro,
@@ -383,6 +476,8 @@ impl Vehicle {
             accel_world: Vector3::zeros(),
             water_world: Vector3::zeros(),
             axis_scale,
+            battery_v: cfg.battery.open_circuit_v,
+            current_a: 0.0,
         };
         // Start the gusts from their stationary distribution, not from calm.
         for i in 0..3 {
@@ -444,6 +539,16 @@ impl Vehicle {
         self.thrusters.map(|t| t.thrust_n() * k)
     }
 
+    /// Battery voltage at the thrusters now, volts.
+    pub fn battery_v(&self) -> f64 {
+        self.battery_v
+    }
+
+    /// Current the thrusters drew on the last step, amperes.
+    pub fn current_a(&self) -> f64 {
+        self.current_a
+    }
+
     /// Put the vehicle at `pose`, at rest, with idle thrusters (time continues).
     pub fn teleport(&mut self, pose: &Isometry3<f64>) {
         if let Some(rb) = self.world.bodies.get_mut(self.body) {
@@ -495,7 +600,11 @@ impl Vehicle {
         let mut f = r.inverse_transform_vector(&Vector3::from(cfg.external_force_n));
         let mut m = r.inverse_transform_vector(&Vector3::from(cfg.external_moment_nm));
         if let Some(t) = &cfg.tether {
-            let ft = r.inverse_transform_vector(&t.force_world_n(water_world, v_world));
+            let ft = r.inverse_transform_vector(&t.force_world_n(
+                water_world,
+                v_world,
+                cfg.water_density.kg_m3(),
+            ));
             f += ft;
             m += Vector3::from(t.attachment_m).cross(&ft);
         }
@@ -505,7 +614,11 @@ impl Vehicle {
     /// The tether's pull on the vehicle now, world NED, newtons (zero without a tether).
     pub fn tether_force_world_n(&self) -> Vector3<f64> {
         match (&self.cfg.tether, self.world.bodies.get(self.body)) {
-            (Some(t), Some(rb)) => t.force_world_n(&self.water_world, &from_rvec(rb.linvel())),
+            (Some(t), Some(rb)) => t.force_world_n(
+                &self.water_world,
+                &from_rvec(rb.linvel()),
+                self.cfg.water_density.kg_m3(),
+            ),
             _ => Vector3::zeros(),
         }
     }
@@ -523,16 +636,24 @@ impl Vehicle {
                     a * self.gust[i] + b * self.cfg.gust_std_mps[i] * gaussian(&mut self.rng);
             }
         }
+        // The pack sags with the current drawn on the last step.
+        let bat = &self.cfg.battery;
+        self.battery_v =
+            (bat.open_circuit_v - bat.internal_resistance_ohm * self.current_a).max(0.0);
         let mut thrust = [0.0; MAX_MOTORS];
+        let mut current = 0.0;
         for (i, th) in self
             .thrusters
             .iter_mut()
             .enumerate()
             .take(self.mixer.motor_count())
         {
-            thrust[i] =
-                th.step(&self.cfg.thruster, pwm[i] as f64, dt) * self.cfg.model_error.thrust_scale;
+            let p = pwm[i] as f64;
+            thrust[i] = th.step(&self.cfg.thruster, p, self.battery_v, dt)
+                * self.cfg.model_error.thrust_scale;
+            current += self.cfg.thruster.current_a(p, self.battery_v);
         }
+        self.current_a = current;
         let Some(pose) = self
             .world
             .bodies
@@ -687,12 +808,17 @@ mod tests {
         for frame in [Frame6Dof::Heavy, Frame6Dof::Standard] {
             let cfg = VehicleConfig {
                 frame,
+                // The thrusters sit below the CG, so surge pitches the nose up; a 2 m
+                // metacentric height keeps that pitch under a degree and the surge axis
+                // alone is tested.
+                cb_from_cg_m: Some([0.0, 0.0, -2.0]),
                 ..Default::default()
             };
             let mut v = Vehicle::new(&cfg, &at(5.0), 1).unwrap();
             let pwm = v.mixer().mix_pwm(&[0.7, 0.0, 0.0, 0.0, 0.0, 0.0], true);
             run(&mut v, &pwm, 15.0);
-            let thrust = pwm.map(|p| cfg.thruster.steady_thrust_n(p as f64));
+            let volts = v.battery_v();
+            let thrust = pwm.map(|p| cfg.thruster.steady_thrust_n(p as f64, volts));
             let (f, _) = v.mixer().wrench(&thrust);
             let h = v.hydro();
             let (dl, dq) = (h.damping_linear[0], h.damping_quadratic[0]);
@@ -717,6 +843,14 @@ mod tests {
             damping_linear: Some([0.0; 6]),
             damping_quadratic: Some([0.0; 6]),
             buoyancy_n: Some(13.5 * GRAVITY_MPS2),
+            // Surge pitches the nose up (thrusters below the CG): a 2 m metacentric height
+            // keeps the pitch under a degree.
+            cb_from_cg_m: Some([0.0, 0.0, -2.0]),
+            // No sag: the hand integration below runs at the open-circuit voltage.
+            battery: BatteryConfig {
+                internal_resistance_ohm: 0.0,
+                ..Default::default()
+            },
             ..Default::default()
         };
         let mut v = Vehicle::new(&cfg, &at(5.0), 1).unwrap();
@@ -729,7 +863,7 @@ mod tests {
         for _ in 0..n {
             let mut t = [0.0; MAX_MOTORS];
             for i in 0..8 {
-                t[i] = th[i].step(&cfg.thruster, pwm[i] as f64, v.dt_s());
+                t[i] = th[i].step(&cfg.thruster, pwm[i] as f64, 14.8, v.dt_s());
             }
             impulse += v.mixer().wrench(&t).0.x * v.dt_s();
         }
@@ -818,14 +952,20 @@ mod tests {
         let mut a = Vehicle::new(&VehicleConfig::default(), &at(5.0), 1).unwrap();
         let mut b = Vehicle::new(&weak, &at(5.0), 1).unwrap();
         let pwm = a.mixer().mix_pwm(&[0.5, 0.0, 0.0, 0.0, 0.0, 0.0], true);
-        run(&mut a, &pwm, 2.0);
-        run(&mut b, &pwm, 2.0);
+        // Short: raw surge on thrusters below the CG pitches the nose up over seconds.
+        run(&mut a, &pwm, 0.5);
+        run(&mut b, &pwm, 0.5);
         let (ta, tb) = (a.thrusts_n(), b.thrusts_n());
         for i in 0..8 {
             assert!((tb[i] - 0.8 * ta[i]).abs() < 1e-9, "{ta:?} {tb:?}");
         }
         assert!((b.hydro().buoyancy_n - (a.hydro().buoyancy_n - 3.0)).abs() < 1e-9);
-        assert!(b.state().velocity_world_mps.x < a.state().velocity_world_mps.x);
+        let forward = |v: &Vehicle| {
+            let s = v.state();
+            (s.t_world_vehicle.rotation.inverse() * s.velocity_world_mps).x
+        };
+        let (fa, fb) = (forward(&a), forward(&b));
+        assert!(fb < 0.95 * fa && fb > 0.0, "{fa} {fb}");
     }
 
     #[test]
@@ -865,6 +1005,58 @@ mod tests {
             .fold(0.0, f64::max);
         assert!(shallow > 0.3, "{shallow}");
         assert!(deep < 0.1 * shallow, "{deep}");
+    }
+
+    #[test]
+    fn buoyancy_follows_the_sites_water() {
+        let heavy = |w: &str| -> f64 {
+            let cfg: VehicleConfig =
+                serde_json::from_str(&format!(r#"{{"water_density":{w}}}"#)).unwrap();
+            cfg.validate().unwrap();
+            cfg.hydrodynamics().buoyancy_n
+        };
+        let weight = 13.5 * GRAVITY_MPS2;
+        // The Heavy's 0.0134 m^3: sinks slowly in fresh water, floats in the sea.
+        assert!((heavy(r#""fresh""#) - 0.0134 * 997.0 * GRAVITY_MPS2).abs() < 1e-9);
+        assert!(heavy(r#""fresh""#) - weight < -1.0);
+        assert!(heavy(r#""sea""#) - weight > 2.0);
+        assert!(heavy(r#""brackish""#) > heavy(r#""fresh""#));
+        assert!((heavy("1000.0") - 0.0134 * 1000.0 * GRAVITY_MPS2).abs() < 1e-9);
+        let bad: VehicleConfig = serde_json::from_str(r#"{"water_density":1500.0}"#).unwrap();
+        let e = bad.validate().unwrap_err().to_string();
+        assert!(
+            e.contains("vehicle.water_density") && e.contains("1500"),
+            "{e}"
+        );
+        assert!(serde_json::from_str::<VehicleConfig>(r#"{"water_density":"mud"}"#).is_err());
+        // A sinking vehicle in the pool: idle, it goes down.
+        let cfg = VehicleConfig {
+            water_density: WaterDensity::Named(WaterKind::Fresh),
+            ..Default::default()
+        };
+        let mut v = Vehicle::new(&cfg, &at(5.0), 1).unwrap();
+        run(&mut v, &[1500; 8], 5.0);
+        assert!(v.state().velocity_world_mps.z > 0.0);
+    }
+
+    #[test]
+    fn the_battery_sags_with_the_current_and_the_thrust_follows() {
+        let cfg = VehicleConfig::default();
+        let mut v = Vehicle::new(&cfg, &at(5.0), 1).unwrap();
+        run(&mut v, &[1500; 8], 0.1);
+        assert_eq!(v.battery_v(), 14.8);
+        assert_eq!(v.current_a(), 0.0);
+        let pwm = v.mixer().mix_pwm(&[1.0, 0.0, 0.0, 0.0, 0.0, 0.0], true);
+        run(&mut v, &pwm, 0.5);
+        // Four horizontal T200 at full throttle draw tens of amperes: the pack sags, and
+        // each thruster makes the table's thrust at the sagged voltage.
+        let (volts, amps) = (v.battery_v(), v.current_a());
+        assert!(amps > 40.0, "{amps}");
+        assert!((volts - (14.8 - 0.05 * amps)).abs() < 0.5, "{volts} {amps}");
+        let full = cfg.thruster.steady_thrust_n(1900.0, volts);
+        assert!(full < cfg.thruster.steady_thrust_n(1900.0, 14.8));
+        let t = v.thrusts_n();
+        assert!((t[3] - full).abs() < 0.05 * full, "{t:?} {full}");
     }
 
     #[test]

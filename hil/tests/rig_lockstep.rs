@@ -64,6 +64,10 @@ fn scripted_run(seed: u64) -> (Vec<[f64; 7]>, u64) {
     let vehicle = VehicleConfig {
         current_mps: [0.05, 0.02, 0.0],
         gust_std_mps: [0.05, 0.05, 0.01],
+        // Surge in MANUAL pitches the nose up (thrusters below the CG) and, with the
+        // published 1 cm between CB and CG, tips the vehicle over; a 2 m metacentric
+        // height keeps it level so that the script moves it forward.
+        cb_from_cg_m: Some([0.0, 0.0, -2.0]),
         ..Default::default()
     };
     let mut s = setup(vehicle, EndpointConfig::default(), true);

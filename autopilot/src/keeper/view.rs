@@ -31,6 +31,10 @@ const SEARCH_DONE_RAD: f64 = 0.05;
 /// Heave toward a marker that left at the top or bottom edge: effort and duration.
 const SEARCH_HEAVE: f64 = 0.12;
 const SEARCH_HEAVE_S: f64 = 1.0;
+/// Back to the depth the marker was last seen from (telemetry): heave effort per metre,
+/// limited to the edge heave's effort; within the dead band, hold.
+const SEARCH_DEPTH_GAIN: f64 = 1.0;
+const SEARCH_DEPTH_BAND_M: f64 = 0.03;
 
 /// The marker corner nearest an image edge.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -56,14 +60,17 @@ pub(super) struct LastSeen {
     /// The marker's horizontal position (north, east) in the vehicle's local frame, when
     /// heading and local position (telemetry) were known.
     pub marker_ne: Option<[f64; 2]>,
+    /// The vehicle's depth then (local position, down, m), when known.
+    pub down_m: Option<f64>,
 }
 
 /// The vehicle's navigation telemetry on a frame: heading (rad) and, when it has a
-/// position source, local position north and east (m).
+/// position source, local position north and east (m); its depth (m, down) when known.
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
 pub(super) struct Nav {
     pub heading_rad: Option<f64>,
     pub position_ne: Option<[f64; 2]>,
+    pub down_m: Option<f64>,
 }
 
 #[derive(Clone, Debug)]
@@ -197,6 +204,7 @@ impl ViewGuard {
             turn_rad,
             heading_rad: nav.heading_rad,
             marker_ne,
+            down_m: nav.down_m,
         }
     }
 
@@ -210,8 +218,9 @@ impl ViewGuard {
     /// vehicle's navigation now: turn the camera toward where the marker is (from the
     /// local position when known, else where it was last seen), closed on the heading
     /// telemetry and at most `SEARCH_MAX_TURN_RAD` from the heading then; heave toward it
-    /// briefly if it left at the top or bottom; then hold. None when there is nothing to
-    /// do (neutral).
+    /// briefly if it left at the top or bottom, else back to the depth it was seen from
+    /// (a vehicle without depth hold floats or sinks out of view while the marker is
+    /// hidden); then hold. None when there is nothing to do (neutral).
     pub fn search(&self, seen: &LastSeen, age_s: f64, max_s: f64, nav: Nav) -> Option<Effort> {
         if !(0.0..=max_s).contains(&age_s) {
             return None;
@@ -238,6 +247,11 @@ impl ViewGuard {
             let d_body = self.r_body_cam * Vector3::new(n.x, n.y, 0.0);
             if d_body.z.abs() > 0.3 {
                 e.heave = SEARCH_HEAVE * d_body.z.signum();
+            }
+        } else if let (Some(then), Some(now)) = (seen.down_m, nav.down_m) {
+            let dz = then - now;
+            if dz.abs() > SEARCH_DEPTH_BAND_M {
+                e.heave = (SEARCH_DEPTH_GAIN * dz).clamp(-SEARCH_HEAVE, SEARCH_HEAVE);
             }
         }
         self.clamp(&mut e);

@@ -2,6 +2,13 @@
 //! STABILIZE, ALT_HOLD, POSHOLD and GUIDED modes do with pilot input and targets, reduced
 //! to PD/PID loops that output the mixer's normalized efforts. Not ArduSub's tuning or
 //! code: enough to fly the simulated vehicle the way a client expects each mode to.
+//!
+//! Pilot input is read per channel and mode as ArduSub reads it (ArduSub/mode_manual.cpp,
+//! mode_stabilize.cpp, mode_althold.cpp; libraries/RC_Channel/RC_Channel.cpp; see
+//! docs/design/hil.md): channels that drive thrusters directly go through `norm_input()`
+//! (no dead zone), channels that become setpoints through `get_control_in()` (RCn_DZ), the
+//! ALT_HOLD throttle then through the THR_DZ climb-rate dead band, and the yaw rate
+//! through a dead zone of RC4_DZ x joystick gain.
 
 use nalgebra::{Isometry3, UnitQuaternion, Vector3};
 use serde::{Deserialize, Serialize};
@@ -107,18 +114,128 @@ fn wrap_pi(a: f64) -> f64 {
     }
 }
 
-/// Stick deflection -1..1 from PWM with a dead zone (the stabilized modes' input filter).
-fn stick(pwm: u16, dead_zone_us: f64) -> f64 {
-    let d = pwm as f64 - 1500.0;
-    if d.abs() <= dead_zone_us {
-        0.0
-    } else {
-        ((d.abs() - dead_zone_us) / (400.0 - dead_zone_us)).min(1.0) * d.signum()
+/// ArduSub's reading of one RC input channel (RC_Channel with RCn_MIN 1100, RCn_TRIM
+/// 1500, RCn_MAX 1900, not reversed), in its integer arithmetic.
+pub(crate) mod rc {
+    const MIN: i32 = 1100;
+    const TRIM: i32 = 1500;
+    const MAX: i32 = 1900;
+    /// ROLL_PITCH_INPUT_MAX: the angle channels' control_in range (+-4500).
+    pub const ANGLE_MAX: i32 = 4500;
+    /// The throttle channel's control_in range (0..1000, `set_range(1000)`).
+    pub const RANGE_MAX: i32 = 1000;
+
+    /// `RC_Channel::norm_input()`: -1..1 about trim, no dead zone.
+    pub fn norm_input(pwm: u16) -> f64 {
+        let r = i32::from(pwm);
+        let v = if r < TRIM {
+            (r - TRIM) as f64 / (TRIM - MIN) as f64
+        } else {
+            (r - TRIM) as f64 / (MAX - TRIM) as f64
+        };
+        v.clamp(-1.0, 1.0)
     }
+
+    /// `RC_Channel::pwm_to_angle_dz_trim(dz, trim)`: -4500..4500, zero within `dz` us of
+    /// trim (an angle channel's `get_control_in()` with dz = RCn_DZ).
+    pub fn angle_dz(pwm: u16, dz: u16) -> i32 {
+        let r = i32::from(pwm).clamp(MIN, MAX);
+        let (high, low) = (TRIM + i32::from(dz), TRIM - i32::from(dz));
+        if r > high && MAX != high {
+            ANGLE_MAX * (r - high) / (MAX - high)
+        } else if r < low && low != MIN {
+            ANGLE_MAX * (r - low) / (low - MIN)
+        } else {
+            0
+        }
+    }
+
+    /// `RC_Channel::pwm_to_range_dz(dz)`: 0..1000, the dead zone at the bottom of the
+    /// range (the throttle channel's `get_control_in()` with dz = RC3_DZ).
+    pub fn range_dz(pwm: u16, dz: u16) -> i32 {
+        let r = i32::from(pwm).clamp(MIN, MAX);
+        let low = MIN + i32::from(dz);
+        if r > low {
+            RANGE_MAX * (r - low) / (MAX - low)
+        } else {
+            0
+        }
+    }
+
+    /// `RC_Channel::get_control_mid()` of the throttle channel: centre stick as control_in.
+    pub fn range_mid(dz: u16) -> i32 {
+        let low = MIN + i32::from(dz);
+        RANGE_MAX * ((MIN + MAX) / 2 - low) / (MAX - low)
+    }
+
+    /// `Sub::get_pilot_desired_climb_rate()` as a fraction of the pilot's up / down
+    /// speed limit (-1..1, + up): zero within `thr_dz` (THR_DZ) of centre stick.
+    pub fn climb_fraction(pwm: u16, rc3_dz: u16, thr_dz: u16) -> f64 {
+        let ctrl = range_dz(pwm, rc3_dz) as f64;
+        let mid = range_mid(rc3_dz) as f64;
+        let thr_dz = f64::from(thr_dz.min(400));
+        let (top, bottom) = (mid + thr_dz, mid - thr_dz);
+        if ctrl < bottom && bottom > 0.0 {
+            (ctrl - bottom) / bottom
+        } else if ctrl > top && top < RANGE_MAX as f64 {
+            (ctrl - top) / (RANGE_MAX as f64 - top)
+        } else {
+            0.0
+        }
+    }
+}
+
+/// ArduSub's input parameters that decide how pilot input is read (`[endpoint]`).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub(crate) struct InputParams {
+    /// RC1_DZ .. RC4_DZ (pitch, roll, throttle, yaw), us.
+    pub rc_dz_us: [u16; 4],
+    /// THR_DZ: the ALT_HOLD climb-rate dead band about centre stick, throttle units.
+    pub thr_dz: u16,
+    /// The joystick gain (JS_GAIN): scales the yaw dead zone.
+    pub joystick_gain: f64,
+}
+
+impl InputParams {
+    /// The yaw dead zone ArduSub uses in STABILIZE / ALT_HOLD: RC4_DZ x gain, truncated
+    /// to whole microseconds (`channel_yaw->get_dead_zone() * sub.gain` passed as uint16).
+    pub fn yaw_dz(&self) -> u16 {
+        (f64::from(self.rc_dz_us[3]) * self.joystick_gain) as u16
+    }
+}
+
+/// The pilot's input as a mode reads it: `[forward, lateral, throttle, roll, pitch, yaw]`.
+/// Forward and lateral are normalized efforts (`norm_input`); throttle is a direct
+/// effort (MANUAL, STABILIZE: + up) or a climb-rate fraction (ALT_HOLD, POSHOLD: + up);
+/// roll and pitch are fractions of the largest lean angle, yaw of the largest yaw rate
+/// (MANUAL: efforts).
+pub(crate) fn read_input(mode: u32, rc: &[u16; 6], p: &InputParams) -> [f64; 6] {
+    let n = rc::norm_input;
+    if mode == super::mode::MANUAL {
+        // mode_manual.cpp: every channel straight into the mixer (ACRO_YAW_P at its
+        // default leaves yaw unscaled).
+        return [n(rc[0]), n(rc[1]), n(rc[2]), n(rc[3]), n(rc[4]), n(rc[5])];
+    }
+    let angle = |pwm: u16, dz: u16| f64::from(rc::angle_dz(pwm, dz)) / f64::from(rc::ANGLE_MAX);
+    let throttle = if mode == super::mode::STABILIZE {
+        // set_throttle_out((norm_input() + 1) / 2): direct throttle, no dead zone.
+        n(rc[2])
+    } else {
+        rc::climb_fraction(rc[2], p.rc_dz_us[2], p.thr_dz)
+    };
+    [
+        n(rc[0]),
+        n(rc[1]),
+        throttle,
+        angle(rc[3], p.rc_dz_us[1]),
+        angle(rc[4], p.rc_dz_us[0]),
+        angle(rc[5], p.yaw_dz()),
+    ]
 }
 
 pub(crate) struct Controller {
     gains: ControlGains,
+    input: InputParams,
     yaw_target: Option<f64>,
     depth_target: Option<f64>,
     depth_i: f64,
@@ -131,9 +248,10 @@ pub(crate) struct Controller {
 }
 
 impl Controller {
-    pub fn new(gains: ControlGains) -> Self {
+    pub fn new(gains: ControlGains, input: InputParams) -> Self {
         Self {
             gains,
+            input,
             yaw_target: None,
             depth_target: None,
             depth_i: 0.0,
@@ -180,18 +298,18 @@ impl Controller {
         dt: f64,
     ) -> [f64; 6] {
         self.last_nav = nav;
+        let [fwd, lat, thr, s_roll, s_pitch, s_yaw] = read_input(mode, rc, &self.input);
         if mode == mode::MANUAL {
-            // Straight through, no dead zone; throttle up = heave up (negative).
-            let n = |p: u16| (p as f64 - 1500.0) / 400.0;
-            return [n(rc[0]), n(rc[1]), -n(rc[2]), n(rc[3]), n(rc[4]), n(rc[5])];
+            // Straight through; throttle up = heave up (negative).
+            return [fwd, lat, -thr, s_roll, s_pitch, s_yaw];
         }
         let g = &self.gains;
         let (roll, pitch, yaw) = state.t_world_vehicle.rotation.euler_angles();
         let w = state.angvel_body_rps;
         let depth = state.t_world_vehicle.translation.vector.z;
         let vz = state.velocity_world_mps.z;
-        let (fwd, lat, thr) = (stick(rc[0], 30.0), stick(rc[1], 30.0), stick(rc[2], 30.0));
-        let (s_roll, s_pitch, s_yaw) = (stick(rc[3], 30.0), stick(rc[4], 30.0), stick(rc[5], 40.0));
+        // POSHOLD holds position while forward and lateral are within their RCn_DZ.
+        let steering = rc::angle_dz(rc[0], 30) != 0 || rc::angle_dz(rc[1], 30) != 0;
 
         // Heading: yaw stick turns the target at a rate; released, the target holds.
         let mut yaw_t = *self.yaw_target.get_or_insert(yaw);
@@ -256,7 +374,7 @@ impl Controller {
             let (mut surge, mut sway) = (fwd, lat);
             if mode == mode::POSHOLD {
                 match nav {
-                    Some(nav) if fwd == 0.0 && lat == 0.0 => {
+                    Some(nav) if !steering => {
                         let hold = *self
                             .hold_position
                             .get_or_insert(nav.pose.translation.vector);
@@ -355,13 +473,74 @@ impl Controller {
 mod tests {
     use super::*;
 
+    const P: InputParams = InputParams {
+        rc_dz_us: [30, 30, 30, 40],
+        thr_dz: 100,
+        joystick_gain: 0.5,
+    };
+    const NEUTRAL: [u16; 6] = [1500; 6];
+
+    fn with(ch: usize, pwm: u16) -> [u16; 6] {
+        let mut rc = NEUTRAL;
+        rc[ch] = pwm;
+        rc
+    }
+
     #[test]
-    fn dead_zone_and_wrap() {
-        assert_eq!(stick(1530, 30.0), 0.0);
-        assert_eq!(stick(1470, 30.0), 0.0);
-        assert!(stick(1531, 30.0) > 0.0);
-        assert_eq!(stick(1900, 30.0), 1.0);
-        assert_eq!(stick(1100, 40.0), -1.0);
+    fn forward_and_lateral_have_no_dead_zone_in_any_mode() {
+        for m in [mode::MANUAL, mode::STABILIZE, mode::ALT_HOLD] {
+            // 1530 us forward in ALT_HOLD is 30/400 of full effort, not zero.
+            let i = read_input(m, &with(0, 1530), &P);
+            assert_eq!(i[0], 30.0 / 400.0, "mode {m}");
+            let i = read_input(m, &with(1, 1499), &P);
+            assert_eq!(i[1], -1.0 / 400.0, "mode {m}");
+            assert_eq!(read_input(m, &NEUTRAL, &P), [0.0; 6], "mode {m}");
+        }
+    }
+
+    #[test]
+    fn setpoint_channels_go_through_their_dead_zones() {
+        for m in [mode::STABILIZE, mode::ALT_HOLD] {
+            // Yaw inside RC4_DZ x gain (40 x 0.5 = 20 us) is zeroed; just outside is not.
+            assert_eq!(read_input(m, &with(5, 1520), &P)[5], 0.0);
+            assert_eq!(read_input(m, &with(5, 1480), &P)[5], 0.0);
+            // pwm_to_angle_dz: 4500 x (1530 - 1520) / 380 = 118 (integer) of 4500.
+            assert_eq!(read_input(m, &with(5, 1530), &P)[5], 118.0 / 4500.0);
+            // Roll and pitch inside RC2_DZ / RC1_DZ (30 us): zero.
+            assert_eq!(read_input(m, &with(3, 1530), &P)[3], 0.0);
+            assert_eq!(read_input(m, &with(4, 1470), &P)[4], 0.0);
+            assert!(read_input(m, &with(3, 1531), &P)[3] > 0.0);
+            assert!(read_input(m, &with(4, 1469), &P)[4] < 0.0);
+            assert_eq!(read_input(m, &with(4, 1900), &P)[4], 1.0);
+        }
+        // MANUAL: the same channels are straight efforts.
+        assert_eq!(
+            read_input(mode::MANUAL, &with(5, 1520), &P)[5],
+            20.0 / 400.0
+        );
+    }
+
+    #[test]
+    fn throttle_is_direct_in_stabilize_and_a_climb_rate_with_thr_dz_in_alt_hold() {
+        assert_eq!(read_input(mode::STABILIZE, &with(2, 1540), &P)[2], 0.1);
+        // control_in = 1000 (pwm - 1130) / 770, centre 480, THR_DZ 100: climb above 580
+        // (1578 us), descend below 380 (1422 us).
+        assert_eq!(rc::range_mid(30), 480);
+        for pwm in [1423, 1500, 1540, 1577] {
+            assert_eq!(
+                read_input(mode::ALT_HOLD, &with(2, pwm), &P)[2],
+                0.0,
+                "{pwm}"
+            );
+        }
+        assert!(read_input(mode::ALT_HOLD, &with(2, 1578), &P)[2] > 0.0);
+        assert!(read_input(mode::ALT_HOLD, &with(2, 1422), &P)[2] < 0.0);
+        assert_eq!(read_input(mode::ALT_HOLD, &with(2, 1900), &P)[2], 1.0);
+        assert_eq!(read_input(mode::ALT_HOLD, &with(2, 1100), &P)[2], -1.0);
+    }
+
+    #[test]
+    fn wrap_stays_within_pi() {
         assert!(
             (wrap_pi(3.0 * std::f64::consts::PI) - std::f64::consts::PI).abs() < 1e-9
                 || (wrap_pi(3.0 * std::f64::consts::PI) + std::f64::consts::PI).abs() < 1e-9
