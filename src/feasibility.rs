@@ -387,11 +387,8 @@ pub fn check_start(
     offset_deg: f64,
     start_at: impl Fn(f64) -> Isometry3<f64>,
 ) -> Result<(), ConfigError> {
-    // The simulated world draws the origin marker only: the start must see that one.
-    let setup = ViewSetup {
-        others: &[],
-        ..setup_of(site, calib)
-    };
+    // The simulated world draws every marker of the map: the start must see one of them.
+    let setup = setup_of(site, calib);
     let margin_at = |d: f64| setup.view(&start_at(d));
     let v = margin_at(offset_m);
     if v.margin >= REFUSE_MARGIN {

@@ -343,6 +343,7 @@ fn hil_on_an_external_vehicle_hands_over_to_the_pilot_and_regains_station() {
         t_vehicle_cam: site.t_vehicle_cam(),
         marker: markhold::sim::hil::marker_spec(&site).unwrap(),
         t_world_marker: site.t_world_marker(),
+        map: Vec::new(),
         // hil --vehicle places the marker for a vehicle starting this far off station.
         t_world_vehicle_start: t_world_station * markhold::sim::hil::start_offset(&s.vehicle),
         motion: VehicleMotion::Free,

@@ -139,6 +139,7 @@ fn setup(camera: CameraModel) -> HilSetup {
             Translation3::new(0.0, 0.0, 5.0),
             rot([[0.0, 1.0, 0.0], [0.0, 0.0, -1.0], [-1.0, 0.0, 0.0]]),
         ),
+        map: Vec::new(),
         t_world_vehicle_start: Isometry3::translation(-1.0, 0.0, 5.0),
         motion: VehicleMotion::Free,
         seed: 1,

@@ -36,6 +36,9 @@ pub struct HilSetup {
     pub t_vehicle_cam: Isometry3<f64>,
     pub marker: MarkerSpec,
     pub t_world_marker: Isometry3<f64>,
+    /// The map's other markers: each one's print and pose in the origin marker's frame
+    /// (the site frame). Empty for a map of one.
+    pub map: Vec<(MarkerSpec, Isometry3<f64>)>,
     pub t_world_vehicle_start: Isometry3<f64>,
     pub motion: VehicleMotion,
     pub seed: u64,
@@ -107,13 +110,16 @@ impl HilRig {
             )
             .done()?;
         // Independent streams for the scene, the sensor noise and the gusts.
-        let scene = Scene::new(
+        let mut scene = Scene::new(
             &setup.water,
             &setup.lighting,
             setup.marker,
             setup.t_world_marker,
             setup.seed,
         )?;
+        for (marker, t_site_marker) in setup.map {
+            scene.add_map_marker(marker, t_site_marker)?;
+        }
         let camera =
             UnderwaterCamera::new(setup.camera, setup.seed.wrapping_add(0x9E37_79B9_7F4A_7C15))?;
         let mut vehicle = Vehicle::new(

@@ -1,5 +1,6 @@
 //! The scene the HIL camera sees: a marker plate (a real dictionary marker with its white
-//! border) mounted in front of a rock wall that stands on a seabed, in water that
+//! border) mounted in front of a rock wall that stands on a seabed, with the site's other
+//! markers (its marker map) on plates of their own at their map poses, in water that
 //! attenuates and scatters light, lit by daylight from above, the vehicle's lamps and,
 //! in the `adversarial` scenario, a bright lamp aimed at the marker.
 //!
@@ -379,6 +380,24 @@ pub struct MarkerSpec {
 }
 
 impl MarkerSpec {
+    /// Albedo of the print at marker-frame coordinates (u, v) (white outside the black
+    /// square: the plate).
+    pub(crate) fn albedo(&self, u: f64, v: f64) -> f64 {
+        let l = self.size_m;
+        let n = self.cells as f64;
+        let cu = (u + 0.5 * l) / l * n;
+        let cv = (0.5 * l - v) / l * n;
+        if cu < 0.0 || cv < 0.0 || cu >= n || cv >= n {
+            return ALBEDO_WHITE;
+        }
+        let i = (cv as usize) * self.cells + cu as usize;
+        if self.white[i] {
+            ALBEDO_WHITE
+        } else {
+            ALBEDO_BLACK
+        }
+    }
+
     #[rustfmt::skip]
     pub fn validate(&self) -> Result<(), ConfigError> {
         let cells2 = self.cells * self.cells;
@@ -389,6 +408,23 @@ impl MarkerSpec {
             .range("size_m", self.size_m, open_closed(0.0, 10.0), "a size in (0, 10] m")
             .range("plate_margin_m", self.plate_margin_m, 0.0..=10.0, "a margin in [0, 10] m")
             .done()
+    }
+}
+
+/// A marker of the map other than the origin marker: its print and where it is.
+#[derive(Debug, Clone, PartialEq)]
+pub struct MapPlate {
+    pub marker: MarkerSpec,
+    /// Pose in the origin marker's frame (the site frame).
+    pub t_origin_marker: Isometry3<f64>,
+    /// Pose in the world (NED), from the origin marker's.
+    pub t_world_marker: Isometry3<f64>,
+}
+
+impl MapPlate {
+    /// Half the edge of the white plate, metres.
+    pub fn plate_half_m(&self) -> f64 {
+        0.5 * self.marker.size_m + self.marker.plate_margin_m
     }
 }
 
@@ -469,6 +505,8 @@ fn smoothstep(e0: f64, e1: f64, x: f64) -> f64 {
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub(crate) enum Surface {
     Plate,
+    /// A plate of the map other than the origin marker's (index into `Scene::map`).
+    MapPlate(usize),
     Wall,
     Seabed,
 }
@@ -526,6 +564,8 @@ impl LightingScale {
 pub struct Scene {
     pub(crate) marker: MarkerSpec,
     pub(crate) t_world_marker: Isometry3<f64>,
+    /// The map's other markers (empty for a map of one).
+    pub(crate) map: Vec<MapPlate>,
     pub(crate) water: WaterOptics,
     pub(crate) lighting: LightingSetup,
     pub(crate) background: BackgroundConfig,
@@ -627,6 +667,7 @@ impl Scene {
         Ok(Self {
             marker,
             t_world_marker,
+            map: Vec::new(),
             water: water.optics(),
             lighting,
             background: background.clone(),
@@ -656,6 +697,39 @@ impl Scene {
 
     pub fn t_world_marker(&self) -> &Isometry3<f64> {
         &self.t_world_marker
+    }
+
+    /// Put another marker of the map on its own plate, `t_origin_marker` its pose in the
+    /// origin marker's frame (the site frame: x right, y up, z out of the origin marker's
+    /// face). It stands in the water like the origin plate (the wall and the seabed stay
+    /// where the origin marker puts them) and is lit, filtered and noised the same way.
+    pub fn add_map_marker(
+        &mut self,
+        marker: MarkerSpec,
+        t_origin_marker: Isometry3<f64>,
+    ) -> Result<(), HilError> {
+        marker.validate()?;
+        let t = t_origin_marker.translation.vector;
+        let finite = t.iter().all(|v| v.is_finite());
+        Checks::new(&format!("marker.map[{}]", self.map.len()))
+            .check(
+                "position_m",
+                AsDebug([t.x, t.y, t.z]),
+                finite,
+                "finite metres",
+            )
+            .done()?;
+        self.map.push(MapPlate {
+            marker,
+            t_origin_marker,
+            t_world_marker: self.t_world_marker * t_origin_marker,
+        });
+        Ok(())
+    }
+
+    /// The map's other markers, in the order they were added.
+    pub fn map_markers(&self) -> &[MapPlate] {
+        &self.map
     }
 
     pub fn water(&self) -> &WaterOptics {
@@ -773,23 +847,6 @@ impl Scene {
             b += w.lamp_scatter_per_m * acc * 0.5 * reach;
         }
         b
-    }
-
-    /// Albedo of the plate at marker-frame coordinates (u, v) (inside the plate).
-    pub(crate) fn plate_albedo(&self, u: f64, v: f64) -> f64 {
-        let l = self.marker.size_m;
-        let n = self.marker.cells as f64;
-        let cu = (u + 0.5 * l) / l * n;
-        let cv = (0.5 * l - v) / l * n;
-        if cu < 0.0 || cv < 0.0 || cu >= n || cv >= n {
-            return ALBEDO_WHITE;
-        }
-        let i = (cv as usize) * self.marker.cells + cu as usize;
-        if self.marker.white[i] {
-            ALBEDO_WHITE
-        } else {
-            ALBEDO_BLACK
-        }
     }
 
     /// Where the two drifting caustic webs are at time `t`.

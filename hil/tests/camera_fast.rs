@@ -201,7 +201,7 @@ fn same_seed_same_pixels_different_seed_different_noise() {
 }
 
 /// The `loops` build and the portable one give the same frames, pixel for pixel, so a run
-/// does not depend on the CPU.
+/// does not depend on the CPU (a scene with a marker map: origin and map plates).
 fn packed_and_portable_loops_give_identical_frames(loops: RenderLoops) {
     let mut m = model(480, 360, ResponseModel::Gamma { gamma: 2.2 });
     m.sensor.noise = true;
@@ -230,7 +230,8 @@ fn packed_and_portable_loops_give_identical_frames(loops: RenderLoops) {
             0.0
         };
         m.response = response.clone();
-        let scene = scene(sc, 4);
+        // With a map: the map plates' loops are checked too.
+        let scene = map_scene(sc, 4);
         for (p, t_wc) in poses.iter().enumerate() {
             // The frames of one build, or None where this CPU lacks it.
             let render = |loops: RenderLoops| {
@@ -290,4 +291,109 @@ fn avx2_and_portable_loops_give_identical_frames() {
 )]
 fn avx512_and_portable_loops_give_identical_frames() {
     packed_and_portable_loops_give_identical_frames(RenderLoops::Avx512);
+}
+
+/// A marker map: every plate drawn where the reference traces it, nearer plates hiding
+/// farther ones, in plain light, lamp light and caustics.
+#[test]
+fn map_plates_match_the_reference() {
+    let mut m = model(480, 360, ResponseModel::Gamma { gamma: 2.2 });
+    m.dist = [-0.2, 0.05, 0.001, -0.001, 0.0];
+    let cases = [
+        (LightingScenario::Normal, t_world_cam(1.3, 0.0, 0.0), 3000.0),
+        (LightingScenario::Low, t_world_cam(1.1, 12.0, 8.0), 20_000.0),
+        (
+            LightingScenario::Caustics,
+            t_world_cam(1.5, -10.0, -5.0),
+            1500.0,
+        ),
+    ];
+    for (k, (sc, t_wc, t_us)) in cases.iter().enumerate() {
+        let scene = map_scene(*sc, 21);
+        let mut fast = UnderwaterCamera::new(m.clone(), 4).unwrap();
+        let mut slow = UnderwaterCamera::new(m.clone(), 4).unwrap();
+        fast.set_exposure_us(*t_us);
+        slow.set_exposure_us(*t_us);
+        let t_wv = t_wc * nalgebra::Translation3::new(0.0, 0.0, -0.2);
+        let (mut a, mut b) = (Frame::default(), Frame::default());
+        fast.render(&scene, t_wc, &t_wv, 2.0, &mut a);
+        slow.render_reference(&scene, t_wc, &t_wv, 2.0, &mut b);
+        let n = a.data.len() as f64;
+        let (mut sum, mut far) = (0.0, 0.0);
+        for (x, y) in a.data.iter().zip(&b.data) {
+            let d = x.abs_diff(*y);
+            sum += d as f64;
+            far += (d > 3) as u8 as f64;
+        }
+        let far_allowed = if *sc == LightingScenario::Caustics {
+            0.03
+        } else {
+            0.01
+        };
+        assert!(
+            sum / n < 0.5 && far / n < far_allowed,
+            "{sc} case {k}: mean |diff| {:.3}, {:.2} % > 3 levels",
+            sum / n,
+            100.0 * far / n
+        );
+        // The map changed the picture: without it the same view differs.
+        let single = scene_without_map(*sc);
+        let mut c = Frame::default();
+        let mut cam = UnderwaterCamera::new(m.clone(), 4).unwrap();
+        cam.set_exposure_us(*t_us);
+        cam.render(&single, t_wc, &t_wv, 2.0, &mut c);
+        let changed = a
+            .data
+            .iter()
+            .zip(&c.data)
+            .filter(|(x, y)| x.abs_diff(**y) > 20)
+            .count();
+        assert!(
+            changed > 2000,
+            "{sc} case {k}: the map changed {changed} pixels"
+        );
+    }
+}
+
+fn scene_without_map(sc: LightingScenario) -> markhold_hil::scene::Scene {
+    scene(sc, 21)
+}
+
+/// Each map marker shows its own cells at its own pose: the centre of every cell of the
+/// marker beside the origin marker and of the one turned toward the camera is dark where
+/// the print is black and bright where it is white.
+#[test]
+fn map_plates_show_their_own_cells_at_their_poses() {
+    let m = model(960, 720, ResponseModel::Gamma { gamma: 2.2 });
+    let scene = map_scene(LightingScenario::Normal, 3);
+    let t_wc = t_world_cam(1.0, 0.0, 0.0);
+    let mut cam = UnderwaterCamera::new(m.clone(), 4).unwrap();
+    cam.set_exposure_us(3000.0);
+    let mut f = Frame::default();
+    cam.render(&scene, &t_wc, &t_wc, 0.0, &mut f);
+    let spec = marker_b();
+    let n = spec.cells;
+    for k in [0, 1] {
+        let (mut dark, mut bright) = (Vec::new(), Vec::new());
+        for j in 0..n {
+            for i in 0..n {
+                let l = spec.size_m;
+                let u = -0.5 * l + (i as f64 + 0.5) * l / n as f64;
+                let v = 0.5 * l - (j as f64 + 0.5) * l / n as f64;
+                let px = project_map_point(&m, &t_wc, k, [u, v]).unwrap();
+                let g = sample(&f, px[0], px[1]);
+                if spec.white[j * n + i] {
+                    bright.push(g);
+                } else {
+                    dark.push(g);
+                }
+            }
+        }
+        let max_dark = dark.iter().cloned().fold(0.0, f64::max);
+        let min_bright = bright.iter().cloned().fold(255.0, f64::min);
+        assert!(
+            max_dark + 40.0 < min_bright,
+            "map marker {k}: black cells up to {max_dark:.0}, white cells from {min_bright:.0}"
+        );
+    }
 }

@@ -15,7 +15,7 @@ use markhold_hil::camera::UnderwaterCamera;
 use markhold_hil::scene::Scene;
 use nalgebra::{Isometry3, Translation3, UnitQuaternion};
 
-use super::hil::{camera_model, lighting_of, loop_start, marker_spec, start_offset, HilOptions};
+use super::hil::{camera_model, lighting_of, loop_start, site_scene, start_offset, HilOptions};
 use super::summary::{RunStats, Summary};
 use crate::field::engage::EngagedLink;
 use crate::params::LoadedSite;
@@ -181,13 +181,7 @@ pub fn run_external(
     let scenario = lighting.scenario;
     let limits = site.limits();
     let initial_us = start.initial_exposure_us;
-    let scene = Scene::new(
-        &s.water,
-        &lighting,
-        marker_spec(site)?,
-        t_world_marker,
-        opts.seed,
-    )?;
+    let scene = site_scene(site, &lighting, t_world_marker, opts.seed)?;
     let mut camera = UnderwaterCamera::new(camera_model(site, limits), opts.seed)?;
     camera.set_exposure_us(initial_us);
     let fps = s.camera.fps;

@@ -176,6 +176,48 @@ pub fn marker_spec(site: &LoadedSite) -> anyhow::Result<MarkerSpec> {
     })
 }
 
+/// The map's other markers as printed, each with its pose in the site frame, for
+/// rendering (empty for a map of one).
+pub fn map_specs(site: &LoadedSite) -> anyhow::Result<Vec<(MarkerSpec, Isometry3<f64>)>> {
+    let m = &site.site.marker;
+    m.map
+        .iter()
+        .map(|e| {
+            let bitmap = marker_bitmap(m.family, e.id)
+                .with_context(|| format!("marker.map: marker {} id {}", m.family, e.id))?;
+            let spec = MarkerSpec {
+                cells: bitmap.cells,
+                white: bitmap.white,
+                size_m: e.size_m,
+                plate_margin_m: e.size_m * 0.25,
+            };
+            Ok((spec, e.t_site_marker()))
+        })
+        .collect()
+}
+
+/// The site's scene: the origin marker at `t_world_marker` and every other marker of
+/// the map at its pose.
+pub fn site_scene(
+    site: &LoadedSite,
+    lighting: &LightingConfig,
+    t_world_marker: Isometry3<f64>,
+    seed: u64,
+) -> anyhow::Result<markhold_hil::scene::Scene> {
+    let s = &site.site;
+    let mut scene = markhold_hil::scene::Scene::new(
+        &s.water,
+        lighting,
+        marker_spec(site)?,
+        t_world_marker,
+        seed,
+    )?;
+    for (spec, t_site_marker) in map_specs(site)? {
+        scene.add_map_marker(spec, t_site_marker)?;
+    }
+    Ok(scene)
+}
+
 /// The loop's start for a HIL run with `opts`: the site's, with the command line's
 /// exposure method and initial exposure where given.
 pub fn loop_start(site: &LoadedSite, opts: &HilOptions) -> LoopStart {
@@ -266,6 +308,7 @@ impl HilRun {
             t_vehicle_cam: site.t_vehicle_cam(),
             marker: marker_spec(site)?,
             t_world_marker,
+            map: map_specs(site)?,
             t_world_vehicle_start: start_pose(site, &t_marker_station, opts.start_on_station),
             motion: opts.motion,
             seed: opts.seed,
@@ -558,11 +601,10 @@ pub fn station_frames(
     exposures: &[f64],
 ) -> anyhow::Result<Vec<markhold_exposure::Frame>> {
     use markhold_hil::camera::UnderwaterCamera;
-    use markhold_hil::scene::Scene;
     let s = &site.site;
     let limits = site.limits();
     let t_world_marker = site.t_world_marker();
-    let scene = Scene::new(&s.water, lighting, marker_spec(site)?, t_world_marker, seed)?;
+    let scene = site_scene(site, lighting, t_world_marker, seed)?;
     let t_world_vehicle = t_world_marker * s.station.t_marker_vehicle();
     let t_world_cam = t_world_vehicle * site.t_vehicle_cam();
     let mut camera = UnderwaterCamera::new(camera_model(site, limits), seed)?;

@@ -61,6 +61,7 @@ pub fn rig_at(
         t_vehicle_cam: site.t_vehicle_cam(),
         marker: marker_spec(site).unwrap(),
         t_world_marker: site.t_world_marker(),
+        map: Vec::new(),
         t_world_vehicle_start,
         motion: VehicleMotion::Free,
         seed,

@@ -9,6 +9,8 @@
 //!   the noise are per pixel;
 //! - f32 arithmetic, table lookups for noise and response, no allocation per frame.
 
+mod map;
+
 use markhold_exposure::Frame;
 use nalgebra::{Isometry3, Point3, Vector3};
 
@@ -168,6 +170,8 @@ pub(crate) struct FastRenderer {
     /// The frame's rock-and-caustic texture (`LitTexture::build`): under caustics a
     /// rock pixel reads one texel for its albedo and its caustic light.
     lit: LitTexture,
+    /// The map's other plates, placed per frame.
+    map: map::MapPlates,
     isa: Isa,
 }
 
@@ -187,6 +191,49 @@ struct FrameCtx<'a> {
     light_base: usize,
     /// How the rock planes' fields fold into the rock loops this frame.
     rock_fold: RockFold,
+}
+
+impl FrameCtx<'_> {
+    /// Light fields (electrons) of open water along normalized ray (x, y).
+    fn shade_water(&self, x: f32, y: f32) -> [f32; 3] {
+        let r_c = Vector3::new(x as f64, y as f64, 1.0);
+        let ray_w = self.t_wc.rotation * (r_c / r_c.norm());
+        let cam_w = self.t_wc.translation.vector;
+        let b = self
+            .scene
+            .backscatter(&cam_w, &ray_w, f64::INFINITY, self.lamps);
+        [0.0, 0.0, (b * self.e_per_unit) as f32]
+    }
+
+    /// Light fields (electrons) of plane `g` where normalized ray (x, y) meets it (its
+    /// limit at infinite distance where the ray never does).
+    fn shade_on(&self, g: &PlaneGeo, x: f32, y: f32) -> [f32; 3] {
+        let r_c = Vector3::new(x as f64, y as f64, 1.0);
+        let norm = r_c.norm();
+        let ray_w = self.t_wc.rotation * (r_c / norm);
+        let cam_w = self.t_wc.translation.vector;
+        let scene = self.scene;
+        let d = g.n_c.dot(&r_c);
+        let f = if !g.valid || d <= 1e-9 {
+            let b = scene.backscatter(&cam_w, &ray_w, f64::INFINITY, self.lamps);
+            [0.0, 0.0, b]
+        } else {
+            let s = g.h / d;
+            let p_w = (self.t_wc * Point3::from(r_c * s)).coords;
+            let sh = scene.shade(
+                &p_w,
+                &g.n_face_w,
+                &cam_w,
+                &ray_w,
+                s * norm,
+                self.lamps,
+                g.glossy,
+            );
+            [sh.ambient, sh.lamp, sh.glare + sh.backscatter]
+        };
+        let k = self.e_per_unit;
+        [(f[0] * k) as f32, (f[1] * k) as f32, (f[2] * k) as f32]
+    }
 }
 
 /// The adaptive light grid's base spacing (nodes) for this frame. The narrowest thing
@@ -255,7 +302,7 @@ impl<'a> PixelConsts<'a> {
         isa: Isa,
     ) -> Self {
         let scene = ctx.scene;
-        let footprint = plate_footprint(model, scene, ctx.t_wc, &ctx.forms[PLATE]);
+        let footprint = plate_footprint(model, ctx.t_wc, scene.t_world_marker(), &ctx.forms[PLATE]);
         let m = scene.marker();
         let cell_per_m = m.cells as f32 / m.size_m as f32;
         let side = m.cells + 2;
@@ -352,6 +399,7 @@ impl FastRenderer {
                 node_y.push(y as f32);
             }
         }
+        let map = map::MapPlates::new(&node_x, &node_y);
         Self {
             width: w,
             height: h,
@@ -376,6 +424,7 @@ impl FastRenderer {
             zero_noise: vec![0; w],
             cell_table: Vec::new(),
             lit: LitTexture::default(),
+            map,
             isa: Isa::detect(false),
         }
     }
@@ -495,40 +544,12 @@ impl FastRenderer {
 
     /// The light fields of `surf` at node `node`, shaded (no interpolation).
     fn shade_node(&self, ctx: &FrameCtx, node: usize, surf: usize) -> [f32; 3] {
-        let x = self.node_x[node] as f64;
-        let y = self.node_y[node] as f64;
-        let r_c = Vector3::new(x, y, 1.0);
-        let norm = r_c.norm();
-        let ray_w = ctx.t_wc.rotation * (r_c / norm);
-        let cam_w = ctx.t_wc.translation.vector;
-        let scene = ctx.scene;
-        let f = if surf == WATER {
-            let b = scene.backscatter(&cam_w, &ray_w, f64::INFINITY, ctx.lamps);
-            [0.0, 0.0, b]
+        let (x, y) = (self.node_x[node], self.node_y[node]);
+        if surf == WATER {
+            ctx.shade_water(x, y)
         } else {
-            let g = &ctx.geo[surf];
-            let d = g.n_c.dot(&r_c);
-            if !g.valid || d <= 1e-9 {
-                // Never reached along this ray: the limit at infinite distance.
-                let b = scene.backscatter(&cam_w, &ray_w, f64::INFINITY, ctx.lamps);
-                [0.0, 0.0, b]
-            } else {
-                let s = g.h / d;
-                let p_w = (ctx.t_wc * Point3::from(r_c * s)).coords;
-                let sh = scene.shade(
-                    &p_w,
-                    &g.n_face_w,
-                    &cam_w,
-                    &ray_w,
-                    s * norm,
-                    ctx.lamps,
-                    g.glossy,
-                );
-                [sh.ambient, sh.lamp, sh.glare + sh.backscatter]
-            }
-        };
-        let k = ctx.e_per_unit;
-        [(f[0] * k) as f32, (f[1] * k) as f32, (f[2] * k) as f32]
+            ctx.shade_on(&ctx.geo[surf], x, y)
+        }
     }
 
     /// Make the cell fields of `surf` valid at nodes `i0..=i1` of cell row `j`.
@@ -741,8 +762,13 @@ impl FastRenderer {
         let valid = [forms[PLATE].valid, forms[WALL].valid, forms[SEABED].valid];
         let surf_of_mask: [usize; 256] = std::array::from_fn(|m| surface_of_mask(m as u8, valid));
         let (w, h) = (self.width, self.height);
+        let mut map = std::mem::take(&mut self.map);
+        map.prepare(model, &ctx, &self.nodes());
         for (py, row) in out.data.chunks_exact_mut(w).enumerate().take(h) {
             self.shade_row(&ctx, &pc, &surf_of_mask, py);
+            let mut row_mean = std::mem::take(&mut self.row_mean);
+            map.overlay_row(&ctx, &pc, &self.nodes(), py, &mut row_mean);
+            self.row_mean = row_mean;
             // The sensor: windows of the two noise fields at random offsets per row.
             let noise = if tables.noise {
                 noise_windows(&tables.noise_fields, rng.next_u64(), w)
@@ -753,6 +779,18 @@ impl FastRenderer {
         }
         self.cell_table = cell_table;
         self.lit = lit;
+        self.map = map;
+    }
+
+    /// The grid's rays, for the map's plates.
+    fn nodes(&self) -> map::Nodes<'_> {
+        map::Nodes {
+            x: &self.node_x,
+            y: &self.node_y,
+            nx: self.nx,
+            width: self.width,
+            height: self.height,
+        }
     }
 
     /// A new frame id for the light-field stamps (they restart before the id wraps).
@@ -1258,15 +1296,15 @@ fn frame_planes(scene: &Scene, t_wc: &Isometry3<f64>) -> ([PlaneGeo; 3], [PlaneF
     ([plate.0, wall.0, seabed.0], [plate.1, wall.1, seabed.1])
 }
 
-/// Width and height (metres, marker frame) of one pixel's footprint on the plate near
-/// its centre: the bounding box of the pixel's image on the plate.
+/// Width and height (metres, marker frame) of one pixel's footprint on the plate at
+/// `t_wm` near its centre: the bounding box of the pixel's image on the plate.
 fn plate_footprint(
     model: &CameraModel,
-    scene: &Scene,
     t_wc: &Isometry3<f64>,
+    t_wm: &Isometry3<f64>,
     forms: &PlaneForms,
 ) -> (f64, f64) {
-    let p_c = t_wc.inverse_transform_point(&scene.t_world_marker().translation.vector.into());
+    let p_c = t_wc.inverse_transform_point(&t_wm.translation.vector.into());
     let Some(px) = model.project(&p_c) else {
         return (1e-6, 1e-6);
     };

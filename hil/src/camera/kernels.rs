@@ -64,7 +64,7 @@ pub(crate) struct Ramp {
 
 impl Ramp {
     #[inline(always)]
-    fn get(&self, t: f32) -> f32 {
+    pub(crate) fn get(&self, t: f32) -> f32 {
         self.at + self.step * t
     }
 }

@@ -7,7 +7,7 @@ use nalgebra::{Isometry3, Point3, Vector3};
 
 use super::sensor::XorShift64Star;
 use super::{CameraModel, FrameInput};
-use crate::scene::{Scene, Surface, WorldLamp, ALBEDO_BLACK, ALBEDO_WHITE};
+use crate::scene::{MarkerSpec, Scene, Surface, WorldLamp, ALBEDO_BLACK, ALBEDO_WHITE};
 
 /// Where a pixel's ray ends.
 #[derive(Debug, Clone, Copy)]
@@ -51,9 +51,9 @@ pub(crate) fn pixel_ray(
     (t_wc.translation.vector, r)
 }
 
-/// Marker-frame coordinates where the ray meets the (unbounded) plate plane.
-fn plate_plane_uv(scene: &Scene, o: &Vector3<f64>, r: &Vector3<f64>) -> Option<(f64, f64)> {
-    let t_wm = scene.t_world_marker();
+/// Marker-frame coordinates where the ray meets the (unbounded) plane of the plate at
+/// `t_wm`.
+fn plate_plane_uv(t_wm: &Isometry3<f64>, o: &Vector3<f64>, r: &Vector3<f64>) -> Option<(f64, f64)> {
     let n = t_wm.rotation * Vector3::z();
     let p0 = t_wm.translation.vector;
     let s = plane_hit(o, r, &p0, &n)?;
@@ -61,26 +61,61 @@ fn plate_plane_uv(scene: &Scene, o: &Vector3<f64>, r: &Vector3<f64>) -> Option<(
     Some((local.x, local.y))
 }
 
-/// Trace one ray through the scene.
-pub(crate) fn trace(scene: &Scene, o: &Vector3<f64>, r: &Vector3<f64>) -> Option<Hit> {
-    let t_wm = scene.t_world_marker();
+/// Where the ray meets the square plate of half edge `half` at `t_wm`, if it does.
+fn plate_hit(
+    t_wm: &Isometry3<f64>,
+    half: f64,
+    surface: Surface,
+    o: &Vector3<f64>,
+    r: &Vector3<f64>,
+) -> Option<Hit> {
     let nm = t_wm.rotation * Vector3::z();
     let om = t_wm.translation.vector;
     let front = nm.dot(&(o - om)) > 0.0;
-    let half = scene.plate_half_m();
-    if let Some(s) = plane_hit(o, r, &om, &nm) {
-        let p = o + r * s;
-        let local = t_wm.inverse_transform_point(&Point3::from(p));
-        if local.x.abs() <= half && local.y.abs() <= half {
-            return Some(Hit {
-                surface: Surface::Plate,
-                point: p,
-                normal: if front { nm } else { -nm },
-                dist: s,
-                uv: (local.x, local.y),
-                front,
-            });
+    let s = plane_hit(o, r, &om, &nm)?;
+    let p = o + r * s;
+    let local = t_wm.inverse_transform_point(&Point3::from(p));
+    (local.x.abs() <= half && local.y.abs() <= half).then_some(Hit {
+        surface,
+        point: p,
+        normal: if front { nm } else { -nm },
+        dist: s,
+        uv: (local.x, local.y),
+        front,
+    })
+}
+
+/// Trace one ray through the scene: the nearest of the map's plates and what the origin
+/// plate, the wall and the seabed show.
+pub(crate) fn trace(scene: &Scene, o: &Vector3<f64>, r: &Vector3<f64>) -> Option<Hit> {
+    let base = trace_origin(scene, o, r);
+    let mut best: Option<Hit> = None;
+    for (k, plate) in scene.map.iter().enumerate() {
+        let hit = plate_hit(
+            &plate.t_world_marker,
+            plate.plate_half_m(),
+            Surface::MapPlate(k),
+            o,
+            r,
+        );
+        if let Some(h) = hit.filter(|h| best.is_none_or(|b| h.dist < b.dist)) {
+            best = Some(h);
         }
+    }
+    match (best, base) {
+        (Some(m), Some(b)) if m.dist < b.dist => Some(m),
+        (Some(m), None) => Some(m),
+        (_, b) => b,
+    }
+}
+
+/// Trace one ray through the origin plate, the wall and the seabed.
+fn trace_origin(scene: &Scene, o: &Vector3<f64>, r: &Vector3<f64>) -> Option<Hit> {
+    let t_wm = scene.t_world_marker();
+    let nm = t_wm.rotation * Vector3::z();
+    let om = t_wm.translation.vector;
+    if let Some(hit) = plate_hit(t_wm, scene.plate_half_m(), Surface::Plate, o, r) {
+        return Some(hit);
     }
     let bg = &scene.background;
     let wall_p0 = om - nm * bg.wall_behind_marker_m;
@@ -121,10 +156,10 @@ pub(crate) fn trace(scene: &Scene, o: &Vector3<f64>, r: &Vector3<f64>) -> Option
     }
 }
 
-/// Plate albedo box-filtered over a pixel footprint of (wu, wv) metres: the marker's
-/// cells seen through a pixel (anti-aliased edges, as a real lens and sensor give).
-pub(crate) fn plate_albedo_filtered(scene: &Scene, u: f64, v: f64, wu: f64, wv: f64) -> f64 {
-    let m = scene.marker();
+/// Plate albedo of marker `m` box-filtered over a pixel footprint of (wu, wv) metres: the
+/// marker's cells seen through a pixel (anti-aliased edges, as a real lens and sensor
+/// give).
+pub(crate) fn plate_albedo_filtered(m: &MarkerSpec, u: f64, v: f64, wu: f64, wv: f64) -> f64 {
     let l = m.size_m;
     let n = m.cells as f64;
     let cu = (u + 0.5 * l) / l * n;
@@ -163,27 +198,32 @@ pub(crate) fn pixel_light(
     let Some(hit) = trace(scene, &o, &r) else {
         return scene.backscatter(&o, &r, f64::INFINITY, lamps);
     };
-    let glossy = hit.surface == Surface::Plate && hit.front;
+    let plate = match hit.surface {
+        Surface::Plate => Some((scene.t_world_marker(), scene.marker())),
+        Surface::MapPlate(k) => scene.map.get(k).map(|p| (&p.t_world_marker, &p.marker)),
+        Surface::Wall | Surface::Seabed => None,
+    };
+    let glossy = plate.is_some() && hit.front;
     let shade = scene.shade(&hit.point, &hit.normal, &o, &r, hit.dist, lamps, glossy);
-    let albedo = match hit.surface {
-        Surface::Plate if hit.front => {
+    let albedo = match plate {
+        Some((t_wm, marker)) if hit.front => {
             // Footprint from the neighbouring pixels' rays on the plate plane.
             let (ox, rx) = pixel_ray(model, t_wc, u + 1.0, v);
             let (oy, ry) = pixel_ray(model, t_wc, u, v + 1.0);
             match (
-                plate_plane_uv(scene, &ox, &rx),
-                plate_plane_uv(scene, &oy, &ry),
+                plate_plane_uv(t_wm, &ox, &rx),
+                plate_plane_uv(t_wm, &oy, &ry),
             ) {
                 (Some(px), Some(py)) => {
                     let wu = (px.0 - hit.uv.0).abs() + (py.0 - hit.uv.0).abs();
                     let wv = (px.1 - hit.uv.1).abs() + (py.1 - hit.uv.1).abs();
-                    plate_albedo_filtered(scene, hit.uv.0, hit.uv.1, wu, wv)
+                    plate_albedo_filtered(marker, hit.uv.0, hit.uv.1, wu, wv)
                 }
-                _ => scene.plate_albedo(hit.uv.0, hit.uv.1),
+                _ => marker.albedo(hit.uv.0, hit.uv.1),
             }
         }
-        Surface::Plate => scene.plate_back_albedo(),
-        Surface::Wall | Surface::Seabed => scene.rock_albedo(hit.uv.0, hit.uv.1),
+        Some(_) => scene.plate_back_albedo(),
+        None => scene.rock_albedo(hit.uv.0, hit.uv.1),
     };
     let caustic = scene.caustic(hit.uv.0, hit.uv.1, time_s);
     albedo * (shade.ambient * caustic + shade.lamp) + shade.glare + shade.backscatter

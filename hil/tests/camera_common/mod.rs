@@ -140,3 +140,59 @@ pub fn mean_over_marker_rect(
     }
     acc / n
 }
+
+/// A second 8x8 pattern (another id), 0.12 m.
+pub fn marker_b() -> MarkerSpec {
+    let cells = 8;
+    let mut white = vec![false; cells * cells];
+    for j in 1..cells - 1 {
+        for i in 1..cells - 1 {
+            white[j * cells + i] = (i * 5 + j * 11 + i * j * 3) % 4 < 2;
+        }
+    }
+    MarkerSpec {
+        cells,
+        white,
+        size_m: 0.12,
+        plate_margin_m: 0.03,
+    }
+}
+
+/// The map markers of `map_scene`: print and pose in the origin marker's frame (x right,
+/// y up, z out of its face). One beside the origin marker on its wall, one turned
+/// toward the camera, one standing out in front and hiding a corner of the origin plate.
+pub fn map_markers() -> Vec<(MarkerSpec, Isometry3<f64>)> {
+    let at = |x: f64, y: f64, z: f64, rpy: [f64; 3]| {
+        let [r, p, yaw] = rpy.map(f64::to_radians);
+        Isometry3::from_parts(
+            Translation3::new(x, y, z),
+            UnitQuaternion::from_euler_angles(r, p, yaw),
+        )
+    };
+    vec![
+        (marker_b(), at(0.30, 0.02, 0.0, [0.0, 0.0, 0.0])),
+        (marker_b(), at(-0.30, -0.05, 0.03, [10.0, 25.0, 5.0])),
+        (marker_b(), at(0.10, 0.12, 0.12, [0.0, -10.0, 0.0])),
+    ]
+}
+
+/// `scene` with the markers of `map_markers` added.
+pub fn map_scene(scenario: LightingScenario, seed: u64) -> Scene {
+    let mut s = scene(scenario, seed);
+    for (m, t) in map_markers() {
+        s.add_map_marker(m, t).expect("valid map marker");
+    }
+    s
+}
+
+/// Pixel of a point of map marker `k` (its own frame) seen from `t_world_cam`.
+pub fn project_map_point(
+    m: &CameraModel,
+    t_world_cam: &Isometry3<f64>,
+    k: usize,
+    p_marker: [f64; 2],
+) -> Option<[f64; 2]> {
+    let t = t_world_marker() * map_markers()[k].1;
+    let p_w = t * Point3::new(p_marker[0], p_marker[1], 0.0);
+    m.project(&t_world_cam.inverse_transform_point(&p_w))
+}

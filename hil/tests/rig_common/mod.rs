@@ -92,6 +92,7 @@ pub fn setup(vehicle: VehicleConfig, endpoint: EndpointConfig, lock_step: bool) 
         t_vehicle_cam: t_vehicle_cam(),
         marker: marker(),
         t_world_marker: t_world_marker(),
+        map: Vec::new(),
         t_world_vehicle_start: Isometry3::translation(-1.0, 0.0, DEPTH_M),
         motion: VehicleMotion::Free,
         seed: 42,
