@@ -711,7 +711,7 @@ impl Scene {
         marker.validate()?;
         let t = t_origin_marker.translation.vector;
         let finite = t.iter().all(|v| v.is_finite());
-        Checks::new(&format!("marker.map[{}]", self.map.len()))
+        Checks::new(format!("marker.map[{}]", self.map.len()))
             .check(
                 "position_m",
                 AsDebug([t.x, t.y, t.z]),
