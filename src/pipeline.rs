@@ -39,6 +39,8 @@ pub struct FrameRecord {
     /// Covariance of `t_cam_marker` (docs/frames.md order), for the recorder.
     pub cov_cam: Option<Matrix6<f64>>,
     pub reproj_rms_px: f64,
+    /// Markers of the map the pose was computed from (0 without a pose).
+    pub markers_used: u32,
     /// The station keeper's effort.
     pub effort: Effort,
     /// What the failsafe supervisor let through (neutral and silent send no effort).
@@ -452,6 +454,7 @@ impl<L: CommandLink> Pipeline<L> {
             t_cam_marker: obs.as_ref().map(|o| o.t_cam_marker),
             cov_cam: obs.as_ref().map(|o| o.cov_cam),
             reproj_rms_px: obs.as_ref().map_or(f64::NAN, |o| o.reproj_rms_px),
+            markers_used: obs.as_ref().map_or(0, |o| o.markers_used),
             effort,
             directive,
             latency_s,

@@ -483,44 +483,124 @@ pub fn render(l: &Layout, format: Format, dpi: f64) -> anyhow::Result<Vec<u8>> {
 }
 
 /// `markhold tag`.
+/// One marker to print: family, id, black square (mm), where it goes and, for a map,
+/// where it sits in the site frame.
+struct Job {
+    family: MarkerFamily,
+    id: u32,
+    size_mm: f64,
+    out: PathBuf,
+    /// The site file's key that gives the size.
+    key: String,
+    place: Option<String>,
+}
+
+/// `out` with `-id<ID>` before its extension (`dock.svg` -> `dock-id3.svg`).
+pub fn per_marker_path(out: &Path, id: u32) -> PathBuf {
+    let stem = out
+        .file_stem()
+        .map(|s| s.to_string_lossy().into_owned())
+        .unwrap_or_default();
+    let ext = out
+        .extension()
+        .map(|e| format!(".{}", e.to_string_lossy()))
+        .unwrap_or_default();
+    out.with_file_name(format!("{stem}-id{id}{ext}"))
+}
+
+/// The markers `args` asks for: one, or with `--site` every marker of the site's map
+/// (a map of more than one: one file per marker, `--out` with `-id<ID>` added).
+fn jobs(args: &TagArgs) -> anyhow::Result<Vec<Job>> {
+    let Some(path) = &args.site else {
+        let (Some(family), Some(id), Some(size_mm)) = (&args.family, args.id, args.size_mm) else {
+            bail!("--family, --id and --size-mm are needed without --site");
+        };
+        let family: MarkerFamily = family
+            .parse()
+            .map_err(|e| anyhow::anyhow!("--family {family}: {e}"))?;
+        return Ok(vec![Job {
+            family,
+            id,
+            size_mm,
+            out: args.out.clone(),
+            key: "marker.size_m".to_string(),
+            place: None,
+        }]);
+    };
+    let site = crate::params::load(path)?;
+    let m = &site.site.marker;
+    if m.map.is_empty() {
+        return Ok(vec![Job {
+            family: m.family,
+            id: m.id,
+            size_mm: m.size_m * 1000.0,
+            out: args.out.clone(),
+            key: "marker.size_m".to_string(),
+            place: None,
+        }]);
+    }
+    let origin = Job {
+        family: m.family,
+        id: m.id,
+        size_mm: m.size_m * 1000.0,
+        out: per_marker_path(&args.out, m.id),
+        key: "marker.size_m".to_string(),
+        place: Some("the origin of the site frame".to_string()),
+    };
+    let others = m.map.iter().enumerate().map(|(i, e)| {
+        let [x, y, z] = e.position_m.map(num);
+        let [r, p, w] = e.rpy_deg.map(num);
+        Job {
+            family: m.family,
+            id: e.id,
+            size_mm: e.size_m * 1000.0,
+            out: per_marker_path(&args.out, e.id),
+            key: format!("marker.map[{i}].size_m"),
+            place: Some(format!(
+                "marker.map[{i}]: centre at [{x}, {y}, {z}] m, rpy [{r}, {p}, {w}] deg in the site frame"
+            )),
+        }
+    });
+    Ok(std::iter::once(origin).chain(others).collect())
+}
+
 pub fn cli(args: TagArgs) -> anyhow::Result<()> {
     let format = Format::of(&args.out)?;
-    let (family, id, size_mm) = match &args.site {
-        Some(path) => {
-            let site = crate::params::load(path)?;
-            let m = &site.site.marker;
-            (m.family, m.id, m.size_m * 1000.0)
-        }
-        None => {
-            let (Some(family), Some(id), Some(size_mm)) = (&args.family, args.id, args.size_mm)
-            else {
-                bail!("--family, --id and --size-mm are needed without --site");
-            };
-            let family: MarkerFamily = family
-                .parse()
-                .map_err(|e| anyhow::anyhow!("--family {family}: {e}"))?;
-            (family, id, size_mm)
-        }
-    };
-    let layout = Layout::new(family, id, size_mm)?;
-    let bytes = render(&layout, format, args.dpi)?;
-    std::fs::write(&args.out, bytes)
-        .with_context(|| format!("writing --out {}", args.out.display()))?;
-    let res = if format == Format::Png {
-        format!(" at {} dpi", num(args.dpi))
-    } else {
-        String::new()
-    };
-    crate::outln!(
-        "markhold tag: {}: {family} id {id}, black square {} mm (marker.size_m = {}), \
-         quiet zone {} mm, page {} x {} mm{res}; print at 100 % and measure the black square",
-        args.out.display(),
-        num(size_mm),
-        num(size_mm / 1000.0),
-        num(layout.quiet_mm),
-        num(layout.page_w_mm),
-        num(layout.page_h_mm),
-    );
+    let jobs = jobs(&args)?;
+    // Every marker laid out and rendered before any file is written: a bad one leaves
+    // no partial set behind.
+    let mut done = Vec::with_capacity(jobs.len());
+    for job in &jobs {
+        let layout = Layout::new(job.family, job.id, job.size_mm)?;
+        let bytes = render(&layout, format, args.dpi)?;
+        done.push((layout, bytes));
+    }
+    for (job, (layout, bytes)) in jobs.iter().zip(done) {
+        std::fs::write(&job.out, bytes)
+            .with_context(|| format!("writing --out {}", job.out.display()))?;
+        let res = if format == Format::Png {
+            format!(" at {} dpi", num(args.dpi))
+        } else {
+            String::new()
+        };
+        let place = job
+            .place
+            .as_ref()
+            .map_or(String::new(), |p| format!("; placed at {p}"));
+        crate::outln!(
+            "markhold tag: {}: {} id {}, black square {} mm ({} = {}), \
+             quiet zone {} mm, page {} x {} mm{res}; print at 100 % and measure the black square{place}",
+            job.out.display(),
+            job.family,
+            job.id,
+            num(job.size_mm),
+            job.key,
+            num(job.size_mm / 1000.0),
+            num(layout.quiet_mm),
+            num(layout.page_w_mm),
+            num(layout.page_h_mm),
+        );
+    }
     Ok(())
 }
 

@@ -190,6 +190,7 @@ fn dummy_record(seq: u64) -> FrameRecord {
         t_cam_marker: None,
         cov_cam: None,
         reproj_rms_px: f64::NAN,
+        markers_used: 0,
         effort: Default::default(),
         directive: markhold_autopilot::Directive::Silent,
         latency_s: 0.0,

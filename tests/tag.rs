@@ -82,6 +82,42 @@ fn site_gives_family_id_and_size() {
     assert!(svg.contains("apriltag_36h11 id 0</text>"), "{svg}");
 }
 
+/// A site with a marker map: one file per marker (`--out` with `-id<ID>`), each with its
+/// own id and size, and where it goes on the site.
+#[test]
+fn a_map_site_gives_every_marker() {
+    let out = scratch("dock.svg");
+    let site = repo("params/dock-map.toml");
+    let (code, stdout, err) = tag(&[
+        "--site",
+        site.to_str().unwrap(),
+        "--out",
+        out.to_str().unwrap(),
+    ]);
+    assert_eq!(code, 0, "{err}");
+    assert!(
+        !out.exists(),
+        "no file under the plain --out name for a map"
+    );
+    for (id, mm) in [(0, 150), (1, 120), (2, 120), (3, 120), (4, 120)] {
+        let path = out.with_file_name(format!("dock-id{id}.svg"));
+        let svg = std::fs::read_to_string(&path).unwrap();
+        assert!(
+            svg.contains(&format!("apriltag_36h11 id {id}</text>")),
+            "{svg}"
+        );
+        assert!(
+            stdout.contains(&format!("apriltag_36h11 id {id}, black square {mm} mm")),
+            "{stdout}"
+        );
+    }
+    assert!(
+        stdout.contains("marker.map[3].size_m = 0.12")
+            && stdout.contains("centre at [0.3, -0.2, 0] m"),
+        "{stdout}"
+    );
+}
+
 #[test]
 fn bad_flags_exit_2_naming_flag_and_value() {
     let out = scratch("bad.svg");

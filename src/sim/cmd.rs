@@ -87,7 +87,9 @@ pub struct HilArgs {
     /// Inject a fault on simulation time, repeatable: KIND@START[+DURATION] seconds, KIND
     /// one of link_cut, occlude, out_of_view, drop_frames, late_frames, exposure_ignored,
     /// exposure_late, lamp_off, ambient_step (e.g. --fault link_cut@10+3 --fault occlude@20+0.5).
-    #[arg(long = "fault", value_name = "KIND@START[+DURATION]")]
+    /// occlude covers the origin marker; occlude:ID covers marker ID of the site's map
+    /// (e.g. --fault occlude:2@20+5).
+    #[arg(long = "fault", value_name = "KIND[:ID]@START[+DURATION]")]
     pub faults: Vec<super::faults::FaultSpec>,
     /// Record the run to this MCAP file (must not exist): frames, exposure, detections,
     /// pose, commands, vehicle state, failsafe events; `markhold replay` reads it.
@@ -325,6 +327,10 @@ pub fn print_table(site: &str, s: &Summary) {
             ),
         ),
         ("marker detected", pct(s.detection_rate)),
+        (
+            "markers in the pose (mean)",
+            format!("{:.2}", s.markers_in_view_mean),
+        ),
         (
             "position RMS (last half)",
             format!("{:.3} m", s.position_rms_m),

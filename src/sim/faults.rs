@@ -2,8 +2,9 @@
 //! time and seeded, so a faulty run is as repeatable as a clean one.
 //!
 //! - Camera faults wrap the camera seam ([`FaultyCamera`]): dropped frames, late frames,
-//!   an exposure command ignored or applied 3 frames late, the marker occluded or out of
-//!   view (painted over from the world's truth, after rendering).
+//!   an exposure command ignored or applied 3 frames late, the marker (or one marker of
+//!   the map, by id) occluded, or everything out of view (painted over from the world's
+//!   truth, after rendering).
 //! - The link cut is a UDP relay on 127.0.0.1 between markhold's `VehicleLink` and the
 //!   simulated vehicle's endpoint ([`LinkRelay`]); it is pumped from the loop, so a cut
 //!   starts and ends on simulation time.
@@ -28,8 +29,12 @@ use crate::pipeline::{FrameRecord, ModeTransition};
 /// Errors of fault specifications and the link relay.
 #[derive(Debug, thiserror::Error)]
 pub enum FaultError {
-    #[error("--fault {spec:?}: expected KIND@START[+DURATION], e.g. link_cut@10+3")]
+    #[error(
+        "--fault {spec:?}: expected KIND@START[+DURATION] (occlude also occlude:ID@START[+DURATION]), e.g. link_cut@10+3 or occlude:2@20+5"
+    )]
     Syntax { spec: String },
+    #[error("--fault {spec:?}: only occlude takes a marker id (occlude:ID@START[+DURATION]), not {kind}")]
+    MarkerNotAllowed { spec: String, kind: &'static str },
     #[error("--fault {spec:?}: unknown kind {kind:?} (expected one of {known})")]
     UnknownKind {
         spec: String,
@@ -58,7 +63,8 @@ pub enum FaultError {
 pub enum FaultKind {
     /// The vehicle's endpoint stops answering (all traffic both ways dropped), then returns.
     LinkCut,
-    /// The marker (and its white plate) painted over with the surrounding grey.
+    /// The origin marker (and its white plate) painted over with the surrounding grey;
+    /// `occlude:ID` paints the map's marker ID instead.
     Occlude,
     /// The marker out of view: the whole frame painted with its mean grey.
     OutOfView,
@@ -123,6 +129,9 @@ impl fmt::Display for FaultKind {
 #[derive(Debug, Clone, Copy, PartialEq, Serialize)]
 pub struct FaultSpec {
     pub kind: FaultKind,
+    /// The marker of the map an `occlude` covers (`occlude:ID`); none: the origin marker.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub marker: Option<u32>,
     pub start_s: f64,
     /// Infinite: until the end of the run.
     pub duration_s: f64,
@@ -141,17 +150,41 @@ impl FaultSpec {
 impl FromStr for FaultSpec {
     type Err = FaultError;
 
-    /// `KIND@START[+DURATION]`, seconds of simulation time.
+    /// `KIND@START[+DURATION]`, seconds of simulation time; `occlude:ID@...` names the
+    /// marker of the map it covers.
     fn from_str(s: &str) -> Result<Self, Self::Err> {
         let syntax = || FaultError::Syntax {
             spec: s.to_string(),
         };
         let (kind, when) = s.split_once('@').ok_or_else(syntax)?;
+        let (kind, id) = match kind.split_once(':') {
+            Some((k, id)) => (k, Some(id)),
+            None => (kind, None),
+        };
         let kind = FaultKind::parse(kind.trim()).ok_or_else(|| FaultError::UnknownKind {
             spec: s.to_string(),
             kind: kind.to_string(),
             known: KINDS,
         })?;
+        let marker = match id {
+            None => None,
+            Some(_) if kind != FaultKind::Occlude => {
+                return Err(FaultError::MarkerNotAllowed {
+                    spec: s.to_string(),
+                    kind: kind.name(),
+                })
+            }
+            Some(id) => Some(
+                id.trim()
+                    .parse::<u32>()
+                    .map_err(|_| FaultError::BadNumber {
+                        spec: s.to_string(),
+                        field: "ID",
+                        value: id.to_string(),
+                        expected: "marker id (a whole number >= 0)",
+                    })?,
+            ),
+        };
         let (start, dur) = match when.split_once('+') {
             Some((a, b)) => (a, Some(b)),
             None => (when, None),
@@ -182,6 +215,7 @@ impl FromStr for FaultSpec {
         };
         Ok(Self {
             kind,
+            marker,
             start_s,
             duration_s,
         })
@@ -462,13 +496,35 @@ impl Projection {
     }
 }
 
+/// A marker `occlude` can paint over.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Cover {
+    pub id: u32,
+    /// Its pose in the site frame (the identity for the origin marker).
+    pub t_site_marker: Isometry3<f64>,
+    /// Half the edge of what is painted over: the marker and its white plate, with a
+    /// small rim so no white edge is left for the detector.
+    pub half_m: f64,
+}
+
+impl Cover {
+    /// Marker `id` at `t_site_marker` with `marker_half_m` (half its edge plus its plate
+    /// margin).
+    pub fn new(id: u32, t_site_marker: Isometry3<f64>, marker_half_m: f64) -> Self {
+        Self {
+            id,
+            t_site_marker,
+            half_m: marker_half_m * 1.1,
+        }
+    }
+}
+
 /// State of the camera faults across frames (buffers allocated once, at build).
 pub struct CameraFaults {
     plan: FaultPlan,
     proj: Projection,
-    /// Half the edge of what is painted over: the marker and its white plate, with a
-    /// small rim so no white edge is left for the detector.
-    cover_half_m: f64,
+    /// What `occlude` can paint over, the origin marker first.
+    covers: Vec<Cover>,
     /// The frame held back by `late_frames`.
     held: Frame,
     held_valid: bool,
@@ -499,11 +555,12 @@ pub struct CameraFaultStats {
 pub const EXPOSURE_LATE_FRAMES: u32 = 3;
 
 impl CameraFaults {
-    /// `marker_half_m`: half the marker's edge plus its plate margin.
+    /// `covers`: the markers `occlude` can paint, the origin marker first (the plain
+    /// `occlude` paints it).
     pub fn new(
         plan: FaultPlan,
         proj: Projection,
-        marker_half_m: f64,
+        covers: Vec<Cover>,
         width: u32,
         height: u32,
         initial_exposure_us: f64,
@@ -511,7 +568,7 @@ impl CameraFaults {
         Self {
             plan,
             proj,
-            cover_half_m: marker_half_m * 1.1,
+            covers,
             held: Frame::new(width, height),
             held_valid: false,
             pending: [(0, 0.0); 8],
@@ -640,12 +697,20 @@ impl<C: Camera + MarkerTruth> Camera for FaultyCamera<'_, C> {
         let t = frame.meta.stamp_s;
         if self.faults.plan.active(FaultKind::Occlude, t) {
             let t_cam_marker = self.inner.true_t_cam_marker();
-            if paint_marker(
-                frame,
-                &self.faults.proj,
-                &t_cam_marker,
-                self.faults.cover_half_m,
-            ) {
+            let f = &*self.faults;
+            let mut painted = false;
+            let active = f.plan.specs.iter();
+            for spec in active.filter(|s| s.kind == FaultKind::Occlude && s.active(t)) {
+                let cover = match spec.marker {
+                    None => f.covers.first(),
+                    Some(id) => f.covers.iter().find(|c| c.id == id),
+                };
+                if let Some(c) = cover {
+                    let at = t_cam_marker * c.t_site_marker;
+                    painted |= paint_marker(frame, &f.proj, &at, c.half_m);
+                }
+            }
+            if painted {
                 self.faults.stats.frames_occluded += 1;
             }
         }
@@ -771,6 +836,9 @@ pub fn paint_marker(
 #[derive(Debug, Clone, PartialEq, Serialize)]
 pub struct FaultReport {
     pub kind: FaultKind,
+    /// The map's marker an `occlude:ID` covered.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub marker: Option<u32>,
     pub start_s: f64,
     /// `null` in JSON for a fault that lasts to the end of the run.
     pub end_s: Option<f64>,
@@ -841,6 +909,7 @@ impl FaultMonitor {
             .iter()
             .map(|f| FaultReport {
                 kind: f.kind,
+                marker: f.marker,
                 start_s: f.start_s,
                 end_s: f.duration_s.is_finite().then(|| f.end_s()),
                 silent_at_s: None,
@@ -1099,6 +1168,26 @@ mod tests {
     }
 
     #[test]
+    fn occlude_takes_a_marker_id_and_nothing_else_does() {
+        let f: FaultSpec = "occlude:3@20+5".parse().unwrap();
+        assert_eq!(f.kind, FaultKind::Occlude);
+        assert_eq!(f.marker, Some(3));
+        assert_eq!((f.start_s, f.duration_s), (20.0, 5.0));
+        assert_eq!("occlude@20".parse::<FaultSpec>().unwrap().marker, None);
+        let e = "occlude:x@1".parse::<FaultSpec>().unwrap_err().to_string();
+        assert!(e.contains("ID") && e.contains("\"x\""), "{e}");
+        let e = "occlude:-1@1".parse::<FaultSpec>().unwrap_err().to_string();
+        assert!(e.contains("\"-1\""), "{e}");
+        let e = "link_cut:2@1".parse::<FaultSpec>().unwrap_err().to_string();
+        assert!(e.contains("only occlude") && e.contains("link_cut"), "{e}");
+        // The id is in the summary's report only when given.
+        let json = serde_json::to_string(&f).unwrap();
+        assert!(json.contains("\"marker\":3"), "{json}");
+        let plain = serde_json::to_string(&"occlude@1".parse::<FaultSpec>().unwrap()).unwrap();
+        assert!(!plain.contains("marker"), "{plain}");
+    }
+
+    #[test]
     fn coin_is_fair_and_seeded() {
         let heads = (0..10_000).filter(|&n| coin(7, n) & 1 == 0).count();
         assert!((4_700..5_300).contains(&heads), "{heads}");
@@ -1167,6 +1256,7 @@ mod tests {
                 t_cam_marker: None,
                 cov_cam: None,
                 reproj_rms_px: f64::NAN,
+                markers_used: 0,
                 effort: Default::default(),
                 directive,
                 latency_s: 0.0,

@@ -15,8 +15,8 @@ use markhold_vision::marker_bitmap;
 use nalgebra::{Isometry3, Translation3, UnitQuaternion, Vector3};
 
 use super::faults::{
-    CameraFaults, FaultKind, FaultMonitor, FaultPlan, FaultRig, FaultSpec, FaultyCamera, LinkRelay,
-    Projection,
+    CameraFaults, Cover, FaultKind, FaultMonitor, FaultPlan, FaultRig, FaultSpec, FaultyCamera,
+    LinkRelay, Projection,
 };
 use super::summary::{RunStats, Summary};
 use crate::params::LoadedSite;
@@ -449,14 +449,29 @@ fn fault_rig(
     } else {
         None
     };
-    let m = marker_spec(site)?;
+    let m = &site.site.marker;
+    let covers: Vec<Cover> = m
+        .markers()
+        .map(|p| Cover::new(p.id, p.t_site_marker, 0.75 * p.size_m))
+        .collect();
+    for spec in plan.specs.iter().filter(|s| s.kind == FaultKind::Occlude) {
+        if let Some(id) = spec.marker.filter(|id| covers.iter().all(|c| c.id != *id)) {
+            let ids: Vec<String> = covers.iter().map(|c| c.id.to_string()).collect();
+            anyhow::bail!(
+                "--fault occlude:{id}@{}: marker {id} is not in {}'s map (marker ids {})",
+                spec.start_s,
+                site.path.display(),
+                ids.join(", ")
+            );
+        }
+    }
     let cam = rig.camera_model();
     Ok(FaultRig {
         monitor: FaultMonitor::new(&plan, t_world_marker, t_marker_station),
         camera: CameraFaults::new(
             plan,
             Projection::of(cam),
-            0.5 * m.size_m + m.plate_margin_m,
+            covers,
             cam.width,
             cam.height,
             initial_us,

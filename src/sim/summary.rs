@@ -29,6 +29,9 @@ pub struct Summary {
     /// the same frames, so only the two fields above depend on it.
     pub render_loops: String,
     pub detection_rate: f64,
+    /// Markers of the map the pose was computed from, mean over every frame (a frame
+    /// without a pose counts 0): 1 at most for a map of one.
+    pub markers_in_view_mean: f64,
     /// Vehicle vs station, ground truth, RMS over the last half of the run.
     pub position_rms_m: f64,
     pub final_position_error_m: f64,
@@ -80,6 +83,8 @@ pub struct RunStats {
     /// The exposure controller's metric on each frame (NaN when it computed none).
     pub metric: Vec<f64>,
     pub detected: Vec<bool>,
+    /// Markers of the map in each frame's pose (0 without one).
+    pub markers_used: Vec<u32>,
     pub exposure_us: Vec<f64>,
     pub pos_err_m: Vec<f64>,
     pub yaw_err_deg: Vec<f64>,
@@ -103,6 +108,7 @@ impl RunStats {
             time_s: Vec::with_capacity(frames),
             metric: Vec::with_capacity(frames),
             detected: Vec::with_capacity(frames),
+            markers_used: Vec::with_capacity(frames),
             exposure_us: Vec::with_capacity(frames),
             pos_err_m: Vec::with_capacity(frames),
             yaw_err_deg: Vec::with_capacity(frames),
@@ -129,6 +135,7 @@ impl RunStats {
         self.time_s.push(rec.stamp_s);
         self.metric.push(rec.exposure.metric);
         self.detected.push(rec.detected);
+        self.markers_used.push(rec.markers_used);
         self.exposure_us.push(rec.exposure.exposure_us);
         self.latency_s.push(rec.latency_s);
         if let Some(t) = rec.t_cam_marker {
@@ -190,6 +197,8 @@ impl RunStats {
             world_realtime_factor: 0.0,
             render_loops: String::new(),
             detection_rate: self.detected.iter().filter(|d| **d).count() as f64 / n.max(1) as f64,
+            markers_in_view_mean: self.markers_used.iter().map(|&m| f64::from(m)).sum::<f64>()
+                / n.max(1) as f64,
             position_rms_m,
             final_position_error_m: self.pos_err_m.last().copied().unwrap_or(f64::NAN),
             final_yaw_error_deg: self.yaw_err_deg.last().copied().unwrap_or(f64::NAN),

@@ -1,41 +1,89 @@
 //! Detect + pose at 1440x1080: full-frame search and RoI-tracked, beside OpenCV's
-//! default full-frame `detect_markers` (default parameters, no refinement, no pose).
+//! default full-frame `detect_markers` (default parameters, no refinement, no pose); and
+//! a marker map with 4 markers in view (one joint pose) beside the single marker.
 
 #![allow(clippy::unwrap_used)] // A benchmark's setup fails loudly when broken, by design.
 
 use criterion::{criterion_group, criterion_main, BenchmarkId, Criterion, Throughput};
 use markhold_exposure::Frame;
-use markhold_vision::synth::{render_marker, SceneParams};
+use markhold_vision::synth::{render_marker, render_markers, SceneParams};
 use markhold_vision::{
-    marker_bitmap, CameraCalibration, DetectorConfig, MarkerConfig, MarkerFamily, MarkerTracker,
+    marker_bitmap, CameraCalibration, DetectorConfig, MapMarker, MarkerConfig, MarkerFamily,
+    MarkerTracker,
 };
 use nalgebra::{Isometry3, Translation3, UnitQuaternion, Vector3};
 use opencv::{aruco, core};
 use rand::{Rng, SeedableRng};
 
-fn scene(range_m: f64) -> (CameraCalibration, MarkerConfig, Frame) {
-    let calib = CameraCalibration::pinhole(1440, 1080, 1000.0, 1000.0, 719.5, 539.5);
-    let marker = MarkerConfig::single(MarkerFamily::AprilTag36h11, 7, 0.2);
-    let bm = marker_bitmap(marker.family, marker.id).unwrap();
-    let pose = Isometry3::from_parts(
+fn calib() -> CameraCalibration {
+    CameraCalibration::pinhole(1440, 1080, 1000.0, 1000.0, 719.5, 539.5)
+}
+
+/// The site frame (the origin marker's) seen from `range_m`, facing the camera, turned.
+fn site_pose(range_m: f64) -> Isometry3<f64> {
+    Isometry3::from_parts(
         Translation3::new(0.1 * range_m, -0.05 * range_m, range_m),
         UnitQuaternion::from_axis_angle(&Vector3::x_axis(), std::f64::consts::PI)
             * UnitQuaternion::from_axis_angle(&Vector3::y_axis(), 0.4),
-    );
+    )
+}
+
+/// Texture everywhere (a flat background is unrealistically cheap to threshold).
+fn texture(frame: &mut Frame, seed: u64) {
+    let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(seed);
+    for p in frame.data.iter_mut() {
+        *p = (*p as i32 + rng.random_range(-6..=6)).clamp(0, 255) as u8;
+    }
+}
+
+fn scene(range_m: f64) -> (CameraCalibration, MarkerConfig, Frame) {
+    let calib = calib();
+    let marker = MarkerConfig::single(MarkerFamily::AprilTag36h11, 7, 0.2);
+    let bm = marker_bitmap(marker.family, marker.id).unwrap();
     let mut frame = Frame::default();
     render_marker(
         &mut frame,
         &calib,
         &bm,
         marker.size_m,
-        &pose,
+        &site_pose(range_m),
         &SceneParams::default(),
     );
-    // Texture everywhere (a flat background is unrealistically cheap to threshold).
-    let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(1);
-    for p in frame.data.iter_mut() {
-        *p = (*p as i32 + rng.random_range(-6..=6)).clamp(0, 255) as u8;
-    }
+    texture(&mut frame, 1);
+    (calib, marker, frame)
+}
+
+/// The marker of `scene(1.0)` with three more of the same size around it, all in view:
+/// a map of four.
+fn map_scene() -> (CameraCalibration, MarkerConfig, Frame) {
+    let calib = calib();
+    let at = |id: u32, x: f64, y: f64| MapMarker {
+        id,
+        size_m: 0.2,
+        position_m: [x, y, 0.0],
+        rpy_deg: [0.0; 3],
+    };
+    let marker = MarkerConfig {
+        map: vec![at(3, -0.3, 0.0), at(11, 0.0, 0.3), at(19, -0.3, 0.3)],
+        ..MarkerConfig::single(MarkerFamily::AprilTag36h11, 7, 0.2)
+    };
+    let t_cam_site = site_pose(1.0);
+    let placed: Vec<_> = marker
+        .markers()
+        .map(|m| {
+            let bm = marker_bitmap(marker.family, m.id).unwrap();
+            (bm, m.size_m, t_cam_site * m.t_site_marker)
+        })
+        .collect();
+    let refs: Vec<_> = placed.iter().map(|(b, s, t)| (b, *s, *t)).collect();
+    let mut frame = Frame::default();
+    let corners = render_markers(&mut frame, &calib, &refs, &SceneParams::default());
+    assert!(corners
+        .iter()
+        .flatten()
+        .all(|c| c
+            .is_some_and(|p| { (0.0..1440.0).contains(&p[0]) && (0.0..1080.0).contains(&p[1]) })));
+    texture(&mut frame, 1);
     (calib, marker, frame)
 }
 
@@ -105,6 +153,38 @@ fn bench(c: &mut Criterion) {
             })
         });
     }
+    // A map of four, every marker in view: one joint pose over 16 corners, beside the
+    // single marker at 1 m above.
+    let (calib, marker, mut frame) = map_scene();
+    let cfg = DetectorConfig {
+        full_search_period_frames: 1,
+        opencv_threads: threads,
+        ..Default::default()
+    };
+    let mut t = MarkerTracker::new(&marker, &cfg, calib.clone()).unwrap();
+    g.bench_function(BenchmarkId::new("map4_full_search", "1m"), |b| {
+        b.iter(|| {
+            let o = t.process(&frame).unwrap().unwrap();
+            assert!(!o.tracked && o.markers_used == 4);
+        })
+    });
+    let cfg = DetectorConfig {
+        full_search_period_frames: 0,
+        opencv_threads: threads,
+        ..Default::default()
+    };
+    let mut t = MarkerTracker::new(&marker, &cfg, calib).unwrap();
+    let mut stamp = 0.0;
+    t.process(&frame).unwrap().unwrap();
+    g.bench_function(BenchmarkId::new("map4_tracked", "1m"), |b| {
+        b.iter(|| {
+            stamp += 0.033;
+            frame.meta.stamp_s = stamp;
+            let o = t.process(&frame).unwrap().unwrap();
+            assert!(o.tracked && o.markers_used == 4);
+        })
+    });
+
     // No marker in view: every frame is a full search (half resolution, then the
     // full-resolution fallback), the worst case of the loop.
     let (calib, marker, mut frame) = scene(1.0);
