@@ -31,6 +31,7 @@ pub fn print_report(args: std::fmt::Arguments<'_>) {
 pub mod cli_docs;
 pub mod feasibility;
 pub mod field;
+pub mod map;
 pub mod observe;
 pub mod params;
 pub mod pipeline;

@@ -51,6 +51,9 @@ enum Command {
     /// did not hold.
     #[cfg(feature = "sim")]
     Robustness(markhold::sim::robustness::RobustnessArgs),
+    /// Build the site's marker map ([[marker.map]]: each marker's pose in the site frame)
+    /// from a recording or a frames folder in which several markers are seen together.
+    Map(markhold::map::MapArgs),
     /// A printable marker at exact physical size (SVG, PDF or PNG) with its caption.
     Tag(markhold::tag::TagArgs),
     /// The camera response: fit the paper's polynomial form from an exposure sweep.
@@ -251,6 +254,7 @@ fn run(cli: Cli) -> anyhow::Result<()> {
         Command::Compare(args) => markhold::sim::compare::cli(args),
         #[cfg(feature = "sim")]
         Command::Robustness(args) => markhold::sim::robustness::cli(args),
+        Command::Map(args) => markhold::map::cli(args),
         Command::Tag(args) => markhold::tag::cli(args),
         Command::Response { command } => markhold::response_fit::cli(command),
         Command::Completions { shell } => {

@@ -168,6 +168,10 @@ pub struct Pipeline<L: CommandLink = VehicleLink> {
     frame: Frame,
     /// Failsafe transitions of the last frame (reused buffer).
     events: Vec<FailsafeEvent>,
+    /// The markers the last frame's pose used (ids), and the corners of every marker
+    /// of the map in view, decoded or placed by the pose (sized for the map).
+    in_view_ids: Vec<u32>,
+    in_view: Vec<Corners>,
     /// Loop time the marker was last seen.
     marker_seen_s: Option<f64>,
     /// Set by a signal handler: the next frame sends neutral and the loop ends.
@@ -208,12 +212,14 @@ impl<L: CommandLink> Pipeline<L> {
             response: s.camera.response.clone(),
             ..s.exposure.clone()
         };
-        let exposure = build_controller(
+        let mut exposure = build_controller(
             &exposure_cfg,
             start.method,
             limits,
             start.initial_exposure_us,
         )?;
+        let map_len = tracker.map_len();
+        exposure.reserve_markers(map_len);
         let mut keeper = StationKeeper::new(&s.station, &s.controller, site.t_vehicle_cam())?;
         keeper.set_view(crate::feasibility::view_limits(calib, s.marker.size_m));
         if let Some(tap) = observers.mavlink_tap() {
@@ -227,6 +233,8 @@ impl<L: CommandLink> Pipeline<L> {
             link,
             frame: Frame::new(calib.width, calib.height),
             events: Vec::with_capacity(8),
+            in_view_ids: Vec::with_capacity(map_len),
+            in_view: Vec::with_capacity(map_len),
             marker_seen_s: None,
             shutdown: false,
             last_frame_s: None,
@@ -277,6 +285,11 @@ impl<L: CommandLink> Pipeline<L> {
     /// roll, pitch, yaw; effort).
     pub fn keeper_integrals(&self) -> [f64; 6] {
         self.keeper.integrals()
+    }
+
+    /// Ids of the markers the last frame's pose used, in map order.
+    pub fn markers_in_view(&self) -> &[u32] {
+        &self.in_view_ids
     }
 
     /// Supervisor transitions of the last frame or tick.
@@ -448,9 +461,24 @@ impl<L: CommandLink> Pipeline<L> {
             obs
         };
 
-        // Exposure after the command: it does not gate the vehicle.
+        // Exposure after the command: it does not gate the vehicle. It meters every
+        // marker of the map in view, those the detector missed where the pose places
+        // them (or the one the pose names, as the site says).
         let corners = obs.as_ref().map(|o| o.corners);
-        let step = self.exposure.update(&self.frame, corners.as_ref());
+        self.in_view_ids.clear();
+        self.in_view.clear();
+        if obs.is_some() {
+            let (ids, in_view) = (&mut self.in_view_ids, &mut self.in_view);
+            self.tracker.for_each_marker_in_view(|id, c, decoded| {
+                if decoded {
+                    ids.push(id);
+                }
+                in_view.push(*c);
+            });
+        }
+        let step = self
+            .exposure
+            .update_in_view(&self.frame, corners.as_ref(), &self.in_view);
         camera.set_exposure_us(step.exposure_us)?;
         let rec = FrameRecord {
             seq: self.frame.meta.seq,
@@ -479,6 +507,7 @@ impl<L: CommandLink> Pipeline<L> {
             heartbeat_s: self.link.vehicle_heartbeat_s(),
             vehicle: self.link.vehicle_state(),
             events: &self.events,
+            markers_in_view: &self.in_view_ids,
             transitions: &self.failsafe.transitions,
             shutdown: self.shutdown,
         }

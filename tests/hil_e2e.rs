@@ -291,7 +291,9 @@ fn unknown_render_loops_are_named() {
 /// two more markers in its map, one behind the rock wall (inside the view, hidden by the
 /// wall) and one far out of view, runs exactly as pool (the map's window for the hidden
 /// marker is searched every frame and finds nothing, and the pose is the origin
-/// marker's, bit for bit).
+/// marker's, bit for bit). Its exposure meters the origin marker only (`regions =
+/// "single"`): by default it would also meter the wall where the map places the hidden
+/// marker.
 #[test]
 fn a_map_whose_other_markers_are_not_seen_runs_as_its_origin_marker() {
     let d = tmpdir("map-of-one");
@@ -300,7 +302,8 @@ fn a_map_whose_other_markers_are_not_seen_runs_as_its_origin_marker() {
         &map,
         format!(
             "{}\n[[marker.map]]\nid = 5\nsize_m = 0.15\nposition_m = [0.3, 0.0, -0.5]\n\n\
-             [[marker.map]]\nid = 6\nsize_m = 0.15\nposition_m = [40.0, 0.0, 0.0]\n",
+             [[marker.map]]\nid = 6\nsize_m = 0.15\nposition_m = [40.0, 0.0, 0.0]\n\n\
+             [exposure.aaec]\nregions = \"single\"\n",
             pool_text()
         ),
     )

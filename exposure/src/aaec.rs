@@ -33,7 +33,7 @@
 //! (`v = gamma v + eta dM/dt`, `t <- t + v`) on markhold's metric, so the log-domain step
 //! can be switched off on its own. The paper's whole method is `aaec_paper.rs`.
 
-use crate::metric::{GradientMetric, MetricParams};
+use crate::metric::{GradientMetric, MetricParams, MetricValue};
 use crate::{
     exposed_as_commanded, Corners, ExposureController, ExposureError, ExposureLimits,
     ExposureMethod, ExposureStep, Frame, Response, Roi,
@@ -44,6 +44,13 @@ use serde::{Deserialize, Serialize};
 /// Largest move in ln t (25%) over which the scene-change test compares M with its
 /// prediction.
 const SCENE_TEST_MAX_MOVE: f64 = 0.25;
+
+/// Slope `"log-sum"` gives a marker's box that is washed out (negative) or black and
+/// flat (positive): twice a linear camera's slope below the knee, so that such a
+/// marker outweighs one that is still climbing.
+const LOG_SUM_LOST_SLOPE: f64 = 4.0;
+/// Clipped fraction of a marker's box from which `"log-sum"` takes it as washed out.
+const LOG_SUM_WASHED_OUT: f64 = 0.5;
 
 /// Longest interval between probes of a collapsed bracket, used frames.
 const MAX_PROBE_FRAMES: u32 = 64;
@@ -98,6 +105,40 @@ pub enum AaecFallback {
     Aec,
 }
 
+/// The region AAEC meters when several markers of the site's map are in view
+/// (`[exposure.aaec] regions`). With one marker in view all three are the same region.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum MarkerRegions {
+    /// One box around the padded boxes of every marker in view.
+    Union,
+    /// `M` and `dM/d(ln t)` evaluated on each marker's padded box and summed.
+    Sum,
+    /// `ln M` summed over each marker's padded box: every marker's relative gain
+    /// counts the same, however bright it is. The slope is the mean of the markers'
+    /// slopes `d ln M / d ln t`; a marker's box with half its pixels clipped (washed
+    /// out: its own slope says nothing) counts -4, one without gradient and dark +4
+    /// (twice a linear camera's slope below the knee). `M` reported is the markers'
+    /// geometric mean.
+    /// The default.
+    #[serde(rename = "log-sum")]
+    LogSum,
+    /// The padded box of the marker the pose names only: the origin marker when it is
+    /// in view, else the largest (one marker's AAEC, kept for comparison).
+    Single,
+}
+
+impl std::fmt::Display for MarkerRegions {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(match self {
+            Self::Union => "union",
+            Self::Sum => "sum",
+            Self::LogSum => "log-sum",
+            Self::Single => "single",
+        })
+    }
+}
+
 /// Domain of the plain momentum step (`adaptive_step = false`).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "lowercase")]
@@ -129,6 +170,10 @@ pub struct AaecConfig {
     pub weight_power: u32,
     /// RoI padding on each side, as a fraction of the corner box (paper: 0.1).
     pub roi_pad_frac: f64,
+    /// With several markers of the map in view: `"log-sum"` (default) sums `ln M` over
+    /// each marker's box, `"sum"` sums `M`, `"union"` meters one box around all of
+    /// them, `"single"` the marker the pose names only (see [`MarkerRegions`]).
+    pub regions: MarkerRegions,
     /// Momentum factor gamma, [0, 1) (paper: 0.9).
     pub momentum: f64,
     /// Learning rate eta on the scale-free slope d ln M / d ln t, (0, 10].
@@ -253,6 +298,7 @@ impl Default for AaecConfig {
             percentile: 0.9,
             weight_power: 5,
             roi_pad_frac: 0.1,
+            regions: MarkerRegions::LogSum,
             momentum: 0.9,
             learning_rate: 0.5,
             dead_band_us: 1.0,
@@ -353,6 +399,10 @@ pub struct Aaec {
     /// ln t and slope of the last used frame.
     prev: Option<Sample>,
     bracket: Option<Bracket>,
+    /// This frame's metered regions (one, or one per marker in view with `"sum"`).
+    regions: Vec<Roi>,
+    /// The regions of the last frame that showed a marker, and the box around them.
+    last_regions: Vec<Roi>,
     last_roi: Option<Roi>,
     lost_frames: u32,
     in_fallback: bool,
@@ -395,6 +445,8 @@ impl Aaec {
             step_scale: 1.0,
             prev: None,
             bracket: None,
+            regions: Vec::with_capacity(1),
+            last_regions: Vec::with_capacity(1),
             last_roi: None,
             lost_frames: 0,
             in_fallback: false,
@@ -424,13 +476,22 @@ impl Aaec {
         self.hold = None;
     }
 
-    /// Grey level of the knee quantile of `view` (every 2nd pixel and row).
-    fn knee_grey(&self, view: crate::ImageView<'_>) -> Option<usize> {
+    /// Grey level of the knee quantile of this frame's regions (every 2nd pixel and
+    /// row of each).
+    fn knee_grey(&self, frame: &Frame) -> Option<usize> {
         let q = self.cfg.knee_quantile;
         if q <= 0.0 {
             return None;
         }
-        let (hist, n) = sparse_histogram(view);
+        let view = frame.view();
+        let (mut hist, mut n) = ([0u32; 256], 0u64);
+        for &r in &self.regions {
+            let (h, c) = sparse_histogram(view.crop(r));
+            for (a, b) in hist.iter_mut().zip(h) {
+                *a += b;
+            }
+            n += c;
+        }
         if n == 0 {
             return None;
         }
@@ -448,7 +509,7 @@ impl Aaec {
     /// The knee landing step (ln t) from a frame at `x` with slope `s`, if it applies.
     fn knee_step(
         &mut self,
-        view: crate::ImageView<'_>,
+        frame: &Frame,
         x: f64,
         s: f64,
         clipped_frac: f64,
@@ -466,7 +527,7 @@ impl Aaec {
         {
             return None;
         }
-        let g = self.knee_grey(view)?;
+        let g = self.knee_grey(frame)?;
         let sat = self.cfg.saturation_grey as usize;
         if g + 1 >= sat
             && self.landed.is_none()
@@ -555,28 +616,116 @@ impl Aaec {
         None
     }
 
-    /// The region to meter: the marker's padded box, else the last one for a few frames.
-    fn select_roi(&mut self, frame: &Frame, marker: Option<&Corners>) -> Option<Roi> {
-        let detected = marker.and_then(|c| {
-            Roi::from_corners_padded(c, self.cfg.roi_pad_frac as f32, frame.width, frame.height)
+    /// The regions to meter (into `self.regions`) and the box around them: from the
+    /// markers in view as `regions` says, else the last ones for a few frames.
+    fn select_regions(
+        &mut self,
+        frame: &Frame,
+        marker: Option<&Corners>,
+        in_view: &[Corners],
+    ) -> Option<Roi> {
+        let (w, h) = (frame.width, frame.height);
+        let pad = self.cfg.roi_pad_frac as f32;
+        let boxed = |c: &Corners| Roi::from_corners_padded(c, pad, w, h);
+        self.regions.clear();
+        let detected = marker.and_then(boxed).map(|primary| {
+            match self.cfg.regions {
+                MarkerRegions::Single => self.regions.push(primary),
+                MarkerRegions::Union => {
+                    let u = in_view
+                        .iter()
+                        .filter_map(boxed)
+                        .fold(primary, |u, r| u.union(&r));
+                    self.regions.push(u);
+                }
+                MarkerRegions::Sum | MarkerRegions::LogSum => {
+                    // `in_view` holds the named marker too; without it, that one alone.
+                    self.regions.extend(in_view.iter().filter_map(boxed));
+                    if self.regions.is_empty() {
+                        self.regions.push(primary);
+                    }
+                }
+            }
+            let first = self.regions[0];
+            self.regions[1..].iter().fold(first, |u, r| u.union(r))
         });
         match detected {
             Some(r) => {
                 self.lost_frames = 0;
                 self.last_roi = Some(r);
+                self.last_regions.clear();
+                self.last_regions.extend_from_slice(&self.regions);
                 self.seen_us = taken_us(frame).or(self.seen_us);
                 Some(r)
             }
             None => {
                 self.lost_frames = self.lost_frames.saturating_add(1);
                 if self.lost_frames <= self.cfg.lost_hold_frames {
-                    self.last_roi.map(|r| r.clamp_to(frame.width, frame.height))
+                    let last = self.last_roi?;
+                    self.regions
+                        .extend(self.last_regions.iter().map(|r| r.clamp_to(w, h)));
+                    Some(last.clamp_to(w, h))
                 } else {
                     self.last_roi = None;
+                    self.last_regions.clear();
                     None
                 }
             }
         }
+    }
+
+    /// The metric over this frame's regions: one region's value as it is; over several,
+    /// `M` and `dM/d(ln t)` summed (`"sum"`) or `ln M` summed (`"log-sum"`, each `M`
+    /// floored at `metric_floor_grey2`), the grey statistics weighted by pixel count.
+    fn evaluate_regions(&mut self, frame: &Frame) -> Option<MetricValue> {
+        let view = frame.view();
+        let floor = self.cfg.metric_floor_grey2;
+        let mut first: Option<MetricValue> = None;
+        let (mut count, mut pixels) = (0usize, 0usize);
+        let (mut m, mut dm, mut ln_m, mut s) = (0.0, 0.0, 0.0, 0.0);
+        let (mut grey, mut sat) = (0.0, 0.0);
+        for &r in &self.regions {
+            let Some(v) = self.metric.evaluate(view.crop(r)) else {
+                continue;
+            };
+            first.get_or_insert(v);
+            count += 1;
+            pixels += v.pixels;
+            m += v.m;
+            dm += v.dm_dlnt;
+            let mf = v.m.max(floor);
+            ln_m += mf.ln();
+            s += if v.saturated_frac >= LOG_SUM_WASHED_OUT {
+                -LOG_SUM_LOST_SLOPE
+            } else if v.m < floor {
+                if v.mean_grey < 128.0 {
+                    LOG_SUM_LOST_SLOPE
+                } else {
+                    -LOG_SUM_LOST_SLOPE
+                }
+            } else {
+                v.dm_dlnt / v.m
+            };
+            grey += v.mean_grey * v.pixels as f64;
+            sat += v.saturated_frac * v.pixels as f64;
+        }
+        if count <= 1 {
+            return first;
+        }
+        let n = pixels.max(1) as f64;
+        let (m, dm_dlnt) = if self.cfg.regions == MarkerRegions::LogSum {
+            let g = (ln_m / count as f64).exp();
+            (g, g * s / count as f64)
+        } else {
+            (m, dm)
+        };
+        Some(MetricValue {
+            m,
+            dm_dlnt,
+            pixels,
+            mean_grey: grey / n,
+            saturated_frac: sat / n,
+        })
     }
 
     /// Rung `j` (1, 2, ...) of a sweep around `center_us`: x r, / r, x r^2, / r^2, ...,
@@ -912,7 +1061,25 @@ impl ExposureController for Aaec {
     }
 
     fn update(&mut self, frame: &Frame, marker: Option<&Corners>) -> ExposureStep {
-        let Some(roi) = self.select_roi(frame, marker) else {
+        self.update_in_view(frame, marker, &[])
+    }
+
+    fn reserve_markers(&mut self, markers: usize) {
+        let n = markers.max(1);
+        self.regions.reserve(n);
+        self.last_regions.reserve(n);
+    }
+
+    fn update_in_view(
+        &mut self,
+        frame: &Frame,
+        marker: Option<&Corners>,
+        in_view: &[Corners],
+    ) -> ExposureStep {
+        // A union box can be wider than any region before it: size the metric's row
+        // buffers for the whole frame on the first frame, not mid-run.
+        self.metric.reserve(frame.width as usize);
+        let Some(roi) = self.select_regions(frame, marker, in_view) else {
             if !self.in_fallback {
                 tracing::debug!(lost = self.lost_frames, "aaec: marker lost, falling back");
                 self.in_fallback = true;
@@ -959,7 +1126,7 @@ impl ExposureController for Aaec {
         if !exposed_as_commanded(frame, self.commanded_us) || !frame.is_consistent() {
             return hold;
         }
-        let Some(mv) = self.metric.evaluate(frame.view().crop(roi)) else {
+        let Some(mv) = self.evaluate_regions(frame) else {
             return hold;
         };
         let t = self.commanded_us;
@@ -993,13 +1160,12 @@ impl ExposureController for Aaec {
                     self.reset_ascent();
                 }
             }
-            let view = frame.view().crop(roi);
             let last = std::mem::replace(&mut self.last_knee, KneeStep::None);
             let (d, why) = if let Some(d) = self.knee_held(s) {
                 (d, "knee hold")
             } else if last == KneeStep::Landing && self.hold_knee(mv.saturated_frac, s) {
                 (0.0, "knee hold begins")
-            } else if let Some(d) = self.knee_step(view, x, s, mv.saturated_frac, last) {
+            } else if let Some(d) = self.knee_step(frame, x, s, mv.saturated_frac, last) {
                 (d, "knee landing")
             } else {
                 let d = self.ascent_step(x, s, mv.dm_dlnt);
@@ -1050,6 +1216,7 @@ impl ExposureController for Aaec {
         self.commanded_us = self.limits.clamp(exposure_us);
         self.reset_ascent();
         self.last_roi = None;
+        self.last_regions.clear();
         self.lost_frames = 0;
         self.in_fallback = false;
         self.seen_us = None;

@@ -149,6 +149,26 @@ impl Roi {
         self.width as u64 * self.height as u64
     }
 
+    /// The smallest rectangle holding both (an empty one is ignored).
+    pub fn union(&self, other: &Roi) -> Roi {
+        if other.is_empty() {
+            return *self;
+        }
+        if self.is_empty() {
+            return *other;
+        }
+        let x0 = self.x.min(other.x);
+        let y0 = self.y.min(other.y);
+        let x1 = (self.x + self.width).max(other.x + other.width);
+        let y1 = (self.y + self.height).max(other.y + other.height);
+        Roi {
+            x: x0,
+            y: y0,
+            width: x1 - x0,
+            height: y1 - y0,
+        }
+    }
+
     /// This rectangle intersected with a `w` x `h` image.
     pub fn clamp_to(&self, w: u32, h: u32) -> Roi {
         let x0 = self.x.min(w);

@@ -17,7 +17,7 @@ pub mod pyramid;
 pub mod reference;
 mod response;
 
-pub use aaec::{Aaec, AaecConfig, AaecFallback, StepLaw};
+pub use aaec::{Aaec, AaecConfig, AaecFallback, MarkerRegions, StepLaw};
 pub use aaec_paper::{
     AaecPaper, AaecPaperConfig, PaperMetric, PaperMetricEval, PaperMetricValue, PaperMomentum,
 };
@@ -160,6 +160,20 @@ pub trait ExposureController: Send {
     fn method(&self) -> ExposureMethod;
     /// Feed one frame and, when the marker was detected in it, its corners.
     fn update(&mut self, frame: &Frame, marker: Option<&Corners>) -> ExposureStep;
+    /// Feed one frame with every marker of the map in view: `marker` is the one the pose
+    /// names (see [`ExposureController::update`]), `in_view` the corners of every marker
+    /// the pose used (it among them). A controller that meters one marker uses `marker`.
+    fn update_in_view(
+        &mut self,
+        frame: &Frame,
+        marker: Option<&Corners>,
+        _in_view: &[Corners],
+    ) -> ExposureStep {
+        self.update(frame, marker)
+    }
+    /// Size the per-marker buffers for a map of `markers` markers (at start-up: the
+    /// per-frame path then allocates nothing).
+    fn reserve_markers(&mut self, _markers: usize) {}
     /// The exposure last commanded, microseconds.
     fn commanded_us(&self) -> f64;
     /// Forget all state and command `exposure_us` next.

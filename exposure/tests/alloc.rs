@@ -26,6 +26,38 @@ fn controllers_do_not_allocate_per_frame() {
         .collect();
     cfg.aaec.fallback = AaecFallback::Aec;
     ctrls.push(build_controller(&cfg, ExposureMethod::Aaec, limits(), 200.0).unwrap());
+    // Several markers in view, per-marker regions and their union.
+    let beside = scene.corners.map(|[x, y]| [x - 30.0, y - 20.0]);
+    let in_view = [scene.corners, beside];
+    let mut multi: Vec<Box<dyn ExposureController>> = Vec::new();
+    for regions in [
+        MarkerRegions::LogSum,
+        MarkerRegions::Sum,
+        MarkerRegions::Union,
+    ] {
+        let mut cfg = ExposureConfig::default();
+        cfg.aaec.regions = regions;
+        let mut c = build_controller(&cfg, ExposureMethod::Aaec, limits(), 200.0).unwrap();
+        c.reserve_markers(in_view.len());
+        multi.push(c);
+    }
+    for c in multi.iter_mut() {
+        for (k, f) in frames.iter_mut().enumerate() {
+            f.meta.exposure_us = c.commanded_us();
+            c.update_in_view(f, Some(&scene.corners), &in_view[..1 + k % 2]);
+        }
+        let before = process_allocs();
+        for round in 0..3 {
+            for (k, f) in frames.iter_mut().enumerate() {
+                f.meta.exposure_us = c.commanded_us();
+                let seen = round != 1 || k < 2;
+                let view: &[Corners] = if seen { &in_view } else { &[] };
+                c.update_in_view(f, seen.then_some(&scene.corners), view);
+            }
+        }
+        let after = process_allocs();
+        assert_eq!(after - before, 0, "aaec over two markers allocated");
+    }
     for c in ctrls.iter_mut() {
         // First frames (with and without the marker, so AAEC's fallback runs too)
         // size the buffers.

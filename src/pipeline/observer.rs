@@ -21,6 +21,8 @@ pub struct FrameView<'a> {
     pub vehicle: Option<&'a VehicleState>,
     /// Supervisor transitions of this frame.
     pub events: &'a [FailsafeEvent],
+    /// Ids of the markers of the map the frame's pose used, in map order.
+    pub markers_in_view: &'a [u32],
     /// Mode changes the loop made on its own this frame.
     pub transitions: &'a [ModeTransition],
     /// The loop was asked to stop on this frame.

@@ -47,6 +47,7 @@ use serde::{Deserialize, Serialize};
 use crate::params::LoadedSite;
 use crate::pipeline::{FrameRecord, FrameView, Observer};
 
+pub mod images;
 pub mod live;
 pub mod replay;
 

@@ -137,7 +137,7 @@ fn mcap_err(path: &Path) -> impl Fn(mcap::McapError) -> anyhow::Error + '_ {
 
 /// The largest record replay accepts (a chunk holds a few frames; a hostile length
 /// must not become an allocation).
-const MAX_RECORD_BYTES: usize = 256 << 20;
+pub(crate) const MAX_RECORD_BYTES: usize = 256 << 20;
 
 /// The run description of a recording's metadata record, checked like a site file.
 pub fn run_info_of(
@@ -205,7 +205,7 @@ pub fn read_run_info(path: &Path, buf: &[u8]) -> anyhow::Result<(RunInfo, Loaded
 }
 
 /// A recorded PNG or JPEG into `out`, which has the recorded site's size.
-fn decode_image(encoded: &[u8], out: &mut Frame) -> anyhow::Result<()> {
+pub(crate) fn decode_image(encoded: &[u8], out: &mut Frame) -> anyhow::Result<()> {
     let buf = opencv::core::Mat::from_slice(encoded)?;
     let img = opencv::imgcodecs::imdecode(&buf, opencv::imgcodecs::IMREAD_UNCHANGED)?;
     if img.empty() || img.channels() != 1 || img.depth() != opencv::core::CV_8U {
@@ -282,7 +282,7 @@ pub fn build_loop(
 
 /// Whether every string and map length a Channel or Metadata record declares lies
 /// within the record (other records: true).
-fn lengths_fit(opcode: u8, data: &[u8]) -> bool {
+pub(crate) fn lengths_fit(opcode: u8, data: &[u8]) -> bool {
     fn prefixed(data: &[u8], at: &mut usize, end: usize) -> Option<()> {
         let len_end = at.checked_add(4).filter(|e| *e <= end)?;
         let n = u32::from_le_bytes(data.get(*at..len_end)?.try_into().ok()?) as usize;

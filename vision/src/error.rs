@@ -42,6 +42,16 @@ pub enum VisionError {
         #[source]
         source: opencv::Error,
     },
+    #[error("marker map: no frame shows two or more of the map's markers together ({frames} frames read)")]
+    MapNoFrames { frames: usize },
+    #[error("marker map: origin marker {origin} is not one of the site's markers ({ids})")]
+    MapOrigin { origin: u32, ids: String },
+    #[error("marker map: markers {ids} are not linked to origin marker {origin} through frames that show markers together: {detail}")]
+    MapDisconnected {
+        origin: u32,
+        ids: String,
+        detail: String,
+    },
     #[error(transparent)]
     Camera(#[from] markhold_exposure::CameraError),
 }

@@ -5,6 +5,8 @@
 //!   refinement and a covariance from the reprojection Jacobian.
 //! - [`CameraCalibration`]: intrinsics, read from OpenCV or ROS YAML files.
 //! - [`marker_bitmap`]: the printed marker, module by module (the HIL camera renders it).
+//! - [`mapping`]: a marker map (each marker's pose in the site frame) from frames that
+//!   show several markers together, by bundle adjustment.
 //! - [`synth`]: a reference renderer for tests and benchmarks.
 //!
 //! Conventions: `docs/frames.md` (aruco corner order, OpenCV camera frame, covariance
@@ -16,6 +18,7 @@ mod config;
 mod corners;
 mod dict;
 mod error;
+pub mod mapping;
 pub mod pose;
 pub mod synth;
 mod tracker;

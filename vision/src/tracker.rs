@@ -6,6 +6,7 @@ use crate::config::{DetectorConfig, MarkerConfig, PlacedMarker};
 use crate::corners::{CornerCov, EdgeRefiner};
 use crate::dict::dictionary;
 use crate::error::CvContext;
+use crate::mapping::SeenMarker;
 use crate::pose::{
     cov_of_inverse, cov_through, isotropic_corner_cov, marker_object_points, marker_rms_px,
     refine_pose, refine_pose_joint, whitening, MarkerCorners, RefinedPose,
@@ -120,6 +121,8 @@ struct Slot {
     /// This frame: the marker's own pose and its corners for the joint pose.
     single: Option<RefinedPose>,
     joint: MarkerCorners,
+    /// This frame: the marker was used in the pose returned.
+    in_pose: bool,
 }
 
 /// Detection + pose over the site's marker map; owns its OpenCV buffers and the
@@ -208,6 +211,7 @@ impl MarkerTracker {
                     coarse: None,
                     single: None,
                     joint: MarkerCorners::default(),
+                    in_pose: false,
                 }
             })
             .collect();
@@ -274,6 +278,63 @@ impl MarkerTracker {
         self.last_search
     }
 
+    /// The markers of the map found in the last frame processed, each with its own pose
+    /// (from its four corners alone, not from where the map places it): what
+    /// [`crate::mapping::MapBuilder`] builds a map from.
+    pub fn seen_markers(&self) -> impl Iterator<Item = SeenMarker> + '_ {
+        self.slots.iter().filter_map(|s| {
+            s.found?;
+            let single = s.single?;
+            Some(SeenMarker {
+                id: s.placed.id,
+                img: s.joint.img,
+                white: s.joint.white,
+                t_cam_marker: single.t_cam_marker,
+            })
+        })
+    }
+
+    /// Number of markers in the site's map (the size of per-marker buffers).
+    pub fn map_len(&self) -> usize {
+        self.slots.len()
+    }
+
+    /// Every marker of the map in view on the last frame with a pose, in map order: the
+    /// markers the pose used with their corners as found (`decoded` true), and the
+    /// others where the pose places them (`decoded` false) when all four corners fall
+    /// in the image: a marker washed out by a lamp, or too dark to decode, is still
+    /// where the map says. Nothing after a frame without a pose.
+    pub fn for_each_marker_in_view(&self, mut f: impl FnMut(u32, &Corners, bool)) {
+        let Some((_, t_cam_site)) = self.last_site else {
+            return;
+        };
+        if !self.slots.iter().any(|s| s.in_pose) {
+            return;
+        }
+        let (w, h) = (self.calib.width as f64, self.calib.height as f64);
+        for s in &self.slots {
+            if s.in_pose {
+                if let Some(c) = &s.found {
+                    f(s.placed.id, c, true);
+                    continue;
+                }
+            }
+            let mut corners: Corners = [[0.0; 2]; 4];
+            let mut inside = true;
+            for (c, p) in corners.iter_mut().zip(&s.obj_site) {
+                match self.calib.project(&(t_cam_site * p)) {
+                    Some(uv) if (0.0..w).contains(&uv.x) && (0.0..h).contains(&uv.y) => {
+                        *c = [uv.x as f32, uv.y as f32];
+                    }
+                    _ => inside = false,
+                }
+            }
+            if inside {
+                f(s.placed.id, &corners, false);
+            }
+        }
+    }
+
     /// Forget the tracking state: the next frame gets a full-frame search.
     pub fn reset(&mut self) {
         for s in &mut self.slots {
@@ -314,6 +375,7 @@ impl MarkerTracker {
             }
             s.found = None;
             s.found_tracked = false;
+            s.in_pose = false;
         }
         if self.last_site.is_some_and(|(t, _)| !fresh(t)) {
             self.last_site = None;
@@ -367,6 +429,7 @@ impl MarkerTracker {
         for s in &mut self.slots {
             s.found = None;
             s.found_tracked = false;
+            s.in_pose = false;
         }
         self.full_search(&image)?;
         if self.slots.iter().all(|s| s.found.is_none()) {
@@ -498,6 +561,7 @@ impl MarkerTracker {
         self.stats.detections += 1;
         self.stats.markers_used += 1;
         self.update_track(i, &corners, stamp, sol.t_cam_marker);
+        self.slots[i].in_pose = true;
         self.last_site = Some((stamp, t_cam_site));
         Some(MarkerObservation {
             id,
@@ -609,6 +673,7 @@ impl MarkerTracker {
             // Continuity for the marker's own IPPE choice: its pose as the map puts it.
             let t_cam_marker = t_cam_site * self.slots[i].placed.t_site_marker;
             self.update_track(i, &corners, stamp, t_cam_marker);
+            self.slots[i].in_pose = true;
         }
         let (i, _) = shown?;
         let s = &self.slots[i];

@@ -1,0 +1,282 @@
+use super::*;
+use crate::config::{MapMarker, MarkerFamily};
+use crate::pose::{isotropic_corner_cov, refine_pose, whitening};
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+
+const SIGMA_PX: f64 = 0.3;
+
+fn calib() -> CameraCalibration {
+    CameraCalibration {
+        width: 1440,
+        height: 1080,
+        fx: 1100.0,
+        fy: 1105.0,
+        cx: 722.0,
+        cy: 538.0,
+        dist: vec![-0.12, 0.04, 0.0005, -0.0003, 0.0],
+    }
+}
+
+fn entry(id: u32, size_m: f64, position_m: [f64; 3], rpy_deg: [f64; 3]) -> MapMarker {
+    MapMarker {
+        id,
+        size_m,
+        position_m,
+        rpy_deg,
+    }
+}
+
+/// Four markers: the origin, one beside it, one above it tilted, one in front of it
+/// and turned (about all three axes).
+fn layout() -> MarkerConfig {
+    MarkerConfig {
+        family: MarkerFamily::AprilTag36h11,
+        id: 0,
+        size_m: 0.15,
+        map: vec![
+            entry(1, 0.15, [0.5, 0.0, 0.0], [0.0, 0.0, 0.0]),
+            entry(2, 0.2, [0.05, 0.45, -0.1], [12.0, 0.0, 0.0]),
+            entry(3, 0.1, [-0.5, -0.15, 0.2], [-5.0, 25.0, 15.0]),
+        ],
+    }
+}
+
+/// A camera at `c` (site frame) looking at `target`, image x along the site's x: the
+/// pose of the site frame in the camera frame.
+fn look_at(c: Vector3<f64>, target: Vector3<f64>) -> Isometry3<f64> {
+    let z = (target - c).normalize();
+    let x = z.cross(&Vector3::y()).normalize();
+    let y = z.cross(&x);
+    let r = nalgebra::Rotation3::from_matrix_unchecked(Matrix3::from_columns(&[x, y, z]));
+    let t_site_cam = Isometry3::from_parts(Translation3::from(c), UnitQuaternion::from(r));
+    t_site_cam.inverse()
+}
+
+fn gauss(rng: &mut ChaCha8Rng) -> f64 {
+    // Box-Muller.
+    let (u, v): (f64, f64) = (rng.random::<f64>().max(1e-300), rng.random());
+    (-2.0 * u.ln()).sqrt() * (std::f64::consts::TAU * v).cos()
+}
+
+/// What a camera at `t_cam_site` sees of `map`: every marker wholly in the image and
+/// facing the camera, its corners with Gaussian noise and its own pose refined from
+/// them (as the tracker's per-marker PnP gives it).
+fn observe(
+    map: &MarkerConfig,
+    t_cam_site: &Isometry3<f64>,
+    rng: &mut ChaCha8Rng,
+) -> Vec<SeenMarker> {
+    let c = calib();
+    let cov = isotropic_corner_cov(SIGMA_PX);
+    let white = whitening(&cov).unwrap();
+    let mut out = Vec::new();
+    for m in map.markers() {
+        let t_cam_marker = t_cam_site * m.t_site_marker;
+        // Facing: the marker's z axis points toward the camera.
+        let normal = t_cam_marker.rotation * Vector3::z();
+        if normal.dot(&t_cam_marker.translation.vector) >= 0.0 {
+            continue;
+        }
+        let obj = marker_object_points(m.size_m);
+        let mut img = [Vector2::zeros(); 4];
+        let mut inside = true;
+        for (p, o) in img.iter_mut().zip(&obj) {
+            match c.project(&(t_cam_marker * o)) {
+                Some(uv) if uv.x > 5.0 && uv.y > 5.0 && uv.x < 1435.0 && uv.y < 1075.0 => {
+                    *p = uv + Vector2::new(gauss(rng), gauss(rng)) * SIGMA_PX;
+                }
+                _ => inside = false,
+            }
+        }
+        if !inside {
+            continue;
+        }
+        let start = apply(&t_cam_marker, &[0.01, -0.01, 0.03, 0.02, -0.02, 0.01]);
+        let single = refine_pose(&c, &obj, &img, &start, &cov).unwrap();
+        out.push(SeenMarker {
+            id: m.id,
+            img,
+            white,
+            t_cam_marker: single.t_cam_marker,
+        });
+    }
+    out
+}
+
+/// Camera poses in front of the layout: three distances, a grid of positions, each
+/// looking at a jittered point near the layout's centre.
+fn cameras(rng: &mut ChaCha8Rng) -> Vec<Isometry3<f64>> {
+    let mut out = Vec::new();
+    for z in [1.3, 1.8, 2.4] {
+        for x in [-0.6, -0.2, 0.2, 0.6] {
+            for y in [-0.3, 0.1, 0.5] {
+                let target = Vector3::new(
+                    0.1 * (rng.random::<f64>() - 0.5),
+                    0.1 + 0.1 * (rng.random::<f64>() - 0.5),
+                    0.0,
+                );
+                out.push(look_at(Vector3::new(x, y, z), target));
+            }
+        }
+    }
+    out
+}
+
+fn check_recovered(map: &MarkerConfig, est: &MapEstimate) {
+    assert_eq!(est.markers.len(), map.len());
+    assert_eq!(est.markers[0].id, map.id);
+    for truth in map.markers() {
+        let m = est.markers.iter().find(|m| m.id == truth.id).unwrap();
+        let dp =
+            (m.t_site_marker.translation.vector - truth.t_site_marker.translation.vector).norm();
+        let da = m
+            .t_site_marker
+            .rotation
+            .angle_to(&truth.t_site_marker.rotation)
+            .to_degrees();
+        assert!(
+            dp < 0.005,
+            "marker {}: position off by {:.2} mm: {est:#?}",
+            m.id,
+            dp * 1e3
+        );
+        assert!(
+            da < 0.5,
+            "marker {}: orientation off by {da:.3} deg: {est:#?}",
+            m.id
+        );
+        assert!(m.frames > 0 && m.rms_px < 3.0 * SIGMA_PX, "{m:?}");
+        if m.id != map.id {
+            // The stated uncertainty is consistent with the error (and not zero).
+            let (sp, sa) = (m.sigma_position_m, m.sigma_angle_deg);
+            assert!(sp > 0.0 && dp < 5.0 * sp + 5e-4, "{m:?}: {dp} m");
+            assert!(sa > 0.0 && da < 5.0 * sa + 0.01, "{m:?}: {da} deg");
+        }
+    }
+    assert!(est.rms_px < 2.0 * SIGMA_PX, "{est:#?}");
+}
+
+#[test]
+fn recovers_a_four_marker_layout_from_noisy_corners() {
+    let map = layout();
+    let mut rng = ChaCha8Rng::seed_from_u64(7);
+    let mut b = MapBuilder::new(&map, calib());
+    for cam in cameras(&mut rng) {
+        let seen = observe(&map, &cam, &mut rng);
+        b.add_frame(seen);
+    }
+    assert!(b.frames_kept() >= 20, "{}", b.frames_kept());
+    let est = b.solve(0, &MapSettings::default()).unwrap();
+    check_recovered(&map, &est);
+    assert_eq!(est.outliers, 0, "{est:#?}");
+    // The adjustment improves on the chained start.
+    assert!(est.rms_px < est.initial_rms_px, "{est:#?}");
+}
+
+#[test]
+fn chains_through_markers_never_seen_with_the_origin_and_drops_bad_corners() {
+    let map = layout();
+    let mut rng = ChaCha8Rng::seed_from_u64(11);
+    let mut b = MapBuilder::new(&map, calib());
+    let pairs = [(0, 1), (1, 2), (2, 3)];
+    // Three passes over the poses (new jitter each): each pair seen in 36 frames.
+    let cams: Vec<Isometry3<f64>> = (0..3).flat_map(|_| cameras(&mut rng)).collect();
+    for (i, cam) in cams.iter().enumerate() {
+        let (p, q) = pairs[i % 3];
+        let mut seen: Vec<SeenMarker> = observe(&map, cam, &mut rng)
+            .into_iter()
+            .filter(|s| s.id == p || s.id == q)
+            .collect();
+        // Every seventh frame: a corner 15 px off (a wrong edge).
+        if i % 7 == 3 {
+            if let Some(s) = seen.last_mut() {
+                s.img[2].x += 15.0;
+            }
+        }
+        b.add_frame(seen);
+    }
+    let est = b.solve(0, &MapSettings::default()).unwrap();
+    check_recovered(&map, &est);
+    assert!(est.outliers >= 3, "{est:#?}");
+}
+
+#[test]
+fn another_origin_gives_the_same_layout_seen_from_it() {
+    let map = layout();
+    let mut rng = ChaCha8Rng::seed_from_u64(3);
+    let mut b = MapBuilder::new(&map, calib());
+    for cam in cameras(&mut rng) {
+        b.add_frame(observe(&map, &cam, &mut rng));
+    }
+    let est = b.solve(2, &MapSettings::default()).unwrap();
+    assert_eq!(est.markers[0].id, 2);
+    assert_eq!(est.markers[0].t_site_marker, Isometry3::identity());
+    let t_2_site = map.map[1].t_site_marker().inverse();
+    for truth in map.markers() {
+        let m = est.markers.iter().find(|m| m.id == truth.id).unwrap();
+        let want = t_2_site * truth.t_site_marker;
+        let dp = (m.t_site_marker.translation.vector - want.translation.vector).norm();
+        assert!(dp < 0.005, "marker {}: {:.2} mm", m.id, dp * 1e3);
+        assert!(
+            m.t_site_marker
+                .rotation
+                .angle_to(&want.rotation)
+                .to_degrees()
+                < 0.5
+        );
+    }
+}
+
+#[test]
+fn a_disconnected_marker_is_named_by_id() {
+    let mut map = layout();
+    map.map
+        .push(entry(9, 0.1, [1.0, 1.0, 0.0], [0.0, 0.0, 0.0]));
+    let mut rng = ChaCha8Rng::seed_from_u64(5);
+    let mut b = MapBuilder::new(&map, calib());
+    // Markers 0 and 1 together, 2 and 3 together, never across; 9 never.
+    for (i, cam) in cameras(&mut rng).iter().enumerate() {
+        let group: [u32; 2] = if i % 2 == 0 { [0, 1] } else { [2, 3] };
+        let seen: Vec<SeenMarker> = observe(&map, cam, &mut rng)
+            .into_iter()
+            .filter(|s| group.contains(&s.id))
+            .collect();
+        b.add_frame(seen);
+    }
+    let err = b.solve(0, &MapSettings::default()).unwrap_err();
+    let text = err.to_string();
+    assert!(
+        matches!(&err, VisionError::MapDisconnected { origin: 0, ids, .. } if ids == "2, 3, 9"),
+        "{text}"
+    );
+    assert!(text.contains("9 (never seen)"), "{text}");
+    assert!(text.contains("2 (seen in "), "{text}");
+    // From marker 2, it is 0 and 1 that are cut off.
+    let err = b.solve(2, &MapSettings::default()).unwrap_err();
+    assert!(
+        matches!(&err, VisionError::MapDisconnected { origin: 2, ids, .. } if ids == "0, 1, 9"),
+        "{err}"
+    );
+}
+
+#[test]
+fn frames_with_one_marker_each_make_no_map() {
+    let map = layout();
+    let mut rng = ChaCha8Rng::seed_from_u64(9);
+    let mut b = MapBuilder::new(&map, calib());
+    for cam in cameras(&mut rng) {
+        let seen = observe(&map, &cam, &mut rng);
+        assert!(b.add_frame(seen.into_iter().take(1)) <= 1);
+    }
+    let err = b.solve(0, &MapSettings::default()).unwrap_err();
+    assert!(
+        matches!(err, VisionError::MapNoFrames { frames: 36 }),
+        "{err}"
+    );
+    let err = b.solve(42, &MapSettings::default()).unwrap_err();
+    assert!(
+        matches!(&err, VisionError::MapOrigin { origin: 42, ids } if ids == "0, 1, 2, 3"),
+        "{err}"
+    );
+}
