@@ -10,7 +10,7 @@ use foxglove::schemas::CompressedImage;
 use foxglove::Decode;
 use markhold_exposure::{Frame, FrameMeta};
 
-use super::replay::{decode_image, lengths_fit, run_info_of, MAX_RECORD_BYTES};
+use super::replay::{decode_image, for_each_record, run_info_of};
 use super::{METADATA_NAME, TOPIC_IMAGE};
 
 /// What [`for_each_image`] read.
@@ -36,53 +36,15 @@ pub fn for_each_image(
     mut f: impl FnMut(&Frame) -> anyhow::Result<()>,
 ) -> anyhow::Result<ImagesRead> {
     use mcap::records::Record;
-    use mcap::sans_io::linear_reader::{LinearReadEvent, LinearReader, LinearReaderOptions};
 
     let file = crate::params::open_regular(path, u64::MAX)
         .with_context(|| format!("reading {}", path.display()))?;
-    let mut src = std::io::BufReader::with_capacity(1 << 20, file);
-    let mut reader = LinearReader::new_with_options(
-        LinearReaderOptions::default()
-            .with_prevalidate_chunk_crcs(true)
-            .with_record_length_limit(MAX_RECORD_BYTES),
-    );
+    let src = std::io::BufReader::with_capacity(1 << 20, file);
     let every = every.max(1);
     let mut image_channels: HashMap<u16, bool> = HashMap::new();
     let mut frame: Option<Frame> = None;
     let mut out = ImagesRead::default();
-    while let Some(event) = reader.next_event() {
-        let (opcode, data) = match event {
-            Ok(LinearReadEvent::ReadRequest(n)) => {
-                let got = std::io::Read::read(&mut src, reader.insert(n.min(MAX_RECORD_BYTES)))
-                    .with_context(|| format!("reading {}", path.display()))?;
-                reader.notify_read(got);
-                continue;
-            }
-            Ok(LinearReadEvent::Record { opcode, data }) => (opcode, data),
-            Err(e) => {
-                out.ended_early = Some(e.to_string());
-                break;
-            }
-        };
-        if !matches!(
-            opcode,
-            mcap::records::op::CHANNEL | mcap::records::op::METADATA | mcap::records::op::MESSAGE
-        ) {
-            continue;
-        }
-        if !lengths_fit(opcode, data) {
-            out.ended_early = Some(format!(
-                "a record (opcode {opcode:#04x}) declares a string longer than itself"
-            ));
-            break;
-        }
-        let record = match mcap::parse_record(opcode, data) {
-            Ok(r) => r,
-            Err(e) => {
-                out.ended_early = Some(e.to_string());
-                break;
-            }
-        };
+    out.ended_early = for_each_record(path, src, |record| {
         match record {
             Record::Channel(c) => {
                 image_channels.insert(c.id, c.topic == TOPIC_IMAGE);
@@ -97,7 +59,7 @@ pub fn for_each_image(
                     .copied()
                     .unwrap_or(false)
                 {
-                    continue;
+                    return Ok(());
                 }
                 let Some(frame) = frame.as_mut() else {
                     anyhow::bail!(
@@ -108,7 +70,7 @@ pub fn for_each_image(
                 let index = out.images;
                 out.images += 1;
                 if !index.is_multiple_of(every) {
-                    continue;
+                    return Ok(());
                 }
                 let img = CompressedImage::decode(&*data)
                     .map_err(|e| anyhow::anyhow!("{}: image {index}: {e}", path.display()))?;
@@ -133,7 +95,8 @@ pub fn for_each_image(
             }
             _ => {}
         }
-    }
+        Ok(())
+    })?;
     if frame.is_none() {
         return Err(match out.ended_early {
             Some(e) => anyhow::anyhow!("{}: not a readable MCAP file: {e}", path.display()),

@@ -331,25 +331,26 @@ pub fn replay(path: &Path) -> anyhow::Result<ReplaySummary> {
     replay_from(path, std::io::BufReader::with_capacity(1 << 20, file), size)
 }
 
-/// [`replay`] of the recording `src` (`size` bytes long), named `path` in messages.
-pub fn replay_from(
+/// Reads the MCAP recording `src` (named `path` in messages) record by record and hands
+/// `f` every channel, metadata and message record; memory does not grow with the file.
+/// Chunks are checked whole (CRC) before any of their records is handed on, so a chunk
+/// cut short by the end of the file gives nothing, and only the records handed on are
+/// parsed, and only when every length they declare fits in them: the mcap crate reserves
+/// a declared string length before reading it (a hostile 4 GB length in a 20-byte
+/// record). Returns why the file ended early (truncated, never finalized, a bad record),
+/// `None` when it was read to its end.
+pub(crate) fn for_each_record(
     path: &Path,
     mut src: impl std::io::Read,
-    size: u64,
-) -> anyhow::Result<ReplaySummary> {
-    use mcap::records::Record;
+    mut f: impl FnMut(mcap::records::Record<'_>) -> anyhow::Result<()>,
+) -> anyhow::Result<Option<String>> {
     use mcap::sans_io::linear_reader::{LinearReadEvent, LinearReader, LinearReaderOptions};
 
-    // Chunks are checked whole (CRC) before any of their messages is replayed: a chunk
-    // cut short by the end of the file gives nothing.
     let mut reader = LinearReader::new_with_options(
         LinearReaderOptions::default()
             .with_prevalidate_chunk_crcs(true)
             .with_record_length_limit(MAX_RECORD_BYTES),
     );
-    let mut topics: HashMap<u16, Topic> = HashMap::new();
-    let mut replayer: Option<Replayer<'_>> = None;
-    let mut ended_early: Option<String> = None;
     while let Some(event) = reader.next_event() {
         let (opcode, data) = match event {
             Ok(LinearReadEvent::ReadRequest(n)) => {
@@ -360,14 +361,8 @@ pub fn replay_from(
                 continue;
             }
             Ok(LinearReadEvent::Record { opcode, data }) => (opcode, data),
-            Err(e) => {
-                ended_early = Some(e.to_string());
-                break;
-            }
+            Err(e) => return Ok(Some(e.to_string())),
         };
-        // Only the records replay reads are parsed, and only when every length they
-        // declare fits in them: the mcap crate reserves a declared string length before
-        // reading it (a hostile 4 GB length in a 20-byte record).
         if !matches!(
             opcode,
             mcap::records::op::CHANNEL | mcap::records::op::METADATA | mcap::records::op::MESSAGE
@@ -375,18 +370,29 @@ pub fn replay_from(
             continue;
         }
         if !lengths_fit(opcode, data) {
-            ended_early = Some(format!(
+            return Ok(Some(format!(
                 "a record (opcode {opcode:#04x}) declares a string longer than itself"
-            ));
-            break;
+            )));
         }
-        let record = match mcap::parse_record(opcode, data) {
-            Ok(r) => r,
-            Err(e) => {
-                ended_early = Some(e.to_string());
-                break;
-            }
-        };
+        match mcap::parse_record(opcode, data) {
+            Ok(record) => f(record)?,
+            Err(e) => return Ok(Some(e.to_string())),
+        }
+    }
+    Ok(None)
+}
+
+/// [`replay`] of the recording `src` (`size` bytes long), named `path` in messages.
+pub fn replay_from(
+    path: &Path,
+    mut src: impl std::io::Read,
+    size: u64,
+) -> anyhow::Result<ReplaySummary> {
+    use mcap::records::Record;
+
+    let mut topics: HashMap<u16, Topic> = HashMap::new();
+    let mut replayer: Option<Replayer<'_>> = None;
+    let ended_early = for_each_record(path, &mut src, |record| {
         match record {
             Record::Channel(c) => {
                 let topic = match c.topic.as_str() {
@@ -422,7 +428,8 @@ pub fn replay_from(
             }
             _ => {}
         }
-    }
+        Ok(())
+    })?;
     let Some(r) = replayer else {
         return Err(match ended_early {
             Some(e) => anyhow::anyhow!("{}: not a readable MCAP file: {e}", path.display()),
