@@ -4,7 +4,7 @@
 #![allow(clippy::unwrap_used)] // Tests fail loudly on a broken setup, by design.
 mod common;
 
-use common::{limits, FULL_WELL_US};
+use common::{limits, square_corners, FULL_WELL_US};
 use markhold_exposure::*;
 
 const W: u32 = 320;
@@ -66,14 +66,7 @@ impl TwoMarkers {
                 irradiance[y * w + x] = acc / 16.0;
             }
         }
-        let corners = origin.map(|(mx, my)| {
-            [
-                [mx as f32, my as f32],
-                [(mx + SIDE) as f32, my as f32],
-                [(mx + SIDE) as f32, (my + SIDE) as f32],
-                [mx as f32, (my + SIDE) as f32],
-            ]
-        });
+        let corners = origin.map(|(mx, my)| square_corners(mx, my, SIDE));
         Self {
             irradiance,
             corners,

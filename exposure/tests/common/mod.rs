@@ -30,6 +30,17 @@ pub fn aaec(cfg: AaecConfig, initial: f64) -> Aaec {
 /// Irradiance map in units where `E * t_us / FULL_WELL_US = 1` is full well.
 pub const FULL_WELL_US: f64 = 1000.0;
 
+/// The corners of an axis-aligned square marker image with its top-left at (`mx`, `my`)
+/// and `side` pixels wide, clockwise from the top-left.
+pub fn square_corners(mx: f64, my: f64, side: f64) -> [[f32; 2]; 4] {
+    [
+        [mx as f32, my as f32],
+        [(mx + side) as f32, my as f32],
+        [(mx + side) as f32, (my + side) as f32],
+        [mx as f32, (my + side) as f32],
+    ]
+}
+
 pub struct Scene {
     pub irradiance: Vec<f64>,
     pub corners: Corners,
@@ -90,12 +101,7 @@ impl Scene {
                 irradiance[y * w + x] = acc / 16.0;
             }
         }
-        let corners = [
-            [mx as f32, my as f32],
-            [(mx + side) as f32, my as f32],
-            [(mx + side) as f32, (my + side) as f32],
-            [mx as f32, (my + side) as f32],
-        ];
+        let corners = square_corners(mx, my, side);
         Self {
             irradiance,
             corners,
@@ -148,12 +154,7 @@ impl Scene {
                 irradiance[y * w + x] = acc / 16.0;
             }
         }
-        let corners = [
-            [mx as f32, my as f32],
-            [(mx + side) as f32, my as f32],
-            [(mx + side) as f32, (my + side) as f32],
-            [mx as f32, (my + side) as f32],
-        ];
+        let corners = square_corners(mx, my, side);
         Self {
             irradiance,
             corners,
