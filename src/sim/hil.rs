@@ -415,6 +415,13 @@ impl HilRun {
         }
     }
 
+    /// NEES of the vision estimates the simulated vehicle has graded so far (setpoint
+    /// mode; none otherwise). Running sums: the difference of two readings is the
+    /// frames between them.
+    pub fn vision_nees(&self) -> Option<markhold_hil::endpoint::VisionNees> {
+        self.rig.vision_nees()
+    }
+
     /// One frame of the loop, with the world's truth after it.
     pub fn step(&mut self) -> anyhow::Result<(FrameRecord, Truth)> {
         if self.guided_after_vision && self.pipeline.link().vision_estimates().0 > 0 {

@@ -370,6 +370,14 @@ pub struct DetectorConfig {
     /// Independent noise added to each corner's edge-fit covariance, pixels per
     /// axis (what the fit residuals cannot see: blur asymmetry, model error).
     pub corner_sigma_floor_px: f64,
+    /// Shift of marker edges whose white side clips (all their points), pixels: the
+    /// centroid of a clipped step moves towards the dark side by an amount the frame
+    /// cannot show. `corner_clip_common_px` is shared by the four sides (the marker
+    /// looks smaller), `corner_clip_side_px` each side's own. Added to the pose
+    /// covariance, scaled by the fraction of each side's points that clip; the pose is
+    /// unchanged.
+    pub corner_clip_common_px: f64,
+    pub corner_clip_side_px: f64,
     /// Corner noise, pixels per axis, assumed when the edge fit fails and
     /// cv::cornerSubPix corners are used instead.
     pub corner_sigma_px: f64,
@@ -413,6 +421,8 @@ impl Default for DetectorConfig {
             full_search_downscale: 2,
             full_search_fallback_full_res: true,
             corner_sigma_floor_px: 0.005,
+            corner_clip_common_px: 0.06,
+            corner_clip_side_px: 0.03,
             corner_sigma_px: 0.3,
             ambiguity_ratio: 3.0,
             track_max_age_s: 0.5,
@@ -450,6 +460,8 @@ impl DetectorConfig {
             .range("full_search_downscale", self.full_search_downscale, 1..=8, "a factor in 1..=8")
             .positive("corner_sigma_px", self.corner_sigma_px, "a standard deviation > 0 px")
             .positive("corner_sigma_floor_px", self.corner_sigma_floor_px, "a standard deviation > 0 px")
+            .range("corner_clip_common_px", self.corner_clip_common_px, 0.0..=1.0, "a standard deviation in [0, 1] px")
+            .range("corner_clip_side_px", self.corner_clip_side_px, 0.0..=1.0, "a standard deviation in [0, 1] px")
             .finite_range("ambiguity_ratio", self.ambiguity_ratio, 1.0.., "a ratio >= 1")
             .positive("track_max_age_s", self.track_max_age_s, "a time > 0 s")
             // An infinite RMS bound is allowed: it rejects no detection.

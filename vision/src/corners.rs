@@ -7,6 +7,16 @@
 //! this is unbiased for any corner angle (oblique views) and averages the noise of
 //! every edge pixel. The fit residuals give each line's covariance, propagated to an
 //! 8x8 covariance of the corners (adjacent corners share a line, so they correlate).
+//!
+//! An edge whose white side clips (a pixel at the top grey level, as an exposure set
+//! just above the white cells' clip onset gives) has lost the part of the step above
+//! the clip level, and the gradient centroid moves towards the dark side by an amount
+//! that depends on the edge's sub-pixel phase and on how far the white is over-exposed,
+//! neither of which the frame shows. That shift is the same for every point of a side
+//! whose phase does not change along it, so the residuals cannot see it: it is returned
+//! as a separate covariance ([`EdgeCovariance::clip`]): a shift common to the four
+//! sides (the marker looks smaller) and one of each side, each scaled by the fraction
+//! of the side's points that clip ([`ClipModel`]).
 
 use crate::CameraCalibration;
 use markhold_exposure::{Corners, ImageView};
@@ -14,6 +24,32 @@ use nalgebra::{Matrix2, SMatrix, Vector2};
 
 /// 8x8 covariance of (u0, v0, u1, v1, ...), pixels^2.
 pub type CornerCov = SMatrix<f64, 8, 8>;
+
+/// Grey level at which a pixel counts as clipped (an 8-bit sensor's top level).
+const CLIP_GREY: u8 = 255;
+
+/// Standard deviations, pixels, of the shift of a marker side whose white side clips
+/// (all its points): `common_px` shared by the four sides (outward positive), `side_px`
+/// of each side on its own.
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+pub struct ClipModel {
+    pub common_px: f64,
+    pub side_px: f64,
+}
+
+/// The corners' covariance in two parts: the noise the fit residuals measure (the
+/// pose is weighted by it), and the shift of edges whose white side clips.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct EdgeCovariance {
+    /// From the residuals of the four edge lines.
+    pub fit: CornerCov,
+    /// Clipped edges ([`ClipModel`]), each side's shift scaled by the fraction of its
+    /// points that clip. Zero when no edge point clips.
+    pub clip: CornerCov,
+    /// Edge points whose white side clips, of all the points fitted.
+    pub clipped_points: u32,
+    pub points: u32,
+}
 
 #[derive(Debug, Clone, Copy, Default)]
 struct Line {
@@ -25,6 +61,12 @@ struct Line {
     var_rho: f64,
     /// Variance of the direction angle, rad^2.
     var_theta: f64,
+    /// Fraction of the fitted points whose white side clips.
+    clipped: f64,
+    /// Length the fitted points span, pixels.
+    len: f64,
+    /// Points fitted.
+    n: u32,
 }
 
 impl Line {
@@ -54,6 +96,8 @@ impl Line {
 #[derive(Debug, Default)]
 pub(crate) struct EdgeRefiner {
     pts: Vec<Vector2<f64>>,
+    /// Per point: its white side clips.
+    clip: Vec<bool>,
     resid: Vec<f64>,
     /// Distance between edge points along the side being fitted, pixels.
     spacing_px: f64,
@@ -64,6 +108,22 @@ pub(crate) struct EdgeRefiner {
 const MAX_EDGE_POINTS: usize = 80;
 /// Step of the intensity profile across the edge, pixels.
 const PROFILE_STEP_PX: f64 = 0.5;
+
+/// Whether any of the four pixels a bilinear sample at (x, y) reads is clipped.
+fn clipped_at(img: &ImageView<'_>, x: f64, y: f64) -> bool {
+    if !(x >= 0.0 && y >= 0.0) {
+        return false;
+    }
+    let (x0, y0) = (x.floor() as usize, y.floor() as usize);
+    if x0 + 1 >= img.width || y0 + 1 >= img.height {
+        return false;
+    }
+    let i = y0 * img.stride + x0;
+    let d = img.data;
+    [d[i], d[i + 1], d[i + img.stride], d[i + img.stride + 1]]
+        .iter()
+        .any(|v| *v >= CLIP_GREY)
+}
 
 /// Bilinear sample; `None` outside the image.
 fn sample(img: &ImageView<'_>, x: f64, y: f64) -> Option<f64> {
@@ -86,12 +146,14 @@ impl EdgeRefiner {
     pub(crate) fn new() -> Self {
         Self {
             pts: Vec::with_capacity(MAX_EDGE_POINTS),
+            clip: Vec::with_capacity(MAX_EDGE_POINTS),
             resid: Vec::with_capacity(MAX_EDGE_POINTS),
             spacing_px: 1.0,
         }
     }
 
-    /// Refine `corners` (aruco order, pixels) in place and return their covariance.
+    /// Refine `corners` (aruco order, pixels) in place and return their covariance
+    /// (`clip`: the shift of sides whose white side clips).
     /// `module_px` is the border module width in pixels. `None` (corners untouched)
     /// when an edge cannot be measured.
     pub(crate) fn refine(
@@ -100,7 +162,8 @@ impl EdgeRefiner {
         calib: &CameraCalibration,
         corners: &mut Corners,
         module_px: f64,
-    ) -> Option<CornerCov> {
+        clip: &ClipModel,
+    ) -> Option<EdgeCovariance> {
         // Two passes: a wide search band absorbs the coarse corners' error, a
         // narrow one keeps away from neighbouring edges.
         let wide = (0.9 * module_px).clamp(1.5, 6.0);
@@ -125,7 +188,27 @@ impl EdgeRefiner {
             cur = next;
         }
         *corners = cur;
-        Some(corner_covariance(calib, &lines))
+        let fit = corner_covariance(calib, &lines, |l| (l.var_rho, l.var_theta));
+        let mut clip_cov = corner_covariance(calib, &lines, |l| {
+            let v = (l.clipped * clip.side_px).powi(2);
+            // The side's offset, and as much again between its two ends.
+            (v, 2.0 * v / (l.len * l.len).max(1e-12))
+        });
+        if lines.iter().any(|l| l.clipped > 0.0) {
+            let g = common_shift_jacobian(calib, &lines);
+            clip_cov += g * g.transpose() * clip.common_px.powi(2);
+        }
+        let points: u32 = lines.iter().map(|l| l.n).sum();
+        let clipped_points = lines
+            .iter()
+            .map(|l| (l.clipped * l.n as f64).round() as u32)
+            .sum();
+        Some(EdgeCovariance {
+            fit,
+            clip: clip_cov,
+            clipped_points,
+            points,
+        })
     }
 
     /// Fit the line of side `i` (from corner i to corner i+1).
@@ -162,6 +245,7 @@ impl EdgeRefiner {
         let step = PROFILE_STEP_PX;
         let n_steps = (band / step).ceil() as i32;
         self.pts.clear();
+        self.clip.clear();
         for k in 0..n_samples {
             let t = t0 + (1.0 - 2.0 * t0) * (k as f64 + 0.5) / n_samples as f64;
             let q = na + (nb - na) * t;
@@ -227,6 +311,10 @@ impl EdgeRefiner {
             let s = (swx / sw - n_steps as f64) * step;
             let e = p + n * s;
             self.pts.push(pixel_to_undistorted(calib, &e));
+            // The brightest sample of the lobe (the profile rises through it).
+            let top = (hi as f64 + 1.0 - n_steps as f64) * step;
+            self.clip
+                .push(clipped_at(img, p.x + n.x * top, p.y + n.y * top));
         }
         self.fit_line()
     }
@@ -265,6 +353,13 @@ impl EdgeRefiner {
         self.resid.sort_by(|a, b| a.total_cmp(b));
         let mad = self.resid[self.resid.len() / 2];
         let limit = (3.5 * 1.4826 * mad).max(0.05);
+        let mut k = 0;
+        let pts = &self.pts;
+        self.clip.retain(|_| {
+            let keep = (pts[k] - c).dot(&nrm).abs() <= limit;
+            k += 1;
+            keep
+        });
         self.pts.retain(|p| (p - c).dot(&nrm).abs() <= limit);
         if self.pts.len() < 6 {
             return None;
@@ -287,11 +382,16 @@ impl EdgeRefiner {
         if stt <= 0.0 {
             return None;
         }
+        let clipped = self.clip.iter().filter(|c| **c).count() as f64 / n;
         Some(Line {
             c,
             d,
             var_rho: var / n,
             var_theta: var / stt,
+            clipped,
+            // n points spread evenly over len: stt = n len^2 / 12.
+            len: (12.0 * stt / n).sqrt(),
+            n: self.pts.len() as u32,
         })
     }
 }
@@ -307,9 +407,51 @@ fn undistorted_to_pixel(calib: &CameraCalibration, q: &Vector2<f64>) -> Vector2<
     calib.distort_with_jacobian(x, y).0
 }
 
+/// Corners (distorted pixels) where adjacent lines meet.
+fn corners_of(calib: &CameraCalibration, lines: &[Line; 4]) -> Option<[Vector2<f64>; 4]> {
+    let mut out = [Vector2::zeros(); 4];
+    for (i, o) in out.iter_mut().enumerate() {
+        *o = undistorted_to_pixel(calib, &lines[(i + 3) % 4].intersect(&lines[i])?);
+    }
+    Some(out)
+}
+
+/// d corners / d s when every side moves outward by `s` times the fraction of its
+/// points that clip (a column of 8, order u0 v0 u1 v1 ...).
+fn common_shift_jacobian(calib: &CameraCalibration, lines: &[Line; 4]) -> SMatrix<f64, 8, 1> {
+    let centre = lines.iter().fold(Vector2::zeros(), |s, l| s + l.c) / 4.0;
+    let shifted = |h: f64| {
+        let mut ls = *lines;
+        for l in &mut ls {
+            let out = if l.normal().dot(&(l.c - centre)) >= 0.0 {
+                1.0
+            } else {
+                -1.0
+            };
+            *l = l.perturbed(out * h * l.clipped, 0.0);
+        }
+        corners_of(calib, &ls)
+    };
+    let h = 1e-4;
+    let mut g = SMatrix::<f64, 8, 1>::zeros();
+    if let (Some(p), Some(m)) = (shifted(h), shifted(-h)) {
+        for i in 0..4 {
+            let d = (p[i] - m[i]) / (2.0 * h);
+            g[2 * i] = d.x;
+            g[2 * i + 1] = d.y;
+        }
+    }
+    g
+}
+
 /// Covariance of the four distorted-pixel corners from the four lines' covariances
-/// (offset and angle about each centroid are independent in a TLS fit).
-fn corner_covariance(calib: &CameraCalibration, lines: &[Line; 4]) -> CornerCov {
+/// `var(line) = (offset variance, angle variance)` (offset and angle about each
+/// centroid are independent in a TLS fit).
+fn corner_covariance(
+    calib: &CameraCalibration,
+    lines: &[Line; 4],
+    var: impl Fn(&Line) -> (f64, f64),
+) -> CornerCov {
     let mut cov = CornerCov::zeros();
     // Jacobian of the distorted pixel w.r.t. the undistorted pixel, per corner.
     let mut dist_j = [Matrix2::identity(); 4];
@@ -341,7 +483,8 @@ fn corner_covariance(calib: &CameraCalibration, lines: &[Line; 4]) -> CornerCov 
                 }
             }
         }
-        let s = Matrix2::new(lines[l].var_rho, 0.0, 0.0, lines[l].var_theta);
+        let (vr, vt) = var(&lines[l]);
+        let s = Matrix2::new(vr, 0.0, 0.0, vt);
         cov += jac * s * jac.transpose();
     }
     cov
@@ -374,12 +517,59 @@ mod tests {
         }
         let module = 0.2 * 600.0 / 8.0 * 0.5;
         let cov = EdgeRefiner::new()
-            .refine(&f.view(), &calib, &mut c, module)
-            .expect("refined");
+            .refine(&f.view(), &calib, &mut c, module, &ClipModel::default())
+            .expect("refined")
+            .fit;
         for (got, want) in c.iter().zip(&truth) {
             let e = ((got[0] as f64 - want[0]).powi(2) + (got[1] as f64 - want[1]).powi(2)).sqrt();
             assert!(e < 0.04, "corner error {e} px: {got:?} vs {want:?}");
         }
         assert!(cov.diagonal().iter().all(|v| *v > 0.0 && v.is_finite()));
+    }
+
+    #[test]
+    fn clipped_white_gives_the_clip_covariance_and_unclipped_none() {
+        let calib = CameraCalibration::pinhole(640, 480, 533.0, 533.0, 320.0, 240.0);
+        let bm = marker_bitmap(MarkerFamily::AprilTag36h11, 0).unwrap();
+        let pose = Isometry3::new(
+            Vector3::new(0.01, -0.02, 1.0),
+            Vector3::new(0.05, 0.1, 0.02),
+        );
+        let mut f = Frame::default();
+        let truth = render_marker(&mut f, &calib, &bm, 0.15, &pose, &SceneParams::default());
+        let truth = truth.map(|p| p.unwrap());
+        let start: Corners = truth.map(|t| [t[0] as f32, t[1] as f32]);
+        let module = 0.15 * 533.0 / 10.0;
+        let model = ClipModel {
+            common_px: 0.06,
+            side_px: 0.03,
+        };
+        let mut c = start;
+        let plain = EdgeRefiner::new()
+            .refine(&f.view(), &calib, &mut c, module, &model)
+            .expect("refined");
+        assert_eq!(plain.clipped_points, 0);
+        assert_eq!(plain.clip, CornerCov::zeros());
+        // The same frame 1.5x brighter: the white clips at 255.
+        let mut bright = f.clone();
+        for v in bright.data.iter_mut() {
+            *v = (*v as f64 * 1.5).min(255.0) as u8;
+        }
+        let mut c = start;
+        let clipped = EdgeRefiner::new()
+            .refine(&bright.view(), &calib, &mut c, module, &model)
+            .expect("refined");
+        assert!(
+            clipped.clipped_points as f64 > 0.9 * clipped.points as f64,
+            "{clipped:?}"
+        );
+        // Per corner coordinate at least the common shift (0.06 px: sides 0.06 px out
+        // move the corners 0.06 px along both axes), plus the side terms.
+        for k in 0..8 {
+            let sd = clipped.clip[(k, k)].sqrt();
+            assert!((0.06..0.12).contains(&sd), "corner coordinate {k}: {sd} px");
+        }
+        // The common shift is a scale: opposite corners move apart (covariance < 0).
+        assert!(clipped.clip[(0, 4)] < 0.0 && clipped.clip[(1, 5)] < 0.0);
     }
 }

@@ -446,6 +446,7 @@ impl<'a> Adjustment<'a> {
                         obj: obj[o.marker].map(|p| t_site[o.marker] * p),
                         img: o.img,
                         white: o.white,
+                        ..MarkerCorners::default()
                     })
                     .collect();
                 let used = vec![true; frame.len()];

@@ -233,6 +233,10 @@ pub struct MarkerCorners {
     pub obj: [Point3<f64>; 4],
     pub img: [Vector2<f64>; 4],
     pub white: SMatrix<f64, 8, 8>,
+    /// Corner covariance the weights leave out (clipped edges,
+    /// [`crate::corners::EdgeCovariance::clip`]): added to the pose covariance by
+    /// [`unweighted_covariance`].
+    pub clip: SMatrix<f64, 8, 8>,
 }
 
 impl Default for MarkerCorners {
@@ -241,6 +245,7 @@ impl Default for MarkerCorners {
             obj: [Point3::origin(); 4],
             img: [Vector2::zeros(); 4],
             white: SMatrix::identity(),
+            clip: SMatrix::zeros(),
         }
     }
 }
@@ -331,6 +336,30 @@ pub fn refine_pose_joint(
         reproj_rms_px: (raw / n as f64).sqrt(),
         info: jtj,
     })
+}
+
+/// Pose covariance from corner noise the weights did not include: the weighted LM's
+/// step is `delta = P J^T W r` (`P` = `cov`, the inverse of the information, `W` =
+/// `white^T white`), so extra corner covariance `extra` adds `K extra K^T` with
+/// `K = P J^T W`, the Jacobian `J` at the solution `t_cam_frame`. The pose is
+/// unchanged; zero when `extra` is. `None`: a corner behind the camera.
+pub fn unweighted_covariance(
+    calib: &CameraCalibration,
+    obj: &[Point3<f64>; 4],
+    img: &[Vector2<f64>; 4],
+    white: &SMatrix<f64, 8, 8>,
+    extra: &SMatrix<f64, 8, 8>,
+    t_cam_frame: &Isometry3<f64>,
+    cov: &Matrix6<f64>,
+) -> Option<Matrix6<f64>> {
+    if extra.iter().all(|v| *v == 0.0) {
+        return Some(Matrix6::zeros());
+    }
+    let (_, j) = residuals(calib, obj, img, t_cam_frame)?;
+    let jw = white * j;
+    let k = cov * jw.transpose() * white;
+    let add = k * extra * k.transpose();
+    Some((add + add.transpose()) * 0.5)
 }
 
 /// Covariance of `t_cam_marker * t_marker_frame` (a frame fixed to the marker, e.g. the
@@ -452,6 +481,43 @@ mod tests {
         assert!((sol.t_cam_marker.translation.vector - truth.translation.vector).norm() < 1e-7);
         assert!(sol.t_cam_marker.rotation.angle_to(&truth.rotation) < 1e-7);
         assert!(sol.covariance().is_some());
+    }
+
+    #[test]
+    fn unweighted_covariance_is_the_sandwich_of_the_weighted_fit() {
+        let c = calib(vec![-0.2, 0.05, 0.001, 0.0, 0.0]);
+        let obj = marker_object_points(0.15);
+        let truth = Isometry3::new(Vector3::new(-0.2, 0.1, 2.0), Vector3::new(0.2, 0.7, -0.3));
+        let img = obj.map(|p| c.project(&(truth * p)).unwrap());
+        let weights = isotropic_corner_cov(0.1);
+        let sol = refine_pose(&c, &obj, &img, &truth, &weights).unwrap();
+        let cov = sol.covariance().unwrap();
+        let white = whitening(&weights).unwrap();
+        // Nothing extra: nothing added.
+        let zero = SMatrix::<f64, 8, 8>::zeros();
+        let add = unweighted_covariance(&c, &obj, &img, &white, &zero, &truth, &cov).unwrap();
+        assert_eq!(add, Matrix6::zeros());
+        // Extra noise equal to the weights' covariance: the propagated covariance again.
+        let add = unweighted_covariance(&c, &obj, &img, &white, &weights, &truth, &cov).unwrap();
+        let rel = (add - cov).norm() / cov.norm();
+        assert!(rel < 1e-9, "{rel}");
+        // Noise the weights left out (corner 0 alone, 0.3 px in u): the pose moves by
+        // K e for a corner error e, so the added covariance is K e e^T K^T.
+        let mut extra = zero;
+        extra[(0, 0)] = 0.09;
+        let add = unweighted_covariance(&c, &obj, &img, &white, &extra, &truth, &cov).unwrap();
+        let mut shifted = img;
+        shifted[0].x += 0.3;
+        let moved = refine_pose(&c, &obj, &shifted, &truth, &weights).unwrap();
+        let d = moved.t_cam_marker.translation.vector - truth.translation.vector;
+        for k in 0..3 {
+            let sd = add[(k, k)].sqrt();
+            assert!(
+                (d[k].abs() - sd).abs() < 0.02 * sd + 1e-9,
+                "axis {k}: {} vs {sd}",
+                d[k]
+            );
+        }
     }
 
     #[test]

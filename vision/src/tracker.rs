@@ -3,13 +3,13 @@
 //! pose over every marker in view with outliers left out, and its covariance.
 
 use crate::config::{DetectorConfig, MarkerConfig, PlacedMarker};
-use crate::corners::{CornerCov, EdgeRefiner};
+use crate::corners::{ClipModel, CornerCov, EdgeCovariance, EdgeRefiner};
 use crate::dict::dictionary;
 use crate::error::CvContext;
 use crate::mapping::SeenMarker;
 use crate::pose::{
     cov_of_inverse, cov_through, isotropic_corner_cov, marker_object_points, marker_rms_px,
-    refine_pose, refine_pose_joint, whitening, MarkerCorners, RefinedPose,
+    refine_pose, refine_pose_joint, unweighted_covariance, whitening, MarkerCorners, RefinedPose,
 };
 use crate::{CameraCalibration, VisionError};
 use markhold_exposure::{Corners, Frame, Roi};
@@ -93,6 +93,10 @@ pub struct TrackerStats {
     pub markers_used: u64,
     /// Markers of the map found but left out of the joint pose (`map_outlier_rms_px`).
     pub outliers: u64,
+    /// Edge points fitted, and those whose white side clipped (their sides' shift is in
+    /// the pose covariance, `corner_clip_sigma_px`).
+    pub edge_points: u64,
+    pub clipped_edge_points: u64,
 }
 
 #[derive(Debug, Clone, Copy)]
@@ -502,10 +506,10 @@ impl MarkerTracker {
                 self.slots[i].track = None;
                 continue;
             };
-            let corner_cov = self.refine_corners(frame, image, &mut corners)?;
+            let edge_cov = self.refine_corners(frame, image, &mut corners)?;
             self.slots[i].found = Some(corners);
-            let pose = self.estimate_pose(i, &corners, &corner_cov)?;
-            let white = whitening(&corner_cov);
+            let pose = self.estimate_pose(i, &corners, &edge_cov.fit)?;
+            let white = whitening(&edge_cov.fit);
             let s = &mut self.slots[i];
             match (pose, white) {
                 (Some(p), Some(white)) => {
@@ -514,6 +518,7 @@ impl MarkerTracker {
                         obj: s.obj_site,
                         img: corners.map(|c| Vector2::new(c[0] as f64, c[1] as f64)),
                         white,
+                        clip: edge_cov.clip,
                     };
                     valid += 1;
                 }
@@ -541,7 +546,20 @@ impl MarkerTracker {
         let s = &mut self.slots[i];
         let sol = s.single?;
         let corners = s.found?;
-        let Some(cov) = sol.covariance() else {
+        let clip = sol.covariance().and_then(|cov| {
+            let j = &s.joint;
+            unweighted_covariance(
+                &self.calib,
+                &s.obj,
+                &j.img,
+                &j.white,
+                &j.clip,
+                &sol.t_cam_marker,
+                &cov,
+            )
+            .map(|add| cov + add)
+        });
+        let Some(cov) = clip else {
             self.stats.rejected += 1;
             s.track = None;
             return None;
@@ -645,7 +663,22 @@ impl MarkerTracker {
             return None;
         };
         let outliers = have - count as u32;
-        let Some(cov_cam) = sol.covariance() else {
+        let cov_cam = sol.covariance().and_then(|cov| {
+            let mut total = cov;
+            for (m, _) in self.joint.iter().zip(&self.best_used).filter(|(_, u)| **u) {
+                total += unweighted_covariance(
+                    &self.calib,
+                    &m.obj,
+                    &m.img,
+                    &m.white,
+                    &m.clip,
+                    &sol.t_cam_marker,
+                    &cov,
+                )?;
+            }
+            Some(total)
+        });
+        let Some(cov_cam) = cov_cam else {
             self.stats.rejected += have as u64;
             for s in &mut self.slots {
                 s.track = None;
@@ -894,14 +927,14 @@ impl MarkerTracker {
     }
 
     /// Sub-pixel corners and their 8x8 covariance: edge-line fit (see `corners`),
-    /// plus the floor of independent corner noise; cv::cornerSubPix with
-    /// `corner_sigma_px` when an edge cannot be measured.
+    /// plus the floor of independent corner noise, and the clipped edges' shift apart;
+    /// cv::cornerSubPix with `corner_sigma_px` when an edge cannot be measured.
     fn refine_corners(
         &mut self,
         frame: &Frame,
         image: &impl core::ToInputArray,
         corners: &mut Corners,
-    ) -> Result<CornerCov, VisionError> {
+    ) -> Result<EdgeCovariance, VisionError> {
         let cells = (self.marker.family.data_bits() + 2) as f64;
         let min_side = (0..4)
             .map(|i| {
@@ -909,11 +942,22 @@ impl MarkerTracker {
                 ((a[0] - b[0]) as f64).hypot((a[1] - b[1]) as f64)
             })
             .fold(f64::MAX, f64::min);
-        if let Some(cov) = self
-            .edges
-            .refine(&frame.view(), &self.calib, corners, min_side / cells)
-        {
-            return Ok(cov + isotropic_corner_cov(self.cfg.corner_sigma_floor_px));
+        if let Some(cov) = self.edges.refine(
+            &frame.view(),
+            &self.calib,
+            corners,
+            min_side / cells,
+            &ClipModel {
+                common_px: self.cfg.corner_clip_common_px,
+                side_px: self.cfg.corner_clip_side_px,
+            },
+        ) {
+            self.stats.edge_points += u64::from(cov.points);
+            self.stats.clipped_edge_points += u64::from(cov.clipped_points);
+            return Ok(EdgeCovariance {
+                fit: cov.fit + isotropic_corner_cov(self.cfg.corner_sigma_floor_px),
+                ..cov
+            });
         }
         self.stats.subpix_fallbacks += 1;
         let half = ((0.4 * min_side / cells).floor() as i32).clamp(2, self.cfg.subpix_window_px);
@@ -944,7 +988,12 @@ impl MarkerTracker {
                 *c = [p.x, p.y];
             }
         }
-        Ok(isotropic_corner_cov(self.cfg.corner_sigma_px))
+        Ok(EdgeCovariance {
+            fit: isotropic_corner_cov(self.cfg.corner_sigma_px),
+            clip: CornerCov::zeros(),
+            clipped_points: 0,
+            points: 0,
+        })
     }
 
     /// Pose of marker `i` in its own frame: both IPPE solutions refined by LM; the better
