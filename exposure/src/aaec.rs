@@ -61,6 +61,13 @@ const LINEAR_LEARNING_RATE: f64 = 1e-9;
 const COLLAPSED_WIDTH: f64 = 0.005;
 /// Smallest step scale of an ascent that restarts from a dropped bracket.
 const RESTART_STEP_SCALE: f64 = 0.1;
+/// Smallest step (ln t, as a multiple of the probe step) of a search for the slope's
+/// zero, and the first step of the one that follows a contradicted bracket.
+const SEARCH_FIRST_PROBES: f64 = 2.0;
+/// Fraction of the secant's predicted distance to the slope's zero that a secant search
+/// steps: past the knee the slope falls faster than linearly (clipping spreads), so the
+/// secant through two frames overestimates the distance.
+const SECANT_DAMPING: f64 = 0.5;
 
 /// Grey level from which the highlight guard takes a pixel as clipped.
 const CLIPPED_GREY: usize = 254;
@@ -399,6 +406,9 @@ pub struct Aaec {
     /// ln t and slope of the last used frame.
     prev: Option<Sample>,
     bracket: Option<Bracket>,
+    /// Outside a bracket, how the next step looks for the slope's zero instead of the
+    /// momentum ascent.
+    search: Option<Search>,
     /// This frame's metered regions (one, or one per marker in view with `"sum"`).
     regions: Vec<Roi>,
     /// The regions of the last frame that showed a marker, and the box around them.
@@ -445,6 +455,7 @@ impl Aaec {
             step_scale: 1.0,
             prev: None,
             bracket: None,
+            search: None,
             regions: Vec::with_capacity(1),
             last_regions: Vec::with_capacity(1),
             last_roi: None,
@@ -471,6 +482,7 @@ impl Aaec {
         self.step_scale = 1.0;
         self.prev = None;
         self.bracket = None;
+        self.search = None;
         self.landed = None;
         self.last_knee = KneeStep::None;
         self.hold = None;
@@ -889,12 +901,45 @@ impl Aaec {
                     target - x
                 }
             }
-            None => gamma * self.v + eta * self.step_scale * s,
+            None => match self.search {
+                Some(search) if s != 0.0 => self.search_step(search, x, s, bound),
+                Some(_) => 0.0,
+                None => gamma * self.v + eta * self.step_scale * s,
+            },
         };
+        if self.bracket.is_some() {
+            self.search = None;
+        }
         let delta = delta.clamp(-bound, bound);
         // Momentum only outside a bracket, and never more than what was applied.
         self.v = if self.bracket.is_some() { 0.0 } else { delta };
         delta
+    }
+
+    /// A step of a search for the slope's zero (`s != 0`), in its direction.
+    fn search_step(&mut self, search: Search, x: f64, s: f64, bound: f64) -> f64 {
+        let min = SEARCH_FIRST_PROBES * self.probe_step(x.exp());
+        let step = match search {
+            // Doubling from the contradicted end: an optimum that drifted a little is
+            // reached without overshooting it by more than the drift, one that moved far
+            // in a few frames.
+            Search::Doubling(step) => step,
+            // Damped secant on the slope through the last two frames while it falls
+            // toward zero; where it does not fall, twice the last step.
+            Search::Secant(last) => {
+                let to_zero = self.prev.map(|p| s * (x - p.x) / (p.s - s));
+                match to_zero {
+                    Some(d) if d.is_finite() && d * s > 0.0 => SECANT_DAMPING * d.abs(),
+                    _ => 2.0 * last,
+                }
+            }
+        };
+        let step = step.clamp(min, bound.max(min));
+        self.search = Some(match search {
+            Search::Doubling(_) => Search::Doubling((2.0 * step).min(bound)),
+            Search::Secant(_) => Search::Secant(step),
+        });
+        step.copysign(s)
     }
 
     /// True when the bracket is narrower than 0.5% or than the dead band resolves at
@@ -941,8 +986,8 @@ impl Aaec {
         let was_probe = std::mem::take(&mut b.probing);
         // A slope that rises with exposure above the bracket's falling end (or falls
         // below its rising end) contradicts it. When strong, the optimum is outside (the
-        // scene changed, or the metric is not unimodal here): drop the bracket and climb
-        // again, from a small step that grows while the sign holds, so a drift is
+        // scene changed, or the metric is not unimodal here): drop the bracket and search
+        // again, from twice a probe step that doubles while the sign holds, so a drift is
         // followed without a jump. When weak, it is noise on a collapsed bracket: the
         // point is not kept. An age limit, if configured, also drops the bracket.
         // Within half a probe step of the end, the slope's sign there is noise (where the
@@ -951,10 +996,13 @@ impl Aaec {
         let inverted = beyond >= 0.5 * self.probe_step(x.exp());
         let aged = self.cfg.bracket_frames > 0 && b.age >= self.cfg.bracket_frames;
         if (inverted && strong) || aged {
-            tracing::debug!(inverted, aged, "aaec: bracket dropped, climbing again");
+            tracing::debug!(inverted, aged, "aaec: bracket dropped, searching again");
             self.bracket = None;
             self.step_scale = self.step_scale.max(RESTART_STEP_SCALE);
             self.v = 0.0;
+            self.search = Some(Search::Doubling(
+                SEARCH_FIRST_PROBES * self.probe_step(x.exp()),
+            ));
             return;
         }
         if beyond >= 0.0 {
@@ -994,6 +1042,15 @@ struct Sample {
     x: f64,
     s: f64,
     ln_m: f64,
+}
+
+/// A search for the slope's zero outside a bracket (it ends when a bracket forms).
+#[derive(Debug, Clone, Copy)]
+enum Search {
+    /// Steps in the slope's direction that double; the next one (ln t).
+    Doubling(f64),
+    /// Damped secant steps; the last one (ln t).
+    Secant(f64),
 }
 
 /// Exposures (ln t) and slopes on both sides of the zero of the slope.
@@ -1168,6 +1225,15 @@ impl ExposureController for Aaec {
             } else if let Some(d) = self.knee_step(frame, x, s, mv.saturated_frac, last) {
                 (d, "knee landing")
             } else {
+                if last == KneeStep::Landing && self.search.is_none() {
+                    // Landed, and M is not flat there: the optimum lies past the knee by
+                    // an unknown amount (a hotspot clips before the cells, or the cells
+                    // clip gradually). Search for the slope's zero from the frames before
+                    // and at the landing instead of going on with the landing's momentum,
+                    // which overshot a sharp optimum 2-3x.
+                    self.search = Some(Search::Secant(0.0));
+                    self.v = 0.0;
+                }
                 let d = self.ascent_step(x, s, mv.dm_dlnt);
                 (
                     d,

@@ -26,7 +26,7 @@ impl TraceWriter {
         w.write(format_args!(
             "seq,stamp_s,exposure_used_us,exposure_cmd_us,metric,used_frame,detected,\
              cam_marker_x_m,cam_marker_y_m,cam_marker_z_m,reproj_rms_px,\
-             surge,sway,heave,roll,pitch,yaw,directive,latency_ms\n"
+             surge,sway,heave,roll,pitch,yaw,directive,latency_ms,markers\n"
         ));
         Ok(w)
     }
@@ -39,12 +39,13 @@ impl TraceWriter {
         }
     }
 
-    pub fn row(&mut self, r: &FrameRecord) {
+    /// One frame; `markers`: how many markers of the map its pose used.
+    pub fn row(&mut self, r: &FrameRecord, markers: usize) {
         let t = r.t_cam_marker.map(|t| t.translation.vector);
         let (x, y, z) = t.map_or((f64::NAN, f64::NAN, f64::NAN), |v| (v.x, v.y, v.z));
         let e = r.effort;
         self.write(format_args!(
-            "{},{:.4},{:.2},{:.2},{:.6e},{},{},{:.5},{:.5},{:.5},{:.3},{:.4},{:.4},{:.4},{:.4},{:.4},{:.4},{:?},{:.3}\n",
+            "{},{:.4},{:.2},{:.2},{:.6e},{},{},{:.5},{:.5},{:.5},{:.3},{:.4},{:.4},{:.4},{:.4},{:.4},{:.4},{:?},{:.3},{}\n",
             r.seq,
             r.stamp_s,
             r.exposure_used_us,
@@ -64,6 +65,7 @@ impl TraceWriter {
             e.yaw,
             r.directive,
             r.latency_s * 1e3,
+            markers,
         ));
     }
 
@@ -83,7 +85,7 @@ impl Observer for TraceWriter {
         "trace"
     }
     fn frame(&mut self, view: &FrameView<'_>) {
-        self.row(view.rec);
+        self.row(view.rec, view.markers_in_view.len());
     }
     fn finish(mut self: Box<Self>) -> anyhow::Result<()> {
         self.flush_and_report()
