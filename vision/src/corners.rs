@@ -120,9 +120,7 @@ fn clipped_at(img: &ImageView<'_>, x: f64, y: f64) -> bool {
     }
     let i = y0 * img.stride + x0;
     let d = img.data;
-    [d[i], d[i + 1], d[i + img.stride], d[i + img.stride + 1]]
-        .iter()
-        .any(|v| *v >= CLIP_GREY)
+    [d[i], d[i + 1], d[i + img.stride], d[i + img.stride + 1]].contains(&CLIP_GREY)
 }
 
 /// Bilinear sample; `None` outside the image.
