@@ -400,10 +400,12 @@ impl<L: CommandLink> Pipeline<L> {
                 }
                 Tracked::NeedsFullSearch => (self.tracker.process_full(&self.frame)?, false),
             };
+        // The keeper's measurement noise is the edge fit's (its filter and gate were
+        // tuned on it); the vehicle's EKF gets the full covariance below.
         let meas = obs.as_ref().map(|o| PoseMeasurement {
             stamp_s: stamp,
             t_cam_marker: o.t_cam_marker,
-            cov_cam: o.cov_cam,
+            cov_cam: o.cov_cam_fit,
         });
         self.link.tick(stamp)?;
         // A mode change (by the pilot, a failsafe or us) invalidates the integrators.
@@ -443,8 +445,8 @@ impl<L: CommandLink> Pipeline<L> {
         self.failsafe
             .update(&mut self.link, &mut self.keeper, &self.events, stamp)?;
         // Setpoint mode: the vehicle's pose for the EKF, from the same measurement.
-        let vision = meas.as_ref().filter(|_| self.setpoint).map(|m| {
-            VisionPose::from_camera(m.stamp_s, &m.t_cam_marker, &m.cov_cam, &self.t_vehicle_cam)
+        let vision = obs.as_ref().filter(|_| self.setpoint).map(|o| {
+            VisionPose::from_camera(stamp, &o.t_cam_marker, &o.cov_cam, &self.t_vehicle_cam)
         });
         let (directive, effort) = self.send(directive, effort, vision.as_ref(), stamp)?;
         let latency_s = t0.elapsed().as_secs_f64();

@@ -28,8 +28,12 @@ pub struct MarkerObservation {
     /// Pose of the site frame (the origin marker's frame) in the camera frame.
     pub t_cam_marker: Isometry3<f64>,
     /// Covariance of (tx, ty, tz, rx, ry, rz) of `t_cam_marker`, camera frame
-    /// (translation m^2, rotation rad^2, left/global rotation error).
+    /// (translation m^2, rotation rad^2, left/global rotation error): the edge fit's
+    /// noise and the clipped edges' shift.
     pub cov_cam: Matrix6<f64>,
+    /// The same from the edge fit's noise alone (what the pose is weighted by): the
+    /// station keeper's measurement noise, on which its filter and gate were tuned.
+    pub cov_cam_fit: Matrix6<f64>,
     /// RMS reprojection error of the corners of every marker used, pixels.
     pub reproj_rms_px: f64,
     /// Found by the RoI-tracked search (false: full-frame search).
@@ -546,7 +550,7 @@ impl MarkerTracker {
         let s = &mut self.slots[i];
         let sol = s.single?;
         let corners = s.found?;
-        let clip = sol.covariance().and_then(|cov| {
+        let both = sol.covariance().and_then(|fit| {
             let j = &s.joint;
             unweighted_covariance(
                 &self.calib,
@@ -555,23 +559,24 @@ impl MarkerTracker {
                 &j.white,
                 &j.clip,
                 &sol.t_cam_marker,
-                &cov,
+                &fit,
             )
-            .map(|add| cov + add)
+            .map(|add| (fit, fit + add))
         });
-        let Some(cov) = clip else {
+        let Some((fit, cov)) = both else {
             self.stats.rejected += 1;
             s.track = None;
             return None;
         };
         // The origin marker's frame is the site frame: its pose as measured.
-        let (t_cam_site, cov_cam) = if i == 0 {
-            (sol.t_cam_marker, cov)
+        let (t_cam_site, cov_cam, cov_cam_fit) = if i == 0 {
+            (sol.t_cam_marker, cov, fit)
         } else {
             let t_marker_site = s.placed.t_site_marker.inverse();
             (
                 sol.t_cam_marker * t_marker_site,
                 cov_through(&sol.t_cam_marker, &t_marker_site, &cov),
+                cov_through(&sol.t_cam_marker, &t_marker_site, &fit),
             )
         };
         let tracked = s.found_tracked;
@@ -586,6 +591,7 @@ impl MarkerTracker {
             corners,
             t_cam_marker: t_cam_site,
             cov_cam,
+            cov_cam_fit,
             reproj_rms_px: sol.reproj_rms_px,
             tracked,
             markers_used: 1,
@@ -663,7 +669,8 @@ impl MarkerTracker {
             return None;
         };
         let outliers = have - count as u32;
-        let cov_cam = sol.covariance().and_then(|cov| {
+        let cov_cam_fit = sol.covariance();
+        let cov_cam = cov_cam_fit.and_then(|cov| {
             let mut total = cov;
             for (m, _) in self.joint.iter().zip(&self.best_used).filter(|(_, u)| **u) {
                 total += unweighted_covariance(
@@ -678,7 +685,7 @@ impl MarkerTracker {
             }
             Some(total)
         });
-        let Some(cov_cam) = cov_cam else {
+        let (Some(cov_cam), Some(cov_cam_fit)) = (cov_cam, cov_cam_fit) else {
             self.stats.rejected += have as u64;
             for s in &mut self.slots {
                 s.track = None;
@@ -715,6 +722,7 @@ impl MarkerTracker {
             corners: s.found?,
             t_cam_marker: t_cam_site,
             cov_cam,
+            cov_cam_fit,
             reproj_rms_px: sol.reproj_rms_px,
             tracked: self
                 .best_used
