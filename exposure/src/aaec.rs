@@ -916,6 +916,17 @@ impl Aaec {
         delta
     }
 
+    /// After a landing (`last`) where M is not flat: the optimum lies past the knee by an unknown
+    /// amount (a hotspot clips before the cells, or the cells clip gradually). Search for
+    /// the slope's zero from the frames before and at the landing instead of going on
+    /// with the landing's momentum, which overshot a sharp optimum 2-3x.
+    fn search_if_landed(&mut self, last: KneeStep) {
+        if last == KneeStep::Landing && self.search.is_none() {
+            self.search = Some(Search::Secant(0.0));
+            self.v = 0.0;
+        }
+    }
+
     /// A step of a search for the slope's zero (`s != 0`), in its direction.
     fn search_step(&mut self, search: Search, x: f64, s: f64, bound: f64) -> f64 {
         let min = SEARCH_FIRST_PROBES * self.probe_step(x.exp());
@@ -1225,15 +1236,7 @@ impl ExposureController for Aaec {
             } else if let Some(d) = self.knee_step(frame, x, s, mv.saturated_frac, last) {
                 (d, "knee landing")
             } else {
-                if last == KneeStep::Landing && self.search.is_none() {
-                    // Landed, and M is not flat there: the optimum lies past the knee by
-                    // an unknown amount (a hotspot clips before the cells, or the cells
-                    // clip gradually). Search for the slope's zero from the frames before
-                    // and at the landing instead of going on with the landing's momentum,
-                    // which overshot a sharp optimum 2-3x.
-                    self.search = Some(Search::Secant(0.0));
-                    self.v = 0.0;
-                }
+                self.search_if_landed(last);
                 let d = self.ascent_step(x, s, mv.dm_dlnt);
                 (
                     d,
