@@ -599,6 +599,25 @@ impl MarkerTracker {
         })
     }
 
+    /// Covariance of the joint pose `sol` over the markers in `best_used`: (with the
+    /// clipped edges' shift, the edge fit's alone).
+    fn joint_covariance(&self, sol: &RefinedPose) -> Option<(Matrix6<f64>, Matrix6<f64>)> {
+        let fit = sol.covariance()?;
+        let mut total = fit;
+        for (m, _) in self.joint.iter().zip(&self.best_used).filter(|(_, u)| **u) {
+            total += unweighted_covariance(
+                &self.calib,
+                &m.obj,
+                &m.img,
+                &m.white,
+                &m.clip,
+                &sol.t_cam_marker,
+                &fit,
+            )?;
+        }
+        Some((total, fit))
+    }
+
     /// The site frame's pose from every marker with a pose: each marker's pose proposes
     /// one for the site, the markers whose corners fit it are refined together, and the
     /// proposal that most markers fit wins (ties: the one nearer the last pose, else the
@@ -669,23 +688,7 @@ impl MarkerTracker {
             return None;
         };
         let outliers = have - count as u32;
-        let cov_cam_fit = sol.covariance();
-        let cov_cam = cov_cam_fit.and_then(|cov| {
-            let mut total = cov;
-            for (m, _) in self.joint.iter().zip(&self.best_used).filter(|(_, u)| **u) {
-                total += unweighted_covariance(
-                    &self.calib,
-                    &m.obj,
-                    &m.img,
-                    &m.white,
-                    &m.clip,
-                    &sol.t_cam_marker,
-                    &cov,
-                )?;
-            }
-            Some(total)
-        });
-        let (Some(cov_cam), Some(cov_cam_fit)) = (cov_cam, cov_cam_fit) else {
+        let Some((cov_cam, cov_cam_fit)) = self.joint_covariance(&sol) else {
             self.stats.rejected += have as u64;
             for s in &mut self.slots {
                 s.track = None;
