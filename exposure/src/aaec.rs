@@ -59,7 +59,7 @@ const MAX_PROBE_FRAMES: u32 = 64;
 const LINEAR_LEARNING_RATE: f64 = 1e-9;
 /// A bracket narrower than this (in ln t) has collapsed onto its zero.
 const COLLAPSED_WIDTH: f64 = 0.005;
-/// Smallest step scale of an ascent that restarts from a dropped bracket.
+/// Step scale of the ascent that resumes when a knee hold is released.
 const RESTART_STEP_SCALE: f64 = 0.1;
 /// Smallest step (ln t, as a multiple of the probe step) of a search for the slope's
 /// zero, and the first step of the one that follows a contradicted bracket.
@@ -1009,7 +1009,6 @@ impl Aaec {
         if (inverted && strong) || aged {
             tracing::debug!(inverted, aged, "aaec: bracket dropped, searching again");
             self.bracket = None;
-            self.step_scale = self.step_scale.max(RESTART_STEP_SCALE);
             self.v = 0.0;
             self.search = Some(Search::Doubling(
                 SEARCH_FIRST_PROBES * self.probe_step(x.exp()),
