@@ -4,7 +4,7 @@
 #![allow(clippy::unwrap_used)] // Tests fail loudly on a broken setup, by design.
 mod common;
 
-use common::{limits, square_corners, FULL_WELL_US};
+use common::{limits, marker_cell, rock, square_corners, supersampled, unit_hash, FULL_WELL_US};
 use markhold_exposure::*;
 
 const W: u32 = 320;
@@ -14,16 +14,6 @@ const SIDE: f64 = 64.0;
 /// Contrast (white cells minus black cells, grey levels) a detector needs: a stand-in
 /// for decoding.
 const MIN_CONTRAST: f64 = 30.0;
-
-/// Reflectance of the 6x6 cell marker (black border, fixed inner bits).
-fn cell(cx: usize, cy: usize) -> f64 {
-    const BITS: [[u8; 4]; 4] = [[1, 0, 1, 1], [0, 1, 0, 0], [1, 1, 0, 1], [0, 0, 1, 0]];
-    if cx == 0 || cy == 0 || cx == 5 || cy == 5 || BITS[cy - 1][cx - 1] == 0 {
-        0.05
-    } else {
-        0.9
-    }
-}
 
 /// Two markers on a textured wall; a lamp of `lamp` (relative irradiance, with a veiling
 /// glare of 0.3 of it that lifts black and white cells alike) on marker `lit`, `ambient`
@@ -40,32 +30,19 @@ impl TwoMarkers {
         let origin = [(48.0, 88.0), (208.0, 88.0)];
         let (lx, ly) = (origin[lit].0 + SIDE / 2.0, origin[lit].1 + SIDE / 2.0);
         let (w, h) = (W as usize, H as usize);
-        let mut irradiance = vec![0.0; w * h];
-        for y in 0..h {
-            for x in 0..w {
-                let mut acc = 0.0;
-                for sy in 0..4 {
-                    for sx in 0..4 {
-                        let px = x as f64 + (sx as f64 + 0.5) / 4.0;
-                        let py = y as f64 + (sy as f64 + 0.5) / 4.0;
-                        let mut refl = 0.35
-                            + 0.2 * (px * 0.11).sin() * (py * 0.07).cos()
-                            + 0.1 * (px * 0.023 + py * 0.031).sin();
-                        for &(mx, my) in &origin {
-                            let (u, v) = ((px - mx) / SIDE, (py - my) / SIDE);
-                            if (0.0..1.0).contains(&u) && (0.0..1.0).contains(&v) {
-                                refl = cell((u * 6.0) as usize, (v * 6.0) as usize);
-                            }
-                        }
-                        // A lamp's spot: full inside 40 px of its axis, gone by 70 px.
-                        let r = ((px - lx).powi(2) + (py - ly).powi(2)).sqrt();
-                        let spot = lamp * ((70.0 - r) / 30.0).clamp(0.0, 1.0);
-                        acc += (refl + 0.3) * spot + refl * ambient;
-                    }
+        let irradiance = supersampled(w, h, |px, py| {
+            let mut refl = rock(px, py);
+            for &(mx, my) in &origin {
+                let (u, v) = ((px - mx) / SIDE, (py - my) / SIDE);
+                if (0.0..1.0).contains(&u) && (0.0..1.0).contains(&v) {
+                    refl = marker_cell((u * 6.0) as usize, (v * 6.0) as usize);
                 }
-                irradiance[y * w + x] = acc / 16.0;
             }
-        }
+            // A lamp's spot: full inside 40 px of its axis, gone by 70 px.
+            let r = ((px - lx).powi(2) + (py - ly).powi(2)).sqrt();
+            let spot = lamp * ((70.0 - r) / 30.0).clamp(0.0, 1.0);
+            (refl + 0.3) * spot + refl * ambient
+        });
         let corners = origin.map(|(mx, my)| square_corners(mx, my, SIDE));
         Self {
             irradiance,
@@ -79,12 +56,10 @@ impl TwoMarkers {
         frame.resize(W, H);
         let scale = t_us / FULL_WELL_US * 255.0;
         for (i, (p, e)) in frame.data.iter_mut().zip(&self.irradiance).enumerate() {
-            let mut hsh = (i as u64 + 1).wrapping_mul(0x9E37_79B9_7F4A_7C15)
-                ^ (k + 1).wrapping_mul(0x1656_67B1_9E37_79F9);
-            hsh ^= hsh >> 31;
-            hsh = hsh.wrapping_mul(0xBF58_476D_1CE4_E5B9);
-            hsh ^= hsh >> 29;
-            let u = (hsh >> 11) as f64 / (1u64 << 53) as f64;
+            let u = unit_hash(
+                (i as u64 + 1).wrapping_mul(0x9E37_79B9_7F4A_7C15)
+                    ^ (k + 1).wrapping_mul(0x1656_67B1_9E37_79F9),
+            );
             *p = (e * scale + 2.0 * 12f64.sqrt() * (u - 0.5))
                 .round()
                 .clamp(0.0, 255.0) as u8;
@@ -102,7 +77,7 @@ impl TwoMarkers {
         let (mut ws, mut wn, mut bs, mut bn) = (0.0, 0.0, 0.0, 0.0);
         for cy in 0..6 {
             for cx in 0..6 {
-                let white = cell(cx, cy) > 0.5;
+                let white = marker_cell(cx, cy) > 0.5;
                 let (ux, uy) = (x0 + cx as f64 * c, y0 + cy as f64 * c);
                 for y in (0.25 * c).ceil() as usize..(0.75 * c).floor() as usize {
                     for x in (0.25 * c).ceil() as usize..(0.75 * c).floor() as usize {

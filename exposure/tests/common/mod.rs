@@ -53,7 +53,7 @@ pub struct Scene {
 }
 
 /// Reflectance of the 6x6 cell marker (black border, fixed inner bits).
-fn marker_cell(cx: usize, cy: usize) -> f64 {
+pub fn marker_cell(cx: usize, cy: usize) -> f64 {
     const BITS: [[u8; 4]; 4] = [[1, 0, 1, 1], [0, 1, 0, 0], [1, 1, 0, 1], [0, 0, 1, 0]];
     if cx == 0 || cy == 0 || cx == 5 || cy == 5 {
         0.05
@@ -62,6 +62,39 @@ fn marker_cell(cx: usize, cy: usize) -> f64 {
     } else {
         0.05
     }
+}
+
+/// Reflectance of the textured surround (rock / sand) at (`px`, `py`).
+pub fn rock(px: f64, py: f64) -> f64 {
+    0.35 + 0.2 * (px * 0.11).sin() * (py * 0.07).cos() + 0.1 * (px * 0.023 + py * 0.031).sin()
+}
+
+/// A `w` x `h` irradiance map, each pixel the mean of `e` over a 4x4 grid of sample points
+/// in it: anti-aliased edges, like a real lens.
+pub fn supersampled(w: usize, h: usize, e: impl Fn(f64, f64) -> f64) -> Vec<f64> {
+    let mut irradiance = vec![0.0; w * h];
+    for y in 0..h {
+        for x in 0..w {
+            let mut acc = 0.0;
+            for sy in 0..4 {
+                for sx in 0..4 {
+                    let px = x as f64 + (sx as f64 + 0.5) / 4.0;
+                    let py = y as f64 + (sy as f64 + 0.5) / 4.0;
+                    acc += e(px, py);
+                }
+            }
+            irradiance[y * w + x] = acc / 16.0;
+        }
+    }
+    irradiance
+}
+
+/// A uniform number in [0, 1) from the hash of `h` (deterministic sensor noise).
+pub fn unit_hash(mut h: u64) -> f64 {
+    h ^= h >> 31;
+    h = h.wrapping_mul(0xBF58_476D_1CE4_E5B9);
+    h ^= h >> 29;
+    (h >> 11) as f64 / (1u64 << 53) as f64
 }
 
 impl Scene {
@@ -76,31 +109,16 @@ impl Scene {
         let (w, h) = (W as usize, H as usize);
         let side = 120.0;
         let (mx, my) = (160.0 - side / 2.0, 120.0 - side / 2.0);
-        let mut irradiance = vec![0.0; w * h];
-        // 4x4 supersampling gives anti-aliased edges, like a real lens.
-        for y in 0..h {
-            for x in 0..w {
-                let mut acc = 0.0;
-                for sy in 0..4 {
-                    for sx in 0..4 {
-                        let px = x as f64 + (sx as f64 + 0.5) / 4.0;
-                        let py = y as f64 + (sy as f64 + 0.5) / 4.0;
-                        let (u, v) = ((px - mx) / side, (py - my) / side);
-                        let refl = if (0.0..1.0).contains(&u) && (0.0..1.0).contains(&v) {
-                            marker_cell((u * 6.0) as usize, (v * 6.0) as usize)
-                        } else {
-                            // Textured surround (rock / sand).
-                            0.35 + 0.2 * (px * 0.11).sin() * (py * 0.07).cos()
-                                + 0.1 * (px * 0.023 + py * 0.031).sin()
-                        };
-                        let d2 = ((px - 160.0).powi(2) + (py - 120.0).powi(2)) / radius.powi(2);
-                        let light = ambient + spot * (-d2).exp();
-                        acc += refl * light;
-                    }
-                }
-                irradiance[y * w + x] = acc / 16.0;
-            }
-        }
+        let irradiance = supersampled(w, h, |px, py| {
+            let (u, v) = ((px - mx) / side, (py - my) / side);
+            let refl = if (0.0..1.0).contains(&u) && (0.0..1.0).contains(&v) {
+                marker_cell((u * 6.0) as usize, (v * 6.0) as usize)
+            } else {
+                rock(px, py)
+            };
+            let d2 = ((px - 160.0).powi(2) + (py - 120.0).powi(2)) / radius.powi(2);
+            refl * (ambient + spot * (-d2).exp())
+        });
         let corners = square_corners(mx, my, side);
         Self {
             irradiance,
@@ -126,34 +144,20 @@ impl Scene {
         let (w, h) = (W as usize, H as usize);
         let (cx, cy) = (160.0, 120.0);
         let (mx, my) = (cx - side / 2.0, cy - side / 2.0);
-        let mut irradiance = vec![0.0; w * h];
-        for y in 0..h {
-            for x in 0..w {
-                let mut acc = 0.0;
-                for sy in 0..4 {
-                    for sx in 0..4 {
-                        let px = x as f64 + (sx as f64 + 0.5) / 4.0;
-                        let py = y as f64 + (sy as f64 + 0.5) / 4.0;
-                        let (u, v) = ((px - mx) / side, (py - my) / side);
-                        let on_plate = (px - cx).powi(2) + (py - cy).powi(2) <= plate_r * plate_r;
-                        acc += if on_plate {
-                            let refl = if (0.0..1.0).contains(&u) && (0.0..1.0).contains(&v) {
-                                marker_cell((u * 6.0) as usize, (v * 6.0) as usize)
-                            } else {
-                                0.9
-                            };
-                            (refl + glare) * spot + refl * ambient
-                        } else {
-                            let rock = 0.35
-                                + 0.2 * (px * 0.11).sin() * (py * 0.07).cos()
-                                + 0.1 * (px * 0.023 + py * 0.031).sin();
-                            rock * ambient
-                        };
-                    }
-                }
-                irradiance[y * w + x] = acc / 16.0;
+        let irradiance = supersampled(w, h, |px, py| {
+            let (u, v) = ((px - mx) / side, (py - my) / side);
+            let on_plate = (px - cx).powi(2) + (py - cy).powi(2) <= plate_r * plate_r;
+            if on_plate {
+                let refl = if (0.0..1.0).contains(&u) && (0.0..1.0).contains(&v) {
+                    marker_cell((u * 6.0) as usize, (v * 6.0) as usize)
+                } else {
+                    0.9
+                };
+                (refl + glare) * spot + refl * ambient
+            } else {
+                rock(px, py) * ambient
             }
-        }
+        });
         let corners = square_corners(mx, my, side);
         Self {
             irradiance,
@@ -240,13 +244,11 @@ impl Scene {
                 }
                 let mut g = self.response.grey(e * scale);
                 if self.noise_grey > 0.0 && g < 255.0 {
-                    let mut hsh = (x as u64 + 1).wrapping_mul(0x9E37_79B9_7F4A_7C15)
-                        ^ (y as u64 + 1).wrapping_mul(0xC2B2_AE3D_27D4_EB4F)
-                        ^ (k + 1).wrapping_mul(0x1656_67B1_9E37_79F9);
-                    hsh ^= hsh >> 31;
-                    hsh = hsh.wrapping_mul(0xBF58_476D_1CE4_E5B9);
-                    hsh ^= hsh >> 29;
-                    let u = (hsh >> 11) as f64 / (1u64 << 53) as f64;
+                    let u = unit_hash(
+                        (x as u64 + 1).wrapping_mul(0x9E37_79B9_7F4A_7C15)
+                            ^ (y as u64 + 1).wrapping_mul(0xC2B2_AE3D_27D4_EB4F)
+                            ^ (k + 1).wrapping_mul(0x1656_67B1_9E37_79F9),
+                    );
                     g += self.noise_grey * 12f64.sqrt() * (u - 0.5);
                 }
                 frame.data[y * W as usize + x] = g.round().clamp(0.0, 255.0) as u8;
