@@ -30,6 +30,16 @@ fn tag(args: &[&str]) -> (i32, String, String) {
     )
 }
 
+/// `markhold tag --site SITE --out OUT`.
+fn tag_site(site: &Path, out: &Path) -> (i32, String, String) {
+    tag(&[
+        "--site",
+        site.to_str().unwrap(),
+        "--out",
+        out.to_str().unwrap(),
+    ])
+}
+
 #[test]
 fn writes_every_format_at_its_size() {
     for ext in ["svg", "pdf", "png"] {
@@ -67,12 +77,7 @@ fn writes_every_format_at_its_size() {
 fn site_gives_family_id_and_size() {
     let out = scratch("pool.svg");
     let site = repo("params/pool.toml");
-    let (code, stdout, err) = tag(&[
-        "--site",
-        site.to_str().unwrap(),
-        "--out",
-        out.to_str().unwrap(),
-    ]);
+    let (code, stdout, err) = tag_site(&site, &out);
     assert_eq!(code, 0, "{err}");
     assert!(
         stdout.contains("apriltag_36h11 id 0, black square 150 mm"),
@@ -88,12 +93,7 @@ fn site_gives_family_id_and_size() {
 fn a_map_site_gives_every_marker() {
     let out = scratch("dock.svg");
     let site = repo("params/dock-map.toml");
-    let (code, stdout, err) = tag(&[
-        "--site",
-        site.to_str().unwrap(),
-        "--out",
-        out.to_str().unwrap(),
-    ]);
+    let (code, stdout, err) = tag_site(&site, &out);
     assert_eq!(code, 0, "{err}");
     assert!(
         !out.exists(),
@@ -205,12 +205,7 @@ fn bad_site_marker_exits_78_naming_the_key() {
     let site = scratch("bad-site.toml");
     std::fs::write(&site, bad).unwrap();
     let out = scratch("bad-site.png");
-    let (code, _, err) = tag(&[
-        "--site",
-        site.to_str().unwrap(),
-        "--out",
-        out.to_str().unwrap(),
-    ]);
+    let (code, _, err) = tag_site(&site, &out);
     assert_eq!(code, 78, "{err}");
     assert!(err.contains("marker.id") && err.contains("5000"), "{err}");
 }
