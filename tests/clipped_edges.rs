@@ -1,6 +1,6 @@
 //! Clipped marker edges on the HIL's rendered frames: the shift of the corners against
 //! the renderer's truth at exposures below and above the white's clip onset, beside
-//! what the clip covariance states (design/vision.md, "Clipped edges").
+//! the clip covariance's fixed figures (design/vision.md, "Clipped edges").
 #![cfg(feature = "sim")]
 #![allow(clippy::unwrap_used)] // Tests fail loudly on a broken setup, by design.
 
@@ -110,7 +110,8 @@ fn clipped_edges_shift_inward_as_the_clip_covariance_states() {
     assert_eq!(rows[0].2, 0.0, "{rows:?}");
     assert!(rows[0].0.abs() < 0.01 && rows[0].1 < 0.01, "{rows:?}");
     // At AAEC's landing in the loop (3791 us) every edge clips and the sides move inward
-    // by about what the clip covariance states (within a factor of 1.5).
+    // by about what the fixed clip figures state (within a factor of 1.5): the ones used
+    // until the marker was seen unclipped.
     assert!(rows[1].2 > 0.95, "{rows:?}");
     let (c, s) = (v.corner_clip_common_px, v.corner_clip_side_px);
     assert!(
@@ -123,7 +124,8 @@ fn clipped_edges_shift_inward_as_the_clip_covariance_states() {
         "per-corner deviation {} px, stated side {s} px",
         rows[1].1
     );
-    // Clipping harder moves them further: the stated figures hold for AAEC's landing
-    // only (design/vision.md, "Clipped edges").
+    // Clipping harder moves them further: the fixed figures hold for this landing only;
+    // once a contrast is measured the shift follows the over-exposure (corners.rs's unit
+    // test, tests/vision_nees.rs; design/vision.md, "Clipped edges").
     assert!(-rows[2].0 > 2.0 * c, "{rows:?}");
 }

@@ -375,9 +375,13 @@ pub struct DetectorConfig {
     /// cannot show. `corner_clip_common_px` is shared by the four sides (the marker
     /// looks smaller), `corner_clip_side_px` each side's own. Added to the pose
     /// covariance, scaled by the fraction of each side's points that clip; the pose is
-    /// unchanged.
+    /// unchanged. These hold until the marker has been seen with no edge clipped; from
+    /// then on the shift follows the white's over-exposure `r` (its white-to-black
+    /// contrast measured unclipped, times the black's grey now, over the clip level):
+    /// `corner_clip_gain_px (1 - 1/r)` common, `side/common` of that each side's own.
     pub corner_clip_common_px: f64,
     pub corner_clip_side_px: f64,
+    pub corner_clip_gain_px: f64,
     /// Corner noise, pixels per axis, assumed when the edge fit fails and
     /// cv::cornerSubPix corners are used instead.
     pub corner_sigma_px: f64,
@@ -422,7 +426,8 @@ impl Default for DetectorConfig {
             full_search_fallback_full_res: true,
             corner_sigma_floor_px: 0.005,
             corner_clip_common_px: 0.06,
-            corner_clip_side_px: 0.03,
+            corner_clip_side_px: 0.042,
+            corner_clip_gain_px: 0.6,
             corner_sigma_px: 0.3,
             ambiguity_ratio: 3.0,
             track_max_age_s: 0.5,
@@ -462,6 +467,7 @@ impl DetectorConfig {
             .positive("corner_sigma_floor_px", self.corner_sigma_floor_px, "a standard deviation > 0 px")
             .range("corner_clip_common_px", self.corner_clip_common_px, 0.0..=1.0, "a standard deviation in [0, 1] px")
             .range("corner_clip_side_px", self.corner_clip_side_px, 0.0..=1.0, "a standard deviation in [0, 1] px")
+            .range("corner_clip_gain_px", self.corner_clip_gain_px, 0.0..=2.0, "a shift in [0, 2] px")
             .finite_range("ambiguity_ratio", self.ambiguity_ratio, 1.0.., "a ratio >= 1")
             .positive("track_max_age_s", self.track_max_age_s, "a time > 0 s")
             // An infinite RMS bound is allowed: it rejects no detection.

@@ -27,6 +27,14 @@ pub type CornerCov = SMatrix<f64, 8, 8>;
 
 /// Grey level at which a pixel counts as clipped (an 8-bit sensor's top level).
 const CLIP_GREY: u8 = 255;
+/// Darkest black border a contrast is measured against (below it the noise is a large
+/// part of the grey).
+const MIN_DARK_GREY: f64 = 4.0;
+/// Width, in `1 - 1/r`, over which the sensor noise spreads the clip onset (fitted to
+/// the shift of clipped edges on the HIL's frames, design/vision.md).
+const CLIP_NOISE: f64 = 0.04;
+/// Unclipped edge points a contrast is measured on, at least.
+const MIN_CONTRAST_POINTS: f64 = 24.0;
 
 /// Standard deviations, pixels, of the shift of a marker side whose white side clips
 /// (all its points): `common_px` shared by the four sides (outward positive), `side_px`
@@ -35,6 +43,13 @@ const CLIP_GREY: u8 = 255;
 pub struct ClipModel {
     pub common_px: f64,
     pub side_px: f64,
+    /// White-to-black grey ratio of this marker's edges, measured on a frame where none
+    /// clipped (the tracker keeps it per marker). With it a side's shift is
+    /// `gain_px (1 - 1/r)`, `r` the over-exposure of its white, `contrast` times its
+    /// black border's grey over the clip level; the side's own part is
+    /// `side_px / common_px` of that. Without it, `common_px` and `side_px`.
+    pub contrast: Option<f64>,
+    pub gain_px: f64,
 }
 
 /// The corners' covariance in two parts: the noise the fit residuals measure (the
@@ -43,12 +58,20 @@ pub struct ClipModel {
 pub struct EdgeCovariance {
     /// From the residuals of the four edge lines.
     pub fit: CornerCov,
-    /// Clipped edges ([`ClipModel`]), each side's shift scaled by the fraction of its
-    /// points that clip. Zero when no edge point clips.
+    /// Clipped edges ([`ClipModel`]): each side's own shift, scaled by the fraction of
+    /// its points that clip. Zero when no edge point clips.
     pub clip: CornerCov,
+    /// Clipped edges: the corners' move when every side moves inward by its common
+    /// shift's standard deviation (covariance `clip_common clip_common^T`). Every
+    /// marker of a frame shares the sign (a clipped step always moves towards its dark
+    /// side), so a map's markers add these before squaring.
+    pub clip_common: SMatrix<f64, 8, 1>,
     /// Edge points whose white side clips, of all the points fitted.
     pub clipped_points: u32,
     pub points: u32,
+    /// White-to-black grey ratio of the edges when none of them clips (`None` when one
+    /// does, or the black is too dark to divide by).
+    pub contrast: Option<f64>,
 }
 
 #[derive(Debug, Clone, Copy, Default)]
@@ -63,6 +86,11 @@ struct Line {
     var_theta: f64,
     /// Fraction of the fitted points whose white side clips.
     clipped: f64,
+    /// Mean grey of the black side of the clipped points, and of the unclipped ones; mean
+    /// grey of the white side of the unclipped points (0 without any).
+    dark_clipped: f64,
+    dark_unclipped: f64,
+    bright: f64,
     /// Length the fitted points span, pixels.
     len: f64,
     /// Points fitted.
@@ -98,6 +126,9 @@ pub(crate) struct EdgeRefiner {
     pts: Vec<Vector2<f64>>,
     /// Per point: its white side clips.
     clip: Vec<bool>,
+    /// Per point: grey of its black side (the lobe's foot) and of its white side (a
+    /// pixel past the lobe's top).
+    grey: Vec<(f64, f64)>,
     resid: Vec<f64>,
     /// Distance between edge points along the side being fitted, pixels.
     spacing_px: f64,
@@ -106,6 +137,8 @@ pub(crate) struct EdgeRefiner {
 /// Edge points per side at most (beyond this the line is already far more precise
 /// than the model; the cost is linear in it).
 const MAX_EDGE_POINTS: usize = 80;
+/// Where the white side's grey is read, pixels past the lobe's brightest sample.
+const BRIGHT_PAST_TOP_PX: f64 = 3.0;
 /// Step of the intensity profile across the edge, pixels.
 const PROFILE_STEP_PX: f64 = 0.5;
 
@@ -145,6 +178,7 @@ impl EdgeRefiner {
         Self {
             pts: Vec::with_capacity(MAX_EDGE_POINTS),
             clip: Vec::with_capacity(MAX_EDGE_POINTS),
+            grey: Vec::with_capacity(MAX_EDGE_POINTS),
             resid: Vec::with_capacity(MAX_EDGE_POINTS),
             spacing_px: 1.0,
         }
@@ -186,16 +220,43 @@ impl EdgeRefiner {
             cur = next;
         }
         *corners = cur;
-        let fit = corner_covariance(calib, &lines, |l| (l.var_rho, l.var_theta));
-        let mut clip_cov = corner_covariance(calib, &lines, |l| {
-            let v = (l.clipped * clip.side_px).powi(2);
+        let fit = corner_covariance(calib, &lines, |_, l| (l.var_rho, l.var_theta));
+        // Each side's shift when clipped (standard deviation, pixels), and the part of
+        // it that is the side's own.
+        // Each side's shift when clipped (the common part), and its own part (standard
+        // deviations, pixels). The noise's clipping at `r` about 1 moves the four sides
+        // alike; their differences grow with the over-exposure itself.
+        let (mut shift, mut own) = ([0.0; 4], [0.0; 4]);
+        let side_ratio = if clip.common_px > 0.0 {
+            clip.side_px / clip.common_px
+        } else {
+            0.0
+        };
+        let contrast = measured_contrast(&lines);
+        for ((s, o), l) in shift.iter_mut().zip(&mut own).zip(&lines) {
+            (*s, *o) = match contrast.or(clip.contrast) {
+                Some(c) if l.clipped > 0.0 => {
+                    let r = c * l.dark_clipped / f64::from(CLIP_GREY);
+                    let g = l.clipped * clip.gain_px;
+                    (
+                        g * clipped_height(r),
+                        side_ratio * g * (1.0 - 1.0 / r).max(0.0),
+                    )
+                }
+                Some(_) => (0.0, 0.0),
+                None => (l.clipped * clip.common_px, l.clipped * clip.side_px),
+            };
+        }
+        let clip_cov = corner_covariance(calib, &lines, |i, l| {
+            let v = own[i].powi(2);
             // The side's offset, and as much again between its two ends.
             (v, 2.0 * v / (l.len * l.len).max(1e-12))
         });
-        if lines.iter().any(|l| l.clipped > 0.0) {
-            let g = common_shift_jacobian(calib, &lines);
-            clip_cov += g * g.transpose() * clip.common_px.powi(2);
-        }
+        let clip_common = if shift.iter().any(|s| *s > 0.0) {
+            common_shift_jacobian(calib, &lines, &shift)
+        } else {
+            SMatrix::zeros()
+        };
         let points: u32 = lines.iter().map(|l| l.n).sum();
         let clipped_points = lines
             .iter()
@@ -204,8 +265,10 @@ impl EdgeRefiner {
         Some(EdgeCovariance {
             fit,
             clip: clip_cov,
+            clip_common,
             clipped_points,
             points,
+            contrast,
         })
     }
 
@@ -244,6 +307,7 @@ impl EdgeRefiner {
         let n_steps = (band / step).ceil() as i32;
         self.pts.clear();
         self.clip.clear();
+        self.grey.clear();
         for k in 0..n_samples {
             let t = t0 + (1.0 - 2.0 * t0) * (k as f64 + 0.5) / n_samples as f64;
             let q = na + (nb - na) * t;
@@ -311,8 +375,12 @@ impl EdgeRefiner {
             self.pts.push(pixel_to_undistorted(calib, &e));
             // The brightest sample of the lobe (the profile rises through it).
             let top = (hi as f64 + 1.0 - n_steps as f64) * step;
-            self.clip
-                .push(clipped_at(img, p.x + n.x * top, p.y + n.y * top));
+            let clipped = clipped_at(img, p.x + n.x * top, p.y + n.y * top);
+            self.clip.push(clipped);
+            let foot = (lo as f64 - 1.0 - n_steps as f64) * step;
+            let dark = at(foot).unwrap_or(0.0);
+            let bright = at(top + BRIGHT_PAST_TOP_PX).unwrap_or(0.0);
+            self.grey.push((dark, bright));
         }
         self.fit_line()
     }
@@ -351,12 +419,17 @@ impl EdgeRefiner {
         self.resid.sort_by(|a, b| a.total_cmp(b));
         let mad = self.resid[self.resid.len() / 2];
         let limit = (3.5 * 1.4826 * mad).max(0.05);
-        let mut k = 0;
         let pts = &self.pts;
+        let keep = |k: usize| (pts[k] - c).dot(&nrm).abs() <= limit;
+        let mut k = 0;
         self.clip.retain(|_| {
-            let keep = (pts[k] - c).dot(&nrm).abs() <= limit;
             k += 1;
-            keep
+            keep(k - 1)
+        });
+        let mut k = 0;
+        self.grey.retain(|_| {
+            k += 1;
+            keep(k - 1)
         });
         self.pts.retain(|p| (p - c).dot(&nrm).abs() <= limit);
         if self.pts.len() < 6 {
@@ -381,7 +454,21 @@ impl EdgeRefiner {
             return None;
         }
         let clipped = self.clip.iter().filter(|c| **c).count() as f64 / n;
+        let (mut dc, mut nc, mut du, mut b, mut nb) = (0.0, 0.0, 0.0, 0.0, 0.0);
+        for (&(dark, bright), &clipped) in self.grey.iter().zip(&self.clip) {
+            if clipped {
+                dc += dark;
+                nc += 1.0;
+            } else {
+                du += dark;
+                b += bright;
+                nb += 1.0;
+            }
+        }
         Some(Line {
+            dark_clipped: if nc > 0.0 { dc / nc } else { 0.0 },
+            dark_unclipped: if nb > 0.0 { du / nb } else { 0.0 },
+            bright: if nb > 0.0 { b / nb } else { 0.0 },
             c,
             d,
             var_rho: var / n,
@@ -405,6 +492,27 @@ fn undistorted_to_pixel(calib: &CameraCalibration, q: &Vector2<f64>) -> Vector2<
     calib.distort_with_jacobian(x, y).0
 }
 
+/// Fraction of the white's height lost to the clip, `1 - 1/r` at over-exposure `r`,
+/// smoothed over the sensor noise: at `r` about 1 the noise alone clips part of the
+/// white (softplus of width [`CLIP_NOISE`]).
+fn clipped_height(r: f64) -> f64 {
+    let x = (1.0 - 1.0 / r.max(1e-3)) / CLIP_NOISE;
+    CLIP_NOISE * if x > 30.0 { x } else { x.exp().ln_1p() }
+}
+
+/// White-to-black grey ratio of the edge points that do not clip (`None` with fewer
+/// than [`MIN_CONTRAST_POINTS`] of them or a black too dark to divide by).
+fn measured_contrast(lines: &[Line; 4]) -> Option<f64> {
+    let (mut n, mut dark, mut bright) = (0.0, 0.0, 0.0);
+    for l in lines {
+        let m = (1.0 - l.clipped) * f64::from(l.n);
+        n += m;
+        dark += l.dark_unclipped * m;
+        bright += l.bright * m;
+    }
+    (n >= MIN_CONTRAST_POINTS && dark >= MIN_DARK_GREY * n && bright > dark).then(|| bright / dark)
+}
+
 /// Corners (distorted pixels) where adjacent lines meet.
 fn corners_of(calib: &CameraCalibration, lines: &[Line; 4]) -> Option<[Vector2<f64>; 4]> {
     let mut out = [Vector2::zeros(); 4];
@@ -414,19 +522,23 @@ fn corners_of(calib: &CameraCalibration, lines: &[Line; 4]) -> Option<[Vector2<f
     Some(out)
 }
 
-/// d corners / d s when every side moves outward by `s` times the fraction of its
-/// points that clip (a column of 8, order u0 v0 u1 v1 ...).
-fn common_shift_jacobian(calib: &CameraCalibration, lines: &[Line; 4]) -> SMatrix<f64, 8, 1> {
+/// d corners / d s when every side moves outward by `s` times its `shift` (a column
+/// of 8, order u0 v0 u1 v1 ...).
+fn common_shift_jacobian(
+    calib: &CameraCalibration,
+    lines: &[Line; 4],
+    shift: &[f64; 4],
+) -> SMatrix<f64, 8, 1> {
     let centre = lines.iter().fold(Vector2::zeros(), |s, l| s + l.c) / 4.0;
     let shifted = |h: f64| {
         let mut ls = *lines;
-        for l in &mut ls {
+        for (l, w) in ls.iter_mut().zip(shift) {
             let out = if l.normal().dot(&(l.c - centre)) >= 0.0 {
                 1.0
             } else {
                 -1.0
             };
-            *l = l.perturbed(out * h * l.clipped, 0.0);
+            *l = l.perturbed(out * h * w, 0.0);
         }
         corners_of(calib, &ls)
     };
@@ -448,7 +560,7 @@ fn common_shift_jacobian(calib: &CameraCalibration, lines: &[Line; 4]) -> SMatri
 fn corner_covariance(
     calib: &CameraCalibration,
     lines: &[Line; 4],
-    var: impl Fn(&Line) -> (f64, f64),
+    var: impl Fn(usize, &Line) -> (f64, f64),
 ) -> CornerCov {
     let mut cov = CornerCov::zeros();
     // Jacobian of the distorted pixel w.r.t. the undistorted pixel, per corner.
@@ -481,7 +593,7 @@ fn corner_covariance(
                 }
             }
         }
-        let (vr, vt) = var(&lines[l]);
+        let (vr, vt) = var(l, &lines[l]);
         let s = Matrix2::new(vr, 0.0, 0.0, vt);
         cov += jac * s * jac.transpose();
     }
@@ -526,7 +638,7 @@ mod tests {
     }
 
     #[test]
-    fn clipped_white_gives_the_clip_covariance_and_unclipped_none() {
+    fn clipped_white_shifts_the_sides_as_the_clip_covariance_states() {
         let calib = CameraCalibration::pinhole(640, 480, 533.0, 533.0, 320.0, 240.0);
         let bm = marker_bitmap(MarkerFamily::AprilTag36h11, 0).unwrap();
         let pose = Isometry3::new(
@@ -534,13 +646,20 @@ mod tests {
             Vector3::new(0.05, 0.1, 0.02),
         );
         let mut f = Frame::default();
-        let truth = render_marker(&mut f, &calib, &bm, 0.15, &pose, &SceneParams::default());
+        let scene = SceneParams::default();
+        let truth = render_marker(&mut f, &calib, &bm, 0.15, &pose, &scene);
         let truth = truth.map(|p| p.unwrap());
         let start: Corners = truth.map(|t| [t[0] as f32, t[1] as f32]);
+        let centre = truth
+            .iter()
+            .fold(Vector2::zeros(), |s, t| s + Vector2::new(t[0], t[1]))
+            / 4.0;
         let module = 0.15 * 533.0 / 10.0;
-        let model = ClipModel {
+        let mut model = ClipModel {
             common_px: 0.06,
-            side_px: 0.03,
+            side_px: 0.042,
+            contrast: None,
+            gain_px: 0.6,
         };
         let mut c = start;
         let plain = EdgeRefiner::new()
@@ -548,26 +667,53 @@ mod tests {
             .expect("refined");
         assert_eq!(plain.clipped_points, 0);
         assert_eq!(plain.clip, CornerCov::zeros());
-        // The same frame 1.5x brighter: the white clips at 255.
-        let mut bright = f.clone();
-        for v in bright.data.iter_mut() {
-            *v = (*v as f64 * 1.5).min(255.0) as u8;
+        assert_eq!(plain.clip_common, SMatrix::<f64, 8, 1>::zeros());
+        // Unclipped, the edges give the marker's white-to-black contrast.
+        let contrast = plain.contrast.expect("contrast measured");
+        let want = scene.white / scene.black;
+        assert!((contrast / want - 1.0).abs() < 0.05, "{contrast} vs {want}");
+        model.contrast = Some(contrast);
+        // The same frame brighter: the white clips at 255 (over-exposed 1.18x, 1.5x,
+        // 2x) and the sides move inward, by about what the common shift states.
+        let mut last = 0.0;
+        for gain in [1.5, 1.9, 2.55] {
+            let mut bright = f.clone();
+            for v in bright.data.iter_mut() {
+                *v = (*v as f64 * gain).min(255.0) as u8;
+            }
+            let mut c = start;
+            let clipped = EdgeRefiner::new()
+                .refine(&bright.view(), &calib, &mut c, module, &model)
+                .expect("refined");
+            assert!(
+                clipped.clipped_points as f64 > 0.9 * clipped.points as f64,
+                "{clipped:?}"
+            );
+            // Outward move of each corner coordinate, and the model's.
+            let (mut moved, mut stated) = (0.0, 0.0);
+            for k in 0..4 {
+                let out = Vector2::new(truth[k][0], truth[k][1]) - centre;
+                for a in 0..2 {
+                    let sign = out[a].signum();
+                    moved += sign * (c[k][a] as f64 - truth[k][a]) / 8.0;
+                    stated += sign * clipped.clip_common[2 * k + a] / 8.0;
+                }
+            }
+            let r = gain * scene.white / 255.0;
+            println!("r {r:.2}: sides moved {moved:.4} px, the model states {stated:.4} px");
+            assert!(moved < -0.02, "{gain}x: moved {moved} px");
+            assert!(
+                (-moved / 1.5..-moved * 1.5).contains(&stated),
+                "r {r:.2}: sides moved {moved:.3} px, the model states {stated:.3}"
+            );
+            assert!(-moved > last, "r {r:.2}: {moved} px");
+            last = -moved;
+            // The sides' own shifts are a fraction of it, each side apart.
+            let own = (0..8).map(|k| clipped.clip[(k, k)].sqrt()).sum::<f64>() / 8.0;
+            assert!(
+                own > 0.1 * stated && own < stated,
+                "own {own}, common {stated}"
+            );
         }
-        let mut c = start;
-        let clipped = EdgeRefiner::new()
-            .refine(&bright.view(), &calib, &mut c, module, &model)
-            .expect("refined");
-        assert!(
-            clipped.clipped_points as f64 > 0.9 * clipped.points as f64,
-            "{clipped:?}"
-        );
-        // Per corner coordinate at least the common shift (0.06 px: sides 0.06 px out
-        // move the corners 0.06 px along both axes), plus the side terms.
-        for k in 0..8 {
-            let sd = clipped.clip[(k, k)].sqrt();
-            assert!((0.06..0.12).contains(&sd), "corner coordinate {k}: {sd} px");
-        }
-        // The common shift is a scale: opposite corners move apart (covariance < 0).
-        assert!(clipped.clip[(0, 4)] < 0.0 && clipped.clip[(1, 5)] < 0.0);
     }
 }

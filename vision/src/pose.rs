@@ -235,8 +235,11 @@ pub struct MarkerCorners {
     pub white: SMatrix<f64, 8, 8>,
     /// Corner covariance the weights leave out (clipped edges,
     /// [`crate::corners::EdgeCovariance::clip`]): added to the pose covariance by
-    /// [`unweighted_covariance`].
+    /// [`unweighted_gain`].
     pub clip: SMatrix<f64, 8, 8>,
+    /// The clipped edges' common shift
+    /// ([`crate::corners::EdgeCovariance::clip_common`]), shared in sign by every marker.
+    pub clip_common: SMatrix<f64, 8, 1>,
 }
 
 impl Default for MarkerCorners {
@@ -246,6 +249,7 @@ impl Default for MarkerCorners {
             img: [Vector2::zeros(); 4],
             white: SMatrix::identity(),
             clip: SMatrix::zeros(),
+            clip_common: SMatrix::zeros(),
         }
     }
 }
@@ -338,28 +342,23 @@ pub fn refine_pose_joint(
     })
 }
 
-/// Pose covariance from corner noise the weights did not include: the weighted LM's
-/// step is `delta = P J^T W r` (`P` = `cov`, the inverse of the information, `W` =
-/// `white^T white`), so extra corner covariance `extra` adds `K extra K^T` with
-/// `K = P J^T W`, the Jacobian `J` at the solution `t_cam_frame`. The pose is
-/// unchanged; zero when `extra` is. `None`: a corner behind the camera.
-pub fn unweighted_covariance(
+/// How the weighted solution moves with the corners, for corner noise the weights did
+/// not include: the weighted LM's step is `delta = P J^T W r` (`P` = `cov`, the inverse
+/// of the information, `W` = `white^T white`), so a corner error `e` moves the pose by
+/// `K e` and extra corner covariance `extra` adds `K extra K^T`, with `K = P J^T W`
+/// (6x8, pose order (tx, ty, tz, rx, ry, rz)) and `J` at the solution `t_cam_frame`.
+/// `None`: a corner behind the camera.
+pub fn unweighted_gain(
     calib: &CameraCalibration,
     obj: &[Point3<f64>; 4],
     img: &[Vector2<f64>; 4],
     white: &SMatrix<f64, 8, 8>,
-    extra: &SMatrix<f64, 8, 8>,
     t_cam_frame: &Isometry3<f64>,
     cov: &Matrix6<f64>,
-) -> Option<Matrix6<f64>> {
-    if extra.iter().all(|v| *v == 0.0) {
-        return Some(Matrix6::zeros());
-    }
+) -> Option<SMatrix<f64, 6, 8>> {
     let (_, j) = residuals(calib, obj, img, t_cam_frame)?;
     let jw = white * j;
-    let k = cov * jw.transpose() * white;
-    let add = k * extra * k.transpose();
-    Some((add + add.transpose()) * 0.5)
+    Some(cov * jw.transpose() * white)
 }
 
 /// Covariance of `t_cam_marker * t_marker_frame` (a frame fixed to the marker, e.g. the
@@ -484,7 +483,7 @@ mod tests {
     }
 
     #[test]
-    fn unweighted_covariance_is_the_sandwich_of_the_weighted_fit() {
+    fn unweighted_gain_gives_the_sandwich_of_the_weighted_fit() {
         let c = calib(vec![-0.2, 0.05, 0.001, 0.0, 0.0]);
         let obj = marker_object_points(0.15);
         let truth = Isometry3::new(Vector3::new(-0.2, 0.1, 2.0), Vector3::new(0.2, 0.7, -0.3));
@@ -493,19 +492,17 @@ mod tests {
         let sol = refine_pose(&c, &obj, &img, &truth, &weights).unwrap();
         let cov = sol.covariance().unwrap();
         let white = whitening(&weights).unwrap();
-        // Nothing extra: nothing added.
-        let zero = SMatrix::<f64, 8, 8>::zeros();
-        let add = unweighted_covariance(&c, &obj, &img, &white, &zero, &truth, &cov).unwrap();
-        assert_eq!(add, Matrix6::zeros());
+        let k = unweighted_gain(&c, &obj, &img, &white, &truth, &cov).unwrap();
+        let sandwich = |extra: &SMatrix<f64, 8, 8>| k * extra * k.transpose();
         // Extra noise equal to the weights' covariance: the propagated covariance again.
-        let add = unweighted_covariance(&c, &obj, &img, &white, &weights, &truth, &cov).unwrap();
+        let add = sandwich(&weights);
         let rel = (add - cov).norm() / cov.norm();
         assert!(rel < 1e-9, "{rel}");
         // Noise the weights left out (corner 0 alone, 0.3 px in u): the pose moves by
         // K e for a corner error e, so the added covariance is K e e^T K^T.
-        let mut extra = zero;
+        let mut extra = SMatrix::<f64, 8, 8>::zeros();
         extra[(0, 0)] = 0.09;
-        let add = unweighted_covariance(&c, &obj, &img, &white, &extra, &truth, &cov).unwrap();
+        let add = sandwich(&extra);
         let mut shifted = img;
         shifted[0].x += 0.3;
         let moved = refine_pose(&c, &obj, &shifted, &truth, &weights).unwrap();

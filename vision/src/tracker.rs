@@ -9,11 +9,13 @@ use crate::error::CvContext;
 use crate::mapping::SeenMarker;
 use crate::pose::{
     cov_of_inverse, cov_through, isotropic_corner_cov, marker_object_points, marker_rms_px,
-    refine_pose, refine_pose_joint, unweighted_covariance, whitening, MarkerCorners, RefinedPose,
+    refine_pose, refine_pose_joint, unweighted_gain, whitening, MarkerCorners, RefinedPose,
 };
 use crate::{CameraCalibration, VisionError};
 use markhold_exposure::{Corners, Frame, Roi};
-use nalgebra::{Isometry3, Matrix6, Point3, Translation3, UnitQuaternion, Vector2, Vector3};
+use nalgebra::{
+    Isometry3, Matrix6, Point3, SMatrix, Translation3, UnitQuaternion, Vector2, Vector3, Vector6,
+};
 use opencv::{aruco, calib3d, core, imgproc, prelude::*};
 
 /// One pose of the site frame from the markers of the map in view.
@@ -131,6 +133,9 @@ struct Slot {
     joint: MarkerCorners,
     /// This frame: the marker was used in the pose returned.
     in_pose: bool,
+    /// White-to-black grey ratio of the marker's edges, last measured with none clipped
+    /// (the clipped edges' shift follows from it: `corners::ClipModel`).
+    contrast: Option<f64>,
 }
 
 /// Detection + pose over the site's marker map; owns its OpenCV buffers and the
@@ -159,6 +164,17 @@ pub struct MarkerTracker {
     frames_since_full: u32,
     last_search: Option<Roi>,
     stats: TrackerStats,
+}
+
+/// Correlation of the clipped edges' common shifts between the markers of a map. On the
+/// HIL's maps 1 is over-confident where AAEC lands at the clip onset (the noise-clipped
+/// shifts of the markers differ), 0.5 leaves the yaw up to 10x conservative
+/// (design/vision.md, "Clipped edges").
+const MAP_CLIP_CORRELATION: f64 = 0.75;
+
+/// `(m + m^T) / 2`: a sandwich `K C K^T` symmetric to rounding.
+fn sym(m: Matrix6<f64>) -> Matrix6<f64> {
+    (m + m.transpose()) * 0.5
 }
 
 impl MarkerTracker {
@@ -220,6 +236,7 @@ impl MarkerTracker {
                     single: None,
                     joint: MarkerCorners::default(),
                     in_pose: false,
+                    contrast: None,
                 }
             })
             .collect();
@@ -510,7 +527,7 @@ impl MarkerTracker {
                 self.slots[i].track = None;
                 continue;
             };
-            let edge_cov = self.refine_corners(frame, image, &mut corners)?;
+            let edge_cov = self.refine_corners(i, frame, image, &mut corners)?;
             self.slots[i].found = Some(corners);
             let pose = self.estimate_pose(i, &corners, &edge_cov.fit)?;
             let white = whitening(&edge_cov.fit);
@@ -523,6 +540,7 @@ impl MarkerTracker {
                         img: corners.map(|c| Vector2::new(c[0] as f64, c[1] as f64)),
                         white,
                         clip: edge_cov.clip,
+                        clip_common: edge_cov.clip_common,
                     };
                     valid += 1;
                 }
@@ -552,16 +570,19 @@ impl MarkerTracker {
         let corners = s.found?;
         let both = sol.covariance().and_then(|fit| {
             let j = &s.joint;
-            unweighted_covariance(
+            let k = unweighted_gain(
                 &self.calib,
                 &s.obj,
                 &j.img,
                 &j.white,
-                &j.clip,
                 &sol.t_cam_marker,
                 &fit,
-            )
-            .map(|add| (fit, fit + add))
+            )?;
+            let common = k * j.clip_common;
+            Some((
+                fit,
+                fit + sym(k * j.clip * k.transpose()) + common * common.transpose(),
+            ))
         });
         let Some((fit, cov)) = both else {
             self.stats.rejected += 1;
@@ -604,18 +625,28 @@ impl MarkerTracker {
     fn joint_covariance(&self, sol: &RefinedPose) -> Option<(Matrix6<f64>, Matrix6<f64>)> {
         let fit = sol.covariance()?;
         let mut total = fit;
+        // The markers' common shifts share their sign, but each is predicted from its
+        // own over-exposure: part of their covariance is correlated (added before
+        // squaring), the rest independent.
+        let mut common = Vector6::zeros();
         for (m, _) in self.joint.iter().zip(&self.best_used).filter(|(_, u)| **u) {
-            total += unweighted_covariance(
+            let k = unweighted_gain(
                 &self.calib,
                 &m.obj,
                 &m.img,
                 &m.white,
-                &m.clip,
                 &sol.t_cam_marker,
                 &fit,
             )?;
+            let c = k * m.clip_common;
+            total +=
+                sym(k * m.clip * k.transpose()) + c * c.transpose() * (1.0 - MAP_CLIP_CORRELATION);
+            common += c;
         }
-        Some((total, fit))
+        Some((
+            total + common * common.transpose() * MAP_CLIP_CORRELATION,
+            fit,
+        ))
     }
 
     /// The site frame's pose from every marker with a pose: each marker's pose proposes
@@ -942,6 +973,7 @@ impl MarkerTracker {
     /// cv::cornerSubPix with `corner_sigma_px` when an edge cannot be measured.
     fn refine_corners(
         &mut self,
+        slot: usize,
         frame: &Frame,
         image: &impl core::ToInputArray,
         corners: &mut Corners,
@@ -961,8 +993,13 @@ impl MarkerTracker {
             &ClipModel {
                 common_px: self.cfg.corner_clip_common_px,
                 side_px: self.cfg.corner_clip_side_px,
+                contrast: self.slots[slot].contrast,
+                gain_px: self.cfg.corner_clip_gain_px,
             },
         ) {
+            if cov.contrast.is_some() {
+                self.slots[slot].contrast = cov.contrast;
+            }
             self.stats.edge_points += u64::from(cov.points);
             self.stats.clipped_edge_points += u64::from(cov.clipped_points);
             return Ok(EdgeCovariance {
@@ -1002,8 +1039,10 @@ impl MarkerTracker {
         Ok(EdgeCovariance {
             fit: isotropic_corner_cov(self.cfg.corner_sigma_px),
             clip: CornerCov::zeros(),
+            clip_common: SMatrix::zeros(),
             clipped_points: 0,
             points: 0,
+            contrast: None,
         })
     }
 
