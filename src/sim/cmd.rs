@@ -336,6 +336,10 @@ pub fn print_table(site: &str, s: &Summary) {
             format!("{:.3} m", s.position_rms_m),
         ),
         (
+            "pose position RMS (last half)",
+            format!("{:.4} m", s.pose_position_rms_m),
+        ),
+        (
             "final position error",
             format!("{:.3} m", s.final_position_error_m),
         ),

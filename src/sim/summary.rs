@@ -34,6 +34,13 @@ pub struct Summary {
     pub markers_in_view_mean: f64,
     /// Vehicle vs station, ground truth, RMS over the last half of the run.
     pub position_rms_m: f64,
+    /// The pose's own error: the vehicle's position from the frame's vision pose (the
+    /// camera's pose in the site frame composed with the camera mount) against the
+    /// vehicle's true position in the site frame (with `--vehicle`: its telemetry, that
+    /// runner's truth), RMS over the frames of the last half of the run that have a pose
+    /// (NaN, `null` in the JSON, when none has). The vehicle's point, not the camera's: the
+    /// one the station keeper holds.
+    pub pose_position_rms_m: f64,
     pub final_position_error_m: f64,
     pub final_yaw_error_deg: f64,
     /// Frames until the exposure stays within 5% of its final value.
@@ -139,6 +146,9 @@ pub struct RunStats {
     pub markers_used: Vec<u32>,
     pub exposure_us: Vec<f64>,
     pub pos_err_m: Vec<f64>,
+    /// Vehicle position from each frame's vision pose against the truth, site frame,
+    /// metres (NaN for a frame without a pose).
+    pub pose_pos_err_m: Vec<f64>,
     pub yaw_err_deg: Vec<f64>,
     pub latency_s: Vec<f64>,
     pub measured: Vec<Vector3<f64>>,
@@ -163,6 +173,7 @@ impl RunStats {
             markers_used: Vec::with_capacity(frames),
             exposure_us: Vec::with_capacity(frames),
             pos_err_m: Vec::with_capacity(frames),
+            pose_pos_err_m: Vec::with_capacity(frames),
             yaw_err_deg: Vec::with_capacity(frames),
             latency_s: Vec::with_capacity(frames),
             measured: Vec::with_capacity(frames),
@@ -181,6 +192,14 @@ impl RunStats {
         let t_marker_vehicle = self.t_world_marker.inverse() * truth.t_world_vehicle;
         let err = self.t_marker_station.inverse() * t_marker_vehicle;
         self.pos_err_m.push(err.translation.vector.norm());
+        // The vehicle from the vision pose, on the mount the camera really has (the
+        // site's: the simulated vehicle carries the site's camera mount).
+        let pose_err = rec.t_cam_marker.map_or(f64::NAN, |t_cam_marker| {
+            let t_cam_vehicle = truth.t_world_cam.inverse() * truth.t_world_vehicle;
+            let est = t_cam_marker.inverse() * t_cam_vehicle;
+            (est.translation.vector - t_marker_vehicle.translation.vector).norm()
+        });
+        self.pose_pos_err_m.push(pose_err);
         // Heading error: yaw of the vehicle relative to its station attitude.
         let (_, _, yaw) = err.rotation.euler_angles();
         self.yaw_err_deg.push(yaw.to_degrees().abs());
@@ -233,6 +252,7 @@ impl RunStats {
         let n = self.detected.len();
         let half = &self.pos_err_m[n / 2..];
         let position_rms_m = rms(half);
+        let pose_position_rms_m = rms_finite(&self.pose_pos_err_m[n / 2..]);
         Summary {
             exposure_method: method.to_string(),
             lighting: lighting.to_string(),
@@ -252,6 +272,7 @@ impl RunStats {
             markers_in_view_mean: self.markers_used.iter().map(|&m| f64::from(m)).sum::<f64>()
                 / n.max(1) as f64,
             position_rms_m,
+            pose_position_rms_m,
             final_position_error_m: self.pos_err_m.last().copied().unwrap_or(f64::NAN),
             final_yaw_error_deg: self.yaw_err_deg.last().copied().unwrap_or(f64::NAN),
             exposure_convergence_frames: convergence_frames(&self.exposure_us, 0.05),
@@ -276,6 +297,18 @@ pub fn rms(v: &[f64]) -> f64 {
         return f64::NAN;
     }
     (v.iter().map(|x| x * x).sum::<f64>() / v.len() as f64).sqrt()
+}
+
+/// RMS of the finite samples (NaN when none is).
+pub fn rms_finite(v: &[f64]) -> f64 {
+    let (sum, n) = v
+        .iter()
+        .filter(|x| x.is_finite())
+        .fold((0.0, 0usize), |(s, n), x| (s + x * x, n + 1));
+    if n == 0 {
+        return f64::NAN;
+    }
+    (sum / n as f64).sqrt()
 }
 
 /// Index of the first sample after which every sample stays within `tol` (relative) of
@@ -345,6 +378,95 @@ mod tests {
         let v: Vec<f64> = (1..=100).map(f64::from).collect();
         assert_eq!(percentile(&v, 0.99), 99.0);
         assert!((rms(&[3.0, 4.0]) - (12.5f64).sqrt()).abs() < 1e-12);
+    }
+
+    /// A frame at `t` whose vision pose is `pose` (none: no detection).
+    fn frame(t: f64, pose: Option<Isometry3<f64>>) -> FrameRecord {
+        FrameRecord {
+            seq: 0,
+            stamp_s: t,
+            exposure_used_us: 2000.0,
+            exposure: markhold_exposure::ExposureStep {
+                exposure_us: 2000.0,
+                metric: 0.5,
+                used_frame: true,
+                roi: None,
+            },
+            detected: pose.is_some(),
+            corners: None,
+            t_cam_marker: pose,
+            cov_cam: None,
+            reproj_rms_px: f64::NAN,
+            markers_used: u32::from(pose.is_some()),
+            effort: Default::default(),
+            directive: markhold_autopilot::Directive::Command,
+            latency_s: 0.0,
+        }
+    }
+
+    #[test]
+    fn pose_position_rms_is_the_vehicle_from_the_pose_against_the_truth_over_the_last_half() {
+        use nalgebra::{Translation3, UnitQuaternion};
+        let t_world_marker = Isometry3::from_parts(
+            Translation3::new(1.0, 2.0, -4.0),
+            UnitQuaternion::from_euler_angles(0.1, -0.2, 0.3),
+        );
+        let t_world_vehicle = Isometry3::from_parts(
+            Translation3::new(1.3, 1.1, -4.2),
+            UnitQuaternion::from_euler_angles(0.0, 0.05, -1.2),
+        );
+        // Camera 0.2 m ahead of the vehicle's origin, along its x.
+        let t_vehicle_cam = Isometry3::translation(0.2, 0.0, 0.0);
+        let t_world_cam = t_world_vehicle * t_vehicle_cam;
+        let truth = Truth {
+            time_s: 0.0,
+            t_world_vehicle,
+            t_world_cam,
+            t_cam_marker: t_world_cam.inverse() * t_world_marker,
+            velocity_world_mps: [0.0; 3],
+            armed: true,
+            mode: 2,
+            pwm: [1500; 8],
+            lockstep_timeouts: 0,
+        };
+        let t_marker_cam = truth.t_cam_marker.inverse();
+        // The camera shifted 3 mm, 4 mm in the site frame: the vehicle with it, 5 mm.
+        let shifted = (Isometry3::translation(0.003, 0.004, 0.0) * t_marker_cam).inverse();
+        // The camera turned 0.01 rad about its own z: the camera's point stays, the
+        // vehicle's, 0.2 m behind it, swings 2 * 0.2 * sin(0.005).
+        let turned = (t_marker_cam * Isometry3::rotation(Vector3::z() * 0.01)).inverse();
+        let lever = 2.0 * 0.2 * (0.005f64).sin();
+        // Frames 0-2 are the first half: the 1 m error of frame 1 is outside the window;
+        // frame 5 has no pose and does not count.
+        let poses = [
+            None,
+            Some(Isometry3::translation(1.0, 0.0, 0.0) * truth.t_cam_marker),
+            None,
+            Some(shifted),
+            Some(turned),
+            None,
+        ];
+        let mut stats = RunStats::new(poses.len(), t_world_marker, Isometry3::identity());
+        for (i, pose) in poses.iter().enumerate() {
+            stats.push(&frame(i as f64 / 30.0, *pose), &truth);
+        }
+        assert!(stats.pose_pos_err_m[0].is_nan() && stats.pose_pos_err_m[5].is_nan());
+        assert!((stats.pose_pos_err_m[3] - 0.005).abs() < 1e-12);
+        assert!((stats.pose_pos_err_m[4] - lever).abs() < 1e-12);
+        let s = stats.summary(ExposureMethod::Aaec, LightingScenario::Normal, 1, 1.0, 0);
+        let expect = ((0.005f64.powi(2) + lever.powi(2)) / 2.0).sqrt();
+        assert!((s.pose_position_rms_m - expect).abs() < 1e-12, "{s:?}");
+
+        // No pose in the window: NaN (the JSON's null).
+        let mut none = RunStats::new(4, t_world_marker, Isometry3::identity());
+        for i in 0..4 {
+            let pose = (i < 2).then_some(truth.t_cam_marker);
+            none.push(&frame(f64::from(i) / 30.0, pose), &truth);
+        }
+        let s = none.summary(ExposureMethod::Aaec, LightingScenario::Normal, 1, 1.0, 0);
+        assert!(s.pose_position_rms_m.is_nan());
+        let json = serde_json::to_value(&s).unwrap();
+        assert!(json["pose_position_rms_m"].is_null(), "{json}");
     }
 
     #[test]
