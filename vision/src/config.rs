@@ -378,7 +378,8 @@ pub struct DetectorConfig {
     /// unchanged. These hold until the marker has been seen with no edge clipped; from
     /// then on the shift follows the white's over-exposure `r` (its white-to-black
     /// contrast measured unclipped, times the black's grey now, over the clip level):
-    /// `corner_clip_gain_px (1 - 1/r)` common, `side/common` of that each side's own.
+    /// `corner_clip_gain_px (1 - 1/r)` common, `side/common` of that each side's own
+    /// (a gain of 0 keeps the fixed figures).
     pub corner_clip_common_px: f64,
     pub corner_clip_side_px: f64,
     pub corner_clip_gain_px: f64,

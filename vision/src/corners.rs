@@ -234,7 +234,9 @@ impl EdgeRefiner {
         };
         let contrast = measured_contrast(&lines);
         for ((s, o), l) in shift.iter_mut().zip(&mut own).zip(&lines) {
-            (*s, *o) = match contrast.or(clip.contrast) {
+            // A gain of 0 keeps the fixed figures.
+            let known = contrast.or(clip.contrast).filter(|_| clip.gain_px > 0.0);
+            (*s, *o) = match known {
                 Some(c) if l.clipped > 0.0 => {
                     let r = c * l.dark_clipped / f64::from(CLIP_GREY);
                     let g = l.clipped * clip.gain_px;
