@@ -375,7 +375,7 @@ pub struct DetectorConfig {
     /// cannot show. `corner_clip_common_px` is shared by the four sides (the marker
     /// looks smaller), `corner_clip_side_px` each side's own. Added to the pose
     /// covariance, scaled by the fraction of each side's points that clip; the pose is
-    /// unchanged. These hold until the marker has been seen with no edge clipped; from
+    /// unchanged. These hold until the marker has been seen with unclipped edge points; from
     /// then on the shift follows the white's over-exposure `r` (its white-to-black
     /// contrast measured unclipped, times the black's grey now, over the clip level):
     /// `corner_clip_gain_px (1 - 1/r)` common, `side/common` of that each side's own

@@ -43,8 +43,9 @@ const MIN_CONTRAST_POINTS: f64 = 24.0;
 pub struct ClipModel {
     pub common_px: f64,
     pub side_px: f64,
-    /// White-to-black grey ratio of this marker's edges, measured on a frame where none
-    /// clipped (the tracker keeps it per marker). With it a side's shift is
+    /// White-to-black grey ratio of this marker's edges, last measured on its unclipped
+    /// edge points (the tracker keeps it per marker; this frame's own, when it has
+    /// enough of them, is used first). With it a side's shift is
     /// `gain_px (1 - 1/r)`, `r` the over-exposure of its white, `contrast` times its
     /// black border's grey over the clip level; the side's own part is
     /// `side_px / common_px` of that. Without it, `common_px` and `side_px`.
@@ -69,8 +70,8 @@ pub struct EdgeCovariance {
     /// Edge points whose white side clips, of all the points fitted.
     pub clipped_points: u32,
     pub points: u32,
-    /// White-to-black grey ratio of the edges when none of them clips (`None` when one
-    /// does, or the black is too dark to divide by).
+    /// White-to-black grey ratio of the edge points that do not clip (`None` with too few
+    /// of them, or a black too dark to divide by).
     pub contrast: Option<f64>,
 }
 

@@ -133,8 +133,8 @@ struct Slot {
     joint: MarkerCorners,
     /// This frame: the marker was used in the pose returned.
     in_pose: bool,
-    /// White-to-black grey ratio of the marker's edges, last measured with none clipped
-    /// (the clipped edges' shift follows from it: `corners::ClipModel`).
+    /// White-to-black grey ratio of the marker's edges, last measured on enough unclipped
+    /// edge points (the clipped edges' shift follows from it: `corners::ClipModel`).
     contrast: Option<f64>,
 }
 
@@ -175,6 +175,28 @@ const MAP_CLIP_CORRELATION: f64 = 0.75;
 /// `(m + m^T) / 2`: a sandwich `K C K^T` symmetric to rounding.
 fn sym(m: Matrix6<f64>) -> Matrix6<f64> {
     (m + m.transpose()) * 0.5
+}
+
+/// Pose covariance of the clipped edges (what the weights leave out) for the pose
+/// `t_cam_frame` with edge-fit covariance `fit`, over `markers` (their corners in that
+/// frame, and their image corners): each marker's own side shifts, and the markers'
+/// common shifts, which share their sign but are each predicted from the marker's own
+/// over-exposure: [`MAP_CLIP_CORRELATION`] of them is summed before squaring, the rest
+/// added marker by marker (one marker: its whole common shift).
+fn clip_covariance<'a>(
+    calib: &CameraCalibration,
+    markers: impl IntoIterator<Item = (&'a [Point3<f64>; 4], &'a MarkerCorners)>,
+    t_cam_frame: &Isometry3<f64>,
+    fit: &Matrix6<f64>,
+) -> Option<Matrix6<f64>> {
+    let (mut own, mut common) = (Matrix6::zeros(), Vector6::zeros());
+    for (obj, m) in markers {
+        let k = unweighted_gain(calib, obj, &m.img, &m.white, t_cam_frame, fit)?;
+        let c = k * m.clip_common;
+        own += sym(k * m.clip * k.transpose()) + c * c.transpose() * (1.0 - MAP_CLIP_CORRELATION);
+        common += c;
+    }
+    Some(own + common * common.transpose() * MAP_CLIP_CORRELATION)
 }
 
 impl MarkerTracker {
@@ -569,20 +591,8 @@ impl MarkerTracker {
         let sol = s.single?;
         let corners = s.found?;
         let both = sol.covariance().and_then(|fit| {
-            let j = &s.joint;
-            let k = unweighted_gain(
-                &self.calib,
-                &s.obj,
-                &j.img,
-                &j.white,
-                &sol.t_cam_marker,
-                &fit,
-            )?;
-            let common = k * j.clip_common;
-            Some((
-                fit,
-                fit + sym(k * j.clip * k.transpose()) + common * common.transpose(),
-            ))
+            let clip = clip_covariance(&self.calib, [(&s.obj, &s.joint)], &sol.t_cam_marker, &fit)?;
+            Some((fit, fit + clip))
         });
         let Some((fit, cov)) = both else {
             self.stats.rejected += 1;
@@ -624,29 +634,14 @@ impl MarkerTracker {
     /// clipped edges' shift, the edge fit's alone).
     fn joint_covariance(&self, sol: &RefinedPose) -> Option<(Matrix6<f64>, Matrix6<f64>)> {
         let fit = sol.covariance()?;
-        let mut total = fit;
-        // The markers' common shifts share their sign, but each is predicted from its
-        // own over-exposure: part of their covariance is correlated (added before
-        // squaring), the rest independent.
-        let mut common = Vector6::zeros();
-        for (m, _) in self.joint.iter().zip(&self.best_used).filter(|(_, u)| **u) {
-            let k = unweighted_gain(
-                &self.calib,
-                &m.obj,
-                &m.img,
-                &m.white,
-                &sol.t_cam_marker,
-                &fit,
-            )?;
-            let c = k * m.clip_common;
-            total +=
-                sym(k * m.clip * k.transpose()) + c * c.transpose() * (1.0 - MAP_CLIP_CORRELATION);
-            common += c;
-        }
-        Some((
-            total + common * common.transpose() * MAP_CLIP_CORRELATION,
-            fit,
-        ))
+        let used = self.joint.iter().zip(&self.best_used).filter(|(_, u)| **u);
+        let clip = clip_covariance(
+            &self.calib,
+            used.map(|(m, _)| (&m.obj, m)),
+            &sol.t_cam_marker,
+            &fit,
+        )?;
+        Some((fit + clip, fit))
     }
 
     /// The site frame's pose from every marker with a pose: each marker's pose proposes
