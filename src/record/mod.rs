@@ -106,8 +106,12 @@ pub enum RecordError {
     Describe { source: toml::ser::Error },
     #[error("the recorder's writer thread failed")]
     WriterThread,
-    #[error("starting the live view on 127.0.0.1:{port}: {source}")]
-    Live { port: u16, source: std::io::Error },
+    #[error("starting the live view on {ip}:{port}: {source}")]
+    Live {
+        ip: std::net::IpAddr,
+        port: u16,
+        source: std::io::Error,
+    },
     #[error("writing the recording: {reason}")]
     Write { reason: String },
 }
@@ -479,8 +483,12 @@ impl Recorder {
         })?;
         // The segments after the first (`[record.rotation]`).
         let next = rotation::file_opener(path, info, &cfg.rotation);
-        match Self::to_writer_with(BufWriter::with_capacity(1 << 20, file), info, cfg, Some(next))
-        {
+        match Self::to_writer_with(
+            BufWriter::with_capacity(1 << 20, file),
+            info,
+            cfg,
+            Some(next),
+        ) {
             Ok(mut r) => {
                 r.path = Some(path.to_path_buf());
                 Ok(r)
@@ -513,8 +521,13 @@ impl Recorder {
         cfg.validate()?;
         let shared = Arc::new(Shared::default());
         let context = Context::new();
-        let handle =
-            rotation::open_segment(&context, writer, &shared, &info.to_metadata(), &cfg.rotation)?;
+        let handle = rotation::open_segment(
+            &context,
+            writer,
+            &shared,
+            &info.to_metadata(),
+            &cfg.rotation,
+        )?;
         Self::spawn(Some((handle, next)), context, shared, cfg)
     }
 
@@ -537,18 +550,25 @@ impl Recorder {
         port: u16,
         access: &live::LiveSection,
     ) -> Result<u16, RecordError> {
-        let server = live::LiveServer::start(&self.context, port, access)
-            .map_err(|source| RecordError::Live { port, source })?;
+        self.serve_live_on(std::net::Ipv4Addr::LOCALHOST.into(), port, access)
+    }
+
+    /// [`Recorder::serve_live`] on `ip` (`0.0.0.0`: every address, for the topside).
+    pub fn serve_live_on(
+        &mut self,
+        ip: std::net::IpAddr,
+        port: u16,
+        access: &live::LiveSection,
+    ) -> Result<u16, RecordError> {
+        let server = live::LiveServer::start_on(&self.context, ip, port, access)
+            .map_err(|source| RecordError::Live { ip, port, source })?;
         let port = server.port();
         self.live = Some(server);
         Ok(port)
     }
 
     fn spawn<W: Write + Seek + Send + 'static>(
-        output: Option<(
-            foxglove::McapWriterHandle<Tracked<W>>,
-            Option<rotation::Opener<W>>,
-        )>,
+        output: Option<rotation::Output<W>>,
         context: Arc<Context>,
         shared: Arc<Shared>,
         cfg: RecordConfig,

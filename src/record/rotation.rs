@@ -220,8 +220,7 @@ fn candidates(dir: &Path, open: Option<&Path>) -> std::io::Result<Vec<Candidate>
         let Ok(meta) = std::fs::symlink_metadata(&path) else {
             continue;
         };
-        if !meta.is_file() || open.is_some_and(|o| same_file(o, &path)) || !is_recording(&path)
-        {
+        if !meta.is_file() || open.is_some_and(|o| same_file(o, &path)) || !is_recording(&path) {
             continue;
         }
         out.push(Candidate {
@@ -235,10 +234,11 @@ fn candidates(dir: &Path, open: Option<&Path>) -> std::io::Result<Vec<Candidate>
 }
 
 fn same_file(a: &Path, b: &Path) -> bool {
-    a == b || a.file_name().is_some_and(|n| Some(n) == b.file_name()) && {
-        let canon = |p: &Path| std::fs::canonicalize(p).ok();
-        canon(a).is_some() && canon(a) == canon(b)
-    }
+    a == b
+        || a.file_name().is_some_and(|n| Some(n) == b.file_name()) && {
+            let canon = |p: &Path| std::fs::canonicalize(p).ok();
+            canon(a).is_some() && canon(a) == canon(b)
+        }
 }
 
 /// What [`enforce`] did.
@@ -393,6 +393,9 @@ type OpenFn<W> = dyn FnMut(
     ) -> Result<Option<(PathBuf, McapWriterHandle<Tracked<W>>)>, RecordError>
     + Send;
 
+/// A recording's first segment and the way to the next ones (none: it is the only one).
+pub(super) type Output<W> = (McapWriterHandle<Tracked<W>>, Option<Opener<W>>);
+
 /// Opens segment `n` of a file recording (`None`: its name is taken, try the next).
 pub(super) struct Opener<W: Write + Seek + Send + 'static> {
     first: PathBuf,
@@ -526,10 +529,14 @@ impl<W: Write + Seek + Send + 'static> SegmentWriter<W> {
         if over_quota || bytes - self.checked_at.min(bytes) >= self.cfg.chunk_bytes() {
             // A statvfs per chunk; the folder is listed only when something must go.
             self.checked_at = bytes;
-            let low = self.next.as_ref().and_then(|n| free_bytes(&n.dir).ok()).is_some_and(|f| {
-                self.shared.control.lock().free_bytes = Some(f);
-                f < self.cfg.min_free_bytes
-            });
+            let low = self
+                .next
+                .as_ref()
+                .and_then(|n| free_bytes(&n.dir).ok())
+                .is_some_and(|f| {
+                    self.shared.control.lock().free_bytes = Some(f);
+                    f < self.cfg.min_free_bytes
+                });
             if (over_quota || low) && !self.make_room(bytes) {
                 self.close();
             }
@@ -549,7 +556,13 @@ impl<W: Write + Seek + Send + 'static> SegmentWriter<W> {
         let Some(next) = &self.next else { return true };
         let open = self.handle.as_ref().map(|_| self.open_path());
         let dir = next.dir.clone();
-        match enforce(&dir, open.as_deref(), open_bytes, &self.cfg, &mut free_bytes) {
+        match enforce(
+            &dir,
+            open.as_deref(),
+            open_bytes,
+            &self.cfg,
+            &mut free_bytes,
+        ) {
             Ok(e) => {
                 self.others_bytes = e.total_bytes.saturating_sub(open_bytes);
                 let mut st = self.shared.control.lock();
@@ -593,7 +606,9 @@ impl<W: Write + Seek + Send + 'static> SegmentWriter<W> {
         if !self.make_room(0) {
             return;
         }
-        let Some(next) = self.next.as_mut() else { return };
+        let Some(next) = self.next.as_mut() else {
+            return;
+        };
         for _ in 0..NAME_TRIES {
             self.index += 1;
             match (next.open)(&self.context, &self.shared, self.index) {
@@ -660,10 +675,8 @@ mod tests {
     use std::time::Duration;
 
     fn scratch(name: &str) -> PathBuf {
-        let d = std::env::temp_dir().join(format!(
-            "markhold-rotation-{name}-{}",
-            std::process::id()
-        ));
+        let d =
+            std::env::temp_dir().join(format!("markhold-rotation-{name}-{}", std::process::id()));
         let _ = std::fs::remove_dir_all(&d);
         std::fs::create_dir_all(&d).unwrap();
         d
@@ -753,7 +766,10 @@ mod tests {
         let n = SegmentNames::new(Path::new("/data/rec/markhold-1.mcap"));
         assert_eq!(n.path(0), Path::new("/data/rec/markhold-1.mcap"));
         assert_eq!(n.path(2), Path::new("/data/rec/markhold-1.2.mcap"));
-        assert_eq!(SegmentNames::new(Path::new("x.mcap")).path(1), Path::new("./x.1.mcap"));
+        assert_eq!(
+            SegmentNames::new(Path::new("x.mcap")).path(1),
+            Path::new("./x.1.mcap")
+        );
         let c = RotationSection {
             segment_mb: 2.0,
             segment_s: Some(60.0),
@@ -777,7 +793,10 @@ mod tests {
             ..RotationSection::default()
         };
         let e = bad.validate().unwrap_err().to_string();
-        assert!(e.contains("record.rotation.quota_mb") && e.contains("1500"), "{e}");
+        assert!(
+            e.contains("record.rotation.quota_mb") && e.contains("1500"),
+            "{e}"
+        );
         assert!(RotationSection::default().validate().is_ok());
     }
 }
