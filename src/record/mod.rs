@@ -1277,7 +1277,16 @@ impl Observer for Recorder {
             stats.images_dropped,
             stats.frames_dropped
         );
-        if let Some(reason) = &stats.write_error {
+        if stats.segments > 1 || stats.deleted > 0 {
+            eprintln!(
+                "markhold: the recording is {} segments beside {}; {} older recordings deleted \
+                 for the quota and the free-space floor",
+                stats.segments,
+                path.display(),
+                stats.deleted
+            );
+        }
+        if let Some(reason) = stats.write_error.as_ref().or(stats.stopped.as_ref()) {
             return Err(RecordError::Write {
                 reason: format!("{}: {reason}", path.display()),
             }

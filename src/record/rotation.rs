@@ -210,7 +210,7 @@ fn is_recording(path: &Path) -> bool {
 }
 
 /// The folder's recordings other than `open`, oldest first (by modification time, then
-/// name).
+/// name length and name).
 fn candidates(dir: &Path, open: Option<&Path>) -> std::io::Result<Vec<Candidate>> {
     let mut out = Vec::new();
     for entry in std::fs::read_dir(dir)? {
@@ -229,7 +229,14 @@ fn candidates(dir: &Path, open: Option<&Path>) -> std::io::Result<Vec<Candidate>
             path,
         });
     }
-    out.sort_by(|a, b| a.modified.cmp(&b.modified).then(a.path.cmp(&b.path)));
+    // Equal times (a coarse clock): the shorter name first, so `run.9` before `run.10`.
+    let name_len = |c: &Candidate| c.path.as_os_str().len();
+    out.sort_by(|a, b| {
+        a.modified
+            .cmp(&b.modified)
+            .then(name_len(a).cmp(&name_len(b)))
+            .then(a.path.cmp(&b.path))
+    });
     Ok(out)
 }
 
