@@ -2,6 +2,7 @@
 //! recording is split into segments of bounded size or frame time, each a complete MCAP
 //! file that `replay` reads to its end, with no frame lost between two segments; the
 //! folder stays under its quota by deleting the oldest segments, never the open one.
+#![cfg(feature = "sim")]
 #![allow(clippy::unwrap_used)] // Tests fail loudly on a broken setup, by design.
 
 mod common;

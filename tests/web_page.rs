@@ -4,6 +4,7 @@
 //! site file (edited on disk during the run) at its line with `params check`'s message.
 //! The recording buttons' requests close and begin segments of the run's recording.
 //! Everything binds and connects to 127.0.0.1 only; every wait is bounded.
+#![cfg(feature = "sim")]
 #![allow(clippy::unwrap_used)] // Tests fail loudly on a broken setup, by design.
 
 mod common;
