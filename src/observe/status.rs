@@ -180,6 +180,8 @@ struct BoardInner {
     status: Mutex<Status>,
     snapshot: Mutex<Snapshot>,
     engagement: AtomicU8,
+    /// The frame size the buffers are made for.
+    size: (u32, u32),
 }
 
 /// What the loop publishes and the web page reads; cheap to clone (shared).
@@ -198,7 +200,15 @@ impl StatusBoard {
             status: Mutex::new(Status::default()),
             snapshot: Mutex::new(Snapshot::with_capacity(width, height)),
             engagement: AtomicU8::new(Engagement::Always.code()),
+            size: (width, height),
         }))
+    }
+
+    /// The page's own buffer for [`Self::take_snapshot`], made at start like the board's:
+    /// the swap then never hands the loop a buffer too small for a frame.
+    pub fn spare_snapshot(&self) -> Snapshot {
+        let (w, h) = self.0.size;
+        Snapshot::with_capacity(w, h)
     }
 
     /// The runner's engagement (a runner with pilot engagement sets it every frame).
@@ -428,9 +438,8 @@ mod tests {
         board.set_engagement(Engagement::Engaged);
         assert_eq!(board.status().engagement, Engagement::Engaged);
 
-        let mut mine = Snapshot::with_capacity(4, 2);
+        let mut mine = board.spare_snapshot();
         assert!(!board.take_snapshot(&mut mine), "nothing offered yet");
-        let cap = board.0.snapshot.lock().unwrap().data.capacity();
         {
             let mut slot = board.0.snapshot.lock().unwrap();
             slot.data.extend_from_slice(&[1, 2, 3, 4, 5, 6, 7, 8]);
@@ -439,6 +448,7 @@ mod tests {
         assert!(board.take_snapshot(&mut mine));
         assert_eq!(mine.data, [1, 2, 3, 4, 5, 6, 7, 8]);
         assert!(!board.take_snapshot(&mut mine), "taken once");
-        assert!(board.0.snapshot.lock().unwrap().data.capacity() >= cap.min(8));
+        // The buffer handed back to the loop holds a whole frame: no allocation there.
+        assert!(board.0.snapshot.lock().unwrap().data.capacity() >= 4 * 2);
     }
 }

@@ -194,7 +194,7 @@ impl WebServer {
         let addr = listener.local_addr()?;
         let stop = Arc::new(AtomicBool::new(false));
         let app = Arc::new(App {
-            frame: Mutex::new(Jpeg::new(cfg.options.jpeg_quality)),
+            frame: Mutex::new(Jpeg::new(cfg.options.jpeg_quality, board.spare_snapshot())),
             cfg,
             board,
             record,
@@ -333,9 +333,9 @@ struct Jpeg {
 }
 
 impl Jpeg {
-    fn new(quality: u8) -> Self {
+    fn new(quality: u8, frame: Snapshot) -> Self {
         Self {
-            frame: Snapshot::default(),
+            frame,
             seq: None,
             bytes: Vec::new(),
             params: opencv::core::Vector::from_slice(&[
@@ -655,7 +655,7 @@ mod tests {
             },
             board: StatusBoard::new(4, 4),
             record: None,
-            frame: Mutex::new(Jpeg::new(75)),
+            frame: Mutex::new(Jpeg::new(75, Snapshot::default())),
             seen: Mutex::new(None),
         }
     }

@@ -166,13 +166,24 @@ mod tests {
     fn a_bad_value_is_located_at_its_line_and_key() {
         let (p, text) = site();
         assert!(check(&p, &text).ok, "{:?}", check(&p, &text));
-        let bad = text.replacen("[exposure]", "[exposure]\nmethod = \"bogus\"", 1);
+        // An unknown key: at its line.
+        let bad = text.replacen("[marker]", "[marker]\nsize_mm = 150", 1);
         let c = check(&p, &bad);
         assert!(!c.ok);
         let e = &c.errors[0];
-        let line = bad.lines().position(|l| l.contains("bogus")).map(|i| i + 1);
+        let line = bad
+            .lines()
+            .position(|l| l == "size_mm = 150")
+            .map(|i| i + 1);
         assert_eq!(e.line, line, "{e:?}");
-        assert!(e.message.contains("bogus"), "{e:?}");
+        assert!(e.message.contains("size_mm"), "{e:?}");
+        // A value out of range: its dotted key, at its line.
+        let out = text.replacen("distance_m = 1.0", "distance_m = -1.0", 1);
+        let c = check(&p, &out);
+        let e = &c.errors[0];
+        let line = out.lines().position(|l| l.starts_with("distance_m = -1.0"));
+        assert_eq!(e.line, line.map(|i| i + 1), "{e:?}");
+        assert_eq!(e.key, "station.distance_m", "{e:?}");
     }
 
     #[test]
