@@ -16,29 +16,29 @@ use std::process::{Child, Command, Stdio};
 use std::sync::mpsc;
 use std::time::{Duration, Instant};
 
-use common::{markhold, site_path};
+use common::{markhold, site_path, station_frames, station_rig, RealTimeVehicle};
 
-/// `markhold hil` with the page on loopback; SIGTERM and reaped when dropped.
+/// A markhold command with the page on loopback; SIGTERM and reaped when dropped.
 struct Hil {
     child: Child,
     addr: SocketAddr,
 }
 
 impl Hil {
+    /// `markhold hil` for an hour of simulated time (stopped by the test).
     fn start(site: &Path, record: &Path) -> Self {
-        let mut child = markhold()
-            .args([
-                "hil",
-                "--quiet",
-                "--seconds",
-                "3600",
-                "--web",
-                "127.0.0.1:0",
-            ])
-            .arg("--site")
+        let mut cmd = markhold();
+        cmd.args(["hil", "--quiet", "--seconds", "3600", "--site"])
             .arg(site)
             .arg("--record")
-            .arg(record)
+            .arg(record);
+        Self::spawn(cmd)
+    }
+
+    /// `cmd --web 127.0.0.1:0`, once its page answers.
+    fn spawn(mut cmd: Command) -> Self {
+        let mut child = cmd
+            .args(["--web", "127.0.0.1:0"])
             .stdout(Stdio::null())
             .stderr(Stdio::piped())
             .spawn()
@@ -310,5 +310,34 @@ fn the_cockpit_widget_view_shows_the_camera_and_status_only() {
     // The widget reads no site file.
     assert!(!dom.contains("class=\"line"), "{dom}");
     drop(hil);
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// `run` sets the engagement it has on the page: engaged (`--engage`) with the vehicle
+/// heard, its link state and the camera's frames.
+#[test]
+fn run_shows_its_engagement_and_link_on_the_page() {
+    let dir = scratch("run");
+    let frames = station_frames(dir.join("frames"), 150);
+    let vehicle = RealTimeVehicle::start(station_rig(false));
+    let mut cmd = markhold();
+    cmd.args(["run", "--engage", "--no-preflight", "--site"])
+        .arg(site_path())
+        .arg("--camera")
+        .arg(format!("frames:{}", frames.display()))
+        .arg("--link")
+        .arg(format!("udpout:{}", vehicle.addr));
+    let run = Hil::spawn(cmd);
+    wait_status(run.addr, "engaged with frames and the vehicle heard", |s| {
+        let st = &s["status"];
+        st["engagement"] == "engaged"
+            && st["frames"].as_u64() > Some(3)
+            && st["link"]["heard"] == true
+            && s["runner"] == "run"
+    });
+    let (code, body) = http(run.addr, "GET", "/snapshot.jpg");
+    assert_eq!(code, 200, "{body}");
+    drop(run);
+    let _ = vehicle.finish();
     let _ = std::fs::remove_dir_all(&dir);
 }
