@@ -1,7 +1,9 @@
 # markhold as a BlueOS extension: the field build (`run`, `preflight`, `replay`,
-# `params check`; no simulator, no Aravis) on Debian 12 with Debian's OpenCV 4.6.
-# Multi-arch (linux/amd64, linux/arm64: BlueOS on a Raspberry Pi 4/5 runs arm64):
-#   docker buildx build --platform linux/amd64,linux/arm64 -t USER/markhold:TAG --push .
+# `params check`; no simulator, no Aravis) on Debian 12 with Debian's OpenCV 4.6, with
+# its web page on port 8780 (BlueOS's sidebar, Cockpit's widget).
+# Three platforms: linux/arm/v7 (BlueOS as Blue Robotics ships it on the Raspberry Pi 4),
+# linux/arm64 (a 64-bit Pi OS) and linux/amd64 (a desktop or an x86 companion):
+#   docker buildx build --platform linux/arm/v7,linux/arm64,linux/amd64 -t USER/markhold:TAG --push .
 # How to install it in BlueOS and what the labels mean: docs/blueos-extension.md.
 
 FROM debian:bookworm AS build
@@ -10,14 +12,28 @@ RUN apt-get update \
        ca-certificates curl build-essential pkg-config libopencv-dev libclang-dev clang \
        libgstreamer1.0-dev libgstreamer-plugins-base1.0-dev \
     && rm -rf /var/lib/apt/lists/*
-# The toolchain the project is tested with (rust-version in Cargo.toml is the floor).
+# The toolchain the project is tested with (rust-version in Cargo.toml is the floor), for
+# the image's own userland (Debian's architecture: armhf for linux/arm/v7, arm64,
+# amd64), not guessed from the kernel: an arm/v7 image built on a 64-bit ARM kernel
+# would otherwise get an aarch64 toolchain it cannot run.
 ARG RUST_VERSION=1.95.0
-RUN curl -sSf https://sh.rustup.rs | sh -s -- -y --profile minimal --default-toolchain "${RUST_VERSION}"
+RUN arch="$(dpkg --print-architecture)" \
+    && case "${arch}" in \
+      amd64) host=x86_64-unknown-linux-gnu ;; \
+      arm64) host=aarch64-unknown-linux-gnu ;; \
+      armhf) host=armv7-unknown-linux-gnueabihf ;; \
+      *) echo "markhold: Debian ${arch} is not built (linux/arm/v7, linux/arm64, linux/amd64)" >&2; exit 1 ;; \
+    esac \
+    && curl -sSf https://sh.rustup.rs | sh -s -- -y --profile minimal \
+       --default-host "${host}" --default-toolchain "${RUST_VERSION}"
 ENV PATH=/root/.cargo/bin:$PATH
 WORKDIR /src
 COPY . .
-# Field features only: not `sim` (the simulator) and not `genicam` (Aravis).
+# Field features only: not `sim` (the simulator) and not `genicam` (Aravis). Two jobs, no
+# debug info and no incremental state: less memory and disk for the build (a 32-bit rustc
+# on arm/v7 has at most 4 GB of address space; the opencv crate is the largest unit).
 ARG MARKHOLD_FEATURES=""
+ENV CARGO_BUILD_JOBS=2 CARGO_PROFILE_RELEASE_DEBUG=0 CARGO_INCREMENTAL=0
 RUN cargo build --release --locked -p markhold --no-default-features --features "${MARKHOLD_FEATURES}" \
     && cp target/release/markhold /usr/local/bin/markhold \
     && strip /usr/local/bin/markhold
@@ -47,9 +63,13 @@ LABEL authors='[{"name": "markhold developers", "email": ""}]'
 LABEL readme="${REPO_RAW_URL}/docs/blueos-extension.md"
 LABEL links="{\"documentation\": \"${REPO_RAW_URL}/docs/first-dive.md\", \"website\": \"${REPO_RAW_URL}/README.md\"}"
 LABEL requirements="core >= 1.1"
-# Host networking (the MAVLink router's TCP server is on 127.0.0.1:5777 of the Pi) and
-# the V4L2 cameras (character major 81) through /dev; /usr/blueos/extensions/markhold
-# holds the site file and the recordings.
-LABEL permissions='{"NetworkMode": "host", "HostConfig": {"NetworkMode": "host", "Binds": ["/dev:/dev:rw", "/usr/blueos/extensions/markhold:/data:rw"], "DeviceCgroupRules": ["c 81:* rmw"], "RestartPolicy": {"Name": "unless-stopped"}}}'
+# Host networking (the MAVLink router's TCP server is on 127.0.0.1:5777 of the Pi; the
+# web page on 0.0.0.0:8780, where BlueOS's helper finds it; the Foxglove live view on
+# 0.0.0.0:8765) and the V4L2 cameras (character major 81) through /dev;
+# /usr/blueos/extensions/markhold holds the site file and the recordings. With host
+# networking a port needs no binding (Docker discards PortBindings then): ExposedPorts
+# names the page's and the live view's ports.
+EXPOSE 8780/tcp 8765/tcp
+LABEL permissions='{"ExposedPorts": {"8780/tcp": {}, "8765/tcp": {}}, "HostConfig": {"NetworkMode": "host", "Binds": ["/dev:/dev:rw", "/usr/blueos/extensions/markhold:/data:rw"], "DeviceCgroupRules": ["c 81:* rmw"], "RestartPolicy": {"Name": "unless-stopped"}}}'
 
 ENTRYPOINT ["/usr/local/bin/markhold-extension"]

@@ -40,6 +40,7 @@ pub mod response_fit;
 #[cfg(feature = "sim")]
 pub mod sim;
 pub mod tag;
+pub mod web;
 
 /// Write `value` as pretty JSON to `path`: the `--summary` file of every command.
 pub fn write_summary(path: &std::path::Path, value: &impl serde::Serialize) -> anyhow::Result<()> {

@@ -107,13 +107,19 @@ struct RunArgs {
     /// Record the run to this MCAP file (must not exist).
     #[arg(long, value_name = "FILE.mcap")]
     record: Option<PathBuf>,
-    /// Serve a Foxglove WebSocket live view on 127.0.0.1 (browser pages only from the
-    /// site's [live] allowed_origins).
+    /// Serve a Foxglove WebSocket live view (browser pages only from the site's [live]
+    /// allowed_origins).
     #[arg(long)]
     foxglove: bool,
     /// Port of the live view (0: any free port).
     #[arg(long, default_value_t = 8765)]
     foxglove_port: u16,
+    /// Address the live view listens on: 127.0.0.1 for this machine alone, 0.0.0.0 to
+    /// let the topside in (the BlueOS extension's).
+    #[arg(long, value_name = "IP", default_value = "127.0.0.1")]
+    foxglove_bind: std::net::IpAddr,
+    #[command(flatten)]
+    web: markhold::web::WebArgs,
     /// Wall seconds to wait for the vehicle's heartbeat at start-up.
     #[arg(long, default_value_t = 5.0)]
     heartbeat_timeout_s: f64,
@@ -407,6 +413,8 @@ fn run_cmd(args: RunArgs) -> anyhow::Result<()> {
         frames_every: args.record_frames_every.max(1),
         engage: args.engage,
         preflight: !args.no_preflight,
+        web: args.web.clone(),
+        foxglove_bind: args.foxglove_bind,
     };
     let report = markhold::field::run::run_live(&site, &opts, &stop)?;
     markhold::outln!(

@@ -1,8 +1,9 @@
 //! The BlueOS extension's files, checked without a container engine (none runs on the
-//! machines the tests run on): the Dockerfile's base images, the cargo build it runs
-//! (field features: no simulator, no Aravis), the labels BlueOS reads (present, JSON
-//! where BlueOS parses JSON, host networking and the V4L2 devices in the permissions),
-//! and the entry point (POSIX sh syntax, BlueOS's MAVLink router, the pilot engages).
+//! machines the tests run on): the Dockerfile's base images, the three platforms it
+//! builds, the cargo build it runs (field features: no simulator, no Aravis), the labels
+//! BlueOS reads (present, JSON where BlueOS parses JSON, host networking, the V4L2
+//! devices and the page's port in the permissions), and the entry point (POSIX sh
+//! syntax, BlueOS's MAVLink router, the pilot engages, the page on every address).
 #![allow(clippy::unwrap_used)] // Tests fail loudly on a broken setup, by design.
 
 use std::collections::BTreeMap;
@@ -102,7 +103,7 @@ fn dockerfile_builds_the_field_binary_on_debian_bookworm() {
         "runtime: aruco is in contrib"
     );
     assert!(!text.contains("aravis"), "the image has no Aravis");
-    // No platform pinned: buildx builds each of amd64 and arm64.
+    // No platform pinned: buildx builds each platform.
     assert!(!text.contains("--platform="), "{text}");
     assert!(ins
         .iter()
@@ -196,4 +197,74 @@ fn the_entry_point_talks_to_blueos_and_leaves_engaging_to_the_pilot() {
         !text.contains("--engage"),
         "the pilot engages, not the extension"
     );
+}
+
+/// The platforms a multi-platform build makes, as the Dockerfile declares them: the
+/// documented `buildx --platform` list, and the toolchain chosen per Debian architecture
+/// (any other architecture stops the build with a message).
+#[test]
+fn dockerfile_declares_arm_v7_arm64_and_amd64() {
+    let text = repo("Dockerfile");
+    let want = ["linux/arm/v7", "linux/arm64", "linux/amd64"];
+    let documented = text
+        .lines()
+        .find_map(|l| l.split("--platform ").nth(1))
+        .expect("the buildx command in the header");
+    let mut listed: Vec<&str> = documented
+        .split_whitespace()
+        .next()
+        .unwrap()
+        .split(',')
+        .collect();
+    listed.sort_unstable();
+    let mut sorted = want;
+    sorted.sort_unstable();
+    assert_eq!(listed, sorted, "{documented}");
+    // Debian's architecture of each platform -> the Rust host built for it.
+    let ins = instructions(&text);
+    let rustup = ins
+        .iter()
+        .find(|i| i.contains("rustup") && i.contains("dpkg --print-architecture"))
+        .expect("the toolchain chosen per architecture");
+    for (arch, host) in [
+        ("armhf", "armv7-unknown-linux-gnueabihf"),
+        ("arm64", "aarch64-unknown-linux-gnu"),
+        ("amd64", "x86_64-unknown-linux-gnu"),
+    ] {
+        assert!(
+            rustup.contains(&format!("{arch}) host={host} ;;")),
+            "{arch} -> {host}: {rustup}"
+        );
+    }
+    assert!(
+        rustup.contains("*) echo") && rustup.contains("exit 1"),
+        "another architecture stops the build: {rustup}"
+    );
+    assert!(rustup.contains("--default-host \"${host}\""), "{rustup}");
+    // Debian packages only (bookworm builds OpenCV 4.6 and GStreamer for all three).
+    assert!(
+        !text.contains("pip install") && !text.contains("npm "),
+        "{text}"
+    );
+}
+
+/// The page BlueOS lists in its sidebar: served on every address (its helper only scans
+/// ports listening on 0.0.0.0 or ::), on the port the permissions name.
+#[test]
+fn the_extension_serves_its_page_where_blueos_looks() {
+    let l = labels(&instructions(&repo("Dockerfile")));
+    let p: serde_json::Value = serde_json::from_str(&l["permissions"]).unwrap();
+    let port = markhold::web::EXTENSION_PORT;
+    assert!(
+        p["ExposedPorts"][format!("{port}/tcp")].is_object(),
+        "the page's port in ExposedPorts: {p}"
+    );
+    let entry = repo("blueos/entrypoint.sh");
+    assert!(
+        entry.contains(&format!("0.0.0.0:{port}")) && entry.contains("--web"),
+        "{entry}"
+    );
+    assert!(entry.contains("--foxglove-bind 0.0.0.0"), "{entry}");
+    let docker = repo("Dockerfile");
+    assert!(docker.contains(&format!("EXPOSE {port}/tcp")), "{docker}");
 }

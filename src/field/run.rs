@@ -15,7 +15,7 @@ use super::camera::{open_camera, CameraUrl, LiveCamera};
 use super::engage::{EngagedLink, Transition};
 use super::preflight::{self, Checklist};
 use super::signal::ShutdownFlag;
-use crate::observe::{Snapshots, TraceWriter};
+use crate::observe::{Snapshots, StatusBoard, TraceWriter};
 use crate::params::LoadedSite;
 use crate::pipeline::{CommandLink, LoopStart, Observers, Pipeline};
 use crate::record::{RecordConfig, RecordStats, RecordStatsHandle, Recorder, RunInfo};
@@ -47,6 +47,10 @@ pub struct RunOptions {
     pub engage: bool,
     /// Check the vehicle's parameters before arming (`markhold preflight`).
     pub preflight: bool,
+    /// The web page (`--web`).
+    pub web: crate::web::WebArgs,
+    /// Address the live view listens on (`--foxglove-bind`).
+    pub foxglove_bind: std::net::IpAddr,
 }
 
 impl Default for RunOptions {
@@ -65,6 +69,8 @@ impl Default for RunOptions {
             frames_every: 1,
             engage: false,
             preflight: true,
+            web: crate::web::WebArgs::default(),
+            foxglove_bind: std::net::Ipv4Addr::LOCALHOST.into(),
         }
     }
 }
@@ -104,6 +110,8 @@ pub enum StartupError {
     Record { source: crate::record::RecordError },
     #[error("--foxglove: {reason}")]
     LiveView { reason: String },
+    #[error("{0}")]
+    Web(#[from] crate::web::WebError),
     #[error("{flag}: {reason}")]
     Output { flag: &'static str, reason: String },
     #[error("link {url}: the vehicle failed the preflight check ({fails} failed: {names}); fix it or run with --no-preflight")]
@@ -245,12 +253,22 @@ fn is_end_of_stream(e: &anyhow::Error) -> bool {
     )
 }
 
-/// The recording and the live view a run asked for, as observers of its loop.
+/// The observers, the recording's counters, the live view's address and the web page's
+/// board.
+type Attached = (
+    Observers,
+    Option<RecordStatsHandle>,
+    Option<String>,
+    Option<StatusBoard>,
+);
+
+/// The recording, the live view and the web page a run asked for, as observers of its
+/// loop.
 fn observers(
     site: &LoadedSite,
     opts: &RunOptions,
     start: &LoopStart,
-) -> Result<(Observers, Option<RecordStatsHandle>, Option<String>), StartupError> {
+) -> Result<Attached, StartupError> {
     let record_err = |source| StartupError::Record { source };
     let mut recorder = match &opts.record {
         Some(path) => {
@@ -284,10 +302,11 @@ fn observers(
     };
     let mut foxglove_addr = None;
     if let (Some(port), Some(r)) = (opts.foxglove_port, recorder.as_mut()) {
-        match r.serve_live(port, &site.site.live) {
+        match r.serve_live_on(opts.foxglove_bind, port, &site.site.live) {
             Ok(p) => {
-                eprintln!("markhold run: Foxglove live view on ws://127.0.0.1:{p}");
-                foxglove_addr = Some(format!("127.0.0.1:{p}"));
+                let addr = std::net::SocketAddr::new(opts.foxglove_bind, p);
+                eprintln!("markhold run: Foxglove live view on ws://{addr}");
+                foxglove_addr = Some(addr.to_string());
             }
             Err(e) => {
                 if let Some(r) = recorder.take() {
@@ -303,16 +322,34 @@ fn observers(
         .as_ref()
         .filter(|_| opts.record.is_some())
         .map(Recorder::stats_handle);
+    let control = recorder
+        .as_ref()
+        .filter(|_| opts.record.is_some())
+        .map(Recorder::control);
+    let live = opts.foxglove_port.is_some().then(|| crate::web::LiveInfo {
+        port: foxglove_addr
+            .as_deref()
+            .and_then(|a| a.parse::<std::net::SocketAddr>().ok())
+            .map_or(0, |a| a.port()),
+        loopback: opts.foxglove_bind.is_loopback(),
+    });
     let mut list = Observers::new();
     if let Some(r) = recorder {
         list.push(r);
     }
-    if let Err(e) = files(opts, &mut list) {
-        // Nothing half-made is left behind (the recording file is removed).
-        list.abort();
-        return Err(e);
+    let attached = files(opts, &mut list).and_then(|()| {
+        Ok(crate::web::attach(
+            site, &opts.web, "run", control, live, &mut list,
+        )?)
+    });
+    match attached {
+        Ok(web) => Ok((list, stats, foxglove_addr, web.map(|(board, _)| board))),
+        Err(e) => {
+            // Nothing half-made is left behind (the recording file is removed).
+            list.abort();
+            Err(e)
+        }
     }
-    Ok((list, stats, foxglove_addr))
 }
 
 /// The trace and the recorded-frames folder a run asked for.
@@ -355,6 +392,8 @@ struct Counts {
     disarm_asked: bool,
     /// The last frame's supervisor events (a buffer reused every frame).
     events: Vec<FailsafeEvent>,
+    /// The web page's board: it shows the engagement.
+    board: Option<StatusBoard>,
 }
 
 /// What the pilot is told after a frame (or a tick without one): the supervisor's
@@ -418,6 +457,9 @@ fn drive(
                     .filter(|e| matches!(e, FailsafeEvent::VisionStalled { .. }))
                     .count() as u64;
                 tell_pilot(pipeline, site, None, now, &mut n.events)?;
+                if let Some(b) = &n.board {
+                    b.set_engagement(pipeline.link().engager().state());
+                }
                 if let Directive::Shutdown { disarm } = d {
                     n.disarm_asked = disarm;
                     return Ok(StopReason::Signal);
@@ -431,6 +473,9 @@ fn drive(
         n.detected += u64::from(rec.detected);
         n.last_stamp = rec.stamp_s;
         tell_pilot(pipeline, site, Some(&rec), rec.stamp_s, &mut n.events)?;
+        if let Some(b) = &n.board {
+            b.set_engagement(pipeline.link().engager().state());
+        }
         let t0 = *n.first_stamp.get_or_insert(rec.stamp_s);
         if let Directive::Shutdown { disarm } = rec.directive {
             n.disarm_asked = disarm;
@@ -452,7 +497,7 @@ pub fn run_live(
     stop: &ShutdownFlag,
 ) -> anyhow::Result<RunReport> {
     let start = LoopStart::of_site(site);
-    let (mut observers, record_stats, foxglove_addr) = observers(site, opts, &start)?;
+    let (mut observers, record_stats, foxglove_addr, board) = observers(site, opts, &start)?;
     let mut checklist = None;
     let started = (|| -> anyhow::Result<(LiveCamera, VehicleLink)> {
         let cam = open_camera(
@@ -490,6 +535,7 @@ pub fn run_live(
     let mut n = Counts {
         last_stamp: cam.next.meta.stamp_s,
         events: Vec::with_capacity(16),
+        board,
         ..Counts::default()
     };
     let stopped = drive(&mut pipeline, &mut cam, site, opts, stop, &mut n);

@@ -1,4 +1,5 @@
-//! The live view (`--foxglove`): markhold's own Foxglove WebSocket server on 127.0.0.1.
+//! The live view (`--foxglove`): markhold's own Foxglove WebSocket server, on 127.0.0.1
+//! unless `--foxglove-bind` names another address (the topside's way in on a vehicle).
 //!
 //! foxglove's `WebSocketServer` gives no access to the handshake's headers, so it cannot
 //! refuse a browser page by its `Origin`: any page open on the same machine could read the
@@ -19,7 +20,7 @@
 
 use std::collections::{BTreeMap, HashMap};
 use std::io::ErrorKind;
-use std::net::{SocketAddr, TcpListener, TcpStream};
+use std::net::{IpAddr, Ipv4Addr, SocketAddr, TcpListener, TcpStream};
 use std::sync::atomic::{AtomicBool, AtomicU64, AtomicUsize, Ordering};
 use std::sync::mpsc::{channel, sync_channel, Receiver, Sender, SyncSender, TrySendError};
 use std::sync::{Arc, Mutex, MutexGuard};
@@ -141,7 +142,18 @@ pub struct LiveServer {
 impl LiveServer {
     /// Listen on 127.0.0.1:`port` (0: any free port) and stream `context`'s channels.
     pub fn start(context: &Arc<Context>, port: u16, live: &LiveSection) -> std::io::Result<Self> {
-        let listener = TcpListener::bind(("127.0.0.1", port))?;
+        Self::start_on(context, Ipv4Addr::LOCALHOST.into(), port, live)
+    }
+
+    /// Listen on `ip`:`port`: an address the topside reaches (`0.0.0.0` on the vehicle);
+    /// browser pages are still let in only from `[live] allowed_origins`.
+    pub fn start_on(
+        context: &Arc<Context>,
+        ip: IpAddr,
+        port: u16,
+        live: &LiveSection,
+    ) -> std::io::Result<Self> {
+        let listener = TcpListener::bind((ip, port))?;
         listener.set_nonblocking(true)?;
         let port = listener.local_addr()?.port();
         let sink = Arc::new(LiveSink {

@@ -32,14 +32,14 @@ use std::fs::File;
 use std::io::{BufWriter, Seek, SeekFrom, Write};
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicU64, Ordering};
-use std::sync::mpsc::{sync_channel, Receiver, SyncSender, TrySendError};
+use std::sync::mpsc::{sync_channel, Receiver, RecvTimeoutError, SyncSender, TrySendError};
 use std::sync::{Arc, Mutex};
 use std::thread::JoinHandle;
 
 use foxglove::schemas::points_annotation::Type as PointsType;
 use foxglove::schemas::{Color, ImageAnnotations, Point2, PointsAnnotation};
 use foxglove::schemas::{CompressedImage, Log, Pose, PoseInFrame, Quaternion, Timestamp, Vector3};
-use foxglove::{ChannelBuilder, Context, McapWriter, PartialMetadata, RawChannel, Schema};
+use foxglove::{ChannelBuilder, Context, PartialMetadata, RawChannel, Schema};
 use markhold_autopilot::{Directive, FailsafeEvent, VehicleState};
 use markhold_exposure::{Frame, FrameMeta};
 use serde::{Deserialize, Serialize};
@@ -50,6 +50,9 @@ use crate::pipeline::{FrameRecord, FrameView, Observer};
 pub mod images;
 pub mod live;
 pub mod replay;
+pub mod rotation;
+
+pub use rotation::{RecordControl, RecordingState};
 
 pub const TOPIC_IMAGE: &str = "/camera/image";
 pub const TOPIC_ANNOTATIONS: &str = "/camera/annotations";
@@ -103,8 +106,12 @@ pub enum RecordError {
     Describe { source: toml::ser::Error },
     #[error("the recorder's writer thread failed")]
     WriterThread,
-    #[error("starting the live view on 127.0.0.1:{port}: {source}")]
-    Live { port: u16, source: std::io::Error },
+    #[error("starting the live view on {ip}:{port}: {source}")]
+    Live {
+        ip: std::net::IpAddr,
+        port: u16,
+        source: std::io::Error,
+    },
     #[error("writing the recording: {reason}")]
     Write { reason: String },
 }
@@ -218,6 +225,9 @@ pub struct RecordSection {
     /// JPEG quality 1..100.
     #[serde(default = "default_jpeg_quality")]
     pub jpeg_quality: u8,
+    /// `[record.rotation]`: segments, quota and free-space floor.
+    #[serde(default)]
+    pub rotation: rotation::RotationSection,
 }
 
 fn default_jpeg_quality() -> u8 {
@@ -229,6 +239,7 @@ impl Default for RecordSection {
         Self {
             image_format: None,
             jpeg_quality: default_jpeg_quality(),
+            rotation: rotation::RotationSection::default(),
         }
     }
 }
@@ -242,7 +253,8 @@ impl RecordSection {
                 1..=100,
                 "a JPEG quality, 1..100",
             )
-            .done()
+            .done()?;
+        self.rotation.validate()
     }
 
     /// The recorder's settings for a command whose default format is `default`.
@@ -250,6 +262,7 @@ impl RecordSection {
         RecordConfig {
             image_format: self.image_format.unwrap_or(default),
             jpeg_quality: i32::from(self.jpeg_quality),
+            rotation: self.rotation.config(),
             ..RecordConfig::default()
         }
     }
@@ -272,6 +285,9 @@ pub struct RecordConfig {
     pub image_format: ImageFormat,
     /// JPEG quality 1..100 (with `image_format` jpeg).
     pub jpeg_quality: i32,
+    /// Segments, quota and free-space floor of a file recording.
+    #[serde(default)]
+    pub rotation: rotation::RotationConfig,
 }
 
 impl Default for RecordConfig {
@@ -283,6 +299,7 @@ impl Default for RecordConfig {
             wait_when_full: false,
             image_format: ImageFormat::Png,
             jpeg_quality: 90,
+            rotation: rotation::RotationConfig::default(),
         }
     }
 }
@@ -325,6 +342,12 @@ pub struct RecordStats {
     pub frames_dropped: u64,
     /// The first write error, if any (later ones are not reported again).
     pub write_error: Option<String>,
+    /// Segment files begun (`[record.rotation]`; 1 for a recording never rotated).
+    pub segments: u64,
+    /// Older recordings deleted to keep the quota and the free-space floor.
+    pub deleted: u64,
+    /// Why the recording stopped before the run did (the free-space floor), if it did.
+    pub stopped: Option<String>,
 }
 
 #[derive(Default)]
@@ -333,6 +356,8 @@ struct Shared {
     images_dropped: AtomicU64,
     frames_dropped: AtomicU64,
     write_error: Mutex<Option<String>>,
+    /// Start / stop, the open segment and its bytes, what rotation deleted.
+    control: RecordControl,
 }
 
 impl Shared {
@@ -345,11 +370,15 @@ impl Shared {
         }
     }
     fn stats(&self) -> RecordStats {
+        let c = self.control.state();
         RecordStats {
             frames: self.frames.load(Ordering::Relaxed),
             images_dropped: self.images_dropped.load(Ordering::Relaxed),
             frames_dropped: self.frames_dropped.load(Ordering::Relaxed),
             write_error: self.write_error.lock().ok().and_then(|s| s.clone()),
+            segments: c.segments,
+            deleted: c.deleted,
+            stopped: c.stopped,
         }
     }
     fn failed(&self) -> bool {
@@ -367,6 +396,9 @@ impl<W: Write> Write for Tracked<W> {
     fn write(&mut self, buf: &[u8]) -> std::io::Result<usize> {
         self.inner
             .write(buf)
+            .inspect(|n| {
+                self.shared.control.add_bytes(*n as u64);
+            })
             .inspect_err(|e| self.shared.report_error(e))
     }
     fn flush(&mut self) -> std::io::Result<()> {
@@ -449,7 +481,14 @@ impl Recorder {
             path: path.to_path_buf(),
             source,
         })?;
-        match Self::to_writer(BufWriter::with_capacity(1 << 20, file), info, cfg) {
+        // The segments after the first (`[record.rotation]`).
+        let next = rotation::file_opener(path, info, &cfg.rotation);
+        match Self::to_writer_with(
+            BufWriter::with_capacity(1 << 20, file),
+            info,
+            cfg,
+            Some(next),
+        ) {
             Ok(mut r) => {
                 r.path = Some(path.to_path_buf());
                 Ok(r)
@@ -468,26 +507,39 @@ impl Recorder {
         info: &RunInfo,
         cfg: RecordConfig,
     ) -> Result<Self, RecordError> {
+        Self::to_writer_with(writer, info, cfg, None)
+    }
+
+    /// Record into `writer`, then into the segments `next` opens (a rotating file
+    /// recording) or nothing more (`None`).
+    fn to_writer_with<W: Write + Seek + Send + 'static>(
+        writer: W,
+        info: &RunInfo,
+        cfg: RecordConfig,
+        next: Option<rotation::Opener<W>>,
+    ) -> Result<Self, RecordError> {
         cfg.validate()?;
         let shared = Arc::new(Shared::default());
         let context = Context::new();
-        let handle = McapWriter::new()
-            .context(&context)
-            .create(Tracked {
-                inner: writer,
-                shared: shared.clone(),
-            })
-            .map_err(|source| RecordError::Writer { source })?;
-        handle
-            .write_metadata(METADATA_NAME, info.to_metadata())
-            .map_err(|source| RecordError::Writer { source })?;
-        Self::spawn(Some(handle), context, shared, cfg)
+        let handle = rotation::open_segment(
+            &context,
+            writer,
+            &shared,
+            &info.to_metadata(),
+            &cfg.rotation,
+        )?;
+        Self::spawn(Some((handle, next)), context, shared, cfg)
     }
 
     /// No file: the channels only feed a live view ([`Recorder::serve_live`]).
     pub fn live_only(cfg: RecordConfig) -> Result<Self, RecordError> {
         cfg.validate()?;
         Self::spawn::<NoFile>(None, Context::new(), Arc::new(Shared::default()), cfg)
+    }
+
+    /// Starts and stops the file recording while the run goes on, and tells where it is.
+    pub fn control(&self) -> RecordControl {
+        self.shared.control.clone()
     }
 
     /// Serve the channels to Foxglove over WebSocket on 127.0.0.1 (`port` 0: any free
@@ -498,15 +550,25 @@ impl Recorder {
         port: u16,
         access: &live::LiveSection,
     ) -> Result<u16, RecordError> {
-        let server = live::LiveServer::start(&self.context, port, access)
-            .map_err(|source| RecordError::Live { port, source })?;
+        self.serve_live_on(std::net::Ipv4Addr::LOCALHOST.into(), port, access)
+    }
+
+    /// [`Recorder::serve_live`] on `ip` (`0.0.0.0`: every address, for the topside).
+    pub fn serve_live_on(
+        &mut self,
+        ip: std::net::IpAddr,
+        port: u16,
+        access: &live::LiveSection,
+    ) -> Result<u16, RecordError> {
+        let server = live::LiveServer::start_on(&self.context, ip, port, access)
+            .map_err(|source| RecordError::Live { ip, port, source })?;
         let port = server.port();
         self.live = Some(server);
         Ok(port)
     }
 
     fn spawn<W: Write + Seek + Send + 'static>(
-        handle: Option<foxglove::McapWriterHandle<Tracked<W>>>,
+        output: Option<rotation::Output<W>>,
         context: Arc<Context>,
         shared: Arc<Shared>,
         cfg: RecordConfig,
@@ -530,6 +592,8 @@ impl Recorder {
             ),
         };
         let format = cfg.image_format;
+        let rotation_cfg = cfg.rotation;
+        let context_w = context.clone();
         let thread = std::thread::Builder::new()
             .name("markhold-recorder".into())
             .spawn(move || {
@@ -543,27 +607,34 @@ impl Recorder {
                     json: Vec::with_capacity(4096),
                     raw: Vec::with_capacity(1 + 280),
                 };
-                while let Ok(mut item) = rx.recv() {
+                let mut out = output.map(|(handle, next)| {
+                    rotation::SegmentWriter::new(handle, next, context_w, &w.shared, rotation_cfg)
+                });
+                loop {
+                    let mut item = match rx.recv_timeout(rotation::IDLE_POLL) {
+                        Ok(item) => item,
+                        Err(RecvTimeoutError::Timeout) => {
+                            // A stop asked for while no frame comes still closes the file.
+                            out.iter_mut().for_each(|o| o.idle());
+                            continue;
+                        }
+                        Err(RecvTimeoutError::Disconnected) => break,
+                    };
+                    let t = stamp_ns(item.meta.stamp_s);
+                    out.iter_mut().for_each(|o| o.before_frame(t));
                     // The link's raw frames so far (at most a frame late in the file).
                     w.raw_frames(&tap_rx);
                     if !w.shared.failed() {
                         w.write(&item);
                     }
+                    out.iter_mut().for_each(|o| o.after_frame(t));
                     if let Some(buf) = item.image.take() {
                         let _ = free_tx.try_send(buf);
                     }
                 }
                 w.raw_frames(&tap_rx);
                 // Finalize: summary section and footer.
-                let Some(handle) = handle else { return Ok(()) };
-                match handle.close() {
-                    Ok(mut inner) => inner.flush().map_err(|e| RecordError::Write {
-                        reason: e.to_string(),
-                    }),
-                    Err(e) => Err(RecordError::Write {
-                        reason: e.to_string(),
-                    }),
-                }
+                out.map_or(Ok(()), rotation::SegmentWriter::finish)
             })
             .map_err(|source| RecordError::Create {
                 path: PathBuf::from("<recorder thread>"),
@@ -605,6 +676,10 @@ impl Recorder {
         events: &[FailsafeEvent],
     ) {
         let Some(tx) = &self.tx else { return };
+        if self.path.is_some() && self.live.is_none() && !self.shared.control.wanted() {
+            // The file recording is stopped and nobody watches live.
+            return;
+        }
         self.shared.frames.fetch_add(1, Ordering::Relaxed);
         let wait = self.wait_when_full;
         let image = match self.spare.take().ok_or(()).or_else(|_| {
@@ -1202,7 +1277,16 @@ impl Observer for Recorder {
             stats.images_dropped,
             stats.frames_dropped
         );
-        if let Some(reason) = &stats.write_error {
+        if stats.segments > 1 || stats.deleted > 0 {
+            eprintln!(
+                "markhold: the recording is {} segments beside {}; {} older recordings deleted \
+                 for the quota and the free-space floor",
+                stats.segments,
+                path.display(),
+                stats.deleted
+            );
+        }
+        if let Some(reason) = stats.write_error.as_ref().or(stats.stopped.as_ref()) {
             return Err(RecordError::Write {
                 reason: format!("{}: {reason}", path.display()),
             }

@@ -95,13 +95,18 @@ pub struct HilArgs {
     /// pose, commands, vehicle state, failsafe events; `markhold replay` reads it.
     #[arg(long, value_name = "FILE.mcap")]
     pub record: Option<PathBuf>,
-    /// Serve a Foxglove WebSocket live view on 127.0.0.1 (the same channels as --record;
-    /// browser pages only from the site's [live] allowed_origins).
+    /// Serve a Foxglove WebSocket live view (the same channels as --record; browser pages
+    /// only from the site's [live] allowed_origins).
     #[arg(long)]
     pub foxglove: bool,
     /// Port of the live view (0: any free port).
     #[arg(long, default_value_t = 8765)]
     pub foxglove_port: u16,
+    /// Address the live view listens on (0.0.0.0: every address).
+    #[arg(long, value_name = "IP", default_value = "127.0.0.1")]
+    pub foxglove_bind: std::net::IpAddr,
+    #[command(flatten)]
+    pub web: crate::web::WebArgs,
     /// The renderer's loops: portable, avx2 or avx512 (the widest this CPU runs up to
     /// that; default: the widest). Every build renders the same frames, so the run is
     /// the same; only the world's speed differs (the summary says which ran).
@@ -286,15 +291,28 @@ fn hil_observers(
         None if args.foxglove => Some(Recorder::live_only(RecordConfig::default())?),
         None => None,
     };
+    let mut live = None;
     if let (true, Some(r)) = (args.foxglove, recorder.as_mut()) {
         let port = r
-            .serve_live(args.foxglove_port, &site.site.live)
+            .serve_live_on(args.foxglove_bind, args.foxglove_port, &site.site.live)
             .with_context(|| format!("--foxglove-port {}", args.foxglove_port))?;
-        eprintln!("markhold: Foxglove live view on ws://127.0.0.1:{port}");
+        eprintln!(
+            "markhold: Foxglove live view on ws://{}",
+            std::net::SocketAddr::new(args.foxglove_bind, port)
+        );
+        live = Some(crate::web::LiveInfo {
+            port,
+            loopback: args.foxglove_bind.is_loopback(),
+        });
     }
+    let control = recorder
+        .as_ref()
+        .filter(|_| args.record.is_some())
+        .map(Recorder::control);
     if let Some(r) = recorder {
         list.push(r);
     }
+    crate::web::attach(site, &args.web, "hil", control, live, &mut list)?;
     Ok(list)
 }
 
