@@ -12,6 +12,7 @@ mod view;
 use crate::config::{AxisConfig, ControllerConfig, StationConfig};
 use crate::error::AutopilotError;
 pub use crate::types::{wrap_pi, Effort};
+use crate::types::ArduSubMode;
 
 /// One marker pose from vision: the marker in the camera frame, with its 6x6 covariance
 /// (tx, ty, tz, rx, ry, rz) in the camera frame.
@@ -53,6 +54,46 @@ pub enum KeeperStatus {
     /// Marker lost longer than the hold: neutral.
     Lost,
 }
+
+/// What ArduSub holds by itself in the flight mode it reports, so that the keeper does
+/// not close a second loop around it (ArduSub's source, this version and upstream):
+/// - STABILIZE and ALT_HOLD hold roll and pitch level: the roll and pitch sticks are lean
+///   angle targets (`get_pilot_desired_lean_angles`), and the station is level, so the
+///   keeper sends none (its own roll/pitch loop around ArduSub's attitude loop, a frame
+///   late, made both oscillate).
+/// - They hold the heading: the yaw stick is a yaw *rate*, `stick * ACRO_YAW_P` centidegrees
+///   per second (Attitude.cpp `get_pilot_desired_yaw_rate`), and 250 ms after it returns
+///   to centre ArduSub holds the heading it then has (control_althold.cpp /
+///   mode_althold.cpp `althold_run`). The keeper's yaw effort is therefore already
+///   integrated by ArduSub: its integral term would make a double integrator (the
+///   heading wound up and swung), so it is off.
+/// - ALT_HOLD also holds depth, but there the keeper keeps its own heave loop, integral
+///   included: ArduSub's depth estimate wanders by centimetres (SITL: +-8 cm with the
+///   keeper's heave off), and only the camera sees the marker's depth. Its throttle
+///   stick is a climb rate past a dead zone (docs/design/sitl.md), so heave is where the
+///   keeper and ArduSub still differ most.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize)]
+pub struct AutopilotHolds {
+    /// Roll and pitch held level.
+    pub attitude: bool,
+    /// Heading held, yaw stick a rate.
+    pub heading: bool,
+}
+
+impl AutopilotHolds {
+    /// The holds of an ArduSub flight mode (none while it is unknown, in MANUAL and in the
+    /// position-target modes, where the keeper does not send efforts).
+    pub fn of_mode(mode: Option<ArduSubMode>) -> Self {
+        match mode {
+            Some(ArduSubMode::Stabilize | ArduSubMode::AltHold) => Self {
+                attitude: true,
+                heading: true,
+            },
+            _ => Self::default(),
+        }
+    }
+}
+
 
 /// Body-frame pose error of the vehicle relative to its station: the goal expressed in the
 /// current body frame. (surge, sway, heave) in metres, (roll, pitch, yaw) in radians, yaw
@@ -218,6 +259,8 @@ struct Axis {
     band: f64,
     /// The axis commands (outside the band, or inside it but not yet below the release).
     active: bool,
+    /// The integral term runs (off where the autopilot integrates the command itself).
+    integrate: bool,
 }
 
 impl Axis {
@@ -236,6 +279,7 @@ impl Axis {
             last_i: 0.0,
             band,
             active: false,
+            integrate: true,
         }
     }
 
@@ -270,7 +314,11 @@ impl Axis {
         // Clamping anti-windup: do not integrate further into a saturated output.
         let saturated = self.last_out.abs() >= lim && lim > 0.0;
         let pushing = saturated && err.signum() == self.last_out.signum();
-        self.pid.ki = if pushing { 0.0 } else { self.ki_step };
+        self.pid.ki = if pushing || !self.integrate {
+            0.0
+        } else {
+            self.ki_step
+        };
         // The crate computes setpoint - measurement: feed -err against a zero setpoint so
         // that angle wrapping is ours.
         let o = self.pid.next_control_output(-err);
@@ -332,6 +380,8 @@ pub struct StationKeeper {
     last_view: Option<view::LastSeen>,
     nav: view::Nav,
     search_max_s: f64,
+    /// What the autopilot holds in its current mode (`set_autopilot_mode`).
+    holds: AutopilotHolds,
 }
 
 impl StationKeeper {
@@ -393,6 +443,7 @@ impl StationKeeper {
             last_view: None,
             nav: view::Nav::default(),
             search_max_s: ctl.marker_lost_action_after_s,
+            holds: AutopilotHolds::default(),
         })
     }
 
@@ -558,6 +609,11 @@ impl StationKeeper {
             for (i, a) in self.axes.iter_mut().enumerate() {
                 o[i] = a.step(x[i]);
             }
+            if self.holds.attitude {
+                // ArduSub holds the station's level attitude itself.
+                o[3] = 0.0;
+                o[4] = 0.0;
+            }
             self.pid_out = Effort::from_array(o);
             self.acc -= self.dt_step;
             steps += 1;
@@ -600,6 +656,32 @@ impl StationKeeper {
     /// last seen from. `None` when unknown.
     pub fn set_depth(&mut self, down_m: Option<f64>) {
         self.nav.down_m = down_m.filter(|d| d.is_finite());
+    }
+
+    /// The flight mode the vehicle reports (HEARTBEAT), given before `update` for the
+    /// same frame: the keeper leaves to ArduSub what that mode holds by itself
+    /// ([`AutopilotHolds`]). Unknown (`None`) holds nothing.
+    pub fn set_autopilot_mode(&mut self, mode: Option<ArduSubMode>) {
+        let holds = AutopilotHolds::of_mode(mode);
+        if holds == self.holds {
+            return;
+        }
+        self.holds = holds;
+        let [_, _, _, roll, pitch, yaw] = &mut self.axes;
+        for (a, held) in [
+            (roll, holds.attitude),
+            (pitch, holds.attitude),
+            (yaw, holds.heading),
+        ] {
+            // What was integrated under the other mode does not carry over.
+            a.reset();
+            a.integrate = !held;
+        }
+    }
+
+    /// What the keeper leaves to the autopilot now.
+    pub fn autopilot_holds(&self) -> AutopilotHolds {
+        self.holds
     }
 
     /// Where the guard band starts: a fraction of the image inside its edges.

@@ -356,8 +356,20 @@ impl SitlServer {
     /// Hold the vehicle at `pose`, at rest (time goes on), and make the held reply say
     /// so: a vehicle held still by hand until its autopilot is ready, as on a real dive.
     pub fn hold_at(&mut self, pose: &Isometry3<f64>) {
+        self.carry(pose, &nalgebra::Vector3::zeros());
+    }
+
+    /// Carry the vehicle by hand: put it at `pose` moving at `velocity_world_mps` (world
+    /// NED), level flight through the water with no acceleration (the accelerometer reads
+    /// gravity only), and make the held reply say so. The physics restarts from rest at
+    /// `pose` when let go.
+    pub fn carry(&mut self, pose: &Isometry3<f64>, velocity_world_mps: &nalgebra::Vector3<f64>) {
         self.vehicle.teleport(pose);
-        let state = self.vehicle.state();
+        let mut state = self.vehicle.state();
+        state.velocity_world_mps = *velocity_world_mps;
+        state.angvel_body_rps = nalgebra::Vector3::zeros();
+        state.specific_force_body_mps2 =
+            pose.rotation.inverse() * nalgebra::Vector3::new(0.0, 0.0, -crate::vehicle::GRAVITY_MPS2);
         write_state_json(&mut self.tx, &state);
     }
 

@@ -14,6 +14,7 @@ pub mod robustness;
 pub mod robustness_plot;
 pub mod run_plots;
 pub mod shard;
+pub mod side_by_side;
 pub mod sitl_loop;
 pub mod stats;
 pub mod stream;

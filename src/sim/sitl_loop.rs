@@ -37,8 +37,13 @@ const JSON_PORT: u16 = 9002;
 /// ArduSub's home for a started binary: Tools/autotest/ardusub.py's SITL_START_LOCATION
 /// (lat, lon, altitude 0 m, heading).
 const HOME: &str = "33.810313,-118.393867,0,185";
-/// Simulated seconds ArduSub gets to settle its EKF (held still) before it is armed.
+/// Simulated seconds ArduSub gets to settle its EKF (held still at the surface) before
+/// the vehicle is carried down.
 const ARM_SETTLE_S: f64 = 10.0;
+/// Speed the vehicle is carried down to its start at, m/s.
+const DESCENT_MPS: f64 = 0.25;
+/// Held still at the start this long before it is armed, s.
+const HOLD_BEFORE_ARM_S: f64 = 2.0;
 
 /// How the SITL-in-the-loop run finds its ArduSub.
 #[derive(Debug, Clone)]
@@ -59,7 +64,8 @@ pub struct SitlLoopOptions {
     /// Where the started ArduSub runs and logs (default: a new folder under the
     /// system's temporary folder, removed after a clean run).
     pub work_dir: Option<PathBuf>,
-    /// Simulated seconds to wait for ArduSub to arm in the site's mode.
+    /// Simulated seconds to wait for ArduSub to arm in the site's mode (its EKF settles,
+    /// the vehicle is carried down from the surface).
     pub arm_timeout_s: f64,
     /// Longest wall time without a servo packet before ArduSub is taken for dead.
     pub peer_timeout: Duration,
@@ -74,7 +80,7 @@ impl Default for SitlLoopOptions {
             speedup: 100,
             vehicle_url: None,
             work_dir: None,
-            arm_timeout_s: 120.0,
+            arm_timeout_s: 180.0,
             peer_timeout: Duration::from_secs(10),
         }
     }
@@ -285,8 +291,37 @@ pub struct SitlRun {
     pub pose_mismatches: u64,
 }
 
+/// Bind the JSON physics (vehicle at `start`), start ArduSub if asked, and connect to
+/// its MAVLink.
+pub(crate) fn open_peer(
+    site: &LoadedSite,
+    opts: &SitlLoopOptions,
+    start: &Isometry3<f64>,
+    seed: u64,
+) -> anyhow::Result<(Peer, VehicleLink)> {
+    let cfg = SitlConfig {
+        bind_ip: std::net::IpAddr::from([127, 0, 0, 1]),
+        port: opts.json_port(),
+    };
+    let server = SitlServer::bind(&cfg, &site.site.vehicle, start, seed)
+        .with_context(|| format!("binding the JSON physics on udp 127.0.0.1:{}", cfg.port))?;
+    let mut proc = match &opts.ardusub {
+        Some(bin) => Some(ArduSubProcess::start(opts, bin)?),
+        None => None,
+    };
+    // SITL waits for a connection on SERIAL0 before it starts: connect first.
+    let link = connect(site, &opts.vehicle_url(), &mut proc)?;
+    let peer = Peer {
+        server,
+        proc,
+        timeout: opts.peer_timeout,
+        last_packet: Instant::now(),
+    };
+    Ok((peer, link))
+}
+
 /// The physics side of a run: the JSON server, ArduSub (maybe started by us), the link.
-struct Peer {
+pub(crate) struct Peer {
     server: SitlServer,
     proc: Option<ArduSubProcess>,
     timeout: Duration,
@@ -295,7 +330,7 @@ struct Peer {
 
 impl Peer {
     /// Step the physics by the next servo packet; the reply is held.
-    fn step(&mut self) -> anyhow::Result<()> {
+    pub(crate) fn step(&mut self) -> anyhow::Result<()> {
         loop {
             if self.server.receive(Duration::from_millis(200))?.is_some() && self.server.holding()
             {
@@ -318,8 +353,19 @@ impl Peer {
         }
     }
 
-    fn time_s(&self) -> f64 {
+    pub(crate) fn time_s(&self) -> f64 {
         self.server.state().time_s
+    }
+
+    pub(crate) fn server(&mut self) -> &mut SitlServer {
+        &mut self.server
+    }
+
+    /// The run ended cleanly (a started ArduSub's folder goes).
+    pub(crate) fn done(&mut self) {
+        if let Some(p) = self.proc.as_mut() {
+            p.done();
+        }
     }
 }
 
@@ -340,25 +386,7 @@ pub fn run_sitl_loop(
         start_offset(&s.vehicle)
     };
     let start = t_world_marker * t_marker_station * offset;
-    let cfg = SitlConfig {
-        bind_ip: std::net::IpAddr::from([127, 0, 0, 1]),
-        port: opts.json_port(),
-    };
-    let server = SitlServer::bind(&cfg, &s.vehicle, &start, hil.seed)
-        .with_context(|| format!("binding the JSON physics on udp 127.0.0.1:{}", cfg.port))?;
-    let mut proc = match &opts.ardusub {
-        Some(bin) => Some(ArduSubProcess::start(opts, bin)?),
-        None => None,
-    };
-    // SITL waits for a connection on SERIAL0 before it starts: connect first.
-    let link = connect(site, &opts.vehicle_url(), &mut proc)?;
-    let mut peer = Peer {
-        server,
-        proc,
-        timeout: opts.peer_timeout,
-        last_packet: Instant::now(),
-    };
-    let mut link = link;
+    let (mut peer, mut link) = open_peer(site, opts, &start, hil.seed)?;
     let mode = s.link.mode.ardusub();
     let armed_after_s = arm(&mut peer, &mut link, mode, opts.arm_timeout_s)?;
 
@@ -443,9 +471,7 @@ pub fn run_sitl_loop(
     result?;
     settled?;
     observed?;
-    if let Some(p) = peer.proc.as_mut() {
-        p.done();
-    }
+    peer.done();
     let mut summary = stats.summary(
         lstart.method,
         lighting.scenario,
@@ -466,7 +492,7 @@ pub fn run_sitl_loop(
 }
 
 /// The world's truth at a physics state, for the run's statistics.
-fn truth_of(
+pub(crate) fn truth_of(
     st: &markhold_hil::VehicleState,
     t_vehicle_cam: &Isometry3<f64>,
     t_world_marker: Isometry3<f64>,
@@ -489,22 +515,47 @@ fn truth_of(
     }
 }
 
-/// Serve physics with neutral input until ArduSub is armed in `mode`; returns the
-/// simulated seconds it took. Requests are repeated every simulated second (ArduSub
-/// refuses to arm until its EKF has settled).
-fn arm(
+/// Bring ArduSub up as a pilot would: powered on at the surface above the start (its
+/// depth sensor takes the surface pressure as zero, `AP_Baro::update_calibration` at
+/// boot; ArduSub's surface detection, surface_bottom_detector.cpp, compares depth
+/// against SURFACE_DEPTH), held there until its EKF has a position, carried down to the
+/// start pose at `DESCENT_MPS`, held still, then armed in `mode` and let go. Serves the
+/// physics throughout (neutral input); returns the simulated seconds from the first
+/// servo packet to armed. Requests repeat every simulated second.
+pub(crate) fn arm(
     peer: &mut Peer,
     link: &mut VehicleLink,
     mode: ArduSubMode,
     timeout_s: f64,
 ) -> anyhow::Result<f64> {
     let start = peer.server.start_pose();
+    let mut surface = start;
+    surface.translation.z = 0.0;
     peer.step()?;
     let t0 = peer.time_s();
     let mut next_tick = t0;
-    let mut next_request = t0 + 1.0;
+    let mut next_request = t0;
+    // When the descent began and when the vehicle reached the start.
+    let mut descent_from: Option<f64> = None;
+    let mut at_start_s: Option<f64> = None;
+    let depth = start.translation.z.max(0.0);
     loop {
         let t = peer.time_s();
+        // Where the hand holds the vehicle now.
+        let (pose, vz) = match descent_from {
+            None => (surface, 0.0),
+            Some(t1) => {
+                let z = ((t - t1) * DESCENT_MPS).min(depth);
+                let mut p = start;
+                p.translation.z = z;
+                let moving = z < depth;
+                if !moving && at_start_s.is_none() {
+                    at_start_s = Some(t);
+                }
+                (p, if moving { DESCENT_MPS } else { 0.0 })
+            }
+        };
+        peer.server.carry(&pose, &nalgebra::Vector3::new(0.0, 0.0, vz));
         if t >= next_tick {
             link.tick(t - t0)?;
             next_tick = t + 0.01;
@@ -514,10 +565,13 @@ fn arm(
                 peer.server.reply()?;
                 return Ok(t - t0);
             }
-            // Its EKF first: a position estimate and the settle time (ArduSub arms before
-            // its vertical estimate has settled, then chases it at full thrust).
-            let has_position = link.state().local_position.is_some();
-            if t >= next_request && discovered && has_position && t - t0 >= ARM_SETTLE_S {
+            // Its EKF first: a position estimate and the settle time.
+            let ready = discovered && st.local_position.is_some() && t - t0 >= ARM_SETTLE_S;
+            if ready && descent_from.is_none() {
+                descent_from = Some(t);
+            }
+            let settled = at_start_s.is_some_and(|t2| t - t2 >= HOLD_BEFORE_ARM_S);
+            if settled && t >= next_request {
                 link.send_neutral(t - t0)?;
                 link.request_mode(mode, t - t0)?;
                 if now_mode == Some(mode) {
@@ -536,8 +590,6 @@ fn arm(
         }
         peer.server.reply()?;
         peer.step()?;
-        // Held at the start until ArduSub is armed and holding.
-        peer.server.hold_at(&start);
     }
 }
 
