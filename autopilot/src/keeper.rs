@@ -67,17 +67,20 @@ pub enum KeeperStatus {
 ///   mode_althold.cpp `althold_run`). The keeper's yaw effort is therefore already
 ///   integrated by ArduSub: its integral term would make a double integrator (the
 ///   heading wound up and swung), so it is off.
-/// - ALT_HOLD also holds depth, but there the keeper keeps its own heave loop, integral
-///   included: ArduSub's depth estimate wanders by centimetres (SITL: +-8 cm with the
-///   keeper's heave off), and only the camera sees the marker's depth. Its throttle
-///   stick is a climb rate past a dead zone (docs/design/sitl.md), so heave is where the
-///   keeper and ArduSub still differ most.
+/// - ALT_HOLD holds depth: the throttle stick past its dead zone moves ArduSub's depth
+///   target at a climb rate (`set_alt_target_from_climb_rate`), and ArduSub's depth loop
+///   trims buoyancy with its own integrator. The keeper keeps its heave loop (only the
+///   camera sees the marker's depth) but not its integral, which on top of ArduSub's
+///   made the heave command stand off neutral and, through the thrusters' shared
+///   limits, the heading swing (SITL: heading std 2.0 deg with it, 0.4 without).
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize)]
 pub struct AutopilotHolds {
     /// Roll and pitch held level.
     pub attitude: bool,
     /// Heading held, yaw stick a rate.
     pub heading: bool,
+    /// Depth held, throttle stick a climb rate.
+    pub depth: bool,
 }
 
 impl AutopilotHolds {
@@ -85,9 +88,15 @@ impl AutopilotHolds {
     /// position-target modes, where the keeper does not send efforts).
     pub fn of_mode(mode: Option<ArduSubMode>) -> Self {
         match mode {
-            Some(ArduSubMode::Stabilize | ArduSubMode::AltHold) => Self {
+            Some(ArduSubMode::Stabilize) => Self {
                 attitude: true,
                 heading: true,
+                depth: false,
+            },
+            Some(ArduSubMode::AltHold) => Self {
+                attitude: true,
+                heading: true,
+                depth: true,
             },
             _ => Self::default(),
         }
@@ -667,11 +676,12 @@ impl StationKeeper {
             return;
         }
         self.holds = holds;
-        let [_, _, _, roll, pitch, yaw] = &mut self.axes;
+        let [_, _, heave, roll, pitch, yaw] = &mut self.axes;
         for (a, held) in [
             (roll, holds.attitude),
             (pitch, holds.attitude),
             (yaw, holds.heading),
+            (heave, holds.depth),
         ] {
             // What was integrated under the other mode does not carry over.
             a.reset();
@@ -845,6 +855,45 @@ mod tests {
         // Off: everything passes.
         let mut a = Axis::new(&cfg, 0.02, false, 0.0);
         assert_eq!(a.step(0.001), 0.001);
+    }
+
+    #[test]
+    fn in_alt_hold_roll_and_pitch_are_left_to_ardusub_and_yaw_does_not_integrate() {
+        // Rolled, pitched and yawed off the station, held there: in MANUAL every axis
+        // answers and yaw's integral grows; in ALT_HOLD (and STABILIZE) roll and pitch
+        // stay neutral and yaw is proportional only, as ArduSub turns it into a rate.
+        let goal = StationConfig::default().t_marker_vehicle();
+        let off = goal
+            * Isometry3::rotation(Vector3::new(0.05, -0.04, 0.0))
+            * Isometry3::rotation(Vector3::new(0.0, 0.0, 0.1));
+        let run = |mode: Option<ArduSubMode>| {
+            let mut k = keeper();
+            let mut outs = Vec::new();
+            for i in 0..60 {
+                let t = i as f64 / 30.0;
+                k.set_autopilot_mode(mode);
+                outs.push(k.update(t, Some(&meas_for(t, &off))));
+            }
+            (k.autopilot_holds(), outs)
+        };
+        let (holds, manual) = run(Some(ArduSubMode::Manual));
+        assert_eq!(holds, AutopilotHolds::default());
+        let (first, last) = (manual[1], manual[59]);
+        assert!(first.roll.abs() > 0.01 && first.pitch.abs() > 0.01, "{first:?}");
+        assert!(last.yaw.abs() > first.yaw.abs() + 1e-3, "{first:?} {last:?}");
+        for mode in [ArduSubMode::AltHold, ArduSubMode::Stabilize] {
+            let (holds, held) = run(Some(mode));
+            assert!(holds.attitude && holds.heading, "{mode:?}");
+            assert!(held.iter().all(|e| e.roll == 0.0 && e.pitch == 0.0));
+            let (first, last) = (held[1], held[59]);
+            assert!(first.yaw.abs() > 0.01, "{first:?}");
+            assert!((last.yaw - first.yaw).abs() < 1e-9, "{first:?} {last:?}");
+            // Surge and sway are the keeper's in every mode.
+            assert_eq!((last.surge, last.sway), (manual[59].surge, manual[59].sway));
+            assert_eq!(holds.depth, mode == ArduSubMode::AltHold);
+        }
+        // Unknown mode (no heartbeat yet): nothing is left to the autopilot.
+        assert_eq!(run(None).0, AutopilotHolds::default());
     }
 
     #[test]

@@ -69,6 +69,8 @@ pub struct SitlLoopOptions {
     pub arm_timeout_s: f64,
     /// Longest wall time without a servo packet before ArduSub is taken for dead.
     pub peer_timeout: Duration,
+    /// The JSON port instead of 9002 + 10 N (an ArduSub started with `--sim-port-out`).
+    pub json_port: Option<u16>,
 }
 
 impl Default for SitlLoopOptions {
@@ -82,13 +84,14 @@ impl Default for SitlLoopOptions {
             work_dir: None,
             arm_timeout_s: 180.0,
             peer_timeout: Duration::from_secs(10),
+            json_port: None,
         }
     }
 }
 
 impl SitlLoopOptions {
     fn json_port(&self) -> u16 {
-        JSON_PORT + 10 * self.instance
+        self.json_port.unwrap_or(JSON_PORT + 10 * self.instance)
     }
 
     fn vehicle_url(&self) -> String {
@@ -289,6 +292,9 @@ pub struct SitlRun {
     /// Frames whose camera pose differed from the physics pose at the frame's time
     /// (always 0: the frame is rendered from the held step).
     pub pose_mismatches: u64,
+    /// Each frame's physics time (ArduSub's clock) and the vehicle pose it was rendered
+    /// from.
+    pub frame_states: Vec<(f64, Isometry3<f64>)>,
 }
 
 /// Bind the JSON physics (vehicle at `start`), start ArduSub if asked, and connect to
@@ -408,6 +414,7 @@ pub fn run_sitl_loop(
     let mut frame = 0u64;
     let mut steps = 0u64;
     let mut mismatches = 0u64;
+    let mut frame_states = Vec::with_capacity(frames as usize);
     let mut interrupted = false;
     let mut events = Vec::with_capacity(16);
     let result = (|| -> anyhow::Result<()> {
@@ -428,19 +435,14 @@ pub fn run_sitl_loop(
                 if cam.rendered() != Some((now, st.t_world_vehicle)) {
                     mismatches += 1;
                 }
+                if let Some((_, pose)) = cam.rendered() {
+                    frame_states.push((st.time_s, pose));
+                }
                 events.clear();
                 events.extend_from_slice(pipeline.events());
                 pipeline.link_mut().on_events(&events, rec.stamp_s)?;
                 let truth = truth_of(&st, &site.t_vehicle_cam(), t_world_marker, &peer.server);
                 stats.push(&rec, &truth);
-                if std::env::var_os("MARKHOLD_SITL_DEBUG").is_some() && frame % 6 == 0 {
-                    let e = t_marker_station.inverse() * (t_world_marker.inverse() * st.t_world_vehicle);
-                    let (r, p, y) = e.rotation.euler_angles();
-                    eprintln!("DBG t={:.2} err=[{:.3} {:.3} {:.3}] rpy=[{:.1} {:.1} {:.1}] eff=[{:.3} {:.3} {:.3} {:.3} {:.3} {:.3}] det={} pwm={:?} mode={:?} ap_z={:?} z={:.3}",
-                        now, e.translation.x, e.translation.y, e.translation.z, r.to_degrees(), p.to_degrees(), y.to_degrees(),
-                        rec.effort.surge, rec.effort.sway, rec.effort.heave, rec.effort.roll, rec.effort.pitch, rec.effort.yaw,
-                        rec.detected, &truth.pwm, pipeline.link().inner().state().mode, pipeline.link().inner().state().local_position.map(|p| p.position[2]), st.t_world_vehicle.translation.z);
-                }
                 hold.push(&rec, &truth);
                 frame += 1;
             }
@@ -488,6 +490,7 @@ pub fn run_sitl_loop(
         frames: frame,
         armed_after_s,
         pose_mismatches: mismatches,
+        frame_states,
     })
 }
 
