@@ -412,12 +412,10 @@ mod fake_ardusub {
                             // A held reply (a frame being rendered), the server not yet
                             // bound, or the run over.
                             let since = *silent_since.get_or_insert_with(Instant::now);
-                            if !states.is_empty() && since.elapsed() > Duration::from_secs(2)
-                            {
+                            if !states.is_empty() && since.elapsed() > Duration::from_secs(2) {
                                 break 'outer;
                             }
-                            if states.is_empty() && since.elapsed() > Duration::from_millis(200)
-                            {
+                            if states.is_empty() && since.elapsed() > Duration::from_millis(200) {
                                 // Before the first reply: send again, as SIM_JSON does.
                                 silent_since = None;
                                 continue 'outer;

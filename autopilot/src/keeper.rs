@@ -11,8 +11,8 @@ mod view;
 
 use crate::config::{AxisConfig, ControllerConfig, StationConfig};
 use crate::error::AutopilotError;
-pub use crate::types::{wrap_pi, Effort};
 use crate::types::ArduSubMode;
+pub use crate::types::{wrap_pi, Effort};
 
 /// One marker pose from vision: the marker in the camera frame, with its 6x6 covariance
 /// (tx, ty, tz, rx, ry, rz) in the camera frame.
@@ -102,7 +102,6 @@ impl AutopilotHolds {
         }
     }
 }
-
 
 /// Body-frame pose error of the vehicle relative to its station: the goal expressed in the
 /// current body frame. (surge, sway, heave) in metres, (roll, pitch, yaw) in radians, yaw
@@ -879,8 +878,14 @@ mod tests {
         let (holds, manual) = run(Some(ArduSubMode::Manual));
         assert_eq!(holds, AutopilotHolds::default());
         let (first, last) = (manual[1], manual[59]);
-        assert!(first.roll.abs() > 0.01 && first.pitch.abs() > 0.01, "{first:?}");
-        assert!(last.yaw.abs() > first.yaw.abs() + 1e-3, "{first:?} {last:?}");
+        assert!(
+            first.roll.abs() > 0.01 && first.pitch.abs() > 0.01,
+            "{first:?}"
+        );
+        assert!(
+            last.yaw.abs() > first.yaw.abs() + 1e-3,
+            "{first:?} {last:?}"
+        );
         for mode in [ArduSubMode::AltHold, ArduSubMode::Stabilize] {
             let (holds, held) = run(Some(mode));
             assert!(holds.attitude && holds.heading, "{mode:?}");

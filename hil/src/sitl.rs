@@ -368,8 +368,8 @@ impl SitlServer {
         let mut state = self.vehicle.state();
         state.velocity_world_mps = *velocity_world_mps;
         state.angvel_body_rps = nalgebra::Vector3::zeros();
-        state.specific_force_body_mps2 =
-            pose.rotation.inverse() * nalgebra::Vector3::new(0.0, 0.0, -crate::vehicle::GRAVITY_MPS2);
+        state.specific_force_body_mps2 = pose.rotation.inverse()
+            * nalgebra::Vector3::new(0.0, 0.0, -crate::vehicle::GRAVITY_MPS2);
         write_state_json(&mut self.tx, &state);
     }
 

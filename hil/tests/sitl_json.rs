@@ -195,7 +195,8 @@ fn held_replies_keep_the_peer_in_lockstep_and_frames_see_the_replied_pose() {
     // The fake ArduPilot: a full-thrust vertical pulse so that the pose changes.
     let peer = std::thread::spawn(move || {
         let sock = UdpSocket::bind("127.0.0.1:0").unwrap();
-        sock.set_read_timeout(Some(Duration::from_secs(10))).unwrap();
+        sock.set_read_timeout(Some(Duration::from_secs(10)))
+            .unwrap();
         let a = Ardu { sock, to: addr };
         let mut replies = Vec::new();
         for frame in 0..packets {
@@ -222,7 +223,7 @@ fn held_replies_keep_the_peer_in_lockstep_and_frames_see_the_replied_pose() {
         }
         assert!(server.holding());
         stepped += 1;
-        if stepped % 25 == 0 {
+        if stepped.is_multiple_of(25) {
             let st = server.state();
             // A slow frame: nothing else arrives while the reply is held.
             let before = server.stats().packets;

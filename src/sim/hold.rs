@@ -91,8 +91,7 @@ impl HoldSeries {
             yaw_effort_std: std_dev(&self.yaw_effort[h..]),
             heave_effort_std: std_dev(&self.heave_effort[h..]),
             thruster_reversals_per_s: reversals(&self.pwm[h..]) as f64 / span,
-            detection_rate: self.detected.iter().filter(|d| **d).count() as f64
-                / n.max(1) as f64,
+            detection_rate: self.detected.iter().filter(|d| **d).count() as f64 / n.max(1) as f64,
         }
     }
 }

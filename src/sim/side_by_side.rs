@@ -257,7 +257,10 @@ pub fn report(c: &Comparison) -> String {
         c.seed, c.seconds, c.ardusub
     );
     for site in &c.sites {
-        for (who, f) in [("simulated ArduSub", &site.ours), ("ArduSub SITL", &site.sitl)] {
+        for (who, f) in [
+            ("simulated ArduSub", &site.ours),
+            ("ArduSub SITL", &site.sitl),
+        ] {
             s += &format!(
                 "| {} | {} | {:.1} | {:.1} | {:.2} | {:.3} | {:.3} | {:.2} | {:.0} |\n",
                 site.site,

@@ -338,8 +338,7 @@ impl Peer {
     /// Step the physics by the next servo packet; the reply is held.
     pub(crate) fn step(&mut self) -> anyhow::Result<()> {
         loop {
-            if self.server.receive(Duration::from_millis(200))?.is_some() && self.server.holding()
-            {
+            if self.server.receive(Duration::from_millis(200))?.is_some() && self.server.holding() {
                 self.last_packet = Instant::now();
                 return Ok(());
             }
@@ -558,7 +557,8 @@ pub(crate) fn arm(
                 (p, if moving { DESCENT_MPS } else { 0.0 })
             }
         };
-        peer.server.carry(&pose, &nalgebra::Vector3::new(0.0, 0.0, vz));
+        peer.server
+            .carry(&pose, &nalgebra::Vector3::new(0.0, 0.0, vz));
         if t >= next_tick {
             link.tick(t - t0)?;
             next_tick = t + 0.01;
