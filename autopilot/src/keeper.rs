@@ -70,9 +70,8 @@ pub enum KeeperStatus {
 /// - ALT_HOLD holds depth: the throttle stick past its dead zone moves ArduSub's depth
 ///   target at a climb rate (`set_alt_target_from_climb_rate`), and ArduSub's depth loop
 ///   trims buoyancy with its own integrator. The keeper keeps its heave loop (only the
-///   camera sees the marker's depth) but not its integral, which on top of ArduSub's
-///   made the heave command stand off neutral and, through the thrusters' shared
-///   limits, the heading swing (SITL: heading std 2.0 deg with it, 0.4 without).
+///   camera sees the marker's depth) but not its integral: a stick ArduSub already
+///   integrates into a depth needs no second integrator (docs/design/sitl.md).
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize)]
 pub struct AutopilotHolds {
     /// Roll and pitch held level.
