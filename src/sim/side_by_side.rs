@@ -105,6 +105,10 @@ impl PoseTrace {
             }
         };
         let (a, b) = (STEP_AT_S + STEP_S / 2.0, STEP_AT_S + STEP_S);
+        if *self.t.last()? < b + STEP_S - 1e-6 {
+            // The trace ends before the coast does.
+            return None;
+        }
         let rate = (coord(self.at(b)?) - coord(self.at(a)?)) / (b - a);
         let after = coord(self.at(b + STEP_S)?) - coord(self.at(b)?);
         Some(StepResponse {
@@ -397,4 +401,55 @@ pub fn cli(args: SitlCompareArgs) -> anyhow::Result<()> {
             .with_context(|| format!("writing {}", json.display()))?;
     }
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use nalgebra::{Translation3, UnitQuaternion};
+
+    /// A vehicle that moves forward at 0.5 m/s and turns at 20 deg/s during the step,
+    /// then coasts at half that for the rest: the rate is read in the step's second half,
+    /// the displacement over the 2 s after release.
+    #[test]
+    fn step_response_reads_the_rate_and_the_coast() {
+        let mut tr = PoseTrace::default();
+        let start = Isometry3::from_parts(
+            Translation3::new(1.0, 2.0, 3.0),
+            UnitQuaternion::from_euler_angles(0.0, 0.0, 0.5),
+        );
+        let end = STEP_AT_S + STEP_S;
+        for i in 0..=300 {
+            let t = i as f64 * 0.02;
+            let moving = (t - STEP_AT_S).clamp(0.0, STEP_S);
+            let coasting = (t - end).clamp(0.0, STEP_S);
+            let x = 0.5 * moving + 0.25 * coasting;
+            let yaw = (20.0 * moving + 10.0 * coasting).to_radians();
+            let local = Isometry3::from_parts(
+                Translation3::new(x, 0.0, 0.0),
+                UnitQuaternion::from_euler_angles(0.0, 0.0, yaw),
+            );
+            tr.push(t, &(start * local));
+        }
+        let s = tr.response("MANUAL", StepAxis::Surge).unwrap();
+        assert!((s.rate - 0.5).abs() < 1e-9 && (s.after_release - 0.5).abs() < 1e-9, "{s:?}");
+        let y = tr.response("MANUAL", StepAxis::Yaw).unwrap();
+        assert!((y.rate - 20.0).abs() < 1e-6 && (y.after_release - 20.0).abs() < 1e-6, "{y:?}");
+        let h = tr.response("MANUAL", StepAxis::Heave).unwrap();
+        assert!(h.rate.abs() < 1e-9 && h.after_release.abs() < 1e-9, "{h:?}");
+        // A trace that ends before the coast does has no response.
+        let mut short = PoseTrace::default();
+        short.push(0.0, &start);
+        short.push(end, &start);
+        assert!(short.response("MANUAL", StepAxis::Yaw).is_none());
+        assert!(PoseTrace::default().response("MANUAL", StepAxis::Yaw).is_none());
+    }
+
+    #[test]
+    fn step_effort_is_the_step_and_neutral_around_it() {
+        assert_eq!(step_effort(StepAxis::Yaw, 0.5), Effort::NEUTRAL);
+        assert_eq!(step_effort(StepAxis::Yaw, STEP_AT_S).yaw, STEP_EFFORT);
+        assert_eq!(step_effort(StepAxis::Heave, STEP_AT_S + 1.0).heave, STEP_EFFORT);
+        assert_eq!(step_effort(StepAxis::Surge, STEP_AT_S + STEP_S), Effort::NEUTRAL);
+    }
 }
