@@ -432,9 +432,15 @@ mod tests {
             tr.push(t, &(start * local));
         }
         let s = tr.response("MANUAL", StepAxis::Surge).unwrap();
-        assert!((s.rate - 0.5).abs() < 1e-9 && (s.after_release - 0.5).abs() < 1e-9, "{s:?}");
+        assert!(
+            (s.rate - 0.5).abs() < 1e-9 && (s.after_release - 0.5).abs() < 1e-9,
+            "{s:?}"
+        );
         let y = tr.response("MANUAL", StepAxis::Yaw).unwrap();
-        assert!((y.rate - 20.0).abs() < 1e-6 && (y.after_release - 20.0).abs() < 1e-6, "{y:?}");
+        assert!(
+            (y.rate - 20.0).abs() < 1e-6 && (y.after_release - 20.0).abs() < 1e-6,
+            "{y:?}"
+        );
         let h = tr.response("MANUAL", StepAxis::Heave).unwrap();
         assert!(h.rate.abs() < 1e-9 && h.after_release.abs() < 1e-9, "{h:?}");
         // A trace that ends before the coast does has no response.
@@ -442,14 +448,22 @@ mod tests {
         short.push(0.0, &start);
         short.push(end, &start);
         assert!(short.response("MANUAL", StepAxis::Yaw).is_none());
-        assert!(PoseTrace::default().response("MANUAL", StepAxis::Yaw).is_none());
+        assert!(PoseTrace::default()
+            .response("MANUAL", StepAxis::Yaw)
+            .is_none());
     }
 
     #[test]
     fn step_effort_is_the_step_and_neutral_around_it() {
         assert_eq!(step_effort(StepAxis::Yaw, 0.5), Effort::NEUTRAL);
         assert_eq!(step_effort(StepAxis::Yaw, STEP_AT_S).yaw, STEP_EFFORT);
-        assert_eq!(step_effort(StepAxis::Heave, STEP_AT_S + 1.0).heave, STEP_EFFORT);
-        assert_eq!(step_effort(StepAxis::Surge, STEP_AT_S + STEP_S), Effort::NEUTRAL);
+        assert_eq!(
+            step_effort(StepAxis::Heave, STEP_AT_S + 1.0).heave,
+            STEP_EFFORT
+        );
+        assert_eq!(
+            step_effort(StepAxis::Surge, STEP_AT_S + STEP_S),
+            Effort::NEUTRAL
+        );
     }
 }
