@@ -67,19 +67,16 @@ pub enum KeeperStatus {
 ///   mode_althold.cpp `althold_run`). The keeper's yaw effort is therefore already
 ///   integrated by ArduSub: its integral term would make a double integrator (the
 ///   heading wound up and swung), so it is off.
-/// - ALT_HOLD holds depth: the throttle stick past its dead zone moves ArduSub's depth
-///   target at a climb rate (`set_alt_target_from_climb_rate`), and ArduSub's depth loop
-///   trims buoyancy with its own integrator. The keeper keeps its heave loop (only the
-///   camera sees the marker's depth) but not its integral: a stick ArduSub already
-///   integrates into a depth needs no second integrator (docs/design/sitl.md).
+/// - ALT_HOLD also holds depth, but the keeper keeps its whole heave loop, integral
+///   included: only the camera sees the marker's depth, and turning the integral off
+///   made no measurable difference on SITL while it moved the lamp-map site's exposure
+///   to where one marker is no longer decoded (docs/design/sitl.md).
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize)]
 pub struct AutopilotHolds {
     /// Roll and pitch held level.
     pub attitude: bool,
     /// Heading held, yaw stick a rate.
     pub heading: bool,
-    /// Depth held, throttle stick a climb rate.
-    pub depth: bool,
 }
 
 impl AutopilotHolds {
@@ -87,15 +84,9 @@ impl AutopilotHolds {
     /// position-target modes, where the keeper does not send efforts).
     pub fn of_mode(mode: Option<ArduSubMode>) -> Self {
         match mode {
-            Some(ArduSubMode::Stabilize) => Self {
+            Some(ArduSubMode::Stabilize | ArduSubMode::AltHold) => Self {
                 attitude: true,
                 heading: true,
-                depth: false,
-            },
-            Some(ArduSubMode::AltHold) => Self {
-                attitude: true,
-                heading: true,
-                depth: true,
             },
             _ => Self::default(),
         }
@@ -674,12 +665,11 @@ impl StationKeeper {
             return;
         }
         self.holds = holds;
-        let [_, _, heave, roll, pitch, yaw] = &mut self.axes;
+        let [_, _, _, roll, pitch, yaw] = &mut self.axes;
         for (a, held) in [
             (roll, holds.attitude),
             (pitch, holds.attitude),
             (yaw, holds.heading),
-            (heave, holds.depth),
         ] {
             // What was integrated under the other mode does not carry over.
             a.reset();
@@ -892,9 +882,11 @@ mod tests {
             let (first, last) = (held[1], held[59]);
             assert!(first.yaw.abs() > 0.01, "{first:?}");
             assert!((last.yaw - first.yaw).abs() < 1e-9, "{first:?} {last:?}");
-            // Surge and sway are the keeper's in every mode.
-            assert_eq!((last.surge, last.sway), (manual[59].surge, manual[59].sway));
-            assert_eq!(holds.depth, mode == ArduSubMode::AltHold);
+            // The translation axes are the keeper's in every mode.
+            assert_eq!(
+                (last.surge, last.sway, last.heave),
+                (manual[59].surge, manual[59].sway, manual[59].heave)
+            );
         }
         // Unknown mode (no heartbeat yet): nothing is left to the autopilot.
         assert_eq!(run(None).0, AutopilotHolds::default());
