@@ -35,6 +35,14 @@ enum Command {
     /// `sim_vehicle.py -v ArduSub -f vectored_6dof --model JSON`.
     #[cfg(feature = "sim")]
     Sitl(markhold::sim::cmd::SitlArgs),
+    /// Fly the real ArduSub (SITL, `--model JSON`) with markhold's physics as its JSON
+    /// backend and the camera rendered from the same physics state, in lockstep.
+    #[cfg(feature = "sim")]
+    SitlLoop(markhold::sim::sitl_loop::SitlLoopArgs),
+    /// The same sites and seed on markhold's simulated ArduSub and on ArduSub SITL:
+    /// hold figures and stick-step responses per mode, side by side.
+    #[cfg(feature = "sim")]
+    SitlCompare(markhold::sim::side_by_side::SitlCompareArgs),
     /// Feed a recording (`--record`) through the loop again and compare its commands.
     Replay(ReplayArgs),
     /// Hold station on a real vehicle with a real camera (Ctrl-C: neutral input, exit 0).
@@ -253,6 +261,10 @@ fn run(cli: Cli) -> anyhow::Result<()> {
         } => params_check(&file),
         #[cfg(feature = "sim")]
         Command::Sitl(args) => markhold::sim::cmd::sitl(args),
+        #[cfg(feature = "sim")]
+        Command::SitlLoop(args) => markhold::sim::sitl_loop::cli(args),
+        #[cfg(feature = "sim")]
+        Command::SitlCompare(args) => markhold::sim::side_by_side::cli(args),
         Command::Replay(args) => replay(args),
         Command::Run(args) => run_cmd(args),
         Command::Preflight(args) => preflight_cmd(args),

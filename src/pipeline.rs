@@ -418,6 +418,8 @@ impl<L: CommandLink> Pipeline<L> {
         // Heading, position and depth for the way back when the marker slips out of view
         // (telemetry no older than a second).
         if let Some(v) = self.link.vehicle_state() {
+            // What the vehicle's mode holds by itself, the keeper leaves alone.
+            self.keeper.set_autopilot_mode(v.mode);
             let fresh = |t: f64| (0.0..=1.0).contains(&(stamp - t));
             if let Some(a) = v.attitude.filter(|a| fresh(a.stamp_s)) {
                 self.keeper.set_heading(a.yaw);

@@ -33,7 +33,7 @@ fn run_summary(args: &[&str], out: &Path) -> serde_json::Value {
 }
 
 /// The README's pool row (`markhold hil --site params/pool.toml --seconds 60 --seed 1`):
-/// position RMS 5.8 mm, final error 1.8 mm, detection 100 %. Checked within 2x of those
+/// position RMS 2.9 mm, final error 4.4 mm, detection 100 %. Checked within 2x of those
 /// figures (the run is the same on every CPU for a seed); the other sites' rows below.
 #[test]
 fn pool_station_keeping_settles() {
@@ -42,8 +42,8 @@ fn pool_station_keeping_settles() {
         s[k].as_f64()
             .unwrap_or_else(|| panic!("summary has no number {k}: {s}"))
     };
-    within_2x("pool final error", f("final_position_error_m"), 0.0018, &s);
-    within_2x("pool position RMS", f("position_rms_m"), 0.0058, &s);
+    within_2x("pool final error", f("final_position_error_m"), 0.0044, &s);
+    within_2x("pool position RMS", f("position_rms_m"), 0.0029, &s);
     assert!(f("final_yaw_error_deg") < 3.0, "{s}");
     assert!(f("detection_rate") > 0.999, "{s}");
     assert_eq!(s["frames"].as_u64(), Some(1800), "{s}");
@@ -127,17 +127,17 @@ fn site_as_the_readme_states(site: &str, rms_m: f64, final_m: f64, detection: f6
 
 #[test]
 fn connecticut_river_as_the_readme_states() {
-    site_as_the_readme_states("connecticut-river", 0.0053, 0.0054, 1.0);
+    site_as_the_readme_states("connecticut-river", 0.0063, 0.0124, 1.0);
 }
 
 #[test]
 fn night_harbor_as_the_readme_states() {
-    site_as_the_readme_states("night-harbor", 0.0048, 0.0036, 0.999);
+    site_as_the_readme_states("night-harbor", 0.0031, 0.0041, 0.999);
 }
 
 #[test]
 fn reef_caustics_as_the_readme_states() {
-    site_as_the_readme_states("reef-caustics", 0.0377, 0.0310, 0.979);
+    site_as_the_readme_states("reef-caustics", 0.0479, 0.0458, 0.968);
 }
 
 #[test]

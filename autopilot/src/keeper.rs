@@ -11,6 +11,7 @@ mod view;
 
 use crate::config::{AxisConfig, ControllerConfig, StationConfig};
 use crate::error::AutopilotError;
+use crate::types::ArduSubMode;
 pub use crate::types::{wrap_pi, Effort};
 
 /// One marker pose from vision: the marker in the camera frame, with its 6x6 covariance
@@ -52,6 +53,44 @@ pub enum KeeperStatus {
     Searching,
     /// Marker lost longer than the hold: neutral.
     Lost,
+}
+
+/// What ArduSub holds by itself in the flight mode it reports, so that the keeper does
+/// not close a second loop around it (ArduSub's source, this version and upstream):
+/// - STABILIZE and ALT_HOLD hold roll and pitch level: the roll and pitch sticks are lean
+///   angle targets (`get_pilot_desired_lean_angles`), and the station is level, so the
+///   keeper sends none (its own roll/pitch loop around ArduSub's attitude loop, a frame
+///   late, made both oscillate).
+/// - They hold the heading: the yaw stick is a yaw *rate*, `stick * ACRO_YAW_P` centidegrees
+///   per second (Attitude.cpp `get_pilot_desired_yaw_rate`), and 250 ms after it returns
+///   to centre ArduSub holds the heading it then has (control_althold.cpp /
+///   mode_althold.cpp `althold_run`). The keeper's yaw effort is therefore already
+///   integrated by ArduSub: its integral term would make a double integrator (the
+///   heading wound up and swung), so it is off.
+/// - ALT_HOLD also holds depth, but the keeper keeps its whole heave loop, integral
+///   included: only the camera sees the marker's depth, and turning the integral off
+///   made no measurable difference on SITL while it moved the lamp-map site's exposure
+///   to where one marker is no longer decoded (docs/design/sitl.md).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize)]
+pub struct AutopilotHolds {
+    /// Roll and pitch held level.
+    pub attitude: bool,
+    /// Heading held, yaw stick a rate.
+    pub heading: bool,
+}
+
+impl AutopilotHolds {
+    /// The holds of an ArduSub flight mode (none while it is unknown, in MANUAL and in the
+    /// position-target modes, where the keeper does not send efforts).
+    pub fn of_mode(mode: Option<ArduSubMode>) -> Self {
+        match mode {
+            Some(ArduSubMode::Stabilize | ArduSubMode::AltHold) => Self {
+                attitude: true,
+                heading: true,
+            },
+            _ => Self::default(),
+        }
+    }
 }
 
 /// Body-frame pose error of the vehicle relative to its station: the goal expressed in the
@@ -218,6 +257,8 @@ struct Axis {
     band: f64,
     /// The axis commands (outside the band, or inside it but not yet below the release).
     active: bool,
+    /// The integral term runs (off where the autopilot integrates the command itself).
+    integrate: bool,
 }
 
 impl Axis {
@@ -236,6 +277,7 @@ impl Axis {
             last_i: 0.0,
             band,
             active: false,
+            integrate: true,
         }
     }
 
@@ -270,7 +312,11 @@ impl Axis {
         // Clamping anti-windup: do not integrate further into a saturated output.
         let saturated = self.last_out.abs() >= lim && lim > 0.0;
         let pushing = saturated && err.signum() == self.last_out.signum();
-        self.pid.ki = if pushing { 0.0 } else { self.ki_step };
+        self.pid.ki = if pushing || !self.integrate {
+            0.0
+        } else {
+            self.ki_step
+        };
         // The crate computes setpoint - measurement: feed -err against a zero setpoint so
         // that angle wrapping is ours.
         let o = self.pid.next_control_output(-err);
@@ -332,6 +378,8 @@ pub struct StationKeeper {
     last_view: Option<view::LastSeen>,
     nav: view::Nav,
     search_max_s: f64,
+    /// What the autopilot holds in its current mode (`set_autopilot_mode`).
+    holds: AutopilotHolds,
 }
 
 impl StationKeeper {
@@ -393,6 +441,7 @@ impl StationKeeper {
             last_view: None,
             nav: view::Nav::default(),
             search_max_s: ctl.marker_lost_action_after_s,
+            holds: AutopilotHolds::default(),
         })
     }
 
@@ -558,6 +607,11 @@ impl StationKeeper {
             for (i, a) in self.axes.iter_mut().enumerate() {
                 o[i] = a.step(x[i]);
             }
+            if self.holds.attitude {
+                // ArduSub holds the station's level attitude itself.
+                o[3] = 0.0;
+                o[4] = 0.0;
+            }
             self.pid_out = Effort::from_array(o);
             self.acc -= self.dt_step;
             steps += 1;
@@ -600,6 +654,32 @@ impl StationKeeper {
     /// last seen from. `None` when unknown.
     pub fn set_depth(&mut self, down_m: Option<f64>) {
         self.nav.down_m = down_m.filter(|d| d.is_finite());
+    }
+
+    /// The flight mode the vehicle reports (HEARTBEAT), given before `update` for the
+    /// same frame: the keeper leaves to ArduSub what that mode holds by itself
+    /// ([`AutopilotHolds`]). Unknown (`None`) holds nothing.
+    pub fn set_autopilot_mode(&mut self, mode: Option<ArduSubMode>) {
+        let holds = AutopilotHolds::of_mode(mode);
+        if holds == self.holds {
+            return;
+        }
+        self.holds = holds;
+        let [_, _, _, roll, pitch, yaw] = &mut self.axes;
+        for (a, held) in [
+            (roll, holds.attitude),
+            (pitch, holds.attitude),
+            (yaw, holds.heading),
+        ] {
+            // What was integrated under the other mode does not carry over.
+            a.reset();
+            a.integrate = !held;
+        }
+    }
+
+    /// What the keeper leaves to the autopilot now.
+    pub fn autopilot_holds(&self) -> AutopilotHolds {
+        self.holds
     }
 
     /// Where the guard band starts: a fraction of the image inside its edges.
@@ -763,6 +843,53 @@ mod tests {
         // Off: everything passes.
         let mut a = Axis::new(&cfg, 0.02, false, 0.0);
         assert_eq!(a.step(0.001), 0.001);
+    }
+
+    #[test]
+    fn in_alt_hold_roll_and_pitch_are_left_to_ardusub_and_yaw_does_not_integrate() {
+        // Rolled, pitched and yawed off the station, held there: in MANUAL every axis
+        // answers and yaw's integral grows; in ALT_HOLD (and STABILIZE) roll and pitch
+        // stay neutral and yaw is proportional only, as ArduSub turns it into a rate.
+        let goal = StationConfig::default().t_marker_vehicle();
+        let off = goal
+            * Isometry3::rotation(Vector3::new(0.05, -0.04, 0.0))
+            * Isometry3::rotation(Vector3::new(0.0, 0.0, 0.1));
+        let run = |mode: Option<ArduSubMode>| {
+            let mut k = keeper();
+            let mut outs = Vec::new();
+            for i in 0..60 {
+                let t = i as f64 / 30.0;
+                k.set_autopilot_mode(mode);
+                outs.push(k.update(t, Some(&meas_for(t, &off))));
+            }
+            (k.autopilot_holds(), outs)
+        };
+        let (holds, manual) = run(Some(ArduSubMode::Manual));
+        assert_eq!(holds, AutopilotHolds::default());
+        let (first, last) = (manual[1], manual[59]);
+        assert!(
+            first.roll.abs() > 0.01 && first.pitch.abs() > 0.01,
+            "{first:?}"
+        );
+        assert!(
+            last.yaw.abs() > first.yaw.abs() + 1e-3,
+            "{first:?} {last:?}"
+        );
+        for mode in [ArduSubMode::AltHold, ArduSubMode::Stabilize] {
+            let (holds, held) = run(Some(mode));
+            assert!(holds.attitude && holds.heading, "{mode:?}");
+            assert!(held.iter().all(|e| e.roll == 0.0 && e.pitch == 0.0));
+            let (first, last) = (held[1], held[59]);
+            assert!(first.yaw.abs() > 0.01, "{first:?}");
+            assert!((last.yaw - first.yaw).abs() < 1e-9, "{first:?} {last:?}");
+            // The translation axes are the keeper's in every mode.
+            assert_eq!(
+                (last.surge, last.sway, last.heave),
+                (manual[59].surge, manual[59].sway, manual[59].heave)
+            );
+        }
+        // Unknown mode (no heartbeat yet): nothing is left to the autopilot.
+        assert_eq!(run(None).0, AutopilotHolds::default());
     }
 
     #[test]

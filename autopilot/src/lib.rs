@@ -26,7 +26,7 @@ pub use config::{
     PilotInput, StationConfig,
 };
 pub use error::AutopilotError;
-pub use keeper::{KeeperStatus, PoseMeasurement, StationKeeper, ViewLimits};
+pub use keeper::{AutopilotHolds, KeeperStatus, PoseMeasurement, StationKeeper, ViewLimits};
 pub use link::{CommandStatus, PilotSeen, RawFrame, Severity, VehicleLink, VehicleState};
 pub use markhold_config::ConfigError;
 /// The mavlink crate the link is built on (same version and features), for callers that

@@ -140,6 +140,9 @@ pub struct SitlServer {
     stats: SitlStats,
     rx: [u8; 512],
     tx: Vec<u8>,
+    /// Where the held reply goes (see `receive`).
+    pending: Option<SocketAddr>,
+    last_pwm: [u16; 16],
 }
 
 fn finite(v: f64) -> f64 {
@@ -207,6 +210,8 @@ impl SitlServer {
             stats: SitlStats::default(),
             rx: [0; 512],
             tx: Vec::with_capacity(512),
+            pending: None,
+            last_pwm: [1500; 16],
         })
     }
 
@@ -295,13 +300,21 @@ impl SitlServer {
         for (o, &p) in pwm.iter_mut().zip(pkt.pwm.iter()) {
             *o = if p == 0 { 1500 } else { p };
         }
+        for (o, &p) in self.last_pwm.iter_mut().zip(pkt.pwm.iter()) {
+            *o = if p == 0 { 1500 } else { p };
+        }
         self.vehicle.step(&pwm);
         self.stats.steps += 1;
     }
 
-    /// Receive and answer one datagram, waiting at most `timeout` (wall clock).
-    /// Returns false when nothing arrived.
-    pub fn serve_one(&mut self, timeout: Duration) -> Result<bool, HilError> {
+    /// Receive one datagram (waiting at most `timeout`, wall clock) and step the physics
+    /// by it, but hold the reply: ArduPilot waits for it (SIM_JSON.cpp `JSON::recv_fdm`
+    /// blocks until a state arrives, and its clock advances only by the state's
+    /// timestamp), so its time stands still until [`SitlServer::reply`]. Whatever the
+    /// caller does in between (render a frame, run a control step at `state()`) happens at
+    /// exactly this physics time: lockstep. `Ok(None)` when nothing arrived; a rejected
+    /// packet is logged and leaves nothing to reply.
+    pub fn receive(&mut self, timeout: Duration) -> Result<Option<SitlStats>, HilError> {
         let t = timeout.max(Duration::from_millis(1));
         self.socket
             .set_read_timeout(Some(t))
@@ -320,7 +333,7 @@ impl SitlServer {
                         | std::io::ErrorKind::ConnectionReset
                 ) =>
             {
-                return Ok(false)
+                return Ok(None)
             }
             Err(source) => {
                 return Err(HilError::Socket {
@@ -332,16 +345,66 @@ impl SitlServer {
         };
         let rx = self.rx;
         match self.handle_packet(&rx[..n]) {
-            Ok(_) => {
-                if let Err(e) = self.socket.send_to(&self.tx, from) {
-                    tracing::warn!(%from, error = %e, "sitl: reply not sent");
-                }
-            }
+            Ok(_) => self.pending = Some(from),
             Err(reason) => {
                 tracing::warn!(%from, len = n, %reason, "sitl: servo packet rejected");
             }
         }
-        Ok(true)
+        Ok(Some(self.stats))
+    }
+
+    /// Hold the vehicle at `pose`, at rest (time goes on), and make the held reply say
+    /// so: a vehicle held still by hand until its autopilot is ready, as on a real dive.
+    pub fn hold_at(&mut self, pose: &Isometry3<f64>) {
+        self.carry(pose, &nalgebra::Vector3::zeros());
+    }
+
+    /// Carry the vehicle by hand: put it at `pose` moving at `velocity_world_mps` (world
+    /// NED), level flight through the water with no acceleration (the accelerometer reads
+    /// gravity only), and make the held reply say so. The physics restarts from rest at
+    /// `pose` when let go.
+    pub fn carry(&mut self, pose: &Isometry3<f64>, velocity_world_mps: &nalgebra::Vector3<f64>) {
+        self.vehicle.teleport(pose);
+        let mut state = self.vehicle.state();
+        state.velocity_world_mps = *velocity_world_mps;
+        state.angvel_body_rps = nalgebra::Vector3::zeros();
+        state.specific_force_body_mps2 = pose.rotation.inverse()
+            * nalgebra::Vector3::new(0.0, 0.0, -crate::vehicle::GRAVITY_MPS2);
+        write_state_json(&mut self.tx, &state);
+    }
+
+    /// The start pose the server was bound with.
+    pub fn start_pose(&self) -> Isometry3<f64> {
+        self.start
+    }
+
+    /// A reply is held (a packet was received and not yet answered).
+    pub fn holding(&self) -> bool {
+        self.pending.is_some()
+    }
+
+    /// Send the held reply (the state after the last step), if any.
+    pub fn reply(&mut self) -> Result<(), HilError> {
+        if let Some(from) = self.pending.take() {
+            if let Err(e) = self.socket.send_to(&self.tx, from) {
+                tracing::warn!(%from, error = %e, "sitl: reply not sent");
+            }
+        }
+        Ok(())
+    }
+
+    /// The servo outputs of the last packet that stepped the physics (1500 where a
+    /// channel had no pulse), channels 1..=16.
+    pub fn last_pwm(&self) -> [u16; 16] {
+        self.last_pwm
+    }
+
+    /// Receive and answer one datagram, waiting at most `timeout` (wall clock).
+    /// Returns false when nothing arrived.
+    pub fn serve_one(&mut self, timeout: Duration) -> Result<bool, HilError> {
+        let got = self.receive(timeout)?.is_some();
+        self.reply()?;
+        Ok(got)
     }
 
     /// Serve until `max_packets` datagrams were handled or `max_wall` elapsed (tests).

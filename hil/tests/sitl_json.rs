@@ -174,3 +174,89 @@ fn malformed_packets_are_rejected_without_a_reply_and_the_link_survives() {
     assert_eq!(stats.rejected, 4);
     assert_eq!(stats.replies, 1);
 }
+
+/// Lockstep as the SITL-in-the-loop runner uses it: the server holds each reply while
+/// a camera frame is rendered from its state. A fake ArduPilot (its own thread, written
+/// to SIM_JSON.cpp's exchange: send a servo packet, block on the state) sees its time
+/// advance only by the states' timestamps; every frame's pose is the pose of the state
+/// ArduPilot is then sent, at that state's time; and while a reply is held ArduPilot
+/// gets nothing (it cannot run ahead of the frame).
+#[test]
+fn held_replies_keep_the_peer_in_lockstep_and_frames_see_the_replied_pose() {
+    let start = Isometry3::translation(0.5, -0.2, 3.0);
+    let cfg = SitlConfig {
+        port: 0,
+        ..SitlConfig::default()
+    };
+    let mut server = SitlServer::bind(&cfg, &VehicleConfig::default(), &start, 1).unwrap();
+    let addr = server.local_addr().unwrap();
+    let packets = 400u32;
+    let rate = 400u16;
+    // The fake ArduPilot: a full-thrust vertical pulse so that the pose changes.
+    let peer = std::thread::spawn(move || {
+        let sock = UdpSocket::bind("127.0.0.1:0").unwrap();
+        sock.set_read_timeout(Some(Duration::from_secs(10)))
+            .unwrap();
+        let a = Ardu { sock, to: addr };
+        let mut replies = Vec::new();
+        for frame in 0..packets {
+            let mut pwm = [1500u16; 16];
+            for p in &mut pwm[4..8] {
+                *p = 1700;
+            }
+            let v = a.servo(rate, frame, pwm);
+            let t = v["timestamp"].as_f64().unwrap();
+            let p = v3(&v, "/position");
+            let q = v.pointer("/quaternion").unwrap().as_array().unwrap();
+            let q: Vec<f64> = q.iter().map(|x| x.as_f64().unwrap()).collect();
+            replies.push((t, p, q));
+        }
+        replies
+    });
+    // The runner's side: a frame every 25 steps (16 Hz against 400 Hz physics), held
+    // for a while (a slow frame); the peer must be blocked meanwhile.
+    let mut frames = Vec::new();
+    let mut stepped = 0u32;
+    while stepped < packets {
+        if server.receive(Duration::from_secs(10)).unwrap().is_none() {
+            panic!("the fake ArduPilot stopped sending");
+        }
+        assert!(server.holding());
+        stepped += 1;
+        if stepped.is_multiple_of(25) {
+            let st = server.state();
+            // A slow frame: nothing else arrives while the reply is held.
+            let before = server.stats().packets;
+            std::thread::sleep(Duration::from_millis(30));
+            assert_eq!(server.stats().packets, before);
+            frames.push((st.time_s, st.t_world_vehicle));
+        }
+        server.reply().unwrap();
+        assert!(!server.holding());
+    }
+    let replies = peer.join().unwrap();
+    assert_eq!(replies.len(), packets as usize);
+    // Time advances by exactly one physics step per exchange (no step twice, none lost).
+    for (k, (t, _, _)) in replies.iter().enumerate() {
+        let want = (k + 1) as f64 / f64::from(rate);
+        assert!((t - want).abs() < 1e-9, "reply {k}: t {t}, want {want}");
+    }
+    // Each frame's pose is the pose ArduPilot was sent at that frame's time.
+    assert_eq!(frames.len(), (packets / 25) as usize);
+    let mut moved = 0.0f64;
+    for (t, pose) in &frames {
+        let (_, p, q) = replies
+            .iter()
+            .find(|(tr, _, _)| (tr - t).abs() < 1e-12)
+            .unwrap_or_else(|| panic!("no reply at frame time {t}"));
+        let tr = pose.translation.vector;
+        for i in 0..3 {
+            assert_eq!(p[i], tr[i], "position at {t}");
+        }
+        let rq = pose.rotation.quaternion();
+        assert_eq!(q, &vec![rq.w, rq.i, rq.j, rq.k], "attitude at {t}");
+        moved = moved.max((tr - start.translation.vector).norm());
+    }
+    // The pulse moved the vehicle: the poses compared are not all the start.
+    assert!(moved > 1e-3, "moved {moved}");
+}
