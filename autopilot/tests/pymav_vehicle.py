@@ -138,18 +138,21 @@ def main():
                 failures.append("bad data from link")
                 continue
             if t == "HEARTBEAT":
+                # markhold is a component of this vehicle (system 1, component 191), an
+                # onboard controller: a heartbeat from SYSID_MYGCS would keep ArduSub's
+                # GCS failsafe quiet.
                 gcs_hb_times.append(now)
-                if m.type != mav2.MAV_TYPE_GCS or m.autopilot != mav2.MAV_AUTOPILOT_INVALID:
+                if m.type != mav2.MAV_TYPE_ONBOARD_CONTROLLER or m.autopilot != mav2.MAV_AUTOPILOT_INVALID:
                     failures.append("heartbeat type %d autopilot %d" % (m.type, m.autopilot))
-                if src[0] != 255:
-                    failures.append("heartbeat from system %d" % src[0])
+                if src != (1, 191):
+                    failures.append("heartbeat from %d/%d" % src)
             elif t in ("RC_CHANNELS_OVERRIDE", "MANUAL_CONTROL"):
                 if src[0] != 255:
                     failures.append("%s from system %d (ArduSub drops it)" % (t, src[0]))
                 pilot.append((now, t, m))
             elif t == "COMMAND_LONG":
-                if src[0] != 255:
-                    failures.append("COMMAND_LONG from system %d" % src[0])
+                if src != (1, 191):
+                    failures.append("COMMAND_LONG from %d/%d" % src)
                 if m.target_system != 1:
                     failures.append("COMMAND_LONG to system %d" % m.target_system)
                 result = mav2.MAV_RESULT_ACCEPTED
