@@ -275,7 +275,7 @@ fn pilot_on_tcp(
     std::thread::spawn(move || {
         let cfg = LinkConfig {
             url: format!("tcp:{addr}"),
-            gcs_component_id: 190,
+            component_id: 190,
             ..LinkConfig::default()
         };
         let mut qgc = VehicleLink::connect(&cfg).unwrap();

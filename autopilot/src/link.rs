@@ -1121,7 +1121,7 @@ impl VehicleLink {
             self.last_streams_s = Some(now_s);
             if !self.fs_gcs_timeout_read {
                 // How long the vehicle's GCS failsafe waits decides how long the pilot's
-                // station may be silent (ArduSub 4.6 and later have the parameter).
+                // station may be silent (ArduSub after 4.5 has the parameter).
                 self.request_param(station::FS_GCS_TIMEOUT)?;
             }
         }
