@@ -1049,7 +1049,7 @@ def thrust_main(args):
         peer[0], last_heard = addr, now
         for m in veh.parse_buffer(data) or []:
             t = m.get_type()
-            if m.get_srcSystem() != 255:
+            if t in PILOT_TYPES and m.get_srcSystem() != 255:
                 continue  # ArduSub uses pilot input from SYSID_MYGCS only
             if t == "RC_CHANNELS_OVERRIDE":
                 raw = [m.chan1_raw, m.chan2_raw, m.chan3_raw, m.chan4_raw, m.chan5_raw, m.chan6_raw]

@@ -265,7 +265,7 @@ pub fn disarm_on_exit(link: &mut VehicleLink, t0: f64) -> CommandStatus {
     };
     tracing::info!(?status, armed = link.state().armed, "disarm on exit");
     eprintln!(
-        "markhold run: disarm on exit: {status:?} (vehicle armed: {})",
+        "markhold: disarm on exit: {status:?} (vehicle armed: {})",
         link.state().armed
     );
     status
