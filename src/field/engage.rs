@@ -84,7 +84,14 @@ pub enum EngageState {
     Engaged,
     /// Just disengaged: neutral until `release_at_s`, then released.
     Releasing { release_at_s: f64 },
+    /// The pilot asked (armed in the mode) before the pilot's station was heard: engage
+    /// once it is, within [`STATION_WAIT_S`] of `since_s`; no pilot input goes out.
+    Pending { since_s: f64 },
 }
+
+/// A pilot's engage waits this long for the station's heartbeat (one 1 Hz period and
+/// its jitter), s.
+pub const STATION_WAIT_S: f64 = markhold_autopilot::config::STATION_TIMEOUT_MIN_S;
 
 /// A change of engagement, for the announcer and the summary.
 #[derive(Clone, Copy, Debug, PartialEq, Serialize)]
@@ -192,6 +199,15 @@ impl Engager {
         !v.station.lost && (v.station.last_s.is_some() || self.allow_without_station)
     }
 
+    /// The pilot asked, but no pilot station is heard: not engaged, and said.
+    fn refuse(&self, v: &VehicleState) -> Option<Transition> {
+        tracing::warn!(
+            lost = v.station.lost,
+            "not engaging: no pilot station heard (a HEARTBEAT from SYSID_MYGCS)"
+        );
+        Some(Transition::NoStation)
+    }
+
     /// Markhold commands (engaged) or has just let go and not yet released.
     pub fn commanding(&self) -> bool {
         matches!(
@@ -253,15 +269,24 @@ impl Engager {
             EngageState::Ready if rising && v.heartbeat_ok && !own => {
                 if self.station_ok(v) {
                     self.engage()
+                } else if v.station.lost {
+                    self.refuse(v)
                 } else {
-                    tracing::warn!(
-                        lost = v.station.lost,
-                        "not engaging: no pilot station heard (a HEARTBEAT from SYSID_MYGCS)"
-                    );
-                    Some(Transition::NoStation)
+                    self.state = EngageState::Pending { since_s: now_s };
+                    None
                 }
             }
             EngageState::Ready => None,
+            EngageState::Pending { .. } if !(cond && v.heartbeat_ok) => {
+                self.state = EngageState::Ready;
+                None
+            }
+            EngageState::Pending { .. } if self.station_ok(v) => self.engage(),
+            EngageState::Pending { since_s } if now_s - since_s > STATION_WAIT_S => {
+                self.state = EngageState::Ready;
+                self.refuse(v)
+            }
+            EngageState::Pending { .. } => None,
         }
     }
 }
@@ -692,11 +717,24 @@ mod tests {
         let mut v = vehicle(false, alt, 0);
         v.station = markhold_autopilot::StationSeen::default();
         assert_eq!(e.observe(&v, 0.0), Some(Transition::Ready));
-        // The pilot arms in the mode, but no station was heard: markhold cannot tell
-        // when it falls silent, so it does not engage, and says so.
+        // The pilot arms in the mode, but no station was heard: markhold waits a
+        // heartbeat period for it, then, none heard (it cannot tell when it would fall
+        // silent), does not engage, and says so.
         v.armed = true;
-        assert_eq!(e.observe(&v, 1.0), Some(Transition::NoStation));
+        assert_eq!(e.observe(&v, 1.0), None);
+        assert_eq!(e.state(), EngageState::Pending { since_s: 1.0 });
+        assert_eq!(e.observe(&v, 0.9 + STATION_WAIT_S), None);
+        assert_eq!(e.observe(&v, 1.1 + STATION_WAIT_S), Some(Transition::NoStation));
         assert!(!e.engaged());
+        // Heard within the wait: engaged on that same request.
+        let mut e2 = Engager::new(alt, false, 5.0);
+        let mut w = vehicle(false, alt, 0);
+        w.station = markhold_autopilot::StationSeen::default();
+        e2.observe(&w, 0.0);
+        w.armed = true;
+        assert_eq!(e2.observe(&w, 1.0), None);
+        w.station.last_s = Some(1.5);
+        assert_eq!(e2.observe(&w, 1.5), Some(Transition::Engaged));
         // With the station heard, the next pilot action engages.
         let mut v = vehicle(true, ArduSubMode::Manual, 1);
         e.observe(&v, 2.0);

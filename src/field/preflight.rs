@@ -195,6 +195,21 @@ fn read_params(
     }
 }
 
+/// A station heartbeats once a second: give it one period (and its jitter) to be heard,
+/// if it was not during the parameter reads.
+fn wait_for_station(link: &mut VehicleLink, t0: f64, stop: &ShutdownFlag) {
+    let started = Instant::now();
+    while link.state().station.last_s.is_none()
+        && started.elapsed().as_secs_f64() < markhold_autopilot::config::STATION_TIMEOUT_MIN_S
+        && !stop.is_set()
+    {
+        if let Err(e) = link.tick(t0 + started.elapsed().as_secs_f64()) {
+            tracing::warn!(error = %e, "preflight: link");
+        }
+        std::thread::sleep(Duration::from_millis(5));
+    }
+}
+
 /// The site's `[vehicle] frame` (heavy / standard), as written.
 fn site_frame(site: &LoadedSite) -> Option<String> {
     let v = toml::Value::try_from(&site.site.vehicle).ok()?;
@@ -210,6 +225,7 @@ pub fn check(link: &mut VehicleLink, site: &LoadedSite, t0: f64, stop: &Shutdown
         param_round_trip_ms: read_params(link, &names, t0, stop),
         ..Checklist::default()
     };
+    wait_for_station(link, t0, stop);
     let p = |n: &str| link.param(n).map(|(v, _)| v);
 
     check_ids_and_failsafes(&mut list, &p, &cfg, site);
