@@ -69,8 +69,14 @@ fn holds_station_on_an_external_vehicle() {
     );
     // markhold armed it, and at the end disarmed it as the site says, after its
     // neutral input was seen applied; neither of the vehicle's failsafes acted.
-    assert!(stderr.contains("neutral input at exit: RcChannels"), "{stderr}");
-    assert!(stderr.contains("markhold: disarm on exit: Accepted"), "{stderr}");
+    assert!(
+        stderr.contains("neutral input at exit: RcChannels"),
+        "{stderr}"
+    );
+    assert!(
+        stderr.contains("markhold: disarm on exit: Accepted"),
+        "{stderr}"
+    );
     assert!(!truth.armed, "markhold did not disarm the vehicle at exit");
     assert_eq!(
         (end.stats.failsafe_pilot, end.stats.failsafe_gcs),

@@ -468,7 +468,10 @@ fn hil_on_an_external_vehicle_hands_over_to_the_pilot_and_regains_station() {
     // The run's exit is `run`'s: neutral seen applied (the simulated vehicle streams
     // RC_CHANNELS), hand back, nobody there, disarmed by markhold; neither of the
     // vehicle's failsafes had to act.
-    assert!(stderr.contains("neutral input at exit: RcChannels"), "{stderr}");
+    assert!(
+        stderr.contains("neutral input at exit: RcChannels"),
+        "{stderr}"
+    );
     assert!(stderr.contains("Disarmed(Accepted)"), "{stderr}");
     assert!(!end.truth.armed, "{:?}", end.stats);
     assert_eq!(
@@ -629,7 +632,8 @@ fn assert_station_loss_lets_the_failsafe_fire(verdict: &Value, stderr: &str) {
     let said = texts(verdict);
     assert_eq!(verdict["failures"], serde_json::json!([]), "{verdict}");
     assert!(
-        said.iter().any(|t| t == "markhold off: pilot station silent"),
+        said.iter()
+            .any(|t| t == "markhold off: pilot station silent"),
         "{said:?}\n{stderr}"
     );
     assert_identity(verdict);
@@ -668,7 +672,10 @@ fn assert_station_loss_lets_the_failsafe_fire(verdict: &Value, stderr: &str) {
     assert!(fired - last_hb <= timeout + bound + 0.5, "{verdict}");
     assert_eq!(verdict["armed_at_end"], false, "FS_GCS_ENABLE = 2 disarms");
     // markhold heard the vehicle say so.
-    assert!(stderr.contains("vehicle says: MYGCS: 255, heartbeat lost"), "{stderr}");
+    assert!(
+        stderr.contains("vehicle says: MYGCS: 255, heartbeat lost"),
+        "{stderr}"
+    );
 }
 
 #[test]
@@ -682,10 +689,7 @@ fn when_the_pilot_station_falls_silent_markhold_stops_as_the_gcs_and_the_failsaf
     assert_station_loss_lets_the_failsafe_fire(&verdict, &stderr);
     let s: Value = serde_json::from_slice(&std::fs::read(&summary).unwrap()).unwrap();
     assert_eq!(s["hand_back"], "not_commanding", "{s}");
-    assert!(
-        s["engagement"].to_string().contains("station_lost"),
-        "{s}"
-    );
+    assert!(s["engagement"].to_string().contains("station_lost"), "{s}");
 }
 
 #[test]
@@ -744,7 +748,10 @@ fn hil_vehicle_exit_without_a_pilot_hands_back_then_disarms_and_no_failsafe_fire
     ] {
         assert!(said.iter().any(|s| s == t), "{t}: {said:?}");
     }
-    assert!(stderr.contains("neutral input at exit: RcChannels"), "{stderr}");
+    assert!(
+        stderr.contains("neutral input at exit: RcChannels"),
+        "{stderr}"
+    );
     assert_eq!(verdict["armed_at_end"], false, "{verdict}");
     assert_eq!(verdict["failsafe"], serde_json::json!([]), "{verdict}");
     assert_eq!(verdict["gcs_failsafe"], serde_json::json!([]), "{verdict}");
@@ -839,7 +846,9 @@ fn assert_all_neutral(sessions: &[Value], n: usize, what: &str) {
 
 /// A pseudo-random effort off neutral (a fixed sequence: the run repeats).
 fn effort_of(k: u64) -> Effort {
-    let x = k.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+    let x = k
+        .wrapping_mul(6364136223846793005)
+        .wrapping_add(1442695040888963407);
     let f = |s: u32| (((x >> s) & 0xff) as f64 / 255.0 - 0.5) * 1.2;
     let mut e = Effort::from_array([f(8), f(16), f(24), f(32), f(40), f(48)]);
     e.surge = 0.3 + 0.2 * f(56).abs();
@@ -869,7 +878,10 @@ fn exits_in_process(mode: &str, n: u64) {
         let t0 = Instant::now();
         let now = || t0.elapsed().as_secs_f64();
         while !link.state().discovered {
-            assert!(t0.elapsed() < Duration::from_secs(10), "exit {i}: no vehicle");
+            assert!(
+                t0.elapsed() < Duration::from_secs(10),
+                "exit {i}: no vehicle"
+            );
             link.tick(now()).unwrap();
             std::thread::sleep(Duration::from_millis(2));
         }
@@ -879,7 +891,10 @@ fn exits_in_process(mode: &str, n: u64) {
         let mut k = 0u64;
         let mut extra = None;
         loop {
-            assert!(t0.elapsed() < Duration::from_secs(10), "exit {i}: no command");
+            assert!(
+                t0.elapsed() < Duration::from_secs(10),
+                "exit {i}: no command"
+            );
             let t = now();
             markhold::pipeline::CommandLink::tick(&mut el, t).unwrap();
             markhold::pipeline::CommandLink::send_effort(&mut el, &effort_of(i * 1000 + k), t)

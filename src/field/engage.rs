@@ -724,7 +724,10 @@ mod tests {
         assert_eq!(e.observe(&v, 1.0), None);
         assert_eq!(e.state(), EngageState::Pending { since_s: 1.0 });
         assert_eq!(e.observe(&v, 0.9 + STATION_WAIT_S), None);
-        assert_eq!(e.observe(&v, 1.1 + STATION_WAIT_S), Some(Transition::NoStation));
+        assert_eq!(
+            e.observe(&v, 1.1 + STATION_WAIT_S),
+            Some(Transition::NoStation)
+        );
         assert!(!e.engaged());
         // Heard within the wait: engaged on that same request.
         let mut e2 = Engager::new(alt, false, 5.0);
