@@ -692,6 +692,41 @@ fn when_the_pilot_station_falls_silent_markhold_stops_as_the_gcs_and_the_failsaf
     assert!(s["engagement"].to_string().contains("station_lost"), "{s}");
 }
 
+/// On Blue Robotics' ArduSub V4.2.0dev (the SITL markhold flies), RC overrides are not
+/// ground-station contact: with markhold's heartbeat no longer from SYSID_MYGCS, the
+/// failsafe fires as without markhold, within FS_GCS_TIMEOUT and its 0.3 s check period
+/// of the station's last heartbeat, while markhold still commands.
+#[test]
+fn on_ardusub_4_2_the_gcs_failsafe_fires_as_without_markhold() {
+    let (mut v, port) = vehicle(&[
+        "--scenario",
+        "station",
+        "--station-silent-after",
+        "1.0",
+        "--ardusub",
+        "4.2dev",
+    ]);
+    let o = run(&site_path(), port, &tmp("station-42.json"));
+    let stderr = String::from_utf8_lossy(&o.stderr);
+    assert!(o.status.success(), "{stderr}");
+    let verdict = verdict(&mut v);
+    assert_eq!(verdict["failures"], serde_json::json!([]), "{verdict}");
+    assert_identity(&verdict);
+    let last_hb = verdict["station_last_hb"].as_f64().unwrap();
+    let timeout = verdict["fs_gcs_timeout_s"].as_f64().unwrap();
+    let fired = verdict["gcs_failsafe"][0]
+        .as_f64()
+        .unwrap_or_else(|| panic!("the GCS failsafe never fired: {verdict}"));
+    eprintln!(
+        "ArduSub 4.2dev rules: GCS failsafe {:.3} s after the station's last heartbeat",
+        fired - last_hb
+    );
+    assert!(fired - last_hb >= timeout - 1e-3, "{verdict}");
+    assert!(fired - last_hb <= timeout + 1.0, "{verdict}");
+    let last_gcs = gcs_frames(&verdict).into_iter().fold(f64::MIN, f64::max);
+    assert!(last_gcs <= last_hb + 1.5, "{verdict}");
+}
+
 #[test]
 fn hil_vehicle_stops_as_the_gcs_when_the_pilot_station_falls_silent() {
     let (mut v, port) = vehicle(&["--scenario", "station", "--station-silent-after", "1.0"]);

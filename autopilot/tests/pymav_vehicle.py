@@ -58,6 +58,8 @@ def main():
                     help="station scenario: seconds after markhold engaged")
     ap.add_argument("--takeover-after", type=float, default=1.0,
                     help="takeover scenario: seconds after markhold engaged")
+    ap.add_argument("--ardusub", choices=["4.5", "4.2dev"], default="4.5",
+                    help="whose rules for ground-station contact (see ArduSubInput)")
     args = ap.parse_args()
     if args.scenario == "thrust":
         return thrust_main(args)
@@ -310,9 +312,15 @@ class ArduSubInput:
       HEARTBEAT from SYSID_MYGCS whatever its type or component
       (GCS_MAVLINK::handle_heartbeat), ground-station contact (sysid_myggcs_seen), which
       Sub::failsafe_gcs_check times out after FS_GCS_TIMEOUT, at 3.3 Hz, when armed,
-      once a GCS has been seen."""
+      once a GCS has been seen.
 
-    def __init__(self, sysid_mygcs, sysid=1, gain=0.5):
+    `ardusub="4.2dev"` plays Blue Robotics' ArduSub V4.2.0dev (the SITL markhold flies,
+    bluerobotics/ardupilot b6606a8f5d): there GCS_MAVLINK::handle_rc_channels_override
+    is not ground-station contact; HEARTBEAT and MANUAL_CONTROL from SYSID_MYGCS are
+    (GCS_MAVLINK_Sub::handleMessage sets failsafe.last_heartbeat_ms)."""
+
+    def __init__(self, sysid_mygcs, sysid=1, gain=0.5, ardusub="4.5"):
+        self.rc_is_contact = ardusub != "4.2dev"
         self.sysid_mygcs = sysid_mygcs
         self.sysid = sysid
         self.gain = gain
@@ -355,7 +363,8 @@ class ArduSubInput:
                 if v not in (0, 65535):
                     self.ch[i + 1] = v
             self.last_input = now
-            self.last_contact = now
+            if self.rc_is_contact:
+                self.last_contact = now
             self.applied += 1
             return True
         if t == "MANUAL_CONTROL":
@@ -435,7 +444,7 @@ def pilot_main(args):
     # The pilot's QGroundControl: its packets reach markhold through the router.
     qgc = mav2.MAVLink(Out(send), srcSystem=PILOT[0], srcComponent=PILOT[1])
     sysid_mygcs = int(params["SYSID_MYGCS"])
-    inp = ArduSubInput(sysid_mygcs)
+    inp = ArduSubInput(sysid_mygcs, ardusub=args.ardusub)
     gcs_fs = GcsFailsafe(params)
 
     failures = []
