@@ -511,7 +511,7 @@ def pilot_main(args):
             if 65 in streams:
                 veh.rc_channels_send(1234, 8, *(inp.channels() + [0] * 10), 255)
         # The pilot's station: QGroundControl heartbeats at 1 Hz (MAV_TYPE_GCS).
-        if station["on"] and (last_station_hb[0] is None or now - last_station_hb[0] >= 1.0):
+        if station["on"] and peer[0] is not None and (last_station_hb[0] is None or now - last_station_hb[0] >= 1.0):
             last_station_hb[0] = now
             qgc.heartbeat_send(mav2.MAV_TYPE_GCS, mav2.MAV_AUTOPILOT_INVALID, 0, 0, mav2.MAV_STATE_ACTIVE)
             inp.contact(now)
