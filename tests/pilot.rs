@@ -31,6 +31,14 @@ fn tmp(name: &str) -> PathBuf {
     tmp_path("pilot", name)
 }
 
+/// These tests run real-time vehicles and judge what markhold did by the clock (within
+/// 1.5 s, 30 frames/s): one at a time, so that they do not starve each other of the
+/// machine's cores.
+fn one_at_a_time() -> std::sync::MutexGuard<'static, ()> {
+    static LOCK: std::sync::Mutex<()> = std::sync::Mutex::new(());
+    LOCK.lock().unwrap_or_else(|p| p.into_inner())
+}
+
 /// 8 s of frames on station (the pilot's plan takes about 4 s), made once.
 fn frames_dir() -> &'static Path {
     static DIR: OnceLock<PathBuf> = OnceLock::new();
@@ -158,6 +166,7 @@ fn run(site: &Path, port: u16, summary: &Path) -> std::process::Output {
 
 #[test]
 fn the_pilot_engages_takes_over_and_gets_the_vehicle_back() {
+    let _one = one_at_a_time();
     let (mut v, port) = vehicle(&["--scenario", "pilot"]);
     let summary = tmp("pilot.json");
     let o = run(&site_path(), port, &summary);
@@ -242,6 +251,7 @@ fn the_pilot_engages_takes_over_and_gets_the_vehicle_back() {
 
 #[test]
 fn with_nobody_at_the_joystick_the_hand_back_disarms_and_says_so() {
+    let _one = one_at_a_time();
     let site = site_with("handback.toml", "hand_back_timeout_s = 1.0");
     let (mut v, port) = vehicle(&["--scenario", "pilot", "--no-pilot-after-exit"]);
     let summary = tmp("handback.json");
@@ -289,6 +299,7 @@ fn preflight_with(vehicle_args: &[&str], extra: &[&str]) -> (std::process::Outpu
 
 #[test]
 fn preflight_passes_a_good_vehicle_and_fails_a_bad_one_with_the_fix() {
+    let _one = one_at_a_time();
     let (o, v) = preflight(&[]);
     let out = String::from_utf8_lossy(&o.stdout);
     assert!(
@@ -344,6 +355,7 @@ fn preflight_passes_a_good_vehicle_and_fails_a_bad_one_with_the_fix() {
 
 #[test]
 fn run_refuses_to_start_on_a_failed_preflight() {
+    let _one = one_at_a_time();
     let (mut v, port) = vehicle(&["--scenario", "params", "--param", "FS_PILOT_INPUT=0"]);
     let o = run(&site_path(), port, &tmp("refused.json"));
     let stderr = String::from_utf8_lossy(&o.stderr);
@@ -420,6 +432,7 @@ fn pilot_on_tcp(
 
 #[test]
 fn hil_on_an_external_vehicle_hands_over_to_the_pilot_and_regains_station() {
+    let _one = one_at_a_time();
     use common::RealTimeVehicle;
     use markhold::params;
     use markhold_hil::{EndpointConfig, HilRig, HilSetup, VehicleMotion};
@@ -553,6 +566,7 @@ fn thrust_run(
 /// times that.
 #[test]
 fn the_smallest_forward_command_makes_the_thrust_the_keeper_intends() {
+    let _one = one_at_a_time();
     use markhold_autopilot::{Effort, LinkConfig, LinkMode, PilotInput, PilotMap};
     use markhold_hil::mixer::{Frame6Dof, Mixer};
     use markhold_hil::ThrusterConfig;
@@ -680,6 +694,7 @@ fn assert_station_loss_lets_the_failsafe_fire(verdict: &Value, stderr: &str) {
 
 #[test]
 fn when_the_pilot_station_falls_silent_markhold_stops_as_the_gcs_and_the_failsafe_fires() {
+    let _one = one_at_a_time();
     let (mut v, port) = vehicle(&["--scenario", "station", "--station-silent-after", "1.0"]);
     let summary = tmp("station.json");
     let o = run(&site_path(), port, &summary);
@@ -698,6 +713,7 @@ fn when_the_pilot_station_falls_silent_markhold_stops_as_the_gcs_and_the_failsaf
 /// of the station's last heartbeat, while markhold still commands.
 #[test]
 fn on_ardusub_4_2_the_gcs_failsafe_fires_as_without_markhold() {
+    let _one = one_at_a_time();
     let (mut v, port) = vehicle(&[
         "--scenario",
         "station",
@@ -729,6 +745,7 @@ fn on_ardusub_4_2_the_gcs_failsafe_fires_as_without_markhold() {
 
 #[test]
 fn hil_vehicle_stops_as_the_gcs_when_the_pilot_station_falls_silent() {
+    let _one = one_at_a_time();
     let (mut v, port) = vehicle(&["--scenario", "station", "--station-silent-after", "1.0"]);
     let o = hil_vehicle(&site_path(), port, "8");
     let stderr = String::from_utf8_lossy(&o.stderr);
@@ -742,6 +759,7 @@ fn hil_vehicle_stops_as_the_gcs_when_the_pilot_station_falls_silent() {
 /// at its exit; the pilot flies on, no failsafe fires.
 #[test]
 fn hil_vehicle_after_a_takeover_sends_nothing_as_the_gcs_also_at_exit() {
+    let _one = one_at_a_time();
     let (mut v, port) = vehicle(&["--scenario", "takeover", "--takeover-after", "1.0"]);
     let o = hil_vehicle(&site_path(), port, "4");
     let stderr = String::from_utf8_lossy(&o.stderr);
@@ -768,6 +786,7 @@ fn hil_vehicle_after_a_takeover_sends_nothing_as_the_gcs_also_at_exit() {
 /// the sticks centred, then disarms and says so; neither failsafe fires.
 #[test]
 fn hil_vehicle_exit_without_a_pilot_hands_back_then_disarms_and_no_failsafe_fires() {
+    let _one = one_at_a_time();
     let site = site_with("hil-noplan.toml", "hand_back_timeout_s = 1.0");
     let (mut v, port) = vehicle(&["--scenario", "noplan"]);
     let o = hil_vehicle(&site, port, "3");
@@ -805,6 +824,7 @@ fn hil_vehicle_exit_without_a_pilot_hands_back_then_disarms_and_no_failsafe_fire
 struct ExitVehicle {
     child: Child,
     lines: mpsc::Receiver<String>,
+    cmds: u64,
 }
 
 impl Drop for ExitVehicle {
@@ -838,12 +858,24 @@ impl ExitVehicle {
         let first = rx
             .recv_timeout(Duration::from_secs(20))
             .expect("the exit vehicle did not start");
-        (Self { child, lines: rx }, first)
+        (
+            Self {
+                child,
+                lines: rx,
+                cmds: 0,
+            },
+            first,
+        )
     }
 
-    /// A "CMD ..." line: a session applied its first input off neutral.
-    fn command_applied(&self) -> bool {
-        self.lines.try_iter().any(|l| l.starts_with("CMD "))
+    /// Sessions that applied an input off neutral so far (their "CMD ..." lines).
+    fn commanded(&mut self) -> u64 {
+        self.cmds += self
+            .lines
+            .try_iter()
+            .filter(|l| l.starts_with("CMD "))
+            .count() as u64;
+        self.cmds
     }
 
     /// Every session's record, once stdin is closed.
@@ -894,7 +926,7 @@ fn effort_of(k: u64) -> Effort {
 /// (`EngagedLink::exit`, as `run` and `hil --vehicle` end) while commanding a random
 /// effort, at a random moment after the vehicle applied its first command.
 fn exits_in_process(mode: &str, n: u64) {
-    let (v, first) = ExitVehicle::start(mode);
+    let (mut v, first) = ExitVehicle::start(mode);
     let url = match mode {
         "udp" => format!("udpout:127.0.0.1:{}", first.trim_start_matches("UDP ")),
         "tcp" => format!("tcp:127.0.0.1:{}", first.trim_start_matches("TCP ")),
@@ -935,7 +967,7 @@ fn exits_in_process(mode: &str, n: u64) {
             markhold::pipeline::CommandLink::send_effort(&mut el, &effort_of(i * 1000 + k), t)
                 .unwrap();
             k += 1;
-            if extra.is_none() && v.command_applied() {
+            if extra.is_none() && v.commanded() > i {
                 extra = Some(k + (i * 7919) % 5);
             }
             if extra.is_some_and(|e| k >= e) {
@@ -960,16 +992,19 @@ fn exits_in_process(mode: &str, n: u64) {
 
 #[test]
 fn every_exit_over_udp_leaves_neutral_applied() {
+    let _one = one_at_a_time();
     exits_in_process("udp", 100);
 }
 
 #[test]
 fn every_exit_over_tcp_leaves_neutral_applied() {
+    let _one = one_at_a_time();
     exits_in_process("tcp", 100);
 }
 
 #[test]
 fn every_exit_over_a_serial_line_leaves_neutral_applied() {
+    let _one = one_at_a_time();
     exits_in_process("pty", 100);
 }
 
@@ -977,6 +1012,7 @@ fn every_exit_over_a_serial_line_leaves_neutral_applied() {
 /// 100 times: each time the vehicle is left with neutral input applied.
 #[test]
 fn every_sigterm_leaves_neutral_applied() {
+    let _one = one_at_a_time();
     static FRAMES: OnceLock<PathBuf> = OnceLock::new();
     let frames = FRAMES.get_or_init(|| {
         // Off station: the keeper commands from the first frame.
@@ -996,7 +1032,7 @@ fn every_sigterm_leaves_neutral_applied() {
         dir
     });
     let site = site_with("sigterm.toml", "stream_hz = 50.0\npilot_input_hz = 50.0");
-    let (v, first) = ExitVehicle::start("udp");
+    let (mut v, first) = ExitVehicle::start("udp");
     let port = first.trim_start_matches("UDP ").to_string();
     let n = 100;
     for i in 0..n {
@@ -1012,7 +1048,12 @@ fn every_sigterm_leaves_neutral_applied() {
             .spawn()
             .unwrap();
         let t0 = Instant::now();
-        while !v.command_applied() {
+        while v.commanded() <= i {
+            if let Some(status) = child.try_wait().unwrap() {
+                let mut err = String::new();
+                let _ = child.stderr.take().unwrap().read_to_string(&mut err);
+                panic!("run {i} ended ({status}) before commanding: {err}");
+            }
             assert!(
                 t0.elapsed() < Duration::from_secs(20),
                 "run {i}: no command applied"
