@@ -524,8 +524,8 @@ pub struct LinkConfig {
     pub exit_confirm_timeout_s: f64,
 }
 
-/// Shortest pilot-station silence that counts as lost, s: QGroundControl and Cockpit
-/// heartbeat at 1 Hz, and a live station must never be taken for a lost one.
+/// Shortest pilot-station silence that counts as lost, s: QGroundControl heartbeats at
+/// 1 Hz, and a live station must never be taken for a lost one.
 pub const STATION_TIMEOUT_MIN_S: f64 = 1.2;
 /// Longest, s: markhold's SYSID_MYGCS traffic ends within 1.5 s of the station's last
 /// heartbeat (this, a frame, and the release) whatever FS_GCS_TIMEOUT is.

@@ -374,7 +374,8 @@ fn check_station(list: &mut Checklist, link: &VehicleLink) {
         format!("FS_GCS_TIMEOUT not reported (ArduSub 4.5 and older: a fixed {t} s)")
     };
     let found = format!(
-        "{source}; markhold's pilot input stops {bound:.2} s after the pilot's station          falls silent, so the GCS failsafe fires at most that much later than without it"
+        "{source}; markhold's pilot input stops {bound:.2} s after the pilot's station \
+         falls silent, so the GCS failsafe fires at most that much later than without it"
     );
     let verdict = if bound > 0.5 * t + 1e-9 {
         Verdict::Warn
@@ -385,7 +386,9 @@ fn check_station(list: &mut Checklist, link: &VehicleLink) {
         "gcs timeout",
         verdict,
         found,
-        "FS_GCS_TIMEOUT under 2.4 s: markhold delays the failsafe by more than half of it          (a station heartbeats at 1 Hz: markhold cannot tell it lost sooner); 5 s is          ArduSub's default",
+        "FS_GCS_TIMEOUT under 2.4 s: markhold delays the failsafe by more than half of it \
+         (a station heartbeats at 1 Hz: markhold cannot tell it lost sooner); 5 s is \
+         ArduSub's default",
     );
     let st = link.state().station;
     match (st.last_s, st.component_id) {
@@ -406,7 +409,9 @@ fn check_station(list: &mut Checklist, link: &VehicleLink) {
                 "no HEARTBEAT from SYSID_MYGCS ({}) heard",
                 link.config().gcs_system_id
             ),
-            "start QGroundControl or Cockpit and check that the router forwards its              heartbeat to markhold: markhold engages only while it hears the pilot's              station (to let ArduSub's GCS failsafe fire when it falls silent)",
+            "start QGroundControl and check that the router forwards its heartbeat to \
+             markhold: markhold engages only while it hears the pilot's station (to let \
+             ArduSub's GCS failsafe fire when it falls silent)",
         ),
     }
 }
