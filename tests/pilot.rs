@@ -754,6 +754,35 @@ fn hil_vehicle_stops_as_the_gcs_when_the_pilot_station_falls_silent() {
     assert_station_loss_lets_the_failsafe_fire(&verdict, &stderr);
 }
 
+/// After the pilot's takeover (a mode switch) `run` sends one neutral, says why, sends
+/// the release, and then nothing as SYSID_MYGCS to the end of the run, its exit
+/// included; the pilot flies on, no failsafe fires.
+#[test]
+fn after_a_takeover_run_sends_nothing_as_the_gcs_also_at_exit() {
+    let _one = one_at_a_time();
+    let (mut v, port) = vehicle(&["--scenario", "takeover", "--takeover-after", "1.0"]);
+    let summary = tmp("takeover.json");
+    let o = run(&site_path(), port, &summary);
+    let stderr = String::from_utf8_lossy(&o.stderr);
+    assert!(o.status.success(), "{stderr}");
+    let verdict = verdict(&mut v);
+    assert_eq!(verdict["failures"], serde_json::json!([]), "{verdict}");
+    let around = &verdict["around_off_text"];
+    assert_eq!(around["before"], "neutral", "{verdict}");
+    assert_eq!(around["after"], serde_json::json!(["release"]), "{verdict}");
+    assert!(
+        texts(&verdict).iter().any(|t| t == "markhold stopped"),
+        "{verdict}"
+    );
+    assert_eq!(verdict["failsafe"], serde_json::json!([]), "{verdict}");
+    assert_eq!(verdict["gcs_failsafe"], serde_json::json!([]), "{verdict}");
+    assert_eq!(verdict["armed_at_end"], true, "{verdict}");
+    assert_identity(&verdict);
+    let s: Value = serde_json::from_slice(&std::fs::read(&summary).unwrap()).unwrap();
+    assert_eq!(s["hand_back"], "not_commanding", "{s}");
+    assert_eq!(s["exit"]["commanding"], false, "{s}");
+}
+
 /// `hil --vehicle` like `run`: after the pilot's takeover (a mode switch) markhold sends
 /// what was in flight, one neutral and the release, then nothing as SYSID_MYGCS, also
 /// at its exit; the pilot flies on, no failsafe fires.
