@@ -7,13 +7,21 @@
 
 mod common;
 
-use common::{markhold, rig_at, site_path, RealTimeVehicle};
+use common::{markhold, rig_at, RealTimeVehicle};
 use markhold::params;
 use markhold::sim::hil::start_offset;
 
 #[test]
 fn holds_station_on_an_external_vehicle() {
-    let site_path = site_path();
+    // The site's exit policy is the same as `run`'s: here `disarm`.
+    let site_path = std::env::temp_dir().join(format!(
+        "markhold-external-site-{}.toml",
+        std::process::id()
+    ));
+    let text = std::fs::read_to_string(common::site_path())
+        .unwrap()
+        .replacen("[link]\n", "[link]\non_exit = \"disarm\"\n", 1);
+    std::fs::write(&site_path, text).unwrap();
     let site = params::load(&site_path).unwrap();
     let s = &site.site;
     let t_world_station = site.t_world_marker() * s.station.t_marker_vehicle();
@@ -36,8 +44,10 @@ fn holds_station_on_an_external_vehicle() {
         .arg(&plots)
         .output()
         .unwrap();
-    let truth = sim.finish().truth;
-    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let end = sim.finish();
+    let truth = end.truth;
+    let stderr = String::from_utf8_lossy(&o.stderr);
+    assert!(o.status.success(), "{stderr}");
     let summary: serde_json::Value =
         serde_json::from_str(&std::fs::read_to_string(&out).unwrap()).unwrap();
     assert!(
@@ -57,7 +67,23 @@ fn holds_station_on_an_external_vehicle() {
         err < 0.1,
         "external vehicle {err:.3} m from station; {summary}"
     );
-    assert!(truth.armed, "markhold armed the external vehicle");
+    // markhold armed it, and at the end disarmed it as the site says, after its
+    // neutral input was seen applied; neither of the vehicle's failsafes acted.
+    assert!(
+        stderr.contains("neutral input at exit: RcChannels"),
+        "{stderr}"
+    );
+    assert!(
+        stderr.contains("markhold: disarm on exit: Accepted"),
+        "{stderr}"
+    );
+    assert!(!truth.armed, "markhold did not disarm the vehicle at exit");
+    assert_eq!(
+        (end.stats.failsafe_pilot, end.stats.failsafe_gcs),
+        (0, 0),
+        "{:?}",
+        end.stats
+    );
     // --plots works here too (the trajectory is the vehicle's telemetry).
     for stem in ["trajectory", "exposure_metric", "detection_latency"] {
         for ext in ["png", "svg"] {

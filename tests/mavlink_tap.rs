@@ -79,8 +79,12 @@ fn recorded_raw_mavlink_reads_back_as_the_links_traffic() {
         match dir {
             1 => {
                 out += 1;
-                assert_eq!(h.system_id, 255);
-                overrides += u64::from(matches!(msg, MavMessage::RC_CHANNELS_OVERRIDE(_)));
+                // markhold is component 191 of the vehicle; only its pilot input goes
+                // out as SYSID_MYGCS (255).
+                let pilot = matches!(msg, MavMessage::RC_CHANNELS_OVERRIDE(_));
+                assert_eq!(h.system_id, if pilot { 255 } else { 1 }, "{msg:?}");
+                assert_eq!(h.component_id, 191);
+                overrides += u64::from(pilot);
             }
             0 => {
                 inc += 1;

@@ -426,11 +426,17 @@ pub struct LinkConfig {
     /// (connect), `tcpin:HOST:PORT` (accept), `serial:/dev/ttyACM0:115200` or
     /// `/dev/ttyACM0,115200` ([`crate::transport::Endpoint::parse`]).
     pub url: String,
-    /// Our system id; ArduSub drops pilot input from any id but SYSID_MYGCS (255).
+    /// The vehicle's SYSID_MYGCS (255): ArduSub takes pilot input (RC_CHANNELS_OVERRIDE,
+    /// MANUAL_CONTROL) from this system id only, so markhold's pilot input, and nothing
+    /// else, goes out as it, and only while engaged. A HEARTBEAT from it with another
+    /// component id is the pilot's station (QGroundControl: 255/190).
     pub gcs_system_id: u8,
-    /// Our component id (191 = MAV_COMP_ID_ONBOARD_COMPUTER), so the vehicle and the
-    /// pilot tell our packets from QGroundControl's (system 255, component 190).
-    pub gcs_component_id: u8,
+    /// markhold's component id (191 = MAV_COMP_ID_ONBOARD_COMPUTER) on everything it
+    /// sends: as a component of the vehicle's system (HEARTBEAT, STATUSTEXT,
+    /// NAMED_VALUE_FLOAT, vision, commands, parameter reads) and on its pilot input, which
+    /// the pilot's station (component 190) tells apart by it.
+    #[serde(alias = "gcs_component_id")]
+    pub component_id: u8,
     /// Vehicle system id used until its heartbeat is seen.
     pub vehicle_system_id: u8,
     /// Vehicle (autopilot) component id: only its heartbeats count (1 = MAV_COMP_ID_AUTOPILOT1).
@@ -507,6 +513,38 @@ pub struct LinkConfig {
     /// Setpoint mode: the vision pose's covariance is multiplied by this before it goes to
     /// the EKF (1 = as measured; above 1 trusts vision less).
     pub vision_covariance_scale: f64,
+    /// The vehicle's GCS failsafe timeout, s, until it reports its own FS_GCS_TIMEOUT
+    /// (the link reads it when it discovers the vehicle, preflight shows it). 2.5 s is
+    /// ArduSub's up to 4.5, which has no parameter (FS_GCS_TIMEOUT_MS in
+    /// ArduSub/defines.h); later versions default to 5 s. The pilot's station silent for
+    /// [`station_timeout_s`] of it stops markhold's SYSID_MYGCS traffic.
+    pub fs_gcs_timeout_s: f64,
+    /// At exit, how long markhold waits for the vehicle to show its neutral input
+    /// applied (RC_CHANNELS, or SERVO_OUTPUT_RAW in MANUAL) before it goes on, s.
+    pub exit_confirm_timeout_s: f64,
+}
+
+/// Shortest pilot-station silence that counts as lost, s: QGroundControl heartbeats at
+/// 1 Hz, and a live station must never be taken for a lost one.
+pub const STATION_TIMEOUT_MIN_S: f64 = 1.2;
+/// Longest, s: markhold's SYSID_MYGCS traffic ends within 1.5 s of the station's last
+/// heartbeat (this, a frame, and the release) whatever FS_GCS_TIMEOUT is.
+pub const STATION_TIMEOUT_MAX_S: f64 = 1.4;
+
+/// How long the pilot's station may be silent before markhold stops every SYSID_MYGCS
+/// frame, for a vehicle whose GCS failsafe fires after `fs_gcs_timeout_s`. ArduSub
+/// counts markhold's own RC override and MANUAL_CONTROL as ground-station contact
+/// (`GCS_MAVLINK::handle_rc_channels_override`, `GCS_MAVLINK_Sub::handleMessage`), so
+/// with markhold commanding the failsafe fires this much later than without it: half
+/// of the timeout, kept within [`STATION_TIMEOUT_MIN_S`] (one heartbeat period of a
+/// live station and its jitter) and [`STATION_TIMEOUT_MAX_S`].
+pub fn station_timeout_s(fs_gcs_timeout_s: f64) -> f64 {
+    let half = if fs_gcs_timeout_s.is_finite() {
+        0.5 * fs_gcs_timeout_s
+    } else {
+        STATION_TIMEOUT_MAX_S
+    };
+    half.clamp(STATION_TIMEOUT_MIN_S, STATION_TIMEOUT_MAX_S)
 }
 
 impl Default for LinkConfig {
@@ -514,7 +552,7 @@ impl Default for LinkConfig {
         Self {
             url: "tcp:127.0.0.1:5777".into(),
             gcs_system_id: 255,
-            gcs_component_id: 191,
+            component_id: 191,
             vehicle_system_id: 1,
             vehicle_component_id: 1,
             command: CommandKind::Effort,
@@ -545,6 +583,8 @@ impl Default for LinkConfig {
             origin_lon_deg: 0.0,
             origin_alt_m: 0.0,
             vision_covariance_scale: 1.0,
+            fs_gcs_timeout_s: 2.5,
+            exit_confirm_timeout_s: 1.0,
         }
     }
 }
@@ -597,6 +637,8 @@ impl LinkConfig {
             .range("origin_lon_deg", self.origin_lon_deg, -180.0..=180.0, "must lie in -180..180")
             .finite("origin_alt_m", self.origin_alt_m, FINITE)
             .range("vision_covariance_scale", self.vision_covariance_scale, 1e-6..=1e6, "must lie in 1e-6..1e6")
+            .range("fs_gcs_timeout_s", self.fs_gcs_timeout_s, 0.1..=600.0, "must lie in 0.1..600 s (the vehicle's FS_GCS_TIMEOUT)")
+            .range("exit_confirm_timeout_s", self.exit_confirm_timeout_s, 0.1..=10.0, "must lie in 0.1..10 s")
             .done()
     }
 }

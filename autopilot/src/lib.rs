@@ -22,12 +22,15 @@ pub mod types;
 pub mod vision_pose;
 
 pub use config::{
-    AxisConfig, CommandKind, ControllerConfig, LinkConfig, LinkMode, MarkerLostAction, OnExit,
-    PilotInput, StationConfig,
+    station_timeout_s, AxisConfig, CommandKind, ControllerConfig, LinkConfig, LinkMode,
+    MarkerLostAction, OnExit, PilotInput, StationConfig,
 };
 pub use error::AutopilotError;
 pub use keeper::{AutopilotHolds, KeeperStatus, PoseMeasurement, StationKeeper, ViewLimits};
-pub use link::{CommandStatus, PilotSeen, RawFrame, Severity, VehicleLink, VehicleState};
+pub use link::{
+    CloseReport, CommandStatus, NeutralShown, PilotSeen, RawFrame, RcChannels, Settled, Severity,
+    StationSeen, VehicleLink, VehicleState,
+};
 pub use markhold_config::ConfigError;
 /// The mavlink crate the link is built on (same version and features), for callers that
 /// build or check frames themselves (tests, tools).

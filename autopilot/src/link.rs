@@ -1,6 +1,14 @@
-//! The ArduSub session over MAVLink 2: GCS heartbeat, vehicle discovery, stream requests,
-//! arm/mode commands with COMMAND_ACK and retries, pilot input, GUIDED setpoints with vision
-//! pose estimates, and telemetry parsing into `VehicleState`.
+//! The ArduSub session over MAVLink 2: markhold's heartbeat, vehicle discovery, stream
+//! requests, arm/mode commands with COMMAND_ACK and retries, pilot input, GUIDED setpoints
+//! with vision pose estimates, and telemetry parsing into `VehicleState`.
+//!
+//! Identity: markhold is a component of the vehicle's system. Everything goes out as
+//! the vehicle's system id (learned from its heartbeat) and `link.component_id` (191),
+//! except pilot input (RC_CHANNELS_OVERRIDE, MANUAL_CONTROL), which ArduSub takes only
+//! from SYSID_MYGCS and which goes out as `link.gcs_system_id`. Once the pilot's station
+//! (a HEARTBEAT from SYSID_MYGCS with another component id) has been heard, pilot input
+//! goes out only while it is heard (`station`), so markhold never keeps ArduSub's GCS
+//! failsafe quiet by itself (docs/design/pilot.md).
 //!
 //! Synchronous facade: every call is non-blocking. Bytes go on the wire from the caller's
 //! thread at the call. UDP is read by `tick` on the caller's thread (by default); TCP and
@@ -19,9 +27,9 @@ use std::sync::Arc;
 use mavlink::dialects::ardupilotmega::{
     MavAutopilot, MavCmd, MavFrame, MavMessage, MavModeFlag, MavResult, MavState, MavType,
     PositionTargetTypemask, ATTITUDE_DATA, COMMAND_ACK_DATA, COMMAND_LONG_DATA, HEARTBEAT_DATA,
-    LOCAL_POSITION_NED_DATA, MANUAL_CONTROL_DATA, RC_CHANNELS_OVERRIDE_DATA, SCALED_PRESSURE2_DATA,
-    SERVO_OUTPUT_RAW_DATA, SET_GPS_GLOBAL_ORIGIN_DATA, SET_POSITION_TARGET_LOCAL_NED_DATA,
-    VISION_POSITION_ESTIMATE_DATA,
+    LOCAL_POSITION_NED_DATA, MANUAL_CONTROL_DATA, RC_CHANNELS_DATA, RC_CHANNELS_OVERRIDE_DATA,
+    SCALED_PRESSURE2_DATA, SERVO_OUTPUT_RAW_DATA, SET_GPS_GLOBAL_ORIGIN_DATA,
+    SET_POSITION_TARGET_LOCAL_NED_DATA, VISION_POSITION_ESTIMATE_DATA,
 };
 use mavlink::{MavHeader, Message, SigningData};
 use nalgebra::{Isometry3, Vector3};
@@ -35,8 +43,12 @@ pub use crate::types::ArduSubMode;
 use crate::types::{wrap_pi, Effort};
 use crate::vision_pose::{t_vision_marker, upper_triangle, VisionPose};
 
+mod exit;
 mod gcs;
+mod station;
+pub use exit::{CloseReport, NeutralShown, Settled};
 pub use gcs::{PilotSeen, Severity, NAMED_VALUE_MAX, STATUSTEXT_MAX};
+pub use station::{StationSeen, STATION_GRACE_S};
 
 /// One MAVLink frame as it crossed the wire, for a recorder: fixed size, copied into a
 /// bounded channel (no allocation per message; dropped and counted when the channel is
@@ -202,6 +214,41 @@ impl ServoOutputs {
     }
 }
 
+/// RC_CHANNELS (65): the input channels as the vehicle applies them (an override or
+/// MANUAL_CONTROL turned into one shows here).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize)]
+pub struct RcChannels {
+    /// Loop time it was applied.
+    pub stamp_s: f64,
+    /// Channels 1..8, us (0: no value).
+    pub pwm: [u16; 8],
+}
+
+impl RcChannels {
+    fn of(r: &RC_CHANNELS_DATA, now_s: f64) -> Self {
+        Self {
+            stamp_s: now_s,
+            pwm: [
+                r.chan1_raw,
+                r.chan2_raw,
+                r.chan3_raw,
+                r.chan4_raw,
+                r.chan5_raw,
+                r.chan6_raw,
+                r.chan7_raw,
+                r.chan8_raw,
+            ],
+        }
+    }
+
+    /// Channels 1..6 (the ones markhold commands) at neutral.
+    pub fn neutral(&self) -> bool {
+        self.pwm[..6]
+            .iter()
+            .all(|&p| p == crate::pilot::PWM_NEUTRAL)
+    }
+}
+
 /// Traffic counters.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize)]
 pub struct LinkCounters {
@@ -215,7 +262,11 @@ pub struct LinkCounters {
     pub send_errors: u64,
     /// Pilot-input frames written (RC override / MANUAL_CONTROL).
     pub pilot_inputs: u64,
-    /// GCS heartbeats written.
+    /// Frames written as SYSID_MYGCS (pilot input and its release: nothing else).
+    pub gcs_frames: u64,
+    /// Pilot-input frames not written because the pilot's station is silent.
+    pub gcs_withheld: u64,
+    /// markhold's own heartbeats written.
     pub heartbeats: u64,
     /// Incoming frames dropped because the queue was full.
     pub receive_dropped: u64,
@@ -231,6 +282,14 @@ pub struct LinkCounters {
     pub reconnects: u64,
     /// STATUSTEXT messages written.
     pub statustexts_sent: u64,
+    /// RC_CHANNELS reports from the vehicle.
+    pub rc_reports: u64,
+    /// Of them, the last ones in a row with channels 1..6 at neutral.
+    pub rc_neutral_run: u64,
+    /// SERVO_OUTPUT_RAW reports from the vehicle.
+    pub servo_reports: u64,
+    /// Of them, the last ones in a row with every output within the thrusters' dead band.
+    pub servo_neutral_run: u64,
 }
 
 /// What the link knows about the vehicle.
@@ -273,6 +332,8 @@ pub struct VehicleState {
     pub depth: Option<Depth>,
     /// Last SERVO_OUTPUT_RAW.
     pub servo_outputs: Option<ServoOutputs>,
+    /// Last RC_CHANNELS.
+    pub rc_channels: Option<RcChannels>,
     /// Arm/disarm command progress.
     pub arm_command: CommandStatus,
     /// Set-mode command progress.
@@ -281,6 +342,8 @@ pub struct VehicleState {
     pub counters: LinkCounters,
     /// The pilot's own input (another sender's MANUAL_CONTROL / RC override).
     pub pilot: PilotSeen,
+    /// The pilot's station: a HEARTBEAT from SYSID_MYGCS that is not markhold's.
+    pub station: StationSeen,
     /// STATUSTEXT messages the vehicle sent.
     pub statustexts: u64,
     /// The vehicle's last STATUSTEXT.
@@ -316,10 +379,12 @@ impl VehicleState {
             local_position: None,
             depth: None,
             servo_outputs: None,
+            rc_channels: None,
             arm_command: CommandStatus::Idle,
             mode_command: CommandStatus::Idle,
             counters: LinkCounters::default(),
             pilot: PilotSeen::default(),
+            station: StationSeen::default(),
             statustexts: 0,
             last_statustext: None,
             sensors_unhealthy: 0,
@@ -355,8 +420,19 @@ pub struct VehicleLink {
     signing: Option<Arc<SigningData>>,
     /// Saves the signing timestamps used beside the key (signing on only).
     signing_clock: Option<crate::signing_clock::TimestampKeeper>,
+    /// MAVLink sequence of the frames sent as the vehicle's system id, and of those sent
+    /// as SYSID_MYGCS: a receiver counts loss per sender.
     seq: u8,
+    seq_gcs: u8,
     state: VehicleState,
+    /// The vehicle's GCS failsafe timeout (FS_GCS_TIMEOUT, or the site's until read) and
+    /// the station silence it allows ([`crate::config::station_timeout_s`]).
+    fs_gcs_timeout_s: f64,
+    station_timeout_s: f64,
+    /// FS_GCS_TIMEOUT came from the vehicle.
+    fs_gcs_timeout_read: bool,
+    /// The transport was closed ([`VehicleLink::close`]): nothing more goes out.
+    closed: bool,
     last_hb_sent_s: Option<f64>,
     last_pilot_s: Option<f64>,
     /// Last pilot input the caller sent (not the keep-alive).
@@ -450,7 +526,12 @@ impl VehicleLink {
         )?;
         let mut state = VehicleState::new(cfg);
         state.transport_connected = transport.always_connected;
-        tracing::info!(url = %cfg.url, gcs_sysid = cfg.gcs_system_id, "vehicle link open");
+        tracing::info!(
+            url = %cfg.url,
+            compid = cfg.component_id,
+            gcs_sysid = cfg.gcs_system_id,
+            "vehicle link open"
+        );
         Ok(Self {
             cfg: cfg.clone(),
             map: PilotMap::from_config(cfg),
@@ -458,7 +539,12 @@ impl VehicleLink {
             signing,
             signing_clock,
             seq: 0,
+            seq_gcs: 0,
             state,
+            fs_gcs_timeout_s: cfg.fs_gcs_timeout_s,
+            station_timeout_s: crate::config::station_timeout_s(cfg.fs_gcs_timeout_s),
+            fs_gcs_timeout_read: false,
+            closed: false,
             last_hb_sent_s: None,
             last_pilot_s: None,
             last_commanded_s: None,
@@ -555,19 +641,36 @@ impl VehicleLink {
         self.pilot_keepalive = on;
     }
 
-    fn header(&mut self) -> MavHeader {
-        let h = MavHeader {
-            system_id: u32::from(self.cfg.gcs_system_id),
-            component_id: self.cfg.gcs_component_id,
-            sequence: self.seq,
+    /// The sender of `msg`: SYSID_MYGCS for pilot input (the only messages ArduSub takes
+    /// from it alone), the vehicle's system id for everything else; our component id.
+    fn header(&mut self, pilot: bool) -> MavHeader {
+        let (system_id, seq) = if pilot {
+            (self.cfg.gcs_system_id, &mut self.seq_gcs)
+        } else {
+            (self.state.system_id, &mut self.seq)
         };
-        self.seq = self.seq.wrapping_add(1);
+        let h = MavHeader {
+            system_id: u32::from(system_id),
+            component_id: self.cfg.component_id,
+            sequence: *seq,
+        };
+        *seq = seq.wrapping_add(1);
         h
     }
 
-    /// Serializes and writes one message now, on this thread.
+    /// Serializes and writes one message now, on this thread. Pilot input goes out as
+    /// SYSID_MYGCS, and not at all while the pilot's station is silent (counted).
     fn send(&mut self, msg: &MavMessage) -> Result<bool, AutopilotError> {
-        let header = self.header();
+        let pilot = is_pilot_input(msg);
+        if pilot && !self.gcs_traffic_allowed() {
+            self.state.counters.gcs_withheld += 1;
+            return Ok(false);
+        }
+        if self.closed {
+            self.state.counters.send_dropped += 1;
+            return Ok(false);
+        }
+        let header = self.header(pilot);
         let mut buf = [0u8; MAX_FRAME];
         let mut cur = Cursor::new(&mut buf[..]);
         let n = mavlink::write_v2_msg_signed(&mut cur, header, msg, self.signing.as_deref())
@@ -581,6 +684,9 @@ impl VehicleLink {
         match self.transport.writer.write(&buf[..n]) {
             Ok(WriteOutcome::Sent) => {
                 self.state.counters.sent += 1;
+                if pilot {
+                    self.state.counters.gcs_frames += 1;
+                }
                 if self.tap.is_some() {
                     let stamp = self.last_tick_s.unwrap_or(0.0);
                     self.tap_frame(true, &buf[..n], stamp);
@@ -630,10 +736,13 @@ impl VehicleLink {
         self.send(&msg)
     }
 
+    /// markhold's heartbeat, as a component of the vehicle: an onboard controller, not
+    /// a ground station (ArduSub's `GCS_MAVLINK::handle_heartbeat` takes any heartbeat
+    /// from SYSID_MYGCS as ground-station contact; this one is from the vehicle's id).
     fn send_heartbeat(&mut self) -> Result<(), AutopilotError> {
         let msg = MavMessage::HEARTBEAT(HEARTBEAT_DATA {
             custom_mode: 0,
-            mavtype: MavType::MAV_TYPE_GCS,
+            mavtype: MavType::MAV_TYPE_ONBOARD_CONTROLLER,
             autopilot: MavAutopilot::MAV_AUTOPILOT_INVALID,
             base_mode: MavModeFlag::empty(),
             system_status: MavState::MAV_STATE_ACTIVE,
@@ -672,6 +781,7 @@ impl VehicleLink {
 
     fn apply(&mut self, h: &MavHeader, msg: &MavMessage, now_s: f64) {
         self.state.counters.received += 1;
+        self.observe_station(h, msg, now_s);
         if let MavMessage::HEARTBEAT(hb) = msg {
             self.apply_heartbeat(h, hb, now_s);
             return;
@@ -696,7 +806,27 @@ impl VehicleLink {
             MavMessage::SCALED_PRESSURE2(p) => self.state.depth = Some(self.depth_of(p, now_s)),
             // Port 0 carries servos 1..16 (the extension fields hold 9..16).
             MavMessage::SERVO_OUTPUT_RAW(s) if s.port == 0 => {
-                self.state.servo_outputs = Some(ServoOutputs::of(s, now_s));
+                let out = ServoOutputs::of(s, now_s);
+                let c = &mut self.state.counters;
+                c.servo_reports += 1;
+                let band = self.cfg.thruster_deadband_us;
+                let neutral = out.pwm[..8]
+                    .iter()
+                    .filter(|&&p| p != 0)
+                    .all(|&p| (f64::from(p) - f64::from(crate::pilot::PWM_NEUTRAL)).abs() <= band);
+                c.servo_neutral_run = if neutral { c.servo_neutral_run + 1 } else { 0 };
+                self.state.servo_outputs = Some(out);
+            }
+            MavMessage::RC_CHANNELS(r) => {
+                let rc = RcChannels::of(r, now_s);
+                let c = &mut self.state.counters;
+                c.rc_reports += 1;
+                c.rc_neutral_run = if rc.neutral() {
+                    c.rc_neutral_run + 1
+                } else {
+                    0
+                };
+                self.state.rc_channels = Some(rc);
             }
             MavMessage::COMMAND_ACK(ack) => self.apply_ack(ack),
             _ => self.apply_gcs(msg, now_s),
@@ -866,6 +996,7 @@ impl VehicleLink {
         self.drain_queue(now_s);
         self.read_task_counters();
         self.check_link_loss(now_s);
+        self.check_station(now_s);
         self.send_scheduled(now_s)?;
         self.keep_pilot_alive(now_s, prev_tick)
     }
@@ -878,6 +1009,8 @@ impl VehicleLink {
         self.last_streams_s = None;
         self.state.last_heartbeat_s = None;
         self.state.last_vehicle_heartbeat_s = None;
+        self.state.station.last_s = None;
+        self.state.station.lost = false;
     }
 
     /// Applies what the socket holds (UDP read on this thread) until it would block, at
@@ -986,6 +1119,11 @@ impl VehicleLink {
         {
             self.request_streams()?;
             self.last_streams_s = Some(now_s);
+            if !self.fs_gcs_timeout_read {
+                // How long the vehicle's GCS failsafe waits decides how long the pilot's
+                // station may be silent (ArduSub after 4.5 has the parameter).
+                self.request_param(station::FS_GCS_TIMEOUT)?;
+            }
         }
         self.retry(CMD_ARM, now_s)?;
         self.retry(CMD_SET_MODE, now_s)
@@ -1293,4 +1431,14 @@ impl VehicleLink {
     pub fn messages_received(&self) -> u64 {
         self.state.counters.received
     }
+}
+
+/// RC_CHANNELS_OVERRIDE and MANUAL_CONTROL: what ArduSub takes only from SYSID_MYGCS
+/// (`GCS_MAVLINK::handle_rc_channels_override`; `GCS_MAVLINK_Sub::handleMessage` for
+/// MANUAL_CONTROL), so what markhold sends as it.
+fn is_pilot_input(msg: &MavMessage) -> bool {
+    matches!(
+        msg,
+        MavMessage::RC_CHANNELS_OVERRIDE(_) | MavMessage::MANUAL_CONTROL(_)
+    )
 }

@@ -9,7 +9,7 @@ use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::mpsc::{Receiver, SyncSender, TrySendError};
 use std::sync::{Arc, Mutex};
 use std::task::{Context, Poll};
-use std::time::Duration;
+use std::time::{Duration, Instant};
 
 use mavlink::dialects::ardupilotmega::MavMessage;
 use mavlink::error::MessageReadError;
@@ -230,6 +230,8 @@ pub(crate) struct TaskCounters {
     pub(crate) unsigned: AtomicU64,
     /// Why the last connect (tcp) or open (serial) failed; cleared when one succeeds.
     pub(crate) last_error: Mutex<Option<String>>,
+    /// The link is closing: a stream that ends is not made again.
+    pub(crate) closing: std::sync::atomic::AtomicBool,
 }
 
 impl TaskCounters {
@@ -560,8 +562,134 @@ struct TickReceiver {
     last_len: usize,
 }
 
+/// How [`Transport::close`] went.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub(crate) struct Closed {
+    /// "udp", "tcp" or "serial".
+    pub(crate) kind: &'static str,
+    /// Every byte handed to the transport went to the socket or device.
+    pub(crate) flushed: bool,
+    /// TCP: the vehicle closed its side after reading ours (no reset possible).
+    pub(crate) peer_closed: bool,
+}
+
+/// Write `pending` out to `s` (non-blocking) until done or `deadline`.
+fn write_out(mut s: &std::net::TcpStream, pending: &mut Vec<u8>, deadline: Instant) -> bool {
+    while !pending.is_empty() {
+        match s.write(pending) {
+            Ok(0) => return false,
+            Ok(n) => {
+                pending.drain(..n);
+            }
+            Err(e) if e.kind() == std::io::ErrorKind::WouldBlock => {
+                if Instant::now() >= deadline {
+                    return false;
+                }
+                std::thread::sleep(Duration::from_millis(1));
+            }
+            Err(_) => return false,
+        }
+    }
+    true
+}
+
+/// Wait until the transport task says its stream ended (its count of ended streams
+/// passes `ended_before`) or `deadline`; what it queues meanwhile is dropped.
+fn wait_stream_end(
+    counters: &TaskCounters,
+    rx: &Receiver<Incoming>,
+    ended_before: u64,
+    deadline: Instant,
+) -> bool {
+    loop {
+        while rx.try_recv().is_ok() {}
+        if counters.reconnects.load(Ordering::Acquire) > ended_before {
+            return true;
+        }
+        if Instant::now() >= deadline {
+            return false;
+        }
+        std::thread::sleep(Duration::from_millis(2));
+    }
+}
+
+impl Transport {
+    /// Close the link so that nothing already written is lost, within `timeout`:
+    /// TCP writes out any remainder, shuts its sending side (the vehicle reads every
+    /// byte before the end of the stream) and reads on until the vehicle closes its
+    /// side, because a socket closed with unread received data sends a reset; serial
+    /// lets its writer task write and flush what is queued. UDP datagrams are already
+    /// on the wire. The transport task does not reconnect afterwards.
+    pub(crate) fn close(&mut self, timeout: Duration) -> Closed {
+        let deadline = Instant::now() + timeout;
+        let ended_before = self.counters.reconnects.load(Ordering::Acquire);
+        self.counters.closing.store(true, Ordering::Release);
+        match &mut self.writer {
+            Writer::Udp { .. } => Closed {
+                kind: "udp",
+                flushed: true,
+                peer_closed: false,
+            },
+            Writer::Tcp {
+                stream, pending, ..
+            } => {
+                let s = match stream.lock() {
+                    Ok(g) => g.stream.as_ref().and_then(|s| s.try_clone().ok()),
+                    Err(p) => p
+                        .into_inner()
+                        .stream
+                        .as_ref()
+                        .and_then(|s| s.try_clone().ok()),
+                };
+                let Some(s) = s else {
+                    let flushed = pending.is_empty();
+                    pending.clear();
+                    return Closed {
+                        kind: "tcp",
+                        flushed,
+                        peer_closed: false,
+                    };
+                };
+                let flushed = write_out(&s, pending, deadline);
+                pending.clear();
+                let _ = s.shutdown(std::net::Shutdown::Write);
+                let peer_closed = wait_stream_end(&self.counters, &self.rx, ended_before, deadline);
+                Closed {
+                    kind: "tcp",
+                    flushed,
+                    peer_closed,
+                }
+            }
+            Writer::Serial { tx } => {
+                // The writer task ends once its sender is gone and the queue written.
+                let (closed, _) = tokio::sync::mpsc::channel(1);
+                drop(std::mem::replace(tx, closed));
+                let flushed = wait_stream_end(&self.counters, &self.rx, ended_before, deadline);
+                Closed {
+                    kind: "serial",
+                    flushed,
+                    peer_closed: false,
+                }
+            }
+        }
+    }
+}
+
 impl Drop for Transport {
     fn drop(&mut self) {
+        // Not closed by `close` (an early return, a panic): at least end the TCP stream
+        // after what was written, before the socket goes.
+        if let Writer::Tcp {
+            stream, pending, ..
+        } = &mut self.writer
+        {
+            if let Ok(g) = stream.lock() {
+                if let Some(s) = g.stream.as_ref() {
+                    let _ = write_out(s, pending, Instant::now());
+                    let _ = s.shutdown(std::net::Shutdown::Write);
+                }
+            }
+        }
         if let Some(rt) = self.rt.take() {
             // Never blocks, so the link may be dropped inside an async context too.
             rt.shutdown_background();
@@ -821,14 +949,17 @@ impl Transport {
         let rc = p.reconnect.clone();
         let (signing, tx) = (p.signing, p.tx);
         p.rt.spawn(async move {
-            loop {
+            while !c.closing.load(Ordering::Acquire) {
                 match tokio::time::timeout(CONNECT_TIMEOUT, tokio::net::TcpStream::connect(addr))
                     .await
                 {
                     Ok(Ok(s)) => {
                         c.set_error(None);
                         serve_tcp(s, &s2, signing.as_deref(), None, &tx, &c, &rc).await;
-                        c.reconnects.fetch_add(1, Ordering::Relaxed);
+                        c.reconnects.fetch_add(1, Ordering::Release);
+                        if c.closing.load(Ordering::Acquire) {
+                            break;
+                        }
                     }
                     Ok(Err(e)) => {
                         tracing::debug!(%addr, error = %e, "tcp connect failed");
@@ -867,12 +998,12 @@ impl Transport {
         let rc = p.reconnect.clone();
         let (signing, tx) = (p.signing, p.tx);
         p.rt.spawn(async move {
-            loop {
+            while !c.closing.load(Ordering::Acquire) {
                 match listener.accept().await {
                     Ok((s, peer)) => {
                         tracing::info!(%peer, "tcp client connected");
                         serve_tcp(s, &s2, signing.as_deref(), Some(vehicle), &tx, &c, &rc).await;
-                        c.reconnects.fetch_add(1, Ordering::Relaxed);
+                        c.reconnects.fetch_add(1, Ordering::Release);
                     }
                     Err(e) => {
                         tracing::warn!(error = %e, "tcp accept failed");
@@ -916,7 +1047,7 @@ impl Transport {
         let rc = p.reconnect.clone();
         let (signing, tx) = (p.signing, p.tx);
         p.rt.spawn(async move {
-            loop {
+            while !c.closing.load(Ordering::Acquire) {
                 let builder = tokio_serial::new(path.as_str(), baud);
                 match tokio_serial::SerialStream::open(&builder) {
                     Ok(port) => {
@@ -932,12 +1063,20 @@ impl Transport {
                                         return e.to_string();
                                     }
                                 }
+                                // Closed by `Transport::close`: what was queued is
+                                // written; flush it to the device before stopping.
+                                if let Err(e) = w.flush().await {
+                                    return format!("flush at close: {e}");
+                                }
                                 "writer closed".to_string()
                             } => why,
                             _ = rc.notified() => "reconnect requested".to_string(),
                         };
                         push(&tx, &c, Incoming::Disconnected(why));
-                        c.reconnects.fetch_add(1, Ordering::Relaxed);
+                        c.reconnects.fetch_add(1, Ordering::Release);
+                        if c.closing.load(Ordering::Acquire) {
+                            break;
+                        }
                     }
                     Err(e) => {
                         tracing::debug!(%path, error = %e, "serial open failed");

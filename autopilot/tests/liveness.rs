@@ -316,5 +316,6 @@ fn the_raw_tap_sees_both_directions_on_the_receive_task_too() {
         .find(|f| f.outgoing)
         .expect("an outgoing frame");
     assert_eq!(out.bytes()[0], 0xFD);
-    assert_eq!(out.bytes()[5], 255);
+    // Sent as the vehicle's system id (1), not as SYSID_MYGCS.
+    assert_eq!(out.bytes()[5], 1);
 }

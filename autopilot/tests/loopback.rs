@@ -196,7 +196,8 @@ fn udp_arm_mode_hold_station_and_neutral_on_exit() {
         .iter()
         .all(|(_, c)| c.param1 == 1.0 && c.target_system == 1));
     // Every command from the GCS id.
-    assert!(r.commands.iter().all(|(sys, _)| *sys == 255));
+    // Every command from the vehicle's own system id (markhold is its component 191).
+    assert!(r.commands.iter().all(|(sys, _)| *sys == 1));
     // Streams requested.
     for id in [30.0, 32.0, 36.0, 65.0, 137.0] {
         assert!(
@@ -208,11 +209,12 @@ fn udp_arm_mode_hold_station_and_neutral_on_exit() {
             "stream {id} not requested"
         );
     }
-    // GCS heartbeats: from 255, type GCS, autopilot invalid, ~1 Hz of loop time.
+    // markhold's heartbeats: from the vehicle's system, component 191, an onboard
+    // controller (never a ground station), autopilot invalid, ~1 Hz of loop time.
     assert!(!r.gcs_heartbeats.is_empty());
     for (sys, comp, hb) in &r.gcs_heartbeats {
-        assert_eq!((*sys, *comp), (255, 191));
-        assert_eq!(hb.mavtype, MavType::MAV_TYPE_GCS);
+        assert_eq!((*sys, *comp), (1, 191));
+        assert_eq!(hb.mavtype, MavType::MAV_TYPE_ONBOARD_CONTROLLER);
         assert_eq!(hb.autopilot, MavAutopilot::MAV_AUTOPILOT_INVALID);
     }
     let n_hb = r.gcs_heartbeats.len() as f64;
@@ -559,8 +561,8 @@ fn setpoint_mode_sends_guided_targets_vision_and_origin_once() {
     );
     assert_ne!(sp.type_mask.bits() & 0b111_111_000, 0);
     assert_eq!((sp.target_system, sp.target_component), (1, 1));
-    // Origin exactly once, from the GCS id.
-    assert_eq!(r.origins, vec![(255, 475_000_000, -1_222_500_000, -3000)]);
+    // Origin exactly once, from the vehicle's system id.
+    assert_eq!(r.origins, vec![(1, 475_000_000, -1_222_500_000, -3000)]);
     let (n_vision, n_targets) = (r.vision.len(), r.setpoints.len());
     let last_sp = (sp.x, sp.y, sp.z, sp.yaw);
     drop(r);

@@ -4,8 +4,8 @@ connection-string test.
 
 It opens `mavutil.mavlink_connection(URL)` as system 1 (an ArduSub-like vehicle), prints
 its local UDP port on the first stdout line ("PORT <port>"), sends a heartbeat every 0.1 s
-(a listening connection sends only once a peer has spoken) and waits for markhold's GCS
-heartbeat (system 255), then goes on for 0.5 s so that markhold hears it too (a
+(a listening connection sends only once a peer has spoken) and waits for markhold's
+heartbeat (system 1, component 191: a component of this vehicle), then goes on for 0.5 s so that markhold hears it too (a
 listening pymavlink sends to the peers it has heard). The verdict is a JSON line on stdout and the exit status
 (0 = markhold's heartbeat arrived before the deadline).
 """
@@ -46,7 +46,7 @@ def main():
                 mavutil.mavlink.MAV_STATE_ACTIVE,
             )
         msg = conn.recv_match(type="HEARTBEAT", blocking=True, timeout=0.05)
-        if msg is not None and msg.get_srcSystem() == 255:
+        if msg is not None and (msg.get_srcSystem(), msg.get_srcComponent()) == (1, 191):
             gcs += 1
             if first_gcs is None:
                 first_gcs = time.time()
@@ -54,7 +54,7 @@ def main():
         "ok": gcs > 0,
         "url": args.url,
         "udp_server": bool(getattr(conn, "udp_server", False)),
-        "gcs_heartbeats": gcs,
+        "markhold_heartbeats": gcs,
     }
     print(json.dumps(verdict), flush=True)
     sys.exit(0 if gcs > 0 else 1)

@@ -9,10 +9,14 @@ before the final disarm. The run ends at the disarm (or the deadline); the verdi
 JSON line on stdout and the exit status (0 = all checks passed).
 
 `--scenario pilot` plays an ArduSub vehicle with a pilot beside it (QGroundControl as
-system 255, component 190, seen through a router) for `markhold run`: it answers the
-parameter protocol, emulates the pilot-input failsafe, captures markhold's STATUSTEXT,
-and drives the pilot's actions from what markhold says (see pilot_main).
+system 255, component 190, seen through a router) for `markhold run` and `markhold hil
+--vehicle`: it answers the parameter protocol, applies pilot input and runs the
+pilot-input and GCS failsafes as ArduSub does (ArduSubInput, GcsFailsafe), captures
+what markhold sends and as whom, and drives the pilot's actions from what markhold says
+(see pilot_main; `station`, `takeover` and `noplan` are shorter plans).
 `--scenario params` answers heartbeats and parameters only, for `markhold preflight`.
+`--scenario exit` applies pilot input over UDP, TCP or a pseudo-terminal, session after
+session, and reports the input each session left applied (see exit_main).
 `--scenario thrust` reads pilot input as ArduSub does per mode and channel (see
 thrust_main) and turns it into T200 thrust from Blue Robotics' published table
 (hil/data/t200-*.csv) at `--volts`, for the keeper's dead-zone compensation test.
@@ -40,16 +44,27 @@ class Out:
 
 def main():
     ap = argparse.ArgumentParser()
-    ap.add_argument("--mode", choices=["udp", "pty"], default="udp")
+    ap.add_argument("--mode", choices=["udp", "pty", "tcp"], default="udp")
     ap.add_argument("--pilot", choices=["rc", "manual"], default="rc")
     ap.add_argument("--deadline", type=float, default=30.0)
-    ap.add_argument("--scenario", choices=["interop", "pilot", "params", "thrust"], default="interop")
+    ap.add_argument("--scenario", choices=["interop", "pilot", "params", "thrust", "station",
+                                           "takeover", "noplan", "exit"], default="interop")
     ap.add_argument("--volts", type=float, default=16.0, help="thrust scenario: supply voltage")
     ap.add_argument("--param", action="append", default=[], help="NAME=VALUE override")
     ap.add_argument("--no-pilot-after-exit", action="store_true")
+    ap.add_argument("--station", choices=["alive", "none"], default="alive",
+                    help="the pilot's station (QGroundControl's heartbeat from 255/190)")
+    ap.add_argument("--station-silent-after", type=float, default=1.0,
+                    help="station scenario: seconds after markhold engaged")
+    ap.add_argument("--takeover-after", type=float, default=1.0,
+                    help="takeover scenario: seconds after markhold engaged")
+    ap.add_argument("--ardusub", choices=["4.5", "4.2dev"], default="4.5",
+                    help="whose rules for ground-station contact (see ArduSubInput)")
     args = ap.parse_args()
     if args.scenario == "thrust":
         return thrust_main(args)
+    if args.scenario == "exit":
+        return exit_main(args)
     if args.scenario != "interop":
         return pilot_main(args)
 
@@ -138,18 +153,21 @@ def main():
                 failures.append("bad data from link")
                 continue
             if t == "HEARTBEAT":
+                # markhold is a component of this vehicle (system 1, component 191), an
+                # onboard controller: a heartbeat from SYSID_MYGCS would keep ArduSub's
+                # GCS failsafe quiet.
                 gcs_hb_times.append(now)
-                if m.type != mav2.MAV_TYPE_GCS or m.autopilot != mav2.MAV_AUTOPILOT_INVALID:
+                if m.type != mav2.MAV_TYPE_ONBOARD_CONTROLLER or m.autopilot != mav2.MAV_AUTOPILOT_INVALID:
                     failures.append("heartbeat type %d autopilot %d" % (m.type, m.autopilot))
-                if src[0] != 255:
-                    failures.append("heartbeat from system %d" % src[0])
+                if src != (1, 191):
+                    failures.append("heartbeat from %d/%d" % src)
             elif t in ("RC_CHANNELS_OVERRIDE", "MANUAL_CONTROL"):
                 if src[0] != 255:
                     failures.append("%s from system %d (ArduSub drops it)" % (t, src[0]))
                 pilot.append((now, t, m))
             elif t == "COMMAND_LONG":
-                if src[0] != 255:
-                    failures.append("COMMAND_LONG from system %d" % src[0])
+                if src != (1, 191):
+                    failures.append("COMMAND_LONG from %d/%d" % src)
                 if m.target_system != 1:
                     failures.append("COMMAND_LONG to system %d" % m.target_system)
                 result = mav2.MAV_RESULT_ACCEPTED
@@ -256,11 +274,15 @@ def main():
 
 
 # ArduSub parameters a BlueROV2 Heavy set up for markhold has (names as in ArduSub).
+# FS_GCS_TIMEOUT: ArduSub up to 4.5 has no parameter and waits a fixed 2.5 s
+# (FS_GCS_TIMEOUT_MS, ArduSub/defines.h); later versions read it (default 5 s). This
+# vehicle reports 2.5 s, to keep the runs short.
 PARAMS = {
     "SYSID_MYGCS": 255.0,
     "FS_PILOT_INPUT": 2.0,
     "FS_PILOT_TIMEOUT": 3.0,
     "FS_GCS_ENABLE": 2.0,
+    "FS_GCS_TIMEOUT": 2.5,
     "FRAME_CONFIG": 2.0,
     "RC_OVERRIDE_TIME": 3.0,
     "EK3_SRC1_POSXY": 6.0,
@@ -269,10 +291,139 @@ PARAMS = {
     "VISO_TYPE": 1.0,
 }
 PILOT = (255, 190)  # QGroundControl
-MANUAL, STABILIZE = 19, 0
+MARKHOLD_COMPID = 191
+MANUAL, STABILIZE, ALT_HOLD_MODE, SURFACE = 19, 0, 2, 9
+PILOT_TYPES = ("RC_CHANNELS_OVERRIDE", "MANUAL_CONTROL")
+# Sub::failsafe_gcs_check runs in Sub::three_hz_loop (ArduSub/ArduSub.cpp).
+GCS_CHECK_PERIOD_S = 1.0 / 3.3
+
+
+class ArduSubInput:
+    """ArduSub's pilot input and ground-station contact, written from its source
+    (ArduSub 4.5: ArduSub/GCS_Mavlink.cpp, libraries/GCS_MAVLink/GCS_Common.cpp):
+
+    - RC_CHANNELS_OVERRIDE is taken from SYSID_MYGCS only
+      (GCS_MAVLINK::handle_rc_channels_override); 65535 leaves a channel alone, 0
+      releases it, and with no RC receiver (a BlueROV2: RC_Channel::update returns
+      without reading) a released channel keeps its last value;
+    - MANUAL_CONTROL is taken from SYSID_MYGCS, aimed at the vehicle only, and turned
+      into overrides (Sub::transform_manual_control_to_rc_override, joystick gain);
+    - both are pilot input (failsafe.last_pilot_input_ms, FS_PILOT_INPUT) and, with any
+      HEARTBEAT from SYSID_MYGCS whatever its type or component
+      (GCS_MAVLINK::handle_heartbeat), ground-station contact (sysid_myggcs_seen), which
+      Sub::failsafe_gcs_check times out after FS_GCS_TIMEOUT, at 3.3 Hz, when armed,
+      once a GCS has been seen.
+
+    `ardusub="4.2dev"` plays Blue Robotics' ArduSub V4.2.0dev (the SITL markhold flies,
+    bluerobotics/ardupilot b6606a8f5d): there GCS_MAVLINK::handle_rc_channels_override
+    is not ground-station contact; HEARTBEAT and MANUAL_CONTROL from SYSID_MYGCS are
+    (GCS_MAVLINK_Sub::handleMessage sets failsafe.last_heartbeat_ms)."""
+
+    def __init__(self, sysid_mygcs, sysid=1, gain=0.5, ardusub="4.5"):
+        self.rc_is_contact = ardusub != "4.2dev"
+        self.sysid_mygcs = sysid_mygcs
+        self.sysid = sysid
+        self.gain = gain
+        self.ch = {i: 1500 for i in range(1, 9)}
+        self.last_contact = None
+        self.last_input = None
+        self.applied = 0
+
+    def contact(self, now):
+        self.last_contact = now
+
+    def manual_control(self, now, x, y, z, r, s=0, t=0, ext=0):
+        rpy = 0.4 * self.gain
+        thr = 0.8 * self.gain
+        ax = lambda v: max(1100, min(1900, int(1500 + v * rpy)))
+        self.ch[3] = max(1100, min(1900, int(1500 - 500 * thr + z * thr)))
+        self.ch[4], self.ch[5], self.ch[6] = ax(r), ax(x), ax(y)
+        if ext & 1:
+            self.ch[1] = ax(s)
+        if ext & 2:
+            self.ch[2] = ax(t)
+        self.last_input = now
+        self.last_contact = now
+        self.applied += 1
+
+    def handle(self, m, now):
+        """A frame from the link: True if it was applied as pilot input."""
+        t = m.get_type()
+        src = m.get_srcSystem()
+        if t == "HEARTBEAT":
+            if src == self.sysid_mygcs:
+                self.contact(now)
+            return False
+        if src != self.sysid_mygcs:
+            return False  # "Only accept control from our gcs"
+        if t == "RC_CHANNELS_OVERRIDE":
+            raw = [m.chan1_raw, m.chan2_raw, m.chan3_raw, m.chan4_raw,
+                   m.chan5_raw, m.chan6_raw, m.chan7_raw, m.chan8_raw]
+            for i, v in enumerate(raw):
+                if v not in (0, 65535):
+                    self.ch[i + 1] = v
+            self.last_input = now
+            if self.rc_is_contact:
+                self.last_contact = now
+            self.applied += 1
+            return True
+        if t == "MANUAL_CONTROL":
+            if m.target != self.sysid:
+                return False
+            self.manual_control(now, m.x, m.y, m.z, m.r, m.s, m.t, m.enabled_extensions)
+            return True
+        return False
+
+    def channels(self):
+        return [self.ch[i] for i in range(1, 9)]
+
+    def neutral(self):
+        return all(self.ch[i] == 1500 for i in range(1, 7))
+
+
+class GcsFailsafe:
+    """Sub::failsafe_gcs_check (ArduSub/failsafe.cpp): FS_GCS_ENABLE 0 off, 1 warn, 2
+    disarm, 3 depth hold, 4 surface; nothing until a GCS has been seen; only armed."""
+
+    def __init__(self, params):
+        self.enable = int(params.get("FS_GCS_ENABLE", 0))
+        self.timeout = params.get("FS_GCS_TIMEOUT", 2.5)
+        self.next_check = 0.0
+        self.active = False
+        self.fired = []
+
+    def check(self, now, inp, st):
+        """At 3.3 Hz; returns the action taken, if any."""
+        if now < self.next_check:
+            return None
+        self.next_check = now + GCS_CHECK_PERIOD_S
+        if self.enable == 0 or inp.last_contact is None:
+            return None
+        if now - inp.last_contact < self.timeout:
+            self.active = False
+            return None
+        if self.active or not st["armed"]:
+            return None
+        self.active = True
+        self.fired.append(now)
+        if self.enable == 2:
+            st["armed"] = False
+        elif self.enable == 3:
+            st["mode"] = ALT_HOLD_MODE
+        elif self.enable == 4:
+            st["mode"] = SURFACE
+        st["hb_now"] = True
+        return self.enable
 
 
 def pilot_main(args):
+    """An ArduSub vehicle with the pilot's station beside it (QGroundControl as 255/190,
+    its packets reaching markhold through the router: the vehicle hears them too).
+    Scenarios: `pilot` (the plan of step_plan), `params` (heartbeats and parameters
+    only), `station` (the station falls silent `--station-silent-after` s after markhold
+    engaged), `takeover` (the pilot switches to STABILIZE `--takeover-after` s after
+    markhold engaged and stays), `noplan` (the pilot does nothing). `--station none`: no
+    station at all. Ends 1.5 s after markhold falls silent."""
     params = dict(PARAMS)
     for kv in args.param:
         k, v = kv.split("=", 1)
@@ -293,28 +444,40 @@ def pilot_main(args):
     # The pilot's QGroundControl: its packets reach markhold through the router.
     qgc = mav2.MAVLink(Out(send), srcSystem=PILOT[0], srcComponent=PILOT[1])
     sysid_mygcs = int(params["SYSID_MYGCS"])
+    inp = ArduSubInput(sysid_mygcs, ardusub=args.ardusub)
+    gcs_fs = GcsFailsafe(params)
 
     failures = []
-    st = {"armed": False, "mode": MANUAL if args.scenario == "pilot" else STABILIZE}
+    st = {"armed": False, "mode": MANUAL if args.scenario != "params" else STABILIZE}
     texts = []  # (t, severity, text) from markhold
     log = []  # (t, event)
     mh_inputs = []  # (t, kind) kind: "cmd" (non-neutral), "neutral", "release"
-    last_accepted_input = [None]
+    # markhold's pilot input and STATUSTEXT in arrival order (the order it sent them):
+    # (t, "input", kind) or (t, "text", text).
+    mh_seq = []
+    mh_ids = set()  # (sysid, compid, type) of every frame markhold sent
+    gcs_frames = []  # t of every frame markhold sent as SYSID_MYGCS
+    streams = set()
     failsafe = []
     param_reads = [0]
     named = set()
     t0 = time.time()
     last_hb = 0.0
     last_js = 0.0
+    last_station_hb = [None]
+    station = {"on": args.station != "none"}
     last_heard = [None]
     # The pilot's plan, driven by what markhold says.
     plan = {"step": 0, "at": None, "deflect_until": None, "js": args.scenario == "pilot",
             "no_js_after_exit": args.no_pilot_after_exit}
     change_t = [None]
 
+    def rel(t):
+        return round(t - t0, 3)
+
     def pilot_mode(m):
         now = time.time()
-        log.append((round(now - t0, 3), "pilot mode %d" % m))
+        log.append((rel(now), "pilot mode %d" % m))
         # COMMAND_LONG from QGroundControl: the vehicle switches; the router shows it to
         # markhold too.
         qgc.command_long_send(1, 1, mav2.MAV_CMD_DO_SET_MODE, 0, 1, m, 0, 0, 0, 0, 0)
@@ -323,7 +486,7 @@ def pilot_main(args):
         change_t[0] = now
 
     def pilot_arm():
-        log.append((round(time.time() - t0, 3), "pilot arm"))
+        log.append((rel(time.time()), "pilot arm"))
         qgc.command_long_send(1, 1, mav2.MAV_CMD_COMPONENT_ARM_DISARM, 0, 1, 0, 0, 0, 0, 0, 0)
         st["armed"] = True
 
@@ -339,29 +502,58 @@ def pilot_main(args):
             last_hb = now
             base = mav2.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED | (mav2.MAV_MODE_FLAG_SAFETY_ARMED if st["armed"] else 0)
             # ArduSub reports CRITICAL while a failsafe is active (here: after the leak).
-            status = mav2.MAV_STATE_CRITICAL if now < st.get("critical_until", 0) else mav2.MAV_STATE_ACTIVE
+            critical = now < st.get("critical_until", 0) or gcs_fs.active
+            status = mav2.MAV_STATE_CRITICAL if critical else mav2.MAV_STATE_ACTIVE
             veh.heartbeat_send(mav2.MAV_TYPE_SUBMARINE, mav2.MAV_AUTOPILOT_ARDUPILOTMEGA, base, st["mode"], status)
             veh.attitude_send(1234, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
+            # A still vehicle 1 m deep (hil --vehicle renders its camera from these).
+            veh.local_position_ned_send(1234, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0)
+            if 65 in streams:
+                veh.rc_channels_send(1234, 8, *(inp.channels() + [0] * 10), 255)
+        # The pilot's station: QGroundControl heartbeats at 1 Hz (MAV_TYPE_GCS).
+        if station["on"] and peer[0] is not None and (last_station_hb[0] is None or now - last_station_hb[0] >= 1.0):
+            last_station_hb[0] = now
+            qgc.heartbeat_send(mav2.MAV_TYPE_GCS, mav2.MAV_AUTOPILOT_INVALID, 0, 0, mav2.MAV_STATE_ACTIVE)
+            inp.contact(now)
         # The pilot's joystick: QGroundControl sends MANUAL_CONTROL all the time, centred
         # unless the pilot deflects it.
-        if plan["js"] and st["armed"] and now - last_js >= 0.05:
+        if plan["js"] and station["on"] and st["armed"] and now - last_js >= 0.05:
             last_js = now
             x = 600 if plan["deflect_until"] and now < plan["deflect_until"] else 0
             qgc.manual_control_send(1, x, 0, 500, 0, 0)
             if PILOT[0] == sysid_mygcs:
-                last_accepted_input[0] = now
+                inp.manual_control(now, x, 0, 500, 0)
         # The pilot-input failsafe (FS_PILOT_INPUT), as ArduSub runs it.
-        if st["armed"] and params["FS_PILOT_INPUT"] != 0 and last_accepted_input[0] is not None:
-            if now - last_accepted_input[0] > params["FS_PILOT_TIMEOUT"]:
-                failsafe.append(round(now - t0, 3))
+        if st["armed"] and params["FS_PILOT_INPUT"] != 0 and inp.last_input is not None:
+            if now - inp.last_input > params["FS_PILOT_TIMEOUT"]:
+                failsafe.append(rel(now))
                 veh.statustext_send(mav2.MAV_SEVERITY_CRITICAL, b"Lost manual control")
                 st["armed"] = False
+        # The GCS failsafe (FS_GCS_ENABLE), as ArduSub runs it.
+        if gcs_fs.check(now, inp, st) is not None:
+            log.append((rel(now), "gcs failsafe"))
+            veh.statustext_send(mav2.MAV_SEVERITY_WARNING, b"MYGCS: %d, heartbeat lost" % sysid_mygcs)
         if args.scenario == "pilot":
-            step_plan(plan, now, said, pilot_mode, pilot_arm, mh_inputs, change_t, failures)
+            step_plan(plan, now, said, pilot_mode, pilot_arm, mh_inputs, mh_seq, change_t, failures)
             if plan.pop("vehicle_text", False):
                 # What ArduSub says on a leak: markhold must log it.
                 veh.statustext_send(mav2.MAV_SEVERITY_CRITICAL, b"Leak Detected!")
                 st["critical_until"] = now + 0.3
+        elif args.scenario in ("station", "takeover", "noplan"):
+            if plan["step"] == 0 and said("markhold ready"):
+                pilot_arm()
+                plan["step"] = 1
+            if plan["step"] <= 1 and said("markhold on"):
+                plan["step"], plan["at"] = 2, now
+            if plan["step"] == 2 and args.scenario == "station" and now - plan["at"] >= args.station_silent_after:
+                station["on"] = False
+                log.append((rel(now), "station silent"))
+                plan["step"] = 3
+            if plan["step"] == 2 and args.scenario == "takeover" and now - plan["at"] >= args.takeover_after:
+                # The pilot switches mode and flies on with the joystick.
+                pilot_mode(STABILIZE)
+                plan["js"] = True
+                plan["step"] = 3
         r, _, _ = select.select([sock], [], [], 0.005)
         if not r:
             if last_heard[0] is not None and now - last_heard[0] > 1.5:
@@ -383,9 +575,14 @@ def pilot_main(args):
                 continue
             if src == PILOT:
                 failures.append("markhold sent as QGroundControl's ids %r" % (src,))
+            mh_ids.add((src[0], src[1], t))
+            if src[0] == sysid_mygcs:
+                gcs_frames.append(rel(now))
+            inp.handle(m, now)
             if t == "STATUSTEXT":
                 text = m.text if isinstance(m.text, str) else m.text.decode()
-                texts.append((round(now - t0, 3), m.severity, text))
+                texts.append((rel(now), m.severity, text))
+                mh_seq.append((now, "text", text))
                 if len(text.encode()) >= 50:
                     failures.append("statustext of %d bytes" % len(text.encode()))
             elif t == "NAMED_VALUE_FLOAT":
@@ -394,13 +591,11 @@ def pilot_main(args):
                 ch = [m.chan1_raw, m.chan2_raw, m.chan3_raw, m.chan4_raw, m.chan5_raw, m.chan6_raw]
                 kind = "release" if ch == [0] * 6 else ("neutral" if ch == [1500] * 6 else "cmd")
                 mh_inputs.append((now, kind))
-                if kind != "release" and src[0] == sysid_mygcs:
-                    last_accepted_input[0] = now
+                mh_seq.append((now, "input", kind))
             elif t == "MANUAL_CONTROL":
                 kind = "neutral" if (m.x, m.y, m.z, m.r) == (0, 0, 500, 0) else "cmd"
                 mh_inputs.append((now, kind))
-                if src[0] == sysid_mygcs:
-                    last_accepted_input[0] = now
+                mh_seq.append((now, "input", kind))
             elif t == "PARAM_REQUEST_READ":
                 param_reads[0] += 1
                 pid = m.param_id if isinstance(m.param_id, str) else m.param_id.decode()
@@ -413,37 +608,65 @@ def pilot_main(args):
                 result = mav2.MAV_RESULT_ACCEPTED
                 if m.command == mav2.MAV_CMD_COMPONENT_ARM_DISARM:
                     st["armed"] = m.param1 > 0.5
-                    log.append((round(now - t0, 3), "markhold arm %d" % st["armed"]))
+                    log.append((rel(now), "markhold arm %d" % st["armed"]))
                 elif m.command == mav2.MAV_CMD_DO_SET_MODE:
                     st["mode"] = int(m.param2)
                     st["hb_now"] = True
-                    log.append((round(now - t0, 3), "markhold mode %d" % st["mode"]))
+                    log.append((rel(now), "markhold mode %d" % st["mode"]))
+                elif m.command == mav2.MAV_CMD_SET_MESSAGE_INTERVAL:
+                    streams.add(int(m.param1))
                 elif m.command == mav2.MAV_CMD_REQUEST_MESSAGE and int(m.param1) == 148:
                     veh.autopilot_version_send(0, (4 << 24) | (1 << 16) | (2 << 8) | 255, 0, 0, 0,
                                                [0] * 8, [0] * 8, [0] * 8, 0, 0, 0)
                 veh.command_ack_send(m.command, result)
 
+    after = None
+    around = None
+    if change_t[0] is not None:
+        after = [k for t, k in mh_inputs if t > change_t[0]]
+        around = around_text(mh_seq, change_t[0], "markhold off: mode changed")
     verdict = {
         "ok": not failures,
         "failures": failures[:20],
         "texts": texts,
         "log": log,
         "failsafe": failsafe,
+        "gcs_failsafe": [rel(t) for t in gcs_fs.fired],
+        "fs_gcs_timeout_s": gcs_fs.timeout,
+        "station_last_hb": rel(last_station_hb[0]) if last_station_hb[0] is not None else None,
+        "gcs_frames": gcs_frames,
+        "mh_ids": sorted(mh_ids),
         "armed_at_end": st["armed"],
         "mode_at_end": st["mode"],
         "param_reads": param_reads[0],
         "named": sorted(named),
         "step": plan["step"],
-        "inputs_after_mode_change": plan.get("after_change"),
+        "inputs_after_mode_change": plan.get("after_change", after),
+        "inputs_after_change_to_end": after,
+        "around_off_text": plan.get("around", around),
         "inputs_while_off": plan.get("while_off"),
         "release_seen": plan.get("release"),
         "last_input_after_mode_change_ms": plan.get("last_input_ms"),
+        "applied_at_end": inp.channels(),
     }
     print(json.dumps(verdict), flush=True)
     sys.exit(0 if not failures else 1)
 
 
-def step_plan(plan, now, said, pilot_mode, pilot_arm, mh_inputs, change_t, failures):
+def around_text(seq, since, prefix):
+    """markhold's pilot input around its first STATUSTEXT starting with `prefix` after
+    `since`: the last input before it and every input after it (None if not said). It
+    says why it let go right after its neutral input, so by the order it sent them,
+    whatever a loaded host does to the clocks: neutral, the text, then the release."""
+    i = next((i for i, (t, k, x) in enumerate(seq) if t > since and k == "text" and x.startswith(prefix)), None)
+    if i is None:
+        return None
+    before = [x for _, k, x in seq[:i] if k == "input"]
+    return {"before": before[-1] if before else None,
+            "after": [x for _, k, x in seq[i + 1:] if k == "input"]}
+
+
+def step_plan(plan, now, said, pilot_mode, pilot_arm, mh_inputs, mh_seq, change_t, failures):
     """The pilot: arm and select MANUAL when markhold is ready; switch away (STABILIZE)
     once engaged; watch that markhold goes quiet; switch back (engaged again); move the
     stick (markhold lets go); switch away and back (engaged a third time); then markhold
@@ -467,14 +690,15 @@ def step_plan(plan, now, said, pilot_mode, pilot_arm, mh_inputs, change_t, failu
         pilot_after = [t for t, k in mh_inputs if t > change_t[0] and k != "release"]
         plan["last_input_ms"] = round((max(pilot_after) - change_t[0]) * 1e3, 1) if pilot_after else 0.0
         plan["release"] = "release" in after
-        # Judged by order, not by the wall clock (a loaded host delays everything): after
-        # the change, at most the input already in flight and the one neutral, then
-        # nothing but the release. At 30 frames/s that is within 2 frames (67 ms) of
-        # markhold hearing the change; last_input_ms reports the wall-clock figure.
-        if len([k for k in after if k != "release"]) > 2 or (after and after[-1] != "release"):
-            failures.append("pilot input after the pilot's mode change: %r" % after[:8])
-        if not said("markhold off: mode changed"):
+        # Judged by order, not by the wall clock (a loaded host delays everything): when
+        # markhold hears the change it sends one neutral and says why, and after that
+        # nothing but the release. (What it sent before hearing it was in flight;
+        # last_input_ms reports the wall-clock figure.)
+        plan["around"] = around = around_text(mh_seq, change_t[0], "markhold off: mode changed")
+        if around is None:
             failures.append("no 'markhold off: mode changed'")
+        elif around["before"] != "neutral" or around["after"] != ["release"]:
+            failures.append("pilot input around 'markhold off: mode changed': %r" % (around,))
         plan["step"], plan["at"], plan["mark"] = 4, now, len(mh_inputs)
     elif s == 4 and now - plan["at"] > 1.0:
         # Left alone for a second in STABILIZE: markhold must not come back by itself.
@@ -502,6 +726,218 @@ def step_plan(plan, now, said, pilot_mode, pilot_arm, mh_inputs, change_t, failu
         if plan["no_js_after_exit"]:
             # Nobody at the joystick when markhold stops.
             plan["js"] = False
+
+
+def exit_main(args):
+    """An ArduSub vehicle for markhold's exit (`--scenario exit`), over UDP, TCP (a
+    server that takes one connection after another, as SITL does) or a pseudo-terminal.
+    It applies pilot input as ArduSub does (ArduSubInput), streams RC_CHANNELS and
+    SERVO_OUTPUT_RAW at the intervals asked for (motor outputs follow the sticks as in
+    MANUAL), answers arm, mode and parameter reads. Every link session (a UDP peer, a
+    TCP connection, or on the pseudo-terminal the value of markhold's NAMED_VALUE_FLOAT
+    `mh_sess`) keeps its own record: the input applied when it ended. The first input a
+    session applies off neutral prints "CMD <session>". Ends when stdin closes (or at
+    the deadline) with the verdict: every session and its last applied input."""
+    params = dict(PARAMS)
+    names = sorted(params)
+    sysid_mygcs = int(params["SYSID_MYGCS"])
+    sessions = {}
+    order = []
+
+    class Session:
+        def __init__(self, key, send):
+            self.key = key
+            self.veh = mav2.MAVLink(Out(send), srcSystem=1, srcComponent=1)
+            self.veh.robust_parsing = True
+            self.inp = ArduSubInput(sysid_mygcs)
+            self.intervals = {}  # msg id -> (period s, next due)
+            self.cmd_applied = 0
+            self.armed = False
+            self.mode = MANUAL
+            self.end = None
+            self.last_hb = 0.0
+            self.texts = []
+            self.mh_sess = None
+            self.final = None
+            sessions[key] = self
+            order.append(key)
+
+        def follow(self, prev):
+            """The same vehicle, a new markhold on the same line: its state goes on."""
+            self.inp.ch = dict(prev.inp.ch)
+            self.intervals = prev.intervals
+            self.armed, self.mode = prev.armed, prev.mode
+            prev.end = "next"
+            prev.final = prev.record()
+
+        def record(self):
+            if self.final is not None:
+                return self.final
+            return {"key": str(self.key), "mh_sess": self.mh_sess,
+                    "applied": self.inp.channels()[:6], "neutral": self.inp.neutral(),
+                    "cmd_applied": self.cmd_applied, "inputs": self.inp.applied,
+                    "end": self.end, "texts": self.texts, "armed": self.armed}
+
+        def tick(self, now):
+            v = self.veh
+            if now - self.last_hb >= 0.1:
+                self.last_hb = now
+                base = mav2.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED | (mav2.MAV_MODE_FLAG_SAFETY_ARMED if self.armed else 0)
+                v.heartbeat_send(mav2.MAV_TYPE_SUBMARINE, mav2.MAV_AUTOPILOT_ARDUPILOTMEGA, base, self.mode, mav2.MAV_STATE_ACTIVE)
+            for mid, (period, due) in list(self.intervals.items()):
+                if now < due:
+                    continue
+                self.intervals[mid] = (period, now + period)
+                ch = self.inp.channels()
+                if mid == 65:
+                    v.rc_channels_send(1234, 8, *(ch + [0] * 10), 255)
+                elif mid == 36:
+                    # A stand-in for MANUAL: the thrusters are off neutral exactly when
+                    # a stick is.
+                    v.servo_output_raw_send(1234, 0, *ch[:8])
+                elif mid == 30:
+                    v.attitude_send(1234, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
+
+        def frame(self, m, now):
+            t = m.get_type()
+            if t == "BAD_DATA":
+                return
+            if t == "NAMED_VALUE_FLOAT":
+                name = m.name if isinstance(m.name, str) else m.name.decode()
+                if name == "mh_sess":
+                    return "mh_sess", int(m.value)
+            applied = self.inp.handle(m, now)
+            if applied and not self.inp.neutral():
+                if self.cmd_applied == 0:
+                    print("CMD %s" % (self.mh_sess if self.mh_sess is not None else str(self.key)), flush=True)
+                self.cmd_applied += 1
+            v = self.veh
+            if t == "STATUSTEXT":
+                self.texts.append(m.text if isinstance(m.text, str) else m.text.decode())
+            elif t == "PARAM_REQUEST_READ":
+                pid = m.param_id if isinstance(m.param_id, str) else m.param_id.decode()
+                if pid in params:
+                    v.param_value_send(pid.encode(), params[pid], mav2.MAV_PARAM_TYPE_REAL32, len(names), names.index(pid))
+            elif t == "COMMAND_LONG":
+                if m.command == mav2.MAV_CMD_COMPONENT_ARM_DISARM:
+                    self.armed = m.param1 > 0.5
+                elif m.command == mav2.MAV_CMD_DO_SET_MODE:
+                    self.mode = int(m.param2)
+                elif m.command == mav2.MAV_CMD_SET_MESSAGE_INTERVAL and m.param2 > 0:
+                    self.intervals[int(m.param1)] = (m.param2 / 1e6, now)
+                v.command_ack_send(m.command, mav2.MAV_RESULT_ACCEPTED)
+            return None
+
+    t0 = time.time()
+    stdin = sys.stdin.fileno()
+    os.set_blocking(stdin, False)
+    watch = [stdin]
+    done = False
+    if args.mode == "udp":
+        sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        sock.bind(("127.0.0.1", 0))
+        sock.setblocking(False)
+        print("UDP %d" % sock.getsockname()[1], flush=True)
+        watch.append(sock)
+    elif args.mode == "tcp":
+        lsock = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+        lsock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        lsock.bind(("127.0.0.1", 0))
+        lsock.listen(4)
+        lsock.setblocking(False)
+        print("TCP %d" % lsock.getsockname()[1], flush=True)
+        watch.append(lsock)
+        conns = {}  # socket -> Session
+        n_conn = [0]
+    else:
+        import tty
+        master, slave = os.openpty()
+        tty.setraw(slave)
+        path = os.ttyname(slave)
+        os.set_blocking(master, False)
+        print("PTY %s" % path, flush=True)
+        watch.append(master)
+
+        def pty_send(b):
+            try:
+                os.write(master, b)
+            except OSError:
+                pass
+        pty_session = [Session("pty-0", pty_send)]
+        pty_parser = mav2.MAVLink(Out(lambda b: None), srcSystem=1, srcComponent=1)
+        pty_parser.robust_parsing = True
+
+    while not done and time.time() - t0 < args.deadline:
+        now = time.time()
+        for sess in list(sessions.values()):
+            if sess.end is None:
+                sess.tick(now)
+        r, _, _ = select.select(watch, [], [], 0.002)
+        for f in r:
+            if f == stdin:
+                try:
+                    if os.read(stdin, 4096) == b"":
+                        done = True
+                except BlockingIOError:
+                    pass
+            elif args.mode == "udp":
+                data, addr = sock.recvfrom(65536)
+                sess = sessions.get(addr)
+                if sess is None:
+                    sess = Session(addr, lambda b, a=addr: sock.sendto(b, a))
+                for m in sess.veh.parse_buffer(data) or []:
+                    got = sess.frame(m, now)
+                    if got:
+                        sess.mh_sess = got[1]
+            elif args.mode == "tcp":
+                if f == lsock:
+                    c, _ = lsock.accept()
+                    c.setblocking(False)
+                    n_conn[0] += 1
+
+                    def tsend(b, c=c):
+                        try:
+                            c.sendall(b)
+                        except OSError:
+                            pass
+                    conns[c] = Session("tcp-%d" % n_conn[0], tsend)
+                    watch.append(c)
+                    continue
+                sess = conns[f]
+                try:
+                    data = f.recv(65536)
+                except ConnectionResetError:
+                    data = None
+                if not data:
+                    # The end of markhold's stream (or a reset): close ours, as SITL does.
+                    sess.end = "eof" if data == b"" else "reset"
+                    watch.remove(f)
+                    f.close()
+                    continue
+                for m in sess.veh.parse_buffer(data) or []:
+                    got = sess.frame(m, now)
+                    if got:
+                        sess.mh_sess = got[1]
+            else:
+                try:
+                    data = os.read(master, 65536)
+                except OSError:
+                    time.sleep(0.002)
+                    continue
+                sess = pty_session[0]
+                for m in pty_parser.parse_buffer(data) or []:
+                    got = sess.frame(m, now)
+                    if got and got[0] == "mh_sess" and got[1] != sess.mh_sess:
+                        # markhold's next session on the same device.
+                        if sess.mh_sess is not None:
+                            prev = sess
+                            sess = Session("pty-%d" % got[1], pty_send)
+                            sess.follow(prev)
+                            pty_session[0] = sess
+                        sess.mh_sess = got[1]
+                        print("SESSION %d" % got[1], flush=True)
+    verdict = {"sessions": [sessions[k].record() for k in order]}
+    print(json.dumps(verdict), flush=True)
 
 
 # --- ArduSub's pilot-input handling (written from ArduSub's source, see
@@ -659,7 +1095,7 @@ def thrust_main(args):
         peer[0], last_heard = addr, now
         for m in veh.parse_buffer(data) or []:
             t = m.get_type()
-            if m.get_srcSystem() != 255:
+            if t in PILOT_TYPES and m.get_srcSystem() != 255:
                 continue  # ArduSub uses pilot input from SYSID_MYGCS only
             if t == "RC_CHANNELS_OVERRIDE":
                 raw = [m.chan1_raw, m.chan2_raw, m.chan3_raw, m.chan4_raw, m.chan5_raw, m.chan6_raw]

@@ -74,7 +74,8 @@ fn signed_link_signs_and_checks() {
     let (h, m) = r
         .read_any_message_signed::<MavMessage>(Some(&good))
         .expect("valid signature");
-    assert_eq!(h.system_id, 255);
+    // markhold's heartbeat, as a component of the vehicle (system 1 until discovered).
+    assert_eq!((h.system_id, h.component_id), (1, 191));
     assert!(matches!(m, MavMessage::HEARTBEAT(_)));
     let mut wrong_key = KEY;
     wrong_key[0] ^= 1;

@@ -1,16 +1,23 @@
 //! Engagement: on a real vehicle markhold commands only while the pilot has engaged it,
 //! and lets go at once when the pilot acts. The pilot engages from QGroundControl by
 //! selecting the site's `[link] mode` while the vehicle is armed, after markhold said it
-//! is ready; `run --engage` engages at start (tests, bench runs). markhold disengages when
+//! is ready, with the pilot's station heard; `run --engage` and `hil --vehicle` engage at
+//! start (tests, bench runs, a simulator without a station). markhold disengages when
 //! the mode changes, the vehicle disarms, the pilot moves a stick, the link is lost, the
-//! supervisor gives up on a lost marker, or markhold stops: neutral input first, then the
-//! override released and no pilot input at all. It never engages again by itself: that
-//! takes a new pilot action (a mode switch away and back, or arming in the mode).
+//! pilot's station falls silent, the supervisor gives up on a lost marker, or markhold
+//! stops: neutral input first, then the override released and no pilot input at all. It
+//! never engages again by itself: that takes a new pilot action (a mode switch away and
+//! back, or arming in the mode).
 //!
-//! [`EngagedLink`] wraps the vehicle link as the loop's [`CommandLink`]: the loop is the
-//! same as everywhere else, and pilot input simply does not pass while disengaged.
-//! [`Announcer`] tells the pilot what happens (STATUSTEXT, one message per state change,
-//! flapping states rate limited) and sends the station error as NAMED_VALUE_FLOAT.
+//! [`EngagedLink`] wraps the vehicle link as the loop's [`CommandLink`] for every runner
+//! on a real link (`run`, `hil --vehicle`): the loop is the same as everywhere else, pilot
+//! input simply does not pass while disengaged, and [`EngagedLink::exit`] is the one way
+//! a run ends (`exit`). [`Announcer`] tells the pilot what happens (STATUSTEXT, one
+//! message per state change, flapping states rate limited) and sends the station error
+//! as NAMED_VALUE_FLOAT.
+
+mod exit;
+pub use exit::{ExitPolicy, ExitReport, HandBack};
 
 use std::sync::mpsc::SyncSender;
 
@@ -42,6 +49,8 @@ pub enum Disengage {
     PilotInput,
     /// The vehicle is not heard.
     LinkLost,
+    /// The pilot's station (its heartbeat from SYSID_MYGCS) fell silent.
+    StationLost,
     /// The supervisor gave up on a lost marker.
     MarkerLost,
     /// markhold stops.
@@ -56,6 +65,7 @@ impl Disengage {
             Self::Disarmed => "markhold off: disarmed",
             Self::PilotInput => "markhold off: pilot input",
             Self::LinkLost => "markhold off: link lost",
+            Self::StationLost => "markhold off: pilot station silent",
             Self::MarkerLost => "markhold off: marker lost, gave up",
             Self::Stopped => "markhold off: stopped",
         }
@@ -74,7 +84,14 @@ pub enum EngageState {
     Engaged,
     /// Just disengaged: neutral until `release_at_s`, then released.
     Releasing { release_at_s: f64 },
+    /// The pilot asked (armed in the mode) before the pilot's station was heard: engage
+    /// once it is, within [`STATION_WAIT_S`] of `since_s`; no pilot input goes out.
+    Pending { since_s: f64 },
 }
+
+/// A pilot's engage waits this long for the station's heartbeat (one 1 Hz period and
+/// its jitter), s.
+pub const STATION_WAIT_S: f64 = markhold_autopilot::config::STATION_TIMEOUT_MIN_S;
 
 /// A change of engagement, for the announcer and the summary.
 #[derive(Clone, Copy, Debug, PartialEq, Serialize)]
@@ -82,6 +99,9 @@ pub enum Transition {
     Ready,
     Engaged,
     Disengaged(Disengage),
+    /// The pilot asked (armed in the mode) but no pilot station is heard: markhold
+    /// cannot tell when it falls silent, so it does not engage.
+    NoStation,
 }
 
 /// The engagement state machine: pure, on loop time, fed the link's view of the vehicle.
@@ -89,6 +109,9 @@ pub enum Transition {
 pub struct Engager {
     mode: ArduSubMode,
     engage_at_start: bool,
+    /// Engage with no pilot station ever heard (`--engage`, a simulator): there is no
+    /// ground-station failsafe to keep quiet. A station heard once is watched anyway.
+    allow_without_station: bool,
     state: EngageState,
     /// Armed in the site's mode, as last observed: engaging takes a rising edge.
     armed_in_mode: bool,
@@ -105,12 +128,14 @@ pub struct Engager {
 }
 
 impl Engager {
-    /// Engage in `mode`; `engage_at_start`: as soon as the vehicle is heard (`--engage`).
-    /// `own_request_window_s`: how long a mode request of markhold's own may take to show.
+    /// Engage in `mode`; `engage_at_start`: as soon as the vehicle is heard (`--engage`),
+    /// also with no pilot station heard. `own_request_window_s`: how long a mode request
+    /// of markhold's own may take to show.
     pub fn new(mode: ArduSubMode, engage_at_start: bool, own_request_window_s: f64) -> Self {
         Self {
             mode,
             engage_at_start,
+            allow_without_station: engage_at_start,
             state: EngageState::Waiting,
             armed_in_mode: false,
             mode_changes: 0,
@@ -168,6 +193,36 @@ impl Engager {
         Some(Transition::Engaged)
     }
 
+    /// The pilot's station allows engaging: heard and not silent, or never heard where
+    /// engaging without one is allowed.
+    fn station_ok(&self, v: &VehicleState) -> bool {
+        !v.station.lost && (v.station.last_s.is_some() || self.allow_without_station)
+    }
+
+    /// The pilot asked, but no pilot station is heard: not engaged, and said.
+    fn refuse(&self, v: &VehicleState) -> Option<Transition> {
+        tracing::warn!(
+            lost = v.station.lost,
+            "not engaging: no pilot station heard (a HEARTBEAT from SYSID_MYGCS)"
+        );
+        Some(Transition::NoStation)
+    }
+
+    /// Markhold commands (engaged) or has just let go and not yet released.
+    pub fn commanding(&self) -> bool {
+        matches!(
+            self.state,
+            EngageState::Engaged | EngageState::Releasing { .. }
+        )
+    }
+
+    /// Back to Ready without a release (the caller released, or there is nothing to).
+    fn released(&mut self) {
+        if self.commanding() {
+            self.state = EngageState::Ready;
+        }
+    }
+
     /// The release is due: the caller releases the override and this goes to Ready.
     pub fn release_due(&mut self, now_s: f64) -> bool {
         match self.state {
@@ -197,7 +252,7 @@ impl Engager {
         }
         match self.state {
             EngageState::Waiting if v.heartbeat_ok => {
-                if self.engage_at_start {
+                if self.engage_at_start && self.station_ok(v) {
                     self.engage()
                 } else {
                     self.state = EngageState::Ready;
@@ -206,12 +261,32 @@ impl Engager {
             }
             EngageState::Waiting => None,
             EngageState::Engaged if !v.heartbeat_ok => self.disengage(Disengage::LinkLost, now_s),
+            EngageState::Engaged if v.station.lost => self.disengage(Disengage::StationLost, now_s),
             EngageState::Engaged if disarmed => self.disengage(Disengage::Disarmed, now_s),
             EngageState::Engaged if mode_changed => self.disengage(Disengage::ModeChanged, now_s),
             EngageState::Engaged if deflected => self.disengage(Disengage::PilotInput, now_s),
             EngageState::Engaged | EngageState::Releasing { .. } => None,
-            EngageState::Ready if rising && v.heartbeat_ok && !own => self.engage(),
+            EngageState::Ready if rising && v.heartbeat_ok && !own => {
+                if self.station_ok(v) {
+                    self.engage()
+                } else if v.station.lost {
+                    self.refuse(v)
+                } else {
+                    self.state = EngageState::Pending { since_s: now_s };
+                    None
+                }
+            }
             EngageState::Ready => None,
+            EngageState::Pending { .. } if !(cond && v.heartbeat_ok) => {
+                self.state = EngageState::Ready;
+                None
+            }
+            EngageState::Pending { .. } if self.station_ok(v) => self.engage(),
+            EngageState::Pending { since_s } if now_s - since_s > STATION_WAIT_S => {
+                self.state = EngageState::Ready;
+                self.refuse(v)
+            }
+            EngageState::Pending { .. } => None,
         }
     }
 }
@@ -318,6 +393,10 @@ impl Announcer {
             Transition::Ready => (Severity::Notice, ready_text(mode)),
             Transition::Engaged => (Severity::Notice, "markhold on: holding station"),
             Transition::Disengaged(why) => (Severity::Warning, why.text()),
+            Transition::NoStation => (
+                Severity::Warning,
+                "markhold: pilot station not heard, not engaging",
+            ),
         }
     }
 
@@ -448,13 +527,20 @@ impl EngagedLink {
         let text = self.announcer.transition(t, self.mode);
         match t {
             Transition::Engaged => self.link.set_pilot_keepalive(true),
-            // Centre the sticks at once (an override holds until released); nothing
-            // more until the release follows.
-            Transition::Disengaged(_) => {
+            // Centre the sticks at once (an override holds until released, and ArduSub
+            // with no RC receiver keeps the last value after a release); nothing more
+            // until the release follows.
+            Transition::Disengaged(why) => {
                 self.link.send_neutral(now_s)?;
                 self.link.set_pilot_keepalive(false);
+                if matches!(why, Disengage::StationLost | Disengage::LinkLost) {
+                    // Nobody to hand over to, or nobody hears us: let go in the same
+                    // tick, inside the station's grace (no SYSID_MYGCS traffic after).
+                    self.link.release_pilot()?;
+                    self.engager.released();
+                }
             }
-            Transition::Ready => {}
+            Transition::Ready | Transition::NoStation => {}
         }
         self.say(text)
     }
@@ -465,17 +551,13 @@ impl EngagedLink {
         self.apply(t, now_s)
     }
 
-    /// Disengage and release at once (the end of a run): neutral, then nothing.
-    pub fn stop(&mut self, now_s: f64) -> anyhow::Result<()> {
-        self.disengage(Disengage::Stopped, now_s)?;
-        self.release(now_s)
-    }
-
-    fn release(&mut self, now_s: f64) -> anyhow::Result<()> {
-        if matches!(self.engager.state, EngageState::Releasing { .. }) {
-            self.engager.state = EngageState::Ready;
+    /// Release the override after a disengage (nothing when markhold was not
+    /// commanding: after a pilot takeover nothing more goes out as SYSID_MYGCS).
+    fn release(&mut self) -> anyhow::Result<()> {
+        if !self.engager.commanding() {
+            return Ok(());
         }
-        let _ = now_s;
+        self.engager.released();
         Ok(self.link.release_pilot()?)
     }
 
@@ -622,7 +704,69 @@ mod tests {
         v.armed = armed;
         v.mode = Some(mode);
         v.mode_changes = changes;
+        // The pilot's station heard (QGroundControl's heartbeat).
+        v.station.last_s = Some(0.0);
+        v.station.heartbeats = 1;
         v
+    }
+
+    #[test]
+    fn no_engagement_without_the_pilot_station_and_a_silent_one_disengages() {
+        let alt = ArduSubMode::AltHold;
+        let mut e = Engager::new(alt, false, 5.0);
+        let mut v = vehicle(false, alt, 0);
+        v.station = markhold_autopilot::StationSeen::default();
+        assert_eq!(e.observe(&v, 0.0), Some(Transition::Ready));
+        // The pilot arms in the mode, but no station was heard: markhold waits a
+        // heartbeat period for it, then, none heard (it cannot tell when it would fall
+        // silent), does not engage, and says so.
+        v.armed = true;
+        assert_eq!(e.observe(&v, 1.0), None);
+        assert_eq!(e.state(), EngageState::Pending { since_s: 1.0 });
+        assert_eq!(e.observe(&v, 0.9 + STATION_WAIT_S), None);
+        assert_eq!(
+            e.observe(&v, 1.1 + STATION_WAIT_S),
+            Some(Transition::NoStation)
+        );
+        assert!(!e.engaged());
+        // Heard within the wait: engaged on that same request.
+        let mut e2 = Engager::new(alt, false, 5.0);
+        let mut w = vehicle(false, alt, 0);
+        w.station = markhold_autopilot::StationSeen::default();
+        e2.observe(&w, 0.0);
+        w.armed = true;
+        assert_eq!(e2.observe(&w, 1.0), None);
+        w.station.last_s = Some(1.5);
+        assert_eq!(e2.observe(&w, 1.5), Some(Transition::Engaged));
+        // With the station heard, the next pilot action engages.
+        let mut v = vehicle(true, ArduSubMode::Manual, 1);
+        e.observe(&v, 2.0);
+        v.mode = Some(alt);
+        v.mode_changes = 2;
+        assert_eq!(e.observe(&v, 3.0), Some(Transition::Engaged));
+        // The station falls silent (the link marks it lost): disengaged, and no pilot
+        // action engages again until it is heard.
+        v.station.lost = true;
+        assert_eq!(
+            e.observe(&v, 4.0),
+            Some(Transition::Disengaged(Disengage::StationLost))
+        );
+        assert!(e.release_due(4.1));
+        v.mode = Some(ArduSubMode::Manual);
+        v.mode_changes = 3;
+        e.observe(&v, 5.0);
+        v.mode = Some(alt);
+        v.mode_changes = 4;
+        assert_eq!(e.observe(&v, 6.0), Some(Transition::NoStation));
+        // `--engage` (no station needed) still does not engage while one is silent.
+        let mut e = Engager::new(alt, true, 5.0);
+        let mut v = vehicle(true, alt, 0);
+        v.station = markhold_autopilot::StationSeen::default();
+        assert_eq!(e.observe(&v, 0.0), Some(Transition::Engaged));
+        let mut e = Engager::new(alt, true, 5.0);
+        v.station.last_s = Some(0.0);
+        v.station.lost = true;
+        assert_eq!(e.observe(&v, 0.0), Some(Transition::Ready));
     }
 
     #[test]
@@ -709,11 +853,14 @@ mod tests {
             Disengage::Disarmed,
             Disengage::PilotInput,
             Disengage::LinkLost,
+            Disengage::StationLost,
             Disengage::MarkerLost,
             Disengage::Stopped,
         ] {
             assert!(d.text().len() < 50);
         }
+        let (_, t) = a.transition(Transition::NoStation, ArduSubMode::AltHold);
+        assert!(t.len() < 50, "{t}");
     }
 
     #[test]

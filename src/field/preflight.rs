@@ -122,6 +122,9 @@ fn wanted(setpoint: bool) -> Vec<&'static str> {
         "FS_GCS_ENABLE",
         "FRAME_CONFIG",
     ];
+    // ArduSub after 4.5; up to 4.5 the GCS failsafe waits a fixed 2.5 s. Not
+    // waited for: an older vehicle never answers it.
+    v.push("FS_GCS_TIMEOUT");
     if setpoint {
         v.extend([
             "EK3_SRC1_POSXY",
@@ -164,11 +167,13 @@ fn read_params(
         if rtt.is_none() && names.first().is_some_and(|n| link.param(n).is_some()) {
             rtt = Some(started.elapsed().as_secs_f64() * 1e3);
         }
-        // The GCS id has a newer name (MAV_GCS_SYSID): either answers.
+        // The GCS id has a newer name (MAV_GCS_SYSID): either answers. FS_GCS_TIMEOUT
+        // exists only after ArduSub 4.5.
         let missing = names
             .iter()
             .filter(|n| link.param(n).is_none())
             .filter(|n| !(**n == "SYSID_MYGCS" && link.param("MAV_GCS_SYSID").is_some()))
+            .filter(|n| **n != "FS_GCS_TIMEOUT")
             .count();
         let elapsed = started.elapsed().as_secs_f64();
         if missing == 0 || elapsed >= PARAM_WAIT_S || stop.is_set() {
@@ -190,6 +195,21 @@ fn read_params(
     }
 }
 
+/// A station heartbeats once a second: give it one period (and its jitter) to be heard,
+/// if it was not during the parameter reads.
+fn wait_for_station(link: &mut VehicleLink, t0: f64, stop: &ShutdownFlag) {
+    let started = Instant::now();
+    while link.state().station.last_s.is_none()
+        && started.elapsed().as_secs_f64() < markhold_autopilot::config::STATION_TIMEOUT_MIN_S
+        && !stop.is_set()
+    {
+        if let Err(e) = link.tick(t0 + started.elapsed().as_secs_f64()) {
+            tracing::warn!(error = %e, "preflight: link");
+        }
+        std::thread::sleep(Duration::from_millis(5));
+    }
+}
+
 /// The site's `[vehicle] frame` (heavy / standard), as written.
 fn site_frame(site: &LoadedSite) -> Option<String> {
     let v = toml::Value::try_from(&site.site.vehicle).ok()?;
@@ -205,9 +225,11 @@ pub fn check(link: &mut VehicleLink, site: &LoadedSite, t0: f64, stop: &Shutdown
         param_round_trip_ms: read_params(link, &names, t0, stop),
         ..Checklist::default()
     };
+    wait_for_station(link, t0, stop);
     let p = |n: &str| link.param(n).map(|(v, _)| v);
 
     check_ids_and_failsafes(&mut list, &p, &cfg, site);
+    check_station(&mut list, link);
     check_frame(&mut list, p("FRAME_CONFIG"), site_frame(site));
     check_vehicle(&mut list, link, site);
     if setpoint {
@@ -329,13 +351,67 @@ fn check_ids_and_failsafes(
             "gcs failsafe",
             Verdict::Warn,
             format!("FS_GCS_ENABLE = {v} (disabled)"),
-            "set FS_GCS_ENABLE = 2 (disarm) or 4 (surface) so a lost tether is handled",
+            "set FS_GCS_ENABLE = 2 (disarm) or 4 (surface) so a lost tether is handled: \
+             markhold stops when the pilot's station falls silent and leaves the rest to it",
         ),
         None => list.add(
             "gcs failsafe",
             Verdict::Warn,
             not_read("FS_GCS_ENABLE"),
             "set FS_GCS_ENABLE = 2",
+        ),
+    }
+}
+
+/// The pilot's station and the GCS failsafe's timeout: how long markhold may keep
+/// commanding after the station falls silent (`markhold_autopilot::station_timeout_s`).
+fn check_station(list: &mut Checklist, link: &VehicleLink) {
+    let (t, read) = link.fs_gcs_timeout_s();
+    let bound = link.station_timeout_s();
+    let source = if read {
+        format!("FS_GCS_TIMEOUT = {t} s")
+    } else {
+        format!("FS_GCS_TIMEOUT not reported (ArduSub 4.5 and older: a fixed {t} s)")
+    };
+    let found = format!(
+        "{source}; markhold's pilot input stops {bound:.2} s after the pilot's station \
+         falls silent, so the GCS failsafe fires at most that much later than without it"
+    );
+    let verdict = if bound > 0.5 * t + 1e-9 {
+        Verdict::Warn
+    } else {
+        Verdict::Pass
+    };
+    list.add(
+        "gcs timeout",
+        verdict,
+        found,
+        "FS_GCS_TIMEOUT under 2.4 s: markhold delays the failsafe by more than half of it \
+         (a station heartbeats at 1 Hz: markhold cannot tell it lost sooner); 5 s is \
+         ArduSub's default",
+    );
+    let st = link.state().station;
+    match (st.last_s, st.component_id) {
+        (Some(_), Some(comp)) if !st.lost => list.add(
+            "pilot station",
+            Verdict::Pass,
+            format!(
+                "heard: system {} component {comp} ({} heartbeats)",
+                link.config().gcs_system_id,
+                st.heartbeats
+            ),
+            "",
+        ),
+        _ => list.add(
+            "pilot station",
+            Verdict::Warn,
+            format!(
+                "no HEARTBEAT from SYSID_MYGCS ({}) heard",
+                link.config().gcs_system_id
+            ),
+            "start QGroundControl and check that the router forwards its heartbeat to \
+             markhold: markhold engages only while it hears the pilot's station (to let \
+             ArduSub's GCS failsafe fire when it falls silent)",
         ),
     }
 }

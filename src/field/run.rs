@@ -7,12 +7,13 @@
 use std::path::PathBuf;
 use std::time::{Duration, Instant};
 
-use markhold_autopilot::{CommandStatus, Directive, FailsafeEvent, Severity, VehicleLink};
+use markhold_autopilot::{CommandStatus, Directive, FailsafeEvent, VehicleLink};
 use markhold_exposure::{Camera, CameraError};
 use serde::Serialize;
 
 use super::camera::{open_camera, CameraUrl, LiveCamera};
-use super::engage::{EngagedLink, Transition};
+pub use super::engage::HandBack;
+use super::engage::{EngagedLink, ExitPolicy, ExitReport, Transition};
 use super::preflight::{self, Checklist};
 use super::signal::ShutdownFlag;
 use crate::observe::{Snapshots, StatusBoard, TraceWriter};
@@ -160,20 +161,10 @@ pub struct RunReport {
     pub statustexts: u64,
     /// `on_exit = "hand_back"`: how the hand-back ended.
     pub hand_back: Option<HandBack>,
+    /// The exit: the neutral input seen applied, the policy, the link's close.
+    pub exit: ExitReport,
     /// The preflight checklist, when it ran.
     pub preflight: Option<Checklist>,
-}
-
-/// How a hand-back at the end of a run ended.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
-#[serde(rename_all = "snake_case")]
-pub enum HandBack {
-    /// markhold was not commanding (or the vehicle was disarmed): released at once.
-    NotCommanding,
-    /// The pilot's input (or a mode change / disarm) was heard: released.
-    PilotTookOver,
-    /// No pilot input within `hand_back_timeout_s`: disarmed.
-    Disarmed(CommandStatus),
 }
 
 /// Open the link and wait (wall clock, bounded) for the vehicle's heartbeat; `now_s`
@@ -539,28 +530,20 @@ pub fn run_live(
         ..Counts::default()
     };
     let stopped = drive(&mut pipeline, &mut cam, site, opts, stop, &mut n);
-    // Leave the vehicle as the site says, whatever ended the loop: neutral while markhold
-    // was commanding, then disarm or hand back; then close the recording (it keeps the
-    // exit's MAVLink), also after an error.
-    let was_engaged = pipeline.link().engager().engaged();
-    let neutral = pipeline.link_mut().send_neutral(n.last_stamp);
-    let disarm_policy = pipeline.link().inner().config().disarms_on_exit();
-    let (disarm, hand_back) = if stopped.is_ok() && (n.disarm_asked || disarm_policy) {
-        let _ = pipeline
-            .link_mut()
-            .disengage(super::engage::Disengage::Stopped, n.last_stamp);
-        let link = pipeline.link_mut().inner_mut();
-        link.set_pilot_keepalive(true);
-        (Some(disarm_on_exit(link, n.last_stamp)), None)
+    // Leave the vehicle as the site says, whatever ended the loop (the same exit as
+    // `hil --vehicle`): neutral seen applied while markhold was commanding, then disarm
+    // or hand back, then the link closed; then the recording (it keeps the exit's
+    // MAVLink), also after an error. An error hands back rather than disarming.
+    let site_policy = ExitPolicy::of(pipeline.link().inner().config());
+    let policy = if stopped.is_ok() && (n.disarm_asked || site_policy == ExitPolicy::Disarm) {
+        ExitPolicy::Disarm
     } else {
-        (
-            None,
-            Some(hand_back(pipeline.link_mut(), was_engaged, n.last_stamp)),
-        )
+        ExitPolicy::HandBack
     };
+    let exit = pipeline.link_mut().exit(policy, n.last_stamp);
+    let (disarm, hand_back) = (exit.disarm, exit.hand_back);
     let observers_done = pipeline.finish_observers();
     let stopped_by = stopped?;
-    neutral?;
     let link = pipeline.link();
     Ok(RunReport {
         frames: n.frames,
@@ -578,116 +561,7 @@ pub fn run_live(
         withheld: link.withheld,
         statustexts: link.inner().state().counters.statustexts_sent,
         hand_back,
+        exit,
         preflight: checklist,
     })
-}
-
-/// `on_exit = "hand_back"`: if markhold was commanding an armed vehicle, keep its sticks
-/// centred and tell the pilot, until the pilot's own input is heard (or the pilot changes
-/// mode or disarms); then release and stop. Nothing heard within `hand_back_timeout_s`:
-/// disarm and say so, so an armed vehicle is never left with nobody commanding it
-/// without a word. Loop time is `t0` plus the time waited (no frames come any more).
-fn hand_back(link: &mut EngagedLink, was_engaged: bool, t0: f64) -> HandBack {
-    let say = |l: &mut EngagedLink, sev, text| {
-        if let Err(e) = l.inner_mut().send_statustext(sev, text) {
-            tracing::warn!(error = %e, "statustext");
-        }
-    };
-    let armed = link.inner().state().armed;
-    if !was_engaged || !armed {
-        if let Err(e) = link.stop(t0) {
-            tracing::warn!(error = %e, "release on exit");
-        }
-        say(link, Severity::Info, "markhold stopped");
-        return HandBack::NotCommanding;
-    }
-    if let Err(e) = link.disengage(super::engage::Disengage::Stopped, t0) {
-        tracing::warn!(error = %e, "disengage on exit");
-    }
-    let timeout = link.inner().config().hand_back_timeout_s;
-    say(
-        link,
-        Severity::Warning,
-        "markhold stopped: take the controls",
-    );
-    eprintln!("markhold run: handing back: neutral until the pilot's input is heard (at most {timeout} s)");
-    let inner = link.inner_mut();
-    inner.set_pilot_keepalive(true);
-    let before = inner.state().clone();
-    let started = Instant::now();
-    let outcome = loop {
-        let t = t0 + started.elapsed().as_secs_f64();
-        if let Err(e) = inner.tick(t) {
-            tracing::warn!(error = %e, "hand back: link");
-        }
-        let st = inner.state();
-        let pilot = st.pilot.last_s.is_some_and(|p| p > t0) && st.pilot.count > before.pilot.count;
-        if pilot || st.mode_changes != before.mode_changes || !st.armed {
-            break HandBack::PilotTookOver;
-        }
-        if t - t0 >= timeout {
-            break HandBack::Disarmed(CommandStatus::TimedOut);
-        }
-        std::thread::sleep(Duration::from_millis(10));
-    };
-    match outcome {
-        HandBack::PilotTookOver => {
-            if let Err(e) = inner.release_pilot() {
-                tracing::warn!(error = %e, "release on exit");
-            }
-            say(link, Severity::Notice, "markhold: pilot has control");
-            eprintln!("markhold run: handed back: the pilot has control");
-            outcome
-        }
-        _ => {
-            say(
-                link,
-                Severity::Critical,
-                "markhold: no pilot input, disarming",
-            );
-            let t = t0 + started.elapsed().as_secs_f64();
-            let status = disarm_on_exit(link.inner_mut(), t);
-            if let Err(e) = link.inner_mut().release_pilot() {
-                tracing::warn!(error = %e, "release on exit");
-            }
-            HandBack::Disarmed(status)
-        }
-    }
-}
-
-/// After the shutdown's neutral input: disarm, acknowledged and retried by the link, on
-/// loop time `t0` plus the time waited (no frames come any more), bounded by the link's
-/// own retries. Neutral input keeps going out (the link's keep-alive) until it settles.
-fn disarm_on_exit(link: &mut VehicleLink, t0: f64) -> CommandStatus {
-    let cfg = link.config().clone();
-    let started = Instant::now();
-    let limit = cfg.command_timeout_s * f64::from(cfg.command_retries + 1) + 0.5;
-    let now = |started: Instant| t0 + started.elapsed().as_secs_f64();
-    if let Err(e) = link.request_arm(false, now(started)) {
-        tracing::warn!(error = %e, "disarm on exit: request not sent");
-        return CommandStatus::TimedOut;
-    }
-    eprintln!("markhold run: disarming (link.disarm_on_exit)");
-    let status = loop {
-        let t = now(started);
-        if let Err(e) = link.tick(t) {
-            tracing::warn!(error = %e, "disarm on exit: link");
-        }
-        let st = link.state();
-        match st.arm_command {
-            CommandStatus::Pending { .. } | CommandStatus::Idle if st.armed => {}
-            CommandStatus::Pending { .. } | CommandStatus::Idle => break CommandStatus::Accepted,
-            other => break other,
-        }
-        if t - t0 > limit {
-            break CommandStatus::TimedOut;
-        }
-        std::thread::sleep(Duration::from_millis(10));
-    };
-    tracing::info!(?status, armed = link.state().armed, "disarm on exit");
-    eprintln!(
-        "markhold run: disarm on exit: {status:?} (vehicle armed: {})",
-        link.state().armed
-    );
-    status
 }

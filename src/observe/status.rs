@@ -35,6 +35,8 @@ pub enum Engagement {
     Engaged,
     /// Just let go: neutral, then the override released.
     Releasing,
+    /// The pilot engaged; waits to hear the pilot's station before commanding.
+    Pending,
 }
 
 impl Engagement {
@@ -49,6 +51,7 @@ impl Engagement {
             Self::Ready,
             Self::Engaged,
             Self::Releasing,
+            Self::Pending,
         ]
         .get(usize::from(c))
         .copied()
@@ -64,6 +67,7 @@ impl From<crate::field::engage::EngageState> for Engagement {
             E::Ready => Self::Ready,
             E::Engaged => Self::Engaged,
             E::Releasing { .. } => Self::Releasing,
+            E::Pending { .. } => Self::Pending,
         }
     }
 }
@@ -416,6 +420,7 @@ mod tests {
             Engagement::Ready,
             Engagement::Engaged,
             Engagement::Releasing,
+            Engagement::Pending,
         ] {
             assert_eq!(Engagement::from_code(e.code()), e);
         }

@@ -17,7 +17,7 @@ use nalgebra::{Isometry3, Translation3, UnitQuaternion};
 
 use super::hil::{camera_model, lighting_of, loop_start, site_scene, start_offset, HilOptions};
 use super::summary::{RunStats, Summary};
-use crate::field::engage::EngagedLink;
+use crate::field::engage::{EngagedLink, ExitPolicy};
 use crate::params::LoadedSite;
 use crate::pipeline::{CommandLink, Observers, Pipeline};
 
@@ -166,6 +166,8 @@ pub fn run_external(
     link_cfg.url = url.to_string();
     let mut link = VehicleLink::connect(&link_cfg)
         .with_context(|| format!("connecting to the vehicle at {url}"))?;
+    // No pilot input before the engagement (it engages once armed, below).
+    link.set_pilot_keepalive(false);
     let t_world_vehicle0 = wait_for_pose(&mut link, started)?;
 
     let t_marker_station = s.station.t_marker_vehicle();
@@ -212,7 +214,8 @@ pub fn run_external(
     }
 
     // Engaged from the start (markhold armed it in the mode); a pilot beside it takes
-    // over and gives back as on a real vehicle (src/field/engage.rs).
+    // over and gives back, and the run ends, as on a real vehicle with `markhold run`
+    // (src/field/engage.rs): the same engagement, hand-back and exit.
     let link = EngagedLink::new(link, true);
     let mut pipeline = build_loop(site, opts, link, observers)?;
     let mut events = Vec::with_capacity(16);
@@ -223,25 +226,45 @@ pub fn run_external(
     // for are passed over, not made up for afterwards.
     cam.started = Instant::now();
     let mut interrupted = false;
-    while cam.frames < frames && !interrupted {
-        if opts.stop.as_ref().is_some_and(|s| s.is_set()) {
-            // This frame sends neutral input and is the last.
-            pipeline.set_shutdown(true);
-            interrupted = true;
+    let mut last_stamp = 0.0;
+    let looped = (|| -> anyhow::Result<()> {
+        while cam.frames < frames && !interrupted {
+            if opts.stop.as_ref().is_some_and(|s| s.is_set()) {
+                // This frame sends neutral input and is the last.
+                pipeline.set_shutdown(true);
+                interrupted = true;
+            }
+            if let Some(p) = pose_from_telemetry(pipeline.link().inner().state()) {
+                cam.set_vehicle_pose(p);
+            }
+            let rec = pipeline.step(&mut cam)?;
+            last_stamp = rec.stamp_s;
+            events.clear();
+            events.extend_from_slice(pipeline.events());
+            pipeline.link_mut().on_events(&events, rec.stamp_s)?;
+            stats.push_external(&rec, &cam.t_world_vehicle, &cam.t_vehicle_cam);
         }
-        if let Some(p) = pose_from_telemetry(pipeline.link().inner().state()) {
-            cam.set_vehicle_pose(p);
-        }
-        let rec = pipeline.step(&mut cam)?;
-        events.clear();
-        events.extend_from_slice(pipeline.events());
-        pipeline.link_mut().on_events(&events, rec.stamp_s)?;
-        stats.push_external(&rec, &cam.t_world_vehicle, &cam.t_vehicle_cam);
-    }
-    let now = cam.frames as f64 / fps;
-    pipeline.link_mut().send_neutral(now)?;
-    pipeline.link_mut().stop(now)?;
-    pipeline.finish_observers()?;
+        Ok(())
+    })();
+    // Whatever ended the loop: the site's exit (an error hands back), then the
+    // observers, then the error if there was one.
+    let policy = if looped.is_ok() {
+        ExitPolicy::of(&link_cfg)
+    } else {
+        ExitPolicy::HandBack
+    };
+    let exit = pipeline.link_mut().exit(policy, last_stamp);
+    eprintln!(
+        "markhold hil: exit: {:?}, neutral {:?}, hand back {:?}, disarm {:?}, link closed {:?}",
+        exit.policy,
+        exit.neutral.map(|n| n.shown),
+        exit.hand_back,
+        exit.disarm,
+        exit.close
+    );
+    let finished = pipeline.finish_observers();
+    looped?;
+    finished?;
     let engaged = pipeline.link().engager().engagements();
     tracing::info!(engaged, "external vehicle: engagements");
     eprintln!("markhold hil: engaged {engaged} times");

@@ -465,7 +465,7 @@ pub fn run_sitl_loop(
     };
     let settled = settle(&mut peer, &mut pipeline, 0.5).and_then(|_| {
         let now = peer.time_s() - t0;
-        pipeline.link_mut().stop(now)?;
+        pipeline.link_mut().stop_lockstep(now)?;
         settle(&mut peer, &mut pipeline, 0.5)
     });
     let observed = pipeline.finish_observers();

@@ -91,7 +91,7 @@ impl VehicleLink {
     /// QGroundControl joystick, seen where the router forwards it). True if `msg` was one.
     pub(super) fn observe_pilot(&mut self, h: &MavHeader, msg: &MavMessage, now_s: f64) -> bool {
         let ours = h.system_id == u32::from(self.cfg.gcs_system_id)
-            && h.component_id == self.cfg.gcs_component_id;
+            && h.component_id == self.cfg.component_id;
         let deflected = match msg {
             MavMessage::MANUAL_CONTROL(m) if m.target == self.state.system_id => {
                 manual_deflected(m)
@@ -163,6 +163,9 @@ impl VehicleLink {
     fn apply_param(&mut self, p: &PARAM_VALUE_DATA, now_s: f64) {
         let name = text_of(&p.param_id[..]);
         self.state.param_count = Some(p.param_count);
+        if name == super::station::FS_GCS_TIMEOUT {
+            self.set_fs_gcs_timeout_s(f64::from(p.param_value));
+        }
         self.params.insert(name, (p.param_value, now_s));
     }
 

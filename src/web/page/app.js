@@ -25,6 +25,7 @@ const ENGAGEMENT = {
   ready: ['ready: the pilot engages by arming in the site\'s mode (or switching to it armed)', ''],
   engaged: ['ENGAGED: holding station', 'good'],
   releasing: ['letting go: neutral, then the controls back to the pilot', 'warn'],
+  pending: ['engage asked: waiting to hear the pilot station', 'warn'],
 };
 
 function eventName(ev) {
