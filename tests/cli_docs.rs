@@ -91,7 +91,7 @@ fn man_page_renders_the_subcommands_and_flags() {
     for sub in subcommands() {
         // roff escapes '-' as '\-'.
         assert!(
-            page.contains(&format!("markhold\\-{sub}(1)")),
+            page.contains(&format!("markhold\\-{}(1)", sub.replace('-', "\\-"))),
             "markhold.1 lacks `{sub}`"
         );
     }
