@@ -133,6 +133,15 @@ pub struct CameraSection {
     /// How exposure reaches a stream camera (`[camera.control]`).
     #[serde(default)]
     pub control: crate::field::camera::control::ControlConfig,
+    /// When a stream camera's exposure is markhold's: `engaged` (default: only while the
+    /// pilot has engaged markhold; put back as found otherwise) or `always` (from start
+    /// to exit: a camera nobody else watches).
+    #[serde(default)]
+    pub control_exposure: ControlExposure,
+    /// `markhold run` ends after this long without a camera frame (wall seconds; the
+    /// vehicle gets neutral input from `controller.vision_stall_s` on).
+    #[serde(default = "default_stall_exit")]
+    pub stall_exit_s: f64,
     /// The camera response (`linear` by default; `polynomial` as calibrated by
     /// `markhold response fit`), used by every exposure method that needs one and by
     /// the HIL camera. A table file is relative to the site file.
@@ -140,6 +149,20 @@ pub struct CameraSection {
     pub response: ResponseModel,
 }
 
+/// `[camera] control_exposure`.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum ControlExposure {
+    /// Only while engaged.
+    #[default]
+    Engaged,
+    /// From start to exit.
+    Always,
+}
+
+fn default_stall_exit() -> f64 {
+    10.0
+}
 fn default_initial_exposure() -> f64 {
     2000.0
 }
@@ -577,6 +600,7 @@ fn validate_site(site: &Site) -> Result<(), ConfigError> {
         .range("initial_exposure_us", c.initial_exposure_us, above(0.0), "a positive exposure in microseconds")
         .range("gain_db", c.gain_db, -20.0..=48.0, "a gain in dB, -20..48")
         .range("actuation_delay_frames", c.actuation_delay_frames, ..=10, "0..10 frames")
+        .range("stall_exit_s", c.stall_exit_s, 1.0..=3600.0, "seconds without frames before a run ends, 1..3600")
         .opt(c.fx_px, |k, v| k.positive("fx_px", v, pixels))
         .opt(c.fy_px, |k, v| k.positive("fy_px", v, pixels))
         .opt(c.cx_px, |k, v| k.positive("cx_px", v, pixels))

@@ -138,21 +138,40 @@ fn aaec_converges_from_10x_long_and_short_through_the_stream_as_in_process() {
     }
 }
 
+const STOCK_LIMITS: ExposureLimits = ExposureLimits {
+    min_us: 100.0,
+    max_us: 33300.0,
+    fps: 30.0,
+};
+
 #[test]
-fn a_refusing_camera_manager_is_named_and_the_last_exposure_kept() {
-    let limits = ExposureLimits {
-        min_us: 100.0,
-        max_us: 33300.0,
-        fps: 30.0,
-    };
-    let mgr = SimCameraManager::start(limits, 2000.0).unwrap();
-    let mut c = BlueosRest::open(&mgr.url(), "", 2000.0).unwrap();
+fn a_camera_manager_is_only_read_at_open_then_taken_and_put_back() {
+    let mgr = SimCameraManager::start(STOCK_LIMITS, 2000.0).unwrap();
+    let mut c = BlueosRest::open(&mgr.url(), "", &STOCK_LIMITS).unwrap();
     assert_eq!(c.device(), SIM_DEVICE);
-    // Manual mode on, and the exposure read back in the camera's 100 us units.
+    // Opening reads (GET /v4l) and writes nothing: the camera is in its own auto mode.
+    let found = c.found().unwrap();
+    assert_eq!(found.auto_exposure, Some(3));
+    assert_eq!(found.exposure_units, 20);
+    assert_eq!(mgr.controls().posts, 0);
+    assert_eq!(mgr.controls().auto_exposure, 3);
+    // Taken: manual mode, then values in the camera's 100 us units.
+    c.take().unwrap();
     assert_eq!(mgr.controls().auto_exposure, 1);
     assert_eq!(c.set_exposure_us(3049.0).unwrap(), 3000.0);
     assert_eq!(mgr.controls().exposure_units, 30);
+    // Put back: the value, then the mode, as found.
+    c.restore_to(&found).unwrap();
+    assert_eq!(mgr.controls().auto_exposure, 3);
+    assert_eq!(mgr.controls().exposure_units, 20);
+}
 
+#[test]
+fn a_refusing_camera_manager_is_named_and_the_last_exposure_kept() {
+    let mgr = SimCameraManager::start(STOCK_LIMITS, 2000.0).unwrap();
+    let mut c = BlueosRest::open(&mgr.url(), "", &STOCK_LIMITS).unwrap();
+    c.take().unwrap();
+    assert_eq!(c.set_exposure_us(3049.0).unwrap(), 3000.0);
     mgr.set_refuse(true);
     let e = c.set_exposure_us(5000.0).unwrap_err().to_string();
     assert!(e.contains(&mgr.url()) && e.contains("HTTP 500"), "{e}");
@@ -169,7 +188,7 @@ fn a_refusing_camera_manager_is_named_and_the_last_exposure_kept() {
         .unwrap()
         .port();
     let url = format!("http://127.0.0.1:{port}");
-    let e = BlueosRest::open(&url, "", 2000.0)
+    let e = BlueosRest::open(&url, "", &STOCK_LIMITS)
         .err()
         .unwrap()
         .to_string();
@@ -327,20 +346,22 @@ fn stream_config_30fps(
         },
         initial_us: 2000.0,
         first_frame_timeout,
+        restart: false,
+        stop: markhold::field::signal::ShutdownFlag::new(),
     }
 }
 
 #[test]
 fn a_gst_pipeline_camera_gives_stamped_grey_frames_and_counts_those_passed_over() {
-    use markhold::field::camera::control::NoControl;
     use markhold::field::camera::stream::{StreamCamera, StreamSource};
+    use markhold::field::camera::worker::ControlHandle;
     let src = StreamSource::parse(
         "gst:videotestsrc is-live=true pattern=gradient ! video/x-raw,format=GRAY8,width=320,height=240,framerate=30/1 ! appsink",
     )
     .unwrap()
     .unwrap();
     let cfg = stream_config_30fps(Duration::from_secs(5));
-    let mut cam = StreamCamera::open(&src, &cfg, Box::new(NoControl)).unwrap();
+    let mut cam = StreamCamera::open(&src, &cfg, ControlHandle::none().unwrap()).unwrap();
     let mut f = Frame::default();
     let mut stamps = Vec::new();
     for _ in 0..5 {
@@ -378,8 +399,8 @@ fn a_gst_pipeline_camera_gives_stamped_grey_frames_and_counts_those_passed_over(
 fn an_rtsp_camera_gives_stamped_grey_frames_from_a_loopback_server() {
     use gstreamer::glib;
     use gstreamer_rtsp_server::prelude::*;
-    use markhold::field::camera::control::NoControl;
     use markhold::field::camera::stream::{StreamCamera, StreamSource, NO_FRAME_REASON};
+    use markhold::field::camera::worker::ControlHandle;
 
     gstreamer::init().unwrap();
     let server = gstreamer_rtsp_server::RTSPServer::new();
@@ -406,7 +427,7 @@ fn an_rtsp_camera_gives_stamped_grey_frames_from_a_loopback_server() {
     let src = StreamSource::parse(&url).unwrap().unwrap();
     assert_eq!(src, StreamSource::Rtsp(url.clone()));
     let cfg = stream_config_30fps(Duration::from_secs(10));
-    let opened = StreamCamera::open(&src, &cfg, Box::new(NoControl));
+    let opened = StreamCamera::open(&src, &cfg, ControlHandle::none().unwrap());
     let result = opened.map(|mut cam| {
         // As `run` grabs: a tick without a frame is not an error (RTP over RTSP arrives
         // in bursts), a stall is; ten frames must come within 5 s.
