@@ -1,0 +1,872 @@
+//! `markhold run` with stream cameras against an ArduSub-like pymavlink vehicle
+//! (autopilot/tests/pymav_vehicle.py `--scenario hold`: heartbeat 1 Hz, ATTITUDE 10 Hz,
+//! the pilot-input failsafe emulated, every pilot input recorded with its arrival time):
+//! the loop never floods the vehicle, never hangs and never blocks on a peer, and leaves
+//! the pilot's camera as it found it.
+//!
+//! Cameras are GStreamer pipelines on this host: a rendered station frame frozen into a
+//! live 30 fps stream (the marker in view), ended after N frames where a test needs a
+//! stream that ends; H.264 over loopback RTP for the bad-RTP burst. The camera manager is
+//! the simulated one (`markhold::sim::stream::SimCameraManager`, the REST shapes of
+//! mavlink-camera-manager) or a hostile HTTP server.
+#![cfg(feature = "sim")]
+#![allow(clippy::unwrap_used)] // Tests fail loudly on a broken setup, by design.
+
+mod common;
+
+use std::io::{BufRead, BufReader, Read, Write};
+use std::net::{TcpListener, TcpStream, UdpSocket};
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, Output, Stdio};
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::{Arc, OnceLock};
+use std::time::{Duration, Instant};
+
+use common::{markhold, repo, site_path, station_frames, station_rig, tmp_path};
+use markhold::sim::stream::{Sender, SimCameraManager};
+use markhold_exposure::{Camera, ExposureLimits, Frame};
+
+fn tmp(name: &str) -> PathBuf {
+    tmp_path("field", name)
+}
+
+/// A station frame (the marker in view) as a PNG, made once.
+fn marker_png() -> &'static Path {
+    static P: OnceLock<PathBuf> = OnceLock::new();
+    P.get_or_init(|| station_frames(tmp("frames"), 1).join("frame_000000.png"))
+}
+
+/// A live 30 fps stream of the station frame; `frames`: it ends after that many.
+fn frozen_camera(frames: Option<u32>) -> String {
+    let n = frames.map_or(String::new(), |n| format!(" num-buffers={n}"));
+    format!(
+        "gst:filesrc location={} ! pngdec ! imagefreeze is-live=true{n} ! video/x-raw,format=GRAY8,width=640,height=480,framerate=30/1 ! appsink",
+        marker_png().display()
+    )
+}
+
+/// The fixture site written to the scratch directory with `camera_keys` added to
+/// `[camera]`, `link_keys` to `[link]`, and `extra` appended (e.g. `[camera.control]`).
+/// Its camera state file is beside it, in the scratch directory.
+fn site(name: &str, camera_keys: &str, link_keys: &str, extra: &str) -> PathBuf {
+    let text = std::fs::read_to_string(site_path()).unwrap();
+    let text = text
+        .replacen("[camera]\n", &format!("[camera]\n{camera_keys}\n"), 1)
+        .replacen("[link]\n", &format!("[link]\n{link_keys}\n"), 1);
+    let p = tmp(name);
+    std::fs::write(&p, format!("{text}\n{extra}\n")).unwrap();
+    p
+}
+
+/// The pymavlink vehicle; killed on drop if still running.
+struct Vehicle(Child);
+
+impl Drop for Vehicle {
+    fn drop(&mut self) {
+        let _ = self.0.kill();
+        let _ = self.0.wait();
+    }
+}
+
+fn vehicle(args: &[&str]) -> (Vehicle, u16) {
+    markhold_testkit::require_pymavlink();
+    let mut child = Command::new("python3")
+        .arg(repo("autopilot/tests/pymav_vehicle.py"))
+        .args(["--scenario", "hold", "--deadline", "90"])
+        .args(args)
+        .stdout(Stdio::piped())
+        .stderr(Stdio::inherit())
+        .spawn()
+        .expect("spawn python3");
+    let mut line = String::new();
+    BufReader::new(child.stdout.as_mut().unwrap())
+        .read_line(&mut line)
+        .unwrap();
+    let port = line
+        .trim()
+        .strip_prefix("UDP ")
+        .unwrap_or_else(|| panic!("vehicle said {line:?}"))
+        .parse()
+        .unwrap();
+    (Vehicle(child), port)
+}
+
+/// The vehicle's record (it ends 1.5 s after markhold falls silent).
+fn verdict(v: &mut Vehicle) -> serde_json::Value {
+    let mut out = String::new();
+    v.0.stdout
+        .as_mut()
+        .unwrap()
+        .read_to_string(&mut out)
+        .unwrap();
+    let _ = v.0.wait();
+    let last = out.lines().last().unwrap_or_default();
+    serde_json::from_str(last).unwrap_or_else(|e| panic!("verdict {out:?}: {e}"))
+}
+
+fn texts(v: &serde_json::Value) -> Vec<String> {
+    v["texts"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|t| t[2].as_str().unwrap().to_string())
+        .collect()
+}
+
+/// (arrival time s, kind) of every pilot input markhold sent.
+fn inputs(v: &serde_json::Value) -> Vec<(f64, String)> {
+    v["inputs"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|i| (i[0].as_f64().unwrap(), i[1].as_str().unwrap().to_string()))
+        .collect()
+}
+
+/// Seconds since the Unix epoch (the vehicle stamps its record from its own start,
+/// whose epoch time it reports).
+fn epoch_now() -> f64 {
+    std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .unwrap()
+        .as_secs_f64()
+}
+
+/// Pilot inputs (not releases) before markhold's exit disarmed the vehicle: the loop's.
+fn loop_inputs(v: &serde_json::Value) -> usize {
+    let disarm = v["log"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .find(|e| e[1] == "markhold arm 0")
+        .map_or(f64::INFINITY, |e| e[0].as_f64().unwrap());
+    inputs(v)
+        .iter()
+        .filter(|(t, k)| *t < disarm && k != "release")
+        .count()
+}
+
+/// Inputs per second arriving in `[from, to]` (vehicle clock).
+fn rate_between(inputs: &[(f64, String)], from: f64, to: f64) -> f64 {
+    let n = inputs
+        .iter()
+        .filter(|(t, k)| (from..=to).contains(t) && k != "release")
+        .count();
+    n as f64 / (to - from)
+}
+
+/// Pilot input the loop may send in a run: one per frame, and while no frame comes at
+/// most the link's rate (`pilot_input_hz`), with 10 % and a few inputs of slack.
+fn input_budget(s: &serde_json::Value, pilot_input_hz: f64) -> f64 {
+    let frames = s["frames"].as_f64().unwrap();
+    let without_frames = (s["wall_seconds"].as_f64().unwrap() - frames / 30.0).max(0.0);
+    1.1 * (frames + without_frames * pilot_input_hz) + 20.0
+}
+
+/// Runs `cmd`, killing it if it is still running after `limit`: (output, wall time).
+fn run_bounded(cmd: &mut Command, limit: Duration) -> (Output, Duration) {
+    let t0 = Instant::now();
+    let mut child = cmd
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    let mut err = child.stderr.take().unwrap();
+    let reader = std::thread::spawn(move || {
+        let mut s = Vec::new();
+        let _ = err.read_to_end(&mut s);
+        s
+    });
+    loop {
+        if let Some(_status) = child.try_wait().unwrap() {
+            break;
+        }
+        if t0.elapsed() > limit {
+            let _ = child.kill();
+            let _ = child.wait();
+            let err = reader.join().unwrap();
+            panic!(
+                "still running after {limit:?}: {}",
+                String::from_utf8_lossy(&err)
+            );
+        }
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    let took = t0.elapsed();
+    let stderr = reader.join().unwrap();
+    let mut out = child.wait_with_output().unwrap();
+    out.stderr = stderr;
+    (out, took)
+}
+
+fn run_cmd(site: &Path, camera: &str, port: u16, summary: &Path, args: &[&str]) -> Command {
+    let mut c = markhold();
+    c.args(["run", "--no-preflight", "--site"])
+        .arg(site)
+        .arg("--camera")
+        .arg(camera)
+        .arg("--link")
+        .arg(format!("udpout:127.0.0.1:{port}"))
+        .arg("--summary")
+        .arg(summary)
+        .args(args);
+    c
+}
+
+fn summary(path: &Path) -> serde_json::Value {
+    serde_json::from_str(&std::fs::read_to_string(path).unwrap()).unwrap()
+}
+
+#[test]
+fn run_engage_arm_with_a_stream_camera_stays_engaged_for_30_s() {
+    let (mut v, port) = vehicle(&[]);
+    let site = site("hold30.toml", "", "on_exit = \"disarm\"", "");
+    let sum = tmp("hold30.json");
+    let (o, _) = run_bounded(
+        &mut run_cmd(
+            &site,
+            &frozen_camera(None),
+            port,
+            &sum,
+            &["--engage", "--arm", "--seconds", "30"],
+        ),
+        Duration::from_secs(80),
+    );
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(o.status.success(), "{err}");
+    let s = summary(&sum);
+    let verdict = verdict(&mut v);
+    let said = texts(&verdict);
+    // Engaged once, never let go until the run ended.
+    assert_eq!(s["engagements"], 1, "{s}\n{said:?}\n{err}");
+    let off: Vec<&String> = said
+        .iter()
+        .filter(|t| t.starts_with("markhold off") && t.as_str() != "markhold off: stopped")
+        .collect();
+    assert!(off.is_empty(), "{off:?}\n{err}");
+    assert_eq!(
+        verdict["failsafe"].as_array().unwrap().len(),
+        0,
+        "{verdict}"
+    );
+    assert_eq!(s["stopped_by"], "max_seconds", "{s}");
+    assert!(s["loop_seconds"].as_f64().unwrap() >= 29.0, "{s}");
+    // Pilot input all along: no gap near what the pilot-input failsafe (3 s) sees.
+    let on_at = verdict["on_at"].as_f64().unwrap();
+    let ins: Vec<f64> = inputs(&verdict)
+        .into_iter()
+        .filter(|(t, k)| *t >= on_at && k != "release")
+        .map(|(t, _)| t)
+        .collect();
+    let gap = ins.windows(2).map(|w| w[1] - w[0]).fold(0.0, f64::max);
+    eprintln!(
+        "30 s engaged: {} inputs, longest gap {:.3} s, {} frames",
+        ins.len(),
+        gap,
+        s["frames"]
+    );
+    assert!(ins.len() >= 600, "{} inputs", ins.len());
+    assert!(gap < 1.0, "longest gap between inputs {gap} s");
+}
+
+#[test]
+fn a_stream_that_ends_is_built_again_and_the_run_ends_on_the_wall_clock() {
+    let (mut v, port) = vehicle(&[]);
+    let site = site("ends.toml", "", "on_exit = \"disarm\"", "");
+    let sum = tmp("ends.json");
+    // 45 frames (1.5 s), then end of stream; built again after 0.5 s, 1 s, 2 s ...
+    let (o, took) = run_bounded(
+        &mut run_cmd(
+            &site,
+            &frozen_camera(Some(45)),
+            port,
+            &sum,
+            &["--engage", "--arm", "--seconds", "8"],
+        ),
+        Duration::from_secs(40),
+    );
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(o.status.success(), "{err}");
+    let s = summary(&sum);
+    let verdict = verdict(&mut v);
+    assert_eq!(s["stopped_by"], "max_seconds", "{s}");
+    // Frames came back after each end: more than one stream's worth.
+    assert!(s["frames"].as_u64().unwrap() >= 90, "{s}\n{err}");
+    assert!(s["vision_stalls"].as_u64().unwrap() >= 1, "{s}");
+    assert!(s["wall_seconds"].as_f64().unwrap() < 9.0, "{s}");
+    assert!(err.contains("built again"), "{err}");
+    // Never a flood: one input per frame, and while no frame comes neutral at no more
+    // than the link's pilot_input_hz (20).
+    let sent = loop_inputs(&verdict) as f64;
+    let budget = input_budget(&s, 20.0);
+    eprintln!(
+        "stream that ends: {} frames in {:.1} s wall ({:.1} s with the exit); {sent} inputs, at most {budget:.0} allowed",
+        s["frames"],
+        s["wall_seconds"].as_f64().unwrap(),
+        took.as_secs_f64()
+    );
+    assert!(sent <= budget, "{sent} inputs, budget {budget}");
+    assert_eq!(
+        verdict["failsafe"].as_array().unwrap().len(),
+        0,
+        "{verdict}"
+    );
+}
+
+#[test]
+fn a_stream_that_stays_dead_ends_the_run_after_stall_exit_s() {
+    let (mut v, port) = vehicle(&[]);
+    let site = site(
+        "dead.toml",
+        "stall_exit_s = 3.0",
+        "on_exit = \"disarm\"\npilot_input_hz = 10.0",
+        "",
+    );
+    let sum = tmp("dead.json");
+    let udp = UdpSocket::bind("127.0.0.1:0")
+        .unwrap()
+        .local_addr()
+        .unwrap()
+        .port();
+    let mut child = run_cmd(
+        &site,
+        &format!("udp:127.0.0.1:{udp}"),
+        port,
+        &sum,
+        &["--engage", "--arm", "--seconds", "60"],
+    )
+    .stdout(Stdio::null())
+    .stderr(Stdio::piped())
+    .spawn()
+    .unwrap();
+    // 1.5 s of rendered frames over H.264/RTP, then nothing ever again.
+    std::thread::sleep(Duration::from_millis(500));
+    let mut rig = station_rig(false);
+    rig.set_exposure_us(3000.0).unwrap();
+    let mut frame = Frame::default();
+    rig.grab(&mut frame).unwrap();
+    let sender = Sender::start(frame.width, frame.height, 30.0, udp).unwrap();
+    let t0 = Instant::now();
+    for i in 0..45u32 {
+        rig.grab(&mut frame).unwrap();
+        sender.push(&frame, f64::from(i) / 30.0).unwrap();
+        let due = t0 + Duration::from_millis(33 * u64::from(i + 1));
+        std::thread::sleep(due.saturating_duration_since(Instant::now()));
+    }
+    drop(sender);
+    let ended = Instant::now();
+    let ended_epoch = epoch_now();
+    let deadline = ended + Duration::from_secs(30);
+    let status = loop {
+        if let Some(s) = child.try_wait().unwrap() {
+            break s;
+        }
+        if Instant::now() > deadline {
+            let _ = child.kill();
+            panic!("the run did not end after its camera died");
+        }
+        std::thread::sleep(Duration::from_millis(20));
+    };
+    let after = ended.elapsed();
+    let mut err = String::new();
+    child
+        .stderr
+        .take()
+        .unwrap()
+        .read_to_string(&mut err)
+        .unwrap();
+    let verdict = verdict(&mut v);
+    let s = summary(&sum);
+    eprintln!(
+        "dead stream: the run ended {:.1} s after the last frame was sent",
+        after.as_secs_f64()
+    );
+    assert_eq!(status.code(), Some(1), "{err}");
+    assert_eq!(s["stopped_by"], "camera_lost", "{s}");
+    assert!(err.contains("stall_exit_s"), "{err}");
+    // Neutral while waiting (from the stall, 0.5 s after the last frame, to the run's
+    // end 3 s after it), at the site's pilot_input_hz (10) and no faster.
+    let end = ended_epoch - verdict["t0_epoch"].as_f64().unwrap();
+    let rate = rate_between(&inputs(&verdict), end + 0.8, end + 2.8);
+    eprintln!("pilot input while no frame came: {rate:.1} per second");
+    assert!((5.0..=11.5).contains(&rate), "{rate} inputs per second");
+    assert_eq!(
+        verdict["failsafe"].as_array().unwrap().len(),
+        0,
+        "{verdict}"
+    );
+}
+
+#[test]
+fn a_burst_of_bad_rtp_is_recovered_from() {
+    let (mut v, port) = vehicle(&[]);
+    let site = site("burst.toml", "", "on_exit = \"disarm\"", "");
+    let sum = tmp("burst.json");
+    let udp = UdpSocket::bind("127.0.0.1:0")
+        .unwrap()
+        .local_addr()
+        .unwrap()
+        .port();
+    let mut child = run_cmd(
+        &site,
+        &format!("udp:127.0.0.1:{udp}"),
+        port,
+        &sum,
+        &["--engage", "--arm", "--seconds", "60"],
+    )
+    .stdout(Stdio::null())
+    .stderr(Stdio::piped())
+    .spawn()
+    .unwrap();
+    let err_pipe = child.stderr.take().unwrap();
+    let (tx, rx) = std::sync::mpsc::channel();
+    let reader = std::thread::spawn(move || {
+        let mut all = String::new();
+        for line in BufReader::new(err_pipe).lines().map_while(Result::ok) {
+            if line.contains("markhold run: running") {
+                let _ = tx.send(());
+            }
+            all.push_str(&line);
+            all.push('\n');
+        }
+        all
+    });
+    std::thread::sleep(Duration::from_millis(500));
+    let mut rig = station_rig(false);
+    rig.set_exposure_us(3000.0).unwrap();
+    let mut frame = Frame::default();
+    rig.grab(&mut frame).unwrap();
+    let sender = Sender::start(frame.width, frame.height, 30.0, udp).unwrap();
+    let junk = UdpSocket::bind("127.0.0.1:0").unwrap();
+    let mut x = 0x2545_f491_4f6c_dd1du64;
+    let t0 = Instant::now();
+    // Frames until markhold runs, 1 s more, 50 ms of random datagrams on the camera
+    // port, then 2 s of frames.
+    let mut running_at = None;
+    let mut i = 0u32;
+    loop {
+        if running_at.is_none() && rx.try_recv().is_ok() {
+            running_at = Some(i);
+        }
+        match running_at {
+            Some(r) if i == r + 30 => {
+                let burst = Instant::now();
+                while burst.elapsed() < Duration::from_millis(50) {
+                    let mut d = [0u8; 1200];
+                    for b in d.iter_mut() {
+                        x ^= x << 13;
+                        x ^= x >> 7;
+                        x ^= x << 17;
+                        *b = x as u8;
+                    }
+                    let _ = junk.send_to(&d, ("127.0.0.1", udp));
+                }
+            }
+            Some(r) if i == r + 90 => break,
+            None => assert!(i < 600, "markhold never ran"),
+            _ => {}
+        }
+        rig.grab(&mut frame).unwrap();
+        sender.push(&frame, f64::from(i) / 30.0).unwrap();
+        i += 1;
+        let due = t0 + Duration::from_millis(33 * u64::from(i));
+        std::thread::sleep(due.saturating_duration_since(Instant::now()));
+    }
+    drop(sender);
+    // SIGTERM: neutral, exit 0.
+    let _ = Command::new("kill")
+        .args(["-TERM", &child.id().to_string()])
+        .status();
+    let deadline = Instant::now() + Duration::from_secs(20);
+    let status = loop {
+        if let Some(s) = child.try_wait().unwrap() {
+            break s;
+        }
+        assert!(Instant::now() < deadline, "markhold did not stop");
+        std::thread::sleep(Duration::from_millis(20));
+    };
+    let err = reader.join().unwrap();
+    let verdict = verdict(&mut v);
+    let s = summary(&sum);
+    assert_eq!(status.code(), Some(0), "{err}");
+    eprintln!(
+        "bad RTP burst: {} frames handled of the 90 sent while running, {} stalls",
+        s["frames"], s["vision_stalls"]
+    );
+    // The frames after the burst were taken in (a dead pipeline would stop at 31).
+    assert!(s["frames"].as_u64().unwrap() >= 70, "{s}\n{err}");
+    let sent = loop_inputs(&verdict) as f64;
+    let budget = input_budget(&s, 20.0);
+    assert!(sent <= budget, "{sent} inputs, budget {budget}");
+    assert_eq!(
+        verdict["failsafe"].as_array().unwrap().len(),
+        0,
+        "{verdict}"
+    );
+}
+
+// ---- the pilot's camera, left as found -------------------------------------------
+
+const LIMITS: ExposureLimits = ExposureLimits {
+    min_us: 20.0,
+    max_us: 30000.0,
+    fps: 30.0,
+};
+
+fn control_section(url: &str) -> String {
+    format!("[camera.control]\nkind = \"blueos_rest\"\nurl = \"{url}\"\n")
+}
+
+#[test]
+fn the_camera_is_never_written_while_disengaged() {
+    let (_v, port) = vehicle(&[]);
+    let mgr = SimCameraManager::start(LIMITS, 2000.0).unwrap();
+    let site = site("disengaged.toml", "", "", &control_section(&mgr.url()));
+    let sum = tmp("disengaged.json");
+    // Not engaged (no --engage, the pilot never arms): 4 s of frames with the marker.
+    let (o, _) = run_bounded(
+        &mut run_cmd(&site, &frozen_camera(None), port, &sum, &["--seconds", "4"]),
+        Duration::from_secs(40),
+    );
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(o.status.success(), "{err}");
+    let c = mgr.controls();
+    assert_eq!(c.posts, 0, "{c:?}");
+    assert_eq!((c.auto_exposure, c.exposure_units), (3, 20), "{c:?}");
+    assert!(c.requests >= 1, "the camera was read at start");
+    assert!(!markhold::field::camera::worker::state_path(&site).exists());
+}
+
+/// Waits (at most `limit`) until the simulated camera is in `auto` mode.
+fn wait_auto(mgr: &SimCameraManager, auto: i64, limit: Duration) -> bool {
+    let t0 = Instant::now();
+    while t0.elapsed() < limit {
+        if mgr.controls().auto_exposure == auto {
+            return true;
+        }
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    false
+}
+
+#[test]
+fn the_camera_is_put_back_at_disengage_and_at_exit() {
+    // The pilot selects STABILIZE 2 s after markhold is on: disengaged, and the camera
+    // goes back while markhold runs on.
+    let (mut v, port) = vehicle(&["--pilot-mode-after", "2"]);
+    let mgr = SimCameraManager::start(LIMITS, 2000.0).unwrap();
+    let site1 = site(
+        "putback.toml",
+        "",
+        "on_exit = \"disarm\"",
+        &control_section(&mgr.url()),
+    );
+    let sum = tmp("putback.json");
+    let mut child = run_cmd(
+        &site1,
+        &frozen_camera(None),
+        port,
+        &sum,
+        &["--engage", "--arm", "--seconds", "7"],
+    )
+    .stdout(Stdio::null())
+    .stderr(Stdio::piped())
+    .spawn()
+    .unwrap();
+    assert!(
+        wait_auto(&mgr, 1, Duration::from_secs(20)),
+        "never taken: {:?}",
+        mgr.controls()
+    );
+    let taken = mgr.controls();
+    assert!(
+        wait_auto(&mgr, 3, Duration::from_secs(10)),
+        "not put back at disengage: {:?}",
+        mgr.controls()
+    );
+    assert!(child.try_wait().unwrap().is_none(), "put back only at exit");
+    let back = mgr.controls();
+    assert_eq!(back.exposure_units, 20, "{back:?}");
+    let status = loop {
+        if let Some(s) = child.try_wait().unwrap() {
+            break s;
+        }
+        std::thread::sleep(Duration::from_millis(20));
+    };
+    let mut err = String::new();
+    child
+        .stderr
+        .take()
+        .unwrap()
+        .read_to_string(&mut err)
+        .unwrap();
+    assert!(status.success(), "{err}");
+    let said = verdict(&mut v);
+    assert!(
+        texts(&said)
+            .iter()
+            .any(|t| t == "markhold off: mode changed"),
+        "{said}"
+    );
+    let s = summary(&sum);
+    assert_eq!(s["camera_taken"], 1, "{s}");
+    assert_eq!(s["camera_restored"], 1, "{s}");
+    // Nothing written after the disengage.
+    assert_eq!(
+        mgr.controls().posts,
+        back.posts,
+        "{:?} after {back:?}",
+        mgr.controls()
+    );
+    eprintln!("taken: {taken:?}; put back: {back:?}");
+    // Manual mode, at least one exposure, then the value and the mode put back.
+    assert!(back.posts >= 4, "{back:?}");
+
+    // Engaged to the end: put back at exit.
+    let (mut v, port) = vehicle(&[]);
+    let mgr = SimCameraManager::start(LIMITS, 2000.0).unwrap();
+    let site = site(
+        "atexit.toml",
+        "",
+        "on_exit = \"disarm\"",
+        &control_section(&mgr.url()),
+    );
+    let (o, _) = run_bounded(
+        &mut run_cmd(
+            &site,
+            &frozen_camera(None),
+            port,
+            &tmp("atexit.json"),
+            &["--engage", "--arm", "--seconds", "3"],
+        ),
+        Duration::from_secs(40),
+    );
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let _ = verdict(&mut v);
+    let c = mgr.controls();
+    assert!(c.posts >= 4, "taken and put back: {c:?}");
+    assert_eq!((c.auto_exposure, c.exposure_units), (3, 20), "{c:?}");
+    assert!(!markhold::field::camera::worker::state_path(&site).exists());
+}
+
+#[test]
+fn after_kill_9_the_next_start_puts_the_camera_back() {
+    let (_v, port) = vehicle(&[]);
+    let mgr = SimCameraManager::start(LIMITS, 2000.0).unwrap();
+    let site = site("kill9.toml", "", "", &control_section(&mgr.url()));
+    let state = markhold::field::camera::worker::state_path(&site);
+    let mut child = run_cmd(
+        &site,
+        &frozen_camera(None),
+        port,
+        &tmp("kill9.json"),
+        &["--engage", "--arm", "--seconds", "30"],
+    )
+    .stdout(Stdio::null())
+    .stderr(Stdio::null())
+    .spawn()
+    .unwrap();
+    assert!(
+        wait_auto(&mgr, 1, Duration::from_secs(20)),
+        "never taken: {:?}",
+        mgr.controls()
+    );
+    // Let a few exposures go out, then kill it where it stands.
+    std::thread::sleep(Duration::from_millis(700));
+    child.kill().unwrap();
+    child.wait().unwrap();
+    assert_eq!(
+        mgr.controls().auto_exposure,
+        1,
+        "left in manual by the dead run"
+    );
+    assert!(state.exists(), "the state file records what was found");
+    // The next start (here without a vehicle: it fails later, at the heartbeat) puts the
+    // camera back first.
+    let (o, _) = run_bounded(
+        markhold()
+            .args([
+                "run",
+                "--no-preflight",
+                "--heartbeat-timeout-s",
+                "0.5",
+                "--site",
+            ])
+            .arg(&site)
+            .arg("--camera")
+            .arg(frozen_camera(None))
+            .arg("--link")
+            .arg("udpout:127.0.0.1:9"),
+        Duration::from_secs(30),
+    );
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(2), "{err}");
+    assert!(err.contains("put back"), "{err}");
+    let c = mgr.controls();
+    assert_eq!((c.auto_exposure, c.exposure_units), (3, 20), "{c:?}");
+    assert!(!state.exists());
+}
+
+// ---- a camera manager that drips ---------------------------------------------------
+
+/// An HTTP server on loopback that answers every request by `answer`, which writes to
+/// the connection (and may drip, hang or flood). Stops when dropped.
+struct Hostile {
+    pub url: String,
+    stop: Arc<AtomicBool>,
+}
+
+impl Hostile {
+    fn start(answer: impl Fn(&mut TcpStream, &str) + Send + Sync + 'static) -> Self {
+        let l = TcpListener::bind("127.0.0.1:0").unwrap();
+        l.set_nonblocking(true).unwrap();
+        let url = format!("http://{}", l.local_addr().unwrap());
+        let stop = Arc::new(AtomicBool::new(false));
+        let s = stop.clone();
+        let answer = Arc::new(answer);
+        std::thread::spawn(move || {
+            while !s.load(Ordering::Relaxed) {
+                match l.accept() {
+                    Ok((mut c, _)) => {
+                        let a = answer.clone();
+                        let s2 = s.clone();
+                        std::thread::spawn(move || {
+                            c.set_nonblocking(false).unwrap();
+                            c.set_read_timeout(Some(Duration::from_secs(2))).unwrap();
+                            let mut buf = [0u8; 4096];
+                            let mut req = Vec::new();
+                            while !req.windows(4).any(|w| w == b"\r\n\r\n") {
+                                match c.read(&mut buf) {
+                                    Ok(0) | Err(_) => return,
+                                    Ok(n) => req.extend_from_slice(&buf[..n]),
+                                }
+                            }
+                            let line = String::from_utf8_lossy(&req)
+                                .lines()
+                                .next()
+                                .unwrap_or("")
+                                .to_string();
+                            if !s2.load(Ordering::Relaxed) {
+                                a(&mut c, &line);
+                            }
+                        });
+                    }
+                    Err(_) => std::thread::sleep(Duration::from_millis(5)),
+                }
+            }
+        });
+        Self { url, stop }
+    }
+}
+
+impl Drop for Hostile {
+    fn drop(&mut self) {
+        self.stop.store(true, Ordering::Relaxed);
+    }
+}
+
+/// `GET /v4l` as the simulated camera manager answers it (auto exposure, 2 ms).
+fn sources_json() -> String {
+    let mgr = SimCameraManager::start(LIMITS, 2000.0).unwrap();
+    let url = mgr.url();
+    let addr = url.strip_prefix("http://").unwrap();
+    let mut s = TcpStream::connect(addr).unwrap();
+    write!(
+        s,
+        "GET /v4l HTTP/1.1\r\nHost: x\r\nConnection: close\r\n\r\n"
+    )
+    .unwrap();
+    let mut out = String::new();
+    s.read_to_string(&mut out).unwrap();
+    out.split_once("\r\n\r\n").unwrap().1.to_string()
+}
+
+/// The loop's period from a trace: (median, longest) interval between the stamps of
+/// consecutive frames it handled, seconds.
+fn periods(trace: &Path) -> (f64, f64) {
+    let text = std::fs::read_to_string(trace).unwrap();
+    let stamps: Vec<f64> = text
+        .lines()
+        .skip(1)
+        .map(|l| l.split(',').nth(1).unwrap().parse().unwrap())
+        .collect();
+    // After the first: the first frame was grabbed before the link came up.
+    let mut d: Vec<f64> = stamps[1..].windows(2).map(|w| w[1] - w[0]).collect();
+    d.sort_by(f64::total_cmp);
+    (d[d.len() / 2], d[d.len() - 1])
+}
+
+#[test]
+fn a_dripping_camera_manager_leaves_the_loop_period_unchanged() {
+    let sources = sources_json();
+    let run_with = |name: &str, url: &str| {
+        let (mut v, port) = vehicle(&[]);
+        // control_exposure = "always": every exposure change goes to the manager.
+        let site = site(
+            name,
+            "control_exposure = \"always\"",
+            "on_exit = \"disarm\"",
+            &control_section(url),
+        );
+        let sum = tmp(&format!("{name}.json"));
+        let trace = tmp(&format!("{name}.csv"));
+        let mut cmd = run_cmd(
+            &site,
+            &frozen_camera(None),
+            port,
+            &sum,
+            &["--engage", "--arm", "--seconds", "6"],
+        );
+        cmd.arg("--trace").arg(&trace);
+        let (o, _) = run_bounded(&mut cmd, Duration::from_secs(60));
+        let err = String::from_utf8_lossy(&o.stderr).into_owned();
+        let _ = verdict(&mut v);
+        assert!(o.status.success(), "{err}");
+        (periods(&trace), summary(&sum), err)
+    };
+    // Answers GET /v4l at once (start-up reads the camera) and drips every POST answer
+    // at 4 bytes a second.
+    let drip = {
+        let sources = sources.clone();
+        Hostile::start(move |c, line| {
+            if line.starts_with("GET") {
+                let _ = write!(
+                    c,
+                    "HTTP/1.1 200 OK\r\nContent-Length: {}\r\n\r\n{sources}",
+                    sources.len()
+                );
+                return;
+            }
+            for b in b"HTTP/1.1 200 OK\r\nContent-Length: 0\r\n\r\n".chunks(4) {
+                if c.write_all(b).is_err() {
+                    return;
+                }
+                std::thread::sleep(Duration::from_secs(1));
+            }
+        })
+    };
+    let mgr = SimCameraManager::start(LIMITS, 2000.0).unwrap();
+    let ((a, a_max), ok, _) = run_with("drip-ref.toml", &mgr.url());
+    let ((b, b_max), dripped, drip_err) = run_with("drip.toml", &drip.url);
+    eprintln!(
+        "loop period (frame stamps): median {:.1} ms, longest {:.0} ms with a good camera manager; \
+         median {:.1} ms ({:+.1} %), longest {:.0} ms with one that drips; frames {} / {}",
+        a * 1e3,
+        a_max * 1e3,
+        b * 1e3,
+        100.0 * (b / a - 1.0),
+        b_max * 1e3,
+        ok["frames"],
+        dripped["frames"]
+    );
+    assert!((b / a - 1.0).abs() <= 0.10, "{a} vs {b}");
+    // A loop that waited on the manager would skip its 2 s request deadline at once.
+    assert!(b_max < 0.5, "a {b_max} s hole in the loop");
+    assert!(mgr.controls().posts >= 2, "the good manager was written to");
+    // The slow requests were said, with the URL, once (not per frame).
+    assert!(drip_err.contains(&drip.url), "{drip_err}");
+    assert!(
+        drip_err.matches("no complete answer").count() <= 2,
+        "{drip_err}"
+    );
+}
