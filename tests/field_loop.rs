@@ -22,7 +22,9 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, OnceLock};
 use std::time::{Duration, Instant};
 
-use common::{markhold, repo, site_path, station_frames, station_rig, tmp_path};
+use common::{
+    markhold, repo, site_path, sources_json, station_frames, station_rig, tmp_path, Hostile,
+};
 use markhold::sim::stream::{Sender, SimCameraManager};
 use markhold_exposure::{Camera, ExposureLimits, Frame};
 
@@ -708,78 +710,6 @@ fn after_kill_9_the_next_start_puts_the_camera_back() {
 }
 
 // ---- a camera manager that drips ---------------------------------------------------
-
-/// An HTTP server on loopback that answers every request by `answer`, which writes to
-/// the connection (and may drip, hang or flood). Stops when dropped.
-struct Hostile {
-    pub url: String,
-    stop: Arc<AtomicBool>,
-}
-
-impl Hostile {
-    fn start(answer: impl Fn(&mut TcpStream, &str) + Send + Sync + 'static) -> Self {
-        let l = TcpListener::bind("127.0.0.1:0").unwrap();
-        l.set_nonblocking(true).unwrap();
-        let url = format!("http://{}", l.local_addr().unwrap());
-        let stop = Arc::new(AtomicBool::new(false));
-        let s = stop.clone();
-        let answer = Arc::new(answer);
-        std::thread::spawn(move || {
-            while !s.load(Ordering::Relaxed) {
-                match l.accept() {
-                    Ok((mut c, _)) => {
-                        let a = answer.clone();
-                        let s2 = s.clone();
-                        std::thread::spawn(move || {
-                            c.set_nonblocking(false).unwrap();
-                            c.set_read_timeout(Some(Duration::from_secs(2))).unwrap();
-                            let mut buf = [0u8; 4096];
-                            let mut req = Vec::new();
-                            while !req.windows(4).any(|w| w == b"\r\n\r\n") {
-                                match c.read(&mut buf) {
-                                    Ok(0) | Err(_) => return,
-                                    Ok(n) => req.extend_from_slice(&buf[..n]),
-                                }
-                            }
-                            let line = String::from_utf8_lossy(&req)
-                                .lines()
-                                .next()
-                                .unwrap_or("")
-                                .to_string();
-                            if !s2.load(Ordering::Relaxed) {
-                                a(&mut c, &line);
-                            }
-                        });
-                    }
-                    Err(_) => std::thread::sleep(Duration::from_millis(5)),
-                }
-            }
-        });
-        Self { url, stop }
-    }
-}
-
-impl Drop for Hostile {
-    fn drop(&mut self) {
-        self.stop.store(true, Ordering::Relaxed);
-    }
-}
-
-/// `GET /v4l` as the simulated camera manager answers it (auto exposure, 2 ms).
-fn sources_json() -> String {
-    let mgr = SimCameraManager::start(LIMITS, 2000.0).unwrap();
-    let url = mgr.url();
-    let addr = url.strip_prefix("http://").unwrap();
-    let mut s = TcpStream::connect(addr).unwrap();
-    write!(
-        s,
-        "GET /v4l HTTP/1.1\r\nHost: x\r\nConnection: close\r\n\r\n"
-    )
-    .unwrap();
-    let mut out = String::new();
-    s.read_to_string(&mut out).unwrap();
-    out.split_once("\r\n\r\n").unwrap().1.to_string()
-}
 
 /// The loop's period from a trace: (median, longest) interval between the stamps of
 /// consecutive frames it handled, seconds.
