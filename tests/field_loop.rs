@@ -15,16 +15,13 @@
 mod common;
 
 use std::io::{BufRead, BufReader, Read, Write};
-use std::net::{TcpListener, TcpStream, UdpSocket};
+use std::net::UdpSocket;
 use std::path::{Path, PathBuf};
-use std::process::{Child, Command, Output, Stdio};
-use std::sync::atomic::{AtomicBool, Ordering};
-use std::sync::{Arc, OnceLock};
+use std::process::{Command, Output, Stdio};
+use std::sync::OnceLock;
 use std::time::{Duration, Instant};
 
-use common::{
-    markhold, repo, site_path, sources_json, station_frames, station_rig, tmp_path, Hostile,
-};
+use common::{markhold, site_path, sources_json, station_frames, station_rig, tmp_path, Hostile};
 use markhold::sim::stream::{Sender, SimCameraManager};
 use markhold_exposure::{Camera, ExposureLimits, Frame};
 
@@ -60,50 +57,14 @@ fn site(name: &str, camera_keys: &str, link_keys: &str, extra: &str) -> PathBuf 
     p
 }
 
-/// The pymavlink vehicle; killed on drop if still running.
-struct Vehicle(Child);
-
-impl Drop for Vehicle {
-    fn drop(&mut self) {
-        let _ = self.0.kill();
-        let _ = self.0.wait();
-    }
-}
+use common::PymavVehicle as Vehicle;
 
 fn vehicle(args: &[&str]) -> (Vehicle, u16) {
-    markhold_testkit::require_pymavlink();
-    let mut child = Command::new("python3")
-        .arg(repo("autopilot/tests/pymav_vehicle.py"))
-        .args(["--scenario", "hold", "--deadline", "90"])
-        .args(args)
-        .stdout(Stdio::piped())
-        .stderr(Stdio::inherit())
-        .spawn()
-        .expect("spawn python3");
-    let mut line = String::new();
-    BufReader::new(child.stdout.as_mut().unwrap())
-        .read_line(&mut line)
-        .unwrap();
-    let port = line
-        .trim()
-        .strip_prefix("UDP ")
-        .unwrap_or_else(|| panic!("vehicle said {line:?}"))
-        .parse()
-        .unwrap();
-    (Vehicle(child), port)
+    common::pymav_vehicle(&[&["--scenario", "hold", "--deadline", "90"], args].concat())
 }
 
-/// The vehicle's record (it ends 1.5 s after markhold falls silent).
 fn verdict(v: &mut Vehicle) -> serde_json::Value {
-    let mut out = String::new();
-    v.0.stdout
-        .as_mut()
-        .unwrap()
-        .read_to_string(&mut out)
-        .unwrap();
-    let _ = v.0.wait();
-    let last = out.lines().last().unwrap_or_default();
-    serde_json::from_str(last).unwrap_or_else(|e| panic!("verdict {out:?}: {e}"))
+    common::pymav_verdict(v)
 }
 
 fn texts(v: &serde_json::Value) -> Vec<String> {

@@ -462,6 +462,9 @@ fn an_rtsp_camera_gives_stamped_grey_frames_from_a_loopback_server() {
 
 // ---- hostile peers -------------------------------------------------------------------
 
+/// How a hostile camera manager answers a request (the connection, the request line).
+type Answer = Box<dyn Fn(&mut std::net::TcpStream, &str) + Send + Sync>;
+
 /// `BlueosRest::open` against a camera manager that answers with `answer`: the error,
 /// and how long it took.
 fn open_against(
@@ -480,11 +483,7 @@ fn hostile_camera_managers_fail_in_bounded_time_with_clean_messages() {
     let head = |n: usize| {
         format!("HTTP/1.1 200 OK\r\nContent-Type: application/json\r\nContent-Length: {n}\r\n\r\n")
     };
-    let mut cases: Vec<(
-        &str,
-        &str,
-        Box<dyn Fn(&mut std::net::TcpStream, &str) + Send + Sync>,
-    )> = Vec::new();
+    let mut cases: Vec<(&str, &str, Answer)> = Vec::new();
     let s1 = sources.clone();
     cases.push((
         "drips 4 bytes a second",

@@ -458,3 +458,17 @@ mod tests {
         assert_eq!(e.key, "x.y");
     }
 }
+
+/// Deserializes a fixed-size array of numbers, refusing a list of another length (serde's
+/// own array reading takes the first N and drops the rest silently):
+/// `#[serde(deserialize_with = "markhold_config::exact_array")]`.
+pub fn exact_array<'de, D, const N: usize>(d: D) -> Result<[f64; N], D::Error>
+where
+    D: serde::Deserializer<'de>,
+{
+    use serde::de::Error as _;
+    let v = <Vec<f64> as serde::Deserialize>::deserialize(d)?;
+    let n = v.len();
+    v.try_into()
+        .map_err(|_| D::Error::custom(format!("{n} numbers: expected exactly {N}")))
+}

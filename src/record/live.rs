@@ -459,6 +459,43 @@ fn handshake(
     }
 }
 
+/// The largest upgrade request head read.
+const MAX_REQUEST_HEAD: usize = 8 << 10;
+
+/// Waits until the client's whole request head has arrived, at most `limit` in all (a
+/// client that drips it, a byte at a time, must not hold a client slot for longer): the
+/// bytes are only peeked, so the handshake then reads them without waiting.
+fn request_head_within(stream: &TcpStream, limit: Duration) -> Result<(), String> {
+    let until = std::time::Instant::now() + limit;
+    let mut buf = vec![0u8; MAX_REQUEST_HEAD];
+    loop {
+        let left = until.saturating_duration_since(std::time::Instant::now());
+        if left.is_zero() {
+            return Err(format!(
+                "request head not complete within {} s",
+                limit.as_secs()
+            ));
+        }
+        stream
+            .set_read_timeout(Some(left))
+            .map_err(|e| e.to_string())?;
+        let n = match stream.peek(&mut buf) {
+            Ok(0) => return Err("closed".into()),
+            Ok(n) => n,
+            Err(e) if matches!(e.kind(), ErrorKind::WouldBlock | ErrorKind::TimedOut) => continue,
+            Err(e) => return Err(e.to_string()),
+        };
+        if buf[..n].windows(4).any(|w| w == b"\r\n\r\n") {
+            return Ok(());
+        }
+        if n == buf.len() {
+            return Err(format!("request head over {MAX_REQUEST_HEAD} bytes"));
+        }
+        // More to come: wait a little rather than spin on the same peeked bytes.
+        std::thread::sleep(POLL);
+    }
+}
+
 fn serve_client(
     stream: TcpStream,
     peer: SocketAddr,
@@ -473,6 +510,10 @@ fn serve_client(
         .and_then(|()| stream.set_nodelay(true));
     if let Err(e) = setup {
         tracing::debug!("live view: {peer}: {e}");
+        return;
+    }
+    if let Err(why) = request_head_within(&stream, HANDSHAKE_TIMEOUT) {
+        tracing::debug!("live view: {peer}: no WebSocket upgrade: {why}");
         return;
     }
     let mut ws = match handshake(stream, origins) {

@@ -245,3 +245,51 @@ pub fn sources_json() -> String {
     s.read_to_string(&mut out).unwrap();
     out.split_once("\r\n\r\n").unwrap().1.to_string()
 }
+
+/// autopilot/tests/pymav_vehicle.py as a vehicle; killed on drop if still running.
+pub struct PymavVehicle(pub std::process::Child);
+
+impl Drop for PymavVehicle {
+    fn drop(&mut self) {
+        let _ = self.0.kill();
+        let _ = self.0.wait();
+    }
+}
+
+/// Start the pymavlink vehicle with `args`; its UDP port.
+pub fn pymav_vehicle(args: &[&str]) -> (PymavVehicle, u16) {
+    use std::io::BufRead;
+    markhold_testkit::require_pymavlink();
+    let mut child = Command::new("python3")
+        .arg(repo("autopilot/tests/pymav_vehicle.py"))
+        .args(args)
+        .stdout(std::process::Stdio::piped())
+        .stderr(std::process::Stdio::inherit())
+        .spawn()
+        .expect("spawn python3");
+    let mut line = String::new();
+    std::io::BufReader::new(child.stdout.as_mut().unwrap())
+        .read_line(&mut line)
+        .unwrap();
+    let port = line
+        .trim()
+        .strip_prefix("UDP ")
+        .unwrap_or_else(|| panic!("vehicle said {line:?}"))
+        .parse()
+        .unwrap();
+    (PymavVehicle(child), port)
+}
+
+/// The vehicle's verdict, its last stdout line (it ends 1.5 s after markhold falls
+/// silent).
+pub fn pymav_verdict(v: &mut PymavVehicle) -> serde_json::Value {
+    let mut out = String::new();
+    v.0.stdout
+        .as_mut()
+        .unwrap()
+        .read_to_string(&mut out)
+        .unwrap();
+    let _ = v.0.wait();
+    let last = out.lines().last().unwrap_or_default();
+    serde_json::from_str(last).unwrap_or_else(|e| panic!("verdict {out:?}: {e}"))
+}

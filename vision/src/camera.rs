@@ -10,6 +10,86 @@ use std::path::{Path, PathBuf};
 
 /// Name of the sidecar in a recording folder.
 pub const SIDECAR: &str = "frames.csv";
+/// The largest image file of a recording folder read.
+pub const MAX_IMAGE_FILE_BYTES: u64 = 64 << 20;
+/// The largest image side decoded, pixels.
+pub const MAX_IMAGE_SIDE: u32 = 8192;
+/// The largest sidecar read.
+const MAX_SIDECAR_BYTES: u64 = 64 << 20;
+
+/// Width and height of a PNG (its IHDR) or a JPEG (its first start-of-frame marker),
+/// read from the header without decoding: what a decoder would allocate. None for other
+/// data or a header cut short.
+pub fn encoded_image_size(bytes: &[u8]) -> Option<(u32, u32)> {
+    const PNG: &[u8] = b"\x89PNG\r\n\x1a\n";
+    if bytes.starts_with(PNG) {
+        // Signature, then the IHDR chunk: length (4), "IHDR", width (4), height (4).
+        if bytes.get(12..16)? != b"IHDR" {
+            return None;
+        }
+        let be = |r: std::ops::Range<usize>| {
+            bytes
+                .get(r)
+                .map(|b| u32::from_be_bytes([b[0], b[1], b[2], b[3]]))
+        };
+        return Some((be(16..20)?, be(20..24)?));
+    }
+    if !bytes.starts_with(&[0xff, 0xd8]) {
+        return None;
+    }
+    let mut i = 2;
+    while i + 4 <= bytes.len() {
+        if bytes[i] != 0xff {
+            return None;
+        }
+        let marker = bytes[i + 1];
+        if marker == 0xff {
+            i += 1;
+            continue;
+        }
+        // Markers without a length: TEM, RSTn, SOI, EOI.
+        if marker == 0x01 || (0xd0..=0xd9).contains(&marker) {
+            i += 2;
+            continue;
+        }
+        let len = usize::from(u16::from_be_bytes([bytes[i + 2], bytes[i + 3]]));
+        // SOF0..SOF15, except DHT (c4), JPG (c8) and DAC (cc): precision (1), height
+        // (2), width (2).
+        if (0xc0..=0xcf).contains(&marker) && ![0xc4, 0xc8, 0xcc].contains(&marker) {
+            let b = bytes.get(i + 5..i + 9)?;
+            let h = u32::from(u16::from_be_bytes([b[0], b[1]]));
+            let w = u32::from(u16::from_be_bytes([b[2], b[3]]));
+            return Some((w, h));
+        }
+        if len < 2 {
+            return None;
+        }
+        i += 2 + len;
+    }
+    None
+}
+
+/// An encoded image's size checked before decoding: within [`MAX_IMAGE_SIDE`] and, when
+/// `expected` is given, equal to it. The reason when not.
+pub fn check_encoded_size(
+    bytes: &[u8],
+    expected: Option<(u32, u32)>,
+) -> Result<(u32, u32), String> {
+    let (w, h) = encoded_image_size(bytes).ok_or("not a PNG or JPEG image (no readable header)")?;
+    if w == 0 || h == 0 || w > MAX_IMAGE_SIDE || h > MAX_IMAGE_SIDE {
+        return Err(format!(
+            "a {w}x{h} image: sides 1..{MAX_IMAGE_SIDE} pixels expected (not decoded)"
+        ));
+    }
+    if let Some((ew, eh)) = expected {
+        if (w, h) != (ew, eh) {
+            return Err(format!(
+                "a {w}x{h} image where {ew}x{eh} is expected (not decoded)"
+            ));
+        }
+    }
+    Ok((w, h))
+}
 const HEADER: &str = "file,seq,stamp_s,exposure_us,gain_db";
 
 /// Copy an 8-bit grey or BGR image into `frame` (grey).
@@ -83,9 +163,14 @@ impl RecordedCamera {
     /// Open a recording folder; the sidecar is read and every listed file checked.
     pub fn open(dir: &Path) -> Result<Self, VisionError> {
         let sidecar = dir.join(SIDECAR);
-        let text = std::fs::read_to_string(&sidecar).map_err(|source| VisionError::Io {
+        let text = read_bounded(&sidecar, MAX_SIDECAR_BYTES).map_err(|source| VisionError::Io {
             path: sidecar.clone(),
             source,
+        })?;
+        let text = String::from_utf8(text).map_err(|_| VisionError::Recording {
+            path: sidecar.clone(),
+            line: 1,
+            reason: "not UTF-8 text".into(),
         })?;
         let bad = |line: usize, reason: String| VisionError::Recording {
             path: sidecar.clone(),
@@ -117,13 +202,20 @@ impl RecordedCamera {
                     .filter(|v| v.is_finite())
                     .ok_or_else(|| bad(no, format!("{name} '{}' is not a finite number", f[k])))
             };
+            // A stream camera's frame whose exposure is not known (its camera's own auto
+            // exposure, or a command in flight) is recorded as NaN and read back so.
+            let exposure = if f[3].eq_ignore_ascii_case("nan") {
+                f64::NAN
+            } else {
+                num(3, "exposure_us")?
+            };
             let seq = f[1]
                 .parse::<u64>()
                 .map_err(|_| bad(no, format!("seq '{}' is not an integer", f[1])))?;
             let meta = FrameMeta {
                 seq,
                 stamp_s: num(2, "stamp_s")?,
-                exposure_us: num(3, "exposure_us")?,
+                exposure_us: exposure,
                 gain_db: num(4, "gain_db")?,
             };
             if meta.exposure_us <= 0.0 {
@@ -159,14 +251,21 @@ impl RecordedCamera {
         if entries.is_empty() {
             return Err(bad(1, "no frames listed".into()));
         }
-        let min_us = entries
-            .iter()
-            .map(|e| e.meta.exposure_us)
-            .fold(f64::MAX, f64::min);
-        let max_us = entries
-            .iter()
-            .map(|e| e.meta.exposure_us)
-            .fold(0.0, f64::max);
+        // Over the known exposures (a recording with none known: 1 us, as a placeholder
+        // range the loop cannot act on anyway).
+        let known = || {
+            entries
+                .iter()
+                .map(|e| e.meta.exposure_us)
+                .filter(|v| v.is_finite())
+        };
+        let min_us = known().fold(f64::MAX, f64::min);
+        let max_us = known().fold(0.0, f64::max);
+        let (min_us, max_us) = if max_us > 0.0 {
+            (min_us, max_us)
+        } else {
+            (1.0, 1.0)
+        };
         let fps = if entries.len() > 1 {
             let span = entries[entries.len() - 1].meta.stamp_s - entries[0].meta.stamp_s;
             (entries.len() - 1) as f64 / span
@@ -232,7 +331,17 @@ impl Camera for RecordedCamera {
         };
         self.bytes.clear();
         std::fs::File::open(&path)
-            .and_then(|mut f| f.read_to_end(&mut self.bytes))
+            .and_then(|f| {
+                let len = f.metadata()?.len();
+                if len > MAX_IMAGE_FILE_BYTES {
+                    return Err(std::io::Error::other(format!(
+                        "{len} bytes: more than {MAX_IMAGE_FILE_BYTES}"
+                    )));
+                }
+                f.take(MAX_IMAGE_FILE_BYTES).read_to_end(&mut self.bytes)
+            })
+            .map_err(|e| read_err(format!("{}: {e}", path.display())))?;
+        check_encoded_size(&self.bytes, None)
             .map_err(|e| read_err(format!("{}: {e}", path.display())))?;
         let buf = core::Mat::from_slice(&self.bytes).map_err(|e| read_err(e.to_string()))?;
         imgcodecs::imdecode_to(&buf, imgcodecs::IMREAD_GRAYSCALE, &mut self.img)
@@ -249,6 +358,25 @@ impl Camera for RecordedCamera {
         self.next += 1;
         Ok(())
     }
+}
+
+/// The first `limit` bytes of a regular file, or an error if it is not one or is
+/// longer.
+fn read_bounded(path: &Path, limit: u64) -> std::io::Result<Vec<u8>> {
+    let f = std::fs::File::open(path)?;
+    let meta = f.metadata()?;
+    if !meta.is_file() {
+        return Err(std::io::Error::other("not a regular file"));
+    }
+    if meta.len() > limit {
+        return Err(std::io::Error::other(format!(
+            "{} bytes: more than {limit}",
+            meta.len()
+        )));
+    }
+    let mut out = Vec::with_capacity(meta.len() as usize);
+    f.take(limit).read_to_end(&mut out)?;
+    Ok(out)
 }
 
 /// Writes frames as a recording `RecordedCamera` can replay.
