@@ -662,6 +662,66 @@ mod tests {
         drop(server);
     }
 
+    /// Eight clients that drip their upgrade request a byte at a time (every client slot)
+    /// hold the view for at most the handshake deadline: a real client gets in after it.
+    #[test]
+    fn clients_dripping_their_handshake_are_cut_at_the_deadline() {
+        use std::io::Write;
+        let ctx = Context::new();
+        let server = LiveServer::start(&ctx, 0, &LiveSection::default()).unwrap();
+        let port = server.port();
+        let stop = Arc::new(AtomicBool::new(false));
+        let drippers: Vec<_> = (0..MAX_CLIENTS)
+            .map(|_| {
+                let stop = stop.clone();
+                std::thread::spawn(move || {
+                    let mut s = TcpStream::connect(("127.0.0.1", port)).unwrap();
+                    let _ = s.write_all(b"GET / HTTP/1.1\r\nHost: x\r\n");
+                    for _ in 0..300 {
+                        if stop.load(Ordering::Relaxed) || s.write_all(b"X").is_err() {
+                            return;
+                        }
+                        std::thread::sleep(Duration::from_millis(100));
+                    }
+                })
+            })
+            .collect();
+        std::thread::sleep(Duration::from_millis(300));
+        let t0 = std::time::Instant::now();
+        let mut served = None;
+        while t0.elapsed() < Duration::from_secs(15) {
+            let stream = TcpStream::connect(("127.0.0.1", port)).unwrap();
+            stream
+                .set_read_timeout(Some(Duration::from_secs(5)))
+                .unwrap();
+            let mut req = format!("ws://127.0.0.1:{port}/")
+                .into_client_request()
+                .unwrap();
+            req.headers_mut().insert(
+                "sec-websocket-protocol",
+                HeaderValue::from_static("foxglove.sdk.v1"),
+            );
+            if tungstenite::client(req, stream).is_ok() {
+                served = Some(t0.elapsed());
+                break;
+            }
+            std::thread::sleep(Duration::from_millis(200));
+        }
+        stop.store(true, Ordering::Relaxed);
+        for d in drippers {
+            let _ = d.join();
+        }
+        let served = served.expect("a real client never got in while others dripped");
+        eprintln!(
+            "served after {:.1} s of dripping clients",
+            served.as_secs_f64()
+        );
+        assert!(
+            served <= HANDSHAKE_TIMEOUT + Duration::from_secs(2),
+            "{served:?}"
+        );
+    }
+
     #[test]
     fn origins_are_checked_for_their_form() {
         for ok in [
