@@ -3,12 +3,14 @@
 # pilot engages from QGroundControl (markhold never engages by itself here).
 #   MARKHOLD_SITE    site file (default /data/site.toml, i.e. the host's
 #                    /usr/blueos/extensions/markhold/site.toml)
-#   MARKHOLD_CAMERA  camera URL (default v4l2:/dev/video2)
+#   MARKHOLD_CAMERA  camera URL (default udp:127.0.0.1:5610: a UDP endpoint added to the
+#                    camera manager's stream; never the camera's /dev/video device, which
+#                    the camera manager streams)
 #   MARKHOLD_LINK    MAVLink URL (default tcp:127.0.0.1:5777, BlueOS's MAVLink router)
 #   MARKHOLD_ARGS    more `markhold run` options (e.g. --foxglove)
 set -u
 site="${MARKHOLD_SITE:-/data/site.toml}"
-camera="${MARKHOLD_CAMERA:-v4l2:/dev/video2}"
+camera="${MARKHOLD_CAMERA:-udp:127.0.0.1:5610}"
 link="${MARKHOLD_LINK:-tcp:127.0.0.1:5777}"
 rec_dir="/data/recordings"
 

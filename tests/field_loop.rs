@@ -291,6 +291,7 @@ fn a_stream_that_stays_dead_ends_the_run_after_stall_exit_s() {
         .local_addr()
         .unwrap()
         .port();
+    let mut source = RtpSource::new(udp);
     let mut child = run_cmd(
         &site,
         &format!("udp:127.0.0.1:{udp}"),
@@ -304,19 +305,7 @@ fn a_stream_that_stays_dead_ends_the_run_after_stall_exit_s() {
     .unwrap();
     // 1.5 s of rendered frames over H.264/RTP, then nothing ever again.
     std::thread::sleep(Duration::from_millis(500));
-    let mut rig = station_rig(false);
-    rig.set_exposure_us(3000.0).unwrap();
-    let mut frame = Frame::default();
-    rig.grab(&mut frame).unwrap();
-    let sender = Sender::start(frame.width, frame.height, 30.0, udp).unwrap();
-    let t0 = Instant::now();
-    for i in 0..45u32 {
-        rig.grab(&mut frame).unwrap();
-        sender.push(&frame, f64::from(i) / 30.0).unwrap();
-        let due = t0 + Duration::from_millis(33 * u64::from(i + 1));
-        std::thread::sleep(due.saturating_duration_since(Instant::now()));
-    }
-    drop(sender);
+    source.send(0, 45);
     let ended = Instant::now();
     let ended_epoch = epoch_now();
     let deadline = ended + Duration::from_secs(30);
@@ -339,20 +328,128 @@ fn a_stream_that_stays_dead_ends_the_run_after_stall_exit_s() {
         .read_to_string(&mut err)
         .unwrap();
     let verdict = verdict(&mut v);
+    assert_eq!(status.code(), Some(1), "{err}");
     let s = summary(&sum);
     eprintln!(
         "dead stream: the run ended {:.1} s after the last frame was sent",
         after.as_secs_f64()
     );
-    assert_eq!(status.code(), Some(1), "{err}");
     assert_eq!(s["stopped_by"], "camera_lost", "{s}");
     assert!(err.contains("stall_exit_s"), "{err}");
+    // Silent for 2 s: built again (the port bound anew) before the run gave up.
+    assert!(
+        err.contains("no frame for 2.") && err.contains("built again"),
+        "{err}"
+    );
     // Neutral while waiting (from the stall, 0.5 s after the last frame, to the run's
     // end 3 s after it), at the site's pilot_input_hz (10) and no faster.
     let end = ended_epoch - verdict["t0_epoch"].as_f64().unwrap();
     let rate = rate_between(&inputs(&verdict), end + 0.8, end + 2.8);
     eprintln!("pilot input while no frame came: {rate:.1} per second");
     assert!((5.0..=11.5).contains(&rate), "{rate} inputs per second");
+    assert_eq!(
+        verdict["failsafe"].as_array().unwrap().len(),
+        0,
+        "{verdict}"
+    );
+}
+
+/// Rendered station frames over H.264/RTP to a loopback port (made before markhold
+/// starts: its first-frame wait is bounded).
+struct RtpSource {
+    rig: markhold_hil::HilRig,
+    frame: Frame,
+    port: u16,
+}
+
+impl RtpSource {
+    fn new(port: u16) -> Self {
+        let mut rig = station_rig(false);
+        rig.set_exposure_us(3000.0).unwrap();
+        let mut frame = Frame::default();
+        rig.grab(&mut frame).unwrap();
+        Self { rig, frame, port }
+    }
+
+    /// `n` frames at 30 fps, stamped from `first` frames on, from a new sender (an
+    /// encoder started afresh).
+    fn send(&mut self, first: u32, n: u32) {
+        let sender = Sender::start(self.frame.width, self.frame.height, 30.0, self.port).unwrap();
+        let t0 = Instant::now();
+        for i in 0..n {
+            self.rig.grab(&mut self.frame).unwrap();
+            sender
+                .push(&self.frame, f64::from(first + i) / 30.0)
+                .unwrap();
+            let due = t0 + Duration::from_millis(33 * u64::from(i + 1));
+            std::thread::sleep(due.saturating_duration_since(Instant::now()));
+        }
+    }
+}
+
+#[test]
+fn a_stream_that_goes_silent_is_built_again_and_taken_back() {
+    let (mut v, port) = vehicle(&[]);
+    let site = site("silent.toml", "", "on_exit = \"disarm\"", "");
+    let sum = tmp("silent.json");
+    let udp = UdpSocket::bind("127.0.0.1:0")
+        .unwrap()
+        .local_addr()
+        .unwrap()
+        .port();
+    let mut source = RtpSource::new(udp);
+    let mut child = run_cmd(
+        &site,
+        &format!("udp:127.0.0.1:{udp}"),
+        port,
+        &sum,
+        &["--engage", "--arm", "--seconds", "60"],
+    )
+    .stdout(Stdio::null())
+    .stderr(Stdio::piped())
+    .spawn()
+    .unwrap();
+    std::thread::sleep(Duration::from_millis(500));
+    // 3 s of frames, 4 s of silence (the stream is built again after 2 s), 3 s of
+    // frames from a new sender (a camera whose encoder restarted).
+    source.send(0, 90);
+    std::thread::sleep(Duration::from_secs(4));
+    source.send(210, 90);
+    let _ = Command::new("kill")
+        .args(["-TERM", &child.id().to_string()])
+        .status();
+    let deadline = Instant::now() + Duration::from_secs(20);
+    let status = loop {
+        if let Some(s) = child.try_wait().unwrap() {
+            break s;
+        }
+        assert!(Instant::now() < deadline, "markhold did not stop");
+        std::thread::sleep(Duration::from_millis(20));
+    };
+    let mut err = String::new();
+    child
+        .stderr
+        .take()
+        .unwrap()
+        .read_to_string(&mut err)
+        .unwrap();
+    let verdict = verdict(&mut v);
+    assert_eq!(status.code(), Some(0), "{err}");
+    let s = summary(&sum);
+    eprintln!(
+        "silent stream: {} frames, {} stalls, stopped by {}",
+        s["frames"], s["vision_stalls"], s["stopped_by"]
+    );
+    assert!(
+        err.contains("no frame for 2.") && err.contains("built again"),
+        "{err}"
+    );
+    // Frames from the second sender were handled (more than the first 3 s gave).
+    assert!(s["frames"].as_u64().unwrap() >= 120, "{s}\n{err}");
+    assert_eq!(s["stopped_by"], "signal", "{s}");
+    let sent = loop_inputs(&verdict) as f64;
+    let budget = input_budget(&s, 20.0);
+    assert!(sent <= budget, "{sent} inputs, budget {budget}");
     assert_eq!(
         verdict["failsafe"].as_array().unwrap().len(),
         0,
@@ -370,6 +467,10 @@ fn a_burst_of_bad_rtp_is_recovered_from() {
         .local_addr()
         .unwrap()
         .port();
+    let mut rig = station_rig(false);
+    rig.set_exposure_us(3000.0).unwrap();
+    let mut frame = Frame::default();
+    rig.grab(&mut frame).unwrap();
     let mut child = run_cmd(
         &site,
         &format!("udp:127.0.0.1:{udp}"),
@@ -395,16 +496,12 @@ fn a_burst_of_bad_rtp_is_recovered_from() {
         all
     });
     std::thread::sleep(Duration::from_millis(500));
-    let mut rig = station_rig(false);
-    rig.set_exposure_us(3000.0).unwrap();
-    let mut frame = Frame::default();
-    rig.grab(&mut frame).unwrap();
     let sender = Sender::start(frame.width, frame.height, 30.0, udp).unwrap();
     let junk = UdpSocket::bind("127.0.0.1:0").unwrap();
     let mut x = 0x2545_f491_4f6c_dd1du64;
     let t0 = Instant::now();
     // Frames until markhold runs, 1 s more, 50 ms of random datagrams on the camera
-    // port, then 2 s of frames.
+    // port, then 4 s of frames.
     let mut running_at = None;
     let mut i = 0u32;
     loop {
@@ -425,7 +522,7 @@ fn a_burst_of_bad_rtp_is_recovered_from() {
                     let _ = junk.send_to(&d, ("127.0.0.1", udp));
                 }
             }
-            Some(r) if i == r + 90 => break,
+            Some(r) if i == r + 150 => break,
             None => assert!(i < 600, "markhold never ran"),
             _ => {}
         }
@@ -450,14 +547,15 @@ fn a_burst_of_bad_rtp_is_recovered_from() {
     };
     let err = reader.join().unwrap();
     let verdict = verdict(&mut v);
-    let s = summary(&sum);
     assert_eq!(status.code(), Some(0), "{err}");
+    let s = summary(&sum);
     eprintln!(
-        "bad RTP burst: {} frames handled of the 90 sent while running, {} stalls",
+        "bad RTP burst: {} frames handled of the 150 sent while running, {} stalls",
         s["frames"], s["vision_stalls"]
     );
-    // The frames after the burst were taken in (a dead pipeline would stop at 31).
-    assert!(s["frames"].as_u64().unwrap() >= 70, "{s}\n{err}");
+    // Frames after the burst were taken in: at least half of the 4 s of them (a dead
+    // pipeline would stop at 31; one rebuilt waits up to 1 s for a key frame).
+    assert!(s["frames"].as_u64().unwrap() >= 90, "{s}\n{err}");
     let sent = loop_inputs(&verdict) as f64;
     let budget = input_budget(&s, 20.0);
     assert!(sent <= budget, "{sent} inputs, budget {budget}");

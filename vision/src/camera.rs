@@ -445,7 +445,8 @@ impl FrameRecorder {
     }
 }
 
-/// A V4L2 camera through OpenCV's videoio, with the driver's auto exposure off.
+/// A V4L2 camera through OpenCV's videoio, with the driver's auto exposure off while it
+/// is open (put back as found when closed).
 ///
 /// Exposure goes through `CAP_PROP_EXPOSURE`, which the V4L2 backend maps to
 /// `V4L2_CID_EXPOSURE_ABSOLUTE` in units of 100 us (`exposure_unit_us`). Each frame
@@ -459,6 +460,21 @@ pub struct V4l2Camera {
     seq: u64,
     img: core::Mat,
     grey: core::Mat,
+    /// Auto-exposure mode and exposure as found at open (as the backend reads them).
+    found: (Option<f64>, Option<f64>),
+}
+
+impl Drop for V4l2Camera {
+    /// The camera is left as found: the exposure value first (a manual value is refused
+    /// while in auto exposure), then the mode.
+    fn drop(&mut self) {
+        if let (Some(mode), value) = self.found {
+            if let Some(v) = value {
+                let _ = self.cap.set(videoio::CAP_PROP_EXPOSURE, v);
+            }
+            let _ = self.cap.set(videoio::CAP_PROP_AUTO_EXPOSURE, mode);
+        }
+    }
 }
 
 impl V4l2Camera {
@@ -514,6 +530,11 @@ impl V4l2Camera {
                 format!("asked {width}x{height}, the driver delivers {got_w}x{got_h}"),
             ));
         }
+        // The mode and value found, put back when the camera is closed.
+        let found = (
+            cap.get(videoio::CAP_PROP_AUTO_EXPOSURE).ok(),
+            cap.get(videoio::CAP_PROP_EXPOSURE).ok(),
+        );
         // V4L2_EXPOSURE_MANUAL is 1; backends that normalise controls use 0.25.
         if !set(&mut cap, videoio::CAP_PROP_AUTO_EXPOSURE, 1.0)
             && !set(&mut cap, videoio::CAP_PROP_AUTO_EXPOSURE, 0.25)
@@ -536,6 +557,7 @@ impl V4l2Camera {
             seq: 0,
             img: core::Mat::default(),
             grey: core::Mat::default(),
+            found,
         })
     }
 

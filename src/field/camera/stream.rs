@@ -131,6 +131,8 @@ pub struct StreamConfig {
 pub const RESTART_FIRST: Duration = Duration::from_millis(500);
 /// The longest wait between two restarts.
 pub const RESTART_MAX: Duration = Duration::from_secs(8);
+/// A running stream silent this long is built again.
+pub const STALL_RESTART: Duration = Duration::from_secs(2);
 
 /// A built pipeline with its appsink and bus.
 struct Built {
@@ -236,6 +238,8 @@ pub struct StreamCamera {
     rebase: bool,
     last_stamp: Option<f64>,
     delivered_at: Option<Instant>,
+    /// When the running pipeline was built.
+    built_at: Option<Instant>,
     stop: ShutdownFlag,
     /// The first frame, pulled while waiting for it at start-up.
     held: Option<gst::Sample>,
@@ -380,6 +384,7 @@ impl StreamCamera {
             rebase: false,
             last_stamp: None,
             delivered_at: None,
+            built_at: Some(Instant::now()),
             stop: cfg.stop.clone(),
             held: None,
             delivered: false,
@@ -492,6 +497,7 @@ impl StreamCamera {
             Ok(b) => {
                 tracing::warn!(camera = %self.name, restarts = self.restarts, "stream pipeline built again");
                 self.built = Some(b);
+                self.built_at = Some(Instant::now());
                 self.stopped = None;
                 // Its clock starts again: stamps go on from the last one.
                 self.rebase = true;
@@ -501,6 +507,21 @@ impl StreamCamera {
                 tracing::warn!(camera = %self.name, "building the stream again: {e}");
             }
         }
+    }
+
+    /// Wall time since the last frame was delivered (or the pipeline was built).
+    fn silent_for(&self) -> Duration {
+        match (self.delivered_at, self.built_at) {
+            (Some(a), Some(b)) => a.max(b).elapsed(),
+            (Some(t), None) | (None, Some(t)) => t.elapsed(),
+            (None, None) => Duration::ZERO,
+        }
+    }
+
+    /// How long a running stream may stay silent before it is built again: 2 s, or 4
+    /// frame periods of a slower camera.
+    fn silence_limit(&self) -> Duration {
+        STALL_RESTART.max(Duration::from_secs_f64(4.0 / self.fps))
     }
 
     /// The control's newest report: a change in force goes to the attribution.
@@ -523,11 +544,22 @@ impl StreamCamera {
             }
         }
         let mut t = raw_s + self.stamp_offset;
-        if let Some(last) = self.last_stamp {
+        if let (Some(last), Some(at)) = (self.last_stamp, self.delivered_at) {
             if t <= last {
                 let next = last + 1.0 / self.fps;
                 self.stamp_offset += next - t;
                 t = next;
+            }
+            // After a wait of a grab tick or more the loop has ticked on its own clock
+            // (the last stamp plus the time waited): a stream whose clock fell behind
+            // meanwhile is moved up to it, so loop time never goes back.
+            let waited = now.duration_since(at);
+            if waited >= GRAB_TICK {
+                let floor = last + waited.as_secs_f64();
+                if t < floor {
+                    self.stamp_offset += floor - t;
+                    t = floor;
+                }
             }
         }
         self.last_stamp = Some(t);
@@ -607,6 +639,11 @@ impl Camera for StreamCamera {
             if let Some(why) = bus_problem(&built.bus) {
                 self.on_stopped(why);
             } else if let Some(why) = self.guard.as_ref().and_then(RtspGuard::failure) {
+                self.on_stopped(why);
+            } else if self.restart && self.silent_for() >= self.silence_limit() {
+                // Running but silent (a decoder or jitter buffer stuck after bad
+                // packets): built again like a stream that ended.
+                let why = format!("no frame for {:.1} s", self.silent_for().as_secs_f64());
                 self.on_stopped(why);
             }
             return Err(self.read_err(NO_FRAME_REASON.into()));
