@@ -444,8 +444,9 @@ fn a_stream_that_goes_silent_is_built_again_and_taken_back() {
         err.contains("no frame for 2.") && err.contains("built again"),
         "{err}"
     );
-    // Frames from the second sender were handled (more than the first 3 s gave).
-    assert!(s["frames"].as_u64().unwrap() >= 120, "{s}\n{err}");
+    // Frames from the second sender were handled: more than the first 3 s can give
+    // (a loaded host hands over fewer than the 30 a second sent: passed over).
+    assert!(s["frames"].as_u64().unwrap() >= 100, "{s}\n{err}");
     assert_eq!(s["stopped_by"], "signal", "{s}");
     let sent = loop_inputs(&verdict) as f64;
     let budget = input_budget(&s, 20.0);
