@@ -718,6 +718,37 @@ mod tests {
     }
 
     #[test]
+    fn image_sizes_are_read_from_headers_and_unknown_exposures_kept() {
+        let dir = tmp("sizes");
+        let mut rec = FrameRecorder::create(&dir).unwrap();
+        let mut f = Frame::new(37, 21);
+        f.meta.exposure_us = f64::NAN;
+        rec.write(&f).unwrap();
+        drop(rec);
+        let png = std::fs::read(dir.join("frame_000000.png")).unwrap();
+        assert_eq!(encoded_image_size(&png), Some((37, 21)));
+        assert_eq!(check_encoded_size(&png, Some((37, 21))), Ok((37, 21)));
+        let e = check_encoded_size(&png, Some((640, 480))).unwrap_err();
+        assert!(e.contains("37x21") && e.contains("not decoded"), "{e}");
+        let img = core::Mat::new_rows_cols_with_default(21, 37, core::CV_8UC1, 0.into()).unwrap();
+        let mut jpg = core::Vector::<u8>::new();
+        imgcodecs::imencode(".jpg", &img, &mut jpg, &core::Vector::new()).unwrap();
+        assert_eq!(encoded_image_size(jpg.as_slice()), Some((37, 21)));
+        // A header that claims 32768 x 32768: refused without decoding.
+        let mut huge = png.clone();
+        huge[16..20].copy_from_slice(&32768u32.to_be_bytes());
+        huge[20..24].copy_from_slice(&32768u32.to_be_bytes());
+        assert!(check_encoded_size(&huge, None).is_err());
+        assert_eq!(encoded_image_size(b"not an image"), None);
+        // The frame's unknown exposure is read back as such.
+        let mut cam = RecordedCamera::open(&dir).unwrap();
+        let mut g = Frame::default();
+        cam.grab(&mut g).unwrap();
+        assert!(g.meta.exposure_us.is_nan());
+        std::fs::remove_dir_all(&dir).ok();
+    }
+
+    #[test]
     fn malformed_sidecars_name_file_and_line() {
         let dir = tmp("bad");
         std::fs::create_dir_all(&dir).unwrap();
