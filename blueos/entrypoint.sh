@@ -4,7 +4,9 @@
 # (status, camera, site file, recording) is on port 8780: BlueOS lists it in its sidebar.
 #   MARKHOLD_SITE    site file (default /data/site.toml, i.e. the host's
 #                    /usr/blueos/extensions/markhold/site.toml)
-#   MARKHOLD_CAMERA  camera URL (default v4l2:/dev/video2)
+#   MARKHOLD_CAMERA  camera URL (default udp:127.0.0.1:5610: a UDP endpoint added to the
+#                    camera manager's stream; never the camera's /dev/video device, which
+#                    the camera manager streams)
 #   MARKHOLD_LINK    MAVLink URL (default tcp:127.0.0.1:5777, BlueOS's MAVLink router)
 #   MARKHOLD_WEB     the page's address (default 0.0.0.0:8780; empty: no page)
 #   MARKHOLD_FOXGLOVE_PORT  the Foxglove live view's port on every address (default
@@ -12,7 +14,7 @@
 #   MARKHOLD_ARGS    more `markhold run` options
 set -u
 site="${MARKHOLD_SITE:-/data/site.toml}"
-camera="${MARKHOLD_CAMERA:-v4l2:/dev/video2}"
+camera="${MARKHOLD_CAMERA:-udp:127.0.0.1:5610}"
 link="${MARKHOLD_LINK:-tcp:127.0.0.1:5777}"
 web="${MARKHOLD_WEB-0.0.0.0:8780}"
 live_port="${MARKHOLD_FOXGLOVE_PORT-8765}"

@@ -448,6 +448,11 @@ fn run_cmd(args: RunArgs) -> anyhow::Result<()> {
     if let Some(path) = &args.summary {
         markhold::write_summary(path, &report)?;
     }
+    if report.stopped_by == markhold::field::run::StopReason::CameraLost {
+        // The vehicle was left as the site says; the run itself failed.
+        eprintln!("markhold run: stopped because the camera gave no frames (camera.stall_exit_s)");
+        std::process::exit(1);
+    }
     Ok(())
 }
 

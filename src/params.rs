@@ -118,14 +118,17 @@ pub struct CameraSection {
     #[serde(default)]
     pub cy_px: Option<f64>,
     /// k1 k2 p1 p2 k3.
-    #[serde(default)]
+    #[serde(default, deserialize_with = "markhold_config::exact_array")]
     pub distortion: [f64; 5],
     /// Camera position in the vehicle body frame (FRD), metres.
-    #[serde(default = "default_mount_position")]
+    #[serde(
+        default = "default_mount_position",
+        deserialize_with = "markhold_config::exact_array"
+    )]
     pub mount_position_m: [f64; 3],
     /// Roll, pitch, yaw of the camera relative to a forward-looking mount, degrees
     /// (pitch -15 tilts it 15 degrees down).
-    #[serde(default)]
+    #[serde(default, deserialize_with = "markhold_config::exact_array")]
     pub mount_rpy_deg: [f64; 3],
     /// Sensor noise and sensitivity (used by the HIL camera).
     #[serde(default)]
@@ -133,6 +136,15 @@ pub struct CameraSection {
     /// How exposure reaches a stream camera (`[camera.control]`).
     #[serde(default)]
     pub control: crate::field::camera::control::ControlConfig,
+    /// When a stream camera's exposure is markhold's: `engaged` (default: only while the
+    /// pilot has engaged markhold; put back as found otherwise) or `always` (from start
+    /// to exit: a camera nobody else watches).
+    #[serde(default)]
+    pub control_exposure: ControlExposure,
+    /// `markhold run` ends after this long without a camera frame (wall seconds; the
+    /// vehicle gets neutral input from `controller.vision_stall_s` on).
+    #[serde(default = "default_stall_exit")]
+    pub stall_exit_s: f64,
     /// The camera response (`linear` by default; `polynomial` as calibrated by
     /// `markhold response fit`), used by every exposure method that needs one and by
     /// the HIL camera. A table file is relative to the site file.
@@ -140,6 +152,20 @@ pub struct CameraSection {
     pub response: ResponseModel,
 }
 
+/// `[camera] control_exposure`.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum ControlExposure {
+    /// Only while engaged.
+    #[default]
+    Engaged,
+    /// From start to exit.
+    Always,
+}
+
+fn default_stall_exit() -> f64 {
+    10.0
+}
 fn default_initial_exposure() -> f64 {
     2000.0
 }
@@ -475,6 +501,7 @@ fn validate(site: &Site) -> Result<(), ConfigError> {
     site.camera.response.validate()?;
     validate_sim(site)?;
     site.marker.validate()?;
+    validate_marker_sizes(site)?;
     site.vision.validate()?;
     site.exposure.validate()?;
     site.station.validate()?;
@@ -482,6 +509,25 @@ fn validate(site: &Site) -> Result<(), ConfigError> {
     site.link.validate()?;
     site.record.validate()?;
     site.live.validate()
+}
+
+/// The largest marker side, metres: what the simulator renders (`hil` refuses more), so
+/// a site `params check` passes also runs in `hil`; a real marker is far smaller.
+pub const MAX_MARKER_SIZE_M: f64 = 10.0;
+
+#[rustfmt::skip]
+fn validate_marker_sizes(site: &Site) -> Result<(), ConfigError> {
+    let m = &site.marker;
+    let side = "a size in (0, 10] metres";
+    Checks::new("marker")
+        .range("size_m", m.size_m, open_closed(0.0, MAX_MARKER_SIZE_M), side)
+        .done()?;
+    for (i, mm) in m.map.iter().enumerate() {
+        Checks::new(format!("marker.map[{i}]"))
+            .range("size_m", mm.size_m, open_closed(0.0, MAX_MARKER_SIZE_M), side)
+            .done()?;
+    }
+    Ok(())
 }
 
 #[cfg(feature = "sim")]
@@ -563,6 +609,7 @@ fn validate_site(site: &Site) -> Result<(), ConfigError> {
     let s = &site.site;
     Checks::new("site")
         .check("name", AsDebug(&s.name), !s.name.trim().is_empty(), "a non-empty name")
+        .check("name", AsDebug(&s.name), !s.name.chars().any(char::is_control) && s.name.len() <= 200, "a name of at most 200 characters without control characters (newlines, escapes)")
         .range("depth_m", s.depth_m, 0.0..=300.0, "a depth in metres, 0..300")
         .done()?;
     let c = &site.camera;
@@ -577,6 +624,7 @@ fn validate_site(site: &Site) -> Result<(), ConfigError> {
         .range("initial_exposure_us", c.initial_exposure_us, above(0.0), "a positive exposure in microseconds")
         .range("gain_db", c.gain_db, -20.0..=48.0, "a gain in dB, -20..48")
         .range("actuation_delay_frames", c.actuation_delay_frames, ..=10, "0..10 frames")
+        .range("stall_exit_s", c.stall_exit_s, 1.0..=3600.0, "seconds without frames before a run ends, 1..3600")
         .opt(c.fx_px, |k, v| k.positive("fx_px", v, pixels))
         .opt(c.fy_px, |k, v| k.positive("fy_px", v, pixels))
         .opt(c.cx_px, |k, v| k.positive("cx_px", v, pixels))

@@ -457,3 +457,108 @@ fn slurm_job_array_runs_the_shards_and_the_merge_matches() {
     ok(&out, "compare merge of the SLURM shards");
     assert_same_outputs(&r.reference, &merged);
 }
+
+/// The three shards of the small sweep copied to a fresh folder, each passed through
+/// `edit` (its JSON) first.
+fn edited_shards(name: &str, edit: impl Fn(&mut serde_json::Value)) -> PathBuf {
+    let r = runs();
+    let d = tmp(name);
+    for i in 1..=3 {
+        let f = format!("shard-{i}-of-3.json");
+        let mut v: serde_json::Value = serde_json::from_slice(&read(&r.parts.join(&f))).unwrap();
+        edit(&mut v);
+        std::fs::write(d.join(&f), serde_json::to_vec(&v).unwrap()).unwrap();
+    }
+    d
+}
+
+#[test]
+fn merge_refuses_hostile_shard_files_and_escapes_report_text() {
+    // Values no sweep produces: refused, the file, the field and the value named.
+    for (field, value, needle) in [
+        (
+            "station_keeping.detection_rate",
+            -5.0f64,
+            "station_keeping.detection_rate = -5",
+        ),
+        (
+            "motion_tracking.frames",
+            1e12,
+            "motion_tracking.frames = 1000000000000",
+        ),
+    ] {
+        let d = edited_shards("shard-bad-value", |v| {
+            let (a, b) = field.split_once('.').unwrap();
+            v["cases"][0][a][b] = if f64::fract(value) == 0.0 && value > 0.0 {
+                serde_json::json!(value as u64)
+            } else {
+                serde_json::json!(value)
+            };
+        });
+        let e = merge_err(&[&d]);
+        assert!(e.contains(needle) && e.contains("shard-"), "{field}: {e}");
+    }
+    for (key, value, needle) in [
+        ("fps", serde_json::json!(0.0), "sweep.header.fps = 0"),
+        (
+            "seconds",
+            serde_json::json!(-1.0),
+            "sweep.header.seconds = -1",
+        ),
+    ] {
+        let d = edited_shards("shard-bad-header", |v| {
+            v["sweep"]["header"][key] = value.clone()
+        });
+        let e = merge_err(&[&d]);
+        assert!(e.contains(needle), "{key}: {e}");
+    }
+    // A shard count of 10^8: refused from the file, before anything is made for it.
+    let d = tmp("shard-huge-count");
+    let mut v: serde_json::Value =
+        serde_json::from_slice(&read(&runs().parts.join("shard-1-of-3.json"))).unwrap();
+    v["shard"]["count"] = serde_json::json!(100_000_000u32);
+    std::fs::write(
+        d.join("shard-1-of-100000000.json"),
+        serde_json::to_vec(&v).unwrap(),
+    )
+    .unwrap();
+    let e = merge_err(&[&d]);
+    assert!(e.contains("1 <= I <= N <= 10000"), "{e}");
+    let out = markhold(&["compare", "--shard", "1/100000000", "--out"], &[&d]);
+    assert!(!out.status.success());
+    assert!(String::from_utf8_lossy(&out.stderr).contains("N <= 10000"));
+
+    // Not regular files: a link to /dev/zero (endless), a FIFO (a reader waits for a
+    // writer). Refused at once.
+    let d = tmp("shard-special");
+    std::os::unix::fs::symlink("/dev/zero", d.join("shard-1-of-1.json")).unwrap();
+    let t0 = Instant::now();
+    let e = merge_err(&[&d]);
+    assert!(e.contains("not a regular file"), "{e}");
+    let d = tmp("shard-fifo");
+    let fifo = d.join("shard-1-of-1.json");
+    let made = Command::new("mkfifo").arg(&fifo).status().unwrap();
+    assert!(made.success());
+    let e = merge_err(&[&d]);
+    assert!(e.contains("not a regular file"), "{e}");
+    assert!(t0.elapsed() < Duration::from_secs(30), "{:?}", t0.elapsed());
+
+    // A site name with a newline, a heading and an escape: merged, and written inline.
+    let d = edited_shards("shard-name", |v| {
+        v["sweep"]["header"]["site"] = serde_json::json!("pool\n# injected\n\u{1b}[31m");
+    });
+    let merged = tmp("shard-name-out");
+    let out = markhold(&["compare", "merge"], &[&d, Path::new("--out"), &merged]);
+    ok(&out, "merge with an odd site name");
+    let report = String::from_utf8(read(&merged.join("report.md"))).unwrap();
+    assert!(
+        !report.lines().any(|l| l.starts_with("# injected")),
+        "{report}"
+    );
+    assert!(!report.contains('\u{1b}'));
+    assert!(
+        report.starts_with("# markhold compare: pool\\n# injected\\n\\u{1b}[31m\n"),
+        "{}",
+        &report[..200.min(report.len())]
+    );
+}

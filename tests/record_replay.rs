@@ -4,6 +4,8 @@
 #![cfg(feature = "sim")]
 #![allow(clippy::unwrap_used)] // Tests fail loudly on a broken setup, by design.
 
+mod common;
+
 use std::collections::BTreeMap;
 use std::io::{Cursor, Seek, SeekFrom, Write};
 use std::path::{Path, PathBuf};
@@ -619,5 +621,204 @@ fn replay_validates_the_recorded_site_like_a_site_file() {
         let msg = format!("{e:#}");
         assert!(msg.contains(&format!("hostile-{name}.mcap")), "{msg}");
         assert!(msg.contains("recorded"), "{name}: {msg}");
+    }
+}
+
+/// A grey PNG of `side` x `side` pixels, all zero, made by python3's zlib (about 1 MB
+/// for 32768: deflate packs a run of zeros about a thousand to one).
+fn zero_png(side: u32) -> Vec<u8> {
+    let script = format!(
+        "import struct,sys,zlib\n\
+         w=h={side}\n\
+         def chunk(t,d):\n\
+         \x20   return struct.pack('>I',len(d))+t+d+struct.pack('>I',zlib.crc32(t+d)&0xffffffff)\n\
+         c=zlib.compressobj(9)\n\
+         row=bytes(w+1)\n\
+         idat=b''.join(c.compress(row) for _ in range(h))+c.flush()\n\
+         sys.stdout.buffer.write(b'\\x89PNG\\r\\n\\x1a\\n'+chunk(b'IHDR',struct.pack('>IIBBBBB',w,h,8,0,0,0,0))+chunk(b'IDAT',idat)+chunk(b'IEND',b''))\n"
+    );
+    let o = std::process::Command::new("python3")
+        .args(["-c", &script])
+        .output()
+        .expect("python3");
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    o.stdout
+}
+
+/// A recording of one frame whose run description is `info` and whose image is `png`,
+/// written with the mcap crate as a hostile tool would.
+fn one_frame_recording(path: &Path, info: &RunInfo, png: &[u8]) {
+    use foxglove::Encode;
+    let mut w = mcap::Writer::new(std::io::BufWriter::new(
+        std::fs::File::create(path).unwrap(),
+    ))
+    .unwrap();
+    w.write_metadata(&mcap::records::Metadata {
+        name: markhold::record::METADATA_NAME.into(),
+        metadata: info.to_metadata(),
+    })
+    .unwrap();
+    let schema = w
+        .add_schema("foxglove.CompressedImage", "protobuf", b"")
+        .unwrap();
+    let image = w
+        .add_channel(schema, TOPIC_IMAGE, "protobuf", &BTreeMap::new())
+        .unwrap();
+    let frame = w
+        .add_channel(0, TOPIC_FRAME, "json", &BTreeMap::new())
+        .unwrap();
+    let msg = foxglove::schemas::CompressedImage {
+        timestamp: None,
+        frame_id: "camera".into(),
+        data: foxglove::bytes::Bytes::copy_from_slice(png),
+        format: "png".into(),
+    };
+    let mut data = Vec::new();
+    msg.encode(&mut data).unwrap();
+    let header = |channel_id| mcap::records::MessageHeader {
+        channel_id,
+        sequence: 0,
+        log_time: 1_000_000,
+        publish_time: 1_000_000,
+    };
+    w.write_to_known_channel(&header(image), &data).unwrap();
+    let f = serde_json::json!({
+        "seq": 0, "stamp_s": 0.001, "exposure_us": null, "gain_db": 0.0,
+        "width": 640, "height": 480, "image": true, "heartbeat_s": null, "shutdown": false,
+        "bits": {"stamp": 0.001f64.to_bits(), "exposure": f64::NAN.to_bits(), "gain": 0, "heartbeat": null}
+    });
+    w.write_to_known_channel(&header(frame), f.to_string().as_bytes())
+        .unwrap();
+    w.finish().unwrap();
+}
+
+/// `markhold ARGS`: exit status, stderr and peak memory (kB), bounded in time.
+fn markhold_peak(args: &[&std::ffi::OsStr]) -> (Option<i32>, String, u64) {
+    use std::io::Read;
+    let mut child = std::process::Command::new(env!("CARGO_BIN_EXE_markhold"))
+        .args(args)
+        .stdout(std::process::Stdio::null())
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .unwrap();
+    let mut err = child.stderr.take().unwrap();
+    let reader = std::thread::spawn(move || {
+        let mut s = String::new();
+        let _ = err.read_to_string(&mut s);
+        s
+    });
+    let status = format!("/proc/{}/status", child.id());
+    let mut peak = 0;
+    let deadline = std::time::Instant::now() + std::time::Duration::from_secs(120);
+    let code = loop {
+        if let Ok(s) = std::fs::read_to_string(&status) {
+            if let Some(kb) = s
+                .lines()
+                .find_map(|l| l.strip_prefix("VmHWM:"))
+                .and_then(|v| v.trim().trim_end_matches("kB").trim().parse::<u64>().ok())
+            {
+                peak = peak.max(kb);
+            }
+        }
+        if let Some(s) = child.try_wait().unwrap() {
+            break s.code();
+        }
+        assert!(std::time::Instant::now() < deadline, "markhold did not end");
+        std::thread::sleep(std::time::Duration::from_millis(5));
+    };
+    (code, reader.join().unwrap(), peak)
+}
+
+/// A recording holding a 32768 x 32768 PNG (1 GiB of pixels once decoded) and one whose
+/// recorded site is 100 MB: both refused before anything of that size is made, by
+/// `replay` and by `map`.
+#[test]
+fn hostile_recordings_are_refused_before_allocating() {
+    let info = site_info();
+    let huge = temp_path("huge-image.mcap");
+    one_frame_recording(&huge, &info, &zero_png(32768));
+    let site = std::path::Path::new(SITE);
+    for args in [
+        vec!["replay".as_ref(), huge.as_os_str()],
+        vec![
+            "map".as_ref(),
+            "--site".as_ref(),
+            site.as_os_str(),
+            "--recording".as_ref(),
+            huge.as_os_str(),
+        ],
+    ] {
+        let (code, err, peak) = markhold_peak(&args);
+        eprintln!("{:?}: exit {code:?}, peak RSS {} MB", args[0], peak / 1024);
+        assert_eq!(code, Some(2), "{err}");
+        assert!(
+            err.contains("32768x32768") && err.contains("not decoded"),
+            "{err}"
+        );
+        assert!(peak < 400 << 10, "peak RSS {peak} kB");
+    }
+
+    let big_site = temp_path("big-site.mcap");
+    let padded = RunInfo {
+        site_toml: format!("{}\n#{}\n", info.site_toml, "x".repeat(100 << 20)),
+        ..info.clone()
+    };
+    one_frame_recording(&big_site, &padded, &zero_png(16));
+    let (code, err, peak) = markhold_peak(&["replay".as_ref(), big_site.as_os_str()]);
+    eprintln!("100 MB site: exit {code:?}, peak RSS {} MB", peak / 1024);
+    assert_eq!(code, Some(2), "{err}");
+    assert!(
+        err.contains("site_toml") && err.contains("at most 4194304"),
+        "{err}"
+    );
+}
+
+/// Each camera kind a run reads, recorded and replayed: recorded frames (`frames:`), a
+/// GStreamer stream (`gst:`, whose frames carry no known exposure while the camera is
+/// the pilot's: NaN, written as null), and the stream's frames saved with
+/// `--record-frames` and run again as `frames:`.
+#[test]
+fn a_run_of_each_camera_kind_records_and_replays() {
+    let dir = temp_path("kinds");
+    let _ = std::fs::remove_dir_all(&dir);
+    std::fs::create_dir_all(&dir).unwrap();
+    // Station frames rendered by the simulator; the first frozen into a live stream.
+    let rig_frames = common::station_frames(dir.join("rendered"), 30);
+    let png = rig_frames.join("frame_000000.png");
+    let gst = format!(
+        "gst:filesrc location={} ! pngdec ! imagefreeze is-live=true num-buffers=45 ! video/x-raw,format=GRAY8,width=640,height=480,framerate=30/1 ! appsink",
+        png.display()
+    );
+    let saved = dir.join("saved");
+    let cameras = [
+        ("frames", format!("frames:{}", rig_frames.display()), false),
+        ("gst", gst, true),
+        ("saved", format!("frames:{}", saved.display()), false),
+    ];
+    for (name, camera, save) in cameras {
+        // Not engaged (the pymavlink vehicle never arms): the loop runs and records every
+        // frame until its frames end or 1.5 s have passed.
+        let rec = dir.join(format!("{name}.mcap"));
+        let (_vehicle, port) = common::pymav_vehicle(&["--scenario", "hold", "--deadline", "30"]);
+        let mut cmd = std::process::Command::new(env!("CARGO_BIN_EXE_markhold"));
+        cmd.args(["run", "--no-preflight", "--site", SITE, "--camera"])
+            .arg(&camera)
+            .arg("--link")
+            .arg(format!("udpout:127.0.0.1:{port}"))
+            .args(["--seconds", "1.5", "--record"])
+            .arg(&rec);
+        if save {
+            cmd.arg("--record-frames").arg(&saved);
+        }
+        let o = cmd.output().unwrap();
+        let err = String::from_utf8_lossy(&o.stderr);
+        assert!(o.status.success(), "{name}: {err}");
+        let out = replay(&rec).unwrap_or_else(|e| panic!("{name}: {e:#}"));
+        eprintln!(
+            "{name}: {} frames replayed, commands match: {}",
+            out.frames_replayed, out.commands_match
+        );
+        assert!(out.frames_replayed >= 20, "{name}: {out:?}");
+        assert!(out.commands_match, "{name}: {out:?}");
     }
 }

@@ -652,3 +652,95 @@ fn an_unreachable_vehicle_is_reported_with_its_cause() {
         assert!(!err.contains("no pose"), "{url}: {err}");
     }
 }
+
+/// Sizes that would allocate tens of gigabytes are refused with the flag and the limit,
+/// at once: `compare --seconds`, `--seeds`, `robustness --seconds`.
+#[test]
+fn absurd_sweep_sizes_are_refused_before_allocating() {
+    let site = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/fixtures/pool-640.toml");
+    let site = site.to_str().unwrap();
+    let out = scratch("absurd-out");
+    let out = out.to_str().unwrap();
+    for (args, needle) in [
+        (
+            vec!["compare", "--site", site, "--seconds", "1e7", "--out", out],
+            "--seconds 10000000: expected a positive number of simulated seconds, at most 3600",
+        ),
+        (
+            vec!["compare", "--site", site, "--seconds", "1e18", "--out", out],
+            "at most 3600",
+        ),
+        (
+            vec![
+                "compare",
+                "--site",
+                site,
+                "--seeds",
+                "100000000",
+                "--out",
+                out,
+            ],
+            "--seeds 100000000: expected 1..1000",
+        ),
+        (
+            vec![
+                "robustness",
+                "--site",
+                site,
+                "--seconds",
+                "1e12",
+                "--out",
+                out,
+            ],
+            "at most 3600",
+        ),
+    ] {
+        let (code, err) = run_bounded(&args);
+        assert!(code.is_some_and(|c| c != 0), "{args:?}: {err}");
+        assert!(err.contains(needle), "{args:?}: {err}");
+        assert!(
+            !err.contains("panicked") && !err.contains("memory allocation"),
+            "{err}"
+        );
+    }
+}
+
+/// `params check` refuses what a run would misread or `hil` would refuse: a list of
+/// numbers of the wrong length (the extra one was dropped), a marker of 1e300 m, a site
+/// name with a newline and an escape (it reaches reports and terminals).
+#[test]
+fn params_check_refuses_wrong_array_lengths_and_sizes_hil_refuses() {
+    let fixture = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/fixtures/pool-640.toml");
+    let text = std::fs::read_to_string(&fixture).unwrap();
+    let dir = scratch("params");
+    let cases = [
+        (
+            "map4",
+            format!("{text}\n[[marker.map]]\nid = 3\nsize_m = 0.15\nposition_m = [0.5, 0.0, 0.0, 7.0]\n"),
+            "marker.map.position_m = [0.5, 0.0, 0.0, 7.0]: 4 numbers: expected exactly 3",
+        ),
+        (
+            "mount2",
+            text.replace("mount_position_m = [0.2, 0.0, 0.0]", "mount_position_m = [0.2, 0.0]"),
+            "2 numbers: expected exactly 3",
+        ),
+        (
+            "huge",
+            text.replace("size_m = 0.15 ", "size_m = 1e300 "),
+            "expected a size in (0, 10] metres",
+        ),
+        (
+            "name",
+            text.replace("name = \"pool-640\"", "name = \"pool\\n# injected\\u001b[31m\""),
+            "without control characters",
+        ),
+    ];
+    for (name, body, needle) in cases {
+        assert_ne!(body, text, "{name}: the case changes the fixture");
+        let p = dir.join(format!("{name}.toml"));
+        std::fs::write(&p, body).unwrap();
+        let (code, err) = run_bounded(&["params", "check", p.to_str().unwrap()]);
+        assert_eq!(code, Some(78), "{name}: {err}");
+        assert!(err.contains(needle), "{name}: {err}");
+    }
+}

@@ -147,21 +147,40 @@ fn aaec_converges_from_10x_long_and_short_through_the_stream_as_in_process() {
     }
 }
 
+const STOCK_LIMITS: ExposureLimits = ExposureLimits {
+    min_us: 100.0,
+    max_us: 33300.0,
+    fps: 30.0,
+};
+
 #[test]
-fn a_refusing_camera_manager_is_named_and_the_last_exposure_kept() {
-    let limits = ExposureLimits {
-        min_us: 100.0,
-        max_us: 33300.0,
-        fps: 30.0,
-    };
-    let mgr = SimCameraManager::start(limits, 2000.0).unwrap();
-    let mut c = BlueosRest::open(&mgr.url(), "", 2000.0).unwrap();
+fn a_camera_manager_is_only_read_at_open_then_taken_and_put_back() {
+    let mgr = SimCameraManager::start(STOCK_LIMITS, 2000.0).unwrap();
+    let mut c = BlueosRest::open(&mgr.url(), "", &STOCK_LIMITS).unwrap();
     assert_eq!(c.device(), SIM_DEVICE);
-    // Manual mode on, and the exposure read back in the camera's 100 us units.
+    // Opening reads (GET /v4l) and writes nothing: the camera is in its own auto mode.
+    let found = c.found().unwrap();
+    assert_eq!(found.auto_exposure, Some(3));
+    assert_eq!(found.exposure_units, 20);
+    assert_eq!(mgr.controls().posts, 0);
+    assert_eq!(mgr.controls().auto_exposure, 3);
+    // Taken: manual mode, then values in the camera's 100 us units.
+    c.take().unwrap();
     assert_eq!(mgr.controls().auto_exposure, 1);
     assert_eq!(c.set_exposure_us(3049.0).unwrap(), 3000.0);
     assert_eq!(mgr.controls().exposure_units, 30);
+    // Put back: the value, then the mode, as found.
+    c.restore_to(&found).unwrap();
+    assert_eq!(mgr.controls().auto_exposure, 3);
+    assert_eq!(mgr.controls().exposure_units, 20);
+}
 
+#[test]
+fn a_refusing_camera_manager_is_named_and_the_last_exposure_kept() {
+    let mgr = SimCameraManager::start(STOCK_LIMITS, 2000.0).unwrap();
+    let mut c = BlueosRest::open(&mgr.url(), "", &STOCK_LIMITS).unwrap();
+    c.take().unwrap();
+    assert_eq!(c.set_exposure_us(3049.0).unwrap(), 3000.0);
     mgr.set_refuse(true);
     let e = c.set_exposure_us(5000.0).unwrap_err().to_string();
     assert!(e.contains(&mgr.url()) && e.contains("HTTP 500"), "{e}");
@@ -178,7 +197,7 @@ fn a_refusing_camera_manager_is_named_and_the_last_exposure_kept() {
         .unwrap()
         .port();
     let url = format!("http://127.0.0.1:{port}");
-    let e = BlueosRest::open(&url, "", 2000.0)
+    let e = BlueosRest::open(&url, "", &STOCK_LIMITS)
         .err()
         .unwrap()
         .to_string();
@@ -336,20 +355,22 @@ fn stream_config_30fps(
         },
         initial_us: 2000.0,
         first_frame_timeout,
+        restart: false,
+        stop: markhold::field::signal::ShutdownFlag::new(),
     }
 }
 
 #[test]
 fn a_gst_pipeline_camera_gives_stamped_grey_frames_and_counts_those_passed_over() {
-    use markhold::field::camera::control::NoControl;
     use markhold::field::camera::stream::{StreamCamera, StreamSource};
+    use markhold::field::camera::worker::ControlHandle;
     let src = StreamSource::parse(
         "gst:videotestsrc is-live=true pattern=gradient ! video/x-raw,format=GRAY8,width=320,height=240,framerate=30/1 ! appsink",
     )
     .unwrap()
     .unwrap();
     let cfg = stream_config_30fps(Duration::from_secs(5));
-    let mut cam = StreamCamera::open(&src, &cfg, Box::new(NoControl)).unwrap();
+    let mut cam = StreamCamera::open(&src, &cfg, ControlHandle::none().unwrap()).unwrap();
     let mut f = Frame::default();
     let mut stamps = Vec::new();
     for _ in 0..5 {
@@ -387,8 +408,8 @@ fn a_gst_pipeline_camera_gives_stamped_grey_frames_and_counts_those_passed_over(
 fn an_rtsp_camera_gives_stamped_grey_frames_from_a_loopback_server() {
     use gstreamer::glib;
     use gstreamer_rtsp_server::prelude::*;
-    use markhold::field::camera::control::NoControl;
     use markhold::field::camera::stream::{StreamCamera, StreamSource, NO_FRAME_REASON};
+    use markhold::field::camera::worker::ControlHandle;
 
     gstreamer::init().unwrap();
     let server = gstreamer_rtsp_server::RTSPServer::new();
@@ -415,7 +436,7 @@ fn an_rtsp_camera_gives_stamped_grey_frames_from_a_loopback_server() {
     let src = StreamSource::parse(&url).unwrap().unwrap();
     assert_eq!(src, StreamSource::Rtsp(url.clone()));
     let cfg = stream_config_30fps(Duration::from_secs(10));
-    let opened = StreamCamera::open(&src, &cfg, Box::new(NoControl));
+    let opened = StreamCamera::open(&src, &cfg, ControlHandle::none().unwrap());
     let result = opened.map(|mut cam| {
         // As `run` grabs: a tick without a frame is not an error (RTP over RTSP arrives
         // in bursts), a stall is; ten frames must come within 5 s.
@@ -446,4 +467,279 @@ fn an_rtsp_camera_gives_stamped_grey_frames_from_a_loopback_server() {
             .all(|w| w[1].0 > w[0].0 && w[1].1 > w[0].1),
         "{stamps:?}"
     );
+}
+
+// ---- hostile peers -------------------------------------------------------------------
+
+/// How a hostile camera manager answers a request (the connection, the request line).
+type Answer = Box<dyn Fn(&mut std::net::TcpStream, &str) + Send + Sync>;
+
+/// `BlueosRest::open` against a camera manager that answers with `answer`: the error,
+/// and how long it took.
+fn open_against(
+    answer: impl Fn(&mut std::net::TcpStream, &str) + Send + Sync + 'static,
+) -> (Result<BlueosRest, String>, Duration) {
+    let server = common::Hostile::start(answer);
+    let t0 = Instant::now();
+    let r = BlueosRest::open(&server.url, "", &STOCK_LIMITS).map_err(|e| e.to_string());
+    (r, t0.elapsed())
+}
+
+#[test]
+fn hostile_camera_managers_fail_in_bounded_time_with_clean_messages() {
+    use std::io::Write;
+    let sources = common::sources_json();
+    let head = |n: usize| {
+        format!("HTTP/1.1 200 OK\r\nContent-Type: application/json\r\nContent-Length: {n}\r\n\r\n")
+    };
+    let mut cases: Vec<(&str, &str, Answer)> = Vec::new();
+    let s1 = sources.clone();
+    cases.push((
+        "drips 4 bytes a second",
+        "no complete answer within 2000 ms",
+        Box::new(move |c, _| {
+            let text = format!("{}{s1}", head(s1.len()));
+            for b in text.as_bytes().chunks(4) {
+                if c.write_all(b).is_err() {
+                    return;
+                }
+                std::thread::sleep(Duration::from_secs(1));
+            }
+        }),
+    ));
+    cases.push((
+        "hangs",
+        "no complete answer within 2000 ms",
+        Box::new(|_, _| {
+            std::thread::sleep(Duration::from_secs(6));
+        }),
+    ));
+    cases.push((
+        "declares 50 MB",
+        "body is over 4194304 bytes",
+        Box::new(|c, _| {
+            let _ = c.write_all(b"HTTP/1.1 200 OK\r\nContent-Length: 50000000\r\n\r\n");
+            let _ = c.write_all(&[b'['; 1 << 20]);
+        }),
+    ));
+    cases.push((
+        "sends 50 MB to the close",
+        "body is over 4194304 bytes",
+        Box::new(|c, _| {
+            let _ = c.write_all(b"HTTP/1.1 200 OK\r\nConnection: close\r\n\r\n");
+            let chunk = vec![b' '; 1 << 20];
+            for _ in 0..50 {
+                if c.write_all(&chunk).is_err() {
+                    return;
+                }
+            }
+        }),
+    ));
+    cases.push((
+        "an endless header",
+        "head is over",
+        Box::new(|c, _| {
+            let _ = c.write_all(b"HTTP/1.1 200 OK\r\nX-Pad: ");
+            let chunk = vec![b'a'; 64 << 10];
+            for _ in 0..64 {
+                if c.write_all(&chunk).is_err() {
+                    return;
+                }
+            }
+        }),
+    ));
+    cases.push((
+        "an error page with escapes, 1 MB",
+        "HTTP 500",
+        Box::new(|c, _| {
+            let mut body = b"\x1b[2J\x1b[31mcamera gone\r\n".to_vec();
+            body.resize(1 << 20, b'x');
+            let _ = write!(
+                c,
+                "HTTP/1.1 500 Internal Server Error\r\nContent-Length: {}\r\n\r\n",
+                body.len()
+            );
+            let _ = c.write_all(&body);
+        }),
+    ));
+    let s2 = sources.replace("\"min\":1}", "\"min\":9223372036854775807}");
+    assert_ne!(
+        s2, sources,
+        "the slider's range is in the fixture: {sources}"
+    );
+    cases.push((
+        "a slider from i64::MAX",
+        "not a camera's range",
+        Box::new(move |c, _| {
+            let _ = write!(c, "{}{s2}", head(s2.len()));
+        }),
+    ));
+    for (what, needle, answer) in cases {
+        let (r, took) = open_against(answer);
+        let e = match r {
+            Ok(_) => panic!("{what}: accepted"),
+            Err(e) => e,
+        };
+        eprintln!("{what}: {:.2} s: {e}", took.as_secs_f64());
+        assert!(e.contains(needle), "{what}: {e}");
+        assert!(took < Duration::from_secs(4), "{what}: {took:?}");
+        assert!(
+            !e.contains('\x1b') && e.len() < 600,
+            "{what}: {} bytes: {e:?}",
+            e.len()
+        );
+    }
+}
+
+#[test]
+fn a_chunked_camera_manager_answer_is_read() {
+    use std::io::Write;
+    let sources = common::sources_json();
+    let (r, _) = open_against(move |c, _| {
+        let _ = c.write_all(b"HTTP/1.1 200 OK\r\nTransfer-Encoding: chunked\r\n\r\n");
+        for part in sources.as_bytes().chunks(100) {
+            let _ = write!(c, "{:x};ext=1\r\n", part.len());
+            let _ = c.write_all(part);
+            let _ = c.write_all(b"\r\n");
+        }
+        let _ = c.write_all(b"0\r\nX-Trailer: 1\r\n\r\n");
+    });
+    let c = r.unwrap_or_else(|e| panic!("{e}"));
+    let found = c.found().unwrap();
+    assert_eq!((found.auto_exposure, found.exposure_units), (Some(3), 20));
+}
+
+/// The largest resident set a process reached so far, kB (`VmHWM`).
+fn peak_rss_kb(pid: u32) -> Option<u64> {
+    let s = std::fs::read_to_string(format!("/proc/{pid}/status")).ok()?;
+    s.lines()
+        .find_map(|l| l.strip_prefix("VmHWM:"))
+        .and_then(|v| v.trim().trim_end_matches("kB").trim().parse().ok())
+}
+
+/// An RTSP server on loopback that reads the first request and answers with `answer`.
+fn hostile_rtsp(answer: impl Fn(&mut std::net::TcpStream) + Send + 'static) -> u16 {
+    use std::io::Read;
+    let l = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
+    let port = l.local_addr().unwrap().port();
+    std::thread::spawn(move || {
+        if let Ok((mut c, _)) = l.accept() {
+            let _ = c.set_read_timeout(Some(Duration::from_secs(5)));
+            let mut buf = [0u8; 4096];
+            let mut req = Vec::new();
+            while !req.windows(4).any(|w| w == b"\r\n\r\n") {
+                match c.read(&mut buf) {
+                    Ok(0) | Err(_) => return,
+                    Ok(n) => req.extend_from_slice(&buf[..n]),
+                }
+            }
+            answer(&mut c);
+        }
+    });
+    port
+}
+
+/// `markhold run --camera rtsp://127.0.0.1:PORT/cam` (no vehicle: it stops at the
+/// camera); its exit status, stderr, wall time and peak memory. `term_after`: send
+/// SIGTERM then.
+fn run_rtsp(port: u16, term_after: Option<Duration>) -> (Option<i32>, String, Duration, u64) {
+    use std::io::Read;
+    let t0 = Instant::now();
+    let mut child = markhold()
+        .args(["run", "--no-preflight", "--site"])
+        .arg(site_path())
+        .arg("--camera")
+        .arg(format!("rtsp://127.0.0.1:{port}/cam"))
+        .args(["--link", "udpout:127.0.0.1:9"])
+        .stdout(Stdio::null())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    let mut err_pipe = child.stderr.take().unwrap();
+    let reader = std::thread::spawn(move || {
+        let mut s = String::new();
+        let _ = err_pipe.read_to_string(&mut s);
+        s
+    });
+    let mut peak = 0;
+    let mut termed = false;
+    let status = loop {
+        peak = peak.max(peak_rss_kb(child.id()).unwrap_or(0));
+        if let Some(s) = child.try_wait().unwrap() {
+            break s;
+        }
+        if let (Some(t), false) = (term_after, termed) {
+            if t0.elapsed() >= t {
+                termed = true;
+                let _ = std::process::Command::new("kill")
+                    .args(["-TERM", &child.id().to_string()])
+                    .status();
+            }
+        }
+        if t0.elapsed() > Duration::from_secs(40) {
+            let _ = child.kill();
+            panic!("markhold still runs after 40 s");
+        }
+        std::thread::sleep(Duration::from_millis(20));
+    };
+    (status.code(), reader.join().unwrap(), t0.elapsed(), peak)
+}
+
+#[test]
+fn a_hostile_rtsp_server_is_cut_off_with_memory_bounded() {
+    use std::io::Write;
+    // A 2 GB answer, sent as fast as loopback takes it.
+    let port = hostile_rtsp(|c| {
+        let _ = c.write_all(b"RTSP/1.0 200 OK\r\nCSeq: 1\r\nContent-Length: 2000000000\r\n\r\n");
+        let chunk = vec![b'v'; 1 << 20];
+        for _ in 0..2000 {
+            if c.write_all(&chunk).is_err() {
+                return;
+            }
+        }
+    });
+    let (code, err, took, peak_kb) = run_rtsp(port, None);
+    eprintln!(
+        "2 GB answer: exit {code:?} after {:.1} s, peak RSS {} MB",
+        took.as_secs_f64(),
+        peak_kb / 1024
+    );
+    assert_eq!(code, Some(2), "{err}");
+    assert!(err.contains("declared a body of 2000000000 bytes"), "{err}");
+    assert!(peak_kb < 400 << 10, "peak RSS {peak_kb} kB");
+
+    // A header that never ends.
+    let port = hostile_rtsp(|c| {
+        let _ = c.write_all(b"RTSP/1.0 200 OK\r\nCSeq: 1\r\nX-Pad: ");
+        let chunk = vec![b'a'; 64 << 10];
+        for _ in 0..4000 {
+            if c.write_all(&chunk).is_err() {
+                return;
+            }
+        }
+    });
+    let (code, err, took, peak_kb) = run_rtsp(port, None);
+    eprintln!(
+        "endless header: exit {code:?} after {:.1} s, peak RSS {} MB",
+        took.as_secs_f64(),
+        peak_kb / 1024
+    );
+    assert_eq!(code, Some(2), "{err}");
+    assert!(err.contains("head over"), "{err}");
+    assert!(peak_kb < 400 << 10, "peak RSS {peak_kb} kB");
+}
+
+#[test]
+fn sigterm_ends_a_run_waiting_on_a_silent_rtsp_server() {
+    // Accepts, reads the request, answers nothing for a minute.
+    let port = hostile_rtsp(|_| std::thread::sleep(Duration::from_secs(60)));
+    let (code, err, took, _) = run_rtsp(port, Some(Duration::from_millis(1500)));
+    eprintln!(
+        "silent RTSP server, SIGTERM at 1.5 s: exit {code:?} after {:.1} s",
+        took.as_secs_f64()
+    );
+    // The start-up stops at the signal (the first-frame wait gives up): exit 2, within
+    // a second or two of it.
+    assert!(code == Some(2) || code == Some(130), "{code:?}: {err}");
+    assert!(took < Duration::from_secs(6), "{took:?}: {err}");
 }

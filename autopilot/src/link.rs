@@ -461,6 +461,10 @@ pub struct VehicleLink {
     tap_dropped: u64,
     /// PARAM_VALUE answers: value and the loop time they arrived.
     params: std::collections::BTreeMap<String, (f32, f64)>,
+    /// Liveness on this link's monotonic clock (`set_monotonic_liveness`), and when the
+    /// vehicle was last heard on it.
+    monotonic_liveness: bool,
+    heard_at: Option<std::time::Instant>,
 }
 
 /// A MAVLink 2 signing key file: 32 raw bytes, or 64 hex digits.
@@ -564,6 +568,8 @@ impl VehicleLink {
             tap: None,
             tap_dropped: 0,
             params: std::collections::BTreeMap::new(),
+            monotonic_liveness: false,
+            heard_at: None,
         })
     }
 
@@ -633,6 +639,15 @@ impl VehicleLink {
     /// The configuration in use.
     pub fn config(&self) -> &LinkConfig {
         &self.cfg
+    }
+
+    /// Judge liveness on this link's monotonic clock (how long ago the vehicle was last
+    /// heard) instead of the caller's loop time: for a live run whose loop time is a
+    /// camera's clock, which may jump (start-up, a stream restarted) or run apart from
+    /// the vehicle's. `last_heartbeat_s` is then kept as `now_s` minus that age, so
+    /// everything reading it sees the true age. Off by default (simulation time).
+    pub fn set_monotonic_liveness(&mut self, on: bool) {
+        self.monotonic_liveness = on;
     }
 
     /// Turns the automatic neutral pilot input (sent while nothing is commanded and the
@@ -769,6 +784,7 @@ impl VehicleLink {
     /// The vehicle was heard at `now_s` (liveness).
     fn heard(&mut self, was_ok: bool, now_s: f64) {
         self.state.last_heartbeat_s = Some(now_s);
+        self.heard_at = Some(std::time::Instant::now());
         self.state.heartbeat_ok = true;
         if !was_ok {
             // A returning (maybe rebooted) vehicle forgets its streams.
@@ -995,6 +1011,9 @@ impl VehicleLink {
         self.drain_socket(now_s);
         self.drain_queue(now_s);
         self.read_task_counters();
+        if let (true, Some(at)) = (self.monotonic_liveness, self.heard_at) {
+            self.state.last_heartbeat_s = Some(now_s - at.elapsed().as_secs_f64());
+        }
         self.check_link_loss(now_s);
         self.check_station(now_s);
         self.send_scheduled(now_s)?;

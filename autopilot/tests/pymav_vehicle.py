@@ -48,7 +48,9 @@ def main():
     ap.add_argument("--pilot", choices=["rc", "manual"], default="rc")
     ap.add_argument("--deadline", type=float, default=30.0)
     ap.add_argument("--scenario", choices=["interop", "pilot", "params", "thrust", "station",
-                                           "takeover", "noplan", "exit"], default="interop")
+                                           "takeover", "noplan", "exit", "hold"], default="interop")
+    ap.add_argument("--pilot-mode-after", type=float, default=-1.0,
+                    help="hold scenario: the pilot selects STABILIZE this long after 'markhold on'")
     ap.add_argument("--volts", type=float, default=16.0, help="thrust scenario: supply voltage")
     ap.add_argument("--param", action="append", default=[], help="NAME=VALUE override")
     ap.add_argument("--no-pilot-after-exit", action="store_true")
@@ -65,6 +67,8 @@ def main():
         return thrust_main(args)
     if args.scenario == "exit":
         return exit_main(args)
+    if args.scenario == "hold":
+        return hold_main(args)
     if args.scenario != "interop":
         return pilot_main(args)
 
@@ -1127,6 +1131,100 @@ def thrust_main(args):
                "samples": list(samples.values())}
     print(json.dumps(verdict), flush=True)
     sys.exit(0 if not failures else 1)
+
+
+def hold_main(args):
+    """`--scenario hold`: ArduSub as a live run sees it, for markhold's field-loop tests.
+    HEARTBEAT at 1 Hz (ArduSub's rate) and ATTITUDE at 10 Hz, arm and mode commands
+    acknowledged, the pilot-input failsafe (FS_PILOT_TIMEOUT 3 s) emulated. It records
+    markhold's STATUSTEXT and every pilot input from SYSID_MYGCS with its arrival time
+    ("cmd", "neutral", "release"). With --pilot-mode-after S the pilot (QGroundControl,
+    255/190) selects STABILIZE S seconds after markhold says it is on. Ends 1.5 s after
+    markhold falls silent (or at the deadline); the verdict is the record."""
+    sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    sock.bind(("127.0.0.1", 0))
+    sock.setblocking(False)
+    print("UDP %d" % sock.getsockname()[1], flush=True)
+    peer = [None]
+
+    def send(b):
+        if peer[0] is not None:
+            sock.sendto(b, peer[0])
+
+    veh = mav2.MAVLink(Out(send), srcSystem=1, srcComponent=1)
+    veh.robust_parsing = True
+    qgc = mav2.MAVLink(Out(send), srcSystem=PILOT[0], srcComponent=PILOT[1])
+    st = {"armed": False, "mode": MANUAL}
+    texts, inputs, failsafe, log = [], [], [], []
+    t0 = time.time()
+    last_hb = last_att = 0.0
+    last_heard = None
+    last_input = None
+    on_at = None
+    pilot_done = False
+    while time.time() - t0 < args.deadline:
+        now = time.time()
+        if now - last_hb >= 1.0 or st.pop("hb_now", False):
+            last_hb = now
+            base = mav2.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED | (mav2.MAV_MODE_FLAG_SAFETY_ARMED if st["armed"] else 0)
+            veh.heartbeat_send(mav2.MAV_TYPE_SUBMARINE, mav2.MAV_AUTOPILOT_ARDUPILOTMEGA, base, st["mode"], mav2.MAV_STATE_ACTIVE)
+        if now - last_att >= 0.1:
+            last_att = now
+            veh.attitude_send(int((now - t0) * 1000) & 0xFFFFFFFF, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
+        if st["armed"] and last_input is not None and now - last_input > 3.0:
+            failsafe.append(round(now - t0, 3))
+            veh.statustext_send(mav2.MAV_SEVERITY_CRITICAL, b"Lost manual control")
+            st["armed"] = False
+        if on_at is not None and not pilot_done and args.pilot_mode_after >= 0 and now - on_at >= args.pilot_mode_after:
+            pilot_done = True
+            log.append((round(now - t0, 3), "pilot mode %d" % STABILIZE))
+            qgc.command_long_send(1, 1, mav2.MAV_CMD_DO_SET_MODE, 0, 1, STABILIZE, 0, 0, 0, 0, 0)
+            st["mode"] = STABILIZE
+            st["hb_now"] = True
+        r, _, _ = select.select([sock], [], [], 0.005)
+        if not r:
+            if last_heard is not None and now - last_heard > 1.5:
+                break
+            continue
+        data, addr = sock.recvfrom(4096)
+        peer[0], last_heard = addr, now
+        for m in veh.parse_buffer(data) or []:
+            t = m.get_type()
+            if t == "BAD_DATA":
+                continue
+            if t == "STATUSTEXT":
+                # Whatever id markhold speaks as; pilot input counts only from SYSID_MYGCS.
+                text = m.text if isinstance(m.text, str) else m.text.decode()
+                texts.append((round(now - t0, 3), m.severity, text))
+                if text.startswith("markhold on") and on_at is None:
+                    on_at = now
+            elif m.get_srcSystem() != 255:
+                continue
+            elif t == "RC_CHANNELS_OVERRIDE":
+                ch = [m.chan1_raw, m.chan2_raw, m.chan3_raw, m.chan4_raw, m.chan5_raw, m.chan6_raw]
+                kind = "release" if ch == [0] * 6 else ("neutral" if ch == [1500] * 6 else "cmd")
+                inputs.append((round(now - t0, 4), kind))
+                if kind != "release":
+                    last_input = now
+            elif t == "MANUAL_CONTROL":
+                kind = "neutral" if (m.x, m.y, m.z, m.r) == (0, 0, 500, 0) else "cmd"
+                inputs.append((round(now - t0, 4), kind))
+                last_input = now
+            elif t == "COMMAND_LONG":
+                if m.command == mav2.MAV_CMD_COMPONENT_ARM_DISARM:
+                    # Seen in the next 1 Hz heartbeat (a mode change sends one at once).
+                    st["armed"] = m.param1 > 0.5
+                    log.append((round(now - t0, 3), "markhold arm %d" % st["armed"]))
+                elif m.command == mav2.MAV_CMD_DO_SET_MODE:
+                    st["mode"] = int(m.param2)
+                    st["hb_now"] = True
+                    log.append((round(now - t0, 3), "markhold mode %d" % st["mode"]))
+                veh.command_ack_send(m.command, mav2.MAV_RESULT_ACCEPTED)
+    verdict = {"ok": not failsafe, "texts": texts, "inputs": inputs, "failsafe": failsafe,
+               "log": log, "armed_at_end": st["armed"], "t0_epoch": t0,
+               "on_at": None if on_at is None else round(on_at - t0, 3)}
+    print(json.dumps(verdict), flush=True)
+    sys.exit(0)
 
 
 if __name__ == "__main__":

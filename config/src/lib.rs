@@ -352,6 +352,20 @@ pub fn read_regular(path: &std::path::Path, max_bytes: u64) -> std::io::Result<S
 /// The largest site or calibration file accepted, bytes.
 pub const MAX_CONFIG_FILE_BYTES: u64 = 4 << 20;
 
+/// Deserializes a fixed-size array of numbers, refusing a list of another length (serde's
+/// own array reading takes the first N and drops the rest silently):
+/// `#[serde(deserialize_with = "markhold_config::exact_array")]`.
+pub fn exact_array<'de, D, const N: usize>(d: D) -> Result<[f64; N], D::Error>
+where
+    D: serde::Deserializer<'de>,
+{
+    use serde::de::Error as _;
+    let v = <Vec<f64> as serde::Deserialize>::deserialize(d)?;
+    let n = v.len();
+    v.try_into()
+        .map_err(|_| D::Error::custom(format!("{n} numbers: expected exactly {N}")))
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -456,5 +470,33 @@ mod tests {
         assert_eq!((e.key.as_str(), e.expected.as_str()), ("s.b", "first"));
         let e = err(Checks::new("s").then(|| Err(ConfigError::new("x.y", 0, "sub"))));
         assert_eq!(e.key, "x.y");
+    }
+
+    #[test]
+    fn arrays_of_the_wrong_length_are_refused() {
+        #[derive(serde::Deserialize, Debug)]
+        struct T {
+            #[serde(deserialize_with = "crate::exact_array")]
+            v: [f64; 3],
+        }
+        let ok: Result<T, _> = serde_json_like("[1, 2, 3]");
+        assert_eq!(ok.map(|t| t.v).ok(), Some([1.0, 2.0, 3.0]));
+        for bad in ["[1, 2]", "[1, 2, 3, 4]"] {
+            let e = serde_json_like::<T>(bad).expect_err(bad);
+            assert!(e.contains("expected exactly 3"), "{bad}: {e}");
+        }
+    }
+
+    /// `{"v": <list>}` through serde's value deserializer (no format crate here).
+    fn serde_json_like<T: serde::de::DeserializeOwned>(list: &str) -> Result<T, String> {
+        use serde::de::value::{Error, MapDeserializer, SeqDeserializer};
+        let nums: Vec<f64> = list
+            .trim_matches(['[', ']'])
+            .split(',')
+            .map(|x| x.trim().parse().map_err(|e| format!("{e}")))
+            .collect::<Result<_, _>>()?;
+        let seq = SeqDeserializer::<_, Error>::new(nums.into_iter());
+        let map = MapDeserializer::<_, Error>::new(std::iter::once(("v", seq)));
+        T::deserialize(map).map_err(|e| e.to_string())
     }
 }

@@ -17,7 +17,7 @@
 //! as NAMED_VALUE_FLOAT.
 
 mod exit;
-pub use exit::{ExitPolicy, ExitReport, HandBack};
+pub use exit::{ExitPolicy, ExitReport, HandBack, CLOSE_TIMEOUT_S};
 
 use std::sync::mpsc::SyncSender;
 

@@ -129,7 +129,10 @@ pub enum StartupError {
 pub enum StopReason {
     Signal,
     EndOfStream,
+    /// `--seconds` of camera time, or of wall time since the loop started.
     MaxSeconds,
+    /// No camera frame for `[camera] stall_exit_s`.
+    CameraLost,
 }
 
 /// What a `run` did.
@@ -165,6 +168,14 @@ pub struct RunReport {
     pub exit: ExitReport,
     /// The preflight checklist, when it ran.
     pub preflight: Option<Checklist>,
+    /// Times a stream camera's exposure was taken (engaged) and put back as found.
+    pub camera_taken: u64,
+    pub camera_restored: u64,
+    /// The camera's exposure could not be put back at the end (the state file beside the
+    /// site stays, and the next start puts it back).
+    pub camera_restore_error: Option<String>,
+    /// Wall seconds of the loop, from the first frame to the end.
+    pub wall_seconds: f64,
 }
 
 /// Open the link and wait (wall clock, bounded) for the vehicle's heartbeat; `now_s`
@@ -188,6 +199,9 @@ fn open_link(
     let mut link = VehicleLink::connect(&cfg).map_err(|e| link_err(e.to_string()))?;
     // No pilot input before the pilot (or --engage) engages.
     link.set_pilot_keepalive(false);
+    // Loop time is the camera's clock, which jumps at start-up and when a stream is
+    // built again: whether the vehicle is heard is judged on the link's own clock.
+    link.set_monotonic_liveness(true);
     let timeout = Duration::from_secs_f64(opts.heartbeat_timeout_s.clamp(0.0, 600.0));
     let deadline = Instant::now() + timeout;
     loop {
@@ -385,6 +399,8 @@ struct Counts {
     events: Vec<FailsafeEvent>,
     /// The web page's board: it shows the engagement.
     board: Option<StatusBoard>,
+    camera_taken: u64,
+    camera_restored: u64,
 }
 
 /// What the pilot is told after a frame (or a tick without one): the supervisor's
@@ -420,7 +436,29 @@ fn tell_pilot(
     Ok(())
 }
 
-/// Step until a signal, the end of a recorded stream or `max_seconds`.
+/// The camera's exposure is markhold's only while engaged (`[camera] control_exposure`).
+fn sync_camera(pipeline: &Pipeline<EngagedLink>, cam: &mut LiveCamera, n: &mut Counts) {
+    let engaged = pipeline.link().engager().engaged();
+    if cam.set_engaged(engaged) {
+        if engaged {
+            n.camera_taken += 1;
+        } else {
+            n.camera_restored += 1;
+        }
+        tracing::info!(
+            engaged,
+            "camera exposure {}",
+            if engaged {
+                "taken"
+            } else {
+                "put back as found"
+            }
+        );
+    }
+}
+
+/// Step until a signal, the end of a recorded stream, `max_seconds` (camera or wall
+/// time) or `[camera] stall_exit_s` without frames.
 fn drive(
     pipeline: &mut Pipeline<EngagedLink>,
     cam: &mut LiveCamera,
@@ -429,10 +467,24 @@ fn drive(
     stop: &ShutdownFlag,
     n: &mut Counts,
 ) -> anyhow::Result<StopReason> {
+    let started = Instant::now();
+    let stall_exit = Duration::from_secs_f64(site.site.camera.stall_exit_s);
+    // Without frames the loop ticks no faster than the link's pilot-input rate, so the
+    // neutral it sends never exceeds it.
+    let idle_period_s = 1.0 / site.site.link.pilot_input_hz;
+    let mut last_idle_s: Option<f64> = None;
+    let mut said_stall = false;
     loop {
         if stop.is_set() {
             // This frame sends neutral input (the supervisor's shutdown directive).
             pipeline.set_shutdown(true);
+        }
+        sync_camera(pipeline, cam, n);
+        if opts
+            .max_seconds
+            .is_some_and(|m| started.elapsed().as_secs_f64() >= m)
+        {
+            return Ok(StopReason::MaxSeconds);
         }
         let rec = match pipeline.step(cam) {
             Ok(r) => r,
@@ -440,7 +492,27 @@ fn drive(
                 // No frame yet: loop time is the last frame's stamp plus the time waited
                 // (the only place the wall clock enters the loop: without frames there
                 // is no other clock), so the supervisor can call the camera stalled.
-                let now = n.last_stamp + cam.since_last_frame().as_secs_f64();
+                let waited = cam.since_last_frame();
+                if waited >= stall_exit {
+                    eprintln!(
+                        "markhold run: no camera frame for {:.1} s (camera.stall_exit_s): stopping",
+                        waited.as_secs_f64()
+                    );
+                    return Ok(StopReason::CameraLost);
+                }
+                if !said_stall && waited >= stall_exit / 4 {
+                    said_stall = true;
+                    eprintln!(
+                        "markhold run: no camera frame for {:.1} s: neutral input; the run ends after {:.0} s without frames",
+                        waited.as_secs_f64(),
+                        stall_exit.as_secs_f64()
+                    );
+                }
+                let now = n.last_stamp + waited.as_secs_f64();
+                if !stop.is_set() && last_idle_s.is_some_and(|t| now - t < idle_period_s) {
+                    continue;
+                }
+                last_idle_s = Some(now);
                 let d = pipeline.tick_without_frame(now)?;
                 n.vision_stalls += pipeline
                     .events()
@@ -460,6 +532,8 @@ fn drive(
             Err(e) if is_end_of_stream(&e) => return Ok(StopReason::EndOfStream),
             Err(e) => return Err(e.context(format!("frame {}", n.frames))),
         };
+        last_idle_s = None;
+        said_stall = false;
         n.frames += 1;
         n.detected += u64::from(rec.detected);
         n.last_stamp = rec.stamp_s;
@@ -476,6 +550,17 @@ fn drive(
             return Ok(StopReason::MaxSeconds);
         }
     }
+}
+
+/// The longest the end of a run takes: hand-back or disarm with its retries, putting
+/// the camera back, closing the recording.
+fn exit_budget(site: &LoadedSite) -> Duration {
+    let l = &site.site.link;
+    let disarm = l.command_timeout_s * f64::from(l.command_retries + 1) + 0.5;
+    let neutral_and_close = l.exit_confirm_timeout_s + super::engage::CLOSE_TIMEOUT_S;
+    Duration::from_secs_f64(l.hand_back_timeout_s + disarm + neutral_and_close)
+        + super::camera::CONTROL_FINISH
+        + Duration::from_secs(5)
 }
 
 /// Run the loop until a signal, the end of a recorded stream or `max_seconds`.
@@ -529,7 +614,15 @@ pub fn run_live(
         board,
         ..Counts::default()
     };
+    let loop_started = Instant::now();
     let stopped = drive(&mut pipeline, &mut cam, site, opts, stop, &mut n);
+    let wall_seconds = loop_started.elapsed().as_secs_f64();
+    // The exit below is bounded: after a signal, the watchdog waits for it.
+    stop.allow_exit_within(exit_budget(site));
+    // The camera goes back as found at once (on the control's thread, beside the exit).
+    if cam.set_engaged(false) {
+        n.camera_restored += 1;
+    }
     // Leave the vehicle as the site says, whatever ended the loop (the same exit as
     // `hil --vehicle`): neutral seen applied while markhold was commanding, then disarm
     // or hand back, then the link closed; then the recording (it keeps the exit's
@@ -543,6 +636,10 @@ pub fn run_live(
     let exit = pipeline.link_mut().exit(policy, n.last_stamp);
     let (disarm, hand_back) = (exit.disarm, exit.hand_back);
     let observers_done = pipeline.finish_observers();
+    let camera_restore_error = cam.finish_control(super::camera::CONTROL_FINISH).err();
+    if let Some(e) = &camera_restore_error {
+        eprintln!("markhold run: {e}");
+    }
     let stopped_by = stopped?;
     let link = pipeline.link();
     Ok(RunReport {
@@ -563,5 +660,9 @@ pub fn run_live(
         hand_back,
         exit,
         preflight: checklist,
+        camera_taken: n.camera_taken,
+        camera_restored: n.camera_restored,
+        camera_restore_error,
+        wall_seconds,
     })
 }

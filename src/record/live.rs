@@ -471,6 +471,43 @@ fn handshake(
     }
 }
 
+/// The largest upgrade request head read.
+const MAX_REQUEST_HEAD: usize = 8 << 10;
+
+/// Waits until the client's whole request head has arrived, at most `limit` in all (a
+/// client that drips it, a byte at a time, must not hold a client slot for longer): the
+/// bytes are only peeked, so the handshake then reads them without waiting.
+fn request_head_within(stream: &TcpStream, limit: Duration) -> Result<(), String> {
+    let until = std::time::Instant::now() + limit;
+    let mut buf = vec![0u8; MAX_REQUEST_HEAD];
+    loop {
+        let left = until.saturating_duration_since(std::time::Instant::now());
+        if left.is_zero() {
+            return Err(format!(
+                "request head not complete within {} s",
+                limit.as_secs()
+            ));
+        }
+        stream
+            .set_read_timeout(Some(left))
+            .map_err(|e| e.to_string())?;
+        let n = match stream.peek(&mut buf) {
+            Ok(0) => return Err("closed".into()),
+            Ok(n) => n,
+            Err(e) if matches!(e.kind(), ErrorKind::WouldBlock | ErrorKind::TimedOut) => continue,
+            Err(e) => return Err(e.to_string()),
+        };
+        if buf[..n].windows(4).any(|w| w == b"\r\n\r\n") {
+            return Ok(());
+        }
+        if n == buf.len() {
+            return Err(format!("request head over {MAX_REQUEST_HEAD} bytes"));
+        }
+        // More to come: wait a little rather than spin on the same peeked bytes.
+        std::thread::sleep(POLL);
+    }
+}
+
 fn serve_client(
     stream: TcpStream,
     peer: SocketAddr,
@@ -485,6 +522,10 @@ fn serve_client(
         .and_then(|()| stream.set_nodelay(true));
     if let Err(e) = setup {
         tracing::debug!("live view: {peer}: {e}");
+        return;
+    }
+    if let Err(why) = request_head_within(&stream, HANDSHAKE_TIMEOUT) {
+        tracing::debug!("live view: {peer}: no WebSocket upgrade: {why}");
         return;
     }
     let mut ws = match handshake(stream, origins) {
@@ -631,6 +672,66 @@ mod tests {
         );
         drop(ws);
         drop(server);
+    }
+
+    /// Eight clients that drip their upgrade request a byte at a time (every client slot)
+    /// hold the view for at most the handshake deadline: a real client gets in after it.
+    #[test]
+    fn clients_dripping_their_handshake_are_cut_at_the_deadline() {
+        use std::io::Write;
+        let ctx = Context::new();
+        let server = LiveServer::start(&ctx, 0, &LiveSection::default()).unwrap();
+        let port = server.port();
+        let stop = Arc::new(AtomicBool::new(false));
+        let drippers: Vec<_> = (0..MAX_CLIENTS)
+            .map(|_| {
+                let stop = stop.clone();
+                std::thread::spawn(move || {
+                    let mut s = TcpStream::connect(("127.0.0.1", port)).unwrap();
+                    let _ = s.write_all(b"GET / HTTP/1.1\r\nHost: x\r\n");
+                    for _ in 0..300 {
+                        if stop.load(Ordering::Relaxed) || s.write_all(b"X").is_err() {
+                            return;
+                        }
+                        std::thread::sleep(Duration::from_millis(100));
+                    }
+                })
+            })
+            .collect();
+        std::thread::sleep(Duration::from_millis(300));
+        let t0 = std::time::Instant::now();
+        let mut served = None;
+        while t0.elapsed() < Duration::from_secs(15) {
+            let stream = TcpStream::connect(("127.0.0.1", port)).unwrap();
+            stream
+                .set_read_timeout(Some(Duration::from_secs(5)))
+                .unwrap();
+            let mut req = format!("ws://127.0.0.1:{port}/")
+                .into_client_request()
+                .unwrap();
+            req.headers_mut().insert(
+                "sec-websocket-protocol",
+                HeaderValue::from_static("foxglove.sdk.v1"),
+            );
+            if tungstenite::client(req, stream).is_ok() {
+                served = Some(t0.elapsed());
+                break;
+            }
+            std::thread::sleep(Duration::from_millis(200));
+        }
+        stop.store(true, Ordering::Relaxed);
+        for d in drippers {
+            let _ = d.join();
+        }
+        let served = served.expect("a real client never got in while others dripped");
+        eprintln!(
+            "served after {:.1} s of dripping clients",
+            served.as_secs_f64()
+        );
+        assert!(
+            served <= HANDSHAKE_TIMEOUT + Duration::from_secs(2),
+            "{served:?}"
+        );
     }
 
     #[test]

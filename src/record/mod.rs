@@ -156,7 +156,7 @@ impl RunInfo {
         })
     }
 
-    fn to_metadata(&self) -> BTreeMap<String, String> {
+    pub fn to_metadata(&self) -> BTreeMap<String, String> {
         let mut m = BTreeMap::new();
         m.insert("format".into(), "markhold-recording-1".into());
         m.insert("command".into(), self.command.clone());
@@ -179,6 +179,17 @@ impl RunInfo {
 
     /// Read back what [`RunInfo::to_metadata`] wrote; `None` names the missing key.
     pub fn from_metadata(m: &BTreeMap<String, String>) -> Result<Self, String> {
+        // The site and calibration texts are parsed as site files are: of at most the
+        // size a site file may have.
+        let limit = markhold_config::MAX_CONFIG_FILE_BYTES;
+        for k in ["site_toml", "calibration_toml", "site_source"] {
+            if let Some(v) = m.get(k).filter(|v| v.len() as u64 > limit) {
+                return Err(format!(
+                    "{k} ({} bytes: a site file is at most {limit})",
+                    v.len()
+                ));
+            }
+        }
         let get = |k: &str| m.get(k).cloned().ok_or_else(|| k.to_string());
         let bits = get("initial_exposure_bits")?;
         let bits = u64::from_str_radix(&bits, 16)
@@ -785,12 +796,25 @@ impl Drop for Recorder {
     }
 }
 
+/// An f64 that may be NaN (JSON writes it as `null`): `null` reads back as NaN.
+fn f64_or_nan<'de, D: serde::Deserializer<'de>>(d: D) -> Result<f64, D::Error> {
+    Ok(Option::<f64>::deserialize(d)?.unwrap_or(f64::NAN))
+}
+
+fn effort_or_nan<'de, D: serde::Deserializer<'de>>(d: D) -> Result<[f64; 6], D::Error> {
+    Ok(<[Option<f64>; 6]>::deserialize(d)?.map(|v| v.unwrap_or(f64::NAN)))
+}
+
 /// `/markhold/frame`: what replay needs to feed a frame through the loop again.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct FrameMsg {
     pub seq: u64,
     pub stamp_s: f64,
+    /// NaN (`null`) when not known: a stream camera's frame in its own auto exposure or
+    /// while a command takes effect. Replay uses the exact bits in `bits`.
+    #[serde(deserialize_with = "f64_or_nan")]
     pub exposure_us: f64,
+    #[serde(deserialize_with = "f64_or_nan")]
     pub gain_db: f64,
     pub width: u32,
     pub height: u32,
@@ -819,7 +843,8 @@ pub struct CommandMsg {
     pub stamp_s: f64,
     /// `command`, `neutral`, `silent`, `shutdown` or `shutdown_disarm`.
     pub directive: String,
-    /// surge, sway, heave, roll, pitch, yaw (docs/frames.md).
+    /// surge, sway, heave, roll, pitch, yaw (docs/frames.md); `null` reads back as NaN.
+    #[serde(deserialize_with = "effort_or_nan")]
     pub effort: [f64; 6],
     pub effort_bits: [u64; 6],
 }

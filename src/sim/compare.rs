@@ -27,6 +27,11 @@ pub const CONVERGENCE_TOL: f64 = 0.05;
 /// Factor of the too-long and too-short starts of the convergence experiment.
 pub const CONVERGENCE_FACTOR: f64 = 10.0;
 
+/// The longest experiment run `compare` accepts, simulated seconds.
+pub const MAX_RUN_SECONDS: f64 = 3600.0;
+/// The most seeds a sweep runs (each is 5 runs per method and lighting).
+pub const MAX_SEEDS: usize = 1000;
+
 /// What to run.
 #[derive(Debug, Clone)]
 pub struct CompareOptions {
@@ -59,11 +64,17 @@ impl Default for CompareOptions {
 impl CompareOptions {
     pub fn validate(&self) -> anyhow::Result<()> {
         anyhow::ensure!(
-            self.seconds > 0.0 && self.seconds.is_finite(),
-            "--seconds {}: expected a positive number of simulated seconds",
+            self.seconds > 0.0 && self.seconds <= MAX_RUN_SECONDS,
+            "--seconds {}: expected a positive number of simulated seconds, at most \
+             {MAX_RUN_SECONDS} (an hour; each run keeps its series in memory)",
             self.seconds
         );
         anyhow::ensure!(!self.seeds.is_empty(), "--seeds 0: expected at least 1");
+        anyhow::ensure!(
+            self.seeds.len() <= MAX_SEEDS,
+            "--seeds {}: expected at most {MAX_SEEDS}",
+            self.seeds.len()
+        );
         anyhow::ensure!(!self.methods.is_empty(), "--methods: expected at least one");
         anyhow::ensure!(
             !self.lightings.is_empty(),
@@ -1092,7 +1103,7 @@ pub fn report_markdown(r: &CompareResults, plots: &[String]) -> String {
 fn report_header(o: &mut String, r: &CompareResults) {
     use std::fmt::Write as _;
     let seeds = r.seeds.len();
-    let _ = writeln!(o, "# markhold compare: {}\n", r.site);
+    let _ = writeln!(o, "# markhold compare: {}\n", inline_text(&r.site));
     let _ = writeln!(
         o,
         "Site file `{}`, {}x{} px at {} fps, {} simulated seconds per run, seeds {:?}. \
@@ -1101,8 +1112,33 @@ fn report_header(o: &mut String, r: &CompareResults) {
          (paper) are the methods as the paper ran them; AAEC (markhold) and GEC (Shim) are \
          markhold's AAEC and GEC with Shim's published constants. The paper's numbers \
          are from its own camera and water; ours are from the HIL world.\n",
-        r.site_file, r.width_px, r.height_px, r.fps, r.seconds, r.seeds, seeds
+        inline_text(&r.site_file),
+        r.width_px,
+        r.height_px,
+        r.fps,
+        r.seconds,
+        r.seeds,
+        seeds
     );
+}
+
+/// Text from a results file (a site's name, a path) for one line of Markdown: control
+/// characters (newlines, escapes) shown escaped, backticks as quotes, at most 200
+/// characters, so it cannot start a heading or leave its code span.
+pub fn inline_text(s: &str) -> String {
+    let mut out = String::with_capacity(s.len().min(200));
+    for (n, c) in s.chars().enumerate() {
+        if n == 200 {
+            out.push_str("...");
+            break;
+        }
+        match c {
+            '`' => out.push('\''),
+            c if c.is_control() => out.extend(c.escape_default()),
+            c => out.push(c),
+        }
+    }
+    out
 }
 
 /// Section 1: static precision, a table per lighting.
@@ -1454,6 +1490,11 @@ pub fn cli(args: CompareArgs) -> anyhow::Result<()> {
     let Some(out_dir) = args.out.as_deref() else {
         anyhow::bail!("--out DIR: required");
     };
+    anyhow::ensure!(
+        (1..=MAX_SEEDS as u64).contains(&args.seeds),
+        "--seeds {}: expected 1..{MAX_SEEDS}",
+        args.seeds
+    );
     let site = crate::params::load(&args.site)?;
     let mut opts = CompareOptions {
         seeds: (1..=args.seeds).collect(),

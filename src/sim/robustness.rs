@@ -317,6 +317,10 @@ pub struct RobustnessResults {
     pub excursion_used: f64,
 }
 
+/// The longest cell `robustness` runs, simulated seconds: each cell keeps its per-frame
+/// series (about 120 bytes a frame), so an hour at 30 fps is 13 MB per running cell.
+pub const MAX_CELL_SECONDS: f64 = 3600.0;
+
 /// Run `cells` on `jobs` threads.
 pub fn run_robustness(
     site: &LoadedSite,
@@ -327,8 +331,9 @@ pub fn run_robustness(
     progress: &Span,
 ) -> anyhow::Result<RobustnessResults> {
     anyhow::ensure!(
-        seconds > 0.0 && seconds.is_finite(),
-        "--seconds {seconds}: expected a positive number of simulated seconds"
+        seconds > 0.0 && seconds <= MAX_CELL_SECONDS,
+        "--seconds {seconds}: expected a positive number of simulated seconds, at most \
+         {MAX_CELL_SECONDS} (an hour; each cell keeps its series in memory)"
     );
     anyhow::ensure!(!cells.is_empty(), "no cells to run");
     let bounds = Bounds::default();

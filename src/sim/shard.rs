@@ -26,6 +26,10 @@ use crate::params::LoadedSite;
 
 /// Version of the shard file layout.
 pub const FORMAT: u32 = 1;
+/// The most slices a sweep is cut into.
+pub const MAX_SHARDS: u32 = 10_000;
+/// The largest shard file read (its series are the first seed's runs).
+pub const MAX_SHARD_BYTES: u64 = 256 << 20;
 
 /// `--shard I/N`: the I-th (1-based) of N slices.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
@@ -38,14 +42,15 @@ impl std::str::FromStr for Shard {
     type Err = String;
 
     fn from_str(s: &str) -> Result<Self, String> {
-        let bad = || format!("{s:?}: expected I/N with 1 <= I <= N (e.g. 2/8)");
+        let bad = || format!("{s:?}: expected I/N with 1 <= I <= N <= {MAX_SHARDS} (e.g. 2/8)");
         let (i, n) = s.split_once('/').ok_or_else(bad)?;
         let index: u32 = i.trim().parse().map_err(|_| bad())?;
         let count: u32 = n.trim().parse().map_err(|_| bad())?;
-        if index == 0 || index > count {
+        let shard = Self { index, count };
+        if !shard.valid() {
             return Err(bad());
         }
-        Ok(Self { index, count })
+        Ok(shard)
     }
 }
 
@@ -56,6 +61,11 @@ impl std::fmt::Display for Shard {
 }
 
 impl Shard {
+    /// 1 <= index <= count <= [`MAX_SHARDS`].
+    pub fn valid(&self) -> bool {
+        self.index >= 1 && self.index <= self.count && self.count <= MAX_SHARDS
+    }
+
     /// The cases of the sweep this shard runs.
     pub fn cases(&self, opts: &CompareOptions) -> Vec<CaseKey> {
         opts.cases()
@@ -218,8 +228,10 @@ fn read_shards(dirs: &[PathBuf]) -> anyhow::Result<Vec<(PathBuf, ShardFile)>> {
     paths.sort();
     let mut out = Vec::with_capacity(paths.len());
     for p in paths {
-        let text =
-            std::fs::read_to_string(&p).with_context(|| format!("reading {}", p.display()))?;
+        // Regular files of bounded size only: not a FIFO (it would wait for a writer), not
+        // a link to a device.
+        let text = markhold_config::read_regular(&p, MAX_SHARD_BYTES)
+            .with_context(|| format!("reading {}", p.display()))?;
         let f: ShardFile = serde_json::from_str(&text)
             .with_context(|| format!("{}: not a markhold compare shard file", p.display()))?;
         anyhow::ensure!(
@@ -228,6 +240,7 @@ fn read_shards(dirs: &[PathBuf]) -> anyhow::Result<Vec<(PathBuf, ShardFile)>> {
             p.display(),
             f.format
         );
+        check_values(&f).map_err(|e| anyhow::anyhow!("{}: {e}", p.display()))?;
         let expect = f.shard.file_name();
         anyhow::ensure!(
             p.file_name().and_then(|n| n.to_str()) == Some(expect.as_str()),
@@ -238,6 +251,142 @@ fn read_shards(dirs: &[PathBuf]) -> anyhow::Result<Vec<(PathBuf, ShardFile)>> {
         out.push((p, f));
     }
     Ok(out)
+}
+
+/// A shard's numbers within what a sweep can produce; the error names the field and
+/// the value.
+fn check_values(f: &ShardFile) -> Result<(), String> {
+    use super::compare::{MAX_RUN_SECONDS, MAX_SEEDS};
+    let bad = |field: &str, v: &dyn std::fmt::Display, want: &str| {
+        Err(format!("{field} = {v}: expected {want}"))
+    };
+    if !f.shard.valid() {
+        return bad(
+            "shard",
+            &f.shard,
+            &format!("I/N with 1 <= I <= N <= {MAX_SHARDS}"),
+        );
+    }
+    let h = &f.sweep.header;
+    if !(h.fps > 0.0 && h.fps <= 500.0) {
+        return bad("sweep.header.fps", &h.fps, "frames per second in (0, 500]");
+    }
+    if !(h.seconds > 0.0 && h.seconds <= MAX_RUN_SECONDS) {
+        return bad(
+            "sweep.header.seconds",
+            &h.seconds,
+            &format!("seconds in (0, {MAX_RUN_SECONDS}]"),
+        );
+    }
+    if h.seeds.is_empty() || h.seeds.len() > MAX_SEEDS {
+        return bad(
+            "sweep.header.seeds",
+            &h.seeds.len(),
+            &format!("1..{MAX_SEEDS} seeds"),
+        );
+    }
+    if !(16..=8192).contains(&h.width_px) || !(16..=8192).contains(&h.height_px) {
+        return bad(
+            "sweep.header.width_px x height_px",
+            &format!("{}x{}", h.width_px, h.height_px),
+            "16..8192 pixels each",
+        );
+    }
+    let max_frames = (h.seconds * h.fps).ceil() as u64 + 1;
+    f.cases.iter().try_for_each(|c| check_case(c, max_frames))
+}
+
+/// One case's numbers: rates in 0..1, sizes finite and not negative, frame counts
+/// within the run.
+fn check_case(c: &CaseResult, max_frames: u64) -> Result<(), String> {
+    let bad = |field: &str, v: &dyn std::fmt::Display, want: &str| {
+        Err(format!("{field} = {v}: expected {want}"))
+    };
+    {
+        let at = |field: &str| {
+            format!(
+                "case {} / {} / seed {}: {field}",
+                c.method, c.lighting, c.seed
+            )
+        };
+        let rate = |field: &str, v: f64| {
+            if (0.0..=1.0).contains(&v) {
+                Ok(())
+            } else {
+                bad(&at(field), &v, "a rate in 0..1")
+            }
+        };
+        let non_neg = |field: &str, v: f64| {
+            if v.is_finite() && v >= 0.0 {
+                Ok(())
+            } else {
+                bad(&at(field), &v, "a finite number >= 0")
+            }
+        };
+        let opt = |field: &str, v: Option<f64>| v.map_or(Ok(()), |v| non_neg(field, v));
+        let frames = |field: &str, v: u64| {
+            if v <= max_frames {
+                Ok(())
+            } else {
+                bad(
+                    &at(field),
+                    &v,
+                    &format!("at most {max_frames} frames (seconds x fps)"),
+                )
+            }
+        };
+        let (m, st, cv) = (&c.motion_tracking, &c.station_keeping, &c.convergence);
+        rate("motion_tracking.detection_rate", m.detection_rate)?;
+        rate("station_keeping.detection_rate", st.detection_rate)?;
+        frames("motion_tracking.frames", m.frames)?;
+        frames("station_keeping.frames", st.frames)?;
+        non_neg("motion_tracking.speed_mps", m.speed_mps)?;
+        non_neg("motion_tracking.span_m", m.span_m)?;
+        opt(
+            "motion_tracking.mean_distance_to_trajectory_m",
+            m.mean_distance_to_trajectory_m,
+        )?;
+        opt("motion_tracking.mean_error_m", m.mean_error_m)?;
+        non_neg("station_keeping.position_rms_m", st.position_rms_m)?;
+        non_neg(
+            "station_keeping.final_position_error_m",
+            st.final_position_error_m,
+        )?;
+        opt(
+            "station_keeping.position_cov_det_m6",
+            st.position_cov_det_m6,
+        )?;
+        opt(
+            "station_keeping.measured_position_cov_det_m6",
+            st.measured_position_cov_det_m6,
+        )?;
+        let sp = &c.static_precision;
+        rate("static_precision.detection_rate", sp.detection_rate)?;
+        frames("static_precision.frames", sp.frames)?;
+        opt(
+            "static_precision.position_cov_det_m6",
+            sp.position_cov_det_m6,
+        )?;
+        opt("static_precision.max_distance_m", sp.max_distance_m)?;
+        opt("static_precision.mean_bias_m", sp.mean_bias_m)?;
+        non_neg("static_precision.final_exposure_us", sp.final_exposure_us)?;
+        non_neg(
+            "convergence.reference_exposure_us",
+            cv.reference_exposure_us,
+        )?;
+        for (name, s) in [("from_long", &cv.from_long), ("from_short", &cv.from_short)] {
+            let f = |k: &str| format!("convergence.{name}.{k}");
+            rate(&f("detection_rate"), s.detection_rate)?;
+            frames(&f("frames"), s.frames)?;
+            frames(&f("first_within_frames"), s.first_within_frames)?;
+            non_neg(&f("seconds"), s.seconds)?;
+            non_neg(&f("first_within_seconds"), s.first_within_seconds)?;
+            non_neg(&f("initial_exposure_us"), s.initial_exposure_us)?;
+            non_neg(&f("final_exposure_us"), s.final_exposure_us)?;
+            non_neg(&f("final_over_reference"), s.final_over_reference)?;
+        }
+    }
+    Ok(())
 }
 
 /// Refuse shards of different sweeps or shard counts, duplicates and missing shards.

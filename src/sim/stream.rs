@@ -27,10 +27,11 @@ use markhold_exposure::{Camera, CameraError, ExposureLimits, Frame};
 use markhold_hil::HilRig;
 
 use crate::field::camera::control::{
-    ApiControl, ApiControlType, ApiVideoSource, BlueosRest, CID_EXPOSURE_ABSOLUTE,
+    quantize, ApiControl, ApiControlType, ApiVideoSource, BlueosRest, CID_EXPOSURE_ABSOLUTE,
     CID_EXPOSURE_AUTO, EXPOSURE_MANUAL, V4L2_EXPOSURE_UNIT_US,
 };
 use crate::field::camera::stream::{StreamCamera, StreamConfig, StreamSource};
+use crate::field::camera::worker::ControlHandle;
 
 /// The simulated camera's device path on the simulated camera manager.
 pub const SIM_DEVICE: &str = "/dev/video2";
@@ -64,8 +65,9 @@ pub struct SimControls {
     pub max_units: i64,
     /// Refuse every request (HTTP 500), as a camera manager that lost the camera does.
     pub refuse: bool,
-    /// Requests served.
+    /// Requests served, and of them POSTs (writes).
     pub requests: u64,
+    pub posts: u64,
 }
 
 impl SimControls {
@@ -77,7 +79,8 @@ impl SimControls {
             controls: vec![
                 ApiControl {
                     name: "Auto Exposure".into(),
-                    cpp_type: "int64".into(),
+                    // The camera manager names menus int32 (video_source_local_linux.rs).
+                    cpp_type: "int32".into(),
                     id: CID_EXPOSURE_AUTO,
                     state: serde_json::json!({"is_disabled": false, "is_inactive": false}),
                     configuration: ApiControlType::Menu {
@@ -134,6 +137,7 @@ impl SimCameraManager {
             max_units,
             refuse: false,
             requests: 0,
+            posts: 0,
         }));
         let stop = Arc::new(AtomicBool::new(false));
         let (c, s) = (controls.clone(), stop.clone());
@@ -231,6 +235,7 @@ fn serve(mut conn: TcpStream, controls: &Mutex<SimControls>) -> std::io::Result<
             Err(p) => p.into_inner(),
         };
         c.requests += 1;
+        c.posts += u64::from(method == "POST");
         if c.refuse {
             (500, "Internal error: camera not available".to_string())
         } else {
@@ -246,8 +251,19 @@ fn serve(mut conn: TcpStream, controls: &Mutex<SimControls>) -> std::io::Result<
                         c.auto_exposure = p.value;
                         (200, String::new())
                     }
+                    // As the camera manager's `validate_control`: an inactive control
+                    // (the exposure time in auto exposure) and a value outside the
+                    // slider's range are refused.
+                    Ok(p) if p.v4l_id == CID_EXPOSURE_ABSOLUTE && c.auto_exposure != EXPOSURE_MANUAL => (
+                        500,
+                        format!("Internal Server Error: Failed setting {} to {}: Control is inactive", p.v4l_id, p.value),
+                    ),
+                    Ok(p) if p.v4l_id == CID_EXPOSURE_ABSOLUTE && !(c.min_units..=c.max_units).contains(&p.value) => (
+                        500,
+                        format!("Internal Server Error: Failed setting {} to {}: Value out of the Control range {}..{}", p.v4l_id, p.value, c.min_units, c.max_units),
+                    ),
                     Ok(p) if p.v4l_id == CID_EXPOSURE_ABSOLUTE => {
-                        c.exposure_units = p.value.clamp(c.min_units, c.max_units);
+                        c.exposure_units = p.value;
                         (200, String::new())
                     }
                     Ok(p) => (
@@ -372,7 +388,17 @@ impl StreamHil {
         let model = rig.camera_model();
         let manager = SimCameraManager::start(limits, initial_us)
             .context("starting the simulated camera manager")?;
-        let control = BlueosRest::open(&manager.url(), SIM_DEVICE, initial_us)?;
+        let control = BlueosRest::open(&manager.url(), SIM_DEVICE, &limits)?;
+        // A simulation holds the camera from the start; every request is settled before
+        // the next frame is rendered (lock-step, repeatable).
+        let control = ControlHandle::spawn(Box::new(control), None, None)?;
+        control.set_take(true);
+        control.request(quantize(limits.clamp(initial_us), control.step_us()));
+        anyhow::ensure!(
+            control.settle(RECEIVE_TIMEOUT),
+            "the simulated camera manager did not take the initial exposure: {}",
+            control.last_error().unwrap_or_default()
+        );
         // The OS picks a free loopback port; the receiver binds it again at once.
         let port = UdpSocket::bind("127.0.0.1:0")?.local_addr()?.port();
         let source = StreamSource::Udp {
@@ -384,8 +410,10 @@ impl StreamHil {
             limits,
             initial_us,
             first_frame_timeout: RECEIVE_TIMEOUT,
+            restart: false,
+            stop: crate::field::signal::ShutdownFlag::new(),
         };
-        let receiver = StreamCamera::start(&source, &cfg, Box::new(control))?;
+        let receiver = StreamCamera::start(&source, &cfg, control)?;
         let sender = Sender::start(model.width, model.height, model.fps, port)?;
         let applied_units = manager.controls().exposure_units;
         Ok(Self {
@@ -432,7 +460,17 @@ impl Camera for StreamLoopCamera<'_> {
     fn grab(&mut self, frame: &mut Frame) -> Result<(), CameraError> {
         let h = &mut *self.hil;
         // The camera manager's control, applied to the simulated camera (which adds its
-        // own actuation delay).
+        // own actuation delay), once the last request reached it.
+        if !h.receiver.control().settle(RECEIVE_TIMEOUT) {
+            return Err(CameraError::Read {
+                device: "hil h264-rtp".into(),
+                seq: h.rendered.meta.seq,
+                reason: format!(
+                    "the simulated camera manager did not take an exposure within {} s",
+                    RECEIVE_TIMEOUT.as_secs()
+                ),
+            });
+        }
         let c = h.manager.controls();
         if c.auto_exposure == EXPOSURE_MANUAL && c.exposure_units != h.applied_units {
             h.applied_units = c.exposure_units;

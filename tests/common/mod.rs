@@ -4,7 +4,8 @@
 #![allow(dead_code)]
 #![allow(clippy::unwrap_used)] // Tests fail loudly on a broken setup, by design.
 
-use std::net::{SocketAddr, TcpStream};
+use std::io::{Read, Write};
+use std::net::{SocketAddr, TcpListener, TcpStream};
 use std::path::{Path, PathBuf};
 use std::process::Command;
 use std::sync::atomic::{AtomicBool, Ordering};
@@ -166,4 +167,129 @@ pub fn ws_read_frame(s: &mut TcpStream) -> std::io::Result<(u8, Vec<u8>)> {
     let mut data = vec![0u8; len as usize];
     s.read_exact(&mut data)?;
     Ok((h[0] & 0x0f, data))
+}
+
+/// An HTTP server on loopback that answers every request by `answer`, which writes to
+/// the connection (and may drip, hang or flood). Stops when dropped.
+pub struct Hostile {
+    pub url: String,
+    stop: Arc<AtomicBool>,
+}
+
+impl Hostile {
+    pub fn start(answer: impl Fn(&mut TcpStream, &str) + Send + Sync + 'static) -> Self {
+        let l = TcpListener::bind("127.0.0.1:0").unwrap();
+        l.set_nonblocking(true).unwrap();
+        let url = format!("http://{}", l.local_addr().unwrap());
+        let stop = Arc::new(AtomicBool::new(false));
+        let s = stop.clone();
+        let answer = Arc::new(answer);
+        std::thread::spawn(move || {
+            while !s.load(Ordering::Relaxed) {
+                match l.accept() {
+                    Ok((mut c, _)) => {
+                        let a = answer.clone();
+                        let s2 = s.clone();
+                        std::thread::spawn(move || {
+                            c.set_nonblocking(false).unwrap();
+                            c.set_read_timeout(Some(Duration::from_secs(2))).unwrap();
+                            let mut buf = [0u8; 4096];
+                            let mut req = Vec::new();
+                            while !req.windows(4).any(|w| w == b"\r\n\r\n") {
+                                match c.read(&mut buf) {
+                                    Ok(0) | Err(_) => return,
+                                    Ok(n) => req.extend_from_slice(&buf[..n]),
+                                }
+                            }
+                            let line = String::from_utf8_lossy(&req)
+                                .lines()
+                                .next()
+                                .unwrap_or("")
+                                .to_string();
+                            if !s2.load(Ordering::Relaxed) {
+                                a(&mut c, &line);
+                            }
+                        });
+                    }
+                    Err(_) => std::thread::sleep(Duration::from_millis(5)),
+                }
+            }
+        });
+        Self { url, stop }
+    }
+}
+
+impl Drop for Hostile {
+    fn drop(&mut self) {
+        self.stop.store(true, Ordering::Relaxed);
+    }
+}
+
+/// `GET /v4l` as the simulated camera manager answers it (auto exposure, 2 ms).
+pub fn sources_json() -> String {
+    let limits = markhold_exposure::ExposureLimits {
+        min_us: 20.0,
+        max_us: 30000.0,
+        fps: 30.0,
+    };
+    let mgr = markhold::sim::stream::SimCameraManager::start(limits, 2000.0).unwrap();
+    let url = mgr.url();
+    let addr = url.strip_prefix("http://").unwrap();
+    let mut s = TcpStream::connect(addr).unwrap();
+    write!(
+        s,
+        "GET /v4l HTTP/1.1\r\nHost: x\r\nConnection: close\r\n\r\n"
+    )
+    .unwrap();
+    let mut out = String::new();
+    s.read_to_string(&mut out).unwrap();
+    out.split_once("\r\n\r\n").unwrap().1.to_string()
+}
+
+/// autopilot/tests/pymav_vehicle.py as a vehicle; killed on drop if still running.
+pub struct PymavVehicle(pub std::process::Child);
+
+impl Drop for PymavVehicle {
+    fn drop(&mut self) {
+        let _ = self.0.kill();
+        let _ = self.0.wait();
+    }
+}
+
+/// Start the pymavlink vehicle with `args`; its UDP port.
+pub fn pymav_vehicle(args: &[&str]) -> (PymavVehicle, u16) {
+    use std::io::BufRead;
+    markhold_testkit::require_pymavlink();
+    let mut child = Command::new("python3")
+        .arg(repo("autopilot/tests/pymav_vehicle.py"))
+        .args(args)
+        .stdout(std::process::Stdio::piped())
+        .stderr(std::process::Stdio::inherit())
+        .spawn()
+        .expect("spawn python3");
+    let mut line = String::new();
+    std::io::BufReader::new(child.stdout.as_mut().unwrap())
+        .read_line(&mut line)
+        .unwrap();
+    let port = line
+        .trim()
+        .strip_prefix("UDP ")
+        .unwrap_or_else(|| panic!("vehicle said {line:?}"))
+        .parse()
+        .unwrap();
+    (PymavVehicle(child), port)
+}
+
+/// The vehicle's verdict, its last stdout line (it ends 1.5 s after markhold falls
+/// silent).
+pub fn pymav_verdict(v: &mut PymavVehicle) -> serde_json::Value {
+    let mut out = String::new();
+    v.0.stdout
+        .as_mut()
+        .unwrap()
+        .read_to_string(&mut out)
+        .unwrap();
+    let _ = v.0.wait();
+    let last = out.lines().last().unwrap_or_default();
+    serde_json::from_str(last).unwrap_or_else(|e| panic!("verdict {out:?}: {e}"))
 }

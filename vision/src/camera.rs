@@ -10,6 +10,86 @@ use std::path::{Path, PathBuf};
 
 /// Name of the sidecar in a recording folder.
 pub const SIDECAR: &str = "frames.csv";
+/// The largest image file of a recording folder read.
+pub const MAX_IMAGE_FILE_BYTES: u64 = 64 << 20;
+/// The largest image side decoded, pixels.
+pub const MAX_IMAGE_SIDE: u32 = 8192;
+/// The largest sidecar read.
+const MAX_SIDECAR_BYTES: u64 = 64 << 20;
+
+/// Width and height of a PNG (its IHDR) or a JPEG (its first start-of-frame marker),
+/// read from the header without decoding: what a decoder would allocate. None for other
+/// data or a header cut short.
+pub fn encoded_image_size(bytes: &[u8]) -> Option<(u32, u32)> {
+    const PNG: &[u8] = b"\x89PNG\r\n\x1a\n";
+    if bytes.starts_with(PNG) {
+        // Signature, then the IHDR chunk: length (4), "IHDR", width (4), height (4).
+        if bytes.get(12..16)? != b"IHDR" {
+            return None;
+        }
+        let be = |r: std::ops::Range<usize>| {
+            bytes
+                .get(r)
+                .map(|b| u32::from_be_bytes([b[0], b[1], b[2], b[3]]))
+        };
+        return Some((be(16..20)?, be(20..24)?));
+    }
+    if !bytes.starts_with(&[0xff, 0xd8]) {
+        return None;
+    }
+    let mut i = 2;
+    while i + 4 <= bytes.len() {
+        if bytes[i] != 0xff {
+            return None;
+        }
+        let marker = bytes[i + 1];
+        if marker == 0xff {
+            i += 1;
+            continue;
+        }
+        // Markers without a length: TEM, RSTn, SOI, EOI.
+        if marker == 0x01 || (0xd0..=0xd9).contains(&marker) {
+            i += 2;
+            continue;
+        }
+        let len = usize::from(u16::from_be_bytes([bytes[i + 2], bytes[i + 3]]));
+        // SOF0..SOF15, except DHT (c4), JPG (c8) and DAC (cc): precision (1), height
+        // (2), width (2).
+        if (0xc0..=0xcf).contains(&marker) && ![0xc4, 0xc8, 0xcc].contains(&marker) {
+            let b = bytes.get(i + 5..i + 9)?;
+            let h = u32::from(u16::from_be_bytes([b[0], b[1]]));
+            let w = u32::from(u16::from_be_bytes([b[2], b[3]]));
+            return Some((w, h));
+        }
+        if len < 2 {
+            return None;
+        }
+        i += 2 + len;
+    }
+    None
+}
+
+/// An encoded image's size checked before decoding: within [`MAX_IMAGE_SIDE`] and, when
+/// `expected` is given, equal to it. The reason when not.
+pub fn check_encoded_size(
+    bytes: &[u8],
+    expected: Option<(u32, u32)>,
+) -> Result<(u32, u32), String> {
+    let (w, h) = encoded_image_size(bytes).ok_or("not a PNG or JPEG image (no readable header)")?;
+    if w == 0 || h == 0 || w > MAX_IMAGE_SIDE || h > MAX_IMAGE_SIDE {
+        return Err(format!(
+            "a {w}x{h} image: sides 1..{MAX_IMAGE_SIDE} pixels expected (not decoded)"
+        ));
+    }
+    if let Some((ew, eh)) = expected {
+        if (w, h) != (ew, eh) {
+            return Err(format!(
+                "a {w}x{h} image where {ew}x{eh} is expected (not decoded)"
+            ));
+        }
+    }
+    Ok((w, h))
+}
 const HEADER: &str = "file,seq,stamp_s,exposure_us,gain_db";
 
 /// Copy an 8-bit grey or BGR image into `frame` (grey).
@@ -83,9 +163,14 @@ impl RecordedCamera {
     /// Open a recording folder; the sidecar is read and every listed file checked.
     pub fn open(dir: &Path) -> Result<Self, VisionError> {
         let sidecar = dir.join(SIDECAR);
-        let text = std::fs::read_to_string(&sidecar).map_err(|source| VisionError::Io {
+        let text = read_bounded(&sidecar, MAX_SIDECAR_BYTES).map_err(|source| VisionError::Io {
             path: sidecar.clone(),
             source,
+        })?;
+        let text = String::from_utf8(text).map_err(|_| VisionError::Recording {
+            path: sidecar.clone(),
+            line: 1,
+            reason: "not UTF-8 text".into(),
         })?;
         let bad = |line: usize, reason: String| VisionError::Recording {
             path: sidecar.clone(),
@@ -117,13 +202,20 @@ impl RecordedCamera {
                     .filter(|v| v.is_finite())
                     .ok_or_else(|| bad(no, format!("{name} '{}' is not a finite number", f[k])))
             };
+            // A stream camera's frame whose exposure is not known (its camera's own auto
+            // exposure, or a command in flight) is recorded as NaN and read back so.
+            let exposure = if f[3].eq_ignore_ascii_case("nan") {
+                f64::NAN
+            } else {
+                num(3, "exposure_us")?
+            };
             let seq = f[1]
                 .parse::<u64>()
                 .map_err(|_| bad(no, format!("seq '{}' is not an integer", f[1])))?;
             let meta = FrameMeta {
                 seq,
                 stamp_s: num(2, "stamp_s")?,
-                exposure_us: num(3, "exposure_us")?,
+                exposure_us: exposure,
                 gain_db: num(4, "gain_db")?,
             };
             if meta.exposure_us <= 0.0 {
@@ -159,14 +251,21 @@ impl RecordedCamera {
         if entries.is_empty() {
             return Err(bad(1, "no frames listed".into()));
         }
-        let min_us = entries
-            .iter()
-            .map(|e| e.meta.exposure_us)
-            .fold(f64::MAX, f64::min);
-        let max_us = entries
-            .iter()
-            .map(|e| e.meta.exposure_us)
-            .fold(0.0, f64::max);
+        // Over the known exposures (a recording with none known: 1 us, as a placeholder
+        // range the loop cannot act on anyway).
+        let known = || {
+            entries
+                .iter()
+                .map(|e| e.meta.exposure_us)
+                .filter(|v| v.is_finite())
+        };
+        let min_us = known().fold(f64::MAX, f64::min);
+        let max_us = known().fold(0.0, f64::max);
+        let (min_us, max_us) = if max_us > 0.0 {
+            (min_us, max_us)
+        } else {
+            (1.0, 1.0)
+        };
         let fps = if entries.len() > 1 {
             let span = entries[entries.len() - 1].meta.stamp_s - entries[0].meta.stamp_s;
             (entries.len() - 1) as f64 / span
@@ -232,7 +331,17 @@ impl Camera for RecordedCamera {
         };
         self.bytes.clear();
         std::fs::File::open(&path)
-            .and_then(|mut f| f.read_to_end(&mut self.bytes))
+            .and_then(|f| {
+                let len = f.metadata()?.len();
+                if len > MAX_IMAGE_FILE_BYTES {
+                    return Err(std::io::Error::other(format!(
+                        "{len} bytes: more than {MAX_IMAGE_FILE_BYTES}"
+                    )));
+                }
+                f.take(MAX_IMAGE_FILE_BYTES).read_to_end(&mut self.bytes)
+            })
+            .map_err(|e| read_err(format!("{}: {e}", path.display())))?;
+        check_encoded_size(&self.bytes, None)
             .map_err(|e| read_err(format!("{}: {e}", path.display())))?;
         let buf = core::Mat::from_slice(&self.bytes).map_err(|e| read_err(e.to_string()))?;
         imgcodecs::imdecode_to(&buf, imgcodecs::IMREAD_GRAYSCALE, &mut self.img)
@@ -249,6 +358,25 @@ impl Camera for RecordedCamera {
         self.next += 1;
         Ok(())
     }
+}
+
+/// The first `limit` bytes of a regular file, or an error if it is not one or is
+/// longer.
+fn read_bounded(path: &Path, limit: u64) -> std::io::Result<Vec<u8>> {
+    let f = std::fs::File::open(path)?;
+    let meta = f.metadata()?;
+    if !meta.is_file() {
+        return Err(std::io::Error::other("not a regular file"));
+    }
+    if meta.len() > limit {
+        return Err(std::io::Error::other(format!(
+            "{} bytes: more than {limit}",
+            meta.len()
+        )));
+    }
+    let mut out = Vec::with_capacity(meta.len() as usize);
+    f.take(limit).read_to_end(&mut out)?;
+    Ok(out)
 }
 
 /// Writes frames as a recording `RecordedCamera` can replay.
@@ -317,7 +445,8 @@ impl FrameRecorder {
     }
 }
 
-/// A V4L2 camera through OpenCV's videoio, with the driver's auto exposure off.
+/// A V4L2 camera through OpenCV's videoio, with the driver's auto exposure off while it
+/// is open (put back as found when closed).
 ///
 /// Exposure goes through `CAP_PROP_EXPOSURE`, which the V4L2 backend maps to
 /// `V4L2_CID_EXPOSURE_ABSOLUTE` in units of 100 us (`exposure_unit_us`). Each frame
@@ -331,6 +460,21 @@ pub struct V4l2Camera {
     seq: u64,
     img: core::Mat,
     grey: core::Mat,
+    /// Auto-exposure mode and exposure as found at open (as the backend reads them).
+    found: (Option<f64>, Option<f64>),
+}
+
+impl Drop for V4l2Camera {
+    /// The camera is left as found: the exposure value first (a manual value is refused
+    /// while in auto exposure), then the mode.
+    fn drop(&mut self) {
+        if let (Some(mode), value) = self.found {
+            if let Some(v) = value {
+                let _ = self.cap.set(videoio::CAP_PROP_EXPOSURE, v);
+            }
+            let _ = self.cap.set(videoio::CAP_PROP_AUTO_EXPOSURE, mode);
+        }
+    }
 }
 
 impl V4l2Camera {
@@ -386,6 +530,11 @@ impl V4l2Camera {
                 format!("asked {width}x{height}, the driver delivers {got_w}x{got_h}"),
             ));
         }
+        // The mode and value found, put back when the camera is closed.
+        let found = (
+            cap.get(videoio::CAP_PROP_AUTO_EXPOSURE).ok(),
+            cap.get(videoio::CAP_PROP_EXPOSURE).ok(),
+        );
         // V4L2_EXPOSURE_MANUAL is 1; backends that normalise controls use 0.25.
         if !set(&mut cap, videoio::CAP_PROP_AUTO_EXPOSURE, 1.0)
             && !set(&mut cap, videoio::CAP_PROP_AUTO_EXPOSURE, 0.25)
@@ -408,6 +557,7 @@ impl V4l2Camera {
             seq: 0,
             img: core::Mat::default(),
             grey: core::Mat::default(),
+            found,
         })
     }
 
@@ -564,6 +714,37 @@ mod tests {
         cam.rewind();
         cam.grab(&mut g).unwrap();
         assert_eq!(g.meta.seq, 10);
+        std::fs::remove_dir_all(&dir).ok();
+    }
+
+    #[test]
+    fn image_sizes_are_read_from_headers_and_unknown_exposures_kept() {
+        let dir = tmp("sizes");
+        let mut rec = FrameRecorder::create(&dir).unwrap();
+        let mut f = Frame::new(37, 21);
+        f.meta.exposure_us = f64::NAN;
+        rec.write(&f).unwrap();
+        drop(rec);
+        let png = std::fs::read(dir.join("frame_000000.png")).unwrap();
+        assert_eq!(encoded_image_size(&png), Some((37, 21)));
+        assert_eq!(check_encoded_size(&png, Some((37, 21))), Ok((37, 21)));
+        let e = check_encoded_size(&png, Some((640, 480))).unwrap_err();
+        assert!(e.contains("37x21") && e.contains("not decoded"), "{e}");
+        let img = core::Mat::new_rows_cols_with_default(21, 37, core::CV_8UC1, 0.into()).unwrap();
+        let mut jpg = core::Vector::<u8>::new();
+        imgcodecs::imencode(".jpg", &img, &mut jpg, &core::Vector::new()).unwrap();
+        assert_eq!(encoded_image_size(jpg.as_slice()), Some((37, 21)));
+        // A header that claims 32768 x 32768: refused without decoding.
+        let mut huge = png.clone();
+        huge[16..20].copy_from_slice(&32768u32.to_be_bytes());
+        huge[20..24].copy_from_slice(&32768u32.to_be_bytes());
+        assert!(check_encoded_size(&huge, None).is_err());
+        assert_eq!(encoded_image_size(b"not an image"), None);
+        // The frame's unknown exposure is read back as such.
+        let mut cam = RecordedCamera::open(&dir).unwrap();
+        let mut g = Frame::default();
+        cam.grab(&mut g).unwrap();
+        assert!(g.meta.exposure_us.is_nan());
         std::fs::remove_dir_all(&dir).ok();
     }
 

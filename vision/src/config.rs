@@ -221,12 +221,13 @@ pub struct MapMarker {
     pub size_m: f64,
     /// The marker's centre in the site frame (x right, y up, z out of the origin
     /// marker's face), metres.
+    #[serde(deserialize_with = "markhold_config::exact_array")]
     pub position_m: [f64; 3],
     /// The marker's orientation in the site frame, degrees: turns about the site's x,
     /// then y, then z axis (fixed axes). `[0, 0, 0]`: printed upright and facing the same
     /// way as the origin marker; `[0, -90, 0]`: on a wall to the right of it, facing
     /// left (toward the origin marker's axis).
-    #[serde(default)]
+    #[serde(default, deserialize_with = "markhold_config::exact_array")]
     pub rpy_deg: [f64; 3],
 }
 

@@ -25,7 +25,10 @@ mod tracker;
 mod yaml;
 
 pub use calib::CameraCalibration;
-pub use camera::{FrameRecorder, RecordedCamera, V4l2Camera, SIDECAR};
+pub use camera::{
+    check_encoded_size, encoded_image_size, FrameRecorder, RecordedCamera, V4l2Camera,
+    MAX_IMAGE_SIDE, SIDECAR,
+};
 pub use config::{
     DetectorConfig, MapMarker, MarkerConfig, MarkerFamily, PlacedMarker, MAX_MAP_MARKERS,
 };

@@ -6,20 +6,31 @@
 //!   control being `{name, cpp_type, id, state, configuration}` with `configuration`
 //!   one of `{"Slider": {default, value, step, max, min}}`, `{"Menu": {default, value,
 //!   options}}` or `{"Bool": {default, value}}`. `POST /v4l` with
-//!   `{"device": "/dev/videoN", "v4l_id": <id>, "value": <i64>}` sets one control.
-//!   The ids are V4L2 control ids: `auto_exposure` (V4L2_CID_EXPOSURE_AUTO, 0x009a0901;
-//!   1 = manual, 3 = aperture priority) and `exposure_time_absolute`
-//!   (V4L2_CID_EXPOSURE_ABSOLUTE, 0x009a0902, units of 100 us).
+//!   `{"device": "/dev/videoN", "v4l_id": <id>, "value": <i64>}` sets one control; the
+//!   server refuses a value outside a slider's range, a menu value not among its
+//!   options, and any write to a control flagged inactive (the exposure time while the
+//!   camera is in auto exposure). The ids are V4L2 control ids: `auto_exposure`
+//!   (V4L2_CID_EXPOSURE_AUTO, 0x009a0901; 1 = manual, 3 = aperture priority) and
+//!   `exposure_time_absolute` (V4L2_CID_EXPOSURE_ABSOLUTE, 0x009a0902, units of 100 us).
 //! - `v4l2`: the same two controls through a control-only handle on `/dev/videoN`
 //!   (VIDIOC_QUERYCTRL / VIDIOC_S_CTRL / VIDIOC_G_CTRL), while the camera manager keeps
 //!   streaming from it (V4L2 allows several opens; only the streaming one owns buffers).
 //! - `none`: the exposure is left to the camera.
+//!
+//! Opening a control only reads: the mode and value found are kept, and nothing is
+//! written until the loop takes the camera ([`ExposureControl::take`], when the pilot
+//! engages markhold). [`ExposureControl::restore`] puts back what was found, the value
+//! first (a manual value is refused while the camera is in auto exposure), then the
+//! mode. These calls block on the network: the loop reaches them through
+//! [`super::worker::ControlHandle`], on a thread of their own.
 
-use std::io::{Read, Write};
-use std::net::{SocketAddr, TcpStream, ToSocketAddrs};
-use std::time::{Duration, Instant};
+use std::net::{SocketAddr, ToSocketAddrs};
+use std::time::Duration;
 
+use markhold_exposure::ExposureLimits;
 use serde::{Deserialize, Serialize};
+
+use super::http::{self, sanitize, Limits};
 
 /// V4L2_CID_EXPOSURE_AUTO.
 pub const CID_EXPOSURE_AUTO: u64 = 0x009a_0901;
@@ -56,13 +67,45 @@ pub enum ControlError {
     V4l2 { device: String, reason: String },
 }
 
-/// Sets the camera's exposure, in its own units.
+/// The camera's exposure as markhold found it (and puts back).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+pub struct Found {
+    /// `auto_exposure` (V4L2 menu value), if the camera has the control.
+    pub auto_exposure: Option<i64>,
+    /// `exposure_time_absolute`, 100 us units.
+    pub exposure_units: i64,
+}
+
+impl Found {
+    /// The exposure the camera runs at as found, microseconds: known only in manual
+    /// mode (NaN while the camera's own auto exposure runs).
+    pub fn known_us(&self) -> f64 {
+        match self.auto_exposure {
+            Some(EXPOSURE_MANUAL) | None => self.exposure_units as f64 * V4L2_EXPOSURE_UNIT_US,
+            Some(_) => f64::NAN,
+        }
+    }
+}
+
+/// Sets the camera's exposure, in its own units. Calls block (network, ioctl): the
+/// loop never calls them itself (see [`super::worker`]).
 pub trait ExposureControl: Send {
-    /// Sets the exposure; returns the value set (quantized to the camera's step).
+    /// False when commands change nothing (`none`): frames then carry no exposure.
+    fn controls(&self) -> bool {
+        true
+    }
+    /// The mode and value found when the control was opened.
+    fn found(&self) -> Option<Found>;
+    /// Manual exposure (the first write; after it, `set_exposure_us`).
+    fn take(&mut self) -> Result<(), ControlError>;
+    /// Sets the exposure; returns the value set (quantized to the camera's step and
+    /// clamped to its range).
     fn set_exposure_us(&mut self, exposure_us: f64) -> Result<f64, ControlError>;
+    /// Puts back `found`: the value first, then the mode.
+    fn restore_to(&mut self, found: &Found) -> Result<(), ControlError>;
     /// The camera's exposure step, microseconds (0: continuous).
     fn step_us(&self) -> f64;
-    /// Where the commands go, for messages.
+    /// Where the commands go, for messages and the state file.
     fn describe(&self) -> String;
 }
 
@@ -74,12 +117,24 @@ pub fn quantize(us: f64, step_us: f64) -> f64 {
     ((us / step_us).round() * step_us).max(step_us)
 }
 
-/// Exposure left to the camera: commands are ignored (and not attributed).
+/// Exposure left to the camera: commands change nothing.
 pub struct NoControl;
 
 impl ExposureControl for NoControl {
+    fn controls(&self) -> bool {
+        false
+    }
+    fn found(&self) -> Option<Found> {
+        None
+    }
+    fn take(&mut self) -> Result<(), ControlError> {
+        Ok(())
+    }
     fn set_exposure_us(&mut self, exposure_us: f64) -> Result<f64, ControlError> {
         Ok(exposure_us)
+    }
+    fn restore_to(&mut self, _found: &Found) -> Result<(), ControlError> {
+        Ok(())
     }
     fn step_us(&self) -> f64 {
         0.0
@@ -148,10 +203,54 @@ pub struct V4lControl<'a> {
     pub value: i64,
 }
 
-/// How long one request may take.
-const REST_TIMEOUT: Duration = Duration::from_millis(300);
-/// After a failed request, how long commands are not sent (the exposure stays).
-const REST_BACKOFF: Duration = Duration::from_secs(1);
+/// How long one request may take, all of it (connect, send, the whole answer).
+pub const REST_DEADLINE: Duration = Duration::from_secs(2);
+/// The largest `GET /v4l` answer read (every source with its formats).
+pub const MAX_SOURCES_BYTES: usize = 4 << 20;
+/// The largest answer to a `POST` read (the camera manager answers an empty body).
+pub const MAX_POST_REPLY_BYTES: usize = 64 << 10;
+/// Characters of a peer's error text kept in a message.
+pub const ERROR_TEXT_CHARS: usize = 200;
+
+/// The camera's exposure range in its units, as the server states it and as the site
+/// allows: the intersection, or an error naming both.
+fn unit_range(
+    step: u64,
+    min: i64,
+    max: i64,
+    limits: &ExposureLimits,
+) -> Result<(i64, i64, f64), String> {
+    // V4L2 integer controls are 32-bit: anything beyond is not a real camera's range.
+    let fits = |v: i64| (i64::from(i32::MIN)..=i64::from(i32::MAX)).contains(&v);
+    if !fits(min) || !fits(max) || min > max || step == 0 || step > i32::MAX as u64 {
+        return Err(format!(
+            "exposure_time_absolute has min {min}, max {max}, step {step}: not a camera's range"
+        ));
+    }
+    let site_lo = (limits.min_us / V4L2_EXPOSURE_UNIT_US).ceil() as i64;
+    let site_hi = (limits.effective_max_us() / V4L2_EXPOSURE_UNIT_US).floor() as i64;
+    let lo = min.max(1).max(site_lo);
+    let hi = max.min(site_hi);
+    if lo > hi {
+        return Err(format!(
+            "exposure_time_absolute's range {min}..{max} x 100 us does not meet the site's \
+             camera.exposure_min_us..exposure_max_us ({}..{} us)",
+            limits.min_us,
+            limits.effective_max_us()
+        ));
+    }
+    Ok((lo, hi, V4L2_EXPOSURE_UNIT_US * step as f64))
+}
+
+/// Whether a menu's `options` list `value` (an unreadable list: assume it does).
+fn menu_has(options: &serde_json::Value, value: i64) -> bool {
+    match options.as_array() {
+        Some(list) => list
+            .iter()
+            .any(|o| o.get("value").and_then(serde_json::Value::as_i64) == Some(value)),
+        None => true,
+    }
+}
 
 /// Exposure through the camera manager's REST API.
 pub struct BlueosRest {
@@ -162,17 +261,17 @@ pub struct BlueosRest {
     step_us: f64,
     min_units: i64,
     max_units: i64,
+    /// The camera has an `auto_exposure` control (and it offers manual).
+    has_auto: bool,
+    found: Found,
     /// The value in force (the last one the server accepted), microseconds.
     current_us: f64,
-    failed_at: Option<Instant>,
-    body: String,
-    response: Vec<u8>,
 }
 
 impl BlueosRest {
-    /// Connects, finds the source's exposure controls, switches to manual exposure and
-    /// sets `initial_us`, reading both back.
-    pub fn open(url: &str, device: &str, initial_us: f64) -> Result<Self, ControlError> {
+    /// Connects and finds the source's exposure controls, their range (intersected with
+    /// the site's `limits`) and their values; writes nothing.
+    pub fn open(url: &str, device: &str, limits: &ExposureLimits) -> Result<Self, ControlError> {
         let err = |reason: String| ControlError::Rest {
             url: url.to_string(),
             reason,
@@ -193,11 +292,13 @@ impl BlueosRest {
             device: device.to_string(),
             step_us: V4L2_EXPOSURE_UNIT_US,
             min_units: 1,
-            max_units: i64::MAX,
-            current_us: initial_us,
-            failed_at: None,
-            body: String::with_capacity(128),
-            response: Vec::with_capacity(4096),
+            max_units: 1,
+            has_auto: false,
+            found: Found {
+                auto_exposure: None,
+                exposure_units: 0,
+            },
+            current_us: f64::NAN,
         };
         let sources = c.sources()?;
         let src = sources
@@ -208,46 +309,47 @@ impl BlueosRest {
             })
             .ok_or_else(|| {
                 err(format!(
-                    "no video source{} with exposure_time_absolute (0x{CID_EXPOSURE_ABSOLUTE:08x}) among {:?}",
-                    if c.device.is_empty() { String::new() } else { format!(" {}", c.device) },
-                    sources.iter().map(|s| s.source.as_str()).collect::<Vec<_>>()
+                    "no video source{} with exposure_time_absolute (0x{CID_EXPOSURE_ABSOLUTE:08x}) among {}",
+                    if c.device.is_empty() { String::new() } else { format!(" {}", sanitize(c.device.as_bytes(), 80)) },
+                    sanitize(format!("{:?}", sources.iter().map(|s| s.source.as_str()).collect::<Vec<_>>()).as_bytes(), ERROR_TEXT_CHARS)
                 ))
             })?;
         c.device = src.source.clone();
-        if let Some(ApiControlType::Slider { step, min, max, .. }) = src
-            .controls
-            .iter()
-            .find(|k| k.id == CID_EXPOSURE_ABSOLUTE)
-            .map(|k| &k.configuration)
-        {
-            c.step_us = V4L2_EXPOSURE_UNIT_US * (*step).max(1) as f64;
-            c.min_units = (*min).max(1);
-            c.max_units = *max;
-        }
-        c.post(CID_EXPOSURE_AUTO, EXPOSURE_MANUAL)?;
-        let units = c.units(initial_us);
-        c.post(CID_EXPOSURE_ABSOLUTE, units)?;
-        let back = c.sources()?;
-        let read = |id: u64| {
-            back.iter()
-                .find(|s| s.source == c.device)
-                .and_then(|s| s.controls.iter().find(|k| k.id == id))
-                .map(|k| k.configuration.value())
-        };
-        if read(CID_EXPOSURE_AUTO) != Some(EXPOSURE_MANUAL) {
+        let control = |id: u64| src.controls.iter().find(|k| k.id == id);
+        let Some(ApiControlType::Slider {
+            step,
+            min,
+            max,
+            value,
+            ..
+        }) = control(CID_EXPOSURE_ABSOLUTE).map(|k| &k.configuration)
+        else {
             return Err(err(format!(
-                "{}: auto_exposure reads {:?} after setting manual ({EXPOSURE_MANUAL})",
-                c.device,
-                read(CID_EXPOSURE_AUTO)
+                "{}: exposure_time_absolute is not a slider",
+                sanitize(c.device.as_bytes(), 80)
             )));
-        }
-        let got = read(CID_EXPOSURE_ABSOLUTE).ok_or_else(|| {
-            err(format!(
-                "{}: exposure_time_absolute not read back",
-                c.device
-            ))
-        })?;
-        c.current_us = got as f64 * V4L2_EXPOSURE_UNIT_US;
+        };
+        let (lo, hi, step_us) = unit_range(*step, *min, *max, limits)
+            .map_err(|r| err(format!("{}: {r}", sanitize(c.device.as_bytes(), 80))))?;
+        (c.min_units, c.max_units, c.step_us) = (lo, hi, step_us);
+        let auto = match control(CID_EXPOSURE_AUTO).map(|k| &k.configuration) {
+            Some(ApiControlType::Menu { value, options, .. }) => {
+                if !menu_has(options, EXPOSURE_MANUAL) {
+                    return Err(err(format!(
+                        "{}: auto_exposure offers no manual mode ({EXPOSURE_MANUAL})",
+                        sanitize(c.device.as_bytes(), 80)
+                    )));
+                }
+                Some(*value)
+            }
+            _ => None,
+        };
+        c.has_auto = auto.is_some();
+        c.found = Found {
+            auto_exposure: auto,
+            exposure_units: *value,
+        };
+        c.current_us = c.found.known_us();
         Ok(c)
     }
 
@@ -259,7 +361,8 @@ impl BlueosRest {
     fn units(&self, us: f64) -> i64 {
         let step = (self.step_us / V4L2_EXPOSURE_UNIT_US).max(1.0);
         let u = ((us / V4L2_EXPOSURE_UNIT_US) / step).round() * step;
-        (u as i64).clamp(self.min_units, self.max_units.max(self.min_units))
+        // `as` saturates (NaN to 0); the clamp keeps it in the camera's range.
+        (u as i64).clamp(self.min_units, self.max_units)
     }
 
     fn err(&self, reason: String) -> ControlError {
@@ -269,94 +372,97 @@ impl BlueosRest {
         }
     }
 
+    fn call(
+        &self,
+        method: &str,
+        path: &str,
+        body: &[u8],
+        max_body: usize,
+    ) -> Result<Vec<u8>, ControlError> {
+        let what = format!("{method} {path}");
+        let reply = http::request(
+            self.addr,
+            &self.host,
+            method,
+            path,
+            body,
+            Limits {
+                deadline: REST_DEADLINE,
+                max_head: 16 << 10,
+                max_body,
+            },
+        )
+        .map_err(|e| self.err(format!("{what}: {e}")))?;
+        if !(200..300).contains(&reply.status) {
+            return Err(self.err(format!(
+                "{what}: HTTP {}: {}",
+                reply.status,
+                sanitize(reply.body.trim_ascii(), ERROR_TEXT_CHARS)
+            )));
+        }
+        Ok(reply.body)
+    }
+
     /// `GET /v4l`.
-    pub fn sources(&mut self) -> Result<Vec<ApiVideoSource>, ControlError> {
-        let body = self.request("GET", "/v4l", "")?;
-        serde_json::from_slice(body).map_err(|e| ControlError::Rest {
-            url: self.url.clone(),
-            reason: format!("GET /v4l: unexpected answer: {e}"),
+    pub fn sources(&self) -> Result<Vec<ApiVideoSource>, ControlError> {
+        let body = self.call("GET", "/v4l", b"", MAX_SOURCES_BYTES)?;
+        serde_json::from_slice(&body).map_err(|e| {
+            self.err(format!(
+                "GET /v4l: unexpected answer: {}",
+                sanitize(e.to_string().as_bytes(), ERROR_TEXT_CHARS)
+            ))
         })
     }
 
-    fn post(&mut self, id: u64, value: i64) -> Result<(), ControlError> {
-        use std::fmt::Write as _;
-        let mut body = std::mem::take(&mut self.body);
-        body.clear();
-        // The device path is the server's own string (from GET /v4l); JSON-escape it.
-        let dev = serde_json::to_string(&self.device).unwrap_or_else(|_| "\"\"".into());
-        let _ = write!(
-            body,
-            "{{\"device\":{dev},\"v4l_id\":{id},\"value\":{value}}}"
-        );
-        let r = self.request("POST", "/v4l", &body).map(|_| ());
-        self.body = body;
-        r
-    }
-
-    /// One HTTP/1.1 request with `Connection: close`; returns the body of a 2xx answer.
-    fn request(&mut self, method: &str, path: &str, body: &str) -> Result<&[u8], ControlError> {
-        let what = format!("{method} {path}");
-        let mut s = TcpStream::connect_timeout(&self.addr, REST_TIMEOUT)
-            .map_err(|e| self.err(format!("{what}: {e}")))?;
-        let _ = s.set_read_timeout(Some(REST_TIMEOUT));
-        let _ = s.set_write_timeout(Some(REST_TIMEOUT));
-        let head = format!(
-            "{method} {path} HTTP/1.1\r\nHost: {}\r\nContent-Type: application/json\r\nContent-Length: {}\r\nConnection: close\r\n\r\n",
-            self.host,
-            body.len()
-        );
-        s.write_all(head.as_bytes())
-            .and_then(|()| s.write_all(body.as_bytes()))
-            .map_err(|e| self.err(format!("{what}: {e}")))?;
-        self.response.clear();
-        s.read_to_end(&mut self.response)
-            .map_err(|e| self.err(format!("{what}: {e}")))?;
-        let text = &self.response;
-        let split = text
-            .windows(4)
-            .position(|w| w == b"\r\n\r\n")
-            .ok_or_else(|| self.err(format!("{what}: no HTTP answer")))?;
-        let status_line = String::from_utf8_lossy(&text[..split]);
-        let status: u16 = status_line
-            .split_whitespace()
-            .nth(1)
-            .and_then(|c| c.parse().ok())
-            .ok_or_else(|| self.err(format!("{what}: bad status line {status_line:?}")))?;
-        if !(200..300).contains(&status) {
-            let body = String::from_utf8_lossy(&text[split + 4..]).into_owned();
-            return Err(self.err(format!("{what}: HTTP {status}: {}", body.trim())));
-        }
-        Ok(&self.response[split + 4..])
+    fn post(&self, id: u64, value: i64) -> Result<(), ControlError> {
+        let body = serde_json::to_vec(&V4lControl {
+            device: &self.device,
+            v4l_id: id,
+            value,
+        })
+        .map_err(|e| self.err(format!("POST /v4l: {e}")))?;
+        self.call("POST", "/v4l", &body, MAX_POST_REPLY_BYTES)
+            .map(|_| ())
     }
 }
 
 impl ExposureControl for BlueosRest {
+    fn found(&self) -> Option<Found> {
+        Some(self.found)
+    }
+    fn take(&mut self) -> Result<(), ControlError> {
+        if self.has_auto {
+            self.post(CID_EXPOSURE_AUTO, EXPOSURE_MANUAL)?;
+        }
+        // The value the camera ran at is unknown until markhold sets one.
+        self.current_us = f64::NAN;
+        Ok(())
+    }
     fn set_exposure_us(&mut self, exposure_us: f64) -> Result<f64, ControlError> {
         let units = self.units(exposure_us);
         let want = units as f64 * V4L2_EXPOSURE_UNIT_US;
         if (want - self.current_us).abs() < 0.5 {
             return Ok(self.current_us);
         }
-        if self.failed_at.is_some_and(|t| t.elapsed() < REST_BACKOFF) {
-            return Ok(self.current_us);
+        self.post(CID_EXPOSURE_ABSOLUTE, units)?;
+        self.current_us = want;
+        Ok(want)
+    }
+    fn restore_to(&mut self, found: &Found) -> Result<(), ControlError> {
+        // The value while still manual (an inactive control refuses writes), then the
+        // mode. The found value is the camera's own: not clamped to the site's range.
+        self.post(CID_EXPOSURE_ABSOLUTE, found.exposure_units)?;
+        if let (true, Some(mode)) = (self.has_auto, found.auto_exposure) {
+            self.post(CID_EXPOSURE_AUTO, mode)?;
         }
-        match self.post(CID_EXPOSURE_ABSOLUTE, units) {
-            Ok(()) => {
-                self.failed_at = None;
-                self.current_us = want;
-                Ok(want)
-            }
-            Err(e) => {
-                self.failed_at = Some(Instant::now());
-                Err(e)
-            }
-        }
+        self.current_us = found.known_us();
+        Ok(())
     }
     fn step_us(&self) -> f64 {
         self.step_us
     }
     fn describe(&self) -> String {
-        format!("{} ({})", self.url, self.device)
+        format!("{} ({})", self.url, sanitize(self.device.as_bytes(), 80))
     }
 }
 
@@ -398,13 +504,15 @@ pub struct V4l2Control {
     step_us: f64,
     min_units: i64,
     max_units: i64,
+    has_auto: bool,
+    found: Found,
     current_us: f64,
 }
 
 impl V4l2Control {
-    /// Opens `device`, reads the exposure control's range, switches to manual exposure
-    /// and sets `initial_us`, reading both back.
-    pub fn open(device: &str, initial_us: f64) -> Result<Self, ControlError> {
+    /// Opens `device` and reads the exposure control's range (intersected with the
+    /// site's `limits`) and the mode and value in force; writes nothing.
+    pub fn open(device: &str, limits: &ExposureLimits) -> Result<Self, ControlError> {
         use std::os::unix::fs::OpenOptionsExt;
         let file = std::fs::OpenOptions::new()
             .read(true)
@@ -420,23 +528,33 @@ impl V4l2Control {
             file,
             step_us: V4L2_EXPOSURE_UNIT_US,
             min_units: 1,
-            max_units: i64::MAX,
-            current_us: initial_us,
+            max_units: 1,
+            has_auto: false,
+            found: Found {
+                auto_exposure: None,
+                exposure_units: 0,
+            },
+            current_us: f64::NAN,
         };
         let q = c.query(CID_EXPOSURE_ABSOLUTE)?;
-        c.step_us = V4L2_EXPOSURE_UNIT_US * f64::from(q.step.max(1));
-        c.min_units = i64::from(q.minimum.max(1));
-        c.max_units = i64::from(q.maximum);
-        c.set(CID_EXPOSURE_AUTO, EXPOSURE_MANUAL)?;
-        let units = ((initial_us / c.step_us).round() * (c.step_us / V4L2_EXPOSURE_UNIT_US)) as i64;
-        c.set(CID_EXPOSURE_ABSOLUTE, units.clamp(c.min_units, c.max_units))?;
-        let auto = c.get(CID_EXPOSURE_AUTO)?;
-        if auto != EXPOSURE_MANUAL {
-            return Err(c.err(format!(
-                "auto_exposure reads {auto} after setting manual ({EXPOSURE_MANUAL})"
-            )));
-        }
-        c.current_us = c.get(CID_EXPOSURE_ABSOLUTE)? as f64 * V4L2_EXPOSURE_UNIT_US;
+        let (lo, hi, step_us) = unit_range(
+            u64::try_from(q.step).unwrap_or(0),
+            i64::from(q.minimum),
+            i64::from(q.maximum),
+            limits,
+        )
+        .map_err(|r| c.err(r))?;
+        (c.min_units, c.max_units, c.step_us) = (lo, hi, step_us);
+        c.has_auto = c.query(CID_EXPOSURE_AUTO).is_ok();
+        c.found = Found {
+            auto_exposure: if c.has_auto {
+                Some(c.get(CID_EXPOSURE_AUTO)?)
+            } else {
+                None
+            },
+            exposure_units: c.get(CID_EXPOSURE_ABSOLUTE)?,
+        };
+        c.current_us = c.found.known_us();
         Ok(c)
     }
 
@@ -470,10 +588,15 @@ impl V4l2Control {
             flags: 0,
             reserved: [0; 2],
         };
+        let name = if id == CID_EXPOSURE_AUTO {
+            "auto_exposure"
+        } else {
+            "exposure_time_absolute"
+        };
         self.ioctl(
             VIDIOC_QUERYCTRL,
             &mut q,
-            &format!("VIDIOC_QUERYCTRL 0x{id:08x} (exposure_time_absolute)"),
+            &format!("VIDIOC_QUERYCTRL 0x{id:08x} ({name})"),
         )?;
         Ok(q)
     }
@@ -497,11 +620,27 @@ impl V4l2Control {
 }
 
 impl ExposureControl for V4l2Control {
+    fn found(&self) -> Option<Found> {
+        Some(self.found)
+    }
+    fn take(&mut self) -> Result<(), ControlError> {
+        if self.has_auto {
+            self.set(CID_EXPOSURE_AUTO, EXPOSURE_MANUAL)?;
+            let auto = self.get(CID_EXPOSURE_AUTO)?;
+            if auto != EXPOSURE_MANUAL {
+                return Err(self.err(format!(
+                    "auto_exposure reads {auto} after setting manual ({EXPOSURE_MANUAL})"
+                )));
+            }
+        }
+        self.current_us = f64::NAN;
+        Ok(())
+    }
     fn set_exposure_us(&mut self, exposure_us: f64) -> Result<f64, ControlError> {
         let step_units = (self.step_us / V4L2_EXPOSURE_UNIT_US).max(1.0);
         let units =
             (((exposure_us / V4L2_EXPOSURE_UNIT_US) / step_units).round() * step_units) as i64;
-        let units = units.clamp(self.min_units, self.max_units.max(self.min_units));
+        let units = units.clamp(self.min_units, self.max_units);
         let want = units as f64 * V4L2_EXPOSURE_UNIT_US;
         if (want - self.current_us).abs() < 0.5 {
             return Ok(self.current_us);
@@ -509,6 +648,14 @@ impl ExposureControl for V4l2Control {
         self.set(CID_EXPOSURE_ABSOLUTE, units)?;
         self.current_us = want;
         Ok(want)
+    }
+    fn restore_to(&mut self, found: &Found) -> Result<(), ControlError> {
+        self.set(CID_EXPOSURE_ABSOLUTE, found.exposure_units)?;
+        if let (true, Some(mode)) = (self.has_auto, found.auto_exposure) {
+            self.set(CID_EXPOSURE_AUTO, mode)?;
+        }
+        self.current_us = found.known_us();
+        Ok(())
     }
     fn step_us(&self) -> f64 {
         self.step_us
@@ -522,6 +669,12 @@ impl ExposureControl for V4l2Control {
 mod tests {
     use super::*;
 
+    const LIMITS: ExposureLimits = ExposureLimits {
+        min_us: 100.0,
+        max_us: 33_300.0,
+        fps: 30.0,
+    };
+
     #[test]
     fn ioctl_numbers_match_videodev2() {
         // From linux/videodev2.h on x86_64 and aarch64.
@@ -532,7 +685,7 @@ mod tests {
 
     #[test]
     fn v4l2_errors_name_the_device() {
-        let e = V4l2Control::open("/no/such/video9", 1000.0)
+        let e = V4l2Control::open("/no/such/video9", &LIMITS)
             .err()
             .map(|e| e.to_string());
         assert!(
@@ -540,7 +693,7 @@ mod tests {
             "{e:?}"
         );
         // Not a V4L2 device: the ioctl is refused, and the error says which.
-        let e = V4l2Control::open("/dev/null", 1000.0)
+        let e = V4l2Control::open("/dev/null", &LIMITS)
             .err()
             .map(|e| e.to_string());
         assert!(
@@ -556,5 +709,32 @@ mod tests {
         assert_eq!(quantize(3050.0, 100.0), 3100.0);
         assert_eq!(quantize(10.0, 100.0), 100.0);
         assert_eq!(quantize(1234.5, 0.0), 1234.5);
+    }
+
+    #[test]
+    fn a_range_is_the_camera_s_within_the_site_s_or_refused() {
+        // The stock camera: 1..5000 x 100 us; the site caps at one frame (33.3 ms).
+        assert_eq!(unit_range(1, 1, 5000, &LIMITS), Ok((1, 333, 100.0)));
+        for (step, min, max) in [
+            (1, i64::MAX, i64::MAX),
+            (1, 10, 5),
+            (0, 1, 5000),
+            (1, i64::MIN, 5000),
+            (1, 400, 5000),
+        ] {
+            let e = unit_range(step, min, max, &LIMITS);
+            assert!(e.is_err(), "{step} {min} {max}: {e:?}");
+        }
+    }
+
+    #[test]
+    fn found_exposure_is_known_only_in_manual_mode() {
+        let f = |a| Found {
+            auto_exposure: a,
+            exposure_units: 30,
+        };
+        assert_eq!(f(Some(1)).known_us(), 3000.0);
+        assert_eq!(f(None).known_us(), 3000.0);
+        assert!(f(Some(3)).known_us().is_nan());
     }
 }

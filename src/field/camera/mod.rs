@@ -11,13 +11,16 @@ use markhold_vision::{RecordedCamera, V4l2Camera};
 
 use super::run::StartupError;
 use super::signal::ShutdownFlag;
-use crate::params::LoadedSite;
+use crate::params::{ControlExposure, LoadedSite};
 
 pub mod attribution;
 pub mod control;
 #[cfg(feature = "genicam")]
 pub mod genicam;
+pub mod http;
+pub mod rtsp_guard;
 pub mod stream;
+pub mod worker;
 
 /// Where frames come from.
 #[derive(Debug, Clone, PartialEq, Eq)]
@@ -80,9 +83,42 @@ pub struct LiveCamera {
     delivered_at: Option<Instant>,
     /// The last `grab` returned because no frame was due within [`NO_FRAME_TICK`].
     no_frame: bool,
+    /// A stream camera's exposure control (the pilot's camera, shared with BlueOS).
+    control: Option<worker::ControlHandle>,
+    /// `[camera] control_exposure = "always"`: hold the camera's exposure from the start.
+    control_always: bool,
 }
 
 impl LiveCamera {
+    /// markhold is (or is no longer) engaged: a stream camera's exposure is markhold's
+    /// only while engaged (or always, as the site says); otherwise it is put back as
+    /// found. Returns true when this changed what is asked of the camera.
+    pub fn set_engaged(&mut self, engaged: bool) -> bool {
+        let Some(c) = &self.control else {
+            return false;
+        };
+        let take = engaged || self.control_always;
+        if c.wants_taken() == take {
+            return false;
+        }
+        c.set_take(take);
+        true
+    }
+
+    /// Whether the exposure control holds the camera (manual, markhold's values).
+    pub fn exposure_taken(&self) -> bool {
+        self.control.as_ref().is_some_and(|c| c.applied().taken)
+    }
+
+    /// Put the camera's exposure back as found (waiting at most `timeout`) and stop the
+    /// control's worker. Nothing to do for a camera without one.
+    pub fn finish_control(&mut self, timeout: Duration) -> Result<(), String> {
+        match self.control.take() {
+            Some(c) => c.finish(timeout),
+            None => Ok(()),
+        }
+    }
+
     /// True (once) if the last grab failed only because no frame came in time.
     pub fn take_no_frame(&mut self) -> bool {
         std::mem::take(&mut self.no_frame)
@@ -91,6 +127,15 @@ impl LiveCamera {
     /// Wall time since the last frame was handed to the loop.
     pub fn since_last_frame(&self) -> Duration {
         self.delivered_at.map_or(Duration::ZERO, |t| t.elapsed())
+    }
+}
+
+impl Drop for LiveCamera {
+    fn drop(&mut self) {
+        // Every way out of a run leaves the camera as found (a normal end did already).
+        if let Err(why) = self.finish_control(CONTROL_FINISH) {
+            tracing::warn!("{why}");
+        }
     }
 }
 
@@ -160,6 +205,7 @@ pub fn open_camera(
 ) -> Result<LiveCamera, StartupError> {
     let name = url.to_string();
     let cam = &site.site.camera;
+    let mut control = None;
     let (mut inner, paced): (Box<dyn Camera>, bool) = match url {
         CameraUrl::V4l2(dev) => {
             let c = V4l2Camera::open(dev, cam.width_px, cam.height_px, cam.fps).map_err(|e| {
@@ -210,32 +256,24 @@ pub fn open_camera(
             })?;
             (Box::new(c), false)
         }
-        CameraUrl::Stream(src) => (Box::new(open_stream(site, src, initial_us, &name)?), false),
+        CameraUrl::Stream(src) => {
+            let (cam, handle) = open_stream(site, src, initial_us, &name, stop)?;
+            control = Some(handle);
+            (Box::new(cam), false)
+        }
     };
-    inner
-        .set_exposure_us(initial_us)
-        .map_err(|e| StartupError::Exposure {
-            url: name.clone(),
-            exposure_us: initial_us,
-            reason: e.to_string(),
-        })?;
-    let mut first = Frame::new(0, 0);
-    inner
-        .grab(&mut first)
-        .map_err(|e| StartupError::FirstFrame {
-            url: name.clone(),
-            reason: e.to_string(),
-        })?;
-    let calib = &site.calibration;
-    if first.width != calib.width || first.height != calib.height {
-        return Err(StartupError::Resolution {
-            url: name,
-            width: first.width,
-            height: first.height,
-            calib_width: calib.width,
-            calib_height: calib.height,
-        });
-    }
+    let first = match first_frame(site, inner.as_mut(), initial_us, &name) {
+        Ok(f) => f,
+        Err(e) => {
+            // The camera goes back as found (it may have been taken already).
+            if let Some(c) = &control {
+                if let Err(why) = c.finish(CONTROL_FINISH) {
+                    tracing::warn!("{why}");
+                }
+            }
+            return Err(e);
+        }
+    };
     Ok(LiveCamera {
         inner,
         next: first,
@@ -245,44 +283,96 @@ pub fn open_camera(
         stop: stop.clone(),
         delivered_at: None,
         no_frame: false,
+        control,
+        control_always: cam.control_exposure == ControlExposure::Always,
     })
 }
 
-/// A stream camera with the site's `[camera.control]` for its exposure.
+/// How long putting the camera's exposure back may take at the end of a run (a few
+/// requests of the control's own deadline).
+pub const CONTROL_FINISH: Duration = Duration::from_secs(5);
+
+/// The start-up exposure and the first frame, whose size must be the calibration's.
+fn first_frame(
+    site: &LoadedSite,
+    inner: &mut dyn Camera,
+    initial_us: f64,
+    name: &str,
+) -> Result<Frame, StartupError> {
+    inner
+        .set_exposure_us(initial_us)
+        .map_err(|e| StartupError::Exposure {
+            url: name.to_string(),
+            exposure_us: initial_us,
+            reason: e.to_string(),
+        })?;
+    let mut first = Frame::new(0, 0);
+    inner
+        .grab(&mut first)
+        .map_err(|e| StartupError::FirstFrame {
+            url: name.to_string(),
+            reason: e.to_string(),
+        })?;
+    let calib = &site.calibration;
+    if first.width != calib.width || first.height != calib.height {
+        return Err(StartupError::Resolution {
+            url: name.to_string(),
+            width: first.width,
+            height: first.height,
+            calib_width: calib.width,
+            calib_height: calib.height,
+        });
+    }
+    Ok(first)
+}
+
+/// A stream camera with the site's `[camera.control]` for its exposure: the control
+/// only reads the camera at start (after putting back what a run that died left), and
+/// holds it from the start only with `control_exposure = "always"`.
 fn open_stream(
     site: &LoadedSite,
     src: &stream::StreamSource,
     initial_us: f64,
     name: &str,
-) -> Result<stream::StreamCamera, StartupError> {
+    stop: &ShutdownFlag,
+) -> Result<(stream::StreamCamera, worker::ControlHandle), StartupError> {
     let cam = &site.site.camera;
-    let control: Box<dyn control::ExposureControl> = match &cam.control {
+    let limits = site.limits();
+    let control_err = |reason: String| StartupError::Camera {
+        url: name.to_string(),
+        reason: format!("exposure control: {reason}"),
+    };
+    let mut control: Box<dyn control::ExposureControl> = match &cam.control {
         control::ControlConfig::None => Box::new(control::NoControl),
         control::ControlConfig::BlueosRest { url, device } => Box::new(
-            control::BlueosRest::open(url, device, initial_us).map_err(|e| {
-                StartupError::Camera {
-                    url: name.to_string(),
-                    reason: format!("exposure control: {e}"),
-                }
-            })?,
+            control::BlueosRest::open(url, device, &limits)
+                .map_err(|e| control_err(e.to_string()))?,
         ),
-        control::ControlConfig::V4l2 { device } => {
-            Box::new(control::V4l2Control::open(device, initial_us).map_err(|e| {
-                StartupError::Camera {
-                    url: name.to_string(),
-                    reason: format!("exposure control: {e}"),
-                }
-            })?)
-        }
+        control::ControlConfig::V4l2 { device } => Box::new(
+            control::V4l2Control::open(device, &limits).map_err(|e| control_err(e.to_string()))?,
+        ),
     };
+    let state = worker::state_path(&site.path);
+    let found = worker::recover(control.as_mut(), Some(&state)).map_err(control_err)?;
+    let handle = worker::ControlHandle::spawn(control, found, Some(state))
+        .map_err(|e| control_err(format!("starting its thread: {e}")))?;
+    handle.request(initial_us);
+    if cam.control_exposure == ControlExposure::Always {
+        handle.set_take(true);
+    }
     let cfg = stream::StreamConfig {
         fps: cam.fps,
-        limits: site.limits(),
+        limits,
         initial_us,
-        first_frame_timeout: std::time::Duration::from_secs(5),
+        first_frame_timeout: Duration::from_secs(5),
+        restart: true,
+        stop: stop.clone(),
     };
-    stream::StreamCamera::open(src, &cfg, control).map_err(|e| StartupError::Camera {
-        url: name.to_string(),
-        reason: e.to_string(),
-    })
+    let camera = stream::StreamCamera::open(src, &cfg, handle.clone()).map_err(|e| {
+        StartupError::Camera {
+            url: name.to_string(),
+            reason: e.to_string(),
+        }
+    })?;
+    Ok((camera, handle))
 }

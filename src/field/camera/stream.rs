@@ -7,8 +7,10 @@
 //! newest decoded frame, so the loop never works through a backlog. Frames it passed
 //! over are counted from the gaps between timestamps. The jitter buffer runs with
 //! `mode=none latency=0`: nothing is held back for reordering, and timestamps follow
-//! the sender's RTP timestamps (the camera's clock), not the arrival times. Exposure goes out through an
-//! [`ExposureControl`]; which exposure each frame had comes from [`Attribution`].
+//! the sender's RTP timestamps (the camera's clock), not the arrival times. Exposure goes
+//! out through a [`ControlHandle`] (a worker thread: the loop never waits on the camera);
+//! which exposure each frame had comes from [`Attribution`]. A stream that ends or fails
+//! is built again with a back-off; its stamps go on from the last frame's.
 
 use std::time::{Duration, Instant};
 
@@ -18,7 +20,10 @@ use gstreamer_app as gst_app;
 use markhold_exposure::{Camera, CameraError, ExposureLimits, Frame};
 
 use super::attribution::Attribution;
-use super::control::{quantize, ExposureControl};
+use super::control::quantize;
+use super::rtsp_guard::{self, RtspGuard};
+use super::worker::ControlHandle;
+use crate::field::signal::ShutdownFlag;
 
 /// How long one `grab` waits before handing control back (the caller's stall clock).
 pub const GRAB_TICK: Duration = Duration::from_millis(50);
@@ -114,21 +119,105 @@ pub struct StreamConfig {
     pub initial_us: f64,
     /// How long `open` waits for the first frame.
     pub first_frame_timeout: Duration,
+    /// After an end of stream or an error, build the pipeline again (after 0.5 s, then
+    /// twice as long each time up to 8 s, until a frame comes). Off for a simulation,
+    /// which drives the stream itself.
+    pub restart: bool,
+    /// A signal: the first-frame wait gives up.
+    pub stop: ShutdownFlag,
+}
+
+/// The first wait before building a stopped pipeline again.
+pub const RESTART_FIRST: Duration = Duration::from_millis(500);
+/// The longest wait between two restarts.
+pub const RESTART_MAX: Duration = Duration::from_secs(8);
+/// A running stream silent this long is built again.
+pub const STALL_RESTART: Duration = Duration::from_secs(2);
+
+/// A built pipeline with its appsink and bus.
+struct Built {
+    pipeline: gst::Pipeline,
+    sink: gst_app::AppSink,
+    bus: gst::Bus,
+}
+
+impl Built {
+    /// Parses `desc`, finds the appsink and sets it to keep only the newest frame.
+    fn new(url: &str, desc: &str) -> Result<Self, StreamError> {
+        let gst_err = |reason: String| StreamError::Gst {
+            url: url.to_string(),
+            reason,
+        };
+        let element = gst::parse::launch(desc).map_err(|e| gst_err(format!("{e}")))?;
+        let pipeline = element
+            .downcast::<gst::Pipeline>()
+            .map_err(|_| gst_err("the description is not a pipeline (one element?)".into()))?;
+        let sink = find_appsink(&pipeline).ok_or_else(|| StreamError::Pipeline {
+            url: url.to_string(),
+            reason: "the pipeline has no appsink".into(),
+        })?;
+        sink.set_drop(true);
+        sink.set_max_buffers(1);
+        sink.set_sync(false);
+        // Grey, or planar YUV whose first plane is the grey image (no conversion: a
+        // 1080p videoconvert to GRAY8 costs several times the decode).
+        sink.set_caps(Some(
+            &gst::Caps::builder("video/x-raw")
+                .field("format", gst::List::new(LUMA_FIRST_FORMATS))
+                .build(),
+        ));
+        let bus = pipeline.bus().ok_or_else(|| gst_err("no bus".into()))?;
+        Ok(Self {
+            pipeline,
+            sink,
+            bus,
+        })
+    }
+
+    fn play(&self, url: &str) -> Result<(), StreamError> {
+        let gst_err = |reason: String| StreamError::Gst {
+            url: url.to_string(),
+            reason,
+        };
+        self.pipeline.set_state(gst::State::Playing).map_err(|_| {
+            let why = bus_problem(&self.bus).unwrap_or_else(|| "state change failed".into());
+            gst_err(format!("does not start: {why}"))
+        })?;
+        if let Some(why) = bus_problem(&self.bus) {
+            return Err(gst_err(format!("does not start: {why}")));
+        }
+        Ok(())
+    }
+
+    /// Stops the pipeline on a thread of its own: an element stuck on a peer must not
+    /// hold the caller.
+    fn retire(self) {
+        let spawned = std::thread::Builder::new()
+            .name("markhold-stream-stop".into())
+            .spawn(move || {
+                let _ = self.pipeline.set_state(gst::State::Null);
+            });
+        if let Err(e) = spawned {
+            tracing::warn!("stopping an old stream pipeline: {e}");
+        }
+    }
 }
 
 /// A stream camera.
 pub struct StreamCamera {
     name: String,
-    pipeline: gst::Pipeline,
-    sink: gst_app::AppSink,
-    bus: gst::Bus,
-    control: Box<dyn ExposureControl>,
+    /// The pipeline description (built again on a restart).
+    desc: String,
+    built: Option<Built>,
+    /// rtsp://: the guard rtspsrc talks through.
+    guard: Option<RtspGuard>,
+    control: ControlHandle,
     attribution: Attribution,
     limits: ExposureLimits,
     step_us: f64,
     fps: f64,
-    /// The exposure in force (the last one the control accepted).
-    current_us: f64,
+    /// The control's report last seen (its `seq`).
+    applied_seq: u64,
     /// The loop's last request, before rounding to the camera's step.
     requested_us: f64,
     /// Frames the camera took (counted from timestamps), the last delivered one's
@@ -136,9 +225,22 @@ pub struct StreamCamera {
     seq: u64,
     last_pts: Option<gst::ClockTime>,
     passed_over: u64,
-    /// Why the stream stopped, once it has.
+    /// Why the stream stopped, once it has, and when to build it again.
     stopped: Option<String>,
-    warned_control: bool,
+    restart: bool,
+    restart_at: Option<Instant>,
+    backoff: Duration,
+    /// Restarts so far.
+    restarts: u64,
+    /// Stamps: pipeline time plus this offset (changed at a restart so stamps go on
+    /// from the last one), the last stamp and when it was delivered.
+    stamp_offset: f64,
+    rebase: bool,
+    last_stamp: Option<f64>,
+    delivered_at: Option<Instant>,
+    /// When the running pipeline was built.
+    built_at: Option<Instant>,
+    stop: ShutdownFlag,
     /// The first frame, pulled while waiting for it at start-up.
     held: Option<gst::Sample>,
     /// A frame was delivered already.
@@ -219,7 +321,7 @@ impl StreamCamera {
     pub fn open(
         source: &StreamSource,
         cfg: &StreamConfig,
-        control: Box<dyn ExposureControl>,
+        control: ControlHandle,
     ) -> Result<Self, StreamError> {
         let mut cam = Self::start(source, cfg, control)?;
         cam.wait_first_frame(cfg.first_frame_timeout)?;
@@ -230,90 +332,101 @@ impl StreamCamera {
     pub fn start(
         source: &StreamSource,
         cfg: &StreamConfig,
-        mut control: Box<dyn ExposureControl>,
+        control: ControlHandle,
     ) -> Result<Self, StreamError> {
         let url = source.to_string();
-        let gst_err = |reason: String| StreamError::Gst {
+        init().map_err(|reason| StreamError::Gst {
             url: url.clone(),
             reason,
-        };
-        init().map_err(gst_err)?;
-        let desc = source.pipeline();
-        let element = gst::parse::launch(&desc).map_err(|e| gst_err(format!("{e}")))?;
-        let pipeline = element
-            .downcast::<gst::Pipeline>()
-            .map_err(|_| gst_err("the description is not a pipeline (one element?)".into()))?;
-        let sink = find_appsink(&pipeline).ok_or_else(|| StreamError::Pipeline {
-            url: url.clone(),
-            reason: "the pipeline has no appsink".into(),
         })?;
-        sink.set_drop(true);
-        sink.set_max_buffers(1);
-        sink.set_sync(false);
-        // Grey, or planar YUV whose first plane is the grey image (no conversion: a
-        // 1080p videoconvert to GRAY8 costs several times the decode).
-        sink.set_caps(Some(
-            &gst::Caps::builder("video/x-raw")
-                .field("format", gst::List::new(LUMA_FIRST_FORMATS))
-                .build(),
-        ));
-        let bus = pipeline.bus().ok_or_else(|| gst_err("no bus".into()))?;
+        // rtsp://: rtspsrc talks to the server through the guard.
+        let (desc, guard) = match source {
+            StreamSource::Rtsp(u) => {
+                let (server, path) =
+                    rtsp_guard::split_url(u).ok_or_else(|| StreamError::Pipeline {
+                        url: url.clone(),
+                        reason: "expected rtsp://HOST[:PORT]/PATH".into(),
+                    })?;
+                let guard = RtspGuard::start(&server).map_err(|e| StreamError::Pipeline {
+                    url: url.clone(),
+                    reason: format!("{server}: {e}"),
+                })?;
+                let local = StreamSource::Rtsp(format!("rtsp://127.0.0.1:{}{path}", guard.port()));
+                (local.pipeline(), Some(guard))
+            }
+            _ => (source.pipeline(), None),
+        };
+        let built = Built::new(&url, &desc)?;
+        built.play(&url)?;
         let step_us = control.step_us();
-        let initial = quantize(cfg.limits.clamp(cfg.initial_us), step_us);
-        let current_us = control.set_exposure_us(initial)?;
-        let cam = Self {
-            name: url.clone(),
-            pipeline,
-            sink,
-            bus,
+        let applied = control.applied();
+        Ok(Self {
+            name: url,
+            desc,
+            built: Some(built),
+            guard,
+            attribution: Attribution::new(applied.exposure_us),
+            applied_seq: applied.seq,
             control,
-            attribution: Attribution::new(current_us),
             limits: cfg.limits,
             step_us,
             fps: cfg.fps.max(0.1),
-            current_us,
-            requested_us: current_us,
+            requested_us: cfg.initial_us,
             seq: 0,
             last_pts: None,
             passed_over: 0,
             stopped: None,
-            warned_control: false,
+            restart: cfg.restart,
+            restart_at: None,
+            backoff: RESTART_FIRST,
+            restarts: 0,
+            stamp_offset: 0.0,
+            rebase: false,
+            last_stamp: None,
+            delivered_at: None,
+            built_at: Some(Instant::now()),
+            stop: cfg.stop.clone(),
             held: None,
             delivered: false,
             lut: range_lut(false),
             lut_limited: false,
-        };
-        cam.pipeline.set_state(gst::State::Playing).map_err(|_| {
-            let why = bus_problem(&cam.bus).unwrap_or_else(|| "state change failed".into());
-            gst_err(format!("does not start: {why}"))
-        })?;
-        if let Some(why) = bus_problem(&cam.bus) {
-            return Err(gst_err(format!("does not start: {why}")));
-        }
-        Ok(cam)
+        })
     }
 
-    /// Waits until a first frame is ready (bounded), or says why none came.
+    /// Waits until a first frame is ready (bounded, and a signal ends the wait), or
+    /// says why none came.
     pub fn wait_first_frame(&mut self, timeout: Duration) -> Result<(), StreamError> {
         let t0 = Instant::now();
+        let no_frame = |cam: &Self, why: String| StreamError::NoFirstFrame {
+            url: cam.name.clone(),
+            waited_ms: t0.elapsed().as_millis(),
+            why,
+        };
+        let Some(built) = &self.built else {
+            return Err(no_frame(self, ": the stream is stopped".into()));
+        };
         loop {
-            if let Some(sample) = self.sink.try_pull_sample(gst::ClockTime::from_mseconds(20)) {
+            if let Some(sample) = built
+                .sink
+                .try_pull_sample(gst::ClockTime::from_mseconds(20))
+            {
                 self.held = Some(sample);
                 return Ok(());
             }
-            if let Some(why) = bus_problem(&self.bus) {
-                return Err(StreamError::NoFirstFrame {
-                    url: self.name.clone(),
-                    waited_ms: t0.elapsed().as_millis(),
-                    why: format!(": {why}"),
-                });
+            if let Some(why) = self.guard.as_ref().and_then(RtspGuard::failure) {
+                return Err(no_frame(self, format!(": {why}")));
+            }
+            if let Some(why) = bus_problem(&built.bus) {
+                return Err(no_frame(self, format!(": {why}")));
+            }
+            if self.stop.is_set() {
+                return Err(no_frame(self, ": stopped by a signal".into()));
             }
             if t0.elapsed() >= timeout {
-                return Err(StreamError::NoFirstFrame {
-                    url: self.name.clone(),
-                    waited_ms: t0.elapsed().as_millis(),
-                    why: " (is the stream sent to this port/URL?)".into(),
-                });
+                return Err(no_frame(
+                    self,
+                    " (is the stream sent to this port/URL?)".into(),
+                ));
             }
         }
     }
@@ -328,9 +441,19 @@ impl StreamCamera {
         &self.attribution
     }
 
-    /// Why the stream stopped, if it has.
+    /// The exposure control's handle.
+    pub fn control(&self) -> &ControlHandle {
+        &self.control
+    }
+
+    /// Why the stream stopped, if it has (and is not running again).
     pub fn stopped(&self) -> Option<&str> {
         self.stopped.as_deref()
+    }
+
+    /// Pipelines built again after the stream stopped.
+    pub fn restarts(&self) -> u64 {
+        self.restarts
     }
 
     fn read_err(&self, reason: String) -> CameraError {
@@ -340,11 +463,120 @@ impl StreamCamera {
             reason,
         }
     }
+
+    /// The stream stopped (end of stream, an error, the guard cut it): retire the
+    /// pipeline and plan a restart.
+    fn on_stopped(&mut self, why: String) {
+        let why = match self.guard.as_ref().and_then(RtspGuard::failure) {
+            Some(g) => format!("{why} ({g})"),
+            None => why,
+        };
+        if self.restart {
+            tracing::warn!(camera = %self.name, "the stream stopped: {why}; building it again in {:.1} s", self.backoff.as_secs_f64());
+        } else {
+            tracing::warn!(camera = %self.name, "the stream stopped: {why}");
+        }
+        if let Some(b) = self.built.take() {
+            b.retire();
+        }
+        self.held = None;
+        self.stopped = Some(why);
+        self.restart_at = Some(Instant::now() + self.backoff);
+    }
+
+    /// Builds the pipeline again if the back-off has passed.
+    fn try_restart(&mut self) {
+        if !self.restart || self.restart_at.is_some_and(|t| Instant::now() < t) {
+            return;
+        }
+        self.backoff = (self.backoff * 2).min(RESTART_MAX);
+        self.restart_at = Some(Instant::now() + self.backoff);
+        self.restarts += 1;
+        let built = Built::new(&self.name, &self.desc).and_then(|b| b.play(&self.name).map(|()| b));
+        match built {
+            Ok(b) => {
+                tracing::warn!(camera = %self.name, restarts = self.restarts, "stream pipeline built again");
+                self.built = Some(b);
+                self.built_at = Some(Instant::now());
+                self.stopped = None;
+                // Its clock starts again: stamps go on from the last one.
+                self.rebase = true;
+                self.last_pts = None;
+            }
+            Err(e) => {
+                tracing::warn!(camera = %self.name, "building the stream again: {e}");
+            }
+        }
+    }
+
+    /// Wall time since the last frame was delivered (or the pipeline was built).
+    fn silent_for(&self) -> Duration {
+        match (self.delivered_at, self.built_at) {
+            (Some(a), Some(b)) => a.max(b).elapsed(),
+            (Some(t), None) | (None, Some(t)) => t.elapsed(),
+            (None, None) => Duration::ZERO,
+        }
+    }
+
+    /// How long a running stream may stay silent before it is built again: 2 s, or 4
+    /// frame periods of a slower camera.
+    fn silence_limit(&self) -> Duration {
+        STALL_RESTART.max(Duration::from_secs_f64(4.0 / self.fps))
+    }
+
+    /// The control's newest report: a change in force goes to the attribution.
+    fn poll_control(&mut self) {
+        let a = self.control.applied();
+        if a.seq != self.applied_seq {
+            self.applied_seq = a.seq;
+            self.attribution.commanded(a.exposure_us);
+        }
+    }
+
+    /// The stamp of a frame at pipeline time `raw_s`: continuous across restarts and
+    /// always increasing.
+    fn stamp(&mut self, raw_s: f64) -> f64 {
+        let now = Instant::now();
+        if self.rebase {
+            self.rebase = false;
+            if let (Some(last), Some(at)) = (self.last_stamp, self.delivered_at) {
+                self.stamp_offset = last + now.duration_since(at).as_secs_f64() - raw_s;
+            }
+        }
+        let mut t = raw_s + self.stamp_offset;
+        if let (Some(last), Some(at)) = (self.last_stamp, self.delivered_at) {
+            if t <= last {
+                let next = last + 1.0 / self.fps;
+                self.stamp_offset += next - t;
+                t = next;
+            }
+            // After a wait of a grab tick or more the loop has ticked on its own clock
+            // (the last stamp plus the time waited): a stream whose clock fell behind
+            // meanwhile is moved up to it, so loop time never goes back.
+            let waited = now.duration_since(at);
+            if waited >= GRAB_TICK {
+                let floor = last + waited.as_secs_f64();
+                if t < floor {
+                    self.stamp_offset += floor - t;
+                    t = floor;
+                }
+            }
+        }
+        self.last_stamp = Some(t);
+        self.delivered_at = Some(now);
+        t
+    }
 }
 
 impl Drop for StreamCamera {
     fn drop(&mut self) {
-        let _ = self.pipeline.set_state(gst::State::Null);
+        // Connections first: an rtspsrc blocked on its server returns at once.
+        if let Some(g) = &self.guard {
+            g.close_all();
+        }
+        if let Some(b) = self.built.take() {
+            let _ = b.pipeline.set_state(gst::State::Null);
+        }
     }
 }
 
@@ -376,39 +608,43 @@ impl Camera for StreamCamera {
     fn set_exposure_us(&mut self, exposure_us: f64) -> Result<f64, CameraError> {
         self.requested_us = exposure_us;
         let want = quantize(self.limits.clamp(exposure_us), self.step_us);
-        if (want - self.current_us).abs() < 0.5 {
-            return Ok(self.current_us);
-        }
-        match self.control.set_exposure_us(want) {
-            Ok(got) => {
-                self.current_us = got;
-                self.warned_control = false;
-                self.attribution.commanded(got);
-            }
-            Err(e) => {
-                // The camera keeps its last exposure; the loop goes on with it.
-                if !self.warned_control {
-                    tracing::warn!("{e}; keeping exposure {} us", self.current_us);
-                    self.warned_control = true;
-                }
-            }
-        }
-        Ok(self.current_us)
+        // To the worker: never waits on the camera (the newest request wins).
+        self.control.request(want);
+        let a = self.control.applied();
+        Ok(if a.exposure_us.is_finite() {
+            a.exposure_us
+        } else {
+            want
+        })
     }
     fn frames_passed_over(&self) -> u64 {
         self.passed_over
     }
     fn grab(&mut self, frame: &mut Frame) -> Result<(), CameraError> {
-        if let Some(why) = &self.stopped {
-            return Err(self.read_err(format!("{NO_FRAME_REASON}: the stream stopped: {why}")));
+        self.poll_control();
+        if self.built.is_none() {
+            self.try_restart();
         }
+        let Some(built) = &self.built else {
+            // Stopped: wait the tick out (the loop's clock runs on), never spin.
+            std::thread::sleep(GRAB_TICK);
+            let why = self.stopped.as_deref().unwrap_or("stopped");
+            return Err(self.read_err(format!("{NO_FRAME_REASON}: the stream stopped: {why}")));
+        };
         let Some(sample) = self.held.take().or_else(|| {
-            self.sink
+            built
+                .sink
                 .try_pull_sample(gst::ClockTime::from_nseconds(GRAB_TICK.as_nanos() as u64))
         }) else {
-            if let Some(why) = bus_problem(&self.bus) {
-                tracing::warn!(camera = %self.name, "the stream stopped: {why}");
-                self.stopped = Some(why);
+            if let Some(why) = bus_problem(&built.bus) {
+                self.on_stopped(why);
+            } else if let Some(why) = self.guard.as_ref().and_then(RtspGuard::failure) {
+                self.on_stopped(why);
+            } else if self.restart && self.silent_for() >= self.silence_limit() {
+                // Running but silent (a decoder or jitter buffer stuck after bad
+                // packets): built again like a stream that ended.
+                let why = format!("no frame for {:.1} s", self.silent_for().as_secs_f64());
+                self.on_stopped(why);
             }
             return Err(self.read_err(NO_FRAME_REASON.into()));
         };
@@ -424,6 +660,11 @@ impl Camera for StreamCamera {
             .ok()
             .zip(st.get::<i32>("height").ok())
             .ok_or_else(|| self.read_err("a sample without width/height caps".into()))?;
+        if !(1..=MAX_SIDE_PX).contains(&w) || !(1..=MAX_SIDE_PX).contains(&h) {
+            return Err(self.read_err(format!(
+                "a {w}x{h} frame (sides 1..{MAX_SIDE_PX} pixels expected)"
+            )));
+        }
         let limited = limited_range(
             st.get::<&str>("format").unwrap_or("GRAY8"),
             st.get::<&str>("colorimetry").ok(),
@@ -432,7 +673,7 @@ impl Camera for StreamCamera {
             self.lut = range_lut(limited);
             self.lut_limited = limited;
         }
-        let (w, h) = (w.max(0) as u32, h.max(0) as u32);
+        let (w, h) = (w as u32, h as u32);
         let map = buffer
             .map_readable()
             .map_err(|e| self.read_err(format!("cannot map the buffer: {e}")))?;
@@ -462,11 +703,12 @@ impl Camera for StreamCamera {
         let sampled = (h as u64) * (w as u64).div_ceil(8);
         let mean = sum as f64 / sampled.max(1) as f64;
         let pts = buffer.pts();
+        drop(map);
         // Frames the camera took in between, from the timestamps.
         let gap = match (self.last_pts, pts) {
             (Some(a), Some(b)) if b > a => {
                 let dt = (b - a).nseconds() as f64 * 1e-9;
-                ((dt * self.fps).round() as u64).max(1)
+                ((dt * self.fps).round().min(1e9) as u64).max(1)
             }
             _ => 1,
         };
@@ -479,8 +721,11 @@ impl Camera for StreamCamera {
         }
         self.delivered = true;
         self.last_pts = pts.or(self.last_pts);
+        // A frame came: the next stop waits the shortest back-off again.
+        self.backoff = RESTART_FIRST;
         frame.meta.seq = self.seq;
-        frame.meta.stamp_s = pts.map_or(self.seq as f64 / self.fps, |p| p.nseconds() as f64 * 1e-9);
+        let raw = pts.map_or(self.seq as f64 / self.fps, |p| p.nseconds() as f64 * 1e-9);
+        frame.meta.stamp_s = self.stamp(raw);
         let taken = self.attribution.frame(self.seq, mean);
         // A frame taken at the step the last request rounds to is labelled with the
         // request: the controller sees it exposed as commanded (the true value is at
@@ -495,6 +740,9 @@ impl Camera for StreamCamera {
         Ok(())
     }
 }
+
+/// The longest side of a frame accepted from a stream, pixels.
+pub const MAX_SIDE_PX: i32 = 8192;
 
 #[cfg(test)]
 mod tests {
