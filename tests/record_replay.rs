@@ -819,6 +819,16 @@ fn a_run_of_each_camera_kind_records_and_replays() {
             out.frames_replayed, out.commands_match
         );
         assert!(out.frames_replayed >= 20, "{name}: {out:?}");
-        assert!(out.commands_match, "{name}: {out:?}");
+        // The recorder never blocks the loop: on a loaded host it may drop a frame, and
+        // says so; replay then stops there, every command before it matched.
+        let dropped = out
+            .first_mismatch
+            .as_ref()
+            .is_some_and(|m| m.field == "image" && m.recorded == "dropped while recording");
+        assert!(out.commands_match || dropped, "{name}: {out:?}");
+        assert_eq!(
+            out.commands_compared, out.frames_replayed,
+            "{name}: {out:?}"
+        );
     }
 }

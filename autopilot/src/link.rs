@@ -48,7 +48,7 @@ mod gcs;
 mod station;
 pub use exit::{CloseReport, NeutralShown, Settled};
 pub use gcs::{PilotSeen, Severity, NAMED_VALUE_MAX, STATUSTEXT_MAX};
-pub use station::{StationSeen, STATION_GRACE_S};
+pub use station::{StationSeen, STATION_RELAY_S};
 
 /// One MAVLink frame as it crossed the wire, for a recorder: fixed size, copied into a
 /// bounded channel (no allocation per message; dropped and counted when the channel is

@@ -77,6 +77,7 @@ def main():
         sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         sock.bind(("127.0.0.1", 0))
         sock.setblocking(False)
+        udp_peers = {}  # address -> its current Session
         print("UDP %d" % sock.getsockname()[1], flush=True)
 
         def send(b):
@@ -841,6 +842,7 @@ def exit_main(args):
         sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         sock.bind(("127.0.0.1", 0))
         sock.setblocking(False)
+        udp_peers = {}  # address -> its current Session
         print("UDP %d" % sock.getsockname()[1], flush=True)
         watch.append(sock)
     elif args.mode == "tcp":
@@ -886,12 +888,19 @@ def exit_main(args):
                     pass
             elif args.mode == "udp":
                 data, addr = sock.recvfrom(65536)
-                sess = sessions.get(addr)
+                sess = udp_peers.get(addr)
                 if sess is None:
                     sess = Session(addr, lambda b, a=addr: sock.sendto(b, a))
+                    udp_peers[addr] = sess
                 for m in sess.veh.parse_buffer(data) or []:
                     got = sess.frame(m, now)
                     if got:
+                        if sess.mh_sess is not None and got[1] != sess.mh_sess:
+                            # The kernel gave a later markhold the port of an earlier
+                            # one: a new session of the same vehicle.
+                            new = Session((addr, got[1]), lambda b, a=addr: sock.sendto(b, a))
+                            new.follow(sess)
+                            udp_peers[addr] = sess = new
                         sess.mh_sess = got[1]
             elif args.mode == "tcp":
                 if f == lsock:
@@ -1198,7 +1207,8 @@ def hold_main(args):
                 texts.append((round(now - t0, 3), m.severity, text))
                 if text.startswith("markhold on") and on_at is None:
                     on_at = now
-            elif m.get_srcSystem() != 255:
+            elif t in ("RC_CHANNELS_OVERRIDE", "MANUAL_CONTROL") and m.get_srcSystem() != 255:
+                # ArduSub takes pilot input from SYSID_MYGCS alone; commands from anyone.
                 continue
             elif t == "RC_CHANNELS_OVERRIDE":
                 ch = [m.chan1_raw, m.chan2_raw, m.chan3_raw, m.chan4_raw, m.chan5_raw, m.chan6_raw]

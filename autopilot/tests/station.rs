@@ -7,7 +7,7 @@
 
 use std::net::{SocketAddr, UdpSocket};
 
-use markhold_autopilot::link::STATION_GRACE_S;
+use markhold_autopilot::link::STATION_RELAY_S;
 use markhold_autopilot::mavlink::dialects::ardupilotmega::*;
 use markhold_autopilot::mavlink::{self, MavHeader, MavlinkReader};
 use markhold_autopilot::{station_timeout_s, Effort, LinkConfig, VehicleLink};
@@ -133,7 +133,15 @@ fn pilot_input_stops_when_the_station_falls_silent_and_resumes_when_it_is_heard(
             }
         }
         if t > 1.0 && t < 3.0 {
-            assert!(link.gcs_traffic_allowed() && !link.station_lost(), "at {t}");
+            // A live station: never lost; pilot input relayed for STATION_RELAY_S after
+            // each of its heartbeats, withheld for the rest of the second.
+            assert!(!link.station_lost(), "at {t}");
+            let since = t - last_station.unwrap();
+            assert_eq!(
+                link.gcs_traffic_allowed(),
+                since <= STATION_RELAY_S,
+                "at {t}"
+            );
         }
     }
     // Only pilot input as 255; everything from component 191.
@@ -143,9 +151,9 @@ fn pilot_input_stops_when_the_station_falls_silent_and_resumes_when_it_is_heard(
     assert_eq!(link.fs_gcs_timeout_s(), (2.5, true));
     assert_eq!(link.station_timeout_s(), 1.25);
     // Station heartbeats at 0, 1, 2 s, none at 3, 4, 5 s: its last one before the
-    // silence at 2 s; pilot input ends within the station timeout and the grace of it.
+    // silence at 2 s; pilot input ends within the relay window of it.
     let silent_from = 2.0;
-    let limit = silent_from + 1.25 + STATION_GRACE_S + step;
+    let limit = silent_from + STATION_RELAY_S + 1e-9;
     let during: Vec<f64> = pilot_at
         .iter()
         .cloned()
@@ -157,7 +165,11 @@ fn pilot_input_stops_when_the_station_falls_silent_and_resumes_when_it_is_heard(
     );
     assert!(pilot_at
         .iter()
-        .any(|t| *t > silent_from + 1.2 && *t <= limit));
+        .any(|t| *t > limit - 2.0 * step && *t <= limit));
+    // Between two live heartbeats (1 s and 2 s) the same pause.
+    assert!(!pilot_at
+        .iter()
+        .any(|t| *t > 1.0 + STATION_RELAY_S + 1e-9 && *t < 2.0 - 1e-9));
     let st = link.state();
     assert!(st.counters.gcs_withheld > 50, "{:?}", st.counters);
     assert_eq!(st.station.losses, 1);

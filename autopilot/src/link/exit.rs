@@ -95,7 +95,9 @@ impl VehicleLink {
             {
                 break NeutralShown::ServoOutputs;
             }
-            if !st.heartbeat_ok || !self.gcs_traffic_allowed() {
+            // Between two of a live station's heartbeats the link withholds pilot input
+            // (the relay window): wait for the next; a lost station ends the wait.
+            if !st.heartbeat_ok || st.station.lost {
                 break if neutrals == 0 {
                     NeutralShown::NotSent
                 } else {

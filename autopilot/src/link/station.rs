@@ -1,15 +1,22 @@
 //! The pilot's station: watched so that markhold never keeps ArduSub's GCS failsafe quiet.
 //!
-//! ArduSub's `Sub::failsafe_gcs_check` (ArduSub/failsafe.cpp) fires when nothing has come
-//! from SYSID_MYGCS for FS_GCS_TIMEOUT, and it counts as contact any HEARTBEAT from that
-//! system id (`GCS_MAVLINK::handle_heartbeat`), any RC_CHANNELS_OVERRIDE from it
+//! ArduSub's `Sub::failsafe_gcs_check` (ArduSub/failsafe.cpp, run from `three_hz_loop`
+//! in ArduSub/ArduSub.cpp: up to 0.3 s late) fires when nothing has come from SYSID_MYGCS
+//! for FS_GCS_TIMEOUT, and it counts as contact any HEARTBEAT from that system id
+//! (`GCS_MAVLINK::handle_heartbeat`), any RC_CHANNELS_OVERRIDE from it
 //! (`GCS_MAVLINK::handle_rc_channels_override`) and any MANUAL_CONTROL from it aimed at
 //! the vehicle (`GCS_MAVLINK_Sub::handleMessage`). markhold's pilot input has to come
-//! from SYSID_MYGCS, so while it commands it is ground-station contact. Once the
-//! station has been heard, its silence for [`crate::config::station_timeout_s`] marks it
-//! lost (the engagement lets go and says why), and from [`STATION_GRACE_S`] later no
-//! frame goes out as SYSID_MYGCS at all until it is heard again: the failsafe then fires
-//! as it would without markhold, `station_timeout_s` and a frame later at most.
+//! from SYSID_MYGCS, so while it commands it is ground-station contact.
+//!
+//! So markhold only relays the station's contact: once the station has been heard, pilot
+//! input goes out only within [`STATION_RELAY_S`] of the station's last HEARTBEAT (or its
+//! own pilot input), whatever the caller asks. A live station heartbeats at 1 Hz, so
+//! pilot input pauses about 0.3 s each second; ArduSub holds the last input through the
+//! pause (RC_OVERRIDE_TIME and FS_PILOT_TIMEOUT are 3 s). When the station falls silent,
+//! the failsafe fires at most [`STATION_RELAY_S`] and one check period (0.3 s) later than
+//! without markhold: within FS_GCS_TIMEOUT + 1 s of the station's last heartbeat. Silence
+//! for [`crate::config::station_timeout_s`] marks the station lost: the engagement lets
+//! go and says why (as a component of the vehicle, which is not ground-station contact).
 
 use mavlink::dialects::ardupilotmega::MavMessage;
 use mavlink::MavHeader;
@@ -20,10 +27,11 @@ use super::VehicleLink;
 /// The vehicle's parameter that says how long its GCS failsafe waits.
 pub(super) const FS_GCS_TIMEOUT: &str = "FS_GCS_TIMEOUT";
 
-/// After the station is taken for lost, pilot input may still go out this long (loop
-/// time): the neutral input and the release of the disengage that follows, s. Past it
-/// nothing goes out as SYSID_MYGCS, whatever the caller asks.
-pub const STATION_GRACE_S: f64 = 0.1;
+/// Pilot input (SYSID_MYGCS traffic) goes out only this long after the pilot's station
+/// was last heard, s: markhold never extends the station's contact by more, so the
+/// vehicle's GCS failsafe, checked every 0.3 s, fires within FS_GCS_TIMEOUT + 1 s of the
+/// station's last heartbeat.
+pub const STATION_RELAY_S: f64 = 0.7;
 
 /// What the link heard of the pilot's station.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Serialize)]
@@ -94,11 +102,11 @@ impl VehicleLink {
     }
 
     /// Whether pilot input (the SYSID_MYGCS traffic) may go out now: always while no
-    /// station was ever heard (a bench, a simulator), else until [`STATION_GRACE_S`]
-    /// after the station timeout ran out.
+    /// station was ever heard (a bench, a simulator), else within [`STATION_RELAY_S`] of
+    /// the station's last contact.
     pub fn gcs_traffic_allowed(&self) -> bool {
         match (self.state.station.last_s, self.last_tick_s) {
-            (Some(last), Some(now)) => now - last <= self.station_timeout_s + STATION_GRACE_S,
+            (Some(last), Some(now)) => now - last <= STATION_RELAY_S,
             _ => true,
         }
     }
