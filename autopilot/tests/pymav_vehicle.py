@@ -78,6 +78,7 @@ def main():
         sock.bind(("127.0.0.1", 0))
         sock.setblocking(False)
         udp_peers = {}  # address -> its current Session
+        udp_seqs = {}  # address -> {(system, component): last MAVLink sequence}
         print("UDP %d" % sock.getsockname()[1], flush=True)
 
         def send(b):
@@ -843,6 +844,7 @@ def exit_main(args):
         sock.bind(("127.0.0.1", 0))
         sock.setblocking(False)
         udp_peers = {}  # address -> its current Session
+        udp_seqs = {}  # address -> {(system, component): last MAVLink sequence}
         print("UDP %d" % sock.getsockname()[1], flush=True)
         watch.append(sock)
     elif args.mode == "tcp":
@@ -893,6 +895,19 @@ def exit_main(args):
                     sess = Session(addr, lambda b, a=addr: sock.sendto(b, a))
                     udp_peers[addr] = sess
                 for m in sess.veh.parse_buffer(data) or []:
+                    # A markhold starts each of its MAVLink sequences at 0: a sequence
+                    # that restarts (not a wrap) is a later markhold the kernel gave an
+                    # earlier one's UDP port, a new session of the same vehicle.
+                    if m.get_type() != "BAD_DATA":
+                        sid = (m.get_srcSystem(), m.get_srcComponent())
+                        seqs = udp_seqs.setdefault(addr, {})
+                        last = seqs.get(sid)
+                        if m.get_seq() == 0 and last is not None and last != 255:
+                            new = Session((addr, len(sessions)), lambda b, a=addr: sock.sendto(b, a))
+                            new.follow(sess)
+                            udp_peers[addr] = sess = new
+                            seqs.clear()
+                        seqs[sid] = m.get_seq()
                     got = sess.frame(m, now)
                     if got:
                         if sess.mh_sess is not None and got[1] != sess.mh_sess:
