@@ -555,6 +555,7 @@ fn calibration_of(
         cx: need("cx_px", cam.cx_px)?,
         cy: need("cy_px", cam.cy_px)?,
         dist: cam.distortion.to_vec(),
+        model: markhold_vision::DistortionModel::PlumbBob,
     })
 }
 

@@ -13,10 +13,12 @@
 //! order (tx, ty, tz, rx, ry, rz)).
 
 mod calib;
+pub mod calibration;
 mod camera;
 mod config;
 mod corners;
 mod dict;
+pub mod distortion;
 mod error;
 pub mod mapping;
 pub mod pose;
@@ -24,13 +26,14 @@ pub mod synth;
 mod tracker;
 mod yaml;
 
-pub use calib::CameraCalibration;
+pub use calib::{CalibrationNotes, CameraCalibration};
 pub use camera::{FrameRecorder, RecordedCamera, V4l2Camera, SIDECAR};
 pub use config::{
     DetectorConfig, MapMarker, MarkerConfig, MarkerFamily, PlacedMarker, MAX_MAP_MARKERS,
 };
 pub use corners::CornerCov;
 pub use dict::{marker_bitmap, MarkerBitmap};
+pub use distortion::DistortionModel;
 pub use error::VisionError;
 pub use markhold_config::ConfigError;
 pub use pose::{cov_in_frame, cov_of_inverse};

@@ -15,6 +15,7 @@ fn calib() -> CameraCalibration {
         cx: 722.0,
         cy: 538.0,
         dist: vec![-0.12, 0.04, 0.0005, -0.0003, 0.0],
+        model: crate::DistortionModel::PlumbBob,
     }
 }
 
