@@ -109,6 +109,10 @@ pub struct CameraSection {
     /// intrinsics below.
     #[serde(default)]
     pub calibration_file: Option<PathBuf>,
+    /// Where the intrinsics come from: `placeholder`, `in-air`, `in-water` or
+    /// `simulated` (`params check` and `run` warn unless `in-water`; unset: unknown).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub calibration_source: Option<markhold_vision::CalibrationSource>,
     #[serde(default)]
     pub fx_px: Option<f64>,
     #[serde(default)]

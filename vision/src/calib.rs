@@ -27,6 +27,33 @@ pub struct CameraCalibration {
     pub model: DistortionModel,
 }
 
+/// Where a site's camera intrinsics come from (`[camera] calibration_source`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum CalibrationSource {
+    /// Not this camera's: values to start from (a nominal field of view).
+    Placeholder,
+    /// Calibrated in air: under water the port's refraction changes the focal length
+    /// (about 1.33x behind a flat port) and the distortion.
+    InAir,
+    /// Calibrated in the water, through the port, at the working distance.
+    InWater,
+    /// The simulator's camera: `markhold hil` renders with exactly these intrinsics
+    /// (placeholders for a real camera).
+    Simulated,
+}
+
+impl CalibrationSource {
+    pub fn as_str(self) -> &'static str {
+        match self {
+            Self::Placeholder => "placeholder",
+            Self::InAir => "in-air",
+            Self::InWater => "in-water",
+            Self::Simulated => "simulated",
+        }
+    }
+}
+
 /// What a calibration file says of where it was made, besides the intrinsics (keys that
 /// `markhold calibrate` writes; other tools' files have none of them).
 #[derive(Debug, Clone, Default, PartialEq)]

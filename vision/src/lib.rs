@@ -26,7 +26,7 @@ pub mod synth;
 mod tracker;
 mod yaml;
 
-pub use calib::{CalibrationNotes, CameraCalibration};
+pub use calib::{CalibrationNotes, CalibrationSource, CameraCalibration};
 pub use camera::{FrameRecorder, RecordedCamera, V4l2Camera, SIDECAR};
 pub use config::{
     DetectorConfig, MapMarker, MarkerConfig, MarkerFamily, PlacedMarker, MAX_MAP_MARKERS,

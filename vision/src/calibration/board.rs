@@ -24,12 +24,14 @@ use crate::error::CvContext;
 use crate::pose::marker_object_points;
 use crate::{CameraCalibration, MarkerFamily, VisionError};
 
-/// One marker of a marker grid: its id, side and centre on the target (unrotated).
+/// One marker of a marker grid: its id, side, centre on the target and turn in the
+/// target's plane (counter-clockwise as printed, degrees).
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct GridMarker {
     pub id: u32,
     pub size_m: f64,
     pub centre_m: [f64; 2],
+    pub turn_deg: f64,
 }
 
 /// A planar calibration target of known geometry.
@@ -77,6 +79,7 @@ impl Target {
                     id: first_id + j * tags_x + i,
                     size_m: tag_m,
                     centre_m: [i as f64 * pitch, -(j as f64) * pitch],
+                    turn_deg: 0.0,
                 });
             }
         }
@@ -417,9 +420,14 @@ impl BoardDetector {
             }
             found.markers += 1;
             let obj = marker_object_points(m.size_m);
+            let (sn, cs) = m.turn_deg.to_radians().sin_cos();
             for (o, p) in obj.iter().zip(&q) {
                 found.points.push((
-                    Point3::new(o.x + m.centre_m[0], o.y + m.centre_m[1], 0.0),
+                    Point3::new(
+                        cs * o.x - sn * o.y + m.centre_m[0],
+                        sn * o.x + cs * o.y + m.centre_m[1],
+                        0.0,
+                    ),
                     Vector2::new(p[0] as f64, p[1] as f64),
                 ));
             }
@@ -479,4 +487,169 @@ fn checkerboard(
         ));
     }
     Ok(found)
+}
+
+/// A grey image file (PNG, JPEG, ... as OpenCV reads them; colour is converted) as a
+/// frame. Errors name the file.
+pub fn read_image(path: &std::path::Path) -> Result<Frame, VisionError> {
+    let img = opencv::imgcodecs::imread(path, opencv::imgcodecs::IMREAD_GRAYSCALE).cv("imread")?;
+    if img.empty() || img.typ() != core::CV_8UC1 {
+        return Err(VisionError::Io {
+            path: path.to_path_buf(),
+            source: std::io::Error::new(
+                std::io::ErrorKind::InvalidData,
+                "not an image OpenCV can read (PNG, JPEG, BMP, TIFF, ...)",
+            ),
+        });
+    }
+    let (w, h) = (img.cols() as u32, img.rows() as u32);
+    let mut frame = Frame::new(w, h);
+    let cont = if img.is_continuous() {
+        img
+    } else {
+        img.try_clone().cv("clone image")?
+    };
+    frame
+        .data
+        .copy_from_slice(&cont.data_bytes().cv("image bytes")?[..(w * h) as usize]);
+    Ok(frame)
+}
+
+/// A marker of a target's printed layout.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct PrintedMarker {
+    pub id: u32,
+    /// Top-left corner of the black square on the page, metres from the board's top-left
+    /// corner (y down), its side, and its turn (counter-clockwise as printed, degrees).
+    pub x_m: f64,
+    pub y_m: f64,
+    pub size_m: f64,
+    pub turn_deg: f64,
+}
+
+/// What a target looks like printed: its extent, the black squares of a checker pattern
+/// and the markers, all in metres from its top-left corner (y down, as on paper).
+#[derive(Debug, Clone, PartialEq)]
+pub struct BoardLayout {
+    pub width_m: f64,
+    pub height_m: f64,
+    /// Black squares: (x, y, side).
+    pub squares: Vec<[f64; 3]>,
+    pub markers: Vec<PrintedMarker>,
+    pub family: Option<MarkerFamily>,
+}
+
+impl Target {
+    /// The printed layout. ChArUco boards take OpenCV's own geometry (the markers'
+    /// places and ids from `CharucoBoard::create`, the squares without a marker black),
+    /// so what is printed is what the detector expects.
+    pub fn layout(&self) -> Result<BoardLayout, VisionError> {
+        self.validate()?;
+        match self {
+            Target::Charuco {
+                squares_x,
+                squares_y,
+                square_m,
+                marker_m,
+                family,
+            } => {
+                let d = dictionary(*family)?;
+                let b = aruco::CharucoBoard::create(
+                    *squares_x as i32,
+                    *squares_y as i32,
+                    *square_m as f32,
+                    *marker_m as f32,
+                    &d,
+                )
+                .cv("CharucoBoard::create")?;
+                let height = *squares_y as f64 * square_m;
+                let mut markers = Vec::new();
+                let mut white = vec![false; (squares_x * squares_y) as usize];
+                for (quad, id) in b.obj_points().iter().zip(b.ids().iter()) {
+                    // Corner 0 is the marker's top-left, in board coordinates (y up).
+                    let p0 = quad.get(0).cv("board corner")?;
+                    let (x, y) = (p0.x as f64, height - p0.y as f64);
+                    markers.push(PrintedMarker {
+                        id: id as u32,
+                        x_m: x,
+                        y_m: y,
+                        size_m: *marker_m,
+                        turn_deg: 0.0,
+                    });
+                    let (i, j) = ((x / square_m) as usize, (y / square_m) as usize);
+                    if let Some(w) = white.get_mut(j * *squares_x as usize + i) {
+                        *w = true;
+                    }
+                }
+                let mut squares = Vec::new();
+                for j in 0..*squares_y as usize {
+                    for i in 0..*squares_x as usize {
+                        if !white[j * *squares_x as usize + i] {
+                            squares.push([i as f64 * square_m, j as f64 * square_m, *square_m]);
+                        }
+                    }
+                }
+                Ok(BoardLayout {
+                    width_m: *squares_x as f64 * square_m,
+                    height_m: height,
+                    squares,
+                    markers,
+                    family: Some(*family),
+                })
+            }
+            Target::Checkerboard {
+                inner_x,
+                inner_y,
+                square_m,
+            } => {
+                let (nx, ny) = (inner_x + 1, inner_y + 1);
+                let mut squares = Vec::new();
+                for j in 0..ny {
+                    for i in 0..nx {
+                        if (i + j) % 2 == 0 {
+                            squares.push([i as f64 * square_m, j as f64 * square_m, *square_m]);
+                        }
+                    }
+                }
+                Ok(BoardLayout {
+                    width_m: nx as f64 * square_m,
+                    height_m: ny as f64 * square_m,
+                    squares,
+                    markers: Vec::new(),
+                    family: None,
+                })
+            }
+            Target::Markers { family, markers } => {
+                // Extent of the markers (their turned corners), with one marker module of
+                // white around.
+                let mut lo = [f64::MAX; 2];
+                let mut hi = [f64::MIN; 2];
+                let cells = (family.data_bits() + 2) as f64;
+                for m in markers {
+                    let r = m.size_m * (0.5 * std::f64::consts::SQRT_2 + 1.0 / cells);
+                    for k in 0..2 {
+                        lo[k] = lo[k].min(m.centre_m[k] - r);
+                        hi[k] = hi[k].max(m.centre_m[k] + r);
+                    }
+                }
+                let printed = markers
+                    .iter()
+                    .map(|m| PrintedMarker {
+                        id: m.id,
+                        x_m: m.centre_m[0] - lo[0] - m.size_m / 2.0,
+                        y_m: hi[1] - m.centre_m[1] - m.size_m / 2.0,
+                        size_m: m.size_m,
+                        turn_deg: m.turn_deg,
+                    })
+                    .collect();
+                Ok(BoardLayout {
+                    width_m: hi[0] - lo[0],
+                    height_m: hi[1] - lo[1],
+                    squares: Vec::new(),
+                    markers: printed,
+                    family: Some(*family),
+                })
+            }
+        }
+    }
 }

@@ -87,7 +87,7 @@ impl Default for CalibrationSettings {
             min_points_per_view: 8,
             min_views: 3,
             min_tilt_deg: 10.0,
-            max_focal_sigma: 0.02,
+            max_focal_sigma: 0.05,
             reject_view_factor: 3.0,
             reject_view_floor_px: 0.5,
             reject_point_factor: 5.0,
