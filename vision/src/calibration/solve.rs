@@ -138,6 +138,18 @@ fn project(
     let mut jp = nalgebra::Matrix2x6::zeros();
     jp.fixed_view_mut::<2, 3>(0, 0).copy_from(&d);
     jp.fixed_view_mut::<2, 3>(0, 3).copy_from(&drot);
+    let ji = columns(c, params, &q, &jd);
+    Some((uv, Some((jp, ji))))
+}
+
+/// The Jacobian of a pixel w.r.t. the free intrinsics `params` (2 x n), for the
+/// distorted normalised point `q` and its coefficient Jacobian `jd`.
+fn columns(
+    c: &CameraCalibration,
+    params: &[Param],
+    q: &Vector2<f64>,
+    jd: &[[f64; 2]],
+) -> DMatrix<f64> {
     let mut ji = DMatrix::zeros(2, params.len());
     for (k, prm) in params.iter().enumerate() {
         let (a, b) = match *prm {
@@ -151,7 +163,21 @@ fn project(
         ji[(0, k)] = a;
         ji[(1, k)] = b;
     }
-    Some((uv, Some((jp, ji))))
+    ji
+}
+
+/// The Jacobian of the pixel of the normalised point `(x, y)` w.r.t. the free
+/// intrinsics `params` (2 x `params.len()`).
+pub fn intrinsic_jacobian(c: &CameraCalibration, params: &[Param], x: f64, y: f64) -> DMatrix<f64> {
+    let (q, jd) = distortion::distort_coefficient_jacobian(c.model, &c.dist, x, y);
+    columns(c, params, &q, &jd)
+}
+
+/// Apply a step `delta` (in the order of `params`) to `c`.
+pub fn step_intrinsics(c: &mut CameraCalibration, params: &[Param], delta: &[f64]) {
+    for (p, d) in params.iter().zip(delta) {
+        p.add(c, *d);
+    }
 }
 
 /// `R = exp([dtheta]x) R`, `t = t + dt`.
