@@ -160,6 +160,10 @@ pub struct CalibrateArgs {
     /// The coverage picture (default: the --out file with .coverage.png).
     #[arg(long, value_name = "FILE.png")]
     pub coverage: Option<PathBuf>,
+    /// Also write the result as JSON: the calibration, each parameter's standard
+    /// deviation, each view's error, the coverage.
+    #[arg(long, value_name = "FILE.json")]
+    pub summary: Option<PathBuf>,
     /// Write the printable target (SVG, PDF or PNG) and stop.
     #[arg(long, value_name = "FILE")]
     pub print_target: Option<PathBuf>,
@@ -423,7 +427,64 @@ pub fn cli(args: CalibrateArgs) -> anyhow::Result<()> {
     }
     report(&cal, medium);
     write_outputs(&args, &out, &cal, medium, &source, &target, &sel)?;
+    if let Some(path) = &args.summary {
+        crate::write_summary(path, &summary_of(&cal, medium))?;
+    }
     Ok(())
+}
+
+/// `--summary`.
+#[derive(serde::Serialize)]
+struct Summary {
+    medium: &'static str,
+    calibration: CameraCalibration,
+    rms_px: f64,
+    views_used: usize,
+    points_used: usize,
+    /// (name, value, one standard deviation).
+    parameters: Vec<(String, f64, f64)>,
+    views: Vec<ViewSummary>,
+    coverage_cells: f64,
+    coverage_radius: f64,
+    working_distance_m: [f64; 2],
+}
+
+#[derive(serde::Serialize)]
+struct ViewSummary {
+    name: String,
+    points: usize,
+    points_used: usize,
+    rms_px: f64,
+    tilt_deg: f64,
+    distance_m: f64,
+    rejected: Option<String>,
+}
+
+fn summary_of(cal: &Calibration, medium: Medium) -> Summary {
+    Summary {
+        medium: medium.as_str(),
+        calibration: cal.calib.clone(),
+        rms_px: cal.rms_px,
+        views_used: cal.views_used,
+        points_used: cal.points_used,
+        parameters: cal.parameters.clone(),
+        views: cal
+            .views
+            .iter()
+            .map(|v| ViewSummary {
+                name: v.name.clone(),
+                points: v.points,
+                points_used: v.points_used,
+                rms_px: v.rms_px,
+                tilt_deg: v.tilt_deg,
+                distance_m: v.distance_m,
+                rejected: v.rejected.clone(),
+            })
+            .collect(),
+        coverage_cells: cal.coverage.cells_fraction,
+        coverage_radius: cal.coverage.radius_fraction,
+        working_distance_m: cal.working_distance_m,
+    }
 }
 
 /// Feed every image of the source to the selector; returns the source's name.

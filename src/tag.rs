@@ -775,8 +775,8 @@ impl BoardPage {
         pdf_document(self.page_w_mm, self.page_h_mm, &content)
     }
 
-    /// An 8-bit grey PNG at `dpi` (pHYs set); each polygon filled with its corners at
-    /// 1/256 pixel.
+    /// An 8-bit grey PNG at `dpi` (pHYs set): squares and modules with their edges on
+    /// the nearest pixel boundary (turned markers' modules to 1/256 pixel).
     pub fn png(&self, dpi: f64) -> anyhow::Result<Vec<u8>> {
         ensure!(
             dpi.is_finite() && (72.0..=4800.0).contains(&dpi),
@@ -799,8 +799,29 @@ impl BoardPage {
         const SHIFT: i32 = 8;
         let sub = f64::from(1 << SHIFT);
         for q in &self.polygons {
-            // Pixel i covers [i, i+1): a polygon edge at x mm falls at x * ppmm; OpenCV
-            // fills pixel centres, at i + 0.5.
+            let aligned = q[0][1] == q[1][1] && q[1][0] == q[2][0] && q[2][1] == q[3][1];
+            if aligned {
+                // Pixel i covers [i, i+1): an edge at x mm falls on the pixel boundary
+                // nearest x * ppmm, so neighbouring areas share their boundaries.
+                let (x0, x1) = ((q[0][0] * ppmm).round(), (q[1][0] * ppmm).round());
+                let (y0, y1) = ((q[0][1] * ppmm).round(), (q[2][1] * ppmm).round());
+                let rect =
+                    core::Rect::new(x0 as i32, y0 as i32, (x1 - x0) as i32, (y1 - y0) as i32);
+                if rect.width > 0 && rect.height > 0 {
+                    imgproc::rectangle(
+                        &mut img,
+                        rect,
+                        core::Scalar::all(0.0),
+                        imgproc::FILLED,
+                        imgproc::LINE_8,
+                        0,
+                    )
+                    .context("drawing the target")?;
+                }
+                continue;
+            }
+            // A turned marker's module: OpenCV fills the pixels whose centres (at i + 0.5)
+            // are inside, to 1/256 pixel.
             let pts: core::Vector<core::Point> = q
                 .iter()
                 .map(|p| {

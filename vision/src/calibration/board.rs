@@ -566,9 +566,10 @@ impl Target {
                 let mut markers = Vec::new();
                 let mut white = vec![false; (squares_x * squares_y) as usize];
                 for (quad, id) in b.obj_points().iter().zip(b.ids().iter()) {
-                    // Corner 0 is the marker's top-left, in board coordinates (y up).
+                    // Corner 0 is the marker's top-left; OpenCV 4.6's board coordinates
+                    // run as the printed page's (x right, y down).
                     let p0 = quad.get(0).cv("board corner")?;
-                    let (x, y) = (p0.x as f64, height - p0.y as f64);
+                    let (x, y) = (p0.x as f64, p0.y as f64);
                     markers.push(PrintedMarker {
                         id: id as u32,
                         x_m: x,
