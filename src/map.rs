@@ -372,37 +372,7 @@ pub fn section(site: &LoadedSite, source: &str, builder: &MapBuilder, est: &MapE
             ""
         }
     );
-    for p in &est.planes {
-        let ids: Vec<String> = p.ids.iter().map(u32::to_string).collect();
-        let _ = writeln!(
-            s,
-            "# plane \"{}\" (markers {}): corners off a common plane by {:.1} mm RMS, {:.1} \
-             mm at most (marker {}); faces tilted up to {:.2} deg (marker {}); centres off it \
-             by up to {:.1} sigma{}",
-            p.name,
-            ids.join(", "),
-            p.rms_m * 1e3,
-            p.max_m * 1e3,
-            p.worst_id,
-            p.max_tilt_deg,
-            p.tilt_id,
-            p.max_sigmas,
-            if p.max_sigmas > 3.0 {
-                ": NOT flat as declared: the camera model is wrong (calibrate in the water) \
-                 or the markers are not on one plane"
-            } else {
-                ""
-            }
-        );
-    }
-    if est.plane_factor > 1.0 {
-        let _ = writeln!(
-            s,
-            "# the planes deviate {:.1}x more than the covariance said: the 1-sigma below is \
-             scaled up by that",
-            est.plane_factor.sqrt()
-        );
-    }
+    write_planes(&mut s, est);
     if origin.id == marker.id {
         let _ = writeln!(
             s,
@@ -462,6 +432,41 @@ pub fn section(site: &LoadedSite, source: &str, builder: &MapBuilder, est: &MapE
         }
     }
     s
+}
+
+/// The plane groups' flatness, and the covariance's scale they led to.
+fn write_planes(s: &mut String, est: &MapEstimate) {
+    for p in &est.planes {
+        let ids: Vec<String> = p.ids.iter().map(u32::to_string).collect();
+        let _ = writeln!(
+            *s,
+            "# plane \"{}\" (markers {}): corners off a common plane by {:.1} mm RMS, {:.1} \
+             mm at most (marker {}); faces tilted up to {:.2} deg (marker {}); centres off it \
+             by up to {:.1} sigma{}",
+            p.name,
+            ids.join(", "),
+            p.rms_m * 1e3,
+            p.max_m * 1e3,
+            p.worst_id,
+            p.max_tilt_deg,
+            p.tilt_id,
+            p.max_sigmas,
+            if p.max_sigmas > 3.0 {
+                ": NOT flat as declared: the camera model is wrong (calibrate in the water) \
+                 or the markers are not on one plane"
+            } else {
+                ""
+            }
+        );
+    }
+    if est.plane_factor > 1.0 {
+        let _ = writeln!(
+            *s,
+            "# the planes deviate {:.1}x more than the covariance said: the 1-sigma below is \
+             scaled up by that",
+            est.plane_factor.sqrt()
+        );
+    }
 }
 
 /// `v` with `decimals` decimals and no negative zero.

@@ -10,9 +10,7 @@ use std::process::{Command, Output};
 use markhold_exposure::Frame;
 use markhold_vision::calibration::board::{read_image, BoardDetector, Target};
 use markhold_vision::synth::{render_markers, SceneParams};
-use markhold_vision::{
-    marker_bitmap, CameraCalibration, FrameRecorder, MarkerConfig, MarkerFamily,
-};
+use markhold_vision::{marker_bitmap, CameraCalibration, FrameRecorder, MarkerFamily};
 use nalgebra::{Isometry3, Matrix3, Rotation3, Translation3, UnitQuaternion, Vector3};
 use opencv::{aruco, core, imgcodecs, prelude::*};
 
@@ -365,243 +363,265 @@ fn the_printed_board_is_what_the_detector_expects() {
     }
 }
 
-/// The HIL site of the calibration test: `[camera]` of the pool fixture at 640x480 with
-/// a pincushion lens (as a flat port gives), the station and mount of one view, and
-/// `markers` as the map.
-fn hil_site(name: &str, view: [f64; 6], origin_size: f64, markers: &str) -> String {
-    let base = std::fs::read_to_string(repo("tests/fixtures/pool-640-map4.toml")).unwrap();
-    let head = &base[..base.find("# The station marker is the site frame").unwrap()];
-    let [dist, lat, vert, yaw, pitch, roll] = view;
-    head.replace("name = \"pool-640-map4\"", &format!("name = \"{name}\""))
-        .replace(
-            "size_m = 0.15             # edge",
-            &format!("size_m = {origin_size} # edge"),
-        )
-        .replace(
-            "cy_px = 240.0\n",
-            &format!("cy_px = 240.0\ndistortion = {LENS}\n"),
-        )
-        .replace(
-            "distance_m = 1.0          # hold 1 m in front of the marker, facing it",
-            &format!(
-                "distance_m = {dist}\nlateral_m = {lat}\nvertical_m = {vert}\nyaw_deg = {yaw}"
-            ),
-        )
-        .replace(
-            "mount_rpy_deg = [0.0, 0.0, 0.0]      # looking straight ahead",
-            &format!("mount_rpy_deg = [{roll}, {pitch}, 0.0]"),
-        )
-        + markers
-}
+/// Needs the simulator (`markhold hil`).
+#[cfg(feature = "sim")]
+mod hil {
+    use super::*;
+    use markhold_vision::MarkerConfig;
 
-/// The HIL camera's lens: pincushion (k1 k2 p1 p2 k3).
-const LENS: &str = "[0.12, 0.03, 0.0004, -0.0003, 0.0]";
+    /// The HIL site of the calibration test: `[camera]` of the pool fixture at 640x480 with
+    /// a pincushion lens (as a flat port gives), the station and mount of one view, and
+    /// `markers` as the map.
+    fn hil_site(name: &str, view: [f64; 6], origin_size: f64, markers: &str) -> String {
+        let base = std::fs::read_to_string(repo("tests/fixtures/pool-640-map4.toml")).unwrap();
+        let head = &base[..base.find("# The station marker is the site frame").unwrap()];
+        let [dist, lat, vert, yaw, pitch, roll] = view;
+        head.replace("name = \"pool-640-map4\"", &format!("name = \"{name}\""))
+            .replace(
+                "size_m = 0.15             # edge",
+                &format!("size_m = {origin_size} # edge"),
+            )
+            .replace(
+                "cy_px = 240.0\n",
+                &format!("cy_px = 240.0\ndistortion = {LENS}\n"),
+            )
+            .replace(
+                "distance_m = 1.0          # hold 1 m in front of the marker, facing it",
+                &format!(
+                    "distance_m = {dist}\nlateral_m = {lat}\nvertical_m = {vert}\nyaw_deg = {yaw}"
+                ),
+            )
+            .replace(
+                "mount_rpy_deg = [0.0, 0.0, 0.0]      # looking straight ahead",
+                &format!("mount_rpy_deg = [{roll}, {pitch}, 0.0]"),
+            )
+            + markers
+    }
 
-/// Run `markhold hil` on each site for `seconds` with snapshots every `every` frames,
-/// and gather the frames into one recorded-frames folder `dir`.
-fn hil_frames(dir: &Path, sites: &[String], seconds: f64, every: u64) {
-    let mut rec = FrameRecorder::create(dir).unwrap();
-    let mut n = 0u64;
-    for (k, text) in sites.iter().enumerate() {
-        let site = scratch(&format!(
-            "{}-site-{k}.toml",
-            dir.file_name().unwrap().to_string_lossy()
-        ));
-        std::fs::write(&site, text).unwrap();
-        let snap = scratch(&format!(
-            "{}-snap-{k}",
-            dir.file_name().unwrap().to_string_lossy()
-        ));
-        ok(&markhold(&[
-            "hil",
-            "--quiet",
-            "--seconds",
-            &seconds.to_string(),
-            "--seed",
-            &k.to_string(),
+    /// The HIL camera's lens: pincushion (k1 k2 p1 p2 k3).
+    const LENS: &str = "[0.12, 0.03, 0.0004, -0.0003, 0.0]";
+
+    /// Run `markhold hil` on each site for `seconds` with snapshots every `every` frames,
+    /// and gather the frames into one recorded-frames folder `dir`.
+    fn hil_frames(dir: &Path, sites: &[String], seconds: f64, every: u64) {
+        let mut rec = FrameRecorder::create(dir).unwrap();
+        let mut n = 0u64;
+        for (k, text) in sites.iter().enumerate() {
+            let site = scratch(&format!(
+                "{}-site-{k}.toml",
+                dir.file_name().unwrap().to_string_lossy()
+            ));
+            std::fs::write(&site, text).unwrap();
+            let snap = scratch(&format!(
+                "{}-snap-{k}",
+                dir.file_name().unwrap().to_string_lossy()
+            ));
+            ok(&markhold(&[
+                "hil",
+                "--quiet",
+                "--seconds",
+                &seconds.to_string(),
+                "--seed",
+                &k.to_string(),
+                "--site",
+                site.to_str().unwrap(),
+                "--snapshot",
+                snap.to_str().unwrap(),
+                "--snapshot-every",
+                &every.to_string(),
+            ]));
+            let mut cam = markhold_vision::RecordedCamera::open(&snap).unwrap();
+            let mut frame = Frame::new(0, 0);
+            while markhold_exposure::Camera::grab(&mut cam, &mut frame).is_ok() {
+                frame.meta.seq = n;
+                frame.meta.stamp_s = n as f64 / 30.0;
+                rec.write(&frame).unwrap();
+                n += 1;
+            }
+        }
+    }
+
+    /// A HIL site with a known pincushion lens: a 5x4 AprilTag grid filmed from eight
+    /// stations and camera mounts is calibrated; a four-marker layout (three on one wall,
+    /// one on a bracket) filmed from six is then mapped with that calibration, the site's
+    /// poses zeroed. Every marker comes out within 3 mm, and the stated covariance covers
+    /// the error: each marker within 3 sigma, the normalised squared error (NEES) of the
+    /// markers near 1 (below 3).
+    #[test]
+    fn a_hil_site_calibrated_then_mapped_recovers_its_markers_with_honest_errors() {
+        let calib = calibrate_the_hil_camera();
+        map_with(&calib);
+    }
+
+    /// The HIL camera calibrated on a 5x4 AprilTag grid from eight views: the known lens
+    /// recovered. Returns the calibration file.
+    fn calibrate_the_hil_camera() -> PathBuf {
+        // The grid: tag (i, j) at (0.11 i, -0.11 j) m from tag 0, the site's origin.
+        let mut grid = String::new();
+        for j in 0..4 {
+            for i in 0..5 {
+                if i + j > 0 {
+                    grid += &format!(
+                        "\n[[marker.map]]\nid = {}\nsize_m = 0.08\nposition_m = [{}, {}, 0.0]\n",
+                        5 * j + i,
+                        0.11 * i as f64,
+                        -0.11 * j as f64
+                    );
+                }
+            }
+        }
+        let views = [
+            [0.7, 0.22, -0.165, 0.0, 0.0, 0.0],
+            [0.6, 0.0, -0.1, 25.0, 0.0, 0.0],
+            [0.6, 0.4, -0.1, -25.0, 0.0, 0.0],
+            [0.55, 0.2, 0.1, 0.0, -20.0, 0.0],
+            [0.55, 0.2, -0.35, 0.0, 20.0, 0.0],
+            [0.8, 0.1, -0.2, 15.0, 10.0, 12.0],
+            [0.9, 0.3, -0.1, -10.0, -8.0, -10.0],
+            [0.5, 0.22, -0.165, 0.0, 0.0, 20.0],
+        ];
+        let sites: Vec<String> = views
+            .iter()
+            .enumerate()
+            .map(|(k, v)| hil_site(&format!("grid-{k}"), *v, 0.08, &grid))
+            .collect();
+        let frames = scratch("grid-frames");
+        hil_frames(&frames, &sites, 1.5, 9);
+        let calib = scratch("hil-calib.yaml");
+        let text = ok(&markhold(&[
+            "calibrate",
+            "--frames",
+            frames.to_str().unwrap(),
+            "--target",
+            "aprilgrid",
+            "--tags",
+            "5x4",
+            "--tag-mm",
+            "80",
+            "--spacing",
+            "0.375",
+            "--medium",
+            "water",
+            "--model",
+            "plumb_bob",
+            "--out",
+            calib.to_str().unwrap(),
+        ]));
+        let c = CameraCalibration::load(&calib).unwrap();
+        assert!((c.fx / 533.0 - 1.0).abs() < 0.002, "fx {}\n{text}", c.fx);
+        assert!((c.dist[0] - 0.12).abs() < 0.005, "k1 {}\n{text}", c.dist[0]);
+        calib
+    }
+
+    /// The pool fixture's four markers mapped with the calibration file `calib`, their
+    /// poses zeroed: within 3 mm of the truth, each within 3 sigma, NEES below 3, the
+    /// declared wall flat.
+    fn map_with(calib: &Path) {
+        // The layout of the pool fixture, the wall's three markers declared on one plane.
+        let base = std::fs::read_to_string(repo("tests/fixtures/pool-640-map4.toml")).unwrap();
+        let layout = &base[base.find("# The station marker is the site frame").unwrap()..];
+        let map_views = [
+            [1.0, 0.0, 0.0, 0.0, 0.0, 0.0],
+            [0.9, -0.2, 0.1, 20.0, 0.0, 0.0],
+            [0.9, 0.25, -0.1, -20.0, 0.0, 0.0],
+            [1.2, 0.0, 0.2, 0.0, 12.0, 0.0],
+            [1.1, 0.1, -0.2, 10.0, -10.0, 10.0],
+            [1.3, -0.1, 0.0, -12.0, 5.0, -8.0],
+        ];
+        let sites: Vec<String> = map_views
+            .iter()
+            .enumerate()
+            .map(|(k, v)| hil_site(&format!("map-{k}"), *v, 0.15, layout))
+            .collect();
+        let frames = scratch("map-frames");
+        hil_frames(&frames, &sites, 2.0, 6);
+        // The site `map` reads: the calibration file instead of the lens, poses zeroed.
+        let zeroed: String = sites[0]
+            .replace(
+                &format!("distortion = {LENS}\n"),
+                &format!(
+                    "calibration_file = \"{}\"\ncalibration_source = \"in-water\"\n",
+                    calib.display()
+                ),
+            )
+            .lines()
+            .map(|l| {
+                if l.starts_with("position_m") {
+                    "position_m = [0.0, 0.0, 0.0]\n".to_string()
+                } else if l.starts_with("rpy_deg") {
+                    "rpy_deg = [0.0, 0.0, 0.0]\n".to_string()
+                } else if l.starts_with("id = 0")
+                    || l.starts_with("id = 1")
+                    || l.starts_with("id = 2")
+                {
+                    format!("{l}\nplane = \"wall\"\n")
+                } else {
+                    format!("{l}\n")
+                }
+            })
+            .collect();
+        let site = scratch("map-site.toml");
+        std::fs::write(&site, zeroed).unwrap();
+        let sum = scratch("map.json");
+        let text = ok(&markhold(&[
+            "map",
             "--site",
             site.to_str().unwrap(),
-            "--snapshot",
-            snap.to_str().unwrap(),
-            "--snapshot-every",
-            &every.to_string(),
+            "--frames",
+            frames.to_str().unwrap(),
+            "--summary",
+            sum.to_str().unwrap(),
         ]));
-        let mut cam = markhold_vision::RecordedCamera::open(&snap).unwrap();
-        let mut frame = Frame::new(0, 0);
-        while markhold_exposure::Camera::grab(&mut cam, &mut frame).is_ok() {
-            frame.meta.seq = n;
-            frame.meta.stamp_s = n as f64 / 30.0;
-            rec.write(&frame).unwrap();
-            n += 1;
+        let s = json(&sum);
+        let truth: MarkerConfig =
+            markhold::params::parse(&repo("tests/fixtures/pool-640-map4.toml"), &base)
+                .unwrap()
+                .site
+                .marker;
+        let mut nees = 0.0;
+        let mut n = 0.0;
+        for m in s["markers"].as_array().unwrap().iter().skip(1) {
+            let id = m["id"].as_u64().unwrap() as u32;
+            let want = truth
+                .markers()
+                .find(|t| t.id == id)
+                .unwrap()
+                .t_site_marker
+                .translation
+                .vector;
+            let p: Vec<f64> = m["position_m"]
+                .as_array()
+                .unwrap()
+                .iter()
+                .map(|v| v.as_f64().unwrap())
+                .collect();
+            let e = Vector3::new(p[0], p[1], p[2]) - want;
+            let cov = Matrix3::from_fn(|i, j| m["covariance"][i][j].as_f64().unwrap());
+            let sigma = m["sigma_position_m"].as_f64().unwrap();
+            assert!(
+                e.norm() < 0.003,
+                "marker {id}: {:.2} mm off\n{text}",
+                e.norm() * 1e3
+            );
+            assert!(
+                e.norm() < 3.0 * sigma,
+                "marker {id}: {:.3} mm off, 1-sigma {:.3} mm\n{text}",
+                e.norm() * 1e3,
+                sigma * 1e3
+            );
+            nees += (e.transpose() * cov.try_inverse().unwrap() * e)[(0, 0)] / 3.0;
+            n += 1.0;
+            eprintln!(
+                "marker {id}: error {:.3} mm, 1-sigma {:.3} mm (worst axis)",
+                e.norm() * 1e3,
+                sigma * 1e3
+            );
         }
+        let nees = nees / n;
+        eprintln!("NEES {nees:.2} over {n} markers\n{text}");
+        assert!(nees < 3.0, "NEES {nees}\n{text}");
+        let wall = &s["planes"][0];
+        assert_eq!(wall["name"], "wall");
+        assert!(wall["max_m"].as_f64().unwrap() < 0.001, "{wall}");
     }
-}
-
-/// A HIL site with a known pincushion lens: a 5x4 AprilTag grid filmed from eight
-/// stations and camera mounts is calibrated; a four-marker layout (three on one wall,
-/// one on a bracket) filmed from six is then mapped with that calibration, the site's
-/// poses zeroed. Every marker comes out within 3 mm, and the stated covariance covers
-/// the error: each marker within 3 sigma, the normalised squared error (NEES) of the
-/// markers near 1 (below 3).
-#[test]
-fn a_hil_site_calibrated_then_mapped_recovers_its_markers_with_honest_errors() {
-    // The grid: tag (i, j) at (0.11 i, -0.11 j) m from tag 0, the site's origin.
-    let mut grid = String::new();
-    for j in 0..4 {
-        for i in 0..5 {
-            if i + j > 0 {
-                grid += &format!(
-                    "\n[[marker.map]]\nid = {}\nsize_m = 0.08\nposition_m = [{}, {}, 0.0]\n",
-                    5 * j + i,
-                    0.11 * i as f64,
-                    -0.11 * j as f64
-                );
-            }
-        }
-    }
-    let views = [
-        [0.7, 0.22, -0.165, 0.0, 0.0, 0.0],
-        [0.6, 0.0, -0.1, 25.0, 0.0, 0.0],
-        [0.6, 0.4, -0.1, -25.0, 0.0, 0.0],
-        [0.55, 0.2, 0.1, 0.0, -20.0, 0.0],
-        [0.55, 0.2, -0.35, 0.0, 20.0, 0.0],
-        [0.8, 0.1, -0.2, 15.0, 10.0, 12.0],
-        [0.9, 0.3, -0.1, -10.0, -8.0, -10.0],
-        [0.5, 0.22, -0.165, 0.0, 0.0, 20.0],
-    ];
-    let sites: Vec<String> = views
-        .iter()
-        .enumerate()
-        .map(|(k, v)| hil_site(&format!("grid-{k}"), *v, 0.08, &grid))
-        .collect();
-    let frames = scratch("grid-frames");
-    hil_frames(&frames, &sites, 1.5, 9);
-    let calib = scratch("hil-calib.yaml");
-    let text = ok(&markhold(&[
-        "calibrate",
-        "--frames",
-        frames.to_str().unwrap(),
-        "--target",
-        "aprilgrid",
-        "--tags",
-        "5x4",
-        "--tag-mm",
-        "80",
-        "--spacing",
-        "0.375",
-        "--medium",
-        "water",
-        "--model",
-        "plumb_bob",
-        "--out",
-        calib.to_str().unwrap(),
-    ]));
-    let c = CameraCalibration::load(&calib).unwrap();
-    assert!((c.fx / 533.0 - 1.0).abs() < 0.002, "fx {}\n{text}", c.fx);
-    assert!((c.dist[0] - 0.12).abs() < 0.005, "k1 {}\n{text}", c.dist[0]);
-
-    // The layout of the pool fixture, the wall's three markers declared on one plane.
-    let base = std::fs::read_to_string(repo("tests/fixtures/pool-640-map4.toml")).unwrap();
-    let layout = &base[base.find("# The station marker is the site frame").unwrap()..];
-    let map_views = [
-        [1.0, 0.0, 0.0, 0.0, 0.0, 0.0],
-        [0.9, -0.2, 0.1, 20.0, 0.0, 0.0],
-        [0.9, 0.25, -0.1, -20.0, 0.0, 0.0],
-        [1.2, 0.0, 0.2, 0.0, 12.0, 0.0],
-        [1.1, 0.1, -0.2, 10.0, -10.0, 10.0],
-        [1.3, -0.1, 0.0, -12.0, 5.0, -8.0],
-    ];
-    let sites: Vec<String> = map_views
-        .iter()
-        .enumerate()
-        .map(|(k, v)| hil_site(&format!("map-{k}"), *v, 0.15, layout))
-        .collect();
-    let frames = scratch("map-frames");
-    hil_frames(&frames, &sites, 2.0, 6);
-    // The site `map` reads: the calibration file instead of the lens, poses zeroed.
-    let zeroed: String = sites[0]
-        .replace(
-            &format!("distortion = {LENS}\n"),
-            &format!(
-                "calibration_file = \"{}\"\ncalibration_source = \"in-water\"\n",
-                calib.display()
-            ),
-        )
-        .lines()
-        .map(|l| {
-            if l.starts_with("position_m") {
-                "position_m = [0.0, 0.0, 0.0]\n".to_string()
-            } else if l.starts_with("rpy_deg") {
-                "rpy_deg = [0.0, 0.0, 0.0]\n".to_string()
-            } else if l.starts_with("id = 0") || l.starts_with("id = 1") || l.starts_with("id = 2")
-            {
-                format!("{l}\nplane = \"wall\"\n")
-            } else {
-                format!("{l}\n")
-            }
-        })
-        .collect();
-    let site = scratch("map-site.toml");
-    std::fs::write(&site, zeroed).unwrap();
-    let sum = scratch("map.json");
-    let text = ok(&markhold(&[
-        "map",
-        "--site",
-        site.to_str().unwrap(),
-        "--frames",
-        frames.to_str().unwrap(),
-        "--summary",
-        sum.to_str().unwrap(),
-    ]));
-    let s = json(&sum);
-    let truth: MarkerConfig =
-        markhold::params::parse(&repo("tests/fixtures/pool-640-map4.toml"), &base)
-            .unwrap()
-            .site
-            .marker;
-    let mut nees = 0.0;
-    let mut n = 0.0;
-    for m in s["markers"].as_array().unwrap().iter().skip(1) {
-        let id = m["id"].as_u64().unwrap() as u32;
-        let want = truth
-            .markers()
-            .find(|t| t.id == id)
-            .unwrap()
-            .t_site_marker
-            .translation
-            .vector;
-        let p: Vec<f64> = m["position_m"]
-            .as_array()
-            .unwrap()
-            .iter()
-            .map(|v| v.as_f64().unwrap())
-            .collect();
-        let e = Vector3::new(p[0], p[1], p[2]) - want;
-        let cov = Matrix3::from_fn(|i, j| m["covariance"][i][j].as_f64().unwrap());
-        let sigma = m["sigma_position_m"].as_f64().unwrap();
-        assert!(
-            e.norm() < 0.003,
-            "marker {id}: {:.2} mm off\n{text}",
-            e.norm() * 1e3
-        );
-        assert!(
-            e.norm() < 3.0 * sigma,
-            "marker {id}: {:.3} mm off, 1-sigma {:.3} mm\n{text}",
-            e.norm() * 1e3,
-            sigma * 1e3
-        );
-        nees += (e.transpose() * cov.try_inverse().unwrap() * e)[(0, 0)] / 3.0;
-        n += 1.0;
-        eprintln!(
-            "marker {id}: error {:.3} mm, 1-sigma {:.3} mm (worst axis)",
-            e.norm() * 1e3,
-            sigma * 1e3
-        );
-    }
-    let nees = nees / n;
-    eprintln!("NEES {nees:.2} over {n} markers\n{text}");
-    assert!(nees < 3.0, "NEES {nees}\n{text}");
-    let wall = &s["planes"][0];
-    assert_eq!(wall["name"], "wall");
-    assert!(wall["max_m"].as_f64().unwrap() < 0.001, "{wall}");
 }

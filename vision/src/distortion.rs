@@ -282,7 +282,7 @@ fn undistort_equidistant(d: &[f64], xd: f64, yd: f64) -> Option<Vector2<f64>> {
             break;
         }
     }
-    if !(0.0..1.5707).contains(&th) {
+    if !(0.0..std::f64::consts::FRAC_PI_2).contains(&th) {
         return None;
     }
     let scale = th.tan() / thd;

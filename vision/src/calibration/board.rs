@@ -150,7 +150,7 @@ impl Target {
                 inner_y,
                 square_m,
             } => {
-                if *inner_x < 2 || *inner_y < 2 || !(*square_m > 0.0) {
+                if *inner_x < 2 || *inner_y < 2 || !square_m.is_finite() || *square_m <= 0.0 {
                     return Err(bad(format!(
                         "a checkerboard of {inner_x}x{inner_y} inner corners and {square_m} m \
                          squares: expected at least 2x2 and a size > 0"
@@ -162,7 +162,7 @@ impl Target {
                     return Err(bad("a marker grid without markers".into()));
                 }
                 for (i, m) in markers.iter().enumerate() {
-                    if m.id >= family.id_count() || !(m.size_m > 0.0) {
+                    if m.id >= family.id_count() || !m.size_m.is_finite() || m.size_m <= 0.0 {
                         return Err(bad(format!(
                             "marker {i} of the grid: id {} of {family} ({} ids), side {} m",
                             m.id,

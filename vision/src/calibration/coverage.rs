@@ -70,7 +70,7 @@ pub fn picture(
     caption: &str,
 ) -> Result<Vec<u8>, VisionError> {
     let (w, h) = (coverage.width as f64, coverage.height as f64);
-    let scale = (960.0 / w).min(1.0).max(0.1);
+    let scale = (960.0 / w).clamp(0.1, 1.0);
     let (pw, ph) = ((w * scale).round() as i32, (h * scale).round() as i32);
     let band = 28;
     let mut img = core::Mat::new_rows_cols_with_default(

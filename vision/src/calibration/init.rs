@@ -128,10 +128,10 @@ pub fn pose_from_homography(h: &Matrix3<f64>, k: &Matrix3<f64>) -> Option<Isomet
     // The target in front of the camera: its origin at positive depth.
     let sign = if c.z * lambda < 0.0 { -1.0 } else { 1.0 };
     let l = lambda * sign;
-    let r1: Vector3<f64> = (a * l).into();
-    let r2: Vector3<f64> = (b * l).into();
+    let r1: Vector3<f64> = a * l;
+    let r2: Vector3<f64> = b * l;
     let r3 = r1.cross(&r2);
-    let t: Vector3<f64> = (c * l).into();
+    let t: Vector3<f64> = c * l;
     let r = Matrix3::from_columns(&[r1, r2, r3]);
     let svd = r.svd(true, true);
     let (u, vt) = (svd.u?, svd.v_t?);

@@ -185,6 +185,7 @@ fn median(v: &mut [f64]) -> f64 {
 /// Calibrate a camera of `width` x `height` from `views`. Refuses (with the reason) a
 /// set of views that cannot fix the intrinsics: too few views, every view face-on, a
 /// focal length left uncertain.
+#[allow(clippy::too_many_lines)] // The stages in order: start, solve, reject, report.
 pub fn calibrate(
     mut views: Vec<View>,
     width: u32,
@@ -345,7 +346,7 @@ pub fn calibrate(
         let mut left = out_view.iter().filter(|o| o.is_none()).count();
         for i in order {
             let r = view_median[i];
-            if out_view[i].is_none() && left > settings.min_views && !(r <= gate) {
+            if out_view[i].is_none() && left > settings.min_views && (r > gate || r.is_nan()) {
                 out_view[i] = Some(format!(
                     "median corner error {r:.3} px, over {:.1}x the median view's {med:.3} px",
                     settings.reject_view_factor
@@ -367,7 +368,7 @@ pub fn calibrate(
             let keep_min = settings.min_points_per_view;
             let mut left = v.used_count();
             for (k, x) in e.iter().enumerate() {
-                if v.used[k] && left > keep_min && !(*x <= gate_p) {
+                if v.used[k] && left > keep_min && (*x > gate_p || x.is_nan()) {
                     v.used[k] = false;
                     left -= 1;
                     changed = true;
@@ -411,7 +412,7 @@ pub fn calibrate(
     let all_rms = solve::view_rms(&sol.calib, &all_used, &sol.poses);
     let focal_sigma = sol.sigma(|p| matches!(p, Param::Fx | Param::Focal { .. }));
     let rel = focal_sigma / sol.calib.fx;
-    if !(rel <= settings.max_focal_sigma) {
+    if rel.is_nan() || rel > settings.max_focal_sigma {
         return Err(refuse(format!(
             "the views leave the focal length uncertain: fx = {:.1} +- {:.1} px ({:.1} %, more \
              than {:.1} %); add views tilted 20 to 45 degrees, nearer and farther",

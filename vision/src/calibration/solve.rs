@@ -102,6 +102,15 @@ impl Solution {
     }
 }
 
+/// A pixel, and its Jacobians w.r.t. the pose and the free intrinsics when asked.
+type Projection = (
+    Vector2<f64>,
+    Option<(nalgebra::Matrix2x6<f64>, DMatrix<f64>)>,
+);
+
+/// The damped step: the intrinsics' part, each view's pose part, the reduced matrix.
+type Step = (DVector<f64>, Vec<Vector6<f64>>, DMatrix<f64>);
+
 /// Pixel of a target point, with the Jacobians w.r.t. the view's pose (left
 /// perturbation, as `pose::refine_pose`) and w.r.t. the free intrinsics (`None`: behind
 /// the camera).
@@ -111,10 +120,7 @@ fn project(
     pose: &Isometry3<f64>,
     x: &Point3<f64>,
     jac: bool,
-) -> Option<(
-    Vector2<f64>,
-    Option<(nalgebra::Matrix2x6<f64>, DMatrix<f64>)>,
-)> {
+) -> Option<Projection> {
     let rx = pose.rotation * x.coords;
     let p = rx + pose.translation.vector;
     if p.z <= 1e-9 {
@@ -284,7 +290,7 @@ fn linearise(
 }
 
 /// The damped step (intrinsics, per-view poses) and the reduced matrix.
-fn step(lin: &Normal, lambda: f64) -> Option<(DVector<f64>, Vec<Vector6<f64>>, DMatrix<f64>)> {
+fn step(lin: &Normal, lambda: f64) -> Option<Step> {
     let n = lin.u.nrows();
     let mut s = lin.u.clone();
     for d in 0..n {

@@ -28,6 +28,9 @@ enum Repeat {
 const FIELD_X: usize = 8;
 const FIELD_Y: usize = 6;
 
+/// A free marker's own block: (marker, Jm^T Jm, Jm^T r, Jm^T Ji).
+type MarkerBlock = (usize, Matrix6<f64>, Vector6<f64>, DMatrix<f64>);
+
 /// One observation linearised: whitened residual, whitened Jacobians w.r.t. the camera
 /// pose, the marker pose and the free intrinsics, and the raw squared residual.
 struct Linear {
@@ -115,8 +118,8 @@ struct FrameTerms {
     gf: Vector6<f64>,
     coupling: Vec<(usize, Matrix6<f64>)>,
     ci: DMatrix<f64>,
-    /// The free markers' own blocks: (marker, Jm^T Jm, Jm^T r, Jm^T Ji).
-    own: Vec<(usize, Matrix6<f64>, Vector6<f64>, DMatrix<f64>)>,
+    /// The free markers' own blocks.
+    own: Vec<MarkerBlock>,
     /// The intrinsics' own block and gradient.
     hii: DMatrix<f64>,
     gi: DVector<f64>,
