@@ -625,3 +625,73 @@ mod hil {
         assert!(wall["max_m"].as_f64().unwrap() < 0.001, "{wall}");
     }
 }
+
+/// `params check` says where a site's intrinsics come from: the stock site's are
+/// placeholders, an in-air calibration is wrong under water, an in-water one (the
+/// tutorial's file, made in air, declared in-water) contradicts its file.
+#[test]
+fn params_check_warns_about_placeholder_and_in_air_intrinsics() {
+    let stock = ok(&markhold(&[
+        "params",
+        "check",
+        repo("params/bluerov2-stock.toml").to_str().unwrap(),
+    ]));
+    assert!(
+        stock.contains("# WARNING: the camera intrinsics are placeholders"),
+        "{stock}"
+    );
+    let base = std::fs::read_to_string(repo("params/bluerov2-stock.toml")).unwrap();
+    let in_air = scratch("in-air.toml");
+    std::fs::write(
+        &in_air,
+        base.replace(
+            "calibration_source = \"placeholder\"",
+            "calibration_source = \"in-air\"",
+        ),
+    )
+    .unwrap();
+    let text = ok(&markhold(&["params", "check", in_air.to_str().unwrap()]));
+    assert!(
+        text.contains("# WARNING: the camera was calibrated in air"),
+        "{text}"
+    );
+    // A calibration file written by `calibrate --medium air`, declared in-water.
+    let cal = scratch("air.yaml");
+    let mut args: Vec<String> = vec![
+        "calibrate".into(),
+        "--frames".into(),
+        repo("tests/fixtures/real/opencv-charuco")
+            .to_str()
+            .unwrap()
+            .to_owned(),
+    ];
+    args.extend(CHARUCO.iter().map(|s| (*s).to_owned()));
+    args.extend(["--medium", "air", "--out", cal.to_str().unwrap()].map(str::to_owned));
+    let args: Vec<&str> = args.iter().map(String::as_str).collect();
+    ok(&markhold(&args));
+    let site = scratch("in-water.toml");
+    std::fs::write(
+        &site,
+        base.replace(
+            "calibration_source = \"placeholder\"",
+            &format!(
+                "calibration_source = \"in-water\"\ncalibration_file = \"{}\"",
+                cal.display()
+            ),
+        )
+        .replace("width_px = 1920", "width_px = 640")
+        .replace("height_px = 1080", "height_px = 480"),
+    )
+    .unwrap();
+    let o = markhold(&["params", "check", site.to_str().unwrap()]);
+    let text = format!(
+        "{}{}",
+        String::from_utf8_lossy(&o.stdout),
+        String::from_utf8_lossy(&o.stderr)
+    );
+    assert!(
+        text.contains("says it was made in air, but camera.calibration_source says in-water"),
+        "{text}"
+    );
+    assert!(!text.contains("placeholders"), "{text}");
+}
