@@ -412,7 +412,15 @@ pub fn calibrate(
     let all_rms = solve::view_rms(&sol.calib, &all_used, &sol.poses);
     let focal_sigma = sol.sigma(|p| matches!(p, Param::Fx | Param::Focal { .. }));
     let rel = focal_sigma / sol.calib.fx;
-    if rel.is_nan() || rel > settings.max_focal_sigma {
+    if rel.is_nan() {
+        return Err(refuse(format!(
+            "the views do not fix every parameter of the {} model (its normal matrix is \
+             singular at fx = {:.1} px): use a model with fewer lens terms (plumb_bob), or \
+             add views that fill the image's corners, tilted 20 to 45 degrees",
+            sol.calib.model, sol.calib.fx
+        )));
+    }
+    if rel > settings.max_focal_sigma {
         return Err(refuse(format!(
             "the views leave the focal length uncertain: fx = {:.1} +- {:.1} px ({:.1} %, more \
              than {:.1} %); add views tilted 20 to 45 degrees, nearer and farther",

@@ -296,3 +296,127 @@ fn coverage_counts_the_cells_reached() {
     let png = coverage::picture(&c, &[(true, vec![Vector2::new(10.0, 10.0)])], "x").unwrap();
     assert!(png.starts_with(b"\x89PNG"));
 }
+
+/// A camera behind a flat port: an ideal pinhole in air (`f_air` px, 1280x960) whose
+/// centre of projection is `gap` metres behind a thin flat port into water (n = 1.333).
+/// The pixel of a point in water, camera frame (`None`: past the critical angle).
+fn flat_port(f_air: f64, gap: f64, p: &Vector3<f64>) -> Option<Vector2<f64>> {
+    const N: f64 = 1.333;
+    let rho = p.x.hypot(p.y);
+    if p.z <= gap {
+        return None;
+    }
+    // rho = gap tan(a) + (z - gap) tan(w), sin(a) = n sin(w): solve for w by bisection.
+    let reach = |w: f64| {
+        let a = (N * w.sin()).asin();
+        gap * a.tan() + (p.z - gap) * w.tan()
+    };
+    let (mut lo, mut hi) = (0.0, (1.0 / N).asin() - 1e-9);
+    if reach(hi) < rho {
+        return None;
+    }
+    for _ in 0..100 {
+        let mid = 0.5 * (lo + hi);
+        if reach(mid) < rho {
+            lo = mid;
+        } else {
+            hi = mid;
+        }
+    }
+    let r_air = (N * (0.5 * (lo + hi)).sin()).asin().tan();
+    let s = if rho > 0.0 { r_air / rho } else { 0.0 };
+    Some(Vector2::new(
+        640.0 + f_air * s * p.x,
+        480.0 + f_air * s * p.y,
+    ))
+}
+
+/// Views of a 9x7 board of 0.1 m squares through the port, `d` metres away, tilted up
+/// to 35 degrees, with `sigma` px of noise; and their poses. The board and the shifts
+/// are scaled by `d / 0.9` so that every distance sees the same part of the image.
+fn port_views(f_air: f64, gap: f64, d: [f64; 2], sigma: f64) -> (Vec<View>, Vec<Isometry3<f64>>) {
+    let mut rng = ChaCha8Rng::seed_from_u64(5);
+    let (mut out, mut poses) = (Vec::new(), Vec::new());
+    for k in 0..16 {
+        let a = k as f64 * 0.39;
+        let r = UnitQuaternion::from_euler_angles(0.6 * a.sin(), 0.6 * a.cos(), 0.2 * a.sin());
+        let dist = d[0] + (d[1] - d[0]) * (k % 4) as f64 / 3.0;
+        let s = dist / 0.9;
+        let shift = Vector3::new(0.3 * s * (1.7 * a).cos(), 0.22 * s * (1.3 * a).sin(), dist);
+        let pose = Isometry3::from_parts(
+            Translation3::from(shift - r * Vector3::new(0.4 * s, 0.3 * s, 0.0)),
+            r,
+        );
+        let mut pts = Vec::new();
+        for j in 0..7 {
+            for i in 0..9 {
+                let x = Point3::new(i as f64 * 0.1 * s, j as f64 * 0.1 * s, 0.0);
+                let Some(uv) = flat_port(f_air, gap, &(pose * x).coords) else {
+                    continue;
+                };
+                if uv.x < 0.0 || uv.y < 0.0 || uv.x >= 1280.0 || uv.y >= 960.0 {
+                    continue;
+                }
+                pts.push((
+                    x,
+                    uv + Vector2::new(gauss(&mut rng), gauss(&mut rng)) * sigma,
+                ));
+            }
+        }
+        out.push(View::new(format!("port {k}"), pts));
+        poses.push(pose);
+    }
+    (out, poses)
+}
+
+/// How well the calibration `c` serves a pose at `d` metres: the RMS error of the
+/// board's corners (noiseless) after each view's pose is fitted with `c` held, pixels.
+fn port_pose_rms(c: &CameraCalibration, f_air: f64, gap: f64, d: f64) -> f64 {
+    let (vs, poses) = port_views(f_air, gap, [d, d], 0.0);
+    let (vs, poses): (Vec<View>, Vec<_>) = vs
+        .into_iter()
+        .zip(poses)
+        .filter(|(v, _)| v.points.len() >= 8)
+        .unzip();
+    solve::solve(c.clone(), poses, &vs, &[], 50).map_or(f64::NAN, |s| s.rms_px)
+}
+
+/// Behind a flat port (an 80 degree field of view in water, as the BlueROV2's camera),
+/// the rational model follows the refraction where plumb_bob leaves a residual; with an
+/// air gap the fit holds near the calibrated distances only. The figures are printed
+/// (`cargo test --release -p markhold-vision --lib flat_port -- --nocapture`).
+#[test]
+fn a_flat_port_is_followed_by_the_rational_model_near_the_calibrated_distance() {
+    let f_air = 384.6;
+    let mut rows = Vec::new();
+    for (gap, model) in [
+        (0.0, DistortionModel::PlumbBob),
+        (0.0, DistortionModel::Rational),
+        (0.02, DistortionModel::PlumbBob),
+    ] {
+        let (vs, _) = port_views(f_air, gap, [0.7, 1.1], 0.1);
+        let cal = calibrate(vs, 1280, 960, &settings(model)).unwrap();
+        let near = port_pose_rms(&cal.calib, f_air, gap, 0.9);
+        let far = port_pose_rms(&cal.calib, f_air, gap, 3.0);
+        eprintln!(
+            "gap {:.0} mm, {model}: f {:.1} px (in air {f_air}), RMS {:.3} px; a pose with \
+             it: {near:.3} px at 0.9 m, {far:.3} px at 3 m",
+            gap * 1e3,
+            cal.calib.fx,
+            cal.rms_px
+        );
+        rows.push((cal.rms_px, near, far, cal.calib.fx));
+    }
+    let [(pb, pb_near, _, f_pb), (ra, ra_near, ra_far, _), (_, gap_near, gap_far, _)] = rows[..]
+    else {
+        unreachable!()
+    };
+    // The focal length in water is n times the one in air.
+    assert!((f_pb / (1.333 * f_air) - 1.0).abs() < 0.02, "f {f_pb}");
+    // No gap: a central camera; the rational model fits to the noise (0.141 px) and
+    // serves a pose at any distance; plumb_bob leaves a residual.
+    assert!(ra < 0.15 && ra_near < 0.05 && ra_far < 0.05, "{rows:?}");
+    assert!(pb > ra + 0.02 && pb_near > 5.0 * ra_near, "{rows:?}");
+    // A 20 mm gap: not central; the fit holds near the calibrated distance, not at 3 m.
+    assert!(gap_far > 3.0 * gap_near, "{rows:?}");
+}
