@@ -313,18 +313,17 @@ fn marker_corners_on_the_charuco_photographs_are_no_worse_than_opencvs() {
 }
 
 /// Tags OpenCV 4.6's `detectMarkers` finds with its default parameters (36h11).
-fn opencv_tag_count(image: &Path) -> usize {
+fn opencv_tag_count(img: &core::Mat) -> usize {
     let dict =
         aruco::get_predefined_dictionary(aruco::PREDEFINED_DICTIONARY_NAME::DICT_APRILTAG_36h11)
             .unwrap();
     let params = aruco::DetectorParameters::create().unwrap();
-    let img = imgcodecs::imread(image.to_str().unwrap(), imgcodecs::IMREAD_GRAYSCALE).unwrap();
     let (mut c, mut ids, mut rej) = (
         core::Vector::<core::Vector<core::Point2f>>::new(),
         core::Vector::<i32>::new(),
         core::Vector::<core::Vector<core::Point2f>>::new(),
     );
-    aruco::detect_markers(&img, &dict, &mut c, &mut ids, &params, &mut rej).unwrap();
+    aruco::detect_markers(img, &dict, &mut c, &mut ids, &params, &mut rej).unwrap();
     ids.len()
 }
 
@@ -427,7 +426,12 @@ fn tags_of_apriltag3s_test_photographs_against_its_own_detections() {
                 d.push([m[best[k]][0] - r[k][0], m[best[k]][1] - r[k][1]]);
             }
         }
-        let cv = opencv_tag_count(&dir.join(format!("{name}.jpg")));
+        let img = imgcodecs::imread(
+            dir.join(format!("{name}.jpg")).to_str().unwrap(),
+            imgcodecs::IMREAD_GRAYSCALE,
+        )
+        .unwrap();
+        let cv = opencv_tag_count(&img);
         eprintln!(
             "{name}: AprilTag 3 {} tags, OpenCV's detectMarkers {cv}, markhold {} ({hits} of \
              AprilTag 3's)",
@@ -464,4 +468,176 @@ fn tags_of_apriltag3s_test_photographs_against_its_own_detections() {
     );
     assert!(matched >= 15, "{matched} of AprilTag 3's {theirs}");
     assert!(r < 1.0, "corners {r} px apart");
+}
+
+/// AprilTag 3 (Debian's libapriltag-dev) through a small FFI of the calls this test
+/// needs; the layouts are those of apriltag 3.x's headers (`apriltag.h`,
+/// `common/image_types.h`, `common/zarray.h`).
+mod apriltag3 {
+    use std::os::raw::{c_int, c_void};
+
+    #[repr(C)]
+    struct ImageU8 {
+        width: i32,
+        height: i32,
+        stride: i32,
+        buf: *mut u8,
+    }
+
+    #[repr(C)]
+    struct ZArray {
+        el_sz: usize,
+        size: c_int,
+        alloc: c_int,
+        data: *mut u8,
+    }
+
+    #[repr(C)]
+    struct Detection {
+        family: *mut c_void,
+        id: c_int,
+        hamming: c_int,
+        decision_margin: f32,
+        h: *mut c_void,
+        c: [f64; 2],
+        p: [[f64; 2]; 4],
+    }
+
+    /// The leading fields of `apriltag_detector_t` (the settings).
+    #[repr(C)]
+    struct DetectorHead {
+        nthreads: c_int,
+        quad_decimate: f32,
+        quad_sigma: f32,
+        refine_edges: bool,
+        decode_sharpening: f64,
+        debug: bool,
+    }
+
+    #[link(name = "apriltag")]
+    extern "C" {
+        fn apriltag_detector_create() -> *mut DetectorHead;
+        fn apriltag_detector_destroy(td: *mut DetectorHead);
+        fn tag36h11_create() -> *mut c_void;
+        fn tag36h11_destroy(f: *mut c_void);
+        fn apriltag_detector_add_family_bits(td: *mut DetectorHead, f: *mut c_void, bits: c_int);
+        fn apriltag_detector_detect(td: *mut DetectorHead, im: *mut ImageU8) -> *mut ZArray;
+        fn apriltag_detections_destroy(d: *mut ZArray);
+    }
+
+    /// tag36h11 detections (id, corners as AprilTag orders them, AprilTag's pixel
+    /// convention) in an 8-bit grey image of `width` x `height`, row stride `width`.
+    pub fn detect(
+        grey: &mut [u8],
+        width: i32,
+        height: i32,
+        decimate: f32,
+        refine_edges: bool,
+    ) -> Vec<(u32, [[f64; 2]; 4])> {
+        assert_eq!(grey.len(), (width * height) as usize);
+        let mut out = Vec::new();
+        // SAFETY: the detector and family are created, used and destroyed here; the image
+        // points at `grey`, which outlives the call and has `width * height` bytes; the
+        // detections array holds `size` pointers to detections, read before it is freed.
+        unsafe {
+            let td = apriltag_detector_create();
+            let fam = tag36h11_create();
+            apriltag_detector_add_family_bits(td, fam, 2);
+            (*td).nthreads = 1;
+            (*td).quad_decimate = decimate;
+            (*td).refine_edges = refine_edges;
+            let mut im = ImageU8 {
+                width,
+                height,
+                stride: width,
+                buf: grey.as_mut_ptr(),
+            };
+            let dets = apriltag_detector_detect(td, &mut im);
+            for i in 0..(*dets).size as usize {
+                let d = *(*dets).data.cast::<*const Detection>().add(i);
+                out.push(((*d).id as u32, (*d).p));
+            }
+            apriltag_detections_destroy(dets);
+            apriltag_detector_destroy(td);
+            tag36h11_destroy(fam);
+        }
+        out
+    }
+}
+
+/// AprilTag 3 through its library on its own test photographs: with its test's settings
+/// it gives the detections its test records (which checks the FFI); with its defaults
+/// (half resolution, edge refinement), as a second detector beside OpenCV's, it finds
+/// more of the small tags than OpenCV's `detectMarkers`. Detection counts, corner
+/// agreement and the time ratio of one run are printed (`--nocapture`), not asserted.
+#[test]
+fn apriltag3_against_opencv_on_its_test_photographs() {
+    let dir = repo("tests/fixtures/real/apriltag-swarmathon");
+    let (mut at_full, mut at_default, mut cv, mut recorded) = (0, 0, 0, 0);
+    let (mut t_at, mut t_at_full, mut t_cv) = (0.0, 0.0, 0.0);
+    for name in [
+        "33369213973_9d9bb4cc96_c",
+        "34085369442_304b6bafd9_c",
+        "34139872896_defdb2f8d9_c",
+    ] {
+        let path = dir.join(format!("{name}.jpg"));
+        let img = imgcodecs::imread(path.to_str().unwrap(), imgcodecs::IMREAD_GRAYSCALE).unwrap();
+        let (w, h) = (img.cols(), img.rows());
+        let mut grey = img.data_bytes().unwrap().to_vec();
+        let refs = apriltag3_detections(&dir.join(format!("{name}.txt")));
+        // Its test's settings: the recorded detections (to 0.25 px: its test decodes the
+        // JPEG with its own decoder, this one with OpenCV's, and the grey levels differ
+        // by a little).
+        let mut full = apriltag3::detect(&mut grey, w, h, 1.0, false);
+        full.sort_by(|a, b| {
+            (a.1[0][0], a.1[0][1])
+                .partial_cmp(&(b.1[0][0], b.1[0][1]))
+                .unwrap()
+        });
+        let mut want = refs.clone();
+        want.sort_by(|a, b| {
+            (a.1[0][0], a.1[0][1])
+                .partial_cmp(&(b.1[0][0], b.1[0][1]))
+                .unwrap()
+        });
+        assert_eq!(full.len(), want.len(), "{name}");
+        for (a, b) in full.iter().zip(&want) {
+            assert_eq!(a.0, b.0);
+            for k in 0..4 {
+                for j in 0..2 {
+                    assert!((a.1[k][j] - b.1[k][j]).abs() < 0.25, "{name}: {a:?} {b:?}");
+                }
+            }
+        }
+        // Time of each detector on the decoded image, its set-up included (AprilTag's
+        // family tables, OpenCV's dictionary), one run: a ratio to read, not a test.
+        let t0 = std::time::Instant::now();
+        let default = apriltag3::detect(&mut grey, w, h, 2.0, true);
+        t_at += t0.elapsed().as_secs_f64();
+        let t0 = std::time::Instant::now();
+        apriltag3::detect(&mut grey, w, h, 1.0, true);
+        t_at_full += t0.elapsed().as_secs_f64();
+        let t0 = std::time::Instant::now();
+        let n_cv = opencv_tag_count(&img);
+        t_cv += t0.elapsed().as_secs_f64();
+        eprintln!(
+            "{name}: AprilTag 3 recorded {}, full resolution {}, defaults {}; OpenCV {n_cv}",
+            refs.len(),
+            full.len(),
+            default.len()
+        );
+        recorded += refs.len();
+        at_full += full.len();
+        at_default += default.len();
+        cv += n_cv;
+    }
+    eprintln!(
+        "all: AprilTag 3 {at_full} (recorded {recorded}), with its defaults {at_default}; \
+         OpenCV's detectMarkers {cv}; time against OpenCV's: AprilTag 3 defaults {:.2}x, \
+         full resolution with edge refinement {:.2}x",
+        t_at / t_cv,
+        t_at_full / t_cv
+    );
+    assert_eq!(at_full, recorded);
+    assert!(at_default > cv, "AprilTag 3 {at_default}, OpenCV {cv}");
 }
