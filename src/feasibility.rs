@@ -586,6 +586,7 @@ mod tests {
             size_m: 0.15,
             position_m: [1.5, 0.0, 0.0],
             rpy_deg: [0.0; 3],
+            plane: None,
         }];
         let setup = ViewSetup {
             calib: &calib,

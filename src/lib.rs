@@ -28,6 +28,7 @@ pub fn print_report(args: std::fmt::Arguments<'_>) {
     }
 }
 
+pub mod calibrate;
 pub mod cli_docs;
 pub mod feasibility;
 pub mod field;

@@ -64,6 +64,10 @@ enum Command {
     Map(markhold::map::MapArgs),
     /// A printable marker at exact physical size (SVG, PDF or PNG) with its caption.
     Tag(markhold::tag::TagArgs),
+    /// The camera's intrinsics and lens model from views of a printed target (ChArUco,
+    /// checkerboard, AprilTag grid): the calibration file, per-view errors, a coverage
+    /// picture; or the printable target (--print-target).
+    Calibrate(Box<markhold::calibrate::CalibrateArgs>),
     /// The camera response: fit the paper's polynomial form from an exposure sweep.
     Response {
         #[command(subcommand)]
@@ -274,6 +278,7 @@ fn run(cli: Cli) -> anyhow::Result<()> {
         Command::Robustness(args) => markhold::sim::robustness::cli(args),
         Command::Map(args) => markhold::map::cli(args),
         Command::Tag(args) => markhold::tag::cli(args),
+        Command::Calibrate(args) => markhold::calibrate::cli(*args),
         Command::Response { command } => markhold::response_fit::cli(command),
         Command::Completions { shell } => {
             markhold::cli_docs::completions(Cli::command(), shell, &mut std::io::stdout())
@@ -306,8 +311,18 @@ fn params_check(file: &Path) -> anyhow::Result<()> {
         ),
         None => markhold::outln!("# camera intrinsics from [camera]"),
     }
-    if site.calibration.dist.len() > 5 {
-        markhold::outln!("# full distortion: {:?}", site.calibration.dist);
+    if site.calibration.dist.len() > 5
+        || site.calibration.model != markhold_vision::DistortionModel::PlumbBob
+    {
+        markhold::outln!(
+            "# lens model {}: {:?}",
+            site.calibration.model,
+            site.calibration.dist
+        );
+    }
+    for w in markhold::calibrate::site_warnings(&site, false) {
+        markhold::outln!("# WARNING: {w}");
+        tracing::warn!("{}: {w}", file.display());
     }
     // The simulator's start pose, in a build that has the simulator.
     #[cfg(feature = "sim")]
@@ -409,6 +424,9 @@ fn check_heartbeat_timeout(s: f64) -> anyhow::Result<()> {
 fn run_cmd(args: RunArgs) -> anyhow::Result<()> {
     let site = params::load(&args.site)?;
     markhold::feasibility::warn_site(&site, None);
+    for w in markhold::calibrate::site_warnings(&site, true) {
+        tracing::warn!("{}: {w}", args.site.display());
+    }
     check_heartbeat_timeout(args.heartbeat_timeout_s)?;
     let stop = markhold::field::signal::install()?;
     let opts = markhold::field::run::RunOptions {

@@ -7,8 +7,8 @@ use std::path::{Path, PathBuf};
 
 use anyhow::Context as _;
 use markhold_exposure::{Camera, CameraError, Frame};
-use markhold_vision::mapping::{MapBuilder, MapEstimate, MapSettings};
-use markhold_vision::{MarkerTracker, RecordedCamera};
+use markhold_vision::mapping::{IntrinsicsMode, MapBuilder, MapEstimate, MapSettings};
+use markhold_vision::{CalibrationNotes, CameraCalibration, MarkerTracker, RecordedCamera};
 
 use crate::params::LoadedSite;
 
@@ -35,6 +35,126 @@ pub struct MapArgs {
     /// Write the map section to this file (default: stdout).
     #[arg(long, value_name = "FILE")]
     pub out: Option<PathBuf>,
+    /// The camera's intrinsics: `auto` refines the focal length (and the principal
+    /// point and first radial terms, as far as the frames fix them) with the markers as
+    /// the calibration target when the frames see them from enough viewpoints, and says
+    /// why not otherwise; `fixed` holds them as the site gives them.
+    #[arg(long, value_enum, default_value = "auto")]
+    pub intrinsics: Intrinsics,
+    /// How well each marker's printed size is known, percent (one standard deviation;
+    /// measured with calipers: about 0.05): it moves the marker along the lines of
+    /// sight, which no residual shows; the 1-sigma counts it.
+    #[arg(long, value_name = "PERCENT", default_value_t = 0.05)]
+    pub size_sigma_percent: f64,
+    /// The same error common to every marker (one printer's scale), percent: it scales
+    /// the map.
+    #[arg(long, value_name = "PERCENT", default_value_t = 0.05)]
+    pub scale_sigma_percent: f64,
+    /// With refined intrinsics: write them as a calibration file (OpenCV YAML).
+    #[arg(long, value_name = "FILE.yaml")]
+    pub calibration_out: Option<PathBuf>,
+    /// Also write the map as JSON: each marker's pose and its 6x6 covariance, the
+    /// intrinsics, the planes.
+    #[arg(long, value_name = "FILE.json")]
+    pub summary: Option<PathBuf>,
+}
+
+/// `--summary`: one marker.
+#[derive(serde::Serialize)]
+struct MarkerSummary {
+    id: u32,
+    size_m: f64,
+    position_m: [f64; 3],
+    rpy_deg: [f64; 3],
+    frames: usize,
+    rms_px: f64,
+    sigma_position_m: f64,
+    sigma_angle_deg: f64,
+    /// Rows of the covariance of (tx, ty, tz, rx, ry, rz), site frame.
+    covariance: Vec<[f64; 6]>,
+}
+
+/// `--summary`.
+#[derive(serde::Serialize)]
+struct Summary {
+    source: String,
+    frames_read: usize,
+    frames_used: usize,
+    rms_px: f64,
+    variance_factor: f64,
+    viewpoints: usize,
+    intrinsics_reason: String,
+    /// (name, given, refined, sigma) of each refined intrinsic.
+    intrinsics_refined: Vec<(String, f64, f64, f64)>,
+    calibration: CameraCalibration,
+    plane_factor: f64,
+    planes: Vec<PlaneSummary>,
+    markers: Vec<MarkerSummary>,
+}
+
+#[derive(serde::Serialize)]
+struct PlaneSummary {
+    name: String,
+    ids: Vec<u32>,
+    rms_m: f64,
+    max_m: f64,
+    max_tilt_deg: f64,
+    max_sigmas: f64,
+}
+
+fn summary(source: &str, builder: &MapBuilder, est: &MapEstimate) -> Summary {
+    Summary {
+        source: source.to_string(),
+        frames_read: builder.frames_read(),
+        frames_used: est.frames_used,
+        rms_px: est.rms_px,
+        variance_factor: est.variance_factor,
+        viewpoints: est.viewpoints,
+        intrinsics_reason: est.intrinsics.reason.clone(),
+        intrinsics_refined: est.intrinsics.refined.clone(),
+        calibration: est.intrinsics.calibration.clone(),
+        plane_factor: est.plane_factor,
+        planes: est
+            .planes
+            .iter()
+            .map(|p| PlaneSummary {
+                name: p.name.clone(),
+                ids: p.ids.clone(),
+                rms_m: p.rms_m,
+                max_m: p.max_m,
+                max_tilt_deg: p.max_tilt_deg,
+                max_sigmas: p.max_sigmas,
+            })
+            .collect(),
+        markers: est
+            .markers
+            .iter()
+            .map(|m| {
+                let t = m.t_site_marker.translation.vector;
+                let (r, p, y) = m.t_site_marker.rotation.euler_angles();
+                MarkerSummary {
+                    id: m.id,
+                    size_m: m.size_m,
+                    position_m: [t.x, t.y, t.z],
+                    rpy_deg: [r.to_degrees(), p.to_degrees(), y.to_degrees()],
+                    frames: m.frames,
+                    rms_px: m.rms_px,
+                    sigma_position_m: m.sigma_position_m,
+                    sigma_angle_deg: m.sigma_angle_deg,
+                    covariance: (0..6)
+                        .map(|i| std::array::from_fn(|j| m.covariance[(i, j)]))
+                        .collect(),
+                }
+            })
+            .collect(),
+    }
+}
+
+/// `--intrinsics`.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+pub enum Intrinsics {
+    Auto,
+    Fixed,
 }
 
 /// The command: read the frames, solve, write the section.
@@ -42,6 +162,12 @@ pub fn cli(args: MapArgs) -> anyhow::Result<()> {
     let site = crate::params::load(&args.site)?;
     let (source, est, builder) = build(&site, &args)?;
     let text = section(&site, &source, &builder, &est);
+    if let Some(path) = &args.calibration_out {
+        write_calibration(&site, &est, &source, path)?;
+    }
+    if let Some(path) = &args.summary {
+        crate::write_summary(path, &summary(&source, &builder, &est))?;
+    }
     match &args.out {
         Some(path) => {
             std::fs::write(path, &text)
@@ -111,10 +237,70 @@ pub fn build(
         }
         (None, None) => anyhow::bail!("give --recording FILE.mcap or --frames DIR"),
     };
+    for (flag, v) in [
+        ("--size-sigma-percent", args.size_sigma_percent),
+        ("--scale-sigma-percent", args.scale_sigma_percent),
+    ] {
+        anyhow::ensure!(
+            v.is_finite() && (0.0..=10.0).contains(&v),
+            "{flag} {v}: expected a percentage in 0..=10"
+        );
+    }
+    let settings = MapSettings {
+        size_sigma: args.size_sigma_percent / 100.0,
+        scale_sigma: args.scale_sigma_percent / 100.0,
+        intrinsics: match args.intrinsics {
+            Intrinsics::Auto => IntrinsicsMode::Auto,
+            Intrinsics::Fixed => IntrinsicsMode::Fixed,
+        },
+        ..MapSettings::default()
+    };
     let est = builder
-        .solve(origin, &MapSettings::default())
+        .solve(origin, &settings)
         .with_context(|| format!("{source}: mapping the markers of {}", site.path.display()))?;
     Ok((source, est, builder))
+}
+
+/// The refined intrinsics as a calibration file; an error when they were held.
+fn write_calibration(
+    site: &LoadedSite,
+    est: &MapEstimate,
+    source: &str,
+    path: &Path,
+) -> anyhow::Result<()> {
+    let i = &est.intrinsics;
+    anyhow::ensure!(
+        !i.refined.is_empty(),
+        "--calibration-out {}: the intrinsics were not refined: {}",
+        path.display(),
+        i.reason
+    );
+    // Where the frames were taken is where the site's calibration was made, if it says.
+    let medium = site
+        .site
+        .camera
+        .calibration_file
+        .as_ref()
+        .and_then(|f| CameraCalibration::load_notes(f).ok())
+        .and_then(|n| n.medium);
+    let notes = CalibrationNotes {
+        medium,
+        working_distance_m: None,
+        reprojection_rms_px: Some(est.rms_px),
+    };
+    let comments = vec![format!(
+        "markhold map: intrinsics of {} refined on the markers of {} seen in {}: {}",
+        site.path.display(),
+        site.path.display(),
+        source,
+        i.refined
+            .iter()
+            .map(|(n, a, b, s)| format!("{n} {a:.4} -> {b:.4} +- {s:.4}"))
+            .collect::<Vec<_>>()
+            .join(", ")
+    )];
+    std::fs::write(path, i.calibration.to_yaml(&notes, &comments))
+        .with_context(|| format!("writing --calibration-out {}", path.display()))
 }
 
 /// Every `every`th frame of a recorded-frames folder through the detector.
@@ -168,6 +354,25 @@ pub fn section(site: &LoadedSite, source: &str, builder: &MapBuilder, est: &MapE
          chained start), {} iterations, {} observations, {} left out as outliers",
         est.rms_px, est.initial_rms_px, est.iterations, est.observations, est.outliers
     );
+    let i = &est.intrinsics;
+    let _ = writeln!(s, "# intrinsics: {}", i.reason);
+    for (name, given, refined, sigma) in &i.refined {
+        let _ = writeln!(s, "#   {name}: {given:.4} -> {refined:.4} +- {sigma:.4}");
+    }
+    let _ = writeln!(
+        s,
+        "# uncertainty: {} viewpoints; the residuals are {:.1}x what the corners' noise \
+         explains{}",
+        est.viewpoints,
+        est.variance_factor.sqrt(),
+        if est.variance_factor > 1.5 {
+            " (model error: the 1-sigma below counts it, as a displacement over the image \
+             common to every frame)"
+        } else {
+            ""
+        }
+    );
+    write_planes(&mut s, est);
     if origin.id == marker.id {
         let _ = writeln!(
             s,
@@ -217,8 +422,51 @@ pub fn section(site: &LoadedSite, source: &str, builder: &MapBuilder, est: &MapE
             fixed(pi.to_degrees(), 3),
             fixed(y.to_degrees(), 3)
         );
+        let plane = marker
+            .map
+            .iter()
+            .find(|e| e.id == m.id)
+            .and_then(|e| e.plane.as_ref());
+        if let Some(p) = plane {
+            let _ = writeln!(s, "plane = \"{p}\"");
+        }
     }
     s
+}
+
+/// The plane groups' flatness, and the covariance's scale they led to.
+fn write_planes(s: &mut String, est: &MapEstimate) {
+    for p in &est.planes {
+        let ids: Vec<String> = p.ids.iter().map(u32::to_string).collect();
+        let _ = writeln!(
+            *s,
+            "# plane \"{}\" (markers {}): corners off a common plane by {:.1} mm RMS, {:.1} \
+             mm at most (marker {}); faces tilted up to {:.2} deg (marker {}); centres off it \
+             by up to {:.1} sigma{}",
+            p.name,
+            ids.join(", "),
+            p.rms_m * 1e3,
+            p.max_m * 1e3,
+            p.worst_id,
+            p.max_tilt_deg,
+            p.tilt_id,
+            p.max_sigmas,
+            if p.max_sigmas > 3.0 {
+                ": NOT flat as declared: the camera model is wrong (calibrate in the water) \
+                 or the markers are not on one plane"
+            } else {
+                ""
+            }
+        );
+    }
+    if est.plane_factor > 1.0 {
+        let _ = writeln!(
+            *s,
+            "# the planes deviate {:.1}x more than the covariance said: the 1-sigma below is \
+             scaled up by that",
+            est.plane_factor.sqrt()
+        );
+    }
 }
 
 /// `v` with `decimals` decimals and no negative zero.

@@ -109,6 +109,10 @@ pub struct CameraSection {
     /// intrinsics below.
     #[serde(default)]
     pub calibration_file: Option<PathBuf>,
+    /// Where the intrinsics come from: `placeholder`, `in-air`, `in-water` or
+    /// `simulated` (`params check` and `run` warn unless `in-water`; unset: unknown).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub calibration_source: Option<markhold_vision::CalibrationSource>,
     #[serde(default)]
     pub fx_px: Option<f64>,
     #[serde(default)]
@@ -601,6 +605,7 @@ fn calibration_of(
         cx: need("cx_px", cam.cx_px)?,
         cy: need("cy_px", cam.cy_px)?,
         dist: cam.distortion.to_vec(),
+        model: markhold_vision::DistortionModel::PlumbBob,
     })
 }
 

@@ -300,14 +300,21 @@ pub fn pdf(l: &Layout) -> Vec<u8> {
             pdf_escape(text)
         );
     }
+    pdf_document(l.page_w_mm, l.page_h_mm, &content)
+}
+
+/// A one-page PDF 1.4 of `page_w_mm` x `page_h_mm` whose page is `content` (a content
+/// stream in points), with Helvetica as font /F1.
+fn pdf_document(page_w_mm: f64, page_h_mm: f64, content: &str) -> Vec<u8> {
+    let k = PT_PER_MM;
     let objects = [
         "<< /Type /Catalog /Pages 2 0 R >>".to_string(),
         "<< /Type /Pages /Kids [3 0 R] /Count 1 >>".to_string(),
         format!(
             "<< /Type /Page /Parent 2 0 R /MediaBox [0 0 {} {}] /Contents 4 0 R \
              /Resources << /Font << /F1 5 0 R >> >> >>",
-            num(l.page_w_mm * k),
-            num(l.page_h_mm * k)
+            num(page_w_mm * k),
+            num(page_h_mm * k)
         ),
         format!(
             "<< /Length {} >>\nstream\n{content}endstream",
@@ -392,7 +399,7 @@ pub fn png(l: &Layout, dpi: f64) -> anyhow::Result<Vec<u8>> {
         )
         .context("drawing a module")?;
     }
-    draw_caption(&mut img, l, ppmm)?;
+    draw_caption(&mut img, &l.caption, l.font_mm, l.page_w_mm, ppmm)?;
     let mut buf = core::Vector::<u8>::new();
     imgcodecs::imencode(".png", &img, &mut buf, &core::Vector::new())
         .context("encoding the PNG")?;
@@ -401,16 +408,22 @@ pub fn png(l: &Layout, dpi: f64) -> anyhow::Result<Vec<u8>> {
 
 /// The caption with OpenCV's Hershey font, cap height about that of Helvetica at the
 /// layout's font size, narrowed if it would leave the page.
-fn draw_caption(img: &mut core::Mat, l: &Layout, ppmm: f64) -> anyhow::Result<()> {
+fn draw_caption(
+    img: &mut core::Mat,
+    caption: &[(String, f64, f64)],
+    font_mm: f64,
+    page_w_mm: f64,
+    ppmm: f64,
+) -> anyhow::Result<()> {
     let font = imgproc::FONT_HERSHEY_SIMPLEX;
-    let cap_px = 0.72 * l.font_mm * ppmm;
+    let cap_px = 0.72 * font_mm * ppmm;
     let thickness = ((cap_px / 12.0).round() as i32).max(1);
     let mut base = 0;
-    for (text, x, y) in &l.caption {
+    for (text, x, y) in caption {
         let size = imgproc::get_text_size(text, font, 1.0, thickness, &mut base)
             .context("measuring the caption")?;
         let mut scale = cap_px / f64::from(size.height.max(1));
-        let room = (l.page_w_mm - x) * ppmm;
+        let room = (page_w_mm - x) * ppmm;
         if f64::from(size.width) * scale > room {
             scale = room / f64::from(size.width.max(1));
         }
@@ -601,6 +614,265 @@ pub fn cli(args: TagArgs) -> anyhow::Result<()> {
             num(layout.page_h_mm),
         );
     }
+    Ok(())
+}
+
+/// White margin around a printed calibration target, mm.
+pub const BOARD_MARGIN_MM: f64 = 10.0;
+
+/// A calibration target's page: black polygons (mm from the page's top-left, y down)
+/// and a caption.
+#[derive(Debug, Clone)]
+pub struct BoardPage {
+    pub page_w_mm: f64,
+    pub page_h_mm: f64,
+    /// Each black area as its corners, mm.
+    pub polygons: Vec<[[f64; 2]; 4]>,
+    pub font_mm: f64,
+    pub caption: Vec<(String, f64, f64)>,
+    pub title: String,
+}
+
+impl BoardPage {
+    /// The page of `target`: its layout ([`markhold_vision::calibration::board::Target::layout`])
+    /// inside a white margin, the caption below.
+    pub fn new(target: &markhold_vision::calibration::board::Target) -> anyhow::Result<Self> {
+        let layout = target
+            .layout()
+            .map_err(|e| anyhow::anyhow!("{e}"))
+            .context("laying out the target")?;
+        let m = BOARD_MARGIN_MM;
+        let mut polygons = Vec::new();
+        let rect =
+            |x: f64, y: f64, w: f64, h: f64| [[x, y], [x + w, y], [x + w, y + h], [x, y + h]];
+        for [x, y, side] in &layout.squares {
+            polygons.push(rect(m + x * 1e3, m + y * 1e3, side * 1e3, side * 1e3));
+        }
+        for pm in &layout.markers {
+            let Some(family) = layout.family else { break };
+            let bitmap = marker_bitmap(family, pm.id)
+                .with_context(|| format!("drawing {family} id {}", pm.id))?;
+            let n = bitmap.cells;
+            let module = pm.size_m * 1e3 / n as f64;
+            let (x0, y0) = (m + pm.x_m * 1e3, m + pm.y_m * 1e3);
+            let half = pm.size_m * 1e3 / 2.0;
+            let (cx, cy) = (x0 + half, y0 + half);
+            // Counter-clockwise as printed: y runs down the page.
+            let (sn, cs) = pm.turn_deg.to_radians().sin_cos();
+            let turn = |p: [f64; 2]| {
+                let (dx, dy) = (p[0] - cx, p[1] - cy);
+                [cx + cs * dx + sn * dy, cy - sn * dx + cs * dy]
+            };
+            for r in 0..n {
+                let mut c = 0;
+                while c < n {
+                    if bitmap.is_white(r, c) {
+                        c += 1;
+                        continue;
+                    }
+                    let start = c;
+                    while c < n && !bitmap.is_white(r, c) {
+                        c += 1;
+                    }
+                    let q = rect(
+                        x0 + start as f64 * module,
+                        y0 + r as f64 * module,
+                        (c - start) as f64 * module,
+                        module,
+                    );
+                    polygons.push(q.map(turn));
+                }
+            }
+        }
+        let title = target.describe();
+        let lines = [
+            title.clone(),
+            "print at 100 % on a flat, rigid sheet; measure a square or marker and check it"
+                .to_string(),
+        ];
+        let board_w = layout.width_m * 1e3 + 2.0 * m;
+        let chars = lines.iter().map(|l| l.chars().count()).max().unwrap_or(1) as f64;
+        let font_mm = (board_w / (chars * CHAR_EM + 2.0)).clamp(2.5, 6.0);
+        let first = layout.height_m * 1e3 + 2.0 * m + 1.2 * font_mm;
+        let caption = lines
+            .into_iter()
+            .enumerate()
+            .map(|(i, l)| (l, m, first + 1.4 * font_mm * i as f64))
+            .collect();
+        Ok(BoardPage {
+            page_w_mm: board_w.max(chars * CHAR_EM * font_mm + 2.0 * m),
+            page_h_mm: first + 1.4 * font_mm + 0.8 * font_mm,
+            polygons,
+            font_mm,
+            caption,
+            title,
+        })
+    }
+
+    pub fn svg(&self) -> String {
+        let (w, h) = (num(self.page_w_mm), num(self.page_h_mm));
+        let mut s = String::new();
+        let _ = writeln!(s, r#"<?xml version="1.0" encoding="UTF-8"?>"#);
+        let _ = writeln!(
+            s,
+            r#"<svg xmlns="http://www.w3.org/2000/svg" width="{w}mm" height="{h}mm" viewBox="0 0 {w} {h}" shape-rendering="crispEdges">"#
+        );
+        let _ = writeln!(s, "<title>{}</title>", xml_escape(&self.title));
+        let _ = writeln!(s, "<desc>Units are millimetres. Print at 100 %.</desc>");
+        let _ = writeln!(
+            s,
+            r##"<rect x="0" y="0" width="{w}" height="{h}" fill="#fff"/>"##
+        );
+        let _ = writeln!(s, r##"<g fill="#000">"##);
+        for q in &self.polygons {
+            let pts: Vec<String> = q
+                .iter()
+                .map(|p| format!("{},{}", num(p[0]), num(p[1])))
+                .collect();
+            let _ = writeln!(s, r#"<polygon points="{}"/>"#, pts.join(" "));
+        }
+        let _ = writeln!(s, "</g>");
+        for (text, x, y) in &self.caption {
+            let _ = writeln!(
+                s,
+                r##"<text x="{}" y="{}" font-family="Helvetica, Arial, sans-serif" font-size="{}" fill="#000">{}</text>"##,
+                num(*x),
+                num(*y),
+                num(self.font_mm),
+                xml_escape(text)
+            );
+        }
+        s.push_str("</svg>\n");
+        s
+    }
+
+    pub fn pdf(&self) -> Vec<u8> {
+        let k = PT_PER_MM;
+        let mut content = String::from("0 g\n");
+        for q in &self.polygons {
+            for (i, p) in q.iter().enumerate() {
+                let _ = writeln!(
+                    content,
+                    "{} {} {}",
+                    num(p[0] * k),
+                    num((self.page_h_mm - p[1]) * k),
+                    if i == 0 { "m" } else { "l" }
+                );
+            }
+            content.push_str("h\n");
+        }
+        content.push_str("f\n");
+        for (text, x, y) in &self.caption {
+            let _ = writeln!(
+                content,
+                "BT /F1 {} Tf {} {} Td ({}) Tj ET",
+                num(self.font_mm * k),
+                num(x * k),
+                num((self.page_h_mm - y) * k),
+                pdf_escape(text)
+            );
+        }
+        pdf_document(self.page_w_mm, self.page_h_mm, &content)
+    }
+
+    /// An 8-bit grey PNG at `dpi` (pHYs set): squares and modules with their edges on
+    /// the nearest pixel boundary (turned markers' modules to 1/256 pixel).
+    pub fn png(&self, dpi: f64) -> anyhow::Result<Vec<u8>> {
+        ensure!(
+            dpi.is_finite() && (72.0..=4800.0).contains(&dpi),
+            "--dpi {dpi}: expected a resolution in 72..=4800 dots per inch"
+        );
+        let ppmm = dpi / MM_PER_INCH;
+        let (w, h) = (self.page_w_mm * ppmm, self.page_h_mm * ppmm);
+        ensure!(
+            w.max(h) <= MAX_PNG_SIDE_PX,
+            "--dpi {dpi}: the PNG would be {w:.0} x {h:.0} px (at most {MAX_PNG_SIDE_PX:.0} a \
+             side); use a lower --dpi or .svg / .pdf"
+        );
+        let mut img = core::Mat::new_rows_cols_with_default(
+            h.round() as i32,
+            w.round() as i32,
+            core::CV_8UC1,
+            core::Scalar::all(255.0),
+        )
+        .context("allocating the PNG image")?;
+        const SHIFT: i32 = 8;
+        let sub = f64::from(1 << SHIFT);
+        for q in &self.polygons {
+            let aligned = q[0][1] == q[1][1] && q[1][0] == q[2][0] && q[2][1] == q[3][1];
+            if aligned {
+                // Pixel i covers [i, i+1): an edge at x mm falls on the pixel boundary
+                // nearest x * ppmm, so neighbouring areas share their boundaries.
+                let (x0, x1) = ((q[0][0] * ppmm).round(), (q[1][0] * ppmm).round());
+                let (y0, y1) = ((q[0][1] * ppmm).round(), (q[2][1] * ppmm).round());
+                let rect =
+                    core::Rect::new(x0 as i32, y0 as i32, (x1 - x0) as i32, (y1 - y0) as i32);
+                if rect.width > 0 && rect.height > 0 {
+                    imgproc::rectangle(
+                        &mut img,
+                        rect,
+                        core::Scalar::all(0.0),
+                        imgproc::FILLED,
+                        imgproc::LINE_8,
+                        0,
+                    )
+                    .context("drawing the target")?;
+                }
+                continue;
+            }
+            // A turned marker's module: OpenCV fills the pixels whose centres (at i + 0.5)
+            // are inside, to 1/256 pixel.
+            let pts: core::Vector<core::Point> = q
+                .iter()
+                .map(|p| {
+                    core::Point::new(
+                        ((p[0] * ppmm - 0.5) * sub).round() as i32,
+                        ((p[1] * ppmm - 0.5) * sub).round() as i32,
+                    )
+                })
+                .collect();
+            imgproc::fill_convex_poly(
+                &mut img,
+                &pts,
+                core::Scalar::all(0.0),
+                imgproc::LINE_8,
+                SHIFT,
+            )
+            .context("drawing the target")?;
+        }
+        draw_caption(&mut img, &self.caption, self.font_mm, self.page_w_mm, ppmm)?;
+        let mut buf = core::Vector::<u8>::new();
+        imgcodecs::imencode(".png", &img, &mut buf, &core::Vector::new())
+            .context("encoding the PNG")?;
+        with_phys(&buf.to_vec(), dpi)
+    }
+}
+
+/// `markhold calibrate --print-target`: the target's page in the format of `path`'s
+/// extension.
+pub fn write_board(
+    target: &markhold_vision::calibration::board::Target,
+    path: &Path,
+    dpi: f64,
+) -> anyhow::Result<()> {
+    let format = Format::of(path)
+        .map_err(|e| anyhow::anyhow!("{}", e.to_string().replace("--out", "--print-target")))?;
+    let page = BoardPage::new(target)?;
+    let bytes = match format {
+        Format::Svg => page.svg().into_bytes(),
+        Format::Pdf => page.pdf(),
+        Format::Png => page.png(dpi)?,
+    };
+    std::fs::write(path, bytes)
+        .with_context(|| format!("writing --print-target {}", path.display()))?;
+    crate::outln!(
+        "markhold calibrate: {}: {}, page {} x {} mm; print at 100 % on a flat, rigid sheet and \
+         measure it",
+        path.display(),
+        page.title,
+        num(page.page_w_mm),
+        num(page.page_h_mm)
+    );
     Ok(())
 }
 

@@ -62,6 +62,7 @@ fn map_scene() -> (CameraCalibration, MarkerConfig, Frame) {
         size_m: 0.2,
         position_m: [x, y, 0.0],
         rpy_deg: [0.0; 3],
+        plane: None,
     };
     let marker = MarkerConfig {
         map: vec![at(3, -0.3, 0.0), at(11, 0.0, 0.3), at(19, -0.3, 0.3)],

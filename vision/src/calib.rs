@@ -1,6 +1,10 @@
-//! Pinhole camera calibration with OpenCV's distortion model, read from OpenCV
-//! FileStorage YAML or ROS camera_info YAML.
+//! Pinhole camera calibration with a lens model ([`DistortionModel`]: OpenCV's
+//! plumb_bob and rational models, the equidistant fisheye), read from OpenCV
+//! FileStorage YAML or ROS camera_info YAML, and written as OpenCV FileStorage YAML.
 
+use std::fmt::Write as _;
+
+use crate::distortion::DistortionModel;
 use crate::yaml::{self, Node};
 use crate::VisionError;
 use markhold_config::{open, AsDebug, Checks, ConfigError};
@@ -15,8 +19,51 @@ pub struct CameraCalibration {
     pub fy: f64,
     pub cx: f64,
     pub cy: f64,
-    /// OpenCV order: k1 k2 p1 p2 [k3]; empty = no distortion.
+    /// Coefficients of `model` in its file order (plumb_bob: k1 k2 p1 p2 [k3]; empty
+    /// = no distortion).
     pub dist: Vec<f64>,
+    /// The lens model of `dist` (plumb_bob when a file or a recording does not say).
+    #[serde(default)]
+    pub model: DistortionModel,
+}
+
+/// Where a site's camera intrinsics come from (`[camera] calibration_source`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum CalibrationSource {
+    /// Not this camera's: values to start from (a nominal field of view).
+    Placeholder,
+    /// Calibrated in air: under water the port's refraction changes the focal length
+    /// (about 1.33x behind a flat port) and the distortion.
+    InAir,
+    /// Calibrated in the water, through the port, at the working distance.
+    InWater,
+    /// The simulator's camera: `markhold hil` renders with exactly these intrinsics
+    /// (placeholders for a real camera).
+    Simulated,
+}
+
+impl CalibrationSource {
+    pub fn as_str(self) -> &'static str {
+        match self {
+            Self::Placeholder => "placeholder",
+            Self::InAir => "in-air",
+            Self::InWater => "in-water",
+            Self::Simulated => "simulated",
+        }
+    }
+}
+
+/// What a calibration file says of where it was made, besides the intrinsics (keys that
+/// `markhold calibrate` writes; other tools' files have none of them).
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct CalibrationNotes {
+    /// `calibration_medium`: `water` or `air`.
+    pub medium: Option<String>,
+    /// `working_distance_m`: the nearest and farthest target distance of the views.
+    pub working_distance_m: Option<[f64; 2]>,
+    /// `avg_reprojection_error`, pixels (OpenCV's samples write it too).
+    pub reprojection_rms_px: Option<f64>,
 }
 
 impl CameraCalibration {
@@ -30,6 +77,7 @@ impl CameraCalibration {
             cx,
             cy,
             dist: Vec::new(),
+            model: DistortionModel::PlumbBob,
         }
     }
 
@@ -38,15 +86,22 @@ impl CameraCalibration {
     pub fn validate(&self) -> Result<(), ConfigError> {
         let (w, h) = (self.width, self.height);
         let inside = "a principal point inside the image";
+        let lengths = self.model.allowed_lengths();
         let dist_ok =
-            matches!(self.dist.len(), 0 | 4 | 5) && self.dist.iter().all(|k| k.is_finite());
+            lengths.contains(&self.dist.len()) && self.dist.iter().all(|k| k.is_finite());
+        let dist_expected = format!(
+            "{} finite coefficients ({}) for the {} model",
+            lengths.iter().map(|n| n.to_string()).collect::<Vec<_>>().join(", "),
+            self.model.coefficient_names().join(" "),
+            self.model
+        );
         Checks::new("calibration")
             .check("image_width/image_height", format!("{w}x{h}"), w > 0 && h > 0, "a non-empty resolution")
             .positive("fx", self.fx, "a focal length > 0 px")
             .positive("fy", self.fy, "a focal length > 0 px")
             .range("cx", self.cx, open(0.0, w as f64), inside)
             .range("cy", self.cy, open(0.0, h as f64), inside)
-            .check("dist", AsDebug(&self.dist), dist_ok, "0, 4 or 5 finite coefficients (k1 k2 p1 p2 [k3])")
+            .check("dist", AsDebug(&self.dist), dist_ok, &dist_expected)
             .done()
     }
 
@@ -113,28 +168,42 @@ impl CameraCalibration {
             &["distortion_coefficients", "dist_coeffs", "distCoeffs", "D"],
             None,
         )?;
-        if let Some(model) = f.scalar_opt("distortion_model") {
-            if model != "plumb_bob" && !(model == "rational_polynomial" && dist.len() >= 5) {
-                return Err(f.err(
+        let model = match f.scalar_opt("distortion_model") {
+            Some(name) => name.parse::<DistortionModel>().map_err(|_| {
+                f.err(
                     "distortion_model",
-                    format!("'{model}' is not supported (plumb_bob: k1 k2 p1 p2 k3)"),
-                ));
-            }
-        }
-        // k1 k2 p1 p2 k3, then rational/prism/tilt terms we do not model: accepted only
-        // when they are all zero.
+                    format!(
+                        "'{name}' is not supported (plumb_bob: k1 k2 p1 p2 k3, \
+                         rational_polynomial: k1 k2 p1 p2 k3 k4 k5 k6, equidistant: k1 k2 k3 k4)"
+                    ),
+                )
+            })?,
+            // OpenCV FileStorage names no model: 8 or more coefficients are the rational
+            // model's (calibrateCamera with CALIB_RATIONAL_MODEL).
+            None if dist.len() >= 8 => DistortionModel::Rational,
+            None => DistortionModel::PlumbBob,
+        };
+        // Beyond the model's own coefficients (OpenCV's thin-prism and tilt terms, which
+        // we do not model) only zeros are accepted.
         let mut dist = dist;
-        if !matches!(dist.len(), 0 | 4 | 5) {
-            if dist.len() < 4 || dist[5.min(dist.len())..].iter().any(|v| *v != 0.0) {
+        let keep = match model {
+            DistortionModel::PlumbBob => 5,
+            DistortionModel::Rational => 8,
+            DistortionModel::Equidistant => 4,
+        };
+        if !model.allowed_lengths().contains(&dist.len()) {
+            let short = dist.len() < 4;
+            if short || dist[keep.min(dist.len())..].iter().any(|v| *v != 0.0) {
                 return Err(f.err(
                     &d_name,
                     format!(
-                        "{} coefficients; only k1 k2 p1 p2 [k3] are supported (higher terms must be 0)",
-                        dist.len()
+                        "{} coefficients; the {model} model has {} (higher terms must be 0)",
+                        dist.len(),
+                        model.coefficient_names().join(" ")
                     ),
                 ));
             }
-            dist.truncate(5);
+            dist.resize(keep, 0.0);
         }
         let skew = k[1];
         if skew.abs() > 1e-9 * k[0].abs().max(1.0) || k[3] != 0.0 || k[6] != 0.0 || k[7] != 0.0 {
@@ -154,6 +223,7 @@ impl CameraCalibration {
             cx: k[2],
             cy: k[5],
             dist,
+            model,
         };
         calib.validate().map_err(|e| {
             let field = match e.key.trim_start_matches("calibration.") {
@@ -164,6 +234,90 @@ impl CameraCalibration {
             f.err(&field, format!("{}: expected {}", e.value, e.expected))
         })?;
         Ok(calib)
+    }
+}
+
+impl CameraCalibration {
+    /// What the text of a calibration file says of where it was made (absent or
+    /// malformed keys: `None`).
+    pub fn parse_notes(text: &str) -> CalibrationNotes {
+        let Ok(root) = yaml::parse(text) else {
+            return CalibrationNotes::default();
+        };
+        let scalar = |k: &str| match root.get(k) {
+            Some(Node::Scalar(s)) => Some(s.trim().trim_matches('"').to_string()),
+            _ => None,
+        };
+        let working_distance_m = match root.get("working_distance_m") {
+            Some(Node::Seq(v)) if v.len() == 2 => {
+                let a = v[0].trim().parse::<f64>().ok();
+                let b = v[1].trim().parse::<f64>().ok();
+                a.zip(b).map(|(a, b)| [a, b])
+            }
+            _ => None,
+        };
+        CalibrationNotes {
+            medium: scalar("calibration_medium"),
+            working_distance_m,
+            reprojection_rms_px: scalar("avg_reprojection_error").and_then(|s| s.parse().ok()),
+        }
+    }
+
+    /// [`Self::parse_notes`] of a file; errors name the file.
+    pub fn load_notes(path: &Path) -> Result<CalibrationNotes, VisionError> {
+        let text = markhold_config::read_regular(path, markhold_config::MAX_CONFIG_FILE_BYTES)
+            .map_err(|source| VisionError::Io {
+                path: path.to_path_buf(),
+                source,
+            })?;
+        Ok(Self::parse_notes(&text))
+    }
+
+    /// This calibration as OpenCV FileStorage YAML (`cv::FileStorage` reads it, and so
+    /// does [`Self::load`]), with a ROS-style `distortion_model` key, `notes`, and
+    /// `comments` as `#` lines at the top. Numbers are written to round-trip exactly.
+    pub fn to_yaml(&self, notes: &CalibrationNotes, comments: &[String]) -> String {
+        let mut s = String::from("%YAML:1.0\n---\n");
+        for c in comments {
+            for line in c.lines() {
+                let _ = writeln!(s, "# {line}");
+            }
+        }
+        let _ = writeln!(s, "image_width: {}", self.width);
+        let _ = writeln!(s, "image_height: {}", self.height);
+        let matrix = |s: &mut String, name: &str, rows: usize, cols: usize, data: &[f64]| {
+            let values: Vec<String> = data.iter().map(|v| format!("{v:?}")).collect();
+            let _ = writeln!(
+                s,
+                "{name}: !!opencv-matrix\n   rows: {rows}\n   cols: {cols}\n   dt: d\n   data: [ {} ]",
+                values.join(", ")
+            );
+        };
+        matrix(
+            &mut s,
+            "camera_matrix",
+            3,
+            3,
+            &[self.fx, 0.0, self.cx, 0.0, self.fy, self.cy, 0.0, 0.0, 1.0],
+        );
+        let _ = writeln!(s, "distortion_model: {}", self.model);
+        matrix(
+            &mut s,
+            "distortion_coefficients",
+            1,
+            self.dist.len(),
+            &self.dist,
+        );
+        if let Some(m) = &notes.medium {
+            let _ = writeln!(s, "calibration_medium: {m}");
+        }
+        if let Some([a, b]) = notes.working_distance_m {
+            let _ = writeln!(s, "working_distance_m: [ {a:?}, {b:?} ]");
+        }
+        if let Some(r) = notes.reprojection_rms_px {
+            let _ = writeln!(s, "avg_reprojection_error: {r:?}");
+        }
+        s
     }
 }
 
@@ -386,9 +540,18 @@ projection_matrix:
             e.contains("distortion_coefficients.data") && e.contains("abc"),
             "{e}"
         );
-        let e = err_of(&ROS.replace("plumb_bob", "equidistant"));
+        let e = err_of(&ROS.replace("plumb_bob", "kannala_brandt8"));
         assert!(
-            e.contains("distortion_model") && e.contains("equidistant"),
+            e.contains("distortion_model") && e.contains("kannala_brandt8"),
+            "{e}"
+        );
+        // A fisheye file with a non-zero fifth coefficient.
+        let e = err_of(
+            &ROS.replace("plumb_bob", "equidistant")
+                .replace("[0.1, -0.01, 0, 0, 0]", "[0.1, -0.01, 0, 0, 0.2]"),
+        );
+        assert!(
+            e.contains("distortion_coefficients") && e.contains("equidistant"),
             "{e}"
         );
         let e = err_of(&ROS.replace("data: [500.5, 0, 320.25", "data: [-500.5, 0, 320.25"));
@@ -399,6 +562,79 @@ projection_matrix:
         assert!(e.contains("line 3") && e.contains("cam.yaml"), "{e}");
         let e = err_of(&ROS.replace("image_width: 640", "image_width: wide"));
         assert!(e.contains("image_width") && e.contains("wide"), "{e}");
+    }
+
+    #[test]
+    fn models_are_read_from_ros_and_opencv_files() {
+        let c = CameraCalibration::parse(&ROS.replace("plumb_bob", "equidistant"), p()).unwrap();
+        assert_eq!(c.model, DistortionModel::Equidistant);
+        assert_eq!(c.dist, vec![0.1, -0.01, 0.0, 0.0]);
+        // OpenCV's rational model: 8 coefficients and no model key.
+        let eight = OPENCV
+            .replace("rows: 5", "rows: 8")
+            .replace("-2.0e-03, 0. ]", "-2.0e-03, 0., 0.3, 0.01, 0. ]");
+        let c = CameraCalibration::parse(&eight, p()).unwrap();
+        assert_eq!(c.model, DistortionModel::Rational);
+        assert_eq!(c.dist.len(), 8);
+        assert_eq!(c.dist[5], 0.3);
+        // 14 coefficients (thin prism and tilt) that are all zero past the eighth.
+        let fourteen = OPENCV.replace("rows: 5", "rows: 14").replace(
+            "-2.0e-03, 0. ]",
+            "-2.0e-03, 0., 0.3, 0.01, 0., 0, 0, 0, 0, 0, 0 ]",
+        );
+        let c = CameraCalibration::parse(&fourteen, p()).unwrap();
+        assert_eq!((c.model, c.dist.len()), (DistortionModel::Rational, 8));
+        let e = err_of(&fourteen.replace("0, 0, 0, 0, 0, 0 ]", "0, 0.1, 0, 0, 0, 0 ]"));
+        assert!(
+            e.contains("14 coefficients") && e.contains("rational_polynomial"),
+            "{e}"
+        );
+    }
+
+    #[test]
+    fn written_files_read_back_exactly() {
+        let notes = CalibrationNotes {
+            medium: Some("water".into()),
+            working_distance_m: Some([0.8, 1.6]),
+            reprojection_rms_px: Some(0.1823),
+        };
+        for (model, dist) in [
+            (
+                DistortionModel::PlumbBob,
+                vec![-0.2, 0.05, 1e-3, -2e-3, 0.1 / 3.0],
+            ),
+            (DistortionModel::PlumbBob, vec![]),
+            (
+                DistortionModel::Rational,
+                vec![0.9, 0.3, 1e-3, -2e-3, 0.01, 0.75, 0.2, 0.02],
+            ),
+            (
+                DistortionModel::Equidistant,
+                vec![0.05, -0.02, 0.004, -0.001],
+            ),
+        ] {
+            let c = CameraCalibration {
+                dist,
+                model,
+                ..CameraCalibration::pinhole(1440, 1080, 1100.0 / 3.0, 1105.25, 720.5, 540.125)
+            };
+            let text = c.to_yaml(&notes, &["made by a test".to_string()]);
+            let back = CameraCalibration::parse(&text, p()).unwrap();
+            assert_eq!(back, c, "{text}");
+            assert_eq!(CameraCalibration::parse_notes(&text), notes, "{text}");
+            assert!(
+                text.starts_with("%YAML:1.0\n---\n# made by a test\n"),
+                "{text}"
+            );
+        }
+        assert_eq!(
+            CameraCalibration::parse_notes(OPENCV).reprojection_rms_px,
+            Some(0.21)
+        );
+        assert_eq!(
+            CameraCalibration::parse_notes(ROS),
+            CalibrationNotes::default()
+        );
     }
 
     #[test]

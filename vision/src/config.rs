@@ -210,6 +210,10 @@ pub struct MarkerConfig {
     /// The site's other markers, each placed in the site frame. Empty: a map of one.
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub map: Vec<MapMarker>,
+    /// A name for the flat surface the origin marker is on: `markhold map` reports
+    /// whether the markers of each named plane come out coplanar.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub plane: Option<String>,
 }
 
 /// One `[[marker.map]]` entry: a marker of the site placed in the site frame.
@@ -229,6 +233,10 @@ pub struct MapMarker {
     /// left (toward the origin marker's axis).
     #[serde(default, deserialize_with = "markhold_config::exact_array")]
     pub rpy_deg: [f64; 3],
+    /// A name for the flat surface the marker is on (a wall, a panel): `markhold map`
+    /// reports whether the markers of each named plane come out coplanar.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub plane: Option<String>,
 }
 
 impl MapMarker {
@@ -259,7 +267,13 @@ impl MarkerConfig {
             id,
             size_m,
             map: Vec::new(),
+            plane: None,
         }
+    }
+
+    /// The plane name of each marker of the map, the origin marker first.
+    pub fn planes(&self) -> impl Iterator<Item = Option<&str>> + '_ {
+        std::iter::once(self.plane.as_deref()).chain(self.map.iter().map(|m| m.plane.as_deref()))
     }
 
     /// Every marker of the map, the origin marker first.

@@ -614,6 +614,7 @@ mod tests {
     fn oblique_corners_are_recovered_to_hundredths_of_a_pixel() {
         let calib = CameraCalibration {
             dist: vec![-0.15, 0.04, 0.0, 0.0, 0.0],
+            model: crate::DistortionModel::PlumbBob,
             ..CameraCalibration::pinhole(800, 600, 600.0, 600.0, 399.5, 299.5)
         };
         let bm = marker_bitmap(MarkerFamily::AprilTag36h11, 0).unwrap();

@@ -52,6 +52,8 @@ pub enum VisionError {
         ids: String,
         detail: String,
     },
+    #[error("calibration refused: {reason}")]
+    CalibrationRefused { reason: String },
     #[error(transparent)]
     Camera(#[from] markhold_exposure::CameraError),
 }

@@ -13,10 +13,12 @@
 //! order (tx, ty, tz, rx, ry, rz)).
 
 mod calib;
+pub mod calibration;
 mod camera;
 mod config;
 mod corners;
 mod dict;
+pub mod distortion;
 mod error;
 pub mod mapping;
 pub mod pose;
@@ -24,7 +26,7 @@ pub mod synth;
 mod tracker;
 mod yaml;
 
-pub use calib::CameraCalibration;
+pub use calib::{CalibrationNotes, CalibrationSource, CameraCalibration};
 pub use camera::{
     check_encoded_size, encoded_image_size, FrameRecorder, RecordedCamera, V4l2Camera,
     MAX_IMAGE_SIDE, SIDECAR,
@@ -34,6 +36,7 @@ pub use config::{
 };
 pub use corners::CornerCov;
 pub use dict::{marker_bitmap, MarkerBitmap};
+pub use distortion::DistortionModel;
 pub use error::VisionError;
 pub use markhold_config::ConfigError;
 pub use pose::{cov_in_frame, cov_of_inverse};

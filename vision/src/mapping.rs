@@ -11,17 +11,24 @@
 //! unknowns), so thousands of frames cost little. The origin marker is held at the
 //! identity: that fixes the gauge (the map's position and orientation); the scale comes
 //! from the printed marker sizes.
+//!
+//! The camera's intrinsics can join the adjustment (the markers are then the
+//! calibration target) when the frames fix them ([`IntrinsicsMode`]); the covariance
+//! counts the error the corner noise does not explain (model error, repeated from one
+//! viewpoint to the next), and markers declared on one plane are checked for it.
+
+mod adjust;
+mod planes;
 
 use std::collections::HashMap;
 
+use crate::calibration::solve::Param;
 use crate::config::MarkerConfig;
-use crate::pose::{marker_object_points, refine_pose_joint, skew, MarkerCorners};
 use crate::{CameraCalibration, MarkerTracker, VisionError};
+use adjust::Adjustment;
 use markhold_exposure::Frame;
-use nalgebra::{
-    DMatrix, DVector, Isometry3, Matrix2x3, Matrix3, Matrix6, Point3, SMatrix, SVector,
-    Translation3, UnitQuaternion, Vector2, Vector3, Vector6,
-};
+use nalgebra::{Isometry3, Matrix6, SMatrix, Vector2};
+pub use planes::PlaneReport;
 
 /// One marker found in one frame, with its own pose (from its four corners alone).
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -46,6 +53,39 @@ pub struct MapSettings {
     pub outlier_median_factor: f64,
     /// ... and this many pixels.
     pub outlier_floor_px: f64,
+    /// Whether the camera's intrinsics join the adjustment.
+    pub intrinsics: IntrinsicsMode,
+    /// Frames within this distance (metres) and angle (degrees) of each other see the
+    /// map from one viewpoint: they repeat one model error (the covariance counts each
+    /// viewpoint once for it).
+    pub viewpoint_m: f64,
+    pub viewpoint_deg: f64,
+    /// Intrinsics are refined only with this many viewpoints at least...
+    pub min_viewpoints: usize,
+    /// ... and when they come out this well determined (one standard deviation): the
+    /// focal length as a fraction of itself, the principal point in pixels, the radial
+    /// terms as the fraction of the radius they move the farthest corner by.
+    pub max_focal_sigma: f64,
+    pub max_centre_sigma_px: f64,
+    pub max_radial_sigma: f64,
+    /// One standard deviation of each marker's size as the corners see it, relative: a
+    /// print off its stated size, an edge profile that makes a marker look smaller.
+    /// Unseen by the residuals (a marker's pose absorbs its size), it moves the marker
+    /// along the lines of sight; the covariance counts it.
+    pub size_sigma: f64,
+    /// The same error common to every marker (one printer's scale): it scales the map.
+    pub scale_sigma: f64,
+}
+
+/// Whether [`MapBuilder::solve`] refines the camera's intrinsics.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum IntrinsicsMode {
+    /// Held as the calibration gives them.
+    Fixed,
+    /// Refined (focal length, principal point, first two radial terms, as many of them
+    /// as the frames fix) when the frames fix at least the focal length; held otherwise,
+    /// with the reason.
+    Auto,
 }
 
 impl Default for MapSettings {
@@ -54,6 +94,15 @@ impl Default for MapSettings {
             max_iterations: 100,
             outlier_median_factor: 5.0,
             outlier_floor_px: 1.0,
+            intrinsics: IntrinsicsMode::Auto,
+            viewpoint_m: 0.1,
+            viewpoint_deg: 5.0,
+            min_viewpoints: 4,
+            max_focal_sigma: 0.005,
+            max_centre_sigma_px: 3.0,
+            max_radial_sigma: 0.002,
+            size_sigma: 0.0005,
+            scale_sigma: 0.0005,
         }
     }
 }
@@ -72,10 +121,27 @@ pub struct MappedMarker {
     /// RMS reprojection error of its corners over those frames, pixels.
     pub rms_px: f64,
     /// One standard deviation of its position, largest axis, metres, and of its
-    /// orientation, largest axis, degrees: from the adjustment's covariance scaled by the
-    /// a-posteriori variance factor (0 for the origin marker, which is fixed).
+    /// orientation, largest axis, degrees, from `covariance` (0 for the origin marker,
+    /// which is fixed).
     pub sigma_position_m: f64,
     pub sigma_angle_deg: f64,
+    /// Covariance of (tx, ty, tz, rx, ry, rz) of its pose in the site frame (left
+    /// rotation error, site axes): the corner noise, the model error the residuals show
+    /// (counted once per viewpoint), the intrinsics' uncertainty when they were refined,
+    /// and the planes' evidence ([`MapEstimate::plane_factor`]).
+    pub covariance: Matrix6<f64>,
+}
+
+/// What became of the camera's intrinsics.
+#[derive(Debug, Clone, PartialEq)]
+pub struct IntrinsicsReport {
+    /// The intrinsics the map was solved with (refined or as given).
+    pub calibration: CameraCalibration,
+    /// Refined: each free parameter's (name, value given, value refined, one standard
+    /// deviation). Empty: held.
+    pub refined: Vec<(String, f64, f64, f64)>,
+    /// Why they were held, or what the frames fixed.
+    pub reason: String,
 }
 
 /// A marker map estimated by [`MapBuilder::solve`].
@@ -93,12 +159,23 @@ pub struct MapEstimate {
     /// solution, pixels.
     pub initial_rms_px: f64,
     pub rms_px: f64,
-    /// Levenberg-Marquardt iterations over both passes.
+    /// Levenberg-Marquardt iterations over every pass.
     pub iterations: usize,
+    pub intrinsics: IntrinsicsReport,
+    /// Distinct viewpoints among the frames (`MapSettings::viewpoint_m`, `viewpoint_deg`).
+    pub viewpoints: usize,
+    /// Whitened cost over its redundancy: 1 when the corners' covariance explains the
+    /// residuals; above, the excess is counted as model error.
+    pub variance_factor: f64,
+    /// The coplanarity of each named plane.
+    pub planes: Vec<PlaneReport>,
+    /// The markers' out-of-plane deviations over the covariance's account of them
+    /// (mean of the squared ratios); above 1 the covariance was scaled up by it.
+    pub plane_factor: f64,
 }
 
 #[derive(Debug, Clone, Copy)]
-struct Obs {
+pub(crate) struct Obs {
     frame: usize,
     /// Index of the marker in the builder's list.
     marker: usize,
@@ -113,6 +190,8 @@ pub struct MapBuilder {
     calib: CameraCalibration,
     /// (id, size) of each marker to map.
     markers: Vec<(u32, f64)>,
+    /// The plane each marker is declared on.
+    planes: Vec<Option<String>>,
     index_of_id: HashMap<u32, usize>,
     /// Observations of the frames kept (two or more markers), by frame.
     obs: Vec<Obs>,
@@ -121,8 +200,6 @@ pub struct MapBuilder {
     /// Frames each marker was seen in, alone or not.
     seen: Vec<usize>,
 }
-
-type Blocks8x6 = SMatrix<f64, 8, 6>;
 
 impl MapBuilder {
     /// A builder for the markers of `marker` (the site's `[marker]` section: the origin
@@ -138,6 +215,7 @@ impl MapBuilder {
         Self {
             calib,
             seen: vec![0; markers.len()],
+            planes: marker.planes().map(|p| p.map(str::to_string)).collect(),
             markers,
             index_of_id,
             obs: Vec::new(),
@@ -220,14 +298,141 @@ impl MapBuilder {
             });
         }
         let t_site = self.chain(o)?;
-        let mut ba = Adjustment::new(self, o, t_site);
+        let mut ba = Adjustment::new(self, o, t_site, self.calib.clone(), Vec::new());
         let initial_rms_px = ba.rms_px();
         let mut iterations = ba.run(settings.max_iterations);
         let outliers = ba.reject(settings);
         if outliers > 0 {
             iterations += ba.run(settings.max_iterations);
         }
-        Ok(ba.estimate(origin, initial_rms_px, iterations, outliers))
+        let viewpoints = ba.viewpoints(settings).len();
+        let (ba, report, more) = self.intrinsics(ba, settings, viewpoints);
+        Ok(ba.estimate(
+            origin,
+            initial_rms_px,
+            iterations + more,
+            outliers,
+            report,
+            settings,
+        ))
+    }
+
+    /// The intrinsics in the adjustment when the frames fix them (the largest set of
+    /// focal length, principal point, k1, k2 whose standard deviations are within the
+    /// settings'), else `ba` as it is, with the reason.
+    fn intrinsics<'a>(
+        &'a self,
+        ba: Adjustment<'a>,
+        settings: &MapSettings,
+        viewpoints: usize,
+    ) -> (Adjustment<'a>, IntrinsicsReport, usize) {
+        let held = |reason: String| IntrinsicsReport {
+            calibration: self.calib.clone(),
+            refined: Vec::new(),
+            reason,
+        };
+        if settings.intrinsics == IntrinsicsMode::Fixed {
+            return (ba, held("held as given (--intrinsics fixed)".into()), 0);
+        }
+        if viewpoints < settings.min_viewpoints {
+            let reason = format!(
+                "held as given: the frames see the map from {viewpoints} viewpoint{} (at \
+                 least {} are needed, {:.2} m or {:.0} degrees apart): survey from several \
+                 distances and angles to refine them",
+                if viewpoints == 1 { "" } else { "s" },
+                settings.min_viewpoints,
+                settings.viewpoint_m,
+                settings.viewpoint_deg
+            );
+            return (ba, held(reason), 0);
+        }
+        let c = &self.calib;
+        let focal = Param::Focal { ratio: c.fy / c.fx };
+        let sets: [Vec<Param>; 3] = [
+            vec![focal, Param::Cx, Param::Cy, Param::Dist(0), Param::Dist(1)],
+            vec![focal, Param::Dist(0)],
+            vec![focal],
+        ];
+        let mut iterations = 0;
+        let mut last_reason = String::new();
+        for set in sets {
+            if set
+                .iter()
+                .any(|p| matches!(p, Param::Dist(i) if *i >= c.dist.len()))
+            {
+                continue;
+            }
+            let mut trial = ba.with_intrinsics(set.clone());
+            iterations += trial.run(settings.max_iterations);
+            let Some(sig) = trial.intrinsic_sigmas(settings) else {
+                last_reason = "the adjustment with them free is singular".into();
+                continue;
+            };
+            let r = trial.max_normalised_radius();
+            let mut bad = Vec::new();
+            for (p, s) in set.iter().zip(&sig) {
+                let v = crate::calibration::solve::value(*p, trial.calibration());
+                let (ok, what) = match p {
+                    Param::Focal { .. } => (
+                        *s <= settings.max_focal_sigma * v,
+                        format!("f +- {:.2} %", 100.0 * s / v),
+                    ),
+                    Param::Cx | Param::Cy => (
+                        *s <= settings.max_centre_sigma_px,
+                        format!("{} +- {s:.1} px", p.name(c.model)),
+                    ),
+                    Param::Dist(i) => {
+                        let reach = s * r.powi(2 * (*i as i32 + 1));
+                        (
+                            reach <= settings.max_radial_sigma,
+                            format!(
+                                "{} moves the farthest corner +- {:.2} %",
+                                p.name(c.model),
+                                100.0 * reach
+                            ),
+                        )
+                    }
+                    _ => (true, String::new()),
+                };
+                if !ok {
+                    bad.push(what);
+                }
+            }
+            if bad.is_empty() {
+                let refined: Vec<(String, f64, f64, f64)> = set
+                    .iter()
+                    .zip(&sig)
+                    .map(|(p, s)| {
+                        (
+                            p.name(c.model),
+                            crate::calibration::solve::value(*p, c),
+                            crate::calibration::solve::value(*p, trial.calibration()),
+                            *s,
+                        )
+                    })
+                    .collect();
+                let report = IntrinsicsReport {
+                    calibration: trial.calibration().clone(),
+                    reason: format!(
+                        "refined ({} free) from {viewpoints} viewpoints",
+                        refined
+                            .iter()
+                            .map(|r| r.0.as_str())
+                            .collect::<Vec<_>>()
+                            .join(", ")
+                    ),
+                    refined,
+                };
+                return (trial, report, iterations);
+            }
+            last_reason = bad.join(", ");
+        }
+        let reason = format!(
+            "held as given: the frames do not fix them ({last_reason}; needed: f within {:.1} \
+             %): survey from more distances and angles, nearer the image corners",
+            100.0 * settings.max_focal_sigma
+        );
+        (ba, held(reason), iterations)
     }
 
     /// Start poses of the markers: from the origin, each next marker is the one seen in
@@ -324,461 +529,13 @@ fn medoid(v: &[Isometry3<f64>]) -> Isometry3<f64> {
 /// `R = exp([dtheta]x) R`, `t = t + dt`: the perturbation of every pose here (as in
 /// the pose refinement).
 fn apply(pose: &Isometry3<f64>, delta: &[f64]) -> Isometry3<f64> {
-    let dt = Vector3::new(delta[0], delta[1], delta[2]);
-    let dth = Vector3::new(delta[3], delta[4], delta[5]);
-    let rot = UnitQuaternion::from_scaled_axis(dth) * pose.rotation;
-    Isometry3::from_parts(Translation3::from(pose.translation.vector + dt), rot)
-}
-
-/// Whitened residuals (observed - projected) of one observation, the Jacobians of the
-/// projection w.r.t. the camera pose and the marker pose (whitened), and the raw
-/// squared residual. `None`: a corner behind the camera.
-fn observation(
-    calib: &CameraCalibration,
-    obj: &[Point3<f64>; 4],
-    o: &Obs,
-    t_cam_site: &Isometry3<f64>,
-    t_site_marker: &Isometry3<f64>,
-) -> Option<(SVector<f64, 8>, Blocks8x6, Blocks8x6, f64)> {
-    let mut r = SVector::<f64, 8>::zeros();
-    let mut jc = Blocks8x6::zeros();
-    let mut jm = Blocks8x6::zeros();
-    let r_cs: Matrix3<f64> = *t_cam_site.rotation.to_rotation_matrix().matrix();
-    let r_sm = t_site_marker.rotation.to_rotation_matrix();
-    for (i, x) in obj.iter().enumerate() {
-        let rx = r_sm * x.coords;
-        let q = rx + t_site_marker.translation.vector;
-        let rq = r_cs * q;
-        let p = rq + t_cam_site.translation.vector;
-        if p.z <= 1e-9 {
-            return None;
-        }
-        let iz = 1.0 / p.z;
-        let (nx, ny) = (p.x * iz, p.y * iz);
-        let (uv, dd) = calib.distort_with_jacobian(nx, ny);
-        let d = dd * Matrix2x3::new(iz, 0.0, -nx * iz, 0.0, iz, -ny * iz);
-        let e = o.img[i] - uv;
-        r[2 * i] = e.x;
-        r[2 * i + 1] = e.y;
-        // Camera: dp/d dt = I, dp/d dtheta = -[R_cs q]x.
-        let dc_rot = d * (-skew(&rq));
-        // Marker: dq/d dtau = I, dq/d dphi = -[R_sm X]x, dp/dq = R_cs.
-        let dm_t = d * r_cs;
-        let dm_rot = dm_t * (-skew(&rx));
-        for c in 0..3 {
-            for k in 0..2 {
-                jc[(2 * i + k, c)] = d[(k, c)];
-                jc[(2 * i + k, 3 + c)] = dc_rot[(k, c)];
-                jm[(2 * i + k, c)] = dm_t[(k, c)];
-                jm[(2 * i + k, 3 + c)] = dm_rot[(k, c)];
-            }
-        }
-    }
-    let raw = r.norm_squared();
-    Some((o.white * r, o.white * jc, o.white * jm, raw))
-}
-
-/// One frame's share of the normal equations: its camera block, gradient, and the
-/// coupling `Jc^T Jm` with each free marker it saw.
-type FrameBlocks = (Matrix6<f64>, Vector6<f64>, Vec<(usize, Matrix6<f64>)>);
-
-/// A step: per camera, the free markers' (stacked), and the reduced matrix.
-type Step = (Vec<Vector6<f64>>, DVector<f64>, DMatrix<f64>);
-
-/// The normal equations at one point: per frame (camera block, its gradient, and the
-/// coupling with each free marker it saw), per free marker (its block and gradient).
-struct Linearised {
-    cost: f64,
-    frames: Vec<FrameBlocks>,
-    markers: Vec<(Matrix6<f64>, Vector6<f64>)>,
-}
-
-struct Adjustment<'a> {
-    b: &'a MapBuilder,
-    origin: usize,
-    obj: Vec<[Point3<f64>; 4]>,
-    /// Index of each marker among the free ones (`None`: the origin).
-    free: Vec<Option<usize>>,
-    n_free: usize,
-    t_site: Vec<Isometry3<f64>>,
-    t_cam: Vec<Isometry3<f64>>,
-    /// Observations in use (false: left out as an outlier).
-    used: Vec<bool>,
-    /// Start of each frame's observations in `b.obs`.
-    frame_start: Vec<usize>,
-}
-
-impl<'a> Adjustment<'a> {
-    fn new(b: &'a MapBuilder, origin: usize, placed: Vec<Option<Isometry3<f64>>>) -> Self {
-        let t_site: Vec<Isometry3<f64>> = placed
-            .into_iter()
-            .map(|p| p.unwrap_or_else(Isometry3::identity))
-            .collect();
-        let obj: Vec<[Point3<f64>; 4]> = b
-            .markers
-            .iter()
-            .map(|(_, s)| marker_object_points(*s))
-            .collect();
-        let mut free = vec![None; b.markers.len()];
-        let mut n_free = 0;
-        for (m, f) in free.iter_mut().enumerate() {
-            if m != origin {
-                *f = Some(n_free);
-                n_free += 1;
-            }
-        }
-        let mut frame_start = Vec::with_capacity(b.frames_kept + 1);
-        for (i, o) in b.obs.iter().enumerate() {
-            if frame_start.len() == o.frame {
-                frame_start.push(i);
-            }
-        }
-        frame_start.push(b.obs.len());
-        // Each camera from the start map: every observation's marker proposes a pose,
-        // refined on all the frame's markers; the lowest residual wins.
-        let t_cam = frame_start
-            .windows(2)
-            .map(|w| {
-                let frame = &b.obs[w[0]..w[1]];
-                let corners: Vec<MarkerCorners> = frame
-                    .iter()
-                    .map(|o| MarkerCorners {
-                        obj: obj[o.marker].map(|p| t_site[o.marker] * p),
-                        img: o.img,
-                        white: o.white,
-                        ..MarkerCorners::default()
-                    })
-                    .collect();
-                let used = vec![true; frame.len()];
-                let mut best: Option<(f64, Isometry3<f64>)> = None;
-                for o in frame {
-                    let init = o.t_cam_marker * t_site[o.marker].inverse();
-                    if let Some(p) = refine_pose_joint(&b.calib, &corners, &used, &init) {
-                        if best.is_none_or(|(r, _)| p.reproj_rms_px < r) {
-                            best = Some((p.reproj_rms_px, p.t_cam_marker));
-                        }
-                    }
-                }
-                best.map_or(
-                    frame[0].t_cam_marker * t_site[frame[0].marker].inverse(),
-                    |b| b.1,
-                )
-            })
-            .collect();
-        Self {
-            b,
-            origin,
-            obj,
-            free,
-            n_free,
-            t_site,
-            t_cam,
-            used: vec![true; b.obs.len()],
-            frame_start,
-        }
-    }
-
-    /// Whitened cost and raw squared residual with corners counted, at the current
-    /// poses (`None`: a corner behind a camera).
-    fn cost_at(
-        &self,
-        t_cam: &[Isometry3<f64>],
-        t_site: &[Isometry3<f64>],
-    ) -> Option<(f64, f64, usize)> {
-        let (mut cost, mut raw, mut n) = (0.0, 0.0, 0);
-        for (o, _) in self.b.obs.iter().zip(&self.used).filter(|(_, u)| **u) {
-            let (r, _, _, sq) = observation(
-                &self.b.calib,
-                &self.obj[o.marker],
-                o,
-                &t_cam[o.frame],
-                &t_site[o.marker],
-            )?;
-            cost += r.norm_squared();
-            raw += sq;
-            n += 4;
-        }
-        Some((cost, raw, n))
-    }
-
-    fn rms_px(&self) -> f64 {
-        self.cost_at(&self.t_cam, &self.t_site)
-            .map_or(f64::NAN, |(_, raw, n)| (raw / n.max(1) as f64).sqrt())
-    }
-
-    fn linearise(&self) -> Option<Linearised> {
-        let mut lin = Linearised {
-            cost: 0.0,
-            frames: Vec::with_capacity(self.t_cam.len()),
-            markers: vec![(Matrix6::zeros(), Vector6::zeros()); self.n_free],
-        };
-        for w in self.frame_start.windows(2) {
-            let (mut hff, mut gf, mut coupling) = (Matrix6::zeros(), Vector6::zeros(), Vec::new());
-            for i in w[0]..w[1] {
-                if !self.used[i] {
-                    continue;
-                }
-                let o = &self.b.obs[i];
-                let (r, jc, jm, _) = observation(
-                    &self.b.calib,
-                    &self.obj[o.marker],
-                    o,
-                    &self.t_cam[o.frame],
-                    &self.t_site[o.marker],
-                )?;
-                lin.cost += r.norm_squared();
-                hff += jc.transpose() * jc;
-                gf += jc.transpose() * r;
-                if let Some(k) = self.free[o.marker] {
-                    coupling.push((k, jc.transpose() * jm));
-                    lin.markers[k].0 += jm.transpose() * jm;
-                    lin.markers[k].1 += jm.transpose() * r;
-                }
-            }
-            lin.frames.push((hff, gf, coupling));
-        }
-        Some(lin)
-    }
-
-    /// The damped step (cameras, free markers) by the Schur complement on the markers;
-    /// also the reduced matrix (for the covariance). `None`: singular.
-    fn step(&self, lin: &Linearised, lambda: f64) -> Option<Step> {
-        let damp = |h: &Matrix6<f64>| {
-            let mut a = *h;
-            for d in 0..6 {
-                a[(d, d)] += lambda * h[(d, d)].max(1e-9);
-            }
-            a
-        };
-        let dim = 6 * self.n_free;
-        let mut s = DMatrix::<f64>::zeros(dim, dim);
-        let mut rhs = DVector::<f64>::zeros(dim);
-        for (k, (h, g)) in lin.markers.iter().enumerate() {
-            s.fixed_view_mut::<6, 6>(6 * k, 6 * k).copy_from(&damp(h));
-            rhs.fixed_rows_mut::<6>(6 * k).copy_from(g);
-        }
-        let mut a_inv = Vec::with_capacity(lin.frames.len());
-        for (hff, gf, coupling) in &lin.frames {
-            if hff.iter().all(|v| *v == 0.0) {
-                // Every observation of the frame left out: its camera stays.
-                a_inv.push(Matrix6::zeros());
-                continue;
-            }
-            let inv = damp(hff).cholesky()?.inverse();
-            for (k, hfk) in coupling {
-                let y = hfk.transpose() * inv;
-                let mut rk = rhs.fixed_rows_mut::<6>(6 * k);
-                rk -= y * gf;
-                for (l, hfl) in coupling {
-                    let mut blk = s.fixed_view_mut::<6, 6>(6 * k, 6 * l);
-                    blk -= y * hfl;
-                }
-            }
-            a_inv.push(inv);
-        }
-        let dm = s.clone().cholesky()?.solve(&rhs);
-        let dc = lin
-            .frames
-            .iter()
-            .zip(&a_inv)
-            .map(|((_, gf, coupling), inv)| {
-                let mut g = *gf;
-                for (k, hfk) in coupling {
-                    g -= hfk * dm.fixed_rows::<6>(6 * k);
-                }
-                inv * g
-            })
-            .collect();
-        Some((dc, dm, s))
-    }
-
-    fn moved(
-        &self,
-        dc: &[Vector6<f64>],
-        dm: &DVector<f64>,
-    ) -> (Vec<Isometry3<f64>>, Vec<Isometry3<f64>>) {
-        let t_cam = self
-            .t_cam
-            .iter()
-            .zip(dc)
-            .map(|(t, d)| apply(t, d.as_slice()))
-            .collect();
-        let t_site = self
-            .t_site
-            .iter()
-            .zip(&self.free)
-            .map(|(t, f)| match f {
-                Some(k) => apply(t, &dm.as_slice()[6 * k..6 * k + 6]),
-                None => *t,
-            })
-            .collect();
-        (t_cam, t_site)
-    }
-
-    /// Levenberg-Marquardt to convergence; returns the iterations taken.
-    fn run(&mut self, max_iterations: usize) -> usize {
-        let mut lambda = 1e-4;
-        let mut it = 0;
-        let Some(mut lin) = self.linearise() else {
-            return 0;
-        };
-        while it < max_iterations {
-            it += 1;
-            let Some((dc, dm, _)) = self.step(&lin, lambda) else {
-                lambda *= 10.0;
-                if lambda > 1e8 {
-                    break;
-                }
-                continue;
-            };
-            let (t_cam, t_site) = self.moved(&dc, &dm);
-            match self.cost_at(&t_cam, &t_site) {
-                Some((cost, _, _)) if cost <= lin.cost => {
-                    let small = dm.amax() < 1e-10 && dc.iter().all(|d| d.amax() < 1e-10);
-                    let done = small || lin.cost - cost < 1e-10 * lin.cost.max(1e-30);
-                    self.t_cam = t_cam;
-                    self.t_site = t_site;
-                    lambda = (lambda * 0.1).max(1e-12);
-                    match self.linearise() {
-                        Some(l) => lin = l,
-                        None => break,
-                    }
-                    if done {
-                        break;
-                    }
-                }
-                _ => {
-                    lambda *= 10.0;
-                    if lambda > 1e8 {
-                        break;
-                    }
-                }
-            }
-        }
-        it
-    }
-
-    /// RMS reprojection error of each observation, pixels (NaN: behind the camera).
-    fn observation_rms(&self) -> Vec<f64> {
-        self.b
-            .obs
-            .iter()
-            .map(|o| {
-                observation(
-                    &self.b.calib,
-                    &self.obj[o.marker],
-                    o,
-                    &self.t_cam[o.frame],
-                    &self.t_site[o.marker],
-                )
-                .map_or(f64::NAN, |(_, _, _, raw)| (raw / 4.0).sqrt())
-            })
-            .collect()
-    }
-
-    /// Leave out the observations far above the median residual (a wrong corner, a
-    /// marker half hidden); a marker keeps at least 3 observations. Returns how many.
-    fn reject(&mut self, settings: &MapSettings) -> usize {
-        let rms = self.observation_rms();
-        let mut sorted: Vec<f64> = rms.iter().copied().filter(|r| r.is_finite()).collect();
-        if sorted.is_empty() {
-            return 0;
-        }
-        sorted.sort_by(f64::total_cmp);
-        let median = sorted[sorted.len() / 2];
-        let gate = (settings.outlier_median_factor * median).max(settings.outlier_floor_px);
-        let mut left = vec![0usize; self.b.markers.len()];
-        for o in &self.b.obs {
-            left[o.marker] += 1;
-        }
-        // Worst first, so a marker's 3 kept are its best.
-        let mut order: Vec<usize> = (0..rms.len()).collect();
-        order.sort_by(|a, b| rms[*b].total_cmp(&rms[*a]));
-        let mut n = 0;
-        for i in order {
-            let bad = !rms[i].is_finite() || rms[i] > gate;
-            let m = self.b.obs[i].marker;
-            if bad && left[m] > 3 {
-                self.used[i] = false;
-                left[m] -= 1;
-                n += 1;
-            }
-        }
-        n
-    }
-
-    fn estimate(
-        &self,
-        origin: u32,
-        initial_rms_px: f64,
-        iterations: usize,
-        outliers: usize,
-    ) -> MapEstimate {
-        let rms = self.observation_rms();
-        let nm = self.b.markers.len();
-        let (mut frames, mut out, mut sq) = (vec![0usize; nm], vec![0usize; nm], vec![0.0; nm]);
-        for ((o, u), r) in self.b.obs.iter().zip(&self.used).zip(&rms) {
-            if *u {
-                frames[o.marker] += 1;
-                sq[o.marker] += r * r;
-            } else {
-                out[o.marker] += 1;
-            }
-        }
-        // Covariance of the free markers: the inverse of the reduced (Schur) matrix,
-        // scaled by the a-posteriori variance factor cost / redundancy.
-        let mut cov: Option<DMatrix<f64>> = None;
-        let mut factor = 1.0;
-        if let Some(lin) = self.linearise() {
-            let n_res = 8 * self.used.iter().filter(|u| **u).count();
-            let n_par = 6 * (self.t_cam.len() + self.n_free);
-            if n_res > n_par {
-                factor = lin.cost / (n_res - n_par) as f64;
-            }
-            cov = self
-                .step(&lin, 0.0)
-                .and_then(|(_, _, s)| s.cholesky())
-                .map(|c| c.inverse());
-        }
-        let sigma = |k: usize, off: usize| -> f64 {
-            cov.as_ref().map_or(f64::NAN, |c| {
-                (0..3)
-                    .map(|d| c[(6 * k + off + d, 6 * k + off + d)] * factor)
-                    .fold(0.0, f64::max)
-                    .sqrt()
-            })
-        };
-        let order = std::iter::once(self.origin).chain((0..nm).filter(|m| *m != self.origin));
-        let markers = order
-            .map(|m| {
-                let (id, size_m) = self.b.markers[m];
-                let (sp, sa) = match self.free[m] {
-                    Some(k) => (sigma(k, 0), sigma(k, 3).to_degrees()),
-                    None => (0.0, 0.0),
-                };
-                MappedMarker {
-                    id,
-                    size_m,
-                    t_site_marker: self.t_site[m],
-                    frames: frames[m],
-                    outliers: out[m],
-                    rms_px: (sq[m] / frames[m].max(1) as f64).sqrt(),
-                    sigma_position_m: sp,
-                    sigma_angle_deg: sa,
-                }
-            })
-            .collect();
-        MapEstimate {
-            origin,
-            markers,
-            frames_used: self.t_cam.len(),
-            observations: self.used.iter().filter(|u| **u).count(),
-            outliers,
-            initial_rms_px,
-            rms_px: self.rms_px(),
-            iterations,
-        }
-    }
+    let dt = nalgebra::Vector3::new(delta[0], delta[1], delta[2]);
+    let dth = nalgebra::Vector3::new(delta[3], delta[4], delta[5]);
+    let rot = nalgebra::UnitQuaternion::from_scaled_axis(dth) * pose.rotation;
+    Isometry3::from_parts(
+        nalgebra::Translation3::from(pose.translation.vector + dt),
+        rot,
+    )
 }
 
 #[cfg(test)]

@@ -6,7 +6,7 @@
 //! the left, `R = exp([dtheta]x) R_hat`, so it is a small rotation vector expressed in
 //! the camera frame. The covariance order is (tx, ty, tz, rx, ry, rz) (docs/frames.md).
 
-use crate::CameraCalibration;
+use crate::{distortion, CameraCalibration};
 use nalgebra::{
     Isometry3, Matrix2, Matrix2x3, Matrix3, Matrix6, Point3, Rotation3, SMatrix, Translation3,
     UnitQuaternion, Vector2, Vector3, Vector6,
@@ -31,27 +31,15 @@ pub fn skew(v: &Vector3<f64>) -> Matrix3<f64> {
 
 impl CameraCalibration {
     /// Distorted pixel of a normalised image point (x, y) = (X/Z, Y/Z), and the 2x2
-    /// Jacobian d(u, v)/d(x, y). OpenCV's model with k1 k2 p1 p2 k3.
+    /// Jacobian d(u, v)/d(x, y), in the calibration's lens model ([`crate::distortion`]).
     pub fn distort_with_jacobian(&self, x: f64, y: f64) -> (Vector2<f64>, Matrix2<f64>) {
-        let d = |i: usize| self.dist.get(i).copied().unwrap_or(0.0);
-        let (k1, k2, p1, p2, k3) = (d(0), d(1), d(2), d(3), d(4));
-        let r2 = x * x + y * y;
-        let radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3));
-        // d radial / d r2, times d r2 / dx = 2x.
-        let drad_dr2 = k1 + r2 * (2.0 * k2 + 3.0 * k3 * r2);
-        let (drad_dx, drad_dy) = (drad_dr2 * 2.0 * x, drad_dr2 * 2.0 * y);
-        let xd = x * radial + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x);
-        let yd = y * radial + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y;
-        let dxd_dx = radial + x * drad_dx + 2.0 * p1 * y + 6.0 * p2 * x;
-        let dxd_dy = x * drad_dy + 2.0 * p1 * x + 2.0 * p2 * y;
-        let dyd_dx = y * drad_dx + 2.0 * p1 * x + 2.0 * p2 * y;
-        let dyd_dy = radial + y * drad_dy + 6.0 * p1 * y + 2.0 * p2 * x;
-        let uv = Vector2::new(self.fx * xd + self.cx, self.fy * yd + self.cy);
+        let (q, j) = distortion::distort(self.model, &self.dist, x, y);
+        let uv = Vector2::new(self.fx * q.x + self.cx, self.fy * q.y + self.cy);
         let j = Matrix2::new(
-            self.fx * dxd_dx,
-            self.fx * dxd_dy,
-            self.fy * dyd_dx,
-            self.fy * dyd_dy,
+            self.fx * j[(0, 0)],
+            self.fx * j[(0, 1)],
+            self.fy * j[(1, 0)],
+            self.fy * j[(1, 1)],
         );
         (uv, j)
     }
@@ -67,30 +55,19 @@ impl CameraCalibration {
         )
     }
 
-    /// Normalised undistorted image point of a pixel (inverse of the distortion by
-    /// fixed-point iteration, as OpenCV's undistortPoints).
-    pub fn undistort_pixel(&self, u: f64, v: f64) -> Vector2<f64> {
+    /// Normalised undistorted image point of a pixel (the inverse of the lens model by
+    /// Newton's method), `None` where the model cannot be inverted (outside the region
+    /// it was calibrated in).
+    pub fn try_undistort_pixel(&self, u: f64, v: f64) -> Option<Vector2<f64>> {
         let (xd, yd) = ((u - self.cx) / self.fx, (v - self.cy) / self.fy);
-        if self.dist.iter().all(|k| *k == 0.0) {
-            return Vector2::new(xd, yd);
-        }
-        let d = |i: usize| self.dist.get(i).copied().unwrap_or(0.0);
-        let (k1, k2, p1, p2, k3) = (d(0), d(1), d(2), d(3), d(4));
-        let (mut x, mut y) = (xd, yd);
-        for _ in 0..20 {
-            let r2 = x * x + y * y;
-            let radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3));
-            let dx = 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x);
-            let dy = p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y;
-            let (nx, ny) = ((xd - dx) / radial, (yd - dy) / radial);
-            let step = (nx - x).abs() + (ny - y).abs();
-            (x, y) = (nx, ny);
-            // 1e-12 in normalised units is ~1e-9 px.
-            if step < 1e-12 {
-                break;
-            }
-        }
-        Vector2::new(x, y)
+        distortion::undistort(self.model, &self.dist, xd, yd)
+    }
+
+    /// [`Self::try_undistort_pixel`], or the pixel's distorted normalised point where the
+    /// model cannot be inverted.
+    pub fn undistort_pixel(&self, u: f64, v: f64) -> Vector2<f64> {
+        self.try_undistort_pixel(u, v)
+            .unwrap_or_else(|| Vector2::new((u - self.cx) / self.fx, (v - self.cy) / self.fy))
     }
 }
 
@@ -415,6 +392,7 @@ mod tests {
             cx: 722.0,
             cy: 538.0,
             dist,
+            model: crate::DistortionModel::PlumbBob,
         }
     }
 

@@ -225,20 +225,12 @@ impl MarkerTracker {
         // and biases the corner by pixels.
         params.set_corner_refinement_method(aruco::CornerRefineMethod::CORNER_REFINE_NONE as i32);
 
-        let camera_matrix = core::Mat::from_slice_2d(&[
-            [calib.fx, 0.0, calib.cx],
-            [0.0, calib.fy, calib.cy],
-            [0.0, 0.0, 1.0],
-        ])
-        .cv("camera matrix")?;
-        let dist_coeffs = if calib.dist.is_empty() {
-            core::Mat::default()
-        } else {
-            core::Mat::from_slice(&calib.dist)
-                .cv("distortion coefficients")?
-                .try_clone()
-                .cv("distortion coefficients")?
-        };
+        // IPPE_SQUARE runs on normalised undistorted corners (our lens models, any of
+        // them; OpenCV's solvePnP knows only its own): the identity camera, no distortion.
+        let camera_matrix =
+            core::Mat::from_slice_2d(&[[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]])
+                .cv("camera matrix")?;
+        let dist_coeffs = core::Mat::default();
         let slots: Vec<Slot> = marker
             .markers()
             .map(|placed| {
@@ -1052,7 +1044,8 @@ impl MarkerTracker {
     ) -> Result<Option<RefinedPose>, VisionError> {
         self.img_cv.clear();
         for c in corners {
-            self.img_cv.push(core::Point2f::new(c[0], c[1]));
+            let n = self.calib.undistort_pixel(c[0] as f64, c[1] as f64);
+            self.img_cv.push(core::Point2f::new(n.x as f32, n.y as f32));
         }
         let n = calib3d::solve_pnp_generic(
             &self.slots[i].obj_cv,

@@ -28,6 +28,7 @@ fn entry(id: u32, position_m: [f64; 3], rpy_deg: [f64; 3]) -> MapMarker {
         size_m: SIZE,
         position_m,
         rpy_deg,
+        plane: None,
     }
 }
 

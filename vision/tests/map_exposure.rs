@@ -34,6 +34,7 @@ fn map() -> MarkerConfig {
             size_m: SIZE,
             position_m: [0.3, 0.0, 0.0],
             rpy_deg: [0.0; 3],
+            plane: None,
         }],
         ..MarkerConfig::single(MarkerFamily::AprilTag36h11, ORIGIN, SIZE)
     }

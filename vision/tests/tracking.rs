@@ -14,6 +14,7 @@ use rand_chacha::ChaCha8Rng;
 fn small_calib() -> CameraCalibration {
     CameraCalibration {
         dist: vec![-0.1, 0.02, 0.0, 0.0, 0.0],
+        model: markhold_vision::DistortionModel::PlumbBob,
         ..CameraCalibration::pinhole(800, 600, 600.0, 600.0, 399.5, 299.5)
     }
 }

@@ -19,9 +19,8 @@ const GAUSS_LOG2: u32 = 12;
 /// i16 each). A row adds windows of both at two random offsets: with one field, a row
 /// repeated a shifted window of another with a probability of about 2 width / NOISE_LEN
 /// (1 % at 1440 pixels, a dozen rows a frame), and that measurably changed AAEC's
-/// settling (river site: final exposure +8 %, position RMS 5.5 -> 7.6 mm over three
-/// seeds; per-pixel picks and a 16x larger field both gave the old figures). With two,
-/// a repeat needs both offsets to collide (about 1e-4).
+/// settling (docs/design/hil.md, "Sensor"). With two, a repeat needs both offsets to
+/// collide (about 1e-4).
 const NOISE_LEN: usize = 1 << 18;
 
 /// xorshift64*: fast, seeded, good enough to pick Gaussian table entries.
@@ -69,7 +68,7 @@ pub(crate) struct SensorTables {
 /// A linear camera response without the table: `level = round(min(255, k * min(fw,
 /// max(0, s^2 - sigma_r^2))))` with `s = max(0, s)`. Exact at every `s`, where the table
 /// rounds `s` to one of its entries first (up to 0.06 levels near the top); and no table
-/// read, which was two thirds of the sensor's time (eight scalar reads per eight pixels).
+/// read (eight scalar reads per eight pixels in the packed builds).
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub(crate) struct Linear {
     /// Grey levels per electron (255 x gain / full well).
@@ -80,16 +79,10 @@ pub(crate) struct Linear {
 
 impl Linear {
     /// Grey level at `s` (the square-root-domain signal, noise included) for read
-    /// noise variance `read_var`. The packed build evaluates the same f32 operations in
-    /// the same order.
+    /// noise variance `read_var`: the sensor loops' formula.
     #[inline(always)]
-    #[allow(clippy::manual_clamp)]
     pub(crate) fn level(&self, s: f32, read_var: f32) -> u8 {
-        let s = s.max(0.0);
-        let e = (s * s - read_var).max(0.0).min(self.full_well_e);
-        let y = (e * self.per_e).min(255.0);
-        // The 2^23 trick rounds to the nearest integer, as in the packed build.
-        ((y + 8_388_608.0).to_bits() & 0xFF) as u8
+        super::kernels::linear_level(self, s, read_var)
     }
 }
 

@@ -1,6 +1,8 @@
 use super::*;
 use crate::config::{MapMarker, MarkerFamily};
+use crate::pose::marker_object_points;
 use crate::pose::{isotropic_corner_cov, refine_pose, whitening};
+use nalgebra::{Matrix3, Translation3, UnitQuaternion, Vector3};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 
@@ -15,6 +17,7 @@ fn calib() -> CameraCalibration {
         cx: 722.0,
         cy: 538.0,
         dist: vec![-0.12, 0.04, 0.0005, -0.0003, 0.0],
+        model: crate::DistortionModel::PlumbBob,
     }
 }
 
@@ -24,6 +27,7 @@ fn entry(id: u32, size_m: f64, position_m: [f64; 3], rpy_deg: [f64; 3]) -> MapMa
         size_m,
         position_m,
         rpy_deg,
+        plane: None,
     }
 }
 
@@ -39,6 +43,7 @@ fn layout() -> MarkerConfig {
             entry(2, 0.2, [0.05, 0.45, -0.1], [12.0, 0.0, 0.0]),
             entry(3, 0.1, [-0.5, -0.15, 0.2], [-5.0, 25.0, 15.0]),
         ],
+        plane: None,
     }
 }
 
@@ -170,6 +175,9 @@ fn recovers_a_four_marker_layout_from_noisy_corners() {
     let est = b.solve(0, &MapSettings::default()).unwrap();
     check_recovered(&map, &est);
     assert_eq!(est.outliers, 0, "{est:#?}");
+    // The stated covariance matches the error (normalised squared error near 1).
+    let (errs, nees) = normalised_errors(&map, &est);
+    assert!(nees > 0.2 && nees < 3.0, "NEES {nees}: {errs:?}");
     // The adjustment improves on the chained start.
     assert!(est.rms_px < est.initial_rms_px, "{est:#?}");
 }
@@ -278,5 +286,163 @@ fn frames_with_one_marker_each_make_no_map() {
     assert!(
         matches!(&err, VisionError::MapOrigin { origin: 42, ids } if ids == "0, 1, 2, 3"),
         "{err}"
+    );
+}
+
+/// Six markers on one wall (declared `plane = "wall"`), up to 0.5 m apart.
+fn wall() -> MarkerConfig {
+    let on_wall = |id, p: [f64; 2]| MapMarker {
+        plane: Some("wall".into()),
+        ..entry(id, 0.15, [p[0], p[1], 0.0], [0.0; 3])
+    };
+    MarkerConfig {
+        family: MarkerFamily::AprilTag36h11,
+        id: 0,
+        size_m: 0.15,
+        map: vec![
+            on_wall(1, [0.5, 0.0]),
+            on_wall(2, [-0.5, 0.05]),
+            on_wall(3, [0.0, 0.45]),
+            on_wall(4, [0.45, 0.4]),
+            on_wall(5, [-0.45, -0.3]),
+        ],
+        plane: Some("wall".into()),
+    }
+}
+
+/// The calibration with its focal length 5 % too long.
+fn long_focal() -> CameraCalibration {
+    let c = calib();
+    CameraCalibration {
+        fx: 1.05 * c.fx,
+        fy: 1.05 * c.fy,
+        ..c
+    }
+}
+
+/// Each marker's position error against `map` over its stated 1-sigma (worst axis),
+/// and the mean normalised squared error (NEES over 3 axes) of the free markers.
+fn normalised_errors(map: &MarkerConfig, est: &MapEstimate) -> (Vec<(u32, f64, f64)>, f64) {
+    let mut out = Vec::new();
+    let mut nees = 0.0;
+    for truth in map.markers().skip(1) {
+        let m = est.markers.iter().find(|m| m.id == truth.id).unwrap();
+        let e = m.t_site_marker.translation.vector - truth.t_site_marker.translation.vector;
+        let p = m.covariance.fixed_view::<3, 3>(0, 0).into_owned();
+        nees += (e.transpose() * p.try_inverse().unwrap() * e)[(0, 0)] / 3.0;
+        out.push((m.id, e.norm(), m.sigma_position_m));
+    }
+    let n = out.len() as f64;
+    (out, nees / n)
+}
+
+#[test]
+fn a_survey_of_a_flat_wall_refines_a_focal_length_5_percent_off() {
+    let map = wall();
+    let mut rng = ChaCha8Rng::seed_from_u64(21);
+    let mut b = MapBuilder::new(&map, long_focal());
+    for cam in cameras(&mut rng) {
+        b.add_frame(observe(&map, &cam, &mut rng));
+    }
+    let est = b.solve(0, &MapSettings::default()).unwrap();
+    let i = &est.intrinsics;
+    assert!(!i.refined.is_empty(), "{}", i.reason);
+    let fx = i.calibration.fx;
+    assert!((fx / calib().fx - 1.0).abs() < 0.003, "fx {fx}: {i:?}");
+    let (errs, nees) = normalised_errors(&map, &est);
+    for (id, e, s) in &errs {
+        assert!(*e < 0.003, "marker {id}: {:.2} mm off", e * 1e3);
+        assert!(
+            *e < 4.0 * s,
+            "marker {id}: {:.2} mm off, 1-sigma {:.2} mm",
+            e * 1e3,
+            s * 1e3
+        );
+    }
+    assert!(nees < 3.0, "NEES {nees}: {errs:?}");
+    let wall = &est.planes[0];
+    assert_eq!(wall.ids.len(), 6);
+    assert!(wall.max_m < 0.002, "{wall:?}");
+}
+
+#[test]
+fn held_intrinsics_5_percent_off_keep_the_covariance_above_a_third_of_the_error() {
+    let map = wall();
+    let mut rng = ChaCha8Rng::seed_from_u64(21);
+    let mut b = MapBuilder::new(&map, long_focal());
+    for cam in cameras(&mut rng) {
+        b.add_frame(observe(&map, &cam, &mut rng));
+    }
+    let settings = MapSettings {
+        intrinsics: IntrinsicsMode::Fixed,
+        ..MapSettings::default()
+    };
+    let est = b.solve(0, &settings).unwrap();
+    assert!(est.intrinsics.refined.is_empty());
+    assert!(est.variance_factor > 1.0, "{}", est.variance_factor);
+    let (errs, _) = normalised_errors(&map, &est);
+    // The 1-sigma never claims less than a third of the real error.
+    for (id, e, s) in &errs {
+        assert!(
+            *e <= 3.0 * s,
+            "marker {id}: {:.2} mm off, 1-sigma {:.2} mm",
+            e * 1e3,
+            s * 1e3
+        );
+    }
+    // The surveyed wall stays flat: the cameras absorb a focal length error.
+    assert!(est.planes[0].max_m < 0.003, "{:?}", est.planes);
+}
+
+#[test]
+fn a_lens_model_gone_wrong_bends_the_wall_and_the_planes_say_so() {
+    let map = wall();
+    let mut rng = ChaCha8Rng::seed_from_u64(23);
+    // The radial distortion of another medium (k1 0.15 too high), held.
+    let c = calib();
+    let mut wrong = c.clone();
+    wrong.dist[0] += 0.15;
+    let mut b = MapBuilder::new(&map, wrong);
+    for cam in cameras(&mut rng) {
+        b.add_frame(observe(&map, &cam, &mut rng));
+    }
+    let settings = MapSettings {
+        intrinsics: IntrinsicsMode::Fixed,
+        ..MapSettings::default()
+    };
+    let est = b.solve(0, &settings).unwrap();
+    let (errs, _) = normalised_errors(&map, &est);
+    // The wall comes out bent by millimetres and tilted by degrees, and the report says
+    // by how much.
+    let wall = &est.planes[0];
+    assert!(wall.max_m > 0.004 && wall.max_tilt_deg > 2.0, "{wall:?}");
+    // The residuals show the model error: the 1-sigma stays above a third of the error.
+    assert!(est.variance_factor > 3.0, "{}", est.variance_factor);
+    for (id, e, s) in &errs {
+        assert!(
+            *e <= 3.0 * s,
+            "marker {id}: {:.2} mm off, 1-sigma {:.2} mm",
+            e * 1e3,
+            s * 1e3
+        );
+    }
+}
+
+#[test]
+fn frames_from_one_viewpoint_hold_the_intrinsics_and_say_why() {
+    let map = wall();
+    let mut rng = ChaCha8Rng::seed_from_u64(5);
+    let mut b = MapBuilder::new(&map, calib());
+    let cam = look_at(Vector3::new(0.0, 0.1, 1.8), Vector3::new(0.0, 0.1, 0.0));
+    for _ in 0..30 {
+        b.add_frame(observe(&map, &cam, &mut rng));
+    }
+    let est = b.solve(0, &MapSettings::default()).unwrap();
+    assert!(est.intrinsics.refined.is_empty());
+    assert_eq!(est.viewpoints, 1);
+    assert!(
+        est.intrinsics.reason.contains("1 viewpoint"),
+        "{}",
+        est.intrinsics.reason
     );
 }

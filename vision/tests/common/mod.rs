@@ -21,6 +21,7 @@ pub fn calib() -> CameraCalibration {
 pub fn calib_distorted() -> CameraCalibration {
     CameraCalibration {
         dist: vec![-0.12, 0.03, 0.0005, -0.0003, 0.0],
+        model: markhold_vision::DistortionModel::PlumbBob,
         ..calib()
     }
 }
