@@ -90,10 +90,10 @@ pub struct AaecPaperConfig {
     pub frames: PaperFrames,
     /// `momentum` (code) or `derivative` (the paper's Algorithm 1).
     pub gate: PaperGate,
-    /// `none` (code) or `roi-pixels`: the rate times `eta_reference_pixels / S` for a
+    /// `none` (code) or `roi-side`: the rate times `sqrt(S / eta_reference_pixels)` for a
     /// region of `S` pixels.
     pub eta_scaling: EtaScaling,
-    /// With `eta_scaling = "roi-pixels"`: the region size the learning rate is meant
+    /// With `eta_scaling = "roi-side"`: the region size the learning rate is meant
     /// for, pixels, [1, 1e8].
     pub eta_reference_pixels: f64,
 }
@@ -141,7 +141,8 @@ impl AaecPaperConfig {
         check_rate_scaling("exposure.aaec_paper", self.eta_scaling, self.eta_reference_pixels)
     }
 
-    fn params(&self) -> PaperMetricParams {
+    /// The metric settings of this section.
+    pub fn metric_params(&self) -> PaperMetricParams {
         PaperMetricParams {
             metric: self.metric,
             percentile: self.percentile,
@@ -291,7 +292,7 @@ impl ExposureController for AaecPaper {
         {
             return hold;
         }
-        let params = self.cfg.params();
+        let params = self.cfg.metric_params();
         let Some(v) = self
             .eval
             .evaluate(frame.view(), roi, self.commanded_us, &params)
@@ -456,7 +457,7 @@ mod tests {
         let mut reference = PaperMetricEval::new(&Response::paper_code());
         let roi = code_region(&corners, 0.1, 40, 30).unwrap();
         let v = reference
-            .evaluate(f.view(), roi, 5000.0, &cfg.params())
+            .evaluate(f.view(), roi, 5000.0, &cfg.metric_params())
             .unwrap();
         let mut law = PaperMomentum::default();
         let next = law.step(&cfg, cfg.learning_rate, 5000.0, v.dm_dt).next_us;
@@ -578,7 +579,7 @@ mod tests {
         .to_string();
         assert!(e.contains("exposure.aaec_paper.learning_rate"), "{e}");
         let e = AaecPaperConfig {
-            eta_scaling: EtaScaling::RoiPixels,
+            eta_scaling: EtaScaling::RoiSide,
             eta_reference_pixels: 0.0,
             ..Default::default()
         }

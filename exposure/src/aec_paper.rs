@@ -48,9 +48,9 @@ pub struct AecPaperConfig {
     pub pre_detection: PreDetection,
     /// `every` (code) or `exposed-as-commanded`.
     pub frames: PaperFrames,
-    /// `none` (code) or `roi-pixels` (here the region is the whole frame).
+    /// `none` (code) or `roi-side` (here the region is the whole frame).
     pub eta_scaling: EtaScaling,
-    /// With `eta_scaling = "roi-pixels"`: the frame size the rate is meant for, pixels.
+    /// With `eta_scaling = "roi-side"`: the frame size the rate is meant for, pixels.
     pub eta_reference_pixels: f64,
 }
 

@@ -130,12 +130,17 @@ pub struct GecPaperScorer {
 /// saturated to 8 bits.
 #[inline]
 pub fn quantize_abs(v: f64) -> u8 {
-    let r = (v as f32).abs().round_ties_even();
-    if r >= 255.0 {
-        255
-    } else {
-        r as u8
+    let f = (v as f32).abs();
+    if f.is_nan() {
+        return 0;
     }
+    if f >= 255.0 {
+        return 255;
+    }
+    // Adding 2^23 leaves no fraction bits: the sum is rounded half to even, as the vector
+    // conversion does (`round_ties_even` is a libm call on baseline x86-64).
+    const SHIFT: f32 = 8_388_608.0;
+    ((f + SHIFT) - SHIFT) as u8
 }
 
 /// The 8-bit squared magnitude of one pixel: `sat(sat(ax^2) + sat(ay^2))`.

@@ -135,8 +135,8 @@ impl StallWatch {
             match s.rate_to_pass {
                 Some(r) => tracing::warn!(
                     "{method}: for {} frames every step was under its {} us gate (largest \
-                     {:.3} us with learning rate {:e}): the exposure cannot move at this \
-                     site's metric scale; a rate of at least {:e} would move it",
+                     {:.3} us with learning rate {:.2e}): the exposure cannot move at this \
+                     site's metric scale; a rate of at least {:.2e} would move it",
                     s.frames,
                     s.gate_us,
                     s.largest_step_us,
@@ -255,8 +255,13 @@ pub fn code_weights(len: usize, p: f64, k: u32, out: &mut Vec<f64>) -> Option<f6
 /// `M` and its derivative.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct PaperMetricValue {
+    /// `sum w_i key_i / sum w` (what the code reports as its metric).
     pub m: f64,
-    /// `dM/dt`, per second of exposure.
+    /// `sum w_i G_i / sum w` with the same ranking, `G = Ix^2 + Iy^2`: the function whose
+    /// derivative `dm_dt` is (ranks held), so the one the law climbs. Equal to `m` for
+    /// the published metric; with `|Ix|` ranking `m` is not it.
+    pub climbed: f64,
+    /// `d climbed / dt` with the ranks held, per second of exposure.
     pub dm_dt: f64,
     /// Pixels ranked (the whole region).
     pub pixels: usize,
@@ -282,18 +287,22 @@ const MAX_ABS_IX: usize = 1020;
 /// alone (a new matrix: reflect-101 at the region's edge), `dG/dt = 2 (Ix Dx + Iy Dy)`;
 /// pixels ranked by their key ascending, ties by position (row-major), as its sort of
 /// (value, (row, column)) pairs; `M = sum w_i key_i / sum w`,
-/// `dM/dt = sum w_i (dG/dt)_i / sum w`. `|Ix|` keys are integers 0..=1020, so a counting
-/// sort gives the same order as the sort; `Ix^2 + Iy^2` keys are sorted.
+/// `dM/dt = sum w_i (dG/dt)_i / sum w`. `|Ix|` keys are integers 0..=1020, so counting
+/// the keys gives each pixel its rank in the code's order without a sort (pixels of one
+/// key take consecutive ranks in row-major order); `Ix^2 + Iy^2` keys are sorted.
 #[derive(Debug, Clone)]
 pub struct PaperMetricEval {
     /// `1 / g'(I)` per grey level (`D` times the exposure in seconds).
     d_lut: [f64; 256],
-    keys: Vec<u32>,
-    dg: Vec<f64>,
-    d: Vec<f64>,
-    order: Vec<u32>,
-    counts: Vec<u32>,
+    /// Sobel of the image per pixel of the region.
+    ix: Vec<i16>,
+    iy: Vec<i16>,
+    /// Next free rank of each `|Ix|` key.
+    slots: Vec<u32>,
+    /// `Ix^2 + Iy^2` keys with positions, sorted (the published metric).
     packed: Vec<u64>,
+    /// Rank of each pixel (the published metric).
+    rank_of: Vec<u32>,
     weights: Vec<f64>,
     /// (len, percentile bits, power) the weights were computed for, and their sum.
     weights_for: Option<(usize, u64, u32, f64)>,
@@ -307,25 +316,14 @@ impl PaperMetricEval {
         }
         Self {
             d_lut,
-            keys: Vec::new(),
-            dg: Vec::new(),
-            d: Vec::new(),
-            order: Vec::new(),
-            counts: Vec::new(),
+            ix: Vec::new(),
+            iy: Vec::new(),
+            slots: Vec::new(),
             packed: Vec::new(),
+            rank_of: Vec::new(),
             weights: Vec::new(),
             weights_for: None,
         }
-    }
-
-    /// Size the buffers for regions of up to `pixels` (the per-frame path then
-    /// allocates nothing).
-    pub fn reserve(&mut self, pixels: usize) {
-        for v in [&mut self.dg, &mut self.d, &mut self.weights] {
-            v.reserve(pixels.saturating_sub(v.len()));
-        }
-        self.keys.reserve(pixels.saturating_sub(self.keys.len()));
-        self.order.reserve(pixels.saturating_sub(self.order.len()));
     }
 
     /// `M` and `dM/dt` of the pixels of `roi` in `image` (the whole frame) exposed for
@@ -338,48 +336,11 @@ impl PaperMetricEval {
         params: &PaperMetricParams,
     ) -> Option<PaperMetricValue> {
         let roi = roi.clamp_to(image.width as u32, image.height as u32);
-        if roi.is_empty() || t_us.is_nan() || t_us <= 0.0 || image.width == 0 {
+        if roi.is_empty() || t_us.is_nan() || t_us <= 0.0 {
             return None;
         }
         let (rw, rh) = (roi.width as usize, roi.height as usize);
         let s = rw * rh;
-        self.keys.clear();
-        self.dg.clear();
-        self.d.clear();
-        // D on the region (a fresh matrix in the code).
-        for y in 0..rh {
-            let row = image.row(roi.y as usize + y);
-            let row = &row[roi.x as usize..roi.x as usize + rw];
-            self.d.extend(row.iter().map(|&g| self.d_lut[g as usize]));
-        }
-        let (iw, ih) = (image.width, image.height);
-        for y in 0..rh {
-            let gy = roi.y as usize + y;
-            let (gu, gd) = side_rows(gy, ih);
-            let (r0, r1, r2) = (image.row(gu), image.row(gy), image.row(gd));
-            let (lu, ld) = side_rows(y, rh);
-            let (d0, d1, d2) = (
-                &self.d[lu * rw..(lu + 1) * rw],
-                &self.d[y * rw..(y + 1) * rw],
-                &self.d[ld * rw..(ld + 1) * rw],
-            );
-            for x in 0..rw {
-                let gx = roi.x as usize + x;
-                let (xl, xr) = side_columns(gx, iw);
-                let p = |r: &[u8], i: usize| r[i] as i32;
-                let ix = (p(r0, xr) - p(r0, xl)) + 2 * (p(r1, xr) - p(r1, xl)) + (p(r2, xr) - p(r2, xl));
-                let iy = (p(r2, xl) + 2 * p(r2, gx) + p(r2, xr)) - (p(r0, xl) + 2 * p(r0, gx) + p(r0, xr));
-                let (dl, dr) = side_columns(x, rw);
-                let dx = (d0[dr] - d0[dl]) + 2.0 * (d1[dr] - d1[dl]) + (d2[dr] - d2[dl]);
-                let dy = (d2[dl] + 2.0 * d2[x] + d2[dr]) - (d0[dl] + 2.0 * d0[x] + d0[dr]);
-                self.dg.push(2.0 * (ix as f64 * dx + iy as f64 * dy));
-                self.keys.push(match params.metric {
-                    PaperMetric::AbsIx => ix.unsigned_abs(),
-                    PaperMetric::Published => (ix * ix + iy * iy) as u32,
-                });
-            }
-        }
-        self.rank(params.metric);
         let key = (s, params.percentile.to_bits(), params.weight_power);
         let wsum = match self.weights_for {
             Some((n, p, k, sum)) if (n, p, k) == key => sum,
@@ -389,48 +350,97 @@ impl PaperMetricEval {
                 sum?
             }
         };
-        let (mut m, mut dm) = (0.0, 0.0);
-        for (w, &pos) in self.weights.iter().zip(&self.order) {
-            m += w * self.keys[pos as usize] as f64;
-            dm += w * self.dg[pos as usize];
+        self.sobel_of_image(image, roi);
+        self.rank(params.metric);
+        let (x0, y0) = (roi.x as usize, roi.y as usize);
+        let d_lut = &self.d_lut;
+        let (mut m, mut g, mut dm) = (0.0, 0.0, 0.0);
+        for y in 0..rh {
+            let (lu, ld) = side_rows(y, rh);
+            let row = |r: usize| &image.row(y0 + r)[x0..x0 + rw];
+            let (d0, d1, d2) = (row(lu), row(y), row(ld));
+            let d = |r: &[u8], i: usize| d_lut[r[i] as usize];
+            for x in 0..rw {
+                let pos = y * rw + x;
+                let (dl, dr) = side_columns(x, rw);
+                let dx = (d(d0, dr) - d(d0, dl)) + 2.0 * (d(d1, dr) - d(d1, dl)) + (d(d2, dr) - d(d2, dl));
+                let dy = (d(d2, dl) + 2.0 * d(d2, x) + d(d2, dr)) - (d(d0, dl) + 2.0 * d(d0, x) + d(d0, dr));
+                let (ix, iy) = (self.ix[pos] as f64, self.iy[pos] as f64);
+                let (k, rank) = match params.metric {
+                    PaperMetric::AbsIx => {
+                        let k = self.ix[pos].unsigned_abs() as usize;
+                        let slot = &mut self.slots[k];
+                        let r = *slot;
+                        *slot += 1;
+                        (k as f64, r)
+                    }
+                    PaperMetric::Published => (ix * ix + iy * iy, self.rank_of[pos]),
+                };
+                let w = self.weights[rank as usize];
+                m += w * k;
+                g += w * (ix * ix + iy * iy);
+                dm += w * 2.0 * (ix * dx + iy * dy);
+            }
         }
         Some(PaperMetricValue {
             m: m / wsum,
+            climbed: g / wsum,
             dm_dt: dm / wsum / (t_us * 1e-6),
             pixels: s,
         })
     }
 
-    /// `order`: positions by key ascending, ties by position.
+    /// `ix`, `iy` of every pixel of `roi`, neighbours from the whole image.
+    fn sobel_of_image(&mut self, image: ImageView<'_>, roi: Roi) {
+        let (rw, rh) = (roi.width as usize, roi.height as usize);
+        let (x0, y0) = (roi.x as usize, roi.y as usize);
+        let (iw, ih) = (image.width, image.height);
+        self.ix.clear();
+        self.iy.clear();
+        for y in 0..rh {
+            let gy = y0 + y;
+            let (gu, gd) = side_rows(gy, ih);
+            let (r0, r1, r2) = (image.row(gu), image.row(gy), image.row(gd));
+            for gx in x0..x0 + rw {
+                let (xl, xr) = side_columns(gx, iw);
+                let p = |r: &[u8], i: usize| r[i] as i16;
+                self.ix.push(
+                    (p(r0, xr) - p(r0, xl)) + 2 * (p(r1, xr) - p(r1, xl)) + (p(r2, xr) - p(r2, xl)),
+                );
+                self.iy.push(
+                    (p(r2, xl) + 2 * p(r2, gx) + p(r2, xr)) - (p(r0, xl) + 2 * p(r0, gx) + p(r0, xr)),
+                );
+            }
+        }
+    }
+
+    /// The first rank of each `|Ix|` key in `slots`, or each pixel's rank in `rank_of`.
     fn rank(&mut self, metric: PaperMetric) {
-        self.order.clear();
         match metric {
             PaperMetric::AbsIx => {
-                self.counts.clear();
-                self.counts.resize(MAX_ABS_IX + 2, 0);
-                for &k in &self.keys {
-                    self.counts[k as usize + 1] += 1;
+                self.slots.clear();
+                self.slots.resize(MAX_ABS_IX + 2, 0);
+                for &v in &self.ix {
+                    self.slots[v.unsigned_abs() as usize + 1] += 1;
                 }
-                for i in 1..self.counts.len() {
-                    self.counts[i] += self.counts[i - 1];
-                }
-                self.order.resize(self.keys.len(), 0);
-                for (pos, &k) in self.keys.iter().enumerate() {
-                    let slot = &mut self.counts[k as usize];
-                    self.order[*slot as usize] = pos as u32;
-                    *slot += 1;
+                for i in 1..self.slots.len() {
+                    self.slots[i] += self.slots[i - 1];
                 }
             }
             PaperMetric::Published => {
                 self.packed.clear();
-                self.packed.extend(
-                    self.keys
-                        .iter()
-                        .enumerate()
-                        .map(|(pos, &k)| (k as u64) << 32 | pos as u64),
-                );
+                self.packed.extend(self.ix.iter().zip(&self.iy).enumerate().map(
+                    |(pos, (&x, &y))| {
+                        let (x, y) = (x as i64, y as i64);
+                        ((x * x + y * y) as u64) << 32 | pos as u64
+                    },
+                ));
                 self.packed.sort_unstable();
-                self.order.extend(self.packed.iter().map(|&v| v as u32));
+                self.rank_of.clear();
+                self.rank_of.resize(self.packed.len(), 0);
+                for (r, &v) in self.packed.iter().enumerate() {
+                    self.rank_of[v as u32 as usize] = r as u32;
+                }
             }
         }
     }
@@ -442,10 +452,11 @@ impl PaperMetricEval {
 pub enum EtaScaling {
     /// The rate as configured (the code).
     None,
-    /// The rate times `reference_pixels / S`: the step for a region of `S` pixels is the
-    /// one the rate gives a region of the reference size (see docs/design/exposure.md for
-    /// why the derivative shrinks as the region grows).
-    RoiPixels,
+    /// The rate times `sqrt(S / reference_pixels)` for a region of `S` pixels: the rate
+    /// grows with the region's side. The code's `dM/dt` (|Ix| ranking) shrinks about as
+    /// the side grows: the same marker at 1440x1080 has 5.2x the pixels of 640x480 and a
+    /// 2.7-2.9x smaller derivative on the pool (docs/design/exposure.md).
+    RoiSide,
 }
 
 /// Check the shared keys of a paper method's section.
@@ -455,7 +466,7 @@ pub(crate) fn check_rate_scaling(
     reference_pixels: f64,
 ) -> Result<(), ConfigError> {
     let mut c = Checks::new(section);
-    if scaling == EtaScaling::RoiPixels {
+    if scaling == EtaScaling::RoiSide {
         c = c.range(
             "eta_reference_pixels",
             reference_pixels,
@@ -470,7 +481,7 @@ pub(crate) fn check_rate_scaling(
 pub(crate) fn scaled_rate(rate: f64, scaling: EtaScaling, reference_pixels: f64, pixels: usize) -> f64 {
     match scaling {
         EtaScaling::None => rate,
-        EtaScaling::RoiPixels => rate * reference_pixels / pixels.max(1) as f64,
+        EtaScaling::RoiSide => rate * (pixels.max(1) as f64 / reference_pixels).sqrt(),
     }
 }
 
