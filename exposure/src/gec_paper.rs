@@ -8,10 +8,11 @@
 //!   so the region grows from the image's top-left corner (`region = "marker-grown"`,
 //!   the code until 2023-09-28; from d8a72df, 2023-10-13, the crop is commented out and
 //!   the whole frame is metered: `region = "whole-frame"`).
-//! - The crop min-max normalised to [0, 1] (OpenCV's `normalize`: `v scale + shift`);
-//!   for gamma 1 and each of the 11 anchors {1/1.9, 1/1.5, 1/1.3, 1/1.2, 1/1.1, 1, 1.1,
-//!   1.2, 1.3, 1.5, 1.9}: `|v|^gamma` (OpenCV's `pow` takes absolute values for a
-//!   non-integer power), raw 3x3 Sobel in x and y (reflect-101 borders), each made an
+//! - The crop min-max normalised to [0, 1] (OpenCV's `normalize`: `v scale + shift`, a
+//!   fused multiply-add); for gamma 1 and each of the 11 anchors {1/1.9, 1/1.5, 1/1.3,
+//!   1/1.2, 1/1.1, 1, 1.1, 1.2, 1.3, 1.5, 1.9}: `v^gamma` (OpenCV's `pow`: NaN for the
+//!   darkest level's negative rounding residue, which blanks its 3x3 neighbourhood),
+//!   raw 3x3 Sobel in x and y (reflect-101 borders), each made an
 //!   8-bit integer (`convertScaleAbs`: through f32, rounded half to even, saturated),
 //!   squared and summed in 8 bits (saturating at 255); the score is
 //!   `sum over pixels with q >= delta of ln(lambda (q - delta) + 1) / ln(lambda (1 - delta) + 1)`
@@ -195,12 +196,17 @@ impl GecPaperScorer {
         out
     }
 
-    /// `|v|^gamma` of each normalised level (gamma 1: the levels themselves).
+    /// `v^gamma` of each normalised level (gamma 1: the levels themselves). As OpenCV's
+    /// `pow` does in the code's build (its documentation says absolute values; the
+    /// implementation takes logs): a negative level, the normalisation's rounding residue
+    /// at the crop's darkest grey (`fma(min, scale, -min scale)`), gives NaN for a
+    /// non-integer gamma, the Sobel spreads it to the 3x3 neighbourhood and those pixels
+    /// quantise to 0.
     pub fn gamma_levels(norm: &[f64; 256], gamma: f64) -> [f64; 256] {
         if gamma == 1.0 {
             return *norm;
         }
-        norm.map(|v| v.abs().powf(gamma))
+        norm.map(|v| v.powf(gamma))
     }
 
     /// The score of `view` with its grey levels mapped through `levels`; with `out`, the
@@ -230,7 +236,9 @@ impl GecPaperScorer {
                     levels[row[x] as usize],
                     levels[row[xr] as usize],
                 );
-                self.h.push(-a + c);
+                // The centre's 0 weight is applied, as OpenCV's row filter does: a NaN
+                // there spreads to Ix.
+                self.h.push((-a + 0.0 * b) + c);
                 self.s.push((a + 2.0 * b) + c);
             }
         }
