@@ -121,34 +121,89 @@ pub struct GecPaperScorer {
     lambda: f64,
     /// Score term per 8-bit squared magnitude.
     term: [f64; 256],
-    /// Horizontal difference and smoothing of each pixel's row (the separable Sobel's
-    /// first pass), per pixel of the crop.
+    /// Horizontal difference and smoothing (the separable Sobel's first pass) of three
+    /// rows, a ring.
     h: Vec<f64>,
     s: Vec<f64>,
+    /// One row's levels and 8-bit magnitudes.
+    v: Vec<f64>,
+    q: Vec<u8>,
 }
 
 /// OpenCV's `convertScaleAbs` of a double: through f32, absolute, rounded half to even,
 /// saturated to 8 bits.
-#[inline]
+#[inline(always)]
 pub fn quantize_abs(v: f64) -> u8 {
-    let f = (v as f32).abs();
-    if f.is_nan() {
-        return 0;
-    }
-    if f >= 255.0 {
-        return 255;
-    }
     // Adding 2^23 leaves no fraction bits: the sum is rounded half to even, as the vector
-    // conversion does (`round_ties_even` is a libm call on baseline x86-64).
+    // conversion does (`round_ties_even` is a libm call on baseline x86-64). NaN (a NaN
+    // level spread by the filter) stays NaN and casts to 0, as OpenCV's conversion gives.
     const SHIFT: f32 = 8_388_608.0;
-    ((f + SHIFT) - SHIFT) as u8
+    let f = (v as f32).abs();
+    let r = (f + SHIFT) - SHIFT;
+    if r >= 255.0 {
+        255
+    } else {
+        r as u8
+    }
 }
 
-/// The 8-bit squared magnitude of one pixel: `sat(sat(ax^2) + sat(ay^2))`.
-#[inline]
+/// [`quantize_abs`] as an integer-valued f32 (0..=255), for lanes of floats.
+#[inline(always)]
+fn quantize_abs_f32(v: f64) -> f32 {
+    const SHIFT: f32 = 8_388_608.0;
+    let r = ((v as f32).abs() + SHIFT) - SHIFT;
+    // NaN fails both tests: 0.
+    if r >= 255.0 {
+        255.0
+    } else if r >= 0.0 {
+        r
+    } else {
+        0.0
+    }
+}
+
+/// The 8-bit squared magnitude of one pixel: `sat(sat(ax^2) + sat(ay^2))` (exact in f32:
+/// integers up to 510).
+#[inline(always)]
 fn magnitude(ix: f64, iy: f64) -> u8 {
-    let (ax, ay) = (quantize_abs(ix) as u16, quantize_abs(iy) as u16);
-    ((ax * ax).min(255) + (ay * ay).min(255)).min(255) as u8
+    let (ax, ay) = (quantize_abs_f32(ix), quantize_abs_f32(iy));
+    let m = ((ax * ax).min(255.0) + (ay * ay).min(255.0)).min(255.0);
+    // SAFETY: `m` is finite and in [0, 255] (both terms are integers in [0, 255]), so
+    // the conversion is exact (the checked cast keeps the lanes scalar).
+    unsafe { m.to_int_unchecked::<i32>() as u8 }
+}
+
+/// The row pass of OpenCV's separable 3x3 Sobel on f64 (reflect-101 at the ends):
+/// `h = (-a + 0 b) + c` and `s = (a + 2 b) + c` of each pixel's left, centre and right.
+#[inline(always)]
+fn row_pass(row: &[u8], levels: &[f64; 256], v: &mut [f64], h: &mut [f64], s: &mut [f64]) {
+    let w = row.len();
+    for (o, &p) in v.iter_mut().zip(row) {
+        *o = levels[p as usize];
+    }
+    let one = |x: usize, h: &mut [f64], s: &mut [f64]| {
+        let (xl, xr) = side_columns(x, w);
+        let (a, b, c) = (v[xl], v[x], v[xr]);
+        h[x] = (-a + 0.0 * b) + c;
+        s[x] = (a + 2.0 * b) + c;
+    };
+    if w < 3 {
+        for x in 0..w {
+            one(x, h, s);
+        }
+        return;
+    }
+    one(0, h, s);
+    for (((hx, sx), (a, b)), c) in h[1..w - 1]
+        .iter_mut()
+        .zip(&mut s[1..w - 1])
+        .zip(v[..w - 2].iter().zip(&v[1..w - 1]))
+        .zip(&v[2..])
+    {
+        *hx = (-a + 0.0 * b) + c;
+        *sx = (a + 2.0 * b) + c;
+    }
+    one(w - 1, h, s);
 }
 
 impl GecPaperScorer {
@@ -168,6 +223,8 @@ impl GecPaperScorer {
             term,
             h: Vec::new(),
             s: Vec::new(),
+            v: Vec::new(),
+            q: Vec::new(),
         }
     }
 
@@ -215,47 +272,98 @@ impl GecPaperScorer {
         &mut self,
         view: ImageView<'_>,
         levels: &[f64; 256],
+        out: Option<&mut Vec<u8>>,
+    ) -> f64 {
+        // The same code compiled twice: with AVX2 the f64 lanes double. No FMA (Rust never
+        // fuses on its own) and the same operations in the same order, so both builds
+        // give bit-identical scores.
+        #[cfg(target_arch = "x86_64")]
+        if std::arch::is_x86_feature_detected!("avx2") {
+            // SAFETY: the CPU has AVX2 (checked just above).
+            return unsafe { self.score_avx2(view, levels, out) };
+        }
+        self.score_portable(view, levels, out)
+    }
+
+    #[cfg(target_arch = "x86_64")]
+    #[target_feature(enable = "avx2")]
+    fn score_avx2(
+        &mut self,
+        view: ImageView<'_>,
+        levels: &[f64; 256],
+        out: Option<&mut Vec<u8>>,
+    ) -> f64 {
+        self.score_portable(view, levels, out)
+    }
+
+    /// [`Self::score`] without CPU dispatch. Rows are filtered as OpenCV's separable
+    /// Sobel does for f64 (row pass, then column pass), three rows at a time.
+    #[inline(always)]
+    fn score_portable(
+        &mut self,
+        view: ImageView<'_>,
+        levels: &[f64; 256],
         mut out: Option<&mut Vec<u8>>,
     ) -> f64 {
         let (w, h) = (view.width, view.height);
-        self.h.clear();
-        self.s.clear();
         if let Some(o) = out.as_deref_mut() {
             o.clear();
         }
         if w == 0 || h == 0 {
             return 0.0;
         }
-        // First pass along each row: the x kernel [-1, 0, 1] and the y kernel's [1, 2, 1].
-        for y in 0..h {
-            let row = view.row(y);
-            for x in 0..w {
-                let (xl, xr) = side_columns(x, w);
-                let (a, b, c) = (
-                    levels[row[xl] as usize],
-                    levels[row[x] as usize],
-                    levels[row[xr] as usize],
-                );
-                // The centre's 0 weight is applied, as OpenCV's row filter does: a NaN
-                // there spreads to Ix.
-                self.h.push((-a + 0.0 * b) + c);
-                self.s.push((a + 2.0 * b) + c);
-            }
-        }
-        // Second pass down each column: [1, 2, 1] for Ix (centre first), [-1, 0, 1] for Iy.
+        // A ring of three rows of the row pass: `h` the x kernel [-1, 0, 1] (the centre's
+        // 0 weight applied, as OpenCV's row filter does: a NaN there spreads to Ix), `s`
+        // the y kernel's [1, 2, 1].
+        self.h.resize(3 * w, 0.0);
+        self.s.resize(3 * w, 0.0);
+        self.v.resize(w, 0.0);
+        self.q.resize(w, 0);
+        let mut ready = 0usize;
         let mut score = 0.0;
         for y in 0..h {
             let (ya, yb) = side_rows(y, h);
-            let (ha, hc, hb) = (&self.h[ya * w..][..w], &self.h[y * w..][..w], &self.h[yb * w..][..w]);
-            let (sa, sb) = (&self.s[ya * w..][..w], &self.s[yb * w..][..w]);
-            for x in 0..w {
+            while ready <= yb.max(y) {
+                let slot = ready % 3;
+                row_pass(
+                    view.row(ready),
+                    levels,
+                    &mut self.v,
+                    &mut self.h[slot * w..(slot + 1) * w],
+                    &mut self.s[slot * w..(slot + 1) * w],
+                );
+                ready += 1;
+            }
+            fn row(buf: &[f64], r: usize, w: usize) -> &[f64] {
+                &buf[(r % 3) * w..(r % 3 + 1) * w]
+            }
+            let (ha, hc, hb) = (row(&self.h, ya, w), row(&self.h, y, w), row(&self.h, yb, w));
+            let (sa, sb) = (row(&self.s, ya, w), row(&self.s, yb, w));
+            // Column pass, [1, 2, 1] for Ix (centre first), [-1, 0, 1] for Iy.
+            for (x, q) in self.q.iter_mut().enumerate() {
                 let ix = 2.0 * hc[x] + (hb[x] + ha[x]);
                 let iy = sb[x] - sa[x];
-                let q = magnitude(ix, iy);
-                score += self.term[q as usize];
-                if let Some(o) = out.as_deref_mut() {
-                    o.push(q);
+                *q = magnitude(ix, iy);
+            }
+            // In row-major order, as the code sums; a zero term leaves the sum as it is
+            // (eight pixels at a time past the flat ones).
+            let mut chunks = self.q.chunks_exact(8);
+            for c in &mut chunks {
+                if u64::from_ne_bytes([c[0], c[1], c[2], c[3], c[4], c[5], c[6], c[7]]) != 0 {
+                    for &q in c {
+                        if q != 0 {
+                            score += self.term[q as usize];
+                        }
+                    }
                 }
+            }
+            for &q in chunks.remainder() {
+                if q != 0 {
+                    score += self.term[q as usize];
+                }
+            }
+            if let Some(o) = out.as_deref_mut() {
+                o.extend_from_slice(&self.q);
             }
         }
         score
@@ -453,6 +561,10 @@ mod tests {
         assert_eq!(quantize_abs(300.0), 255);
         assert_eq!(magnitude(16.0, 16.0), 255);
         assert_eq!(magnitude(3.0, 4.0), 25);
+        assert_eq!(magnitude(f64::NAN, 2.0), 4);
+        for v in [0.0, 0.5, 1.5, 2.4999999999, 3.5, 254.5, 300.0, f64::NAN, f64::INFINITY] {
+            assert_eq!(quantize_abs_f32(v) as u8, quantize_abs(v), "{v}");
+        }
     }
 
     #[test]
