@@ -14,8 +14,8 @@ use markhold_exposure::{
 use markhold_hil::scene::LightingScenario;
 use markhold_hil::VehicleMotion;
 use opencv::core::{self, Mat};
-use opencv::prelude::*;
 use opencv::imgproc;
+use opencv::prelude::*;
 
 const SITE: &str = "tests/fixtures/pool-paper-camera.toml";
 
@@ -28,14 +28,33 @@ fn opencv_gec(data: &[u8], w: usize, h: usize, gamma: f64) -> (Vec<u8>, f64) {
     let mut f = Mat::default();
     src.convert_to(&mut f, core::CV_64F, 1.0, 0.0).unwrap();
     let mut n = Mat::default();
-    core::normalize(&f, &mut n, 0.0, 1.0, core::NORM_MINMAX, -1, &core::no_array()).unwrap();
+    core::normalize(
+        &f,
+        &mut n,
+        0.0,
+        1.0,
+        core::NORM_MINMAX,
+        -1,
+        &core::no_array(),
+    )
+    .unwrap();
     let mut p = Mat::default();
     core::pow(&n, gamma, &mut p).unwrap();
     let mut abs = Vec::new();
     for (dx, dy) in [(1, 0), (0, 1)] {
         let mut g = Mat::default();
-        imgproc::sobel(&p, &mut g, core::CV_64F, dx, dy, 3, 1.0, 0.0, core::BORDER_DEFAULT)
-            .unwrap();
+        imgproc::sobel(
+            &p,
+            &mut g,
+            core::CV_64F,
+            dx,
+            dy,
+            3,
+            1.0,
+            0.0,
+            core::BORDER_DEFAULT,
+        )
+        .unwrap();
         let mut a = Mat::default();
         core::convert_scale_abs(&g, &mut a, 1.0, 0.0).unwrap();
         let mut sq = Mat::default();
@@ -63,7 +82,9 @@ fn gec_papers_anchors_and_scoring_equal_the_codes_opencv_calls_bit_for_bit() {
     // A fixed image: the pool's marker from the station at 2 ms (the HIL camera, seed 1),
     // the code's region (corner box + 10 %, + 25 px), and a 96x64 corner of the frame.
     let site = markhold::params::load(Path::new(SITE)).unwrap();
-    let frame = station_frames(&site, 1, &site.site.lighting, &[2000.0]).unwrap().remove(0);
+    let frame = station_frames(&site, 1, &site.site.lighting, &[2000.0])
+        .unwrap()
+        .remove(0);
     let c = station_corners(&site).unwrap();
     let r = code_region(&c, 0.1, frame.width, frame.height).unwrap();
     let grown = markhold_exposure::Roi {
@@ -88,13 +109,23 @@ fn gec_papers_anchors_and_scoring_equal_the_codes_opencv_calls_bit_for_bit() {
         let mut ours = Vec::new();
         let mut code_scores = Vec::new();
         let (first, scores) = scorer.scores(packed);
-        for (i, &g) in std::iter::once(&1.0).chain(GEC_PAPER_ANCHORS.iter()).enumerate() {
+        for (i, &g) in std::iter::once(&1.0)
+            .chain(GEC_PAPER_ANCHORS.iter())
+            .enumerate()
+        {
             let (q, score) = opencv_gec(&data, w, h, g);
             let levels = GecPaperScorer::gamma_levels(&norm, g);
             let s = scorer.score(packed, &levels, Some(&mut ours));
             let differ = q.iter().zip(&ours).filter(|(a, b)| a != b).count();
-            assert_eq!(differ, 0, "{w}x{h}, gamma {g}: {differ} quantised pixels differ");
-            assert_eq!(s.to_bits(), score.to_bits(), "gamma {g}: score {s} vs the code's {score}");
+            assert_eq!(
+                differ, 0,
+                "{w}x{h}, gamma {g}: {differ} quantised pixels differ"
+            );
+            assert_eq!(
+                s.to_bits(),
+                score.to_bits(),
+                "gamma {g}: score {s} vs the code's {score}"
+            );
             let want = if i == 0 { first } else { scores[i - 1] };
             assert_eq!(want.to_bits(), score.to_bits(), "gamma {g}");
             code_scores.push(score);
@@ -130,8 +161,12 @@ fn sweep(site: &markhold::params::LoadedSite, lighting: LightingScenario) -> Vec
         .iter()
         .map(|f| {
             let t = f.meta.exposure_us;
-            let p = eval.evaluate(f.view(), roi, t, &params(PaperMetric::Published)).unwrap();
-            let a = eval.evaluate(f.view(), roi, t, &params(PaperMetric::AbsIx)).unwrap();
+            let p = eval
+                .evaluate(f.view(), roi, t, &params(PaperMetric::Published))
+                .unwrap();
+            let a = eval
+                .evaluate(f.view(), roi, t, &params(PaperMetric::AbsIx))
+                .unwrap();
             (t, p.m, a.climbed)
         })
         .collect()
@@ -161,7 +196,8 @@ fn still(method: ExposureMethod, lighting: LightingScenario, start: Option<f64>)
 }
 
 #[test]
-fn aaec_paper_at_full_size_freezes_as_the_code_ran_and_moves_to_the_argmax_with_a_rate_for_its_scale() {
+fn aaec_paper_at_full_size_freezes_as_the_code_ran_and_moves_to_the_argmax_with_a_rate_for_its_scale(
+) {
     let site = markhold::params::load(Path::new(SITE)).unwrap();
     let s = sweep(&site, LightingScenario::Normal);
     let (t_pub, m_pub) = argmax(&s, |v| v.1);
@@ -172,7 +208,11 @@ fn aaec_paper_at_full_size_freezes_as_the_code_ran_and_moves_to_the_argmax_with_
             handoff_exposure_us: 0.0,
             ..cfg
         };
-        let opts = still(ExposureMethod::AaecPaper, LightingScenario::Normal, Some(start));
+        let opts = still(
+            ExposureMethod::AaecPaper,
+            LightingScenario::Normal,
+            Some(start),
+        );
         run_hil(&site, &opts, Default::default()).unwrap()
     };
     let report = |what: &str, start: f64, r: &markhold::sim::summary::Summary| {
@@ -195,7 +235,9 @@ fn aaec_paper_at_full_size_freezes_as_the_code_ran_and_moves_to_the_argmax_with_
     let r = run(AaecPaperConfig::default(), short);
     let end = report("the code's rate", short, &r);
     assert!((end / short - 1.0).abs() < 0.01);
-    let stall = r.exposure_gate_stall.expect("the frozen law reports its stall");
+    let stall = r
+        .exposure_gate_stall
+        .expect("the frozen law reports its stall");
     assert!(stall.largest_step_us < 1.0 && stall.rate_to_pass.unwrap() > 2e-13);
 
     // The rate that converges at 640x480 on this camera (5e-12 for a 13924-pixel
@@ -239,12 +281,25 @@ fn aaec_paper_hands_low_light_to_the_camera_ae_until_it_sees_the_marker() {
     let site = markhold::params::load(Path::new(SITE)).unwrap();
     let mut code = site.clone();
     code.site.exposure.aaec_paper = AaecPaperConfig::default();
-    let r = run_hil(&code, &still(ExposureMethod::AaecPaper, LightingScenario::Low, None), Default::default()).unwrap();
-    eprintln!("AE hand-off, low light: detection {:.3}, ends at {:.0} us", r.detection_rate, r.final_exposure_us);
+    let r = run_hil(
+        &code,
+        &still(ExposureMethod::AaecPaper, LightingScenario::Low, None),
+        Default::default(),
+    )
+    .unwrap();
+    eprintln!(
+        "AE hand-off, low light: detection {:.3}, ends at {:.0} us",
+        r.detection_rate, r.final_exposure_us
+    );
     assert!(r.detection_rate > 0.90, "{}", r.detection_rate);
     // Holding the start instead (the 2023 node): never sees it.
     code.site.exposure.aaec_paper.pre_detection = markhold_exposure::PreDetection::Hold;
-    let r = run_hil(&code, &still(ExposureMethod::AaecPaper, LightingScenario::Low, None), Default::default()).unwrap();
+    let r = run_hil(
+        &code,
+        &still(ExposureMethod::AaecPaper, LightingScenario::Low, None),
+        Default::default(),
+    )
+    .unwrap();
     eprintln!("hold, low light: detection {:.3}", r.detection_rate);
     assert!(r.detection_rate < 0.1, "{}", r.detection_rate);
 }

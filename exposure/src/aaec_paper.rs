@@ -28,9 +28,8 @@
 //! restarts, no fallback after a loss.
 
 use crate::paper_code::{
-    check_rate_scaling, code_command, code_region, scaled_rate, EtaScaling, GateStall,
-    PaperFrames, PaperMetric, PaperMetricEval, PaperMetricParams, PaperResponse, PreDetection,
-    StallWatch,
+    check_rate_scaling, code_command, code_region, scaled_rate, EtaScaling, GateStall, PaperFrames,
+    PaperMetric, PaperMetricEval, PaperMetricParams, PaperResponse, PreDetection, StallWatch,
 };
 use crate::{
     exposed_as_commanded, Corners, ExposureController, ExposureError, ExposureLimits,
@@ -308,7 +307,8 @@ impl ExposureController for AaecPaper {
         self.last_rate = rate;
         let law = self.law.step(&self.cfg, rate, self.commanded_us, v.dm_dt);
         let gate_us = self.cfg.gate_us(rate);
-        self.stall.record(law.step_us, law.derivative_passed, law.moved);
+        self.stall
+            .record(law.step_us, law.derivative_passed, law.moved);
         self.stall.warn_once("aaec-paper", gate_us, rate);
         self.commanded_us = code_command(
             law.next_us,
@@ -422,8 +422,14 @@ mod tests {
             pre_detection: PreDetection::Hold,
             ..Default::default()
         };
-        let mut c = AaecPaper::new(cfg, &Response::linear(), MeanAeConfig::default(), limits(), 1000.0)
-            .unwrap();
+        let mut c = AaecPaper::new(
+            cfg,
+            &Response::linear(),
+            MeanAeConfig::default(),
+            limits(),
+            1000.0,
+        )
+        .unwrap();
         let corners = [[8.0, 8.0], [32.0, 8.0], [32.0, 24.0], [8.0, 24.0]];
         for _ in 0..5 {
             let s = c.update(&blocks(c.commanded_us()), Some(&corners));
@@ -483,9 +489,14 @@ mod tests {
                 pre_detection: PreDetection::Hold,
                 ..Default::default()
             };
-            let mut c =
-                AaecPaper::new(cfg, &Response::linear(), MeanAeConfig::default(), limits(), 1000.0)
-                    .unwrap();
+            let mut c = AaecPaper::new(
+                cfg,
+                &Response::linear(),
+                MeanAeConfig::default(),
+                limits(),
+                1000.0,
+            )
+            .unwrap();
             assert_eq!(c.update(&stale, Some(&corners)).used_frame, used);
         }
     }
@@ -497,8 +508,14 @@ mod tests {
             pre_detection: PreDetection::Hold,
             ..Default::default()
         };
-        let mut c = AaecPaper::new(cfg, &Response::linear(), MeanAeConfig::default(), limits(), 1000.0)
-            .unwrap();
+        let mut c = AaecPaper::new(
+            cfg,
+            &Response::linear(),
+            MeanAeConfig::default(),
+            limits(),
+            1000.0,
+        )
+        .unwrap();
         let corners = [[8.0, 8.0], [32.0, 8.0], [32.0, 24.0], [8.0, 24.0]];
         for k in 0..40 {
             let s = c.update(&blocks(1000.0), Some(&corners));
@@ -516,8 +533,14 @@ mod tests {
             pre_detection: PreDetection::Hold,
             ..Default::default()
         };
-        let mut c = AaecPaper::new(cfg, &Response::linear(), MeanAeConfig::default(), limits(), 1000.0)
-            .unwrap();
+        let mut c = AaecPaper::new(
+            cfg,
+            &Response::linear(),
+            MeanAeConfig::default(),
+            limits(),
+            1000.0,
+        )
+        .unwrap();
         for _ in 0..40 {
             let t = c.commanded_us();
             c.update(&blocks(t), Some(&corners));
@@ -545,7 +568,9 @@ mod tests {
             percentile: 0.9,
             weight_power: 5,
         };
-        let v = e.evaluate(view, roi, 1000.0, &params(PaperMetric::AbsIx)).unwrap();
+        let v = e
+            .evaluate(view, roi, 1000.0, &params(PaperMetric::AbsIx))
+            .unwrap();
         assert_eq!(v.pixels, 12);
         let vp = e
             .evaluate(view, roi, 1000.0, &params(PaperMetric::Published))
@@ -586,6 +611,9 @@ mod tests {
         .validate()
         .unwrap_err()
         .to_string();
-        assert!(e.contains("exposure.aaec_paper.eta_reference_pixels"), "{e}");
+        assert!(
+            e.contains("exposure.aaec_paper.eta_reference_pixels"),
+            "{e}"
+        );
     }
 }

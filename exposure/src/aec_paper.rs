@@ -12,8 +12,8 @@
 //! no fallback.
 
 use crate::paper_code::{
-    check_rate_scaling, code_command, scaled_rate, EtaScaling, GateStall, PaperFrames,
-    PaperMetric, PaperMetricEval, PaperMetricParams, PaperResponse, PreDetection, StallWatch,
+    check_rate_scaling, code_command, scaled_rate, EtaScaling, GateStall, PaperFrames, PaperMetric,
+    PaperMetricEval, PaperMetricParams, PaperResponse, PreDetection, StallWatch,
 };
 use crate::{
     exposed_as_commanded, Corners, ExposureController, ExposureError, ExposureLimits,
@@ -160,9 +160,9 @@ impl ExposureController for AecPaper {
             percentile: self.cfg.percentile,
             weight_power: self.cfg.weight_power,
         };
-        let Some(v) = self
-            .eval
-            .evaluate(frame.view(), frame.full_roi(), self.commanded_us, &params)
+        let Some(v) =
+            self.eval
+                .evaluate(frame.view(), frame.full_roi(), self.commanded_us, &params)
         else {
             return hold;
         };
@@ -235,8 +235,14 @@ mod tests {
     #[test]
     fn holds_until_a_marker_is_seen_then_steps_on_the_whole_frame() {
         let cfg = AecPaperConfig::default();
-        let mut c = AecPaper::new(cfg.clone(), &Response::linear(), MeanAeConfig::default(), limits(), 1000.0)
-            .unwrap();
+        let mut c = AecPaper::new(
+            cfg.clone(),
+            &Response::linear(),
+            MeanAeConfig::default(),
+            limits(),
+            1000.0,
+        )
+        .unwrap();
         let s = c.update(&blocks(1000.0, 40), None);
         assert!(!s.used_frame && s.exposure_us == 1000.0);
         let corners = [[8.0, 8.0], [32.0, 8.0], [32.0, 24.0], [8.0, 24.0]];
@@ -261,8 +267,14 @@ mod tests {
     fn a_small_derivative_or_step_is_not_taken() {
         // A flat frame: dM/dt = 0 < 15000.
         let cfg = AecPaperConfig::default();
-        let mut c = AecPaper::new(cfg, &Response::linear(), MeanAeConfig::default(), limits(), 1000.0)
-            .unwrap();
+        let mut c = AecPaper::new(
+            cfg,
+            &Response::linear(),
+            MeanAeConfig::default(),
+            limits(),
+            1000.0,
+        )
+        .unwrap();
         let corners = [[8.0, 8.0], [32.0, 8.0], [32.0, 24.0], [8.0, 24.0]];
         let s = c.update(&blocks(1000.0, 200), Some(&corners));
         assert!(s.used_frame);
@@ -272,10 +284,19 @@ mod tests {
             rate: 1e-20,
             ..Default::default()
         };
-        let mut c = AecPaper::new(cfg, &Response::linear(), MeanAeConfig::default(), limits(), 1000.0)
-            .unwrap();
+        let mut c = AecPaper::new(
+            cfg,
+            &Response::linear(),
+            MeanAeConfig::default(),
+            limits(),
+            1000.0,
+        )
+        .unwrap();
         for _ in 0..30 {
-            assert_eq!(c.update(&blocks(1000.0, 40), Some(&corners)).exposure_us, 1000.0);
+            assert_eq!(
+                c.update(&blocks(1000.0, 40), Some(&corners)).exposure_us,
+                1000.0
+            );
         }
         let stall = c.gate_stall().unwrap();
         assert!(stall.rate_to_pass.is_some(), "{stall:?}");

@@ -562,7 +562,17 @@ mod tests {
         assert_eq!(magnitude(16.0, 16.0), 255);
         assert_eq!(magnitude(3.0, 4.0), 25);
         assert_eq!(magnitude(f64::NAN, 2.0), 4);
-        for v in [0.0, 0.5, 1.5, 2.4999999999, 3.5, 254.5, 300.0, f64::NAN, f64::INFINITY] {
+        for v in [
+            0.0,
+            0.5,
+            1.5,
+            2.4999999999,
+            3.5,
+            254.5,
+            300.0,
+            f64::NAN,
+            f64::INFINITY,
+        ] {
             assert_eq!(quantize_abs_f32(v) as u8, quantize_abs(v), "{v}");
         }
     }
@@ -576,18 +586,44 @@ mod tests {
         };
         let mut g = GecPaper::new(GecPaperConfig::default(), limits, 1000.0).unwrap();
         // Before a detection: from the top-left corner, 25 px more each frame.
-        assert_eq!(g.region(None, 160, 120), Roi { x: 0, y: 0, width: 25, height: 25 });
-        assert_eq!(g.region(None, 160, 120), Roi { x: 0, y: 0, width: 50, height: 50 });
+        assert_eq!(
+            g.region(None, 160, 120),
+            Roi {
+                x: 0,
+                y: 0,
+                width: 25,
+                height: 25
+            }
+        );
+        assert_eq!(
+            g.region(None, 160, 120),
+            Roi {
+                x: 0,
+                y: 0,
+                width: 50,
+                height: 50
+            }
+        );
         // Detection: box 40..80 x 30..70, +4 px, then +25.
         let c = [[40.0, 30.0], [80.0, 30.0], [80.0, 70.0], [40.0, 70.0]];
         assert_eq!(
             g.region(Some(&c), 160, 120),
-            Roi { x: 11, y: 1, width: 98, height: 98 }
+            Roi {
+                x: 11,
+                y: 1,
+                width: 98,
+                height: 98
+            }
         );
         // Lost: it keeps growing, clamped to the image.
         assert_eq!(
             g.region(None, 160, 120),
-            Roi { x: 0, y: 0, width: 134, height: 120 }
+            Roi {
+                x: 0,
+                y: 0,
+                width: 134,
+                height: 120
+            }
         );
     }
 

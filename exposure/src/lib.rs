@@ -35,8 +35,8 @@ pub use gec_paper::{
 pub use mean::{MeanAe, MeanAeConfig};
 pub use metric::{soft_percentile_weights, GradientMetric, MetricParams, MetricValue, RankWeights};
 pub use paper_code::{
-    code_command, code_region, EtaScaling, GateStall, PaperFrames, PaperMetric,
-    PaperMetricEval, PaperMetricParams, PaperMetricValue, PaperResponse, PreDetection,
+    code_command, code_region, EtaScaling, GateStall, PaperFrames, PaperMetric, PaperMetricEval,
+    PaperMetricParams, PaperMetricValue, PaperResponse, PreDetection,
 };
 pub use response::{Response, ResponseModel, PAPER_CODE_G_PRIME};
 

@@ -345,7 +345,8 @@ impl PaperMetricEval {
         let wsum = match self.weights_for {
             Some((n, p, k, sum)) if (n, p, k) == key => sum,
             _ => {
-                let sum = code_weights(s, params.percentile, params.weight_power, &mut self.weights);
+                let sum =
+                    code_weights(s, params.percentile, params.weight_power, &mut self.weights);
                 self.weights_for = sum.map(|sum| (key.0, key.1, key.2, sum));
                 sum?
             }
@@ -363,8 +364,11 @@ impl PaperMetricEval {
             for x in 0..rw {
                 let pos = y * rw + x;
                 let (dl, dr) = side_columns(x, rw);
-                let dx = (d(d0, dr) - d(d0, dl)) + 2.0 * (d(d1, dr) - d(d1, dl)) + (d(d2, dr) - d(d2, dl));
-                let dy = (d(d2, dl) + 2.0 * d(d2, x) + d(d2, dr)) - (d(d0, dl) + 2.0 * d(d0, x) + d(d0, dr));
+                let dx = (d(d0, dr) - d(d0, dl))
+                    + 2.0 * (d(d1, dr) - d(d1, dl))
+                    + (d(d2, dr) - d(d2, dl));
+                let dy = (d(d2, dl) + 2.0 * d(d2, x) + d(d2, dr))
+                    - (d(d0, dl) + 2.0 * d(d0, x) + d(d0, dr));
                 let (ix, iy) = (self.ix[pos] as f64, self.iy[pos] as f64);
                 let (k, rank) = match params.metric {
                     PaperMetric::AbsIx => {
@@ -408,7 +412,8 @@ impl PaperMetricEval {
                     (p(r0, xr) - p(r0, xl)) + 2 * (p(r1, xr) - p(r1, xl)) + (p(r2, xr) - p(r2, xl)),
                 );
                 self.iy.push(
-                    (p(r2, xl) + 2 * p(r2, gx) + p(r2, xr)) - (p(r0, xl) + 2 * p(r0, gx) + p(r0, xr)),
+                    (p(r2, xl) + 2 * p(r2, gx) + p(r2, xr))
+                        - (p(r0, xl) + 2 * p(r0, gx) + p(r0, xr)),
                 );
             }
         }
@@ -429,12 +434,17 @@ impl PaperMetricEval {
             }
             PaperMetric::Published => {
                 self.packed.clear();
-                self.packed.extend(self.ix.iter().zip(&self.iy).enumerate().map(
-                    |(pos, (&x, &y))| {
-                        let (x, y) = (x as i64, y as i64);
-                        ((x * x + y * y) as u64) << 32 | pos as u64
-                    },
-                ));
+                self.packed
+                    .extend(
+                        self.ix
+                            .iter()
+                            .zip(&self.iy)
+                            .enumerate()
+                            .map(|(pos, (&x, &y))| {
+                                let (x, y) = (x as i64, y as i64);
+                                ((x * x + y * y) as u64) << 32 | pos as u64
+                            }),
+                    );
                 self.packed.sort_unstable();
                 self.rank_of.clear();
                 self.rank_of.resize(self.packed.len(), 0);
@@ -478,7 +488,12 @@ pub(crate) fn check_rate_scaling(
 }
 
 /// The rate for a region of `pixels`.
-pub(crate) fn scaled_rate(rate: f64, scaling: EtaScaling, reference_pixels: f64, pixels: usize) -> f64 {
+pub(crate) fn scaled_rate(
+    rate: f64,
+    scaling: EtaScaling,
+    reference_pixels: f64,
+    pixels: usize,
+) -> f64 {
     match scaling {
         EtaScaling::None => rate,
         EtaScaling::RoiSide => rate * (pixels.max(1) as f64 / reference_pixels).sqrt(),
@@ -525,10 +540,16 @@ mod tests {
     }
 
     /// The metric by the naive route: every pixel's key, a full sort of (key, position).
-    fn naive(img: &[u8], w: usize, h: usize, roi: Roi, t_us: f64, p: &PaperMetricParams, d_lut: &[f64; 256]) -> (f64, f64) {
-        let at = |x: isize, y: isize| -> f64 {
-            img[reflect(y, h) * w + reflect(x, w)] as f64
-        };
+    fn naive(
+        img: &[u8],
+        w: usize,
+        h: usize,
+        roi: Roi,
+        t_us: f64,
+        p: &PaperMetricParams,
+        d_lut: &[f64; 256],
+    ) -> (f64, f64) {
+        let at = |x: isize, y: isize| -> f64 { img[reflect(y, h) * w + reflect(x, w)] as f64 };
         let (rw, rh) = (roi.width as isize, roi.height as isize);
         let dat = |x: isize, y: isize| -> f64 {
             let (x, y) = (reflect(x, rw as usize), reflect(y, rh as usize));
@@ -538,10 +559,22 @@ mod tests {
         for y in 0..rh {
             for x in 0..rw {
                 let (gx, gy) = (roi.x as isize + x, roi.y as isize + y);
-                let ix = at(gx + 1, gy - 1) - at(gx - 1, gy - 1) + 2.0 * (at(gx + 1, gy) - at(gx - 1, gy)) + at(gx + 1, gy + 1) - at(gx - 1, gy + 1);
-                let iy = at(gx - 1, gy + 1) + 2.0 * at(gx, gy + 1) + at(gx + 1, gy + 1) - at(gx - 1, gy - 1) - 2.0 * at(gx, gy - 1) - at(gx + 1, gy - 1);
-                let dx = dat(x + 1, y - 1) - dat(x - 1, y - 1) + 2.0 * (dat(x + 1, y) - dat(x - 1, y)) + dat(x + 1, y + 1) - dat(x - 1, y + 1);
-                let dy = dat(x - 1, y + 1) + 2.0 * dat(x, y + 1) + dat(x + 1, y + 1) - dat(x - 1, y - 1) - 2.0 * dat(x, y - 1) - dat(x + 1, y - 1);
+                let ix = at(gx + 1, gy - 1) - at(gx - 1, gy - 1)
+                    + 2.0 * (at(gx + 1, gy) - at(gx - 1, gy))
+                    + at(gx + 1, gy + 1)
+                    - at(gx - 1, gy + 1);
+                let iy = at(gx - 1, gy + 1) + 2.0 * at(gx, gy + 1) + at(gx + 1, gy + 1)
+                    - at(gx - 1, gy - 1)
+                    - 2.0 * at(gx, gy - 1)
+                    - at(gx + 1, gy - 1);
+                let dx = dat(x + 1, y - 1) - dat(x - 1, y - 1)
+                    + 2.0 * (dat(x + 1, y) - dat(x - 1, y))
+                    + dat(x + 1, y + 1)
+                    - dat(x - 1, y + 1);
+                let dy = dat(x - 1, y + 1) + 2.0 * dat(x, y + 1) + dat(x + 1, y + 1)
+                    - dat(x - 1, y - 1)
+                    - 2.0 * dat(x, y - 1)
+                    - dat(x + 1, y - 1);
                 let key = match p.metric {
                     PaperMetric::AbsIx => ix.abs(),
                     PaperMetric::Published => ix * ix + iy * iy,
@@ -567,7 +600,11 @@ mod tests {
                 seed ^= seed >> 7;
                 seed ^= seed << 17;
                 // Blocks with noise: ties in |Ix| and real edges.
-                let block = if (i % w) / 9 % 2 == (i / w) / 7 % 2 { 200 } else { 40 };
+                let block = if (i % w) / 9 % 2 == (i / w) / 7 % 2 {
+                    200
+                } else {
+                    40
+                };
                 (block + (seed % 7) as i32 - 3) as u8
             })
             .collect();
@@ -580,8 +617,18 @@ mod tests {
         }
         // A region touching the image's edge and one inside it.
         for roi in [
-            Roi { x: 0, y: 3, width: 20, height: 26 },
-            Roi { x: 5, y: 4, width: 25, height: 20 },
+            Roi {
+                x: 0,
+                y: 3,
+                width: 20,
+                height: 26,
+            },
+            Roi {
+                x: 5,
+                y: 4,
+                width: 25,
+                height: 20,
+            },
         ] {
             for metric in [PaperMetric::AbsIx, PaperMetric::Published] {
                 let p = PaperMetricParams {
@@ -592,8 +639,16 @@ mod tests {
                 let v = e.evaluate(view, roi, 1500.0, &p).unwrap();
                 let (m, dm) = naive(&img, w, h, roi, 1500.0, &p, &d_lut);
                 assert_eq!(v.pixels, (roi.width * roi.height) as usize);
-                assert!((v.m / m - 1.0).abs() < 1e-12, "{metric:?} {roi:?}: {} vs {m}", v.m);
-                assert!((v.dm_dt / dm - 1.0).abs() < 1e-9, "{metric:?} {roi:?}: {} vs {dm}", v.dm_dt);
+                assert!(
+                    (v.m / m - 1.0).abs() < 1e-12,
+                    "{metric:?} {roi:?}: {} vs {m}",
+                    v.m
+                );
+                assert!(
+                    (v.dm_dt / dm - 1.0).abs() < 1e-9,
+                    "{metric:?} {roi:?}: {} vs {dm}",
+                    v.dm_dt
+                );
             }
         }
     }

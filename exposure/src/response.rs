@@ -429,7 +429,12 @@ mod tests {
         let r = Response::paper_code();
         // Positive at every level, and D = 1/g' falls near clipping (dM/dt can turn down).
         assert!(r.g_prime_table().iter().all(|v| v.is_finite() && *v > 0.0));
-        assert!(r.di_dlnt(150) > 10.0 * r.di_dlnt(255), "{} {}", r.di_dlnt(150), r.di_dlnt(255));
+        assert!(
+            r.di_dlnt(150) > 10.0 * r.di_dlnt(255),
+            "{} {}",
+            r.di_dlnt(150),
+            r.di_dlnt(255)
+        );
         let p = ResponseModel::Polynomial {
             coefficients: PAPER_CODE_G_PRIME.to_vec(),
         }

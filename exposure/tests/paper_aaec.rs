@@ -58,7 +58,8 @@ fn run_paper(scene: &Scene, cfg: AaecPaperConfig, t0: f64, frames: usize) -> (Ve
         pre_detection: PreDetection::Hold,
         ..cfg
     };
-    let mut c = AaecPaper::new(cfg, &scene.response, MeanAeConfig::default(), limits(), t0).unwrap();
+    let mut c =
+        AaecPaper::new(cfg, &scene.response, MeanAeConfig::default(), limits(), t0).unwrap();
     let tr = run(scene, &mut c, t0, frames, 1, true);
     (tr, c)
 }
@@ -77,13 +78,21 @@ fn the_codes_law_climbs_to_the_argmax_and_freezes_from_above() {
     // within 10 % of the argmax (it climbs sum w(rank |Ix|) G, whose argmax is near the
     // published M's; the argmax of the code's own sum w |Ix| is far shorter, 576 us).
     let (tr, c) = run_paper(&scene, AaecPaperConfig::default(), best / 3.0, 200);
-    eprintln!("code, from {:.0}: ends at {:.3} of {best:.0}", best / 3.0, tr[199] / best);
+    eprintln!(
+        "code, from {:.0}: ends at {:.3} of {best:.0}",
+        best / 3.0,
+        tr[199] / best
+    );
     assert!(stays_within(&tr, 150, best, 0.10), "{:?}", &tr[150..]);
     assert!(c.gate_stall().is_none());
     // From 3x long its first momentum is under the 1 us gate: it never moves (but for the
     // command's whole microseconds), and says so.
     let (tr, c) = run_paper(&scene, AaecPaperConfig::default(), best * 3.0, 200);
-    assert!(tr.iter().all(|&t| (t - tr[0]).abs() < 1.0), "{:?}", &tr[..10]);
+    assert!(
+        tr.iter().all(|&t| (t - tr[0]).abs() < 1.0),
+        "{:?}",
+        &tr[..10]
+    );
     let stall = c.gate_stall().expect("a frozen law reports its stall");
     eprintln!("code, from {:.0}: frozen, {stall:?}", best * 3.0);
     assert_eq!(stall.gate_us, 1.0);
@@ -111,7 +120,10 @@ fn with_every_frame_a_larger_step_oscillates_and_with_markholds_frame_rule_it_co
             ..Default::default()
         };
         let (tr, _) = run_paper(&scene, cfg, t0, 300);
-        eprintln!("exposed-as-commanded, eta 5e-12, from {t0:.0}: ends at {:.3}", tr[299] / best);
+        eprintln!(
+            "exposed-as-commanded, eta 5e-12, from {t0:.0}: ends at {:.3}",
+            tr[299] / best
+        );
         assert!(stays_within(&tr, 250, best, 0.10), "{:?}", &tr[250..]);
         let cfg = AaecPaperConfig {
             learning_rate: 5e-12,
@@ -144,7 +156,11 @@ fn through_a_linear_camera_the_site_response_only_lengthens_and_the_codes_turns_
         let v = site.evaluate(f.view(), roi, t, &published()).unwrap();
         assert!(v.m > 0.0 && v.dm_dt > 0.0, "t {t}: {v:?}");
         let want = 2.0 * v.m / (t * 1e-6);
-        assert!((v.dm_dt / want - 1.0).abs() < 0.05, "t {t}: {} vs {want}", v.dm_dt);
+        assert!(
+            (v.dm_dt / want - 1.0).abs() < 0.05,
+            "t {t}: {} vs {want}",
+            v.dm_dt
+        );
         code_signs.push(code.evaluate(f.view(), roi, t, &published()).unwrap().dm_dt > 0.0);
     }
     // Measured: + at 300 us, - from 1000 us on.
@@ -183,6 +199,12 @@ fn caustics_make_the_converging_step_wander() {
         "caustics 0.6: eta 5e-12 max step {fast_step:.3} range {fast_range:.2}; \
          eta 2e-13 max step {slow_step:.3} range {slow_range:.2}"
     );
-    assert!(fast_range > 1.8 && fast_step > 0.05, "{fast_range} {fast_step}");
-    assert!(slow_range < 1.5 && slow_step < 0.02, "{slow_range} {slow_step}");
+    assert!(
+        fast_range > 1.8 && fast_step > 0.05,
+        "{fast_range} {fast_step}"
+    );
+    assert!(
+        slow_range < 1.5 && slow_step < 0.02,
+        "{slow_range} {slow_step}"
+    );
 }

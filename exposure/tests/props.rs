@@ -66,7 +66,10 @@ fn all_controllers(limits: ExposureLimits, t0: f64) -> Vec<(Box<dyn ExposureCont
         .collect();
     cfg.aaec.fallback = AaecFallback::Aec;
     cfg.aaec.adaptive_step = false;
-    v.push((build_controller(&cfg, ExposureMethod::Aaec, limits, t0).unwrap(), true));
+    v.push((
+        build_controller(&cfg, ExposureMethod::Aaec, limits, t0).unwrap(),
+        true,
+    ));
     let mut cfg = ExposureConfig::default();
     cfg.aaec_paper.frames = PaperFrames::ExposedAsCommanded;
     cfg.aaec_paper.pre_detection = PreDetection::Hold;

@@ -744,7 +744,12 @@ pub fn frames_to_stay(series: &[f64], inside: impl Fn(f64) -> bool) -> Option<u6
     if !series.last().is_some_and(|&v| inside(v)) {
         return None;
     }
-    Some(series.iter().rposition(|&v| !inside(v)).map_or(0, |i| i as u64 + 1))
+    Some(
+        series
+            .iter()
+            .rposition(|&v| !inside(v))
+            .map_or(0, |i| i as u64 + 1),
+    )
 }
 
 /// `t` inside the swept band `[lo, hi]`, widened by half a sweep step each way.
@@ -846,7 +851,10 @@ pub fn metrics(c: &CaseResult) -> Vec<(&'static str, Option<f64>)> {
             "convergence.short.final_over_reference",
             finite(cv.from_short.final_over_reference),
         ),
-        ("convergence.optimum.m_argmax_us", finite(cv.optimum.m_argmax_us)),
+        (
+            "convergence.optimum.m_argmax_us",
+            finite(cv.optimum.m_argmax_us),
+        ),
         (
             "convergence.optimum.detection_best",
             Some(cv.optimum.detection_best),
@@ -1010,7 +1018,9 @@ pub fn scene_optimum(
     lighting: LightingScenario,
     seed: u64,
 ) -> anyhow::Result<SceneOptimum> {
-    use markhold_exposure::{code_region, PaperMetric, PaperMetricEval, PaperMetricParams, Response};
+    use markhold_exposure::{
+        code_region, PaperMetric, PaperMetricEval, PaperMetricParams, Response,
+    };
     let hil = HilOptions {
         lighting: Some(lighting),
         seed,
@@ -1066,7 +1076,9 @@ pub fn scene_optimum(
 
 /// The optimum from a sweep: M and the detection rate at each exposure.
 pub fn optimum_of(exposures: &[f64], m: &[f64], det: &[f64]) -> SceneOptimum {
-    let best = (0..m.len()).max_by(|&a, &b| m[a].total_cmp(&m[b])).unwrap_or(0);
+    let best = (0..m.len())
+        .max_by(|&a, &b| m[a].total_cmp(&m[b]))
+        .unwrap_or(0);
     let m_max = m.get(best).copied().unwrap_or(f64::NAN);
     // A parabola through the best and its neighbours, in log exposure.
     let mut argmax = exposures.get(best).copied().unwrap_or(f64::NAN);
@@ -1425,7 +1437,11 @@ fn report_convergence_to_optimum(o: &mut String, r: &CompareResults) {
                     };
                     let _ = write!(o, " {cell} |");
                 }
-                let _ = write!(o, " {} |", get(&format!("convergence.{side}.final_over_m_argmax")));
+                let _ = write!(
+                    o,
+                    " {} |",
+                    get(&format!("convergence.{side}.final_over_m_argmax"))
+                );
             }
             o.push('\n');
         }
@@ -1730,7 +1746,7 @@ pub struct CompareArgs {
     /// Simulated seconds of each experiment run.
     #[arg(long, default_value_t = 60.0)]
     pub seconds: f64,
-    /// Exposure methods, comma-separated (default all: aaec-paper,aaec,gec-paper,gec,aec,default).
+    /// Exposure methods, comma-separated (default all: aaec-paper,aaec,gec-paper,gec,aec-paper,aec,default).
     #[arg(long, value_delimiter = ',')]
     pub methods: Vec<ExposureMethod>,
     /// Lightings, comma-separated (default all: adversarial,normal,low,caustics).
@@ -1864,6 +1880,45 @@ fn run_shard(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn frames_to_stay_counts_to_the_last_excursion_and_says_never() {
+        let inside = |t: f64| (t / 100.0 - 1.0).abs() <= 0.05;
+        assert_eq!(
+            frames_to_stay(&[300.0, 120.0, 101.0, 110.0, 99.0], inside),
+            Some(4)
+        );
+        assert_eq!(frames_to_stay(&[100.0, 102.0], inside), Some(0));
+        // Never there at the end: never, however close it came.
+        assert_eq!(frames_to_stay(&[100.0, 101.0, 300.0], inside), None);
+        // A frozen series far from the optimum.
+        assert_eq!(frames_to_stay(&[1000.0; 50], inside), None);
+        assert_eq!(frames_to_stay(&[], inside), None);
+    }
+
+    #[test]
+    fn optimum_of_a_sweep_by_hand() {
+        // M peaks between the third and fourth exposures (a parabola in log t through
+        // 4, 9, 9: its vertex is half a step past the third), detection from the second.
+        let r = OPTIMUM_SWEEP_RATIO;
+        let e: Vec<f64> = (0..6).map(|k| 100.0 * r.powi(k)).collect();
+        let m = [1.0, 4.0, 9.0, 9.0, 4.0, 1.0];
+        let det = [0.0, 0.5, 1.0, 1.0, 0.97, 0.0];
+        let o = optimum_of(&e, &m, &det);
+        assert!(
+            (o.m_argmax_us / (e[2] * r.sqrt()) - 1.0).abs() < 1e-9,
+            "{o:?}"
+        );
+        assert_eq!(o.m_max, 9.0);
+        assert_eq!(o.m_band_us, [e[2], e[3]]);
+        assert_eq!(o.detection_best, 1.0);
+        assert_eq!(o.detection_band_us, Some([e[2], e[4]]));
+        // Never detected: no band.
+        assert_eq!(optimum_of(&e, &m, &[0.0; 6]).detection_band_us, None);
+        // The band is widened by half a step when a run is measured against it.
+        assert!(in_band(e[2] / r.sqrt() * 1.001, o.m_band_us));
+        assert!(!in_band(e[1], o.m_band_us));
+    }
 
     #[test]
     fn crossings_count_overshoots() {
