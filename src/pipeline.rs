@@ -276,6 +276,11 @@ impl<L: CommandLink> Pipeline<L> {
         &self.frame
     }
 
+    /// The exposure controller (its diagnostics, e.g. a gated law that never moved).
+    pub fn exposure_controller(&self) -> &dyn ExposureController {
+        self.exposure.as_ref()
+    }
+
     /// The station keeper's state after the last frame.
     pub fn keeper_status(&self) -> markhold_autopilot::KeeperStatus {
         self.keeper.status()

@@ -1,69 +1,100 @@
-//! AAEC exactly as published (Ren, Lensgraf, Quattrini Li, ISER 2023), beside
-//! markhold's own AAEC (`aaec.rs`) so that the two can be compared.
+//! AAEC as the paper's code ran it (Ren, Lensgraf, Quattrini Li, ISER 2023;
+//! Rennylex/adaptive_active_exposure_control, the published node
+//! `src/aaec_exposure_node.cpp` with its launch file), beside markhold's own AAEC
+//! (`aaec.rs`) so that the two can be compared. Each way the paper's text or markhold's
+//! rules differ from the code is an option; the defaults are the code's.
 //!
-//! Per used frame, on the RoI (the marker's corner box padded by 10 % of its width and
-//! height on each side, clamped to the image; kept after the marker is lost, as the
-//! paper's code does):
-//! - `G = Ix^2 + Iy^2` with raw 3x3 Sobel (OpenCV's `Sobel(ksize = 3)`, no
-//!   normalization), pixels ranked by `G` ascending (ties by position, row-major);
-//!   `metric = "abs-ix"` ranks and scores by `|Ix|` instead, as the paper's code does;
-//! - soft-percentile weights `sin(pi i / (2 n))^k` up to `n = floor(p S)`, then
-//!   `sin(pi/2 - pi (i - n) / (2 (S - n)))^k`, normalized to sum 1; `M = sum w_i G_i`;
-//! - through the camera response, `D = dI/dt = 1 / (g'(I) t)` with `t` in seconds;
-//!   `dG/dt = 2 (Ix Dx + Iy Dy)` (same Sobel), `dM/dt = sum w_i (dG/dt)_i`;
-//! - momentum in linear exposure: `v = gamma v_prev + eta dM/dt`; when `|v|` exceeds
-//!   the threshold (1 us) the step is taken and `v` kept, `t <- t + v`; otherwise the
-//!   exposure and the stored momentum stay as they were;
-//! - clamps: a command at or below 12 us becomes 13 us; above the camera's maximum it is
-//!   the maximum.
+//! Per frame once a marker was seen, on the region (the code's: the tracker's whole-pixel
+//! corner box padded by 10 % of its width and height on each side, truncated, clamped;
+//! kept after the marker is lost):
+//! - the metric and its derivative of [`PaperMetricEval`]: `|Ix|` ranks and scores
+//!   (`metric = "abs-ix"`; `"published"`: `G = Ix^2 + Iy^2`), `dG/dt = 2 (Ix Dx + Iy Dy)`
+//!   through the camera response `D = 1 / (g'(I) t)`, the code's degree-14 `g'`
+//!   whatever the camera (`response = "code"`; `"site"`: the site's);
+//! - momentum in linear exposure: `v = gamma v_prev + eta dM/dt`; when `|v|` exceeds the
+//!   threshold (1 us) the step is taken and `v` kept, `t <- t + v`; otherwise the exposure
+//!   and the stored momentum stay (`gate = "momentum"`; `"derivative"`: the paper's
+//!   Algorithm 1, which steps when `|dM/dt|` reaches a threshold);
+//! - what it sends: at or below 12 us becomes 13 us, above the camera's maximum the
+//!   maximum, whole microseconds.
 //!
+//! It learns from every frame, taking it to be exposed with its last command
+//! (`frames = "every"`; `"exposed-as-commanded"`: markhold's rule). Before the first
+//! detection the camera's own auto exposure runs (`pre_detection = "camera-ae"`; markhold's
+//! mean-intensity AE stands in for it), and the law starts from 5000 us
+//! (`handoff_exposure_us`: the node reads back the driver's 0, "auto", and falls back to
+//! its `default_exposure_time`); `"hold"` keeps the exposure instead.
 //! Nothing else: no log-domain step, no per-frame bound, no clipped-pixel penalty, no
-//! restarts, no fallback. Before the first detection there is no RoI and the exposure
-//! is held (the paper's code hands the camera back to its own auto exposure there).
-//! Like every markhold controller it learns only from frames exposed with the value it
-//! last commanded.
+//! restarts, no fallback after a loss.
 
+use crate::paper_code::{
+    check_rate_scaling, code_command, code_region, scaled_rate, EtaScaling, GateStall, PaperFrames,
+    PaperMetric, PaperMetricEval, PaperMetricParams, PaperResponse, PreDetection, StallWatch,
+};
 use crate::{
     exposed_as_commanded, Corners, ExposureController, ExposureError, ExposureLimits,
-    ExposureMethod, ExposureStep, Frame, ImageView, Response, Roi,
+    ExposureMethod, ExposureStep, Frame, MeanAe, MeanAeConfig, Response, Roi,
 };
 use markhold_config::{open, open_closed, Checks, ConfigError};
 use serde::{Deserialize, Serialize};
 
-/// Which gradient the paper's metric ranks and scores.
+/// What holds the paper's law back.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "kebab-case")]
-pub enum PaperMetric {
-    /// As published: `G = Ix^2 + Iy^2` for ranking, score and derivative.
-    Published,
-    /// As in the paper's code: rank and score by `|Ix|`, differentiate `Ix^2 + Iy^2`.
-    AbsIx,
+pub enum PaperGate {
+    /// The code: a step is taken only when the momentum `|v|` exceeds `threshold_us`.
+    Momentum,
+    /// The paper's Algorithm 1: momentum and step only when `|dM/dt|` reaches
+    /// `derivative_threshold` (the code's value for its momentum-free law and its AEC).
+    Derivative,
 }
 
 /// The `[exposure.aaec_paper]` section.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
 pub struct AaecPaperConfig {
-    /// Percentile `p` of the weights' peak, (0, 1) (paper's code: 0.9).
+    /// Percentile `p` of the weights' peak, (0, 1) (code: 0.9).
     pub percentile: f64,
-    /// Sine-weight exponent `k`, 1..=9 (paper: 5).
+    /// Sine-weight exponent `k`, 1..=9 (code: 5).
     pub weight_power: u32,
-    /// RoI padding on each side, fraction of the corner box, [0, 1] (paper: 0.1).
+    /// Region padding on each side, fraction of the corner box, [0, 1] (code and
+    /// paper: 0.1).
     pub roi_pad_frac: f64,
-    /// Momentum factor gamma, [0, 1) (paper: 0.9).
+    /// Momentum factor gamma, [0, 1) (code: 0.9).
     pub momentum: f64,
-    /// Learning rate eta in the paper's units: seconds of exposure per unit of `dM/dt`,
-    /// with `M` in raw-Sobel grey levels squared and `t` in seconds, (0, 1e-6]. The
-    /// paper's code ran 2e-13 to 1e-12 (it depends on the image scale).
+    /// Learning rate eta: seconds of exposure per unit of `dM/dt`, with `M` in raw-Sobel
+    /// grey levels (squared for `G`) and `t` in seconds, (0, 1e-6]. The code's history:
+    /// 1e-9 (no momentum), 1e-10, 1e-12, 5e-13, 2e-13 (the published launch file).
     pub learning_rate: f64,
-    /// A step is taken only when `|v|` exceeds this, microseconds, [0, 1000] (paper's
-    /// code: 1).
+    /// With `gate = "momentum"`, a step is taken only when `|v|` exceeds this,
+    /// microseconds, [0, 1000] (code: 1).
     pub threshold_us: f64,
+    /// With `gate = "derivative"`, a step is taken only when `|dM/dt|` (per second)
+    /// reaches this, [0, 1e12] (code: 15000).
+    pub derivative_threshold: f64,
     /// Commands at or below `floor_us - 1` become `floor_us`, microseconds, [0, 1000]
-    /// (paper's code: 13). The camera's own limits still apply.
+    /// (code: 13). The camera's own limits still apply.
     pub floor_us: f64,
-    /// `published` (default) or `abs-ix` (the paper's code).
+    /// `abs-ix` (code) or `published`.
     pub metric: PaperMetric,
+    /// `code` (its degree-14 g') or `site` (the site's `[camera] response`).
+    pub response: PaperResponse,
+    /// `camera-ae` (code) or `hold`.
+    pub pre_detection: PreDetection,
+    /// With `pre_detection = "camera-ae"`: the exposure the law starts from at the first
+    /// detection, microseconds, [0, 1e6]; 0 continues from the auto exposure's (code:
+    /// 5000, its `default_exposure_time`).
+    pub handoff_exposure_us: f64,
+    /// `every` (code) or `exposed-as-commanded`.
+    pub frames: PaperFrames,
+    /// `momentum` (code) or `derivative` (the paper's Algorithm 1).
+    pub gate: PaperGate,
+    /// `none` (code) or `roi-side`: the rate times `sqrt(S / eta_reference_pixels)` for a
+    /// region of `S` pixels.
+    pub eta_scaling: EtaScaling,
+    /// With `eta_scaling = "roi-side"`: the region size the learning rate is meant
+    /// for, pixels, [1, 1e8].
+    pub eta_reference_pixels: f64,
 }
 
 impl Default for AaecPaperConfig {
@@ -75,8 +106,16 @@ impl Default for AaecPaperConfig {
             momentum: 0.9,
             learning_rate: 2e-13,
             threshold_us: 1.0,
+            derivative_threshold: 15000.0,
             floor_us: 13.0,
-            metric: PaperMetric::Published,
+            metric: PaperMetric::AbsIx,
+            response: PaperResponse::Code,
+            pre_detection: PreDetection::CameraAe,
+            handoff_exposure_us: 5000.0,
+            frames: PaperFrames::Every,
+            gate: PaperGate::Momentum,
+            eta_scaling: EtaScaling::None,
+            eta_reference_pixels: 1e4,
         }
     }
 }
@@ -90,15 +129,49 @@ impl AaecPaperConfig {
             .range("roi_pad_frac", self.roi_pad_frac, 0.0..=1.0, "a fraction in [0, 1]")
             .range("momentum", self.momentum, 0.0..1.0, "a factor in [0, 1)")
             .range("learning_rate", self.learning_rate, open_closed(0.0, 1e-6),
-                "a rate in (0, 1e-6] s per unit of dM/dt (paper: 2e-13 to 1e-12)")
+                "a rate in (0, 1e-6] s per unit of dM/dt (the code's: 1e-9 to 2e-13)")
             .range("threshold_us", self.threshold_us, 0.0..=1000.0, "microseconds in [0, 1000]")
+            .range("derivative_threshold", self.derivative_threshold, 0.0..=1e12,
+                "a derivative in [0, 1e12] per second")
             .range("floor_us", self.floor_us, 0.0..=1000.0, "microseconds in [0, 1000]")
-            .done()
+            .range("handoff_exposure_us", self.handoff_exposure_us, 0.0..=1e6,
+                "microseconds in [0, 1e6] (0: the auto exposure's)")
+            .done()?;
+        check_rate_scaling("exposure.aaec_paper", self.eta_scaling, self.eta_reference_pixels)
+    }
+
+    /// The metric settings of this section.
+    pub fn metric_params(&self) -> PaperMetricParams {
+        PaperMetricParams {
+            metric: self.metric,
+            percentile: self.percentile,
+            weight_power: self.weight_power,
+        }
+    }
+
+    /// The step a gate lets through, microseconds (for the stall report).
+    fn gate_us(&self, rate: f64) -> f64 {
+        match self.gate {
+            PaperGate::Momentum => self.threshold_us,
+            PaperGate::Derivative => rate * self.derivative_threshold * 1e6,
+        }
     }
 }
 
-/// The paper's update law on its own, in microseconds: `v = gamma v + eta dM/dt`,
-/// applied (and kept) only when `|v| > threshold`; then the clamps.
+/// One update of the paper's law.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct LawStep {
+    /// The law's next exposure, microseconds (before what the code sends).
+    pub next_us: f64,
+    /// The step it computed (taken or not), microseconds.
+    pub step_us: f64,
+    /// The derivative passed its own gate (always, with the momentum gate).
+    pub derivative_passed: bool,
+    /// The step was taken.
+    pub moved: bool,
+}
+
+/// The paper's update law on its own, in microseconds.
 #[derive(Debug, Clone, Copy, PartialEq, Default)]
 pub struct PaperMomentum {
     /// Stored momentum, microseconds.
@@ -106,162 +179,82 @@ pub struct PaperMomentum {
 }
 
 impl PaperMomentum {
-    /// The next command from the current one `t_us` and the metric's derivative
-    /// `dm_dt` (per second of exposure).
-    pub fn step(
-        &mut self,
-        cfg: &AaecPaperConfig,
-        limits: &ExposureLimits,
-        t_us: f64,
-        dm_dt: f64,
-    ) -> f64 {
-        let v = cfg.momentum * self.v_us + cfg.learning_rate * dm_dt * 1e6;
-        let mut next = t_us;
-        if v.is_finite() && v.abs() > cfg.threshold_us {
-            self.v_us = v;
-            next = t_us + v;
-        }
-        if next <= cfg.floor_us - 1.0 {
-            next = cfg.floor_us;
-        }
-        limits.clamp(next)
-    }
-}
-
-/// The paper's metric and its derivative on one view.
-#[derive(Debug, Clone, Copy, PartialEq)]
-pub struct PaperMetricValue {
-    pub m: f64,
-    /// `dM/dt`, per second of exposure.
-    pub dm_dt: f64,
-    pub pixels: usize,
-}
-
-/// The paper's metric with reused buffers (naive: a full sort per frame, as published).
-#[derive(Debug, Clone)]
-pub struct PaperMetricEval {
-    /// `1 / g'(I)` per grey level (`D` times the exposure in seconds).
-    di_dt_s: [f64; 256],
-    /// (ranking key, position, dG/dt * t) per pixel.
-    pixels: Vec<(f64, u32, f64)>,
-}
-
-impl PaperMetricEval {
-    pub fn new(response: &Response) -> Self {
-        let mut di_dt_s = [0.0; 256];
-        for (i, d) in di_dt_s.iter_mut().enumerate() {
-            *d = response.di_dlnt(i as u8);
-        }
-        Self {
-            di_dt_s,
-            pixels: Vec::new(),
-        }
-    }
-
-    /// `M` and `dM/dt` of `view` exposed for `t_us`, over its interior pixels (the
-    /// 3x3 Sobel needs a neighbour on each side). `None` below 3x3.
-    pub fn evaluate(
-        &mut self,
-        view: ImageView<'_>,
-        t_us: f64,
-        cfg: &AaecPaperConfig,
-    ) -> Option<PaperMetricValue> {
-        let (w, h) = (view.width, view.height);
-        if w < 3 || h < 3 || t_us.is_nan() || t_us <= 0.0 {
-            return None;
-        }
-        let t_s = t_us * 1e-6;
-        self.pixels.clear();
-        let need = (w - 2) * (h - 2);
-        if self.pixels.capacity() < need {
-            self.pixels.reserve(need);
-        }
-        let d = &self.di_dt_s;
-        for y in 1..h - 1 {
-            let (r0, r1, r2) = (view.row(y - 1), view.row(y), view.row(y + 1));
-            for x in 1..w - 1 {
-                let i = |r: &[u8], x: usize| r[x] as f64;
-                let dd = |r: &[u8], x: usize| d[r[x] as usize];
-                let ix = (i(r0, x + 1) - i(r0, x - 1))
-                    + 2.0 * (i(r1, x + 1) - i(r1, x - 1))
-                    + (i(r2, x + 1) - i(r2, x - 1));
-                let iy = (i(r2, x - 1) + 2.0 * i(r2, x) + i(r2, x + 1))
-                    - (i(r0, x - 1) + 2.0 * i(r0, x) + i(r0, x + 1));
-                let dx = (dd(r0, x + 1) - dd(r0, x - 1))
-                    + 2.0 * (dd(r1, x + 1) - dd(r1, x - 1))
-                    + (dd(r2, x + 1) - dd(r2, x - 1));
-                let dy = (dd(r2, x - 1) + 2.0 * dd(r2, x) + dd(r2, x + 1))
-                    - (dd(r0, x - 1) + 2.0 * dd(r0, x) + dd(r0, x + 1));
-                let key = match cfg.metric {
-                    PaperMetric::Published => ix * ix + iy * iy,
-                    PaperMetric::AbsIx => ix.abs(),
-                };
-                let pos = (y * w + x) as u32;
-                self.pixels.push((key, pos, 2.0 * (ix * dx + iy * dy)));
+    /// The next exposure from the current one `t_us` and the metric's derivative
+    /// `dm_dt` (per second of exposure), with learning rate `rate`.
+    pub fn step(&mut self, cfg: &AaecPaperConfig, rate: f64, t_us: f64, dm_dt: f64) -> LawStep {
+        let v = cfg.momentum * self.v_us + rate * dm_dt * 1e6;
+        let (pass, derivative_passed) = match cfg.gate {
+            PaperGate::Momentum => (v.is_finite() && v.abs() > cfg.threshold_us, true),
+            PaperGate::Derivative => {
+                let p = dm_dt.abs() >= cfg.derivative_threshold && v.is_finite();
+                (p, p)
             }
-        }
-        self.pixels
-            .sort_unstable_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)));
-        let s = self.pixels.len();
-        let n = (s as f64 * cfg.percentile).floor() as usize;
-        let k = cfg.weight_power as i32;
-        let half_pi = std::f64::consts::FRAC_PI_2;
-        let weight = |i: usize| {
-            let arg = if i <= n {
-                if n == 0 {
-                    0.0
-                } else {
-                    half_pi * i as f64 / n as f64
-                }
-            } else {
-                half_pi - half_pi * (i - n) as f64 / (s - n) as f64
-            };
-            arg.sin().powi(k)
         };
-        let (mut wsum, mut m, mut dm) = (0.0, 0.0, 0.0);
-        for (i, p) in self.pixels.iter().enumerate() {
-            let wi = weight(i);
-            wsum += wi;
-            m += wi * p.0;
-            dm += wi * p.2;
+        if pass {
+            self.v_us = v;
         }
-        if wsum.is_nan() || wsum <= 0.0 {
-            return None;
+        LawStep {
+            next_us: if pass { t_us + v } else { t_us },
+            step_us: v,
+            derivative_passed,
+            moved: pass && v != 0.0,
         }
-        Some(PaperMetricValue {
-            m: m / wsum,
-            dm_dt: dm / wsum / t_s,
-            pixels: s,
-        })
     }
 }
 
-/// AAEC as published. See the module documentation.
+/// AAEC as the paper's code ran it. See the module documentation.
 pub struct AaecPaper {
     cfg: AaecPaperConfig,
     limits: ExposureLimits,
     eval: PaperMetricEval,
     law: PaperMomentum,
+    /// The camera's auto exposure before the first detection.
+    ae: MeanAe,
     roi: Option<Roi>,
     commanded_us: f64,
+    stall: StallWatch,
+    last_rate: f64,
 }
 
 impl AaecPaper {
+    /// `site` is the camera's own response (used with `response = "site"`), `ae` the
+    /// auto exposure that stands in for the camera's before the first detection.
     pub fn new(
         cfg: AaecPaperConfig,
-        response: &Response,
+        site: &Response,
+        ae: MeanAeConfig,
         limits: ExposureLimits,
         initial_us: f64,
     ) -> Result<Self, ExposureError> {
         cfg.validate()?;
         Ok(Self {
-            eval: PaperMetricEval::new(response),
+            eval: PaperMetricEval::new(&cfg.response.resolve(site)),
             law: PaperMomentum::default(),
+            ae: MeanAe::new(ae, limits, initial_us)?,
             roi: None,
             commanded_us: limits.clamp(initial_us),
+            stall: StallWatch::default(),
+            last_rate: cfg.learning_rate,
             limits,
             cfg,
         })
+    }
+
+    /// The region it meters (none before the first detection).
+    pub fn roi(&self) -> Option<Roi> {
+        self.roi
+    }
+
+    /// Before the first detection: the camera's auto exposure, or nothing.
+    fn before_detection(&mut self, frame: &Frame) -> ExposureStep {
+        match self.cfg.pre_detection {
+            PreDetection::Hold => ExposureStep::skipped(self.commanded_us),
+            PreDetection::CameraAe => {
+                let s = self.ae.update(frame, None);
+                self.commanded_us = s.exposure_us;
+                ExposureStep { roi: None, ..s }
+            }
+        }
     }
 }
 
@@ -271,30 +264,58 @@ impl ExposureController for AaecPaper {
     }
 
     fn update(&mut self, frame: &Frame, marker: Option<&Corners>) -> ExposureStep {
-        let hold = ExposureStep::skipped(self.commanded_us);
         if !frame.is_consistent() {
-            return hold;
+            return ExposureStep::skipped(self.commanded_us);
         }
         if let Some(c) = marker {
-            let pad = self.cfg.roi_pad_frac as f32;
-            if let Some(r) = Roi::from_corners_padded(c, pad, frame.width, frame.height) {
+            if let Some(r) = code_region(c, self.cfg.roi_pad_frac, frame.width, frame.height) {
+                if self.roi.is_none() && self.cfg.pre_detection == PreDetection::CameraAe {
+                    // The law takes over from the camera's auto exposure.
+                    self.commanded_us = match self.cfg.handoff_exposure_us {
+                        t if t > 0.0 => self.limits.clamp(t),
+                        _ => self.ae.commanded_us(),
+                    };
+                }
                 self.roi = Some(r);
             }
         }
-        // The kept RoI of an earlier frame, within this one (a camera can change size).
-        let Some(roi) = self.roi.map(|r| r.clamp_to(frame.width, frame.height)) else {
-            return hold;
+        let Some(kept) = self.roi else {
+            return self.before_detection(frame);
         };
-        if roi.is_empty() || !exposed_as_commanded(frame, self.commanded_us) {
-            return ExposureStep { roi: None, ..hold };
+        // The kept region of an earlier frame, within this one (a camera can change size).
+        let roi = kept.clamp_to(frame.width, frame.height);
+        let hold = ExposureStep::skipped(self.commanded_us);
+        if roi.is_empty()
+            || (self.cfg.frames == PaperFrames::ExposedAsCommanded
+                && !exposed_as_commanded(frame, self.commanded_us))
+        {
+            return hold;
         }
-        let view = frame.view().crop(roi);
-        let Some(v) = self.eval.evaluate(view, self.commanded_us, &self.cfg) else {
+        let params = self.cfg.metric_params();
+        let Some(v) = self
+            .eval
+            .evaluate(frame.view(), roi, self.commanded_us, &params)
+        else {
             return hold;
         };
-        self.commanded_us = self
-            .law
-            .step(&self.cfg, &self.limits, self.commanded_us, v.dm_dt);
+        let rate = scaled_rate(
+            self.cfg.learning_rate,
+            self.cfg.eta_scaling,
+            self.cfg.eta_reference_pixels,
+            v.pixels,
+        );
+        self.last_rate = rate;
+        let law = self.law.step(&self.cfg, rate, self.commanded_us, v.dm_dt);
+        let gate_us = self.cfg.gate_us(rate);
+        self.stall
+            .record(law.step_us, law.derivative_passed, law.moved);
+        self.stall.warn_once("aaec-paper", gate_us, rate);
+        self.commanded_us = code_command(
+            law.next_us,
+            self.cfg.floor_us,
+            &self.limits,
+            self.commanded_us,
+        );
         ExposureStep {
             exposure_us: self.commanded_us,
             metric: v.m,
@@ -311,12 +332,20 @@ impl ExposureController for AaecPaper {
         self.law = PaperMomentum::default();
         self.roi = None;
         self.commanded_us = self.limits.clamp(exposure_us);
+        self.ae.reset(exposure_us);
+        self.stall.reset();
+    }
+
+    fn gate_stall(&self) -> Option<GateStall> {
+        self.stall
+            .stall(self.cfg.gate_us(self.last_rate), self.last_rate)
     }
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::ImageView;
 
     fn limits() -> ExposureLimits {
         ExposureLimits {
@@ -328,20 +357,21 @@ mod tests {
 
     #[test]
     fn momentum_law_matches_a_hand_computed_sequence() {
-        let cfg = AaecPaperConfig::default(); // gamma 0.9, eta 2e-13 s, threshold 1 us
+        let cfg = AaecPaperConfig::default(); // gamma 0.9, threshold 1 us
+        let eta = 2e-13;
         let mut law = PaperMomentum::default();
         // eta * dM/dt = 2e-13 * 1e7 s = 2 us.
-        let t1 = law.step(&cfg, &limits(), 1000.0, 1e7);
-        assert!((t1 - 1002.0).abs() < 1e-9, "{t1}");
+        let s = law.step(&cfg, eta, 1000.0, 1e7);
+        assert!((s.next_us - 1002.0).abs() < 1e-9 && s.moved, "{s:?}");
         // v = 0.9 * 2 + 2 = 3.8.
-        let t2 = law.step(&cfg, &limits(), t1, 1e7);
-        assert!((t2 - 1005.8).abs() < 1e-9, "{t2}");
+        let s = law.step(&cfg, eta, 1002.0, 1e7);
+        assert!((s.next_us - 1005.8).abs() < 1e-9, "{s:?}");
         // v = 0.9 * 3.8 - 10 = -6.58.
-        let t3 = law.step(&cfg, &limits(), t2, -5e7);
-        assert!((t3 - 999.22).abs() < 1e-9, "{t3}");
+        let s = law.step(&cfg, eta, 1005.0, -5e7);
+        assert!((s.next_us - 998.42).abs() < 1e-9, "{s:?}");
         // v = 0.9 * -6.58 + 0.2 = -5.722.
-        let t4 = law.step(&cfg, &limits(), t3, 1e6);
-        assert!((t4 - 993.498).abs() < 1e-9, "{t4}");
+        let s = law.step(&cfg, eta, 998.0, 1e6);
+        assert!((s.next_us - 992.278).abs() < 1e-9, "{s:?}");
         assert!((law.v_us + 5.722).abs() < 1e-12);
     }
 
@@ -349,51 +379,216 @@ mod tests {
     fn sub_threshold_momentum_is_neither_applied_nor_kept() {
         let cfg = AaecPaperConfig::default();
         let mut law = PaperMomentum::default();
-        // eta * dM/dt = 0.4 us < 1 us, every frame: nothing accumulates (paper's code).
+        // eta * dM/dt = 0.4 us < 1 us, every frame: nothing accumulates (the code).
         for _ in 0..10 {
-            assert_eq!(law.step(&cfg, &limits(), 500.0, 2e6), 500.0);
+            let s = law.step(&cfg, 2e-13, 500.0, 2e6);
+            assert_eq!(s.next_us, 500.0);
+            assert!(!s.moved);
         }
         assert_eq!(law.v_us, 0.0);
     }
 
     #[test]
-    fn clamps_are_the_papers() {
+    fn the_derivative_gate_is_algorithm_1() {
+        let cfg = AaecPaperConfig {
+            gate: PaperGate::Derivative,
+            ..Default::default()
+        };
+        let mut law = PaperMomentum::default();
+        // |dM/dt| under 15000: nothing, however large eta is.
+        let s = law.step(&cfg, 1e-6, 500.0, 14000.0);
+        assert!(!s.moved && s.next_us == 500.0 && !s.derivative_passed);
+        // At 15000 the momentum is updated and applied even when |v| < 1 us.
+        let s = law.step(&cfg, 2e-11, 500.0, 15000.0);
+        assert!(s.moved && (s.next_us - 500.3).abs() < 1e-9, "{s:?}");
+        assert!((law.v_us - 0.3).abs() < 1e-12);
+    }
+
+    /// A 40x30 frame of 8x8 blocks (40 / 200 grey) exposed for `t`.
+    fn blocks(t: f64) -> Frame {
+        let mut f = Frame::new(40, 30);
+        for (i, p) in f.data.iter_mut().enumerate() {
+            let (x, y) = (i % 40, i / 40);
+            *p = if (x / 8 + y / 8) % 2 == 0 { 40 } else { 200 };
+        }
+        f.meta.exposure_us = t;
+        f
+    }
+
+    #[test]
+    fn commands_are_clamped_and_whole_microseconds() {
+        let cfg = AaecPaperConfig {
+            learning_rate: 1e-9,
+            pre_detection: PreDetection::Hold,
+            ..Default::default()
+        };
+        let mut c = AaecPaper::new(
+            cfg,
+            &Response::linear(),
+            MeanAeConfig::default(),
+            limits(),
+            1000.0,
+        )
+        .unwrap();
+        let corners = [[8.0, 8.0], [32.0, 8.0], [32.0, 24.0], [8.0, 24.0]];
+        for _ in 0..5 {
+            let s = c.update(&blocks(c.commanded_us()), Some(&corners));
+            assert!(s.used_frame);
+            assert_eq!(s.exposure_us, s.exposure_us.trunc(), "{s:?}");
+        }
+    }
+
+    #[test]
+    fn before_the_first_detection_the_camera_ae_runs_then_the_law_starts_at_5000_us() {
         let cfg = AaecPaperConfig::default();
+        let mut c = AaecPaper::new(
+            cfg.clone(),
+            &Response::linear(),
+            MeanAeConfig::default(),
+            limits(),
+            1000.0,
+        )
+        .unwrap();
+        let mut ae = MeanAe::new(MeanAeConfig::default(), limits(), 1000.0).unwrap();
+        for _ in 0..4 {
+            let f = blocks(c.commanded_us());
+            let want = ae.update(&f, None).exposure_us;
+            let got = c.update(&f, None);
+            assert_eq!(got.exposure_us, want);
+            assert!(got.roi.is_none());
+        }
+        // First detection: the law computes from 5000 us on this very frame.
+        let corners = [[8.0, 8.0], [32.0, 8.0], [32.0, 24.0], [8.0, 24.0]];
+        let f = blocks(c.commanded_us());
+        let mut reference = PaperMetricEval::new(&Response::paper_code());
+        let roi = code_region(&corners, 0.1, 40, 30).unwrap();
+        let v = reference
+            .evaluate(f.view(), roi, 5000.0, &cfg.metric_params())
+            .unwrap();
         let mut law = PaperMomentum::default();
-        // 20 - 10 = 10 us <= 12: becomes 13.
-        assert_eq!(law.step(&cfg, &limits(), 20.0, -5e7), 13.0);
-        let mut law = PaperMomentum::default();
-        // 12.5 us is above 12: kept.
-        assert!((law.step(&cfg, &limits(), 14.5, -1e7) - 12.5).abs() < 1e-9);
-        let mut law = PaperMomentum::default();
-        assert_eq!(law.step(&cfg, &limits(), 19990.0, 1e9), 20000.0);
+        let next = law.step(&cfg, cfg.learning_rate, 5000.0, v.dm_dt).next_us;
+        let s = c.update(&f, Some(&corners));
+        assert_eq!(s.exposure_us, code_command(next, 13.0, &limits(), 5000.0));
+        assert_eq!(s.roi, Some(roi));
+        // Lost: the region is kept.
+        let s = c.update(&blocks(c.commanded_us()), None);
+        assert_eq!(s.roi, Some(roi));
+        assert!(s.used_frame);
+    }
+
+    #[test]
+    fn every_frame_is_used_unless_told_otherwise() {
+        let corners = [[8.0, 8.0], [32.0, 8.0], [32.0, 24.0], [8.0, 24.0]];
+        let stale = blocks(123.0);
+        for (frames, used) in [
+            (PaperFrames::Every, true),
+            (PaperFrames::ExposedAsCommanded, false),
+        ] {
+            let cfg = AaecPaperConfig {
+                frames,
+                pre_detection: PreDetection::Hold,
+                ..Default::default()
+            };
+            let mut c = AaecPaper::new(
+                cfg,
+                &Response::linear(),
+                MeanAeConfig::default(),
+                limits(),
+                1000.0,
+            )
+            .unwrap();
+            assert_eq!(c.update(&stale, Some(&corners)).used_frame, used);
+        }
+    }
+
+    #[test]
+    fn a_law_under_its_gate_reports_the_stall() {
+        let cfg = AaecPaperConfig {
+            learning_rate: 1e-20,
+            pre_detection: PreDetection::Hold,
+            ..Default::default()
+        };
+        let mut c = AaecPaper::new(
+            cfg,
+            &Response::linear(),
+            MeanAeConfig::default(),
+            limits(),
+            1000.0,
+        )
+        .unwrap();
+        let corners = [[8.0, 8.0], [32.0, 8.0], [32.0, 24.0], [8.0, 24.0]];
+        for k in 0..40 {
+            let s = c.update(&blocks(1000.0), Some(&corners));
+            assert_eq!(s.exposure_us, 1000.0);
+            assert_eq!(c.gate_stall().is_some(), k + 1 >= 30, "frame {k}");
+        }
+        let s = c.gate_stall().unwrap();
+        assert_eq!(s.gate_us, 1.0);
+        assert!(s.largest_step_us > 0.0 && s.largest_step_us < 1.0, "{s:?}");
+        let r = s.rate_to_pass.unwrap();
+        assert!((r * s.largest_step_us / 1e-20 - 1.0).abs() < 1e-9, "{s:?}");
+        // A rate that moves it: no stall.
+        let cfg = AaecPaperConfig {
+            learning_rate: r * 2.0,
+            pre_detection: PreDetection::Hold,
+            ..Default::default()
+        };
+        let mut c = AaecPaper::new(
+            cfg,
+            &Response::linear(),
+            MeanAeConfig::default(),
+            limits(),
+            1000.0,
+        )
+        .unwrap();
+        for _ in 0..40 {
+            let t = c.commanded_us();
+            c.update(&blocks(t), Some(&corners));
+        }
+        assert!(c.gate_stall().is_none());
     }
 
     #[test]
     fn metric_of_a_step_edge_by_hand() {
-        // 4x3 image, left half 10, right half 50, linear camera at 1000 us. Interior
-        // pixels (1,1) and (2,1): both see the edge, Ix = 4 * 40 = 160, Iy = 0.
-        // D = I / t: Dx = 4 * 40 / 1e-3 s. dG/dt = 2 * 160 * 160000 = 5.12e7 per s.
+        // 4x3 image, left half 10, right half 50, linear camera at 1000 us, the whole
+        // image as the region (12 pixels; reflect-101 at the edges). |Ix| per column:
+        // 0, 160, 160, 0 in every row (the outer columns reflect onto their neighbour);
+        // Iy = 0. D = I / t, so dG/dt = 2 G / t per pixel.
         let data = [10u8, 10, 50, 50, 10, 10, 50, 50, 10, 10, 50, 50];
         let view = ImageView::new(4, 3, &data).unwrap();
         let mut e = PaperMetricEval::new(&Response::linear());
-        let cfg = AaecPaperConfig::default();
-        let v = e.evaluate(view, 1000.0, &cfg).unwrap();
-        assert_eq!(v.pixels, 2);
-        assert!((v.m - 25600.0).abs() < 1e-6, "{}", v.m);
-        assert!((v.dm_dt - 5.12e7).abs() < 1e-3, "{}", v.dm_dt);
-        let abs = AaecPaperConfig {
-            metric: PaperMetric::AbsIx,
-            ..cfg
+        let roi = Roi {
+            x: 0,
+            y: 0,
+            width: 4,
+            height: 3,
         };
-        let v = e.evaluate(view, 1000.0, &abs).unwrap();
-        assert!((v.m - 160.0).abs() < 1e-9, "{}", v.m);
-        assert!((v.dm_dt - 5.12e7).abs() < 1e-3, "{}", v.dm_dt);
+        let params = |metric| PaperMetricParams {
+            metric,
+            percentile: 0.9,
+            weight_power: 5,
+        };
+        let v = e
+            .evaluate(view, roi, 1000.0, &params(PaperMetric::AbsIx))
+            .unwrap();
+        assert_eq!(v.pixels, 12);
+        let vp = e
+            .evaluate(view, roi, 1000.0, &params(PaperMetric::Published))
+            .unwrap();
+        // Ranked ascending, 6 zeros then 6 edge pixels; the same weights for both keys.
+        let mut w = Vec::new();
+        let sum = crate::paper_code::code_weights(12, 0.9, 5, &mut w).unwrap();
+        let top: f64 = w[6..].iter().sum::<f64>() / sum;
+        assert!((v.m - 160.0 * top).abs() < 1e-9, "{}", v.m);
+        assert!((vp.m - 25600.0 * top).abs() < 1e-6, "{}", vp.m);
+        // dG/dt = 2 * 160 * (4 * 40 / 1e-3 s) on the edge pixels, either key.
+        assert!((v.dm_dt - 5.12e7 * top).abs() < 1e-3, "{}", v.dm_dt);
+        assert!((vp.dm_dt - v.dm_dt).abs() < 1e-6);
     }
 
     #[test]
-    fn the_papers_learning_rates_are_accepted_and_out_of_range_named() {
-        for eta in [2e-13, 5e-13, 1e-12] {
+    fn the_codes_learning_rates_are_accepted_and_out_of_range_named() {
+        for eta in [1e-9, 1e-10, 1e-12, 5e-13, 2e-13] {
             let c = AaecPaperConfig {
                 learning_rate: eta,
                 ..Default::default()
@@ -408,5 +603,17 @@ mod tests {
         .unwrap_err()
         .to_string();
         assert!(e.contains("exposure.aaec_paper.learning_rate"), "{e}");
+        let e = AaecPaperConfig {
+            eta_scaling: EtaScaling::RoiSide,
+            eta_reference_pixels: 0.0,
+            ..Default::default()
+        }
+        .validate()
+        .unwrap_err()
+        .to_string();
+        assert!(
+            e.contains("exposure.aaec_paper.eta_reference_pixels"),
+            "{e}"
+        );
     }
 }

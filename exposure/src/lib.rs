@@ -1,35 +1,44 @@
 //! markhold-exposure: frames, the camera seam, and exposure controllers.
 //!
 //! Pure Rust, no OpenCV. The controllers follow `docs/reference/exposure-spec.md`: AAEC as
-//! published (`aaec_paper`: RoI + momentum on a soft-percentile gradient metric) and
-//! markhold's own AAEC (`aaec`), AEC (Zhang et al. 2017), GEC with Shim's constants and as
-//! the AAEC paper ran it, and a camera's mean-intensity AE.
+//! the paper's code ran it (`aaec_paper`: RoI + momentum on a soft-percentile gradient
+//! metric) and markhold's own AAEC (`aaec`), AEC (Zhang et al. 2017, and as the AAEC
+//! paper's code ran it), GEC with Shim's constants and as the AAEC paper's code ran it,
+//! and a camera's mean-intensity AE.
 
 mod aaec;
 mod aaec_paper;
 mod aec;
+mod aec_paper;
 mod frame;
 mod gec;
 mod gec_paper;
 mod mean;
 pub mod metric;
+pub mod paper_code;
 pub mod pyramid;
 pub mod reference;
 mod response;
 
 pub use aaec::{Aaec, AaecConfig, AaecFallback, MarkerRegions, StepLaw};
-pub use aaec_paper::{
-    AaecPaper, AaecPaperConfig, PaperMetric, PaperMetricEval, PaperMetricValue, PaperMomentum,
-};
+pub use aaec_paper::{AaecPaper, AaecPaperConfig, LawStep, PaperGate, PaperMomentum};
 pub use aec::{Aec, AecConfig};
+pub use aec_paper::{AecPaper, AecPaperConfig};
 pub use frame::{Camera, CameraError, Corners, ExposureLimits, Frame, FrameMeta, ImageView, Roi};
 pub use gec::{
     best_gamma, fit_quintic, fit_quintic_points, gec_ratio, Gec, GecConfig, GecScorer, GEC_GAMMAS,
 };
-pub use gec_paper::{gec_paper_gammas, GecPaper, GecPaperConfig, GEC_PAPER_ANCHORS};
+pub use gec_paper::{
+    gec_paper_gamma, gec_paper_update, quantize_abs, GecPaper, GecPaperConfig, GecPaperScorer,
+    GecRegion, GEC_PAPER_ANCHORS,
+};
 pub use mean::{MeanAe, MeanAeConfig};
 pub use metric::{soft_percentile_weights, GradientMetric, MetricParams, MetricValue, RankWeights};
-pub use response::{Response, ResponseModel};
+pub use paper_code::{
+    code_command, code_region, EtaScaling, GateStall, PaperFrames, PaperMetric, PaperMetricEval,
+    PaperMetricParams, PaperMetricValue, PaperResponse, PreDetection,
+};
+pub use response::{Response, ResponseModel, PAPER_CODE_G_PRIME};
 
 pub use markhold_config::ConfigError;
 use serde::{Deserialize, Serialize};
@@ -71,14 +80,17 @@ pub enum ExposureMethod {
     /// markhold's AAEC: the paper's RoI and metric with a log-domain, bracketing
     /// optimiser and safety nets of its own (`aaec.rs`).
     Aaec,
-    /// Adaptive Active Exposure Control exactly as published (`aaec_paper.rs`).
+    /// Adaptive Active Exposure Control as the paper's code ran it (`aaec_paper.rs`).
     #[serde(rename = "aaec-paper")]
     AaecPaper,
     /// Active exposure control, Zhang, Forster & Scaramuzza 2017.
     Aec,
+    /// AEC as the AAEC paper's code ran it (whole frame, fixed step; `aec_paper.rs`).
+    #[serde(rename = "aec-paper")]
+    AecPaper,
     /// Gamma-based exposure control, Shim et al., with the published constants.
     Gec,
-    /// GEC as the AAEC paper ran it (marker region + 25 px, 11 anchors, Kp 1e-8).
+    /// GEC as the AAEC paper's code ran it (its anchors, score, region and Kp 1e-8).
     #[serde(rename = "gec-paper")]
     GecPaper,
     /// A camera's built-in mean-intensity auto exposure ("Default" in the paper).
@@ -86,14 +98,18 @@ pub enum ExposureMethod {
 }
 
 impl ExposureMethod {
-    pub const ALL: [ExposureMethod; 6] = [
+    pub const ALL: [ExposureMethod; 7] = [
         Self::AaecPaper,
         Self::Aaec,
         Self::GecPaper,
         Self::Gec,
+        Self::AecPaper,
         Self::Aec,
         Self::Default,
     ];
+
+    /// The methods that run the paper's code (`aaec-paper`, `gec-paper`, `aec-paper`).
+    pub const PAPER_CODE: [ExposureMethod; 3] = [Self::AaecPaper, Self::GecPaper, Self::AecPaper];
 
     pub fn as_str(self) -> &'static str {
         match self {
@@ -101,6 +117,7 @@ impl ExposureMethod {
             Self::AaecPaper => "aaec-paper",
             Self::GecPaper => "gec-paper",
             Self::Aec => "aec",
+            Self::AecPaper => "aec-paper",
             Self::Gec => "gec",
             Self::Default => "default",
         }
@@ -121,10 +138,11 @@ impl std::str::FromStr for ExposureMethod {
             "aaec-paper" => Ok(Self::AaecPaper),
             "gec-paper" => Ok(Self::GecPaper),
             "aec" => Ok(Self::Aec),
+            "aec-paper" => Ok(Self::AecPaper),
             "gec" => Ok(Self::Gec),
             "default" | "mean" => Ok(Self::Default),
             other => Err(format!(
-                "unknown exposure method '{other}': expected one of aaec-paper, aaec, gec-paper, gec, aec, default"
+                "unknown exposure method '{other}': expected one of aaec-paper, aaec, gec-paper, gec, aec-paper, aec, default"
             )),
         }
     }
@@ -178,10 +196,15 @@ pub trait ExposureController: Send {
     fn commanded_us(&self) -> f64;
     /// Forget all state and command `exposure_us` next.
     fn reset(&mut self, exposure_us: f64);
+    /// A gated law that has never moved (the paper's methods; none for the others).
+    fn gate_stall(&self) -> Option<GateStall> {
+        None
+    }
 }
 
 /// True when `frame` was exposed with `commanded_us` (within rounding of the driver).
-/// Controllers only learn from such frames: a camera applies a new value late.
+/// markhold's controllers only learn from such frames: a camera applies a new value late
+/// (the paper's methods by default use every frame, as its code did).
 pub fn exposed_as_commanded(frame: &Frame, commanded_us: f64) -> bool {
     let t = frame.meta.exposure_us;
     (t - commanded_us).abs() <= 1e-3 * commanded_us.abs().max(1.0) + 0.5
@@ -201,6 +224,8 @@ pub struct ExposureConfig {
     pub aaec_paper: AaecPaperConfig,
     /// Parameters of AEC (also AAEC's fallback when `aaec.fallback = "aec"`).
     pub aec: AecConfig,
+    /// Parameters of AEC as the paper's code ran it.
+    pub aec_paper: AecPaperConfig,
     /// Parameters of GEC.
     pub gec: GecConfig,
     /// Parameters of the paper's GEC baseline.
@@ -221,6 +246,7 @@ impl Default for ExposureConfig {
             aaec: AaecConfig::default(),
             aaec_paper: AaecPaperConfig::default(),
             aec: AecConfig::default(),
+            aec_paper: AecPaperConfig::default(),
             gec: GecConfig::default(),
             gec_paper: GecPaperConfig::default(),
             response: ResponseModel::default(),
@@ -236,6 +262,7 @@ impl ExposureConfig {
         self.aaec.validate()?;
         self.aaec_paper.validate()?;
         self.aec.validate()?;
+        self.aec_paper.validate()?;
         self.gec.validate()?;
         self.gec_paper.validate()?;
         self.response.validate()
@@ -267,6 +294,17 @@ pub fn build_controller(
             Ok(Box::new(AaecPaper::new(
                 cfg.aaec_paper.clone(),
                 &response,
+                cfg.default.clone(),
+                limits,
+                initial_us,
+            )?))
+        }
+        ExposureMethod::AecPaper => {
+            let response = cfg.response.load()?;
+            Ok(Box::new(AecPaper::new(
+                cfg.aec_paper.clone(),
+                &response,
+                cfg.default.clone(),
                 limits,
                 initial_us,
             )?))

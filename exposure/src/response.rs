@@ -65,6 +65,29 @@ impl ResponseModel {
     }
 }
 
+/// `g'(I)` of the paper's code, lowest order first (`I` the grey level 0..=255): the
+/// degree-14 polynomial its AAEC and its AEC evaluate for every camera
+/// (Rennylex/adaptive_active_exposure_control, `src/changeParam.cpp` in every commit from
+/// a49651a to 402f5c2, and `src/aaec_exposure_node.cpp` from 309420f; there highest order
+/// first). Calibrated for the paper's FLIR Blackfly S.
+pub const PAPER_CODE_G_PRIME: [f64; 15] = [
+    1.30761122e+00,
+    -3.08446340e-01,
+    3.21098127e-02,
+    -1.84372346e-03,
+    6.54831886e-05,
+    -1.54014489e-06,
+    2.50378889e-08,
+    -2.88855261e-10,
+    2.39781444e-12,
+    -1.43597629e-14,
+    6.14568309e-17,
+    -1.83243015e-19,
+    3.61455838e-22,
+    -4.23843983e-25,
+    2.23648003e-28,
+];
+
 /// Most coefficients of a polynomial response (degree 15).
 pub const MAX_POLYNOMIAL_COEFFICIENTS: usize = 16;
 
@@ -149,6 +172,13 @@ impl Response {
     /// A linear sensor: `g'(I) = 1/I` (at I = 0, taken at half a level).
     pub fn linear() -> Self {
         Self::gamma_unchecked(1.0, Forward::Linear)
+    }
+
+    /// The response the paper's code assumes whatever the camera ([`PAPER_CODE_G_PRIME`]).
+    pub fn paper_code() -> Self {
+        let table = polynomial_table(&PAPER_CODE_G_PRIME)
+            .expect("the paper's polynomial is positive at every grey level (tested)");
+        Self::integrate(table)
     }
 
     /// `I = 255 x^(1/gamma)`, so `g'(I) = gamma / I`.
@@ -392,6 +422,25 @@ mod tests {
             ResponseModel::Linear
         );
         std::fs::remove_dir_all(&dir).unwrap();
+    }
+
+    #[test]
+    fn the_papers_code_response_has_its_shoulder() {
+        let r = Response::paper_code();
+        // Positive at every level, and D = 1/g' falls near clipping (dM/dt can turn down).
+        assert!(r.g_prime_table().iter().all(|v| v.is_finite() && *v > 0.0));
+        assert!(
+            r.di_dlnt(150) > 10.0 * r.di_dlnt(255),
+            "{} {}",
+            r.di_dlnt(150),
+            r.di_dlnt(255)
+        );
+        let p = ResponseModel::Polynomial {
+            coefficients: PAPER_CODE_G_PRIME.to_vec(),
+        }
+        .load()
+        .unwrap();
+        assert_eq!(&p, &r);
     }
 
     #[test]

@@ -52,7 +52,7 @@ pub struct HilArgs {
     /// Write a JSON summary here.
     #[arg(long)]
     pub summary: Option<PathBuf>,
-    /// Exposure method: aaec-paper, aaec, gec-paper, gec, aec or default (overrides the
+    /// Exposure method: aaec-paper, aaec, gec-paper, gec, aec-paper, aec or default (overrides the
     /// site file).
     #[arg(long)]
     pub exposure: Option<ExposureMethod>,

@@ -607,6 +607,7 @@ impl HilRun {
             .rig
             .vision_nees()
             .map(|n| super::summary::VisionNeesSummary::of(&n));
+        summary.exposure_gate_stall = self.pipeline.exposure_controller().gate_stall();
         if let Some(s) = &self.stream {
             summary.camera_transport = Some(opts.camera_transport.to_string());
             summary.stream_delay_estimate_frames = s.delay_estimate_frames();
@@ -649,6 +650,24 @@ pub fn station_frames(
     lighting: &LightingConfig,
     exposures: &[f64],
 ) -> anyhow::Result<Vec<markhold_exposure::Frame>> {
+    let mut out = Vec::with_capacity(exposures.len());
+    station_frames_each(site, seed, lighting, exposures, |f| {
+        out.push(f.clone());
+        Ok(())
+    })?;
+    Ok(out)
+}
+
+/// [`station_frames`] one frame at a time into `each` (nothing kept: a full-size sweep
+/// of hundreds of frames). Consecutive equal exposures give consecutive frames of the
+/// same exposure (the noise and a caustic light change between them).
+pub fn station_frames_each(
+    site: &LoadedSite,
+    seed: u64,
+    lighting: &LightingConfig,
+    exposures: &[f64],
+    mut each: impl FnMut(&markhold_exposure::Frame) -> anyhow::Result<()>,
+) -> anyhow::Result<()> {
     use markhold_hil::camera::UnderwaterCamera;
     let s = &site.site;
     let limits = site.limits();
@@ -659,10 +678,9 @@ pub fn station_frames(
     let mut camera = UnderwaterCamera::new(camera_model(site, limits), seed)?;
     let dt = 1.0 / s.camera.fps;
     let mut time_s = 0.0;
-    let mut out = Vec::with_capacity(exposures.len());
+    let mut frame = markhold_exposure::Frame::new(1, 1);
     for &want in exposures {
         let t = camera.set_exposure_us(want);
-        let mut frame = markhold_exposure::Frame::new(1, 1);
         // A new exposure takes effect a few frames late: render until it has.
         for _ in 0..=s.camera.actuation_delay_frames + 1 {
             camera.render(&scene, &t_world_cam, &t_world_vehicle, time_s, &mut frame);
@@ -671,9 +689,9 @@ pub fn station_frames(
                 break;
             }
         }
-        out.push(frame);
+        each(&frame)?;
     }
-    Ok(out)
+    Ok(())
 }
 
 /// The marker's corners (aruco order) as the site's camera sees them from the station.

@@ -31,6 +31,7 @@ pub fn method_color(m: ExposureMethod) -> RGBColor {
         ExposureMethod::Gec => RGBColor(31, 119, 180),
         ExposureMethod::GecPaper => RGBColor(23, 190, 207),
         ExposureMethod::Aec => RGBColor(44, 160, 44),
+        ExposureMethod::AecPaper => RGBColor(188, 189, 34),
         ExposureMethod::Default => RGBColor(148, 103, 189),
     }
 }

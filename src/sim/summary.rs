@@ -75,6 +75,11 @@ pub struct Summary {
     /// error, as the HIL vehicle received it (absent in effort mode).
     #[serde(skip_serializing_if = "Option::is_none")]
     pub vision_nees: Option<VisionNeesSummary>,
+    /// The paper's methods: every step of the law fell under its gate, so the exposure
+    /// never moved from where the law started (absent when it moved, and for the other
+    /// methods); logged as a warning when it is seen.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub exposure_gate_stall: Option<markhold_exposure::GateStall>,
 }
 
 /// NEES of the vision estimates the HIL vehicle received: position (3 dof) and yaw (1
@@ -288,6 +293,7 @@ impl RunStats {
             stream_added_latency_p50_ms: None,
             stream_added_latency_p99_ms: None,
             vision_nees: None,
+            exposure_gate_stall: None,
         }
     }
 }
