@@ -404,6 +404,21 @@ mod tests {
         assert!((law.v_us - 0.3).abs() < 1e-12);
     }
 
+    /// A marker's corners on [`blocks`]' frame.
+    const SQUARE: Corners = [[8.0, 8.0], [32.0, 8.0], [32.0, 24.0], [8.0, 24.0]];
+
+    /// The law on a linear camera, starting at 1000 us.
+    fn linear_at_1000(cfg: AaecPaperConfig) -> AaecPaper {
+        AaecPaper::new(
+            cfg,
+            &Response::linear(),
+            MeanAeConfig::default(),
+            limits(),
+            1000.0,
+        )
+        .unwrap()
+    }
+
     /// A 40x30 frame of 8x8 blocks (40 / 200 grey) exposed for `t`.
     fn blocks(t: f64) -> Frame {
         let mut f = Frame::new(40, 30);
@@ -422,17 +437,9 @@ mod tests {
             pre_detection: PreDetection::Hold,
             ..Default::default()
         };
-        let mut c = AaecPaper::new(
-            cfg,
-            &Response::linear(),
-            MeanAeConfig::default(),
-            limits(),
-            1000.0,
-        )
-        .unwrap();
-        let corners = [[8.0, 8.0], [32.0, 8.0], [32.0, 24.0], [8.0, 24.0]];
+        let mut c = linear_at_1000(cfg);
         for _ in 0..5 {
-            let s = c.update(&blocks(c.commanded_us()), Some(&corners));
+            let s = c.update(&blocks(c.commanded_us()), Some(&SQUARE));
             assert!(s.used_frame);
             assert_eq!(s.exposure_us, s.exposure_us.trunc(), "{s:?}");
         }
@@ -441,14 +448,7 @@ mod tests {
     #[test]
     fn before_the_first_detection_the_camera_ae_runs_then_the_law_starts_at_5000_us() {
         let cfg = AaecPaperConfig::default();
-        let mut c = AaecPaper::new(
-            cfg.clone(),
-            &Response::linear(),
-            MeanAeConfig::default(),
-            limits(),
-            1000.0,
-        )
-        .unwrap();
+        let mut c = linear_at_1000(cfg.clone());
         let mut ae = MeanAe::new(MeanAeConfig::default(), limits(), 1000.0).unwrap();
         for _ in 0..4 {
             let f = blocks(c.commanded_us());
@@ -458,16 +458,15 @@ mod tests {
             assert!(got.roi.is_none());
         }
         // First detection: the law computes from 5000 us on this very frame.
-        let corners = [[8.0, 8.0], [32.0, 8.0], [32.0, 24.0], [8.0, 24.0]];
         let f = blocks(c.commanded_us());
         let mut reference = PaperMetricEval::new(&Response::paper_code());
-        let roi = code_region(&corners, 0.1, 40, 30).unwrap();
+        let roi = code_region(&SQUARE, 0.1, 40, 30).unwrap();
         let v = reference
             .evaluate(f.view(), roi, 5000.0, &cfg.metric_params())
             .unwrap();
         let mut law = PaperMomentum::default();
         let next = law.step(&cfg, cfg.learning_rate, 5000.0, v.dm_dt).next_us;
-        let s = c.update(&f, Some(&corners));
+        let s = c.update(&f, Some(&SQUARE));
         assert_eq!(s.exposure_us, code_command(next, 13.0, &limits(), 5000.0));
         assert_eq!(s.roi, Some(roi));
         // Lost: the region is kept.
@@ -478,7 +477,6 @@ mod tests {
 
     #[test]
     fn every_frame_is_used_unless_told_otherwise() {
-        let corners = [[8.0, 8.0], [32.0, 8.0], [32.0, 24.0], [8.0, 24.0]];
         let stale = blocks(123.0);
         for (frames, used) in [
             (PaperFrames::Every, true),
@@ -489,15 +487,8 @@ mod tests {
                 pre_detection: PreDetection::Hold,
                 ..Default::default()
             };
-            let mut c = AaecPaper::new(
-                cfg,
-                &Response::linear(),
-                MeanAeConfig::default(),
-                limits(),
-                1000.0,
-            )
-            .unwrap();
-            assert_eq!(c.update(&stale, Some(&corners)).used_frame, used);
+            let mut c = linear_at_1000(cfg);
+            assert_eq!(c.update(&stale, Some(&SQUARE)).used_frame, used);
         }
     }
 
@@ -508,17 +499,9 @@ mod tests {
             pre_detection: PreDetection::Hold,
             ..Default::default()
         };
-        let mut c = AaecPaper::new(
-            cfg,
-            &Response::linear(),
-            MeanAeConfig::default(),
-            limits(),
-            1000.0,
-        )
-        .unwrap();
-        let corners = [[8.0, 8.0], [32.0, 8.0], [32.0, 24.0], [8.0, 24.0]];
+        let mut c = linear_at_1000(cfg);
         for k in 0..40 {
-            let s = c.update(&blocks(1000.0), Some(&corners));
+            let s = c.update(&blocks(1000.0), Some(&SQUARE));
             assert_eq!(s.exposure_us, 1000.0);
             assert_eq!(c.gate_stall().is_some(), k + 1 >= 30, "frame {k}");
         }
@@ -533,17 +516,10 @@ mod tests {
             pre_detection: PreDetection::Hold,
             ..Default::default()
         };
-        let mut c = AaecPaper::new(
-            cfg,
-            &Response::linear(),
-            MeanAeConfig::default(),
-            limits(),
-            1000.0,
-        )
-        .unwrap();
+        let mut c = linear_at_1000(cfg);
         for _ in 0..40 {
             let t = c.commanded_us();
-            c.update(&blocks(t), Some(&corners));
+            c.update(&blocks(t), Some(&SQUARE));
         }
         assert!(c.gate_stall().is_none());
     }
