@@ -823,7 +823,7 @@ pub fn metrics(c: &CaseResult) -> Vec<(&'static str, Option<f64>)> {
     let cv = &c.convergence;
     let st = &c.station_keeping;
     let b = |x: bool| Some(if x { 1.0 } else { 0.0 });
-    vec![
+    let mut v = vec![
         ("static.detection_rate", Some(s.detection_rate)),
         ("static.position_cov_det_m6", s.position_cov_det_m6),
         ("static.max_distance_m", s.max_distance_m),
@@ -870,62 +870,14 @@ pub fn metrics(c: &CaseResult) -> Vec<(&'static str, Option<f64>)> {
             "convergence.optimum.detection_best",
             Some(cv.optimum.detection_best),
         ),
-        (
-            "convergence.long.frames_to_m_argmax",
-            cv.from_long.frames_to_m_argmax.map(|v| v as f64),
-        ),
-        (
-            "convergence.long.reaches_m_argmax",
-            b(cv.from_long.frames_to_m_argmax.is_some()),
-        ),
-        (
-            "convergence.long.frames_to_m_band",
-            cv.from_long.frames_to_m_band.map(|v| v as f64),
-        ),
-        (
-            "convergence.long.reaches_m_band",
-            b(cv.from_long.frames_to_m_band.is_some()),
-        ),
-        (
-            "convergence.long.frames_to_detection_band",
-            cv.from_long.frames_to_detection_band.map(|v| v as f64),
-        ),
-        (
-            "convergence.long.reaches_detection_band",
-            b(cv.from_long.frames_to_detection_band.is_some()),
-        ),
-        (
-            "convergence.long.final_over_m_argmax",
-            finite(cv.from_long.final_over_m_argmax),
-        ),
-        (
-            "convergence.short.frames_to_m_argmax",
-            cv.from_short.frames_to_m_argmax.map(|v| v as f64),
-        ),
-        (
-            "convergence.short.reaches_m_argmax",
-            b(cv.from_short.frames_to_m_argmax.is_some()),
-        ),
-        (
-            "convergence.short.frames_to_m_band",
-            cv.from_short.frames_to_m_band.map(|v| v as f64),
-        ),
-        (
-            "convergence.short.reaches_m_band",
-            b(cv.from_short.frames_to_m_band.is_some()),
-        ),
-        (
-            "convergence.short.frames_to_detection_band",
-            cv.from_short.frames_to_detection_band.map(|v| v as f64),
-        ),
-        (
-            "convergence.short.reaches_detection_band",
-            b(cv.from_short.frames_to_detection_band.is_some()),
-        ),
-        (
-            "convergence.short.final_over_m_argmax",
-            finite(cv.from_short.final_over_m_argmax),
-        ),
+    ];
+    for (start, keys) in [
+        (&cv.from_long, OPTIMUM_REACH_KEYS[0]),
+        (&cv.from_short, OPTIMUM_REACH_KEYS[1]),
+    ] {
+        v.extend(optimum_reach(start, keys));
+    }
+    v.extend([
         ("station.detection_rate", Some(st.detection_rate)),
         ("station.position_cov_det_m6", st.position_cov_det_m6),
         (
@@ -937,6 +889,48 @@ pub fn metrics(c: &CaseResult) -> Vec<(&'static str, Option<f64>)> {
             "station.final_position_error_m",
             finite(st.final_position_error_m),
         ),
+    ]);
+    v
+}
+
+/// The keys of [`optimum_reach`], from the long start and from the short one.
+const OPTIMUM_REACH_KEYS: [[&str; 7]; 2] = [
+    [
+        "convergence.long.frames_to_m_argmax",
+        "convergence.long.reaches_m_argmax",
+        "convergence.long.frames_to_m_band",
+        "convergence.long.reaches_m_band",
+        "convergence.long.frames_to_detection_band",
+        "convergence.long.reaches_detection_band",
+        "convergence.long.final_over_m_argmax",
+    ],
+    [
+        "convergence.short.frames_to_m_argmax",
+        "convergence.short.reaches_m_argmax",
+        "convergence.short.frames_to_m_band",
+        "convergence.short.reaches_m_band",
+        "convergence.short.frames_to_detection_band",
+        "convergence.short.reaches_detection_band",
+        "convergence.short.final_over_m_argmax",
+    ],
+];
+
+/// How a start reached the scene's optimum: frames to each target and whether it did,
+/// then its final exposure over the argmax of M.
+fn optimum_reach(
+    c: &ConvergenceStart,
+    keys: [&'static str; 7],
+) -> [(&'static str, Option<f64>); 7] {
+    let frames = |f: Option<u64>| f.map(|v| v as f64);
+    let reached = |f: Option<u64>| Some(if f.is_some() { 1.0 } else { 0.0 });
+    [
+        (keys[0], frames(c.frames_to_m_argmax)),
+        (keys[1], reached(c.frames_to_m_argmax)),
+        (keys[2], frames(c.frames_to_m_band)),
+        (keys[3], reached(c.frames_to_m_band)),
+        (keys[4], frames(c.frames_to_detection_band)),
+        (keys[5], reached(c.frames_to_detection_band)),
+        (keys[6], finite(c.final_over_m_argmax)),
     ]
 }
 
