@@ -230,15 +230,7 @@ impl BoardDetector {
                 marker_m,
                 family,
             } => {
-                let d = dictionary(*family)?;
-                let b = aruco::CharucoBoard::create(
-                    *squares_x as i32,
-                    *squares_y as i32,
-                    *square_m as f32,
-                    *marker_m as f32,
-                    &d,
-                )
-                .cv("CharucoBoard::create")?;
+                let (d, b) = charuco_board(*squares_x, *squares_y, *square_m, *marker_m, *family)?;
                 (Some(d), Some(b))
             }
             Target::Markers { family, .. } => (Some(dictionary(*family)?), None),
@@ -539,6 +531,26 @@ pub struct BoardLayout {
     pub family: Option<MarkerFamily>,
 }
 
+/// OpenCV's ChArUco board of these dimensions, with its dictionary.
+fn charuco_board(
+    squares_x: u32,
+    squares_y: u32,
+    square_m: f64,
+    marker_m: f64,
+    family: MarkerFamily,
+) -> Result<(core::Ptr<aruco::Dictionary>, core::Ptr<aruco::CharucoBoard>), VisionError> {
+    let d = dictionary(family)?;
+    let b = aruco::CharucoBoard::create(
+        squares_x as i32,
+        squares_y as i32,
+        square_m as f32,
+        marker_m as f32,
+        &d,
+    )
+    .cv("CharucoBoard::create")?;
+    Ok((d, b))
+}
+
 impl Target {
     /// The printed layout. ChArUco boards take OpenCV's own geometry (the markers'
     /// places and ids from `CharucoBoard::create`, the squares without a marker black),
@@ -553,15 +565,7 @@ impl Target {
                 marker_m,
                 family,
             } => {
-                let d = dictionary(*family)?;
-                let b = aruco::CharucoBoard::create(
-                    *squares_x as i32,
-                    *squares_y as i32,
-                    *square_m as f32,
-                    *marker_m as f32,
-                    &d,
-                )
-                .cv("CharucoBoard::create")?;
+                let (_, b) = charuco_board(*squares_x, *squares_y, *square_m, *marker_m, *family)?;
                 let height = *squares_y as f64 * square_m;
                 let mut markers = Vec::new();
                 let mut white = vec![false; (squares_x * squares_y) as usize];
