@@ -41,6 +41,14 @@ pub const EXPOSURE_MANUAL: i64 = 1;
 /// One unit of V4L2_CID_EXPOSURE_ABSOLUTE, microseconds.
 pub const V4L2_EXPOSURE_UNIT_US: f64 = 100.0;
 
+/// `exposure_absolute` units nearest `us` on the control's step, within its range.
+fn exposure_units(us: f64, step_us: f64, min_units: i64, max_units: i64) -> i64 {
+    let step = (step_us / V4L2_EXPOSURE_UNIT_US).max(1.0);
+    let u = ((us / V4L2_EXPOSURE_UNIT_US) / step).round() * step;
+    // `as` saturates (NaN to 0); the clamp keeps it in the camera's range.
+    (u as i64).clamp(min_units, max_units)
+}
+
 /// `[camera.control]` of a site file.
 #[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, tag = "kind", rename_all = "snake_case")]
@@ -359,10 +367,7 @@ impl BlueosRest {
     }
 
     fn units(&self, us: f64) -> i64 {
-        let step = (self.step_us / V4L2_EXPOSURE_UNIT_US).max(1.0);
-        let u = ((us / V4L2_EXPOSURE_UNIT_US) / step).round() * step;
-        // `as` saturates (NaN to 0); the clamp keeps it in the camera's range.
-        (u as i64).clamp(self.min_units, self.max_units)
+        exposure_units(us, self.step_us, self.min_units, self.max_units)
     }
 
     fn err(&self, reason: String) -> ControlError {
@@ -637,10 +642,7 @@ impl ExposureControl for V4l2Control {
         Ok(())
     }
     fn set_exposure_us(&mut self, exposure_us: f64) -> Result<f64, ControlError> {
-        let step_units = (self.step_us / V4L2_EXPOSURE_UNIT_US).max(1.0);
-        let units =
-            (((exposure_us / V4L2_EXPOSURE_UNIT_US) / step_units).round() * step_units) as i64;
-        let units = units.clamp(self.min_units, self.max_units);
+        let units = exposure_units(exposure_us, self.step_us, self.min_units, self.max_units);
         let want = units as f64 * V4L2_EXPOSURE_UNIT_US;
         if (want - self.current_us).abs() < 0.5 {
             return Ok(self.current_us);

@@ -14,7 +14,7 @@
 
 use std::path::{Path, PathBuf};
 use std::sync::{Arc, Condvar, Mutex, MutexGuard};
-use std::time::{Duration, Instant};
+use std::time::Duration;
 
 use serde::{Deserialize, Serialize};
 
@@ -67,6 +67,19 @@ impl Shared {
         self.m
             .lock()
             .unwrap_or_else(std::sync::PoisonError::into_inner)
+    }
+
+    /// Waits at most `timeout` while `busy` holds (spurious wake-ups included).
+    fn wait_while<'a>(
+        &self,
+        s: MutexGuard<'a, State>,
+        timeout: Duration,
+        busy: impl FnMut(&mut State) -> bool,
+    ) -> MutexGuard<'a, State> {
+        self.cv
+            .wait_timeout_while(s, timeout, busy)
+            .unwrap_or_else(std::sync::PoisonError::into_inner)
+            .0
     }
 }
 
@@ -256,28 +269,15 @@ impl ControlHandle {
     /// Waits (at most `timeout`) until the camera matches the latest request. True if it
     /// does. For lock-step simulation only: the loop never waits on the camera.
     pub fn settle(&self, timeout: Duration) -> bool {
-        let until = Instant::now() + timeout;
-        let mut s = self.shared.lock();
-        while s.done_gen != s.target.gen && !s.finished {
-            let left = until.saturating_duration_since(Instant::now());
-            if left.is_zero() {
-                return false;
-            }
-            s = self
-                .shared
-                .cv
-                .wait_timeout(s, left)
-                .unwrap_or_else(std::sync::PoisonError::into_inner)
-                .0;
-        }
-        true
+        let busy = |s: &mut State| s.done_gen != s.target.gen && !s.finished;
+        let mut s = self.shared.wait_while(self.shared.lock(), timeout, busy);
+        !busy(&mut s)
     }
 
     /// Leave the camera as found and stop the worker, waiting at most `timeout`. An
     /// error says why the camera could not be put back (the state file stays for the
     /// next start).
     pub fn finish(&self, timeout: Duration) -> Result<(), String> {
-        let until = Instant::now() + timeout;
         let mut s = self.shared.lock();
         if !s.target.finish {
             s.target.take = false;
@@ -285,26 +285,18 @@ impl ControlHandle {
             s.target.gen += 1;
             self.shared.cv.notify_all();
         }
-        while !s.finished {
-            let left = until.saturating_duration_since(Instant::now());
-            if left.is_zero() {
-                return Err(format!(
-                    "the camera ({}) was not put back within {} s{}",
-                    self.describe,
-                    timeout.as_secs_f64(),
-                    s.last_error
-                        .as_ref()
-                        .map_or(String::new(), |e| format!(": {e}"))
-                ));
-            }
-            s = self
-                .shared
-                .cv
-                .wait_timeout(s, left)
-                .unwrap_or_else(std::sync::PoisonError::into_inner)
-                .0;
+        let s = self.shared.wait_while(s, timeout, |s| !s.finished);
+        if s.finished {
+            return Ok(());
         }
-        Ok(())
+        Err(format!(
+            "the camera ({}) was not put back within {} s{}",
+            self.describe,
+            timeout.as_secs_f64(),
+            s.last_error
+                .as_ref()
+                .map_or(String::new(), |e| format!(": {e}"))
+        ))
     }
 }
 
@@ -380,19 +372,9 @@ impl Worker {
                     s.last_error = Some(e);
                     self.shared.cv.notify_all();
                     // Wait before the next try; a finish request cuts the wait short.
-                    let until = Instant::now() + RETRY_AFTER;
-                    loop {
-                        let left = until.saturating_duration_since(Instant::now());
-                        if left.is_zero() || (s.target.finish && !target.finish) {
-                            break;
-                        }
-                        s = self
-                            .shared
-                            .cv
-                            .wait_timeout(s, left)
-                            .unwrap_or_else(std::sync::PoisonError::into_inner)
-                            .0;
-                    }
+                    s = self
+                        .shared
+                        .wait_while(s, RETRY_AFTER, |s| !(s.target.finish && !target.finish));
                 }
             }
         }
