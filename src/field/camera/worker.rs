@@ -374,7 +374,7 @@ impl Worker {
                     // Wait before the next try; a finish request cuts the wait short.
                     s = self
                         .shared
-                        .wait_while(s, RETRY_AFTER, |s| !(s.target.finish && !target.finish));
+                        .wait_while(s, RETRY_AFTER, |s| !s.target.finish || target.finish);
                 }
             }
         }
