@@ -85,6 +85,9 @@ enum Command {
         #[arg(long, value_name = "DIR")]
         out: Option<PathBuf>,
     },
+    /// Print the Markdown command reference (docs/commands.md).
+    #[command(hide = true)]
+    Docs,
 }
 
 #[derive(Subcommand)]
@@ -290,6 +293,13 @@ fn run(cli: Cli) -> anyhow::Result<()> {
             for page in markhold::cli_docs::man_pages_to(Cli::command(), &dir)? {
                 markhold::outln!("{}", page.display());
             }
+            Ok(())
+        }
+        Command::Docs => {
+            markhold::outln!(
+                "{}",
+                markhold::cli_docs::markdown(Cli::command()).trim_end()
+            );
             Ok(())
         }
     }
