@@ -367,13 +367,13 @@ pub struct DetectorConfig {
     /// is about this many pixels, bounding the cost for a close marker.
     pub track_target_side_px: f64,
     /// Full-frame search every this many frames even while tracking (0 = never
-    /// unless tracking fails). 300 (10 s at 30 fps): a full search costs about 3x a
-    /// tracked frame, and at 30 it alone set the loop's latency p99 (pool, 60 s HIL:
-    /// 5.7 ms at 30, 2.9 ms at 300, same detection rate).
+    /// unless tracking fails). 300 (10 s at 30 fps): a full search costs several tracked
+    /// frames, and at 30 it alone set the loop's latency p99 (measured in
+    /// docs/design/loop.md, "Deferred full search").
     pub full_search_period_frames: u32,
     /// The loop sends a frame's command before that frame's full-frame search (when
-    /// tracking cannot answer), so the search (8 to 37 ms at 1440x1080) does not delay
-    /// the command; the marker found by it serves from the next frame on. `false`:
+    /// tracking cannot answer), so the search (its cost: docs/design/loop.md) does not
+    /// delay the command; the marker found by it serves from the next frame on. `false`:
     /// search first, then command (one frame sooner after a re-acquisition).
     pub defer_full_search: bool,
     /// Full-frame search on an image downscaled by this factor (1 = full resolution),

@@ -139,7 +139,7 @@ pub(crate) struct EdgeRefiner {
 /// than the model; the cost is linear in it).
 const MAX_EDGE_POINTS: usize = 80;
 /// Where the white side's grey is read, pixels past the lobe's brightest sample: on the
-/// plateau (1, 2 and 3 px read the same grey within 0.5 % on the HIL pool's edges).
+/// plateau (docs/design/vision.md, "Clipped edges").
 const BRIGHT_PAST_TOP_PX: f64 = 3.0;
 /// Step of the intensity profile across the edge, pixels.
 const PROFILE_STEP_PX: f64 = 0.5;

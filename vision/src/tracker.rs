@@ -168,8 +168,8 @@ pub struct MarkerTracker {
 
 /// Correlation of the clipped edges' common shifts between the markers of a map. On the
 /// HIL's maps 1 is over-confident where AAEC lands at the clip onset (the noise-clipped
-/// shifts of the markers differ), 0.5 leaves the yaw up to 10x conservative
-/// (design/vision.md, "Clipped edges").
+/// shifts of the markers differ), 0.5 leaves the yaw too conservative (figures:
+/// docs/design/vision.md, "Clipped edges").
 const MAP_CLIP_CORRELATION: f64 = 0.75;
 
 /// `(m + m^T) / 2`: a sandwich `K C K^T` symmetric to rounding.
@@ -398,7 +398,7 @@ impl MarkerTracker {
     /// finds no marker (no track, every track lost, or a periodic full search due) it
     /// returns [`Tracked::NeedsFullSearch`] and [`Self::process_full`] must follow on the
     /// same frame; the loop can send its command in between, so that a full-frame search
-    /// (8 to 37 ms at 1440x1080) does not sit between the frame and the command.
+    /// (docs/design/loop.md gives its cost) does not sit between the frame and the command.
     pub fn process_tracked(&mut self, frame: &Frame) -> Result<Tracked, VisionError> {
         let image = self.image_of(frame)?;
         self.stats.frames += 1;

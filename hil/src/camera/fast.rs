@@ -1340,9 +1340,9 @@ mod tests {
     /// production resolution, 1.2 m from the marker, in the lightings whose fields change
     /// fastest (the vehicle's lamps in low light, the marker's lamp in adversarial). The
     /// grid's first rule (32-pixel base, interpolate where the two nodes agree within 2 %)
-    /// fails both ways: 19.7 % interpolated in low light, and 1.7 noise sd off on the
-    /// marker lamp's spot in adversarial light; a 64-pixel base under the marker's lamp
-    /// loses its spot at 480x360 (`packed_and_portable_loops_give_identical_frames`).
+    /// fails both ways (shading too many nodes under the vehicle's lamps, missing the
+    /// marker lamp's spot), and a 64-pixel base under the marker's lamp loses its spot at
+    /// 480x360: figures in docs/design/hil.md, "Light grid".
     #[test]
     fn run_end_finds_the_first_change_like_a_scan() {
         // Masks with runs of every length from 1 to 20 around the word steps.
