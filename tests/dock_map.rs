@@ -1,7 +1,7 @@
 //! The dock-map site end to end: the HIL world draws every marker of the map, the pose
 //! comes from every marker in view, and occluding one marker (by id) does not lose the
 //! station where occluding the only marker of a site does. Reduced runs (CI time); the
-//! full figures (60 s, seeds 1-5) are the README's command.
+//! full figures (60 s, seeds 1-5) are docs/results.md's command.
 #![cfg(feature = "sim")]
 #![allow(clippy::unwrap_used)] // Tests fail loudly on a broken setup, by design.
 

@@ -179,7 +179,7 @@ fn map_recovers_the_layout_from_a_frames_folder() {
     let stdout = String::from_utf8(out.stdout).unwrap();
     assert!(stdout.contains("4 markers from 27 frames"), "{stdout}");
     let text = std::fs::read_to_string(&out_file).unwrap();
-    // The section, for `-- --nocapture` (README quotes it).
+    // The section, for `-- --nocapture` (docs/usage.md quotes it).
     println!("{text}");
     assert!(text.contains("seen in 27 frames"), "{text}");
     assert!(text.contains("reprojection RMS"), "{text}");

@@ -513,7 +513,7 @@ fn a_jpeg_recording_is_smaller_and_replay_says_it_is_not_exact() {
         std::fs::metadata(&png).unwrap().len(),
     );
     assert!(j * 2 < p, "JPEG {j} bytes vs PNG {p} bytes");
-    // The README's rates at 640x480 and 30 fps, PNG about 265 and JPEG about 69 MB per
+    // docs/usage.md's rates at 640x480 and 30 fps, PNG about 265 and JPEG about 69 MB per
     // minute: these 15 frames (0.5 s of camera time) within 2x of them.
     let per_minute = |bytes: u64| bytes as f64 / 0.5 * 60.0 / 1e6;
     let (jr, pr) = (per_minute(j), per_minute(p));
