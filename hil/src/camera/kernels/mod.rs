@@ -943,4 +943,10 @@ pub(crate) fn sensor_run(
         Isa::Avx2 | Isa::Avx512 => unsafe { avx2::sensor_run(out, mean, noise, s) },
         Isa::Portable => sensor(Scalar, out, mean, noise, s),
     }
+    // A deliberate slowdown (feature `slow-render`) that the instruction gate must catch
+    // (scripts/instruction-gate): about one instruction a pixel more, the picture unchanged.
+    #[cfg(feature = "slow-render")]
+    for b in out.iter().step_by(6) {
+        std::hint::black_box(b);
+    }
 }
