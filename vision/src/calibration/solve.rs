@@ -10,8 +10,8 @@ use nalgebra::{
 };
 
 use crate::distortion::{self, DistortionModel};
-use crate::pose::skew;
 use crate::CameraCalibration;
+use markhold_geometry::skew;
 
 use super::View;
 
