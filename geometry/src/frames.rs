@@ -78,7 +78,7 @@ mod tests {
     use super::*;
 
     #[test]
-    fn skew_is_the_cross_product() {
+    fn the_skew_matrix_is_the_cross_product() {
         let (v, w) = (Vector3::new(0.3, -1.2, 2.0), Vector3::new(-0.7, 0.4, 1.1));
         assert_eq!(skew(&v) * w, v.cross(&w));
         assert_eq!(skew(&v).transpose(), -skew(&v));
