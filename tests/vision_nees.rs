@@ -15,7 +15,7 @@ use markhold::params::{self, LoadedSite};
 use markhold::sim::hil::{run_hil, HilOptions, HilRun};
 use markhold::sim::summary::VisionNeesSummary;
 use markhold_autopilot::{CommandKind, LinkMode};
-use markhold_hil::endpoint::consistency::mean_bounds_95;
+use markhold_geometry::stats::mean_bounds_95;
 use markhold_hil::endpoint::VisionNees;
 
 /// Frames per independent NEES draw. On station the error is mostly the clipped edges'

@@ -4,6 +4,7 @@
 //! `StationKeeper::update` is a pure function of its inputs and its state: no wall clock,
 //! no telemetry arriving behind its back, so HIL runs repeat bit for bit.
 
+use markhold_geometry::skew;
 use nalgebra::{Isometry3, Matrix3, Matrix6, UnitQuaternion, Vector3};
 use serde::Serialize;
 
@@ -104,10 +105,6 @@ pub fn body_error(
     let p = t_b_goal.translation.vector;
     let (r, pi, y) = t_b_goal.rotation.euler_angles();
     [p.x, p.y, p.z, wrap_pi(r), wrap_pi(pi), wrap_pi(y)]
-}
-
-fn skew(v: &Vector3<f64>) -> Matrix3<f64> {
-    Matrix3::new(0.0, -v.z, v.y, v.z, 0.0, -v.x, -v.y, v.x, 0.0)
 }
 
 /// Propagates the camera-frame covariance of `t_cam_marker` to the body-frame error.

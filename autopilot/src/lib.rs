@@ -5,6 +5,8 @@
 //! - [`VehicleLink`]: ArduSub session over MAVLink 2 (UDP, TCP, serial), synchronous and
 //!   non-blocking for the per-frame loop.
 //! - [`Supervisor`]: the failsafe state machine.
+//! - [`vehicle`]: the vehicle description (frames, FRAME_CONFIG, motor factors and
+//!   thruster layout) that preflight and the simulator read.
 //!
 //! Frames and units: `docs/frames.md` of the workspace.
 
@@ -19,6 +21,7 @@ pub mod signing_clock;
 pub mod supervisor;
 pub mod transport;
 pub mod types;
+pub mod vehicle;
 pub mod vision_pose;
 
 pub use config::{
@@ -38,6 +41,7 @@ pub use mavlink;
 pub use pilot::PilotMap;
 pub use supervisor::{Directive, FailsafeEvent, Supervisor, SupervisorInput};
 pub use types::{wrap_pi, ArduSubMode, Effort};
+pub use vehicle::Frame6Dof;
 pub use vision_pose::VisionPose;
 
 #[cfg(test)]

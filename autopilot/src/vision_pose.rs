@@ -7,20 +7,10 @@
 //! rotation part as (roll, pitch, yaw) instead: the last step maps the rotation vector
 //! through the Euler-rate Jacobian of `R = Rz(yaw) Ry(pitch) Rx(roll)`.
 
+use markhold_geometry::{cov_in_frame, inverse_with_cov};
 use nalgebra::{Isometry3, Matrix3, Matrix6, Translation3, UnitQuaternion, Vector3};
 
 use crate::config::r_marker_body_facing;
-
-fn skew(v: &Vector3<f64>) -> Matrix3<f64> {
-    Matrix3::new(0.0, -v.z, v.y, v.z, 0.0, -v.x, -v.y, v.x, 0.0)
-}
-
-fn block_rotate(r: &Matrix3<f64>, cov: &Matrix6<f64>) -> Matrix6<f64> {
-    let mut b = Matrix6::zeros();
-    b.fixed_view_mut::<3, 3>(0, 0).copy_from(r);
-    b.fixed_view_mut::<3, 3>(3, 3).copy_from(r);
-    b * cov * b.transpose()
-}
 
 /// `t_L_marker`: the vision frame `L` is the marker (site) frame turned so that a vehicle
 /// on station facing the marker is level with yaw 0 (x_L = -z_m, y_L = x_m, z_L = -y_m).
@@ -45,34 +35,24 @@ pub struct VisionPose {
 impl VisionPose {
     /// From the marker's pose in the camera (`t_cam_marker`, its covariance `cov_cam` on
     /// camera axes, rotation error on the left) and the camera mount `t_vehicle_cam`
-    /// (taken as exact). The mount rotates both blocks onto body axes; the inverse then
-    /// moves the vehicle's position by the rotation error times the lever arm from the
-    /// marker to the vehicle: `dp = -R^T dt - R^T [t]x dtheta`, `dphi = -R^T dtheta`, with
-    /// `(R, t) = t_vehicle_marker`.
+    /// (taken as exact). The mount rotates both blocks onto body axes
+    /// ([`cov_in_frame`]); the inverse then moves the vehicle's position by the rotation
+    /// error times the lever arm from the marker to the vehicle ([`inverse_with_cov`]:
+    /// `dp = -R^T dt - R^T [t]x dtheta`, `dphi = -R^T dtheta`, with
+    /// `(R, t) = t_vehicle_marker`).
     pub fn from_camera(
         stamp_s: f64,
         t_cam_marker: &Isometry3<f64>,
         cov_cam: &Matrix6<f64>,
         t_vehicle_cam: &Isometry3<f64>,
     ) -> Self {
-        let r_vc: Matrix3<f64> = *t_vehicle_cam.rotation.to_rotation_matrix().matrix();
-        let cov_vehicle = block_rotate(&r_vc, cov_cam);
+        let cov_vehicle = cov_in_frame(cov_cam, t_vehicle_cam);
         let t_vehicle_marker = t_vehicle_cam * t_cam_marker;
-        let rt: Matrix3<f64> = t_vehicle_marker
-            .rotation
-            .to_rotation_matrix()
-            .matrix()
-            .transpose();
-        let t = t_vehicle_marker.translation.vector;
-        let mut jac = Matrix6::zeros();
-        jac.fixed_view_mut::<3, 3>(0, 0).copy_from(&(-rt));
-        jac.fixed_view_mut::<3, 3>(0, 3)
-            .copy_from(&(-rt * skew(&t)));
-        jac.fixed_view_mut::<3, 3>(3, 3).copy_from(&(-rt));
+        let (t_marker_vehicle, cov_marker) = inverse_with_cov(&t_vehicle_marker, &cov_vehicle);
         Self {
             stamp_s,
-            t_marker_vehicle: t_vehicle_marker.inverse(),
-            cov_marker: jac * cov_vehicle * jac.transpose(),
+            t_marker_vehicle,
+            cov_marker,
         }
     }
 
@@ -80,10 +60,9 @@ impl VisionPose {
     /// parameterisation: a rotation of frame only turns both blocks).
     pub fn in_vision_frame(&self) -> (Isometry3<f64>, Matrix6<f64>) {
         let t_l_m = t_vision_marker();
-        let r: Matrix3<f64> = *t_l_m.rotation.to_rotation_matrix().matrix();
         (
             t_l_m * self.t_marker_vehicle,
-            block_rotate(&r, &self.cov_marker),
+            cov_in_frame(&self.cov_marker, &t_l_m),
         )
     }
 

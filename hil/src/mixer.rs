@@ -1,89 +1,14 @@
-//! ArduSub's 6-DOF motor mixer for the BlueROV2 frames, and the thruster geometry that
-//! is consistent with its factor tables.
+//! ArduSub's 6-DOF motor mixer for the BlueROV2 frames, on the factor tables and
+//! thruster geometry of autopilot's vehicle description (`markhold_autopilot::vehicle`).
 //!
 //! Efforts follow docs/frames.md: `[surge, sway, heave (+down), roll, pitch, yaw]`, each
 //! in -1..1, FRD. ArduSub's throttle is positive up, so throttle = -heave.
 
 use nalgebra::Vector3;
-use serde::{Deserialize, Serialize};
 
-/// The vehicle frame (ArduSub FRAME_CONFIG).
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
-#[serde(rename_all = "lowercase")]
-pub enum Frame6Dof {
-    /// BlueROV2 Heavy: 8 thrusters, `vectored_6dof`, fully 6-DOF.
-    #[default]
-    Heavy,
-    /// BlueROV2: 6 thrusters, `vectored`, no pitch authority.
-    Standard,
-}
-
-impl Frame6Dof {
-    pub fn as_str(self) -> &'static str {
-        match self {
-            Frame6Dof::Heavy => "heavy",
-            Frame6Dof::Standard => "standard",
-        }
-    }
-
-    pub fn motor_count(self) -> usize {
-        match self {
-            Frame6Dof::Heavy => 8,
-            Frame6Dof::Standard => 6,
-        }
-    }
-}
-
-impl std::fmt::Display for Frame6Dof {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.write_str(self.as_str())
-    }
-}
-
-impl std::str::FromStr for Frame6Dof {
-    type Err = crate::HilError;
-    fn from_str(s: &str) -> Result<Self, Self::Err> {
-        match s {
-            "heavy" => Ok(Frame6Dof::Heavy),
-            "standard" => Ok(Frame6Dof::Standard),
-            _ => Err(markhold_config::ConfigError::new(
-                "vehicle.frame",
-                s,
-                "\"heavy\" or \"standard\"",
-            )
-            .into()),
-        }
-    }
-}
-
-/// Maximum number of motors (Heavy).
-pub const MAX_MOTORS: usize = 8;
-
-/// Per-motor factors: (roll, pitch, yaw, throttle, forward, lateral), ArduSub's tables.
-const FACTORS_COMMON: [[f64; 6]; 4] = [
-    [0.0, 0.0, 1.0, 0.0, -1.0, 1.0],
-    [0.0, 0.0, -1.0, 0.0, -1.0, -1.0],
-    [0.0, 0.0, -1.0, 0.0, 1.0, 1.0],
-    [0.0, 0.0, 1.0, 0.0, 1.0, -1.0],
-];
-const FACTORS_VECTORED: [[f64; 6]; 2] = [
-    [1.0, 0.0, 0.0, -1.0, 0.0, 0.0],
-    [-1.0, 0.0, 0.0, -1.0, 0.0, 0.0],
-];
-const FACTORS_HEAVY: [[f64; 6]; 4] = [
-    [1.0, -1.0, 0.0, -1.0, 0.0, 0.0],
-    [-1.0, -1.0, 0.0, -1.0, 0.0, 0.0],
-    [1.0, 1.0, 0.0, -1.0, 0.0, 0.0],
-    [-1.0, 1.0, 0.0, -1.0, 0.0, 0.0],
-];
-
-/// Where a thruster sits (body FRD, metres from the centre of gravity) and which way a
-/// positive command pushes the vehicle (unit vector, body FRD).
-#[derive(Debug, Clone, Copy, PartialEq)]
-pub struct ThrusterMount {
-    pub position_m: Vector3<f64>,
-    pub direction: Vector3<f64>,
-}
+/// The vehicle description is autopilot's: the frames, their factor tables and thruster
+/// layout.
+pub use markhold_autopilot::vehicle::{Frame6Dof, ThrusterMount, MAX_MOTORS};
 
 /// The mixer and geometry of one frame.
 #[derive(Debug, Clone, PartialEq)]
@@ -96,54 +21,10 @@ pub struct Mixer {
 
 impl Mixer {
     pub fn new(frame: Frame6Dof) -> Self {
-        let s = std::f64::consts::FRAC_1_SQRT_2;
-        // Horizontal thrusters below the centre of gravity, where Wu 2018 and von Benzon
-        // et al. 2022 put them: (+-0.156, +-0.111, 0.085) m from the body origin (their
-        // thruster configuration matrix: roll / pitch arms 0.707 x 0.085 = 0.06 m, yaw arm
-        // 0.707 x (0.156 + 0.111) = 0.1888 m). The Heavy's CG is at the origin; the
-        // BlueROV2's is 0.02 m below it (Wu), so its thrusters sit 0.065 m below its CG.
-        // Surge therefore pitches the nose up.
-        let below_cg = match frame {
-            Frame6Dof::Heavy => 0.085,
-            Frame6Dof::Standard => 0.065,
-        };
-        let horiz = |x: f64, y: f64, dx: f64, dy: f64| ThrusterMount {
-            position_m: Vector3::new(x, y, below_cg),
-            direction: Vector3::new(dx * s, dy * s, 0.0),
-        };
-        let vert = |x: f64, y: f64, z: f64| ThrusterMount {
-            position_m: Vector3::new(x, y, z),
-            direction: Vector3::new(0.0, 0.0, 1.0),
-        };
-        let unused = ThrusterMount {
-            position_m: Vector3::zeros(),
-            direction: Vector3::zeros(),
-        };
-        let mut factors = [[0.0; 6]; MAX_MOTORS];
-        let mut mounts = [unused; MAX_MOTORS];
-        factors[..4].copy_from_slice(&FACTORS_COMMON);
-        mounts[0] = horiz(0.156, 0.111, -1.0, 1.0);
-        mounts[1] = horiz(0.156, -0.111, -1.0, -1.0);
-        mounts[2] = horiz(-0.156, 0.111, 1.0, 1.0);
-        mounts[3] = horiz(-0.156, -0.111, 1.0, -1.0);
-        match frame {
-            Frame6Dof::Standard => {
-                factors[4..6].copy_from_slice(&FACTORS_VECTORED);
-                mounts[4] = vert(0.0, 0.109, -0.077);
-                mounts[5] = vert(0.0, -0.109, -0.077);
-            }
-            Frame6Dof::Heavy => {
-                factors[4..8].copy_from_slice(&FACTORS_HEAVY);
-                mounts[4] = vert(0.118, 0.215, -0.064);
-                mounts[5] = vert(0.118, -0.215, -0.064);
-                mounts[6] = vert(-0.118, 0.215, -0.064);
-                mounts[7] = vert(-0.118, -0.215, -0.064);
-            }
-        }
         Self {
             frame,
-            factors,
-            mounts,
+            factors: frame.motor_factors(),
+            mounts: frame.thruster_mounts(),
             n: frame.motor_count(),
         }
     }

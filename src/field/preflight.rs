@@ -9,7 +9,7 @@
 use std::fmt::Write as _;
 use std::time::{Duration, Instant};
 
-use markhold_autopilot::{CommandKind, VehicleLink};
+use markhold_autopilot::{CommandKind, Frame6Dof, VehicleLink};
 use serde::Serialize;
 
 use super::signal::ShutdownFlag;
@@ -210,10 +210,11 @@ fn wait_for_station(link: &mut VehicleLink, t0: f64, stop: &ShutdownFlag) {
     }
 }
 
-/// The site's `[vehicle] frame` (heavy / standard), as written.
-fn site_frame(site: &LoadedSite) -> Option<String> {
+/// The site's `[vehicle] frame` (`None`: the site names none, or, in a build without the
+/// simulator, whose `[vehicle]` is not checked, one markhold does not know).
+fn site_frame(site: &LoadedSite) -> Option<Frame6Dof> {
     let v = toml::Value::try_from(&site.site.vehicle).ok()?;
-    v.get("frame")?.as_str().map(str::to_string)
+    v.get("frame")?.as_str()?.parse().ok()
 }
 
 /// Check the vehicle behind `link` (already heard) against the site. `t0`: loop time now.
@@ -418,12 +419,8 @@ fn check_station(list: &mut Checklist, link: &VehicleLink) {
 
 /// FRAME_CONFIG against the site's `[vehicle] frame`: 1 = vectored (BlueROV2, 6
 /// thrusters), 2 = vectored 6-DOF (BlueROV2 Heavy, 8 thrusters).
-fn check_frame(list: &mut Checklist, frame_config: Option<f32>, site: Option<String>) {
-    let expect = match site.as_deref() {
-        Some("heavy") => Some(2),
-        Some("standard") => Some(1),
-        _ => None,
-    };
+fn check_frame(list: &mut Checklist, frame_config: Option<f32>, site: Option<Frame6Dof>) {
+    let expect = site.map(Frame6Dof::frame_config);
     match (frame_config, expect) {
         (Some(v), Some(e)) if v.round() as i64 == e => list.add(
             "frame",

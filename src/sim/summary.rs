@@ -105,7 +105,7 @@ pub struct VisionNeesSummary {
 
 impl VisionNeesSummary {
     pub fn of(n: &markhold_hil::endpoint::VisionNees) -> Self {
-        use markhold_hil::endpoint::consistency::mean_bounds_95;
+        use markhold_geometry::stats::mean_bounds_95;
         let (plo, phi) = mean_bounds_95(3.0, n.frames);
         let (ylo, yhi) = mean_bounds_95(1.0, n.frames);
         Self {

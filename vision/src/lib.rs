@@ -39,5 +39,4 @@ pub use dict::{marker_bitmap, MarkerBitmap};
 pub use distortion::DistortionModel;
 pub use error::VisionError;
 pub use markhold_config::ConfigError;
-pub use pose::{cov_in_frame, cov_of_inverse};
 pub use tracker::{MarkerObservation, MarkerTracker, Tracked, TrackerStats};

@@ -529,13 +529,7 @@ fn medoid(v: &[Isometry3<f64>]) -> Isometry3<f64> {
 /// `R = exp([dtheta]x) R`, `t = t + dt`: the perturbation of every pose here (as in
 /// the pose refinement).
 fn apply(pose: &Isometry3<f64>, delta: &[f64]) -> Isometry3<f64> {
-    let dt = nalgebra::Vector3::new(delta[0], delta[1], delta[2]);
-    let dth = nalgebra::Vector3::new(delta[3], delta[4], delta[5]);
-    let rot = nalgebra::UnitQuaternion::from_scaled_axis(dth) * pose.rotation;
-    Isometry3::from_parts(
-        nalgebra::Translation3::from(pose.translation.vector + dt),
-        rot,
-    )
+    markhold_geometry::perturb(pose, &nalgebra::Vector6::from_column_slice(&delta[..6]))
 }
 
 #[cfg(test)]

@@ -1,16 +1,15 @@
 //! Pose of a square marker from its four corners: Gauss-Newton refinement of the
-//! reprojection error, its covariance, and changes of frame of a pose covariance.
+//! reprojection error and its covariance.
 //!
 //! Parameterisation (used by the refinement and every covariance of this crate):
 //! `t` is the marker origin in the camera frame, and a rotation error `dtheta` acts on
 //! the left, `R = exp([dtheta]x) R_hat`, so it is a small rotation vector expressed in
-//! the camera frame. The covariance order is (tx, ty, tz, rx, ry, rz) (docs/frames.md).
+//! the camera frame. The covariance order is (tx, ty, tz, rx, ry, rz) (docs/frames.md);
+//! the step, changes of frame and inversion of such a covariance are markhold-geometry's.
 
 use crate::{distortion, CameraCalibration};
-use nalgebra::{
-    Isometry3, Matrix2, Matrix2x3, Matrix3, Matrix6, Point3, Rotation3, SMatrix, Translation3,
-    UnitQuaternion, Vector2, Vector3, Vector6,
-};
+use markhold_geometry::{perturb, skew};
+use nalgebra::{Isometry3, Matrix2, Matrix2x3, Matrix6, Point3, SMatrix, Vector2, Vector6};
 
 /// Object points for IPPE_SQUARE in aruco corner order (top-left, top-right,
 /// bottom-right, bottom-left; marker y up), for a marker of side `size_m`.
@@ -22,11 +21,6 @@ pub fn marker_object_points(size_m: f64) -> [Point3<f64>; 4] {
         Point3::new(h, -h, 0.0),
         Point3::new(-h, -h, 0.0),
     ]
-}
-
-/// Skew-symmetric matrix of `v`: `skew(v) * w == v.cross(&w)`.
-pub fn skew(v: &Vector3<f64>) -> Matrix3<f64> {
-    Matrix3::new(0.0, -v.z, v.y, v.z, 0.0, -v.x, -v.y, v.x, 0.0)
 }
 
 impl CameraCalibration {
@@ -133,13 +127,6 @@ fn residuals(
     Some((r, j))
 }
 
-fn apply(pose: &Isometry3<f64>, delta: &Vector6<f64>) -> Isometry3<f64> {
-    let dt = Vector3::new(delta[0], delta[1], delta[2]);
-    let dth = Vector3::new(delta[3], delta[4], delta[5]);
-    let rot = UnitQuaternion::from_scaled_axis(dth) * pose.rotation;
-    Isometry3::from_parts(Translation3::from(pose.translation.vector + dt), rot)
-}
-
 /// Levenberg-Marquardt on the reprojection error of the four corners weighted by
 /// the inverse of `corner_cov` (8x8, order u0 v0 u1 v1 ...), from `init`.
 /// Returns `None` when a point falls behind the camera or the system is degenerate.
@@ -172,7 +159,7 @@ pub fn refine_pose(
             lambda *= 10.0;
             continue;
         };
-        let cand = apply(&pose, &delta);
+        let cand = perturb(&pose, &delta);
         match residuals(&cand) {
             Some((r2, j2, raw2)) if r2.norm_squared() <= cost => {
                 let done =
@@ -294,7 +281,7 @@ pub fn refine_pose_joint(
             lambda *= 10.0;
             continue;
         };
-        let cand = apply(&pose, &delta);
+        let cand = perturb(&pose, &delta);
         match joint_system(calib, markers, used, &cand) {
             Some((jtj2, g2, cost2, raw2, _)) if cost2 <= cost => {
                 let done = delta.norm() < 1e-12 || cost - cost2 < 1e-14 * cost.max(1e-30);
@@ -338,50 +325,10 @@ pub fn unweighted_gain(
     Some(cov * jw.transpose() * white)
 }
 
-/// Covariance of `t_cam_marker * t_marker_frame` (a frame fixed to the marker, e.g. the
-/// site frame seen through one of its markers) from that of `t_cam_marker` (same
-/// parameterisation: the rotation error is shared, the frame's origin moves with it by
-/// the lever arm `R t_marker_frame`).
-pub fn cov_through(
-    t_cam_marker: &Isometry3<f64>,
-    t_marker_frame: &Isometry3<f64>,
-    cov_cam: &Matrix6<f64>,
-) -> Matrix6<f64> {
-    let arm = t_cam_marker.rotation * t_marker_frame.translation.vector;
-    let mut b = Matrix6::identity();
-    b.fixed_view_mut::<3, 3>(0, 3).copy_from(&(-skew(&arm)));
-    b * cov_cam * b.transpose()
-}
-
-/// A pose covariance in the camera frame, rotated into frame `f`: the pose itself is
-/// unchanged, only the axes its errors are expressed on (`t_frame_cam` is taken as
-/// exact). Order (tx, ty, tz, rx, ry, rz).
-pub fn cov_in_frame(cov_cam: &Matrix6<f64>, t_frame_cam: &Isometry3<f64>) -> Matrix6<f64> {
-    let r: Matrix3<f64> = *t_frame_cam.rotation.to_rotation_matrix().matrix();
-    let mut b = Matrix6::zeros();
-    b.fixed_view_mut::<3, 3>(0, 0).copy_from(&r);
-    b.fixed_view_mut::<3, 3>(3, 3).copy_from(&r);
-    b * cov_cam * b.transpose()
-}
-
-/// Covariance of the inverse pose `t_marker_cam` (camera position and orientation in
-/// the marker frame, errors on the marker frame's axes) from the covariance of
-/// `t_cam_marker` in the camera frame. The lever arm couples rotation error into
-/// the camera's position: `dp = -R^T dt - R^T [t]x dtheta`, `dphi = -R^T dtheta`.
-pub fn cov_of_inverse(t_cam_marker: &Isometry3<f64>, cov_cam: &Matrix6<f64>) -> Matrix6<f64> {
-    let rt: Matrix3<f64> = Rotation3::from(t_cam_marker.rotation).matrix().transpose();
-    let t = t_cam_marker.translation.vector;
-    let mut jac = Matrix6::zeros();
-    jac.fixed_view_mut::<3, 3>(0, 0).copy_from(&(-rt));
-    jac.fixed_view_mut::<3, 3>(0, 3)
-        .copy_from(&(-rt * skew(&t)));
-    jac.fixed_view_mut::<3, 3>(3, 3).copy_from(&(-rt));
-    jac * cov_cam * jac.transpose()
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
+    use nalgebra::Vector3;
 
     fn calib(dist: Vec<f64>) -> CameraCalibration {
         CameraCalibration {
@@ -432,9 +379,9 @@ mod tests {
         for k in 0..6 {
             let mut d = Vector6::zeros();
             d[k] = h;
-            let (rp, _) = residuals(&c, &obj, &img, &apply(&pose, &d)).unwrap();
+            let (rp, _) = residuals(&c, &obj, &img, &perturb(&pose, &d)).unwrap();
             d[k] = -h;
-            let (rm, _) = residuals(&c, &obj, &img, &apply(&pose, &d)).unwrap();
+            let (rm, _) = residuals(&c, &obj, &img, &perturb(&pose, &d)).unwrap();
             // r = obs - f, so dr/dp = -J.
             let num = -(rp - rm) / (2.0 * h);
             assert!(
@@ -452,7 +399,7 @@ mod tests {
         let obj = marker_object_points(0.15);
         let truth = Isometry3::new(Vector3::new(-0.2, 0.1, 2.0), Vector3::new(0.2, 0.7, -0.3));
         let img = obj.map(|p| c.project(&(truth * p)).unwrap());
-        let init = apply(&truth, &Vector6::new(0.03, -0.02, 0.1, 0.05, -0.04, 0.03));
+        let init = perturb(&truth, &Vector6::new(0.03, -0.02, 0.1, 0.05, -0.04, 0.03));
         let sol = refine_pose(&c, &obj, &img, &init, &isotropic_corner_cov(0.1)).unwrap();
         assert!(sol.reproj_rms_px < 1e-6, "{}", sol.reproj_rms_px);
         assert!((sol.t_cam_marker.translation.vector - truth.translation.vector).norm() < 1e-7);
@@ -493,45 +440,5 @@ mod tests {
                 d[k]
             );
         }
-    }
-
-    #[test]
-    fn cov_in_frame_rotates_blocks_and_inverse_matches_sampling() {
-        // Rotating by the identity changes nothing; a 90 degree yaw swaps x and y.
-        let mut cov = Matrix6::zeros();
-        for (i, v) in [1.0, 4.0, 9.0, 0.01, 0.04, 0.09].iter().enumerate() {
-            cov[(i, i)] = *v;
-        }
-        assert_eq!(cov_in_frame(&cov, &Isometry3::identity()), cov);
-        let yaw = Isometry3::new(
-            Vector3::new(5.0, 0.0, 0.0),
-            Vector3::z() * std::f64::consts::FRAC_PI_2,
-        );
-        let r = cov_in_frame(&cov, &yaw);
-        assert!((r[(0, 0)] - 4.0).abs() < 1e-12 && (r[(1, 1)] - 1.0).abs() < 1e-12);
-        assert!((r[(3, 3)] - 0.04).abs() < 1e-12 && (r[(4, 4)] - 0.01).abs() < 1e-12);
-
-        // Inverse: the linear map against a finite-difference of the inverse.
-        let t = Isometry3::new(Vector3::new(0.1, -0.2, 1.5), Vector3::new(0.2, -0.3, 0.1));
-        let h = 1e-6;
-        let mut num = Matrix6::zeros();
-        for k in 0..6 {
-            let mut d = Vector6::zeros();
-            d[k] = h;
-            let tp = apply(&t, &d).inverse();
-            let ti = t.inverse();
-            let dp = (tp.translation.vector - ti.translation.vector) / h;
-            let dphi = (tp.rotation * ti.rotation.inverse()).scaled_axis() / h;
-            for i in 0..3 {
-                num[(i, k)] = dp[i];
-                num[(3 + i, k)] = dphi[i];
-            }
-        }
-        let analytic = cov_of_inverse(&t, &Matrix6::identity());
-        let sampled = num * num.transpose();
-        assert!(
-            (analytic - sampled).norm() < 1e-4 * analytic.norm(),
-            "{analytic}\n{sampled}"
-        );
     }
 }

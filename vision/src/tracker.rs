@@ -8,11 +8,12 @@ use crate::dict::dictionary;
 use crate::error::CvContext;
 use crate::mapping::SeenMarker;
 use crate::pose::{
-    cov_of_inverse, cov_through, isotropic_corner_cov, marker_object_points, marker_rms_px,
-    refine_pose, refine_pose_joint, unweighted_gain, whitening, MarkerCorners, RefinedPose,
+    isotropic_corner_cov, marker_object_points, marker_rms_px, refine_pose, refine_pose_joint,
+    unweighted_gain, whitening, MarkerCorners, RefinedPose,
 };
 use crate::{CameraCalibration, VisionError};
 use markhold_exposure::{Corners, Frame, Roi};
+use markhold_geometry::{cov_of_inverse, cov_through};
 use nalgebra::{
     Isometry3, Matrix6, Point3, SMatrix, Translation3, UnitQuaternion, Vector2, Vector3, Vector6,
 };

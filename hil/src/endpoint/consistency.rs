@@ -5,81 +5,13 @@
 //! distributed chi-square with that many degrees of freedom: mean 3 (position) and 1
 //! (yaw), 95 % of frames under the 95 % quantile.
 
+use markhold_geometry::stats::{CHI2_95_DOF1, CHI2_95_DOF3};
 use nalgebra::{Isometry3, Matrix3, Vector3};
 use serde::Serialize;
-
-/// Upper 95 % quantiles of chi-square with 1 and 3 degrees of freedom.
-pub const CHI2_95_DOF1: f64 = 3.841_458_820_694_124;
-pub const CHI2_95_DOF3: f64 = 7.814_727_903_251_178;
 
 /// A truth stamp within this of the estimate's stamp is the pose the estimate was
 /// measured at (the HIL renders a frame at a physics step; the stamp is in microseconds).
 const STAMP_MATCH_S: f64 = 1e-3;
-
-/// Standard normal quantile (Acklam's rational approximation, relative error < 1.2e-9).
-fn normal_quantile(p: f64) -> f64 {
-    const A: [f64; 6] = [
-        -3.969_683_028_665_376e1,
-        2.209_460_984_245_205e2,
-        -2.759_285_104_469_687e2,
-        1.383_577_518_672_69e2,
-        -3.066_479_806_614_716e1,
-        2.506_628_277_459_239,
-    ];
-    const B: [f64; 5] = [
-        -5.447_609_879_822_406e1,
-        1.615_858_368_580_409e2,
-        -1.556_989_798_598_866e2,
-        6.680_131_188_771_972e1,
-        -1.328_068_155_288_572e1,
-    ];
-    const C: [f64; 6] = [
-        -7.784_894_002_430_293e-3,
-        -3.223_964_580_411_365e-1,
-        -2.400_758_277_161_838,
-        -2.549_732_539_343_734,
-        4.374_664_141_464_968,
-        2.938_163_982_698_783,
-    ];
-    const D: [f64; 4] = [
-        7.784_695_709_041_462e-3,
-        3.224_671_290_700_398e-1,
-        2.445_134_137_142_996,
-        3.754_408_661_907_416,
-    ];
-    let tail = |q: f64| {
-        (((((C[0] * q + C[1]) * q + C[2]) * q + C[3]) * q + C[4]) * q + C[5])
-            / ((((D[0] * q + D[1]) * q + D[2]) * q + D[3]) * q + 1.0)
-    };
-    if p < 0.02425 {
-        tail((-2.0 * p.ln()).sqrt())
-    } else if p > 1.0 - 0.02425 {
-        -tail((-2.0 * (1.0 - p).ln()).sqrt())
-    } else {
-        let q = p - 0.5;
-        let r = q * q;
-        (((((A[0] * r + A[1]) * r + A[2]) * r + A[3]) * r + A[4]) * r + A[5]) * q
-            / (((((B[0] * r + B[1]) * r + B[2]) * r + B[3]) * r + B[4]) * r + 1.0)
-    }
-}
-
-/// Quantile `p` of chi-square with `dof` degrees of freedom (Wilson-Hilferty; within
-/// 0.1 % of the exact value for `dof` >= 30, which every bound on a mean here has).
-pub fn chi2_quantile(p: f64, dof: f64) -> f64 {
-    let k = 2.0 / (9.0 * dof);
-    dof * (1.0 - k + normal_quantile(p) * k.sqrt()).powi(3)
-}
-
-/// Two-sided 95 % interval for the mean of `n` independent chi-square(`dof`) draws:
-/// `n` times the mean is chi-square(`n dof`), so the interval is its 2.5 % and 97.5 %
-/// quantiles divided by `n`.
-pub fn mean_bounds_95(dof: f64, n: u64) -> (f64, f64) {
-    let n = n.max(1) as f64;
-    (
-        chi2_quantile(0.025, n * dof) / n,
-        chi2_quantile(0.975, n * dof) / n,
-    )
-}
 
 /// NEES of the vision estimates received so far.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Serialize)]
@@ -202,32 +134,6 @@ impl Consistency {
 #[cfg(test)]
 mod tests {
     use super::*;
-
-    #[test]
-    fn quantiles_match_tables() {
-        // chi-square tables: (p, dof, value).
-        for (p, dof, want) in [
-            (0.975, 30.0, 46.979),
-            (0.025, 30.0, 16.791),
-            (0.95, 100.0, 124.342),
-            (0.05, 100.0, 77.929),
-        ] {
-            let got = chi2_quantile(p, dof);
-            assert!(
-                (got - want).abs() < 1e-3 * want,
-                "{p} {dof}: {got} vs {want}"
-            );
-        }
-        assert!((normal_quantile(0.975) - 1.959_964).abs() < 1e-6);
-        assert!((normal_quantile(0.01) + 2.326_348).abs() < 1e-6);
-        // 300 frames of 3 dof: the mean's standard deviation is sqrt(6 / 300) = 0.141,
-        // so about 3 -0.27 / +0.28.
-        let (lo, hi) = mean_bounds_95(3.0, 300);
-        assert!(
-            (2.72..2.74).contains(&lo) && (3.27..3.29).contains(&hi),
-            "{lo} {hi}"
-        );
-    }
 
     #[test]
     fn nees_of_known_errors() {

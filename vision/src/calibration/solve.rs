@@ -4,14 +4,11 @@
 //! through the Schur complement on the intrinsics: each view's 6x6 pose block is
 //! eliminated on its own, leaving a system of at most 11 unknowns, so views cost little.
 
-use nalgebra::{
-    DMatrix, DVector, Isometry3, Matrix2x3, Matrix6, Point3, Translation3, UnitQuaternion, Vector2,
-    Vector3, Vector6,
-};
+use nalgebra::{DMatrix, DVector, Isometry3, Matrix2x3, Matrix6, Point3, Vector2, Vector6};
 
 use crate::distortion::{self, DistortionModel};
-use crate::pose::skew;
 use crate::CameraCalibration;
+use markhold_geometry::{perturb, skew};
 
 use super::View;
 
@@ -186,15 +183,6 @@ pub fn step_intrinsics(c: &mut CameraCalibration, params: &[Param], delta: &[f64
     }
 }
 
-/// `R = exp([dtheta]x) R`, `t = t + dt`.
-fn apply(pose: &Isometry3<f64>, d: &Vector6<f64>) -> Isometry3<f64> {
-    let rot = UnitQuaternion::from_scaled_axis(Vector3::new(d[3], d[4], d[5])) * pose.rotation;
-    Isometry3::from_parts(
-        Translation3::from(pose.translation.vector + Vector3::new(d[0], d[1], d[2])),
-        rot,
-    )
-}
-
 /// Sum of squared residuals and points counted (`None`: a point behind a camera).
 pub fn cost(
     c: &CameraCalibration,
@@ -351,7 +339,7 @@ pub fn solve(
             p.add(&mut cand, *d);
         }
         let cand_poses: Vec<Isometry3<f64>> =
-            poses.iter().zip(&dv).map(|(p, d)| apply(p, d)).collect();
+            poses.iter().zip(&dv).map(|(p, d)| perturb(p, d)).collect();
         let ok = cand.fx > 0.0 && cand.fy > 0.0;
         match cost(&cand, views, &cand_poses) {
             Some((c2, _)) if ok && c2 <= lin.cost => {

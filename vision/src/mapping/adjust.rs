@@ -10,8 +10,9 @@ use super::{
     apply, planes, IntrinsicsReport, MapBuilder, MapEstimate, MapSettings, MappedMarker, Obs,
 };
 use crate::calibration::solve::{intrinsic_jacobian, step_intrinsics, Param};
-use crate::pose::{marker_object_points, refine_pose_joint, skew, MarkerCorners};
+use crate::pose::{marker_object_points, refine_pose_joint, MarkerCorners};
 use crate::CameraCalibration;
+use markhold_geometry::skew;
 
 type Blocks8x6 = SMatrix<f64, 8, 6>;
 
