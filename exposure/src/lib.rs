@@ -78,7 +78,7 @@ pub enum ExposureError {
 #[serde(rename_all = "lowercase")]
 pub enum ExposureMethod {
     /// markhold's AAEC: the paper's RoI and metric with a log-domain, bracketing
-    /// optimiser and safety nets of its own (`aaec.rs`).
+    /// optimiser and safety nets of its own (`aaec/`).
     Aaec,
     /// Adaptive Active Exposure Control as the paper's code ran it (`aaec_paper.rs`).
     #[serde(rename = "aaec-paper")]
