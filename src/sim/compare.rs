@@ -9,7 +9,7 @@ use std::sync::Mutex;
 use std::time::Instant;
 
 use anyhow::Context;
-use markhold_exposure::ExposureMethod;
+use markhold_exposure::{ExposureMethod, METHODS};
 use markhold_hil::scene::LightingScenario;
 use markhold_hil::VehicleMotion;
 use nalgebra::Vector3;
@@ -1191,22 +1191,15 @@ pub fn assemble(h: CompareHeader, cases: Vec<CaseResult>) -> CompareResults {
     }
 }
 
-/// The paper's numbers (docs/reference/exposure-spec.md, "What the paper measured"), for the report.
+/// The paper's numbers for the report, from each method's row of
+/// [`markhold_exposure::METHODS`].
 mod paper {
     use markhold_exposure::ExposureMethod;
     use markhold_hil::scene::LightingScenario;
 
     /// Static marker in a river, 1 minute: det(cov) m^6, detection %, max distance m.
-    /// The paper's figures sit in the rows of the methods as its code ran them;
-    /// markhold's variants and the official AEC have none.
     pub fn static_precision(m: ExposureMethod) -> Option<(f64, f64, f64)> {
-        match m {
-            ExposureMethod::AaecPaper => Some((1.65e-23, 100.0, 0.0040)),
-            ExposureMethod::GecPaper => Some((1.02e-20, 100.0, 0.0273)),
-            ExposureMethod::AecPaper => Some((1.38e-20, 100.0, 0.0598)),
-            ExposureMethod::Default => Some((3.82e-20, 99.6, 0.0462)),
-            ExposureMethod::Aaec | ExposureMethod::Gec | ExposureMethod::Aec => None,
-        }
+        m.info().paper.static_precision
     }
 
     /// Moving camera, adversarial light only: mean distance m, detection %.
@@ -1214,26 +1207,12 @@ mod paper {
         if l != LightingScenario::Adversarial {
             return None;
         }
-        let s = match m {
-            ExposureMethod::AaecPaper => "0.0058 m / 99.32 %",
-            ExposureMethod::GecPaper => "0.0490 m / 29.29 %",
-            ExposureMethod::AecPaper | ExposureMethod::Default => "no detection",
-            ExposureMethod::Aaec | ExposureMethod::Gec | ExposureMethod::Aec => return None,
-        };
-        Some(s.to_string())
+        m.info().paper.motion_adversarial.map(str::to_string)
     }
 
     /// Convergence seconds (the paper's AAEC is momentum + RoI; no GEC or Default row).
     pub fn convergence_s(m: ExposureMethod, l: LightingScenario) -> Option<f64> {
-        let row = match m {
-            ExposureMethod::AaecPaper => [4.0, 3.0, 6.0],
-            ExposureMethod::AecPaper => [63.0, 43.0, 72.0],
-            ExposureMethod::Aaec
-            | ExposureMethod::Aec
-            | ExposureMethod::Gec
-            | ExposureMethod::GecPaper
-            | ExposureMethod::Default => return None,
-        };
+        let row = m.info().paper.convergence_s?;
         match l {
             LightingScenario::Adversarial => Some(row[0]),
             LightingScenario::Normal => Some(row[1]),
@@ -1313,7 +1292,7 @@ fn table(
     let _ = writeln!(out, "{head}\n{rule}");
     for &m in &r.methods {
         let stats = r.case_stats(m, l);
-        let _ = write!(out, "| {} |", method_name(m));
+        let _ = write!(out, "| {} |", m.label());
         for (_, key, f) in cols {
             let _ = write!(
                 out,
@@ -1327,19 +1306,6 @@ fn table(
         out.push('\n');
     }
     out.push('\n');
-}
-
-/// The paper's spelling of the method names.
-pub fn method_name(m: ExposureMethod) -> &'static str {
-    match m {
-        ExposureMethod::AaecPaper => "AAEC (paper)",
-        ExposureMethod::Aaec => "AAEC (markhold)",
-        ExposureMethod::GecPaper => "GEC (paper)",
-        ExposureMethod::Gec => "GEC (Shim)",
-        ExposureMethod::AecPaper => "AEC (paper)",
-        ExposureMethod::Aec => "AEC (Zhang)",
-        ExposureMethod::Default => "Default",
-    }
 }
 
 /// `report.md`: the four experiments laid out like the paper's tables, one block per
@@ -1362,24 +1328,41 @@ pub fn report_markdown(r: &CompareResults, plots: &[String]) -> String {
 fn report_header(o: &mut String, r: &CompareResults) {
     use std::fmt::Write as _;
     let seeds = r.seeds.len();
+    // markhold's variants of published methods, and what each is.
+    let variants: Vec<(&str, &str)> = METHODS
+        .iter()
+        .filter_map(|i| Some((i.label, i.variant_of?)))
+        .collect();
     let _ = writeln!(o, "# markhold compare: {}\n", inline_text(&r.site));
     let _ = writeln!(
         o,
         "Site file `{}`, {}x{} px at {} fps, {} simulated seconds per run, seeds {:?}. \
          Cells are the mean over {} seed(s) ± the half-width of its 95 % confidence \
-         interval (Student t with n - 1 degrees of freedom; none with one seed); `-` where the metric is undefined (no detection). AAEC (paper), GEC \
-         (paper) and AEC (paper) are the methods as the paper's code ran them; AAEC \
-         (markhold), GEC (Shim) and AEC (Zhang) are markhold's AAEC, GEC with Shim's \
-         published constants and AEC with its official code's safety nets. The paper's \
-         numbers are from its own camera and water; ours are from the HIL world.\n",
+         interval (Student t with n - 1 degrees of freedom; none with one seed); `-` where \
+         the metric is undefined (no detection). {} are the methods as the paper's code ran \
+         them; {} are {}. The paper's numbers are from its own camera and water; ours are \
+         from the HIL world.\n",
         inline_text(&r.site_file),
         r.width_px,
         r.height_px,
         r.fps,
         r.seconds,
         r.seeds,
-        seeds
+        seeds,
+        prose_list(METHODS.iter().filter(|i| i.paper_code).map(|i| i.label)),
+        prose_list(variants.iter().map(|(label, _)| *label)),
+        prose_list(variants.iter().map(|(_, what)| *what)),
     );
+}
+
+/// `a`, `a and b`, `a, b and c`.
+fn prose_list<'a>(items: impl Iterator<Item = &'a str>) -> String {
+    let items: Vec<&str> = items.collect();
+    match items.split_last() {
+        None => String::new(),
+        Some((last, [])) => (*last).to_string(),
+        Some((last, rest)) => format!("{} and {last}", rest.join(", ")),
+    }
 }
 
 /// Text from a results file (a site's name, a path) for one line of Markdown: control
@@ -1447,7 +1430,7 @@ fn report_convergence_to_optimum(o: &mut String, r: &CompareResults) {
             let _ = write!(
                 o,
                 "| {} | {} |",
-                method_name(m),
+                m.label(),
                 fmt_stat(
                     st.and_then(|s| s.metrics.get("convergence.optimum.m_argmax_us")),
                     Fmt::Micros
@@ -1703,8 +1686,8 @@ fn report_claims(o: &mut String, r: &CompareResults) {
             "| {} | {} | {} | {} | {} | {} / {} | {diff} | {p} | {verdict} |",
             c.claim,
             c.lighting,
-            method_name(c.method),
-            method_name(c.other),
+            c.method.label(),
+            c.other.label(),
             c.n,
             c.method_only,
             c.other_only,
@@ -1776,8 +1759,10 @@ pub struct CompareArgs {
     /// Simulated seconds of each experiment run.
     #[arg(long, default_value_t = 60.0)]
     pub seconds: f64,
-    /// Exposure methods, comma-separated (default all: aaec-paper,aaec,gec-paper,gec,aec-paper,aec,default).
-    #[arg(long, value_delimiter = ',')]
+    #[arg(long, value_delimiter = ',', help = format!(
+        "Exposure methods, comma-separated (default all: {})",
+        ExposureMethod::names(",", ",")
+    ))]
     pub methods: Vec<ExposureMethod>,
     /// Lightings, comma-separated (default all: adversarial,normal,low,caustics).
     #[arg(long, value_delimiter = ',')]
