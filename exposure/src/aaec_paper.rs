@@ -1,7 +1,7 @@
 //! AAEC as the paper's code ran it (Ren, Lensgraf, Quattrini Li, ISER 2023;
 //! Rennylex/adaptive_active_exposure_control, the published node
 //! `src/aaec_exposure_node.cpp` with its launch file), beside markhold's own AAEC
-//! (`aaec.rs`) so that the two can be compared. Each way the paper's text or markhold's
+//! (`aaec/`) so that the two can be compared. Each way the paper's text or markhold's
 //! rules differ from the code is an option; the defaults are the code's.
 //!
 //! Per frame once a marker was seen, on the region (the code's: the tracker's whole-pixel

@@ -4,7 +4,7 @@
 //! the paper's code ran it (`aaec_paper`: RoI + momentum on a soft-percentile gradient
 //! metric) and markhold's own AAEC (`aaec`), AEC (Zhang et al. 2017, and as the AAEC
 //! paper's code ran it), GEC with Shim's constants and as the AAEC paper's code ran it,
-//! and a camera's mean-intensity AE.
+//! and a camera's mean-intensity AE. Each method is declared once, in [`METHODS`].
 
 mod aaec;
 mod aaec_paper;
@@ -14,6 +14,7 @@ mod frame;
 mod gec;
 mod gec_paper;
 mod mean;
+mod method;
 pub mod metric;
 pub mod paper_code;
 pub mod pyramid;
@@ -33,6 +34,7 @@ pub use gec_paper::{
     GecRegion, GEC_PAPER_ANCHORS,
 };
 pub use mean::{MeanAe, MeanAeConfig};
+pub use method::{ExposureMethod, MethodInfo, PaperFigures, METHODS};
 pub use metric::{soft_percentile_weights, GradientMetric, MetricParams, MetricValue, RankWeights};
 pub use paper_code::{
     code_command, code_region, EtaScaling, GateStall, PaperFrames, PaperMetric, PaperMetricEval,
@@ -71,81 +73,6 @@ pub enum ExposureError {
         file: std::path::PathBuf,
         count: usize,
     },
-}
-
-/// The exposure methods markhold can run (the columns of the paper's tables).
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize)]
-#[serde(rename_all = "lowercase")]
-pub enum ExposureMethod {
-    /// markhold's AAEC: the paper's RoI and metric with a log-domain, bracketing
-    /// optimiser and safety nets of its own (`aaec.rs`).
-    Aaec,
-    /// Adaptive Active Exposure Control as the paper's code ran it (`aaec_paper.rs`).
-    #[serde(rename = "aaec-paper")]
-    AaecPaper,
-    /// Active exposure control, Zhang, Forster & Scaramuzza 2017.
-    Aec,
-    /// AEC as the AAEC paper's code ran it (whole frame, fixed step; `aec_paper.rs`).
-    #[serde(rename = "aec-paper")]
-    AecPaper,
-    /// Gamma-based exposure control, Shim et al., with the published constants.
-    Gec,
-    /// GEC as the AAEC paper's code ran it (its anchors, score, region and Kp 1e-8).
-    #[serde(rename = "gec-paper")]
-    GecPaper,
-    /// A camera's built-in mean-intensity auto exposure ("Default" in the paper).
-    Default,
-}
-
-impl ExposureMethod {
-    pub const ALL: [ExposureMethod; 7] = [
-        Self::AaecPaper,
-        Self::Aaec,
-        Self::GecPaper,
-        Self::Gec,
-        Self::AecPaper,
-        Self::Aec,
-        Self::Default,
-    ];
-
-    /// The methods that run the paper's code (`aaec-paper`, `gec-paper`, `aec-paper`).
-    pub const PAPER_CODE: [ExposureMethod; 3] = [Self::AaecPaper, Self::GecPaper, Self::AecPaper];
-
-    pub fn as_str(self) -> &'static str {
-        match self {
-            Self::Aaec => "aaec",
-            Self::AaecPaper => "aaec-paper",
-            Self::GecPaper => "gec-paper",
-            Self::Aec => "aec",
-            Self::AecPaper => "aec-paper",
-            Self::Gec => "gec",
-            Self::Default => "default",
-        }
-    }
-}
-
-impl std::fmt::Display for ExposureMethod {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.write_str(self.as_str())
-    }
-}
-
-impl std::str::FromStr for ExposureMethod {
-    type Err = String;
-    fn from_str(s: &str) -> Result<Self, Self::Err> {
-        match s.to_ascii_lowercase().as_str() {
-            "aaec" => Ok(Self::Aaec),
-            "aaec-paper" => Ok(Self::AaecPaper),
-            "gec-paper" => Ok(Self::GecPaper),
-            "aec" => Ok(Self::Aec),
-            "aec-paper" => Ok(Self::AecPaper),
-            "gec" => Ok(Self::Gec),
-            "default" | "mean" => Ok(Self::Default),
-            other => Err(format!(
-                "unknown exposure method '{other}': expected one of aaec-paper, aaec, gec-paper, gec, aec-paper, aec, default"
-            )),
-        }
-    }
 }
 
 /// What one controller update decided.
@@ -276,65 +203,5 @@ pub fn build_controller(
     limits: ExposureLimits,
     initial_us: f64,
 ) -> Result<Box<dyn ExposureController>, ExposureError> {
-    cfg.validate()?;
-    match method {
-        ExposureMethod::Default => Ok(Box::new(MeanAe::new(
-            cfg.default.clone(),
-            limits,
-            initial_us,
-        )?)),
-        ExposureMethod::Gec => Ok(Box::new(Gec::new(cfg.gec.clone(), limits, initial_us)?)),
-        ExposureMethod::GecPaper => Ok(Box::new(GecPaper::new(
-            cfg.gec_paper.clone(),
-            limits,
-            initial_us,
-        )?)),
-        ExposureMethod::AaecPaper => {
-            let response = cfg.response.load()?;
-            Ok(Box::new(AaecPaper::new(
-                cfg.aaec_paper.clone(),
-                &response,
-                cfg.default.clone(),
-                limits,
-                initial_us,
-            )?))
-        }
-        ExposureMethod::AecPaper => {
-            let response = cfg.response.load()?;
-            Ok(Box::new(AecPaper::new(
-                cfg.aec_paper.clone(),
-                &response,
-                cfg.default.clone(),
-                limits,
-                initial_us,
-            )?))
-        }
-        ExposureMethod::Aec => {
-            let response = cfg.response.load()?;
-            Ok(Box::new(Aec::new(
-                cfg.aec.clone(),
-                &response,
-                limits,
-                initial_us,
-            )?))
-        }
-        ExposureMethod::Aaec => {
-            let response = cfg.response.load()?;
-            let fallback: Box<dyn ExposureController> = match cfg.aaec.fallback {
-                AaecFallback::Mean => {
-                    Box::new(MeanAe::new(cfg.default.clone(), limits, initial_us)?)
-                }
-                AaecFallback::Aec => {
-                    Box::new(Aec::new(cfg.aec.clone(), &response, limits, initial_us)?)
-                }
-            };
-            Ok(Box::new(Aaec::new(
-                cfg.aaec.clone(),
-                response,
-                limits,
-                initial_us,
-                fallback,
-            )?))
-        }
-    }
+    method.build(cfg, limits, initial_us)
 }

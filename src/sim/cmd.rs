@@ -52,9 +52,10 @@ pub struct HilArgs {
     /// Write a JSON summary here.
     #[arg(long)]
     pub summary: Option<PathBuf>,
-    /// Exposure method: aaec-paper, aaec, gec-paper, gec, aec-paper, aec or default (overrides the
-    /// site file).
-    #[arg(long)]
+    #[arg(long, help = format!(
+        "Exposure method: {} (overrides the site file)",
+        ExposureMethod::names(", ", " or ")
+    ))]
     pub exposure: Option<ExposureMethod>,
     /// Lighting scenario: normal, low, adversarial or caustics (overrides the site file).
     #[arg(long)]

@@ -13,7 +13,6 @@ pub mod plots;
 pub mod robustness;
 pub mod robustness_plot;
 pub mod run_plots;
-pub mod shard;
 pub mod side_by_side;
 pub mod sitl_loop;
 pub mod stats;

@@ -19,21 +19,32 @@ use plotters_backend::{
     BackendColor, BackendCoord, BackendStyle, BackendTextStyle, DrawingErrorKind,
 };
 
-use super::compare::{method_name, CompareOutput, RunKind, RunSeries};
+use super::compare::{CompareOutput, RunKind, RunSeries};
 
 const SIZE: (u32, u32) = (900, 640);
 
+/// Colours of the methods in every plot, by their place in [`ExposureMethod::ALL`]
+/// (matplotlib's tab10 colours; a method added there gets one of its own).
+const PALETTE: [RGBColor; 10] = [
+    RGBColor(255, 127, 14),
+    RGBColor(214, 39, 40),
+    RGBColor(23, 190, 207),
+    RGBColor(31, 119, 180),
+    RGBColor(188, 189, 34),
+    RGBColor(44, 160, 44),
+    RGBColor(148, 103, 189),
+    RGBColor(140, 86, 75),
+    RGBColor(227, 119, 194),
+    RGBColor(127, 127, 127),
+];
+
 /// Colour of a method in every plot.
 pub fn method_color(m: ExposureMethod) -> RGBColor {
-    match m {
-        ExposureMethod::Aaec => RGBColor(214, 39, 40),
-        ExposureMethod::AaecPaper => RGBColor(255, 127, 14),
-        ExposureMethod::Gec => RGBColor(31, 119, 180),
-        ExposureMethod::GecPaper => RGBColor(23, 190, 207),
-        ExposureMethod::Aec => RGBColor(44, 160, 44),
-        ExposureMethod::AecPaper => RGBColor(188, 189, 34),
-        ExposureMethod::Default => RGBColor(148, 103, 189),
-    }
+    let i = ExposureMethod::ALL
+        .iter()
+        .position(|&a| a == m)
+        .unwrap_or(0);
+    PALETTE[i % PALETTE.len()]
 }
 
 /// A plotters backend drawing into an 8-bit BGR OpenCV image, saved as PNG on `present`.
@@ -359,7 +370,7 @@ fn static_scatter<DB: DrawingBackend>(
                     .map(|q| Circle::new(*q, 2, c.mix(0.6).filled())),
             )
             .map_err(plot_err)?
-            .label(format!("{} ({} detections)", method_name(*m), p.len()))
+            .label(format!("{} ({} detections)", m.label(), p.len()))
             .legend(move |(x, y)| Circle::new((x, y), 4, c.filled()));
     }
     chart
@@ -429,7 +440,7 @@ fn motion_tracks<DB: DrawingBackend>(
                     .map(|q| Circle::new(q, 2, c.mix(0.7).filled())),
             )
             .map_err(plot_err)?
-            .label(format!("{} ({} detections)", method_name(r.method), n))
+            .label(format!("{} ({} detections)", r.method.label(), n))
             .legend(move |(x, y)| Circle::new((x, y), 4, c.filled()));
     }
     chart
@@ -492,7 +503,7 @@ fn exposure_time<DB: DrawingBackend>(
         if !labelled.contains(&r.method) {
             labelled.push(r.method);
             series
-                .label(method_name(r.method))
+                .label(r.method.label())
                 .legend(move |(x, y)| PathElement::new(vec![(x - 8, y), (x + 8, y)], c));
         }
     }
@@ -590,7 +601,7 @@ fn spread<DB: DrawingBackend>(
                 }
                 r.methods
                     .get(i as usize)
-                    .map_or(String::new(), |m| method_name(*m).to_string())
+                    .map_or(String::new(), |m| m.label().to_string())
             })
             .draw()
             .map_err(plot_err)?;

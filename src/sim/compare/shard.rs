@@ -17,10 +17,11 @@ use std::path::{Path, PathBuf};
 
 use anyhow::Context;
 use serde::{Deserialize, Serialize};
+use tracing::Span;
 
-use super::compare::{
-    assemble, CaseKey, CaseResult, CompareHeader, CompareOptions, CompareOutput, RunSeries,
-    RunTiming,
+use super::{
+    assemble, run_cases, CaseKey, CaseResult, CompareHeader, CompareOptions, CompareOutput,
+    RunSeries, RunTiming,
 };
 use crate::params::LoadedSite;
 
@@ -256,7 +257,7 @@ fn read_shards(dirs: &[PathBuf]) -> anyhow::Result<Vec<(PathBuf, ShardFile)>> {
 /// A shard's numbers within what a sweep can produce; the error names the field and
 /// the value.
 fn check_values(f: &ShardFile) -> Result<(), String> {
-    use super::compare::{MAX_RUN_SECONDS, MAX_SEEDS};
+    use super::{MAX_RUN_SECONDS, MAX_SEEDS};
     let bad = |field: &str, v: &dyn std::fmt::Display, want: &str| {
         Err(format!("{field} = {v}: expected {want}"))
     };
@@ -496,6 +497,43 @@ pub fn merge(dirs: &[PathBuf]) -> anyhow::Result<CompareOutput> {
         series,
         timings,
     })
+}
+
+/// `--shard I/N`: run the slice, write DIR/shard-I-of-N.json.
+pub(super) fn run_shard(
+    site: &LoadedSite,
+    opts: &CompareOptions,
+    shard: Shard,
+    dir: &std::path::Path,
+    bar: &Span,
+) -> anyhow::Result<()> {
+    let sweep = Sweep::of(site, opts)?;
+    let cases = shard.cases(opts);
+    let run = run_cases(site, opts, &cases, bar)?;
+    let first_seed = opts.seeds.first().copied();
+    let file = ShardFile {
+        format: FORMAT,
+        shard,
+        sweep,
+        cases: run.cases,
+        series: run
+            .series
+            .into_iter()
+            .filter(|s| Some(s.seed) == first_seed)
+            .collect(),
+        timings: run.timings,
+    };
+    let path = write_shard(dir, &file)?;
+    crate::outln!(
+        "markhold compare --shard {shard}: {} of {} cases ({} runs of {} s) on {}; wrote {}",
+        cases.len(),
+        opts.cases().len(),
+        5 * cases.len(),
+        opts.seconds,
+        site.site.site.name,
+        path.display()
+    );
+    Ok(())
 }
 
 #[cfg(test)]
