@@ -12,7 +12,7 @@ use crate::pose::{
     refine_pose, refine_pose_joint, unweighted_gain, whitening, MarkerCorners, RefinedPose,
 };
 use crate::{CameraCalibration, VisionError};
-use markhold_exposure::{Corners, Frame, Roi};
+use markhold_camera::{Corners, Frame, Roi};
 use nalgebra::{
     Isometry3, Matrix6, Point3, SMatrix, Translation3, UnitQuaternion, Vector2, Vector3, Vector6,
 };
