@@ -317,3 +317,32 @@ pub trait Camera {
         0
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_view_over_too_short_a_buffer_is_refused_with_the_sizes() {
+        let data = [0u8; 11];
+        let e = ImageView::new(4, 3, &data).expect_err("11 bytes < 4x3");
+        assert!(
+            matches!(
+                e,
+                CameraError::BufferTooSmall {
+                    width: 4,
+                    height: 3,
+                    len: 11
+                }
+            ),
+            "{e}"
+        );
+        assert_eq!(
+            e.to_string(),
+            "image buffer of 11 bytes is too small for 4x3"
+        );
+        let v = ImageView::new(4, 3, &[7u8; 12]).expect("12 bytes hold 4x3");
+        assert_eq!((v.width, v.height, v.stride), (4, 3, 4));
+        assert_eq!(v.row(2), &[7, 7, 7, 7]);
+    }
+}

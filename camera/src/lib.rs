@@ -5,8 +5,8 @@
 //! - [`Camera`]: the seam every frame source implements (grab into a caller-owned frame,
 //!   command the exposure within [`ExposureLimits`]); [`CameraError`] the errors.
 //! - Backends, one module each, behind the feature that brings their system library:
-//!   [`frames`] (recorded folders) and [`v4l2`] through OpenCV (`opencv`), [`genicam`]
-//!   through Aravis (`genicam`).
+//!   `frames` (recorded folders) and `v4l2` through OpenCV (feature `opencv`), `genicam`
+//!   through Aravis (feature `genicam`).
 
 mod frame;
 
