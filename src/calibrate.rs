@@ -8,12 +8,11 @@ use std::path::{Path, PathBuf};
 use std::str::FromStr;
 
 use anyhow::{bail, ensure, Context as _};
+use markhold_camera::RecordedCamera;
 use markhold_exposure::{Camera, CameraError, Frame};
 use markhold_vision::calibration::board::{read_image, BoardDetector, GridMarker, Target};
 use markhold_vision::calibration::{self, coverage, Calibration, CalibrationSettings, View};
-use markhold_vision::{
-    CalibrationNotes, CameraCalibration, DistortionModel, MarkerFamily, RecordedCamera,
-};
+use markhold_vision::{CalibrationNotes, CameraCalibration, DistortionModel, MarkerFamily};
 use nalgebra::{Point3, Vector2};
 
 /// Columns x rows, as `5x7`.
@@ -520,7 +519,7 @@ fn read_source(
 
 /// A recorded-frames folder (frames.csv), else every image file in name order.
 fn read_folder(dir: &Path, every: u64, sel: &mut Selector) -> anyhow::Result<()> {
-    if dir.join(markhold_vision::SIDECAR).is_file() {
+    if dir.join(markhold_camera::SIDECAR).is_file() {
         let mut cam = RecordedCamera::open(dir)?;
         let mut frame = Frame::new(0, 0);
         let mut i = 0u64;

@@ -6,9 +6,10 @@ use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
 
 use anyhow::Context as _;
+use markhold_camera::RecordedCamera;
 use markhold_exposure::{Camera, CameraError, Frame};
 use markhold_vision::mapping::{IntrinsicsMode, MapBuilder, MapEstimate, MapSettings};
-use markhold_vision::{CalibrationNotes, CameraCalibration, MarkerTracker, RecordedCamera};
+use markhold_vision::{CalibrationNotes, CameraCalibration, MarkerTracker};
 
 use crate::params::LoadedSite;
 

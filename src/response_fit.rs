@@ -152,7 +152,7 @@ pub fn fit_polynomial(frames: &[Frame], degree: usize) -> anyhow::Result<Respons
 /// Frames of a `frames:` folder (PNG files and `frames.csv` with each frame's exposure).
 pub fn frames_of_folder(dir: &std::path::Path) -> anyhow::Result<Vec<Frame>> {
     use markhold_exposure::Camera;
-    let mut cam = markhold_vision::RecordedCamera::open(dir)
+    let mut cam = markhold_camera::RecordedCamera::open(dir)
         .with_context(|| format!("reading frames folder {}", dir.display()))?;
     let mut out = Vec::with_capacity(cam.len());
     for _ in 0..cam.len() {

@@ -7,10 +7,11 @@
 use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
 
+use markhold_camera::FrameRecorder;
 use markhold_exposure::Frame;
 use markhold_vision::calibration::board::{read_image, BoardDetector, Target};
 use markhold_vision::synth::{render_markers, SceneParams};
-use markhold_vision::{marker_bitmap, CameraCalibration, FrameRecorder, MarkerFamily};
+use markhold_vision::{marker_bitmap, CameraCalibration, MarkerFamily};
 use nalgebra::{Isometry3, Matrix3, Rotation3, Translation3, UnitQuaternion, Vector3};
 use opencv::{aruco, core, imgcodecs, prelude::*};
 
@@ -430,7 +431,7 @@ mod hil {
                 "--snapshot-every",
                 &every.to_string(),
             ]));
-            let mut cam = markhold_vision::RecordedCamera::open(&snap).unwrap();
+            let mut cam = markhold_camera::RecordedCamera::open(&snap).unwrap();
             let mut frame = Frame::new(0, 0);
             while markhold_exposure::Camera::grab(&mut cam, &mut frame).is_ok() {
                 frame.meta.seq = n;

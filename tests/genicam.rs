@@ -19,12 +19,12 @@ use std::sync::{Mutex, MutexGuard};
 use std::time::{Duration, Instant};
 
 use common::{markhold, site_path, station_rig, tmp_path, RealTimeVehicle};
-use markhold::field::camera::genicam::{
-    use_fake_interface, ExposureSource, GenicamCamera, GenicamConfig, GenicamError,
-};
 use markhold::params;
 use markhold::record::{FrameMsg, TOPIC_COMMAND, TOPIC_FRAME};
-use markhold_exposure::{Camera, ExposureLimits, Frame};
+use markhold_camera::genicam::{
+    use_fake_interface, ExposureSource, GenicamCamera, GenicamConfig, GenicamError,
+};
+use markhold_camera::{Camera, ExposureLimits, Frame};
 
 const FAKE_GV: &str = "arv-fake-gv-camera-0.8";
 const GVCP: (&str, u16) = ("127.0.0.1", 3956);

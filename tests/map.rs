@@ -10,9 +10,10 @@
 use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
 
+use markhold_camera::FrameRecorder;
 use markhold_exposure::Frame;
 use markhold_vision::synth::{render_markers, SceneParams};
-use markhold_vision::{marker_bitmap, CameraCalibration, FrameRecorder, MarkerConfig};
+use markhold_vision::{marker_bitmap, CameraCalibration, MarkerConfig};
 use nalgebra::{Isometry3, Matrix3, Rotation3, Translation3, UnitQuaternion, Vector3};
 
 fn fixture() -> PathBuf {

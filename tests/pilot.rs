@@ -1057,7 +1057,7 @@ fn every_sigterm_leaves_neutral_applied() {
         let mut rig = rig_at(&site, start, 5, false);
         markhold_exposure::Camera::set_exposure_us(&mut rig, 3000.0).unwrap();
         let dir = tmp("frames-off-station");
-        let mut rec = markhold_vision::FrameRecorder::create(&dir).unwrap();
+        let mut rec = markhold_camera::FrameRecorder::create(&dir).unwrap();
         let mut f = markhold_exposure::Frame::default();
         for _ in 0..150 {
             markhold_exposure::Camera::grab(&mut rig, &mut f).unwrap();

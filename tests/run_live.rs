@@ -16,8 +16,8 @@ use common::{
     markhold, site_path, station_frames, station_rig, tmp_path, ws_read_frame, RealTimeVehicle,
 };
 use markhold::record::{CommandMsg, TOPIC_COMMAND};
+use markhold_camera::FrameRecorder;
 use markhold_exposure::{Camera, Frame};
-use markhold_vision::FrameRecorder;
 
 fn tmp(name: &str) -> PathBuf {
     tmp_path("run", name)

@@ -1,4 +1,4 @@
-//! markhold-exposure: frames, the camera seam, and exposure controllers.
+//! markhold-exposure: exposure controllers over the frames of markhold-camera.
 //!
 //! Pure Rust, no OpenCV. The controllers follow `docs/reference/exposure-spec.md`: AAEC as
 //! the paper's code ran it (`aaec_paper`: RoI + momentum on a soft-percentile gradient
@@ -10,7 +10,6 @@ mod aaec;
 mod aaec_paper;
 mod aec;
 mod aec_paper;
-mod frame;
 mod gec;
 mod gec_paper;
 mod mean;
@@ -25,7 +24,6 @@ pub use aaec::{Aaec, AaecConfig, AaecFallback, MarkerRegions, StepLaw};
 pub use aaec_paper::{AaecPaper, AaecPaperConfig, LawStep, PaperGate, PaperMomentum};
 pub use aec::{Aec, AecConfig};
 pub use aec_paper::{AecPaper, AecPaperConfig};
-pub use frame::{Camera, CameraError, Corners, ExposureLimits, Frame, FrameMeta, ImageView, Roi};
 pub use gec::{
     best_gamma, fit_quintic, fit_quintic_points, gec_ratio, Gec, GecConfig, GecScorer, GEC_GAMMAS,
 };
@@ -41,6 +39,10 @@ pub use paper_code::{
     PaperMetricParams, PaperMetricValue, PaperResponse, PreDetection,
 };
 pub use response::{Response, ResponseModel, PAPER_CODE_G_PRIME};
+// Frames and the camera seam live in markhold-camera; re-exported for the controllers' users.
+pub use markhold_camera::{
+    Camera, CameraError, Corners, ExposureLimits, Frame, FrameMeta, ImageView, Roi,
+};
 
 pub use markhold_config::ConfigError;
 use serde::{Deserialize, Serialize};
@@ -50,12 +52,6 @@ use serde::{Deserialize, Serialize};
 pub enum ExposureError {
     #[error(transparent)]
     Config(#[from] ConfigError),
-    #[error("image buffer of {len} bytes is too small for {width}x{height}")]
-    BufferTooSmall {
-        width: usize,
-        height: usize,
-        len: usize,
-    },
     #[error("camera response table {}: cannot read: {source}", file.display())]
     ResponseIo {
         file: std::path::PathBuf,

@@ -5,7 +5,7 @@
 use std::path::{Path, PathBuf};
 
 use anyhow::Context;
-use markhold_vision::FrameRecorder;
+use markhold_camera::FrameRecorder;
 
 use crate::pipeline::{FrameView, Observer};
 

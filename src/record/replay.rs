@@ -207,7 +207,7 @@ pub fn read_run_info(path: &Path, buf: &[u8]) -> anyhow::Result<(RunInfo, Loaded
 /// A recorded PNG or JPEG into `out`, which has the recorded site's size.
 pub(crate) fn decode_image(encoded: &[u8], out: &mut Frame) -> anyhow::Result<()> {
     // The size the header states, before a decoder allocates it.
-    markhold_vision::check_encoded_size(encoded, Some((out.width, out.height)))
+    markhold_camera::check_encoded_size(encoded, Some((out.width, out.height)))
         .map_err(anyhow::Error::msg)?;
     let buf = opencv::core::Mat::from_slice(encoded)?;
     let img = opencv::imgcodecs::imdecode(&buf, opencv::imgcodecs::IMREAD_UNCHANGED)?;

@@ -83,7 +83,7 @@ pub fn station_rig(lock_step: bool) -> HilRig {
 pub fn station_frames(dir: PathBuf, n: usize) -> PathBuf {
     let mut rig = station_rig(false);
     rig.set_exposure_us(3000.0).unwrap();
-    let mut rec = markhold_vision::FrameRecorder::create(&dir).unwrap();
+    let mut rec = markhold_camera::FrameRecorder::create(&dir).unwrap();
     let mut f = Frame::default();
     for _ in 0..n {
         rig.grab(&mut f).unwrap();

@@ -5,7 +5,7 @@
 #![allow(clippy::unwrap_used)] // A benchmark's setup fails loudly when broken, by design.
 
 use criterion::{criterion_group, criterion_main, BenchmarkId, Criterion, Throughput};
-use markhold_exposure::Frame;
+use markhold_camera::Frame;
 use markhold_vision::synth::{render_marker, render_markers, SceneParams};
 use markhold_vision::{
     marker_bitmap, CameraCalibration, DetectorConfig, MapMarker, MarkerConfig, MarkerFamily,

@@ -19,7 +19,7 @@
 //! of the side's points that clip ([`ClipModel`]).
 
 use crate::CameraCalibration;
-use markhold_exposure::{Corners, ImageView};
+use markhold_camera::{Corners, ImageView};
 use nalgebra::{Matrix2, SMatrix, Vector2};
 
 /// 8x8 covariance of (u0, v0, u1, v1, ...), pixels^2.
@@ -607,7 +607,7 @@ mod tests {
     use super::*;
     use crate::synth::{render_marker, SceneParams};
     use crate::{marker_bitmap, MarkerFamily};
-    use markhold_exposure::Frame;
+    use markhold_camera::Frame;
     use nalgebra::{Isometry3, Vector3};
 
     #[test]

@@ -22,12 +22,6 @@ pub enum VisionError {
         #[source]
         source: std::io::Error,
     },
-    #[error("{path}, line {line}: {reason}")]
-    Recording {
-        path: PathBuf,
-        line: usize,
-        reason: String,
-    },
     #[error("frame is {width}x{height} but {what} expects {expected_width}x{expected_height}")]
     FrameSize {
         what: &'static str,
@@ -55,7 +49,7 @@ pub enum VisionError {
     #[error("calibration refused: {reason}")]
     CalibrationRefused { reason: String },
     #[error(transparent)]
-    Camera(#[from] markhold_exposure::CameraError),
+    Camera(#[from] markhold_camera::CameraError),
 }
 
 /// Attach the name of the OpenCV operation to its error.

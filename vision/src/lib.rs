@@ -14,7 +14,6 @@
 
 mod calib;
 pub mod calibration;
-mod camera;
 mod config;
 mod corners;
 mod dict;
@@ -27,10 +26,6 @@ mod tracker;
 mod yaml;
 
 pub use calib::{CalibrationNotes, CalibrationSource, CameraCalibration};
-pub use camera::{
-    check_encoded_size, encoded_image_size, FrameRecorder, RecordedCamera, V4l2Camera,
-    MAX_IMAGE_SIDE, SIDECAR,
-};
 pub use config::{
     DetectorConfig, MapMarker, MarkerConfig, MarkerFamily, PlacedMarker, MAX_MAP_MARKERS,
 };

@@ -26,7 +26,7 @@ use crate::calibration::solve::Param;
 use crate::config::MarkerConfig;
 use crate::{CameraCalibration, MarkerTracker, VisionError};
 use adjust::Adjustment;
-use markhold_exposure::Frame;
+use markhold_camera::Frame;
 use nalgebra::{Isometry3, Matrix6, SMatrix, Vector2};
 pub use planes::PlaneReport;
 

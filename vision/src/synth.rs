@@ -4,7 +4,7 @@
 //! add their own.
 
 use crate::{CameraCalibration, MarkerBitmap};
-use markhold_exposure::Frame;
+use markhold_camera::Frame;
 use nalgebra::{Isometry3, Point3, Vector3};
 
 /// Grey levels and geometry of the scene.

@@ -12,7 +12,7 @@ use crate::pose::{
     unweighted_gain, whitening, MarkerCorners, RefinedPose,
 };
 use crate::{CameraCalibration, VisionError};
-use markhold_exposure::{Corners, Frame, Roi};
+use markhold_camera::{Corners, Frame, Roi};
 use markhold_geometry::{cov_of_inverse, cov_through};
 use nalgebra::{
     Isometry3, Matrix6, Point3, SMatrix, Translation3, UnitQuaternion, Vector2, Vector3, Vector6,

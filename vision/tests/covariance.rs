@@ -4,7 +4,7 @@
 mod common;
 
 use common::*;
-use markhold_exposure::Frame;
+use markhold_camera::Frame;
 use markhold_vision::pose::{isotropic_corner_cov, marker_object_points, refine_pose};
 use markhold_vision::synth::{render_marker, SceneParams};
 use markhold_vision::{CameraCalibration, DetectorConfig, MarkerTracker};

@@ -8,7 +8,7 @@
 mod common;
 
 use common::*;
-use markhold_exposure::Frame;
+use markhold_camera::Frame;
 use markhold_vision::synth::{render_markers, SceneParams};
 use markhold_vision::{
     marker_bitmap, DetectorConfig, MapMarker, MarkerConfig, MarkerFamily, MarkerTracker,

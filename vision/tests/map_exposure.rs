@@ -9,9 +9,8 @@
 mod common;
 
 use common::*;
-use markhold_exposure::{
-    build_controller, Corners, ExposureConfig, ExposureLimits, ExposureMethod, Frame, MarkerRegions,
-};
+use markhold_camera::{Corners, ExposureLimits, Frame};
+use markhold_exposure::{build_controller, ExposureConfig, ExposureMethod, MarkerRegions};
 use markhold_vision::synth::{render_markers, SceneParams};
 use markhold_vision::{
     marker_bitmap, DetectorConfig, MapMarker, MarkerConfig, MarkerFamily, MarkerTracker,

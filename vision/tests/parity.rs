@@ -11,11 +11,9 @@
 mod common;
 
 use common::*;
-use markhold_exposure::{Camera, Frame};
+use markhold_camera::{Camera, Frame, FrameRecorder, RecordedCamera};
 use markhold_vision::synth::{render_marker, SceneParams};
-use markhold_vision::{
-    CameraCalibration, DetectorConfig, FrameRecorder, MarkerTracker, RecordedCamera,
-};
+use markhold_vision::{CameraCalibration, DetectorConfig, MarkerTracker};
 use nalgebra::Isometry3;
 use rand::SeedableRng;
 use std::path::{Path, PathBuf};

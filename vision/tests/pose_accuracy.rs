@@ -6,7 +6,7 @@
 mod common;
 
 use common::*;
-use markhold_exposure::Frame;
+use markhold_camera::Frame;
 use markhold_vision::{DetectorConfig, MarkerTracker};
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;

@@ -4,7 +4,7 @@
 mod common;
 
 use common::*;
-use markhold_exposure::Frame;
+use markhold_camera::Frame;
 use markhold_vision::synth::{render_marker, SceneParams};
 use markhold_vision::{CameraCalibration, DetectorConfig, MarkerTracker, Tracked};
 use nalgebra::Isometry3;
@@ -51,7 +51,7 @@ fn render(
 }
 
 /// Area of the corners' bounding box, pixels.
-fn roi_area_of(c: &markhold_exposure::Corners) -> u64 {
+fn roi_area_of(c: &markhold_camera::Corners) -> u64 {
     let xs = c.iter().map(|p| p[0]);
     let ys = c.iter().map(|p| p[1]);
     let w = xs.clone().fold(f32::MIN, f32::max) - xs.fold(f32::MAX, f32::min);

@@ -1,13 +1,14 @@
-//! Where a live run's frames come from: the `--camera` URL, and the real cameras that
-//! need this crate's dependencies (GenICam through Aravis). Cameras that OpenCV reads
-//! (V4L2, recorded frames) live in `markhold-vision`.
+//! Where a live run's frames come from: the `--camera` URL, and the stream cameras with
+//! their control channel. Recorded frames, V4L2 and GenICam cameras live in
+//! `markhold-camera`.
 
 use std::path::PathBuf;
 use std::str::FromStr;
 use std::time::{Duration, Instant};
 
-use markhold_exposure::{Camera, CameraError, ExposureLimits, Frame};
-use markhold_vision::{RecordedCamera, V4l2Camera};
+#[cfg(feature = "genicam")]
+use markhold_camera::genicam;
+use markhold_camera::{Camera, CameraError, ExposureLimits, Frame, RecordedCamera, V4l2Camera};
 
 use super::run::StartupError;
 use super::signal::ShutdownFlag;
@@ -15,8 +16,6 @@ use crate::params::{ControlExposure, LoadedSite};
 
 pub mod attribution;
 pub mod control;
-#[cfg(feature = "genicam")]
-pub mod genicam;
 pub mod http;
 pub mod rtsp_guard;
 pub mod stream;

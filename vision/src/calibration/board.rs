@@ -14,7 +14,7 @@
 //! Target coordinates: metres in the target's plane (z = 0). A marker grid uses the site
 //! frame's convention (x right, y up as printed); OpenCV's boards use theirs.
 
-use markhold_exposure::{Corners, Frame};
+use markhold_camera::{Corners, Frame};
 use nalgebra::{Point3, Vector2};
 use opencv::{aruco, calib3d, core, imgproc, prelude::*};
 

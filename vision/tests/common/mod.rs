@@ -4,7 +4,7 @@
 #![allow(clippy::unwrap_used)] // Tests fail loudly on a broken setup, by design.
 #![allow(dead_code)]
 
-use markhold_exposure::Frame;
+use markhold_camera::Frame;
 use markhold_vision::synth::{render_marker, SceneParams};
 use markhold_vision::{marker_bitmap, CameraCalibration, MarkerBitmap, MarkerConfig, MarkerFamily};
 use nalgebra::{Isometry3, Translation3, UnitQuaternion, Vector3};

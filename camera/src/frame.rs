@@ -1,10 +1,10 @@
-//! Frames, regions of interest and the camera seam.
+//! Frames, regions of interest, exposure limits and the camera seam.
 //!
 //! A [`Frame`] owns its pixel buffer so that a camera can fill the same frame every
 //! tick without allocating; [`FrameMeta`] carries what the frame was really taken
 //! with (a camera applies a new exposure 1-3 frames late).
 
-use crate::ExposureError;
+use std::path::PathBuf;
 
 /// What a frame was taken with and when.
 #[derive(Debug, Clone, Copy, PartialEq, Default, serde::Serialize, serde::Deserialize)]
@@ -84,9 +84,9 @@ pub struct ImageView<'a> {
 
 impl<'a> ImageView<'a> {
     /// A view over packed rows; errors if the buffer is too short.
-    pub fn new(width: usize, height: usize, data: &'a [u8]) -> Result<Self, ExposureError> {
+    pub fn new(width: usize, height: usize, data: &'a [u8]) -> Result<Self, CameraError> {
         if data.len() < width * height {
-            return Err(ExposureError::BufferTooSmall {
+            return Err(CameraError::BufferTooSmall {
                 width,
                 height,
                 len: data.len(),
@@ -242,7 +242,8 @@ impl ExposureLimits {
     }
 }
 
-/// Errors a camera reports. Named fields say which device and what went wrong.
+/// Errors of this crate: what a camera reports (named fields say which device and what
+/// went wrong), a recording folder's file and line, an image buffer too small.
 #[derive(Debug, thiserror::Error)]
 pub enum CameraError {
     #[error("camera {device}: not found or cannot be opened: {reason}")]
@@ -261,6 +262,39 @@ pub enum CameraError {
     },
     #[error("camera {device}: no more frames")]
     EndOfStream { device: String },
+    #[error("image buffer of {len} bytes is too small for {width}x{height}")]
+    BufferTooSmall {
+        width: usize,
+        height: usize,
+        len: usize,
+    },
+    #[error("{path}: {source}")]
+    Io {
+        path: PathBuf,
+        #[source]
+        source: std::io::Error,
+    },
+    #[error("{path}, line {line}: {reason}")]
+    Recording {
+        path: PathBuf,
+        line: usize,
+        reason: String,
+    },
+    #[error("frame is {width}x{height} but {what} expects {expected_width}x{expected_height}")]
+    FrameSize {
+        what: &'static str,
+        width: u32,
+        height: u32,
+        expected_width: u32,
+        expected_height: u32,
+    },
+    #[cfg(feature = "opencv")]
+    #[error("OpenCV {op}: {source}")]
+    OpenCv {
+        op: &'static str,
+        #[source]
+        source: opencv::Error,
+    },
 }
 
 /// A source of frames whose exposure time can be commanded.
@@ -281,5 +315,34 @@ pub trait Camera {
     /// every frame say 0.
     fn frames_passed_over(&self) -> u64 {
         0
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_view_over_too_short_a_buffer_is_refused_with_the_sizes() {
+        let data = [0u8; 11];
+        let e = ImageView::new(4, 3, &data).expect_err("11 bytes < 4x3");
+        assert!(
+            matches!(
+                e,
+                CameraError::BufferTooSmall {
+                    width: 4,
+                    height: 3,
+                    len: 11
+                }
+            ),
+            "{e}"
+        );
+        assert_eq!(
+            e.to_string(),
+            "image buffer of 11 bytes is too small for 4x3"
+        );
+        let v = ImageView::new(4, 3, &[7u8; 12]).expect("12 bytes hold 4x3");
+        assert_eq!((v.width, v.height, v.stride), (4, 3, 4));
+        assert_eq!(v.row(2), &[7, 7, 7, 7]);
     }
 }

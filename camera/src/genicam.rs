@@ -17,11 +17,11 @@
 
 use std::ffi::CStr;
 
+use crate::{Camera, CameraError, ExposureLimits, Frame, FrameMeta};
 use aravis::glib;
 use aravis::prelude::*;
 use aravis::{Auto, Buffer, BufferStatus, Camera as ArvCamera, ChunkParser, PixelFormat, Stream};
 use glib::object::ObjectType;
-use markhold_exposure::{Camera, CameraError, ExposureLimits, Frame, FrameMeta};
 use opencv::{core, imgproc, prelude::*};
 
 /// Buffers queued on the stream: one being filled, one being read, two spare.
