@@ -2,13 +2,15 @@
 //! pages come from the same clap definitions the command line parses with.
 #![allow(clippy::unwrap_used)] // Tests fail loudly on a broken setup, by design.
 
-use std::process::{Command, Output, Stdio};
+use std::process::{Output, Stdio};
 use std::time::{Duration, Instant};
+
+use crate::common::{markhold, repo, tmp_path};
 
 /// Runs markhold with `args`, killed after 30 s; its output (read on other threads, so
 /// a long script never blocks the child on a full pipe).
-fn markhold(args: &[&str]) -> Output {
-    let mut child = Command::new(env!("CARGO_BIN_EXE_markhold"))
+fn run_bounded(args: &[&str]) -> Output {
+    let mut child = markhold()
         .args(args)
         .stdout(Stdio::piped())
         .stderr(Stdio::piped())
@@ -45,7 +47,7 @@ fn markhold(args: &[&str]) -> Output {
 
 /// The subcommands `markhold --help` lists (the build's own: with or without `sim`).
 fn subcommands() -> Vec<String> {
-    let help = String::from_utf8(markhold(&["--help"]).stdout).unwrap();
+    let help = String::from_utf8(run_bounded(&["--help"]).stdout).unwrap();
     let list = help
         .split("Commands:")
         .nth(1)
@@ -65,7 +67,7 @@ fn subcommands() -> Vec<String> {
 
 #[test]
 fn bash_completion_mentions_every_subcommand() {
-    let script = String::from_utf8(markhold(&["completions", "bash"]).stdout).unwrap();
+    let script = String::from_utf8(run_bounded(&["completions", "bash"]).stdout).unwrap();
     assert!(
         script.contains("complete -F _markhold"),
         "not a bash script"
@@ -75,7 +77,7 @@ fn bash_completion_mentions_every_subcommand() {
     }
     assert!(script.contains("--site") && script.contains("--link"));
     for shell in ["zsh", "fish", "elvish", "powershell"] {
-        let s = markhold(&["completions", shell]).stdout;
+        let s = run_bounded(&["completions", shell]).stdout;
         assert!(
             String::from_utf8(s).unwrap().contains("markhold"),
             "{shell}"
@@ -85,7 +87,7 @@ fn bash_completion_mentions_every_subcommand() {
 
 #[test]
 fn man_page_renders_the_subcommands_and_flags() {
-    let page = String::from_utf8(markhold(&["man"]).stdout).unwrap();
+    let page = String::from_utf8(run_bounded(&["man"]).stdout).unwrap();
     assert!(page.contains(".TH markhold 1"), "{page}");
     assert!(page.contains(".SH SUBCOMMANDS"));
     for sub in subcommands() {
@@ -96,10 +98,9 @@ fn man_page_renders_the_subcommands_and_flags() {
         );
     }
 
-    let dir = std::env::temp_dir().join(format!("markhold-man-{}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&dir);
+    let dir = tmp_path("cli-docs", "man");
     let listed =
-        String::from_utf8(markhold(&["man", "--out", dir.to_str().unwrap()]).stdout).unwrap();
+        String::from_utf8(run_bounded(&["man", "--out", dir.to_str().unwrap()]).stdout).unwrap();
     assert!(listed.contains("markhold.1"), "{listed}");
     for sub in subcommands() {
         assert!(
@@ -114,19 +115,14 @@ fn man_page_renders_the_subcommands_and_flags() {
     let _ = std::fs::remove_dir_all(&dir);
 }
 
-/// The repository's root (this package's manifest directory).
-fn repo() -> std::path::PathBuf {
-    std::path::PathBuf::from(env!("CARGO_MANIFEST_DIR"))
-}
-
 /// docs/commands.md is what `markhold docs` generates from the command line's definitions
 /// (the default build, with the simulation commands): a flag added, renamed or described
 /// differently without regenerating the file fails here.
 #[cfg(feature = "sim")]
 #[test]
 fn commands_md_is_what_the_cli_generates() {
-    let generated = String::from_utf8(markhold(&["docs"]).stdout).unwrap();
-    let path = repo().join("docs/commands.md");
+    let generated = String::from_utf8(run_bounded(&["docs"]).stdout).unwrap();
+    let path = repo("").join("docs/commands.md");
     let file = std::fs::read_to_string(&path).unwrap_or_default();
     assert!(
         generated.contains("## markhold hil\n") && generated.contains("--site <SITE>"),
@@ -150,7 +146,7 @@ fn commands_md_is_what_the_cli_generates() {
 /// The Markdown files a reader follows links through: README.md, CONTRIBUTING.md, each
 /// crate's README.md and everything under docs/.
 fn documents() -> Vec<std::path::PathBuf> {
-    let root = repo();
+    let root = repo("");
     let mut files = vec![root.join("README.md"), root.join("CONTRIBUTING.md")];
     for entry in std::fs::read_dir(&root).unwrap() {
         let dir = entry.unwrap().path();
@@ -230,7 +226,7 @@ fn every_relative_link_in_the_documents_resolves() {
             }
             checked += 1;
             let resolved = if let Some(abs) = file.strip_prefix('/') {
-                repo().join(abs)
+                repo("").join(abs)
             } else {
                 doc.parent().unwrap().join(file)
             };

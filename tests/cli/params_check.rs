@@ -3,15 +3,12 @@
 //! with snapshots in tests/snapshots/params/ (refresh: UPDATE_SNAPSHOTS=1 cargo test).
 #![allow(clippy::unwrap_used)] // Tests fail loudly on a broken setup, by design.
 
-use std::path::{Path, PathBuf};
-use std::process::Command;
+use std::path::Path;
 
-fn repo(p: &str) -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR")).join(p)
-}
+use crate::common::{markhold, repo, tmp_dir, tmp_path};
 
 fn check(path: &Path) -> (i32, String, String) {
-    let o = Command::new(env!("CARGO_BIN_EXE_markhold"))
+    let o = markhold()
         .args(["params", "check"])
         .arg(path)
         .output()
@@ -48,12 +45,11 @@ fn every_shipped_site_is_valid() {
 
 /// Apply `edit` to pool.toml, check it, and compare the message with its snapshot.
 fn bad_case(name: &str, edit: impl Fn(&str) -> String) {
-    let dir = std::env::temp_dir().join(format!("markhold-params-{}", std::process::id()));
-    std::fs::create_dir_all(&dir).unwrap();
     let pool = std::fs::read_to_string(repo("params/pool.toml")).unwrap();
     let text = edit(&pool);
     assert_ne!(text, pool, "{name}: the edit changed nothing");
-    let path = dir.join(format!("{name}.toml"));
+    let path = tmp_path("params", &format!("{name}.toml"));
+    let dir = path.parent().unwrap();
     std::fs::write(&path, &text).unwrap();
     let (code, _, err) = check(&path);
     assert_eq!(code, 78, "{name}: {err}");
@@ -154,8 +150,7 @@ fn missing_file() {
 /// distortion, not the inline ones or their defaults.
 #[test]
 fn effective_values_come_from_the_calibration_file() {
-    let dir = std::env::temp_dir().join(format!("markhold-params-cal-{}", std::process::id()));
-    std::fs::create_dir_all(&dir).unwrap();
+    let dir = tmp_dir("params", "cal");
     std::fs::write(
         dir.join("ost.yaml"),
         "image_width: 1440\nimage_height: 1080\ncamera_name: cam\ncamera_matrix:\n  rows: 3\n  \
@@ -194,8 +189,7 @@ fn effective_values_come_from_the_calibration_file() {
 /// Errors point at the value's line and column, also inside an inline table.
 #[test]
 fn an_error_names_line_and_column_inside_an_inline_table() {
-    let dir = std::env::temp_dir().join(format!("markhold-params-col-{}", std::process::id()));
-    std::fs::create_dir_all(&dir).unwrap();
+    let dir = tmp_dir("params", "col");
     let pool = std::fs::read_to_string(repo("params/pool.toml")).unwrap();
     let text = pool.replacen(
         "[camera]\n",
@@ -264,8 +258,7 @@ fn marker_map_with_a_bad_pose() {
 
 #[test]
 fn params_check_lists_the_marker_map() {
-    let dir = std::env::temp_dir().join(format!("markhold-map-{}", std::process::id()));
-    std::fs::create_dir_all(&dir).unwrap();
+    let dir = tmp_dir("params", "map");
     let pool = std::fs::read_to_string(repo("params/pool.toml")).unwrap();
     let path = dir.join("map.toml");
     std::fs::write(&path, with_map(&pool, 2, "[0.0, 30.0, 0.0]")).unwrap();

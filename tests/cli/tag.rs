@@ -3,22 +3,15 @@
 #![allow(clippy::unwrap_used)] // Tests fail loudly on a broken setup, by design.
 
 use std::path::{Path, PathBuf};
-use std::process::Command;
 
-fn repo(p: &str) -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR")).join(p)
-}
+use crate::common::{markhold, repo, tmp_path};
 
 fn scratch(name: &str) -> PathBuf {
-    let dir = std::env::temp_dir().join(format!("markhold-tag-{}", std::process::id()));
-    std::fs::create_dir_all(&dir).unwrap();
-    let p = dir.join(name);
-    let _ = std::fs::remove_file(&p);
-    p
+    tmp_path("tag", name)
 }
 
 fn tag(args: &[&str]) -> (i32, String, String) {
-    let o = Command::new(env!("CARGO_BIN_EXE_markhold"))
+    let o = markhold()
         .arg("tag")
         .args(args)
         .output()

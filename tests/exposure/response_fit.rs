@@ -3,17 +3,11 @@
 #![cfg(feature = "sim")]
 #![allow(clippy::unwrap_used)] // Tests fail loudly on a broken setup, by design.
 
-use std::path::Path;
-use std::process::Command;
-
-fn markhold() -> Command {
-    Command::new(env!("CARGO_BIN_EXE_markhold"))
-}
+use crate::common::{markhold, site_path, tmp_dir};
 
 #[test]
 fn fitted_line_makes_a_valid_site() {
-    let repo = Path::new(env!("CARGO_MANIFEST_DIR"));
-    let fixture = repo.join("tests/fixtures/pool-640.toml");
+    let fixture = site_path();
     let o = markhold()
         .args(["response", "fit", "--degree", "4", "--steps", "8", "--site"])
         .arg(&fixture)
@@ -29,8 +23,7 @@ fn fitted_line_makes_a_valid_site() {
         .lines()
         .find(|l| l.starts_with("response = { model = \"polynomial\""))
         .unwrap_or_else(|| panic!("no response line in\n{out}"));
-    let dir = Path::new(env!("CARGO_TARGET_TMPDIR")).join("response-fit");
-    std::fs::create_dir_all(&dir).unwrap();
+    let dir = tmp_dir("response-fit", "site");
     let site = dir.join("pool-640-fitted.toml");
     let text = std::fs::read_to_string(&fixture).unwrap();
     std::fs::write(

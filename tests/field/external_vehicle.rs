@@ -5,19 +5,16 @@
 #![cfg(feature = "sim")]
 #![allow(clippy::unwrap_used)] // Tests fail loudly on a broken setup, by design.
 
-mod common;
+use crate::common;
 
-use common::{markhold, rig_at, RealTimeVehicle};
+use common::{markhold, rig_at, tmp_path, RealTimeVehicle};
 use markhold::params;
 use markhold::sim::hil::start_offset;
 
 #[test]
 fn holds_station_on_an_external_vehicle() {
     // The site's exit policy is the same as `run`'s: here `disarm`.
-    let site_path = std::env::temp_dir().join(format!(
-        "markhold-external-site-{}.toml",
-        std::process::id()
-    ));
+    let site_path = tmp_path("external", "site.toml");
     let text = std::fs::read_to_string(common::site_path())
         .unwrap()
         .replacen("[link]\n", "[link]\non_exit = \"disarm\"\n", 1);
@@ -30,9 +27,8 @@ fn holds_station_on_an_external_vehicle() {
     let sim = RealTimeVehicle::start(rig_at(&site, start, 3, false));
     let addr = sim.addr;
 
-    let out = std::env::temp_dir().join(format!("markhold-external-{}.json", std::process::id()));
-    let plots =
-        std::env::temp_dir().join(format!("markhold-external-plots-{}", std::process::id()));
+    let out = tmp_path("external", "summary.json");
+    let plots = tmp_path("external", "plots");
     let o = markhold()
         .args(["hil", "--quiet", "--seconds", "12", "--site"])
         .arg(&site_path)

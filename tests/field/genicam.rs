@@ -9,7 +9,7 @@
 #![cfg(all(feature = "sim", feature = "genicam"))]
 #![allow(clippy::unwrap_used)] // Tests fail loudly on a broken setup, by design.
 
-mod common;
+use crate::common;
 
 use std::io::{BufRead, BufReader};
 use std::net::UdpSocket;

@@ -7,7 +7,7 @@
 #![cfg(feature = "sim")]
 #![allow(clippy::unwrap_used)] // Tests fail loudly on a broken setup, by design.
 
-mod common;
+use crate::common;
 
 use std::io::{BufRead, BufReader, Read, Write};
 use std::net::{SocketAddr, TcpStream};
@@ -16,7 +16,7 @@ use std::process::{Child, Command, Stdio};
 use std::sync::mpsc;
 use std::time::{Duration, Instant};
 
-use common::{markhold, site_path, station_frames, station_rig, RealTimeVehicle};
+use common::{markhold, site_path, station_frames, station_rig, tmp_dir, RealTimeVehicle};
 
 /// A markhold command with the page on loopback; SIGTERM and reaped when dropped.
 struct Hil {
@@ -189,8 +189,7 @@ fn num(dom: &str, start: &str, name: &str) -> u64 {
 }
 
 fn scratch(name: &str) -> PathBuf {
-    let d = std::env::temp_dir().join(format!("markhold-web-{name}-{}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&d);
+    let d = tmp_dir("web", name);
     std::fs::create_dir_all(d.join("rec")).unwrap();
     d
 }

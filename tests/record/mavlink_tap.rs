@@ -4,7 +4,7 @@
 #![cfg(feature = "sim")]
 #![allow(clippy::unwrap_used)] // Tests fail loudly on a broken setup, by design.
 
-use std::path::Path;
+use crate::common::{site_path, tmp_dir};
 
 use markhold::params;
 use markhold::pipeline::{Observer, Observers};
@@ -15,12 +15,10 @@ use markhold_autopilot::mavlink::MavlinkReader;
 
 #[test]
 fn recorded_raw_mavlink_reads_back_as_the_links_traffic() {
-    let dir = std::env::temp_dir().join(format!("markhold-tap-{}", std::process::id()));
-    std::fs::create_dir_all(&dir).unwrap();
+    let dir = tmp_dir("tap", "lib");
     let path = dir.join("tap.mcap");
-    let _ = std::fs::remove_file(&path);
 
-    let site_path = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/fixtures/pool-640.toml");
+    let site_path = site_path();
     let site = params::load(&site_path).unwrap();
     let opts = HilOptions {
         seconds: 2.0,
@@ -111,11 +109,9 @@ fn recorded_raw_mavlink_reads_back_as_the_links_traffic() {
 /// still replays with matching commands.
 #[test]
 fn hil_record_from_the_binary_holds_raw_mavlink_and_replays() {
-    let dir = std::env::temp_dir().join(format!("markhold-tap-bin-{}", std::process::id()));
-    std::fs::create_dir_all(&dir).unwrap();
+    let dir = tmp_dir("tap", "bin");
     let path = dir.join("run.mcap");
-    let _ = std::fs::remove_file(&path);
-    let site = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/fixtures/pool-640.toml");
+    let site = site_path();
     let bin = env!("CARGO_BIN_EXE_markhold");
     let out = std::process::Command::new(bin)
         .args(["hil", "--quiet", "--seconds", "2", "--site"])

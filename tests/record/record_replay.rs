@@ -4,7 +4,7 @@
 #![cfg(feature = "sim")]
 #![allow(clippy::unwrap_used)] // Tests fail loudly on a broken setup, by design.
 
-mod common;
+use crate::common;
 
 use std::collections::BTreeMap;
 use std::io::{Cursor, Seek, SeekFrom, Write};
@@ -24,11 +24,7 @@ use markhold::sim::hil::{HilOptions, HilRun};
 const SITE: &str = "tests/fixtures/pool-640.toml";
 
 fn temp_path(name: &str) -> PathBuf {
-    let dir = std::env::temp_dir().join(format!("markhold-record-{}", std::process::id()));
-    std::fs::create_dir_all(&dir).unwrap();
-    let p = dir.join(name);
-    let _ = std::fs::remove_file(&p);
-    p
+    common::tmp_path("record", name)
 }
 
 fn counts(path: &Path) -> BTreeMap<String, u64> {
@@ -406,7 +402,7 @@ fn a_truncated_recording_replays_up_to_its_last_complete_chunk() {
 
 /// Peak resident memory of a child process, read from /proc while it runs (bounded).
 fn replay_peak_rss_kb(file: &Path) -> u64 {
-    let mut child = std::process::Command::new(env!("CARGO_BIN_EXE_markhold"))
+    let mut child = common::markhold()
         .arg("replay")
         .arg(file)
         .stdout(std::process::Stdio::null())
@@ -538,7 +534,7 @@ fn a_jpeg_recording_is_smaller_and_replay_says_it_is_not_exact() {
 #[test]
 fn sigterm_during_a_recorded_hil_run_finalizes_the_file() {
     let rec = temp_path("sigterm.mcap");
-    let mut child = std::process::Command::new(env!("CARGO_BIN_EXE_markhold"))
+    let mut child = common::markhold()
         .args([
             "hil",
             "--quiet",
@@ -695,7 +691,7 @@ fn one_frame_recording(path: &Path, info: &RunInfo, png: &[u8]) {
 /// `markhold ARGS`: exit status, stderr and peak memory (kB), bounded in time.
 fn markhold_peak(args: &[&std::ffi::OsStr]) -> (Option<i32>, String, u64) {
     use std::io::Read;
-    let mut child = std::process::Command::new(env!("CARGO_BIN_EXE_markhold"))
+    let mut child = common::markhold()
         .args(args)
         .stdout(std::process::Stdio::null())
         .stderr(std::process::Stdio::piped())
@@ -800,7 +796,7 @@ fn a_run_of_each_camera_kind_records_and_replays() {
         // frame until its frames end or 1.5 s have passed.
         let rec = dir.join(format!("{name}.mcap"));
         let (_vehicle, port) = common::pymav_vehicle(&["--scenario", "hold", "--deadline", "30"]);
-        let mut cmd = std::process::Command::new(env!("CARGO_BIN_EXE_markhold"));
+        let mut cmd = common::markhold();
         cmd.args(["run", "--no-preflight", "--site", SITE, "--camera"])
             .arg(&camera)
             .arg("--link")

@@ -5,16 +5,15 @@
 #![cfg(feature = "sim")]
 #![allow(clippy::unwrap_used)] // Tests fail loudly on a broken setup, by design.
 
-mod common;
+use crate::common;
 
 use std::path::{Path, PathBuf};
 
-use common::{markhold, site_path};
+use common::{markhold, site_path, tmp_dir};
 use markhold::record::{FrameMsg, TOPIC_FRAME};
 
 fn scratch(name: &str) -> PathBuf {
-    let d = std::env::temp_dir().join(format!("markhold-rotation-{name}-{}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&d);
+    let d = tmp_dir("rotation", name);
     std::fs::create_dir_all(d.join("rec")).unwrap();
     d
 }

@@ -4,7 +4,8 @@
 #![allow(clippy::unwrap_used)] // Tests fail loudly on a broken setup, by design.
 
 use std::path::Path;
-use std::process::Command;
+
+use crate::common::{markhold, tmp_path};
 
 use markhold::sim::compare::{run_compare, CompareOptions, CompareResults};
 use markhold_exposure::ExposureMethod;
@@ -13,9 +14,7 @@ use markhold_hil::scene::LightingScenario;
 const SITE: &str = "tests/fixtures/pool-640.toml";
 
 fn out_dir(name: &str) -> std::path::PathBuf {
-    let d = Path::new(env!("CARGO_TARGET_TMPDIR")).join(name);
-    let _ = std::fs::remove_dir_all(&d);
-    d
+    tmp_path("compare", name)
 }
 
 #[test]
@@ -30,7 +29,7 @@ fn compare_writes_every_table_plot_and_field() {
 
 /// Two methods, adversarial light, one seed, 3 s, into `out`.
 fn run_small_compare(out: &Path) {
-    let status = Command::new(env!("CARGO_BIN_EXE_markhold"))
+    let status = markhold()
         .args([
             "compare",
             "--site",

@@ -12,6 +12,8 @@ use std::process::{Child, Command, Output, Stdio};
 use std::sync::OnceLock;
 use std::time::{Duration, Instant};
 
+use crate::common::{markhold, tmp_dir};
+
 const SITE: &str = "tests/fixtures/pool-640.toml";
 /// The small sweep: 640x480, 5 s, 1 seed, an AAEC and two others in two lightings (six
 /// cases: two per shard).
@@ -30,14 +32,12 @@ const SWEEP: &[&str] = &[
 ];
 
 fn tmp(name: &str) -> PathBuf {
-    let d = Path::new(env!("CARGO_TARGET_TMPDIR")).join(name);
-    let _ = std::fs::remove_dir_all(&d);
-    std::fs::create_dir_all(&d).unwrap();
-    d
+    tmp_dir("compare-shard", name)
 }
 
-fn markhold(args: &[&str], extra: &[&Path]) -> Output {
-    let out = Command::new(env!("CARGO_BIN_EXE_markhold"))
+/// `markhold ARGS EXTRA` run to its end, logging errors only.
+fn run(args: &[&str], extra: &[&Path]) -> Output {
+    let out = markhold()
         .args(args)
         .args(extra)
         .env("RUST_LOG", "error")
@@ -69,13 +69,13 @@ fn runs() -> &'static Runs {
         let mut args = vec!["compare"];
         args.extend(SWEEP);
         args.extend(["--jobs", "2", "--out"]);
-        ok(&markhold(&args, &[&reference]), "unsharded compare");
+        ok(&run(&args, &[&reference]), "unsharded compare");
         for i in 1..=3 {
             let s = format!("{i}/3");
             let mut a = vec!["compare"];
             a.extend(SWEEP);
             a.extend(["--jobs", "2", "--shard", &s, "--out"]);
-            ok(&markhold(&a, &[&parts]), &format!("compare --shard {s}"));
+            ok(&run(&a, &[&parts]), &format!("compare --shard {s}"));
         }
         Runs { reference, parts }
     })
@@ -115,7 +115,7 @@ fn sharded_then_merged_equals_unsharded() {
         assert!(r.parts.join(format!("shard-{i}-of-3.json")).is_file());
     }
     let merged = tmp("shard-merged");
-    let out = markhold(
+    let out = run(
         &["compare", "merge"],
         &[&r.parts, Path::new("--out"), &merged],
     );
@@ -130,7 +130,7 @@ fn sharded_then_merged_equals_unsharded() {
 
 fn merge_err(dirs: &[&Path]) -> String {
     let out_dir = tmp("shard-merge-err-out");
-    let mut c = Command::new(env!("CARGO_BIN_EXE_markhold"));
+    let mut c = markhold();
     c.args(["compare", "merge"])
         .args(dirs)
         .arg("--out")
@@ -176,7 +176,7 @@ fn merge_refuses_missing_duplicate_and_foreign_shards() {
     let i = args.iter().position(|x| *x == "--seconds").unwrap();
     args[i + 1] = "0.2";
     args.extend(["--shard", "2/3", "--jobs", "2", "--out"]);
-    ok(&markhold(&args, &[&c]), "foreign shard");
+    ok(&run(&args, &[&c]), "foreign shard");
     copy_shards(&r.parts, &c, &[1, 3]);
     let e = merge_err(&[&c]);
     assert!(e.contains("shards of different sweeps"), "{e}");
@@ -450,7 +450,7 @@ fn slurm_job_array_runs_the_shards_and_the_merge_matches() {
     }
     drop(slurm);
     let merged = tmp("slurm-merged");
-    let out = markhold(
+    let out = run(
         &["compare", "merge"],
         &[&parts, Path::new("--out"), &merged],
     );
@@ -524,7 +524,7 @@ fn merge_refuses_hostile_shard_files_and_escapes_report_text() {
     .unwrap();
     let e = merge_err(&[&d]);
     assert!(e.contains("1 <= I <= N <= 10000"), "{e}");
-    let out = markhold(&["compare", "--shard", "1/100000000", "--out"], &[&d]);
+    let out = run(&["compare", "--shard", "1/100000000", "--out"], &[&d]);
     assert!(!out.status.success());
     assert!(String::from_utf8_lossy(&out.stderr).contains("N <= 10000"));
 
@@ -548,7 +548,7 @@ fn merge_refuses_hostile_shard_files_and_escapes_report_text() {
         v["sweep"]["header"]["site"] = serde_json::json!("pool\n# injected\n\u{1b}[31m");
     });
     let merged = tmp("shard-name-out");
-    let out = markhold(&["compare", "merge"], &[&d, Path::new("--out"), &merged]);
+    let out = run(&["compare", "merge"], &[&d, Path::new("--out"), &merged]);
     ok(&out, "merge with an odd site name");
     let report = String::from_utf8(read(&merged.join("report.md"))).unwrap();
     assert!(

@@ -3,6 +3,8 @@
 #![cfg(feature = "sim")]
 #![allow(clippy::unwrap_used)] // Tests fail loudly on a broken setup, by design.
 
+use crate::common;
+
 use std::path::Path;
 
 use markhold::params::{self, LoadedSite};
@@ -339,8 +341,8 @@ fn dropped_and_late_frames_keep_station() {
 #[test]
 fn fault_flags_end_to_end_in_the_summary() {
     let pool = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/fixtures/pool-640.toml");
-    let out = std::env::temp_dir().join(format!("markhold-faults-{}.json", std::process::id()));
-    let o = std::process::Command::new(env!("CARGO_BIN_EXE_markhold"))
+    let out = common::tmp_path("faults", "summary.json");
+    let o = common::markhold()
         .args(["hil", "--quiet", "--seconds", "4", "--site"])
         .arg(&pool)
         .args(["--fault", "occlude@1+0.5", "--fault", "drop_frames@2"])
@@ -361,7 +363,7 @@ fn fault_flags_end_to_end_in_the_summary() {
     assert_eq!(faults[0]["kind"], "occlude");
     assert_eq!(faults[0]["end_s"], 1.5);
     assert!(faults[1]["end_s"].is_null());
-    let bad = std::process::Command::new(env!("CARGO_BIN_EXE_markhold"))
+    let bad = common::markhold()
         .args(["hil", "--quiet", "--seconds", "1", "--fault", "lamp@1"])
         .output()
         .unwrap();

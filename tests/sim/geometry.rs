@@ -7,13 +7,10 @@
 #![allow(clippy::unwrap_used)] // Tests fail loudly on a broken setup, by design.
 
 use std::path::{Path, PathBuf};
-use std::process::Command;
 
 use nalgebra::{Isometry3, Matrix3, Point3, Rotation3, Translation3, UnitQuaternion, Vector3};
 
-fn repo(p: &str) -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR")).join(p)
-}
+use crate::common::{repo, run_markhold, tmp_path};
 
 /// A copy of `base` with the mount's pitch and yaw, the station's yaw and lateral offset,
 /// and `extra` lines after `[vehicle]`, written to a file of its own.
@@ -40,25 +37,21 @@ fn variant(base: &str, name: &str, g: Geometry, mode: Option<&str>, vehicle: &st
             out += "\n";
         }
     }
-    let dir = std::env::temp_dir().join(format!("markhold-geometry-{}", std::process::id()));
-    std::fs::create_dir_all(&dir).unwrap();
-    let path = dir.join(format!("{name}.toml"));
+    let path = tmp_path("geometry", &format!("{name}.toml"));
     std::fs::write(&path, out).unwrap();
     path
 }
 
-fn markhold(args: &[&str]) -> (i32, String) {
-    let o = Command::new(env!("CARGO_BIN_EXE_markhold"))
-        .args(args)
-        .output()
-        .expect("run markhold");
+/// `markhold ARGS`: exit code, stdout and stderr.
+fn run(args: &[&str]) -> (i32, String) {
+    let o = run_markhold(args);
     let text =
         String::from_utf8_lossy(&o.stdout).into_owned() + &String::from_utf8_lossy(&o.stderr);
     (o.status.code().unwrap_or(-1), text)
 }
 
 fn check(site: &Path) -> (i32, String) {
-    markhold(&["params", "check", site.to_str().unwrap()])
+    run(&["params", "check", site.to_str().unwrap()])
 }
 
 /// A HIL run's summary.
@@ -78,7 +71,7 @@ fn hil(site: &Path, seconds: f64, extra: &[&str]) -> serde_json::Value {
         summary.to_str().unwrap(),
     ];
     args.extend_from_slice(extra);
-    let (code, text) = markhold(&args);
+    let (code, text) = run(&args);
     assert_eq!(code, 0, "{}: {text}", site.display());
     serde_json::from_str(&std::fs::read_to_string(&summary).unwrap()).unwrap()
 }
@@ -257,7 +250,7 @@ fn a_blind_simulator_start_is_refused_with_the_offset_that_sees() {
     let (code, text) = check(&site);
     assert_eq!(code, 0, "{text}");
     assert!(text.contains("`markhold hil` refuses this start"), "{text}");
-    let (code, text) = markhold(&[
+    let (code, text) = run(&[
         "hil",
         "--site",
         site.to_str().unwrap(),

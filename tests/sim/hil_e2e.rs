@@ -3,16 +3,14 @@
 #![cfg(feature = "sim")]
 #![allow(clippy::unwrap_used)] // Tests fail loudly on a broken setup, by design.
 
-mod common;
+use crate::common;
 
 use std::path::{Path, PathBuf};
 
-use common::{markhold, repo};
+use common::{markhold, repo, tmp_dir};
 
 fn tmpdir(name: &str) -> PathBuf {
-    let d = std::env::temp_dir().join(format!("markhold-e2e-{}-{name}", std::process::id()));
-    std::fs::create_dir_all(&d).unwrap();
-    d
+    tmp_dir("e2e", name)
 }
 
 fn run_summary(args: &[&str], out: &Path) -> serde_json::Value {

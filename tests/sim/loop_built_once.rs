@@ -17,9 +17,7 @@ use markhold_autopilot::VehicleLink;
 const SITE: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/tests/fixtures/pool-640.toml");
 
 fn temp(name: &str) -> PathBuf {
-    let p = std::env::temp_dir().join(format!("markhold-loop-{}-{name}", std::process::id()));
-    let _ = std::fs::remove_file(&p);
-    p
+    crate::common::tmp_path("loop", name)
 }
 
 fn traced(name: &str) -> Observers {

@@ -4,8 +4,9 @@
 #![cfg(feature = "sim")]
 #![allow(clippy::unwrap_used)] // Tests fail loudly on a broken setup, by design.
 
+use crate::common;
+
 use std::path::Path;
-use std::process::Command;
 
 use markhold::params::{load, parse, LoadedSite};
 use markhold::sim::robustness::{run_cell, run_robustness, Bounds, Cell, CellResult};
@@ -130,9 +131,8 @@ fn reduced_grid_holds_and_a_broken_controller_does_not() {
 /// does not know.
 #[test]
 fn command_writes_report_results_and_heat_map() {
-    let out = Path::new(env!("CARGO_TARGET_TMPDIR")).join("robustness-cli");
-    let _ = std::fs::remove_dir_all(&out);
-    let o = Command::new(env!("CARGO_BIN_EXE_markhold"))
+    let out = common::tmp_path("robustness", "cli");
+    let o = common::markhold()
         .args([
             "robustness",
             "--site",
@@ -164,7 +164,7 @@ fn command_writes_report_results_and_heat_map() {
     assert_eq!(json["cells"].as_array().map(Vec::len), Some(2));
     assert_eq!(json["cells"][1]["cell"]["tether"], true);
     assert_eq!(o.status.success(), json["all_held"] == true);
-    let o = Command::new(env!("CARGO_BIN_EXE_markhold"))
+    let o = common::markhold()
         .args(["robustness", "--cells", "bogus", "--out"])
         .arg(&out)
         .output()

@@ -5,6 +5,8 @@
 #![cfg(feature = "sim")]
 #![allow(clippy::unwrap_used)] // Tests fail loudly on a broken setup, by design.
 
+use crate::common;
+
 use std::net::{IpAddr, Ipv4Addr, SocketAddr, UdpSocket};
 use std::path::{Path, PathBuf};
 use std::time::Duration;
@@ -19,9 +21,7 @@ use mavlink::{MavHeader, SigningConfig, SigningData};
 
 /// A scratch directory for key files, unique per test.
 fn scratch(name: &str) -> PathBuf {
-    let d = std::env::temp_dir().join(format!("markhold-sec-{}-{name}", std::process::id()));
-    std::fs::create_dir_all(&d).unwrap();
-    d
+    common::tmp_dir("sec", name)
 }
 
 fn key_file(dir: &Path, name: &str, byte: u8) -> PathBuf {
@@ -477,7 +477,7 @@ fn udpin_is_not_hijacked_by_a_junk_sender() {
 
 /// Run the built binary with `args`, bounded to 60 s; (status code, stderr).
 fn run_bounded(args: &[&str]) -> (Option<i32>, String) {
-    let mut child = std::process::Command::new(env!("CARGO_BIN_EXE_markhold"))
+    let mut child = common::markhold()
         .args(args)
         .stdout(std::process::Stdio::null())
         .stderr(std::process::Stdio::piped())
@@ -556,7 +556,7 @@ fn a_closed_stdout_ends_quietly() {
     let (reader, writer) = std::io::pipe().unwrap();
     drop(reader);
     let site = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/fixtures/pool-640.toml");
-    let out = std::process::Command::new(env!("CARGO_BIN_EXE_markhold"))
+    let out = common::markhold()
         .args(["params", "check"])
         .arg(&site)
         .stdout(writer)

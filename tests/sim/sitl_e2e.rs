@@ -3,8 +3,10 @@
 #![cfg(feature = "sim")]
 #![allow(clippy::unwrap_used)] // Tests fail loudly on a broken setup, by design.
 
+use crate::common;
+
 use std::net::UdpSocket;
-use std::process::{Command, Stdio};
+use std::process::Stdio;
 use std::time::{Duration, Instant};
 
 fn free_udp_port() -> u16 {
@@ -52,7 +54,7 @@ fn num_after(json: &str, key: &str) -> f64 {
 fn sitl_json_server_answers_lock_step_at_rest() {
     let port = free_udp_port();
     let packets = 40u32;
-    let child = Command::new(env!("CARGO_BIN_EXE_markhold"))
+    let child = common::markhold()
         .args([
             "sitl",
             "--port",
@@ -157,7 +159,7 @@ fn free_udp_port_where(want: impl Fn(u16) -> bool) -> u16 {
 /// `markhold sitl --port P --max-packets 0`: binds, prints its hint and exits; the
 /// stderr, within a bounded wait.
 fn sitl_hint(port: u16) -> String {
-    let mut child = Command::new(env!("CARGO_BIN_EXE_markhold"))
+    let mut child = common::markhold()
         .args(["sitl", "--port", &port.to_string(), "--max-packets", "0"])
         .args(["--max-seconds", "1"])
         .stdout(Stdio::null())

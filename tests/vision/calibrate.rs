@@ -5,7 +5,9 @@
 #![allow(clippy::unwrap_used)] // Tests fail loudly on a broken setup, by design.
 
 use std::path::{Path, PathBuf};
-use std::process::{Command, Output};
+use std::process::Output;
+
+use crate::common::{repo, run_markhold as markhold, tmp_path};
 
 use markhold_exposure::Frame;
 use markhold_vision::calibration::board::{read_image, BoardDetector, Target};
@@ -14,24 +16,8 @@ use markhold_vision::{marker_bitmap, CameraCalibration, FrameRecorder, MarkerFam
 use nalgebra::{Isometry3, Matrix3, Rotation3, Translation3, UnitQuaternion, Vector3};
 use opencv::{aruco, core, imgcodecs, prelude::*};
 
-fn repo(p: &str) -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR")).join(p)
-}
-
 fn scratch(name: &str) -> PathBuf {
-    let dir = std::env::temp_dir().join(format!("markhold-calibrate-{}", std::process::id()));
-    std::fs::create_dir_all(&dir).unwrap();
-    let p = dir.join(name);
-    let _ = std::fs::remove_dir_all(&p);
-    let _ = std::fs::remove_file(&p);
-    p
-}
-
-fn markhold(args: &[&str]) -> Output {
-    Command::new(env!("CARGO_BIN_EXE_markhold"))
-        .args(args)
-        .output()
-        .unwrap()
+    tmp_path("calibrate", name)
 }
 
 fn ok(o: &Output) -> String {

@@ -4,7 +4,7 @@
 #![cfg(feature = "sim")]
 #![allow(clippy::unwrap_used)] // Tests fail loudly on a broken setup, by design.
 
-mod common;
+use crate::common;
 
 use markhold::params;
 use markhold::sim::hil::{camera_model, marker_spec};
@@ -126,6 +126,6 @@ fn clipped_edges_shift_inward_as_the_clip_covariance_states() {
     );
     // Clipping harder moves them further: the fixed figures hold for this landing only;
     // once a contrast is measured the shift follows the over-exposure (corners.rs's unit
-    // test, tests/vision_nees.rs; design/vision.md, "Clipped edges").
+    // test, tests/vision/vision_nees.rs; design/vision.md, "Clipped edges").
     assert!(-rows[2].0 > 2.0 * c, "{rows:?}");
 }

@@ -5,19 +5,17 @@
 #![cfg(feature = "sim")]
 #![allow(clippy::unwrap_used)] // Tests fail loudly on a broken setup, by design.
 
-mod common;
+use crate::common;
 
 use std::path::{Path, PathBuf};
 
-use common::{markhold, repo};
+use common::{markhold, repo, tmp_dir};
 
 /// Simulated seconds of the reduced runs.
 const SECONDS: &str = "20";
 
 fn tmpdir(name: &str) -> PathBuf {
-    let d = std::env::temp_dir().join(format!("markhold-dock-{}-{name}", std::process::id()));
-    std::fs::create_dir_all(&d).unwrap();
-    d
+    tmp_dir("dock", name)
 }
 
 /// dock-map.toml, and the same site reduced to its central (origin) marker.

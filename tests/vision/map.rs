@@ -8,7 +8,8 @@
 #![allow(clippy::unwrap_used)] // Tests fail loudly on a broken setup, by design.
 
 use std::path::{Path, PathBuf};
-use std::process::{Command, Output};
+
+use crate::common::{repo, run_markhold as markhold, tmp_path};
 
 use markhold_exposure::Frame;
 use markhold_vision::synth::{render_markers, SceneParams};
@@ -16,23 +17,11 @@ use markhold_vision::{marker_bitmap, CameraCalibration, FrameRecorder, MarkerCon
 use nalgebra::{Isometry3, Matrix3, Rotation3, Translation3, UnitQuaternion, Vector3};
 
 fn fixture() -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/fixtures/pool-640-map4.toml")
+    repo("tests/fixtures/pool-640-map4.toml")
 }
 
 fn scratch(name: &str) -> PathBuf {
-    let dir = std::env::temp_dir().join(format!("markhold-map-{}", std::process::id()));
-    std::fs::create_dir_all(&dir).unwrap();
-    let p = dir.join(name);
-    let _ = std::fs::remove_dir_all(&p);
-    let _ = std::fs::remove_file(&p);
-    p
-}
-
-fn markhold(args: &[&str]) -> Output {
-    Command::new(env!("CARGO_BIN_EXE_markhold"))
-        .args(args)
-        .output()
-        .unwrap()
+    tmp_path("map", name)
 }
 
 /// The fixture with every `[[marker.map]]` pose zeroed (ids and sizes kept), as the
@@ -272,7 +261,7 @@ fn map_names_the_folder_and_the_markers_it_cannot_place() {
 #[cfg(feature = "sim")]
 #[test]
 fn map_reads_every_image_of_a_recording() {
-    let site = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/fixtures/pool-640.toml");
+    let site = repo("tests/fixtures/pool-640.toml");
     let rec = scratch("pool.mcap");
     let summary = scratch("pool-hil.json");
     let out = markhold(&[

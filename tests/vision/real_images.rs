@@ -207,7 +207,7 @@ fn opencv_corners(
 /// Each corner's distance from the reference, once the image's mean offset of `found`
 /// from it is taken away; and that offset. A constant offset is a pixel convention (or
 /// the reference's own: `cornerSubPix` reads a pixel-aligned saddle half a pixel off,
-/// `tests/calibrate.rs`) that the principal point absorbs; the scatter is the error.
+/// `tests/vision/calibrate.rs`) that the principal point absorbs; the scatter is the error.
 fn errors(
     found: &HashMap<i32, [core::Point2f; 4]>,
     truth: &HashMap<i32, [core::Point2f; 4]>,

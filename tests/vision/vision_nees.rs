@@ -9,7 +9,7 @@
 #![cfg(feature = "sim")]
 #![allow(clippy::unwrap_used)] // Tests fail loudly on a broken setup, by design.
 
-mod common;
+use crate::common;
 
 use markhold::params::{self, LoadedSite};
 use markhold::sim::hil::{run_hil, HilOptions, HilRun};
@@ -237,7 +237,7 @@ fn occluding_the_station_marker_of_a_map_keeps_estimates_flowing_and_the_station
         // 8x here: design/autopilot.md, "NEES in HIL"), so only its upper side is held.
         assert_not_overconfident(&format!("{what} the occlusion"), n, pos, yaw, false);
     }
-    // The station holds: the vehicle ends within 5 cm of it (the bound tests/dock_map.rs
+    // The station holds: the vehicle ends within 5 cm of it (the bound tests/vision/dock_map.rs
     // holds an occluded map run to).
     println!("final position error {last_error:.4} m");
     assert!(last_error < 0.05, "final position error {last_error:.4} m");
