@@ -63,7 +63,7 @@ pub fn markdown(mut cmd: clap::Command) -> String {
     let mut md = format!(
         "# {name} commands\n\n\
          Generated from the command line's definitions by `{name} docs > docs/commands.md`; \
-         `tests/cli_docs.rs` fails when this file differs from what the build generates. \
+         `tests/cli/cli_docs.rs` fails when this file differs from what the build generates. \
          `{name} COMMAND --help` prints the same text, `{name} man` the man pages.\n\n"
     );
     if let Some(about) = cmd.get_about() {

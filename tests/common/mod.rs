@@ -1,28 +1,33 @@
-//! Helpers shared by the end-to-end tests: the built binary, the small fixture site,
-//! scratch paths, the simulated world as a free-running vehicle, and a WebSocket frame
-//! reader for the live view.
+//! Helpers shared by the integration tests: the built binary, paths in the repository,
+//! the small fixture site, scratch paths, a WebSocket frame reader for the live view, a
+//! hostile HTTP server and the pymavlink vehicle; with the simulator (`sim`), the
+//! simulated world as a free-running vehicle (`sim.rs`).
 #![allow(dead_code)]
 #![allow(clippy::unwrap_used)] // Tests fail loudly on a broken setup, by design.
 
-use std::io::{Read, Write};
-use std::net::{SocketAddr, TcpListener, TcpStream};
+use std::io::Read;
+use std::net::{TcpListener, TcpStream};
 use std::path::{Path, PathBuf};
-use std::process::Command;
+use std::process::{Command, Output};
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
-use std::thread::JoinHandle;
-use std::time::{Duration, Instant};
+use std::time::Duration;
 
-use markhold::params::{self, LoadedSite};
-use markhold::sim::hil::{camera_model, marker_spec};
-use markhold_exposure::{Camera, Frame};
-use markhold_hil::endpoint::EndpointStats;
-use markhold_hil::{EndpointConfig, HilRig, HilSetup, Truth, VehicleMotion};
-use nalgebra::Isometry3;
+#[cfg(feature = "sim")]
+mod sim;
+// Not every binary uses the simulated world.
+#[cfg(feature = "sim")]
+#[allow(unused_imports)]
+pub use sim::*;
 
 /// The built `markhold` binary.
 pub fn markhold() -> Command {
     Command::new(env!("CARGO_BIN_EXE_markhold"))
+}
+
+/// `markhold ARGS` run to its end: its exit status and output.
+pub fn run_markhold(args: &[&str]) -> Output {
+    markhold().args(args).output().unwrap()
 }
 
 /// A path in the repository.
@@ -36,116 +41,22 @@ pub fn site_path() -> PathBuf {
 }
 
 /// `name` in a scratch directory of this test process (`markhold-{prefix}-{pid}`), with
-/// no file left there by an earlier run.
+/// no file or folder left there by an earlier run. The tests of a binary share its
+/// process: each file uses its own `prefix`, each test its own `name`.
 pub fn tmp_path(prefix: &str, name: &str) -> PathBuf {
     let dir = std::env::temp_dir().join(format!("markhold-{prefix}-{}", std::process::id()));
     std::fs::create_dir_all(&dir).unwrap();
     let p = dir.join(name);
+    let _ = std::fs::remove_dir_all(&p);
     let _ = std::fs::remove_file(&p);
     p
 }
 
-/// The site's simulated world with a free vehicle starting at `t_world_vehicle_start`.
-pub fn rig_at(
-    site: &LoadedSite,
-    t_world_vehicle_start: Isometry3<f64>,
-    seed: u64,
-    lock_step: bool,
-) -> HilRig {
-    let s = &site.site;
-    HilRig::new(HilSetup {
-        vehicle: s.vehicle.clone(),
-        endpoint: EndpointConfig::default(),
-        water: s.water.clone(),
-        lighting: s.lighting.clone(),
-        camera: camera_model(site, site.limits()),
-        t_vehicle_cam: site.t_vehicle_cam(),
-        marker: marker_spec(site).unwrap(),
-        t_world_marker: site.t_world_marker(),
-        map: Vec::new(),
-        t_world_vehicle_start,
-        motion: VehicleMotion::Free,
-        seed,
-        lock_step,
-    })
-    .unwrap()
-}
-
-/// The test site's simulated world with the vehicle on station (seed 5).
-pub fn station_rig(lock_step: bool) -> HilRig {
-    let site = params::load(&site_path()).unwrap();
-    let start = site.t_world_marker() * site.site.station.t_marker_vehicle();
-    rig_at(&site, start, 5, lock_step)
-}
-
-/// `n` frames rendered on station at 3000 us, written as a recorded-frames folder `dir`
-/// (what `--camera frames:DIR` plays back).
-pub fn station_frames(dir: PathBuf, n: usize) -> PathBuf {
-    let mut rig = station_rig(false);
-    rig.set_exposure_us(3000.0).unwrap();
-    let mut rec = markhold_camera::FrameRecorder::create(&dir).unwrap();
-    let mut f = Frame::default();
-    for _ in 0..n {
-        rig.grab(&mut f).unwrap();
-        rec.write(&f).unwrap();
-    }
-    dir
-}
-
-/// What a [`RealTimeVehicle`] reports when stopped.
-#[derive(Debug)]
-pub struct VehicleEnd {
-    /// Its MAVLink endpoint's counters.
-    pub stats: EndpointStats,
-    /// The world's truth at the end, `armed` included.
-    pub truth: Truth,
-}
-
-/// A simulated world run as a vehicle of its own, the way ArduSub (or SITL) runs
-/// whatever markhold does: on its own thread, one frame per camera period in real time,
-/// until stopped or for at most [`RealTimeVehicle::MAX_RUN`].
-pub struct RealTimeVehicle {
-    /// Its MAVLink UDP address.
-    pub addr: SocketAddr,
-    stop: Arc<AtomicBool>,
-    thread: JoinHandle<VehicleEnd>,
-}
-
-impl RealTimeVehicle {
-    /// The longest a vehicle runs when nobody stops it.
-    pub const MAX_RUN: Duration = Duration::from_secs(60);
-
-    pub fn start(mut rig: HilRig) -> Self {
-        let addr = rig.mavlink_udp_addr();
-        let period = Duration::from_secs_f64(1.0 / rig.exposure_limits().fps);
-        let stop = Arc::new(AtomicBool::new(false));
-        let stopped = stop.clone();
-        let thread = std::thread::spawn(move || {
-            let mut frame = Frame::default();
-            let t0 = Instant::now();
-            let mut k = 0u32;
-            while !stopped.load(Ordering::Relaxed) && t0.elapsed() < Self::MAX_RUN {
-                rig.grab(&mut frame).unwrap();
-                k += 1;
-                if let Some(w) = (t0 + period * k).checked_duration_since(Instant::now()) {
-                    std::thread::sleep(w);
-                }
-            }
-            // Take in what arrived after the last frame.
-            rig.pump().unwrap();
-            VehicleEnd {
-                stats: rig.endpoint_stats(),
-                truth: rig.truth(),
-            }
-        });
-        Self { addr, stop, thread }
-    }
-
-    /// Stop it and report.
-    pub fn finish(self) -> VehicleEnd {
-        self.stop.store(true, Ordering::Relaxed);
-        self.thread.join().unwrap()
-    }
+/// An empty scratch folder: [`tmp_path`] created.
+pub fn tmp_dir(prefix: &str, name: &str) -> PathBuf {
+    let d = tmp_path(prefix, name);
+    std::fs::create_dir_all(&d).unwrap();
+    d
 }
 
 /// Read one unmasked server frame (text or binary) from a WebSocket stream:
@@ -223,27 +134,6 @@ impl Drop for Hostile {
     fn drop(&mut self) {
         self.stop.store(true, Ordering::Relaxed);
     }
-}
-
-/// `GET /v4l` as the simulated camera manager answers it (auto exposure, 2 ms).
-pub fn sources_json() -> String {
-    let limits = markhold_exposure::ExposureLimits {
-        min_us: 20.0,
-        max_us: 30000.0,
-        fps: 30.0,
-    };
-    let mgr = markhold::sim::stream::SimCameraManager::start(limits, 2000.0).unwrap();
-    let url = mgr.url();
-    let addr = url.strip_prefix("http://").unwrap();
-    let mut s = TcpStream::connect(addr).unwrap();
-    write!(
-        s,
-        "GET /v4l HTTP/1.1\r\nHost: x\r\nConnection: close\r\n\r\n"
-    )
-    .unwrap();
-    let mut out = String::new();
-    s.read_to_string(&mut out).unwrap();
-    out.split_once("\r\n\r\n").unwrap().1.to_string()
 }
 
 /// autopilot/tests/pymav_vehicle.py as a vehicle; killed on drop if still running.

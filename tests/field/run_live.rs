@@ -1,0 +1,505 @@
+//! `markhold run` end to end: the recorded-frames camera, hil's vehicle endpoint as the
+//! vehicle (free-running on its own thread, like ArduSub would be), a recording that
+//! replays; SIGTERM stops it cleanly; start-up failures exit 2 and leave nothing behind.
+#![cfg(feature = "sim")]
+#![allow(clippy::unwrap_used)] // Tests fail loudly on a broken setup, by design.
+
+use crate::common;
+
+use std::io::{BufRead, BufReader};
+use std::path::{Path, PathBuf};
+use std::process::{Command, Stdio};
+use std::sync::OnceLock;
+use std::time::{Duration, Instant};
+
+use common::{
+    markhold, site_path, station_frames, station_rig, tmp_path, ws_read_frame, RealTimeVehicle,
+};
+use markhold::record::{CommandMsg, TOPIC_COMMAND};
+use markhold_camera::FrameRecorder;
+use markhold_exposure::{Camera, Frame};
+
+fn tmp(name: &str) -> PathBuf {
+    tmp_path("run", name)
+}
+
+/// 90 frames (3 s) rendered on station, as a recorded-frames folder; made once.
+fn frames_dir() -> &'static Path {
+    static DIR: OnceLock<PathBuf> = OnceLock::new();
+    DIR.get_or_init(|| station_frames(tmp("frames"), 90))
+}
+
+/// hil's vehicle on its own thread in real time.
+fn vehicle() -> RealTimeVehicle {
+    RealTimeVehicle::start(station_rig(false))
+}
+
+fn commands(path: &Path) -> Vec<CommandMsg> {
+    let buf = std::fs::read(path).unwrap();
+    mcap::Summary::read(&buf)
+        .unwrap()
+        .expect("a finalized recording");
+    mcap::MessageStream::new(&buf)
+        .unwrap()
+        .map(|m| m.unwrap())
+        .filter(|m| m.channel.topic == TOPIC_COMMAND)
+        .map(|m| serde_json::from_slice(&m.data).unwrap())
+        .collect()
+}
+
+#[test]
+fn run_on_hil_vehicle_with_recorded_frames_end_to_end() {
+    let frames = frames_dir();
+    let v = vehicle();
+    let rec = tmp("e2e.mcap");
+    let summary = tmp("e2e.json");
+    // At the recorded pace: the vehicle runs in real time, and markhold judges the link
+    // on frame stamps (0.9 s without a message = silent). With --no-pace the stamps ran
+    // ahead of the vehicle's messages and a stall of its thread read as a silent link
+    // (9 of 90 frames silent).
+    let o = markhold()
+        .args(["run", "--engage", "--no-preflight", "--site"])
+        .arg(site_path())
+        .arg("--camera")
+        .arg(format!("frames:{}", frames.display()))
+        .arg("--link")
+        .arg(format!("udpout:{}", v.addr))
+        .arg("--record")
+        .arg(&rec)
+        .arg("--summary")
+        .arg(&summary)
+        .output()
+        .unwrap();
+    // Let the vehicle take in the last inputs before stopping it.
+    std::thread::sleep(Duration::from_millis(100));
+    let stats = v.finish().stats;
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let report: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&summary).unwrap()).unwrap();
+    assert_eq!(report["frames"], 90, "{report}");
+    assert_eq!(report["stopped_by"], "end_of_stream");
+    assert!(report["detected"].as_u64().unwrap() >= 85, "{report}");
+    // The vehicle heard markhold's pilot input on (nearly) every frame, plus the final
+    // neutral one.
+    assert!(stats.pilot_inputs >= 80, "{stats:?}");
+    assert_eq!(stats.pilot_inputs_dropped, 0, "{stats:?}");
+
+    let cmds = commands(&rec);
+    assert_eq!(cmds.len(), 90);
+    assert!(cmds.iter().filter(|c| c.directive == "command").count() >= 85);
+
+    // The dive replays to the same commands (unless the recorder had to drop images).
+    let out = markhold::record::replay::replay(&rec).unwrap();
+    if report["record"]["images_dropped"] == 0 {
+        assert!(out.commands_match, "{out:?}");
+        assert_eq!(out.frames_replayed, 90);
+    } else {
+        assert_eq!(out.first_mismatch.unwrap().field, "image");
+    }
+}
+
+#[test]
+fn sigterm_sends_neutral_closes_the_recording_and_exits_0() {
+    let frames = frames_dir();
+    let v = vehicle();
+    let rec = tmp("sigterm.mcap");
+    let mut child = markhold()
+        .args(["run", "--engage", "--no-preflight", "--site"])
+        .arg(site_path())
+        .arg("--camera")
+        .arg(format!("frames:{}", frames.display()))
+        .arg("--link")
+        .arg(format!("udpout:{}", v.addr))
+        .arg("--record")
+        .arg(&rec)
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    // Paced at 30 fps the 90 frames last 3 s: stop it once it runs.
+    let mut err = BufReader::new(child.stderr.take().unwrap());
+    let mut line = String::new();
+    let deadline = Instant::now() + Duration::from_secs(20);
+    while !line.contains("running") {
+        line.clear();
+        assert!(
+            err.read_line(&mut line).unwrap() > 0,
+            "exited before running"
+        );
+        assert!(Instant::now() < deadline);
+    }
+    std::thread::sleep(Duration::from_millis(300));
+    let killed = Command::new("kill")
+        .args(["-TERM", &child.id().to_string()])
+        .status()
+        .unwrap();
+    assert!(killed.success());
+    let status = loop {
+        if let Some(s) = child.try_wait().unwrap() {
+            break s;
+        }
+        assert!(Instant::now() < deadline, "did not stop after SIGTERM");
+        std::thread::sleep(Duration::from_millis(20));
+    };
+    let _ = v.finish();
+    let mut out = String::new();
+    std::io::Read::read_to_string(&mut child.stdout.take().unwrap(), &mut out).unwrap();
+    assert_eq!(status.code(), Some(0), "{out}");
+    assert!(out.contains("stopped by Signal"), "{out}");
+    let cmds = commands(&rec);
+    assert!(cmds.len() < 85, "stopped early: {} frames", cmds.len());
+    let last = cmds.last().unwrap();
+    assert!(last.directive.starts_with("shutdown"), "{last:?}");
+}
+
+fn assert_exit_2(o: &std::process::Output, needle: &str) {
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(2), "{err}");
+    assert!(err.contains(needle), "expected '{needle}' in: {err}");
+}
+
+#[test]
+fn missing_camera_unreachable_link_and_bad_record_path_exit_2_leaving_nothing() {
+    let frames = frames_dir();
+    let rec = tmp("never.mcap");
+
+    let o = markhold()
+        .args(["run", "--engage", "--no-preflight", "--site"])
+        .arg(site_path())
+        .args(["--camera", "frames:/no/such/folder", "--record"])
+        .arg(&rec)
+        .output()
+        .unwrap();
+    assert_exit_2(&o, "camera frames:/no/such/folder");
+    assert!(!rec.exists(), "half-written recording left behind");
+
+    // Nobody listens on this port (bound, then released).
+    let port = std::net::UdpSocket::bind("127.0.0.1:0")
+        .unwrap()
+        .local_addr()
+        .unwrap()
+        .port();
+    let o = markhold()
+        .args([
+            "run",
+            "--engage",
+            "--no-preflight",
+            "--heartbeat-timeout-s",
+            "0.5",
+            "--site",
+        ])
+        .arg(site_path())
+        .arg("--camera")
+        .arg(format!("frames:{}", frames.display()))
+        .arg("--link")
+        .arg(format!("udpout:127.0.0.1:{port}"))
+        .arg("--record")
+        .arg(&rec)
+        .output()
+        .unwrap();
+    assert_exit_2(&o, "no vehicle heartbeat");
+    assert!(!rec.exists(), "half-written recording left behind");
+
+    let bad = tmp("no-such-dir").join("x.mcap");
+    let o = markhold()
+        .args(["run", "--engage", "--no-preflight", "--site"])
+        .arg(site_path())
+        .arg("--camera")
+        .arg(format!("frames:{}", frames.display()))
+        .arg("--record")
+        .arg(&bad)
+        .output()
+        .unwrap();
+    assert_exit_2(&o, "x.mcap");
+    assert!(!bad.exists());
+
+    // 640x480 frames against a site calibrated for 1440x1080.
+    let pool = Path::new(env!("CARGO_MANIFEST_DIR")).join("params/pool.toml");
+    let o = markhold()
+        .args(["run", "--engage", "--no-preflight", "--site"])
+        .arg(pool)
+        .arg("--camera")
+        .arg(format!("frames:{}", frames.display()))
+        .output()
+        .unwrap();
+    assert_exit_2(
+        &o,
+        "640x480 frames but the site's calibration is for 1440x1080",
+    );
+}
+
+#[test]
+fn live_view_advertises_every_channel_over_foxglove_websocket() {
+    use std::io::Write;
+    let mut rec =
+        markhold::record::Recorder::live_only(markhold::record::RecordConfig::default()).unwrap();
+    let port = rec.serve_live(0, &Default::default()).unwrap();
+    assert_ne!(port, 0);
+    let mut s = std::net::TcpStream::connect(("127.0.0.1", port)).unwrap();
+    s.set_read_timeout(Some(Duration::from_secs(5))).unwrap();
+    write!(
+        s,
+        "GET / HTTP/1.1\r\nHost: 127.0.0.1:{port}\r\nUpgrade: websocket\r\nConnection: Upgrade\r\n\
+         Sec-WebSocket-Key: dGhlIHNhbXBsZSBub25jZQ==\r\nSec-WebSocket-Version: 13\r\n\
+         Sec-WebSocket-Protocol: foxglove.sdk.v1\r\n\r\n"
+    )
+    .unwrap();
+    // The HTTP answer ends with an empty line.
+    let mut head = Vec::new();
+    let mut b = [0u8; 1];
+    while !head.ends_with(b"\r\n\r\n") {
+        std::io::Read::read_exact(&mut s, &mut b).unwrap();
+        head.push(b[0]);
+    }
+    let head = String::from_utf8_lossy(&head);
+    assert!(head.starts_with("HTTP/1.1 101"), "{head}");
+    // serverInfo, then the channel advertisement.
+    let mut advertised = String::new();
+    for _ in 0..4 {
+        let (op, data) = ws_read_frame(&mut s).unwrap();
+        if op == 1 {
+            let text = String::from_utf8(data).unwrap();
+            if text.contains("\"op\":\"advertise\"") {
+                advertised = text;
+                break;
+            }
+        }
+    }
+    for topic in markhold::record::TOPICS {
+        assert!(advertised.contains(topic), "{topic} not in {advertised}");
+    }
+    drop(s);
+    rec.finish().unwrap();
+}
+
+/// 60 frames rendered on station with a 2 s hole in their stamps after frame 30: played
+/// at the pace of its stamps, the camera stalls for 2 s.
+fn stalling_frames_dir() -> &'static Path {
+    static DIR: OnceLock<PathBuf> = OnceLock::new();
+    DIR.get_or_init(|| {
+        let dir = tmp("frames-stall");
+        let mut rig = station_rig(false);
+        rig.set_exposure_us(3000.0).unwrap();
+        let mut rec = FrameRecorder::create(&dir).unwrap();
+        let mut f = Frame::default();
+        for i in 0..60 {
+            rig.grab(&mut f).unwrap();
+            if i >= 30 {
+                f.meta.stamp_s += 2.0;
+            }
+            rec.write(&f).unwrap();
+        }
+        dir
+    })
+}
+
+/// The vehicle states the recording holds, per frame: (stamp, pilot inputs sent so far).
+fn pilot_inputs_per_frame(path: &Path) -> Vec<(f64, u64)> {
+    let buf = std::fs::read(path).unwrap();
+    mcap::MessageStream::new(&buf)
+        .unwrap()
+        .map(|m| m.unwrap())
+        .filter(|m| m.channel.topic == markhold::record::TOPIC_VEHICLE)
+        .map(|m| {
+            let v: serde_json::Value = serde_json::from_slice(&m.data).unwrap();
+            (
+                v["stamp_s"].as_f64().unwrap(),
+                v["state"]["counters"]["pilot_inputs"].as_u64().unwrap(),
+            )
+        })
+        .collect()
+}
+
+#[test]
+fn camera_stall_goes_neutral_on_loop_time_then_resumes() {
+    let frames = stalling_frames_dir();
+    let v = vehicle();
+    let rec = tmp("stall.mcap");
+    let summary = tmp("stall.json");
+    let o = markhold()
+        .args(["run", "--engage", "--no-preflight", "--site"])
+        .arg(site_path())
+        .arg("--camera")
+        .arg(format!("frames:{}", frames.display()))
+        .arg("--link")
+        .arg(format!("udpout:{}", v.addr))
+        .arg("--record")
+        .arg(&rec)
+        .arg("--summary")
+        .arg(&summary)
+        .output()
+        .unwrap();
+    let _ = v.finish();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let report: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&summary).unwrap()).unwrap();
+    assert_eq!(report["frames"], 60, "{report}");
+    // One stall (2 s without frames > vision_stall_s = 0.5 s), noticed while it lasted.
+    assert_eq!(report["vision_stalls"], 1, "{report}");
+    // Between the last frame before the hole and the first after it, the loop kept
+    // sending (neutral) pilot input on its ticks: a blocked grab would send none.
+    let per = pilot_inputs_per_frame(&rec);
+    let i = per
+        .windows(2)
+        .position(|w| w[1].0 - w[0].0 > 1.5)
+        .expect("the hole is in the recording");
+    let sent_in_hole = per[i + 1].1 - per[i].1;
+    assert!(
+        sent_in_hole >= 10,
+        "only {sent_in_hole} pilot inputs during the 2 s stall"
+    );
+    // The commands around it: station keeping before, station keeping again after.
+    let cmds = commands(&rec);
+    assert_eq!(cmds[i].directive, "command", "{:?}", cmds[i]);
+    assert!(
+        cmds[i + 1..]
+            .iter()
+            .filter(|c| c.directive == "command")
+            .count()
+            >= 25,
+        "{:?}",
+        &cmds[i + 1..]
+    );
+}
+
+#[test]
+fn sigterm_with_disarm_on_exit_sends_neutral_then_disarms() {
+    let frames = frames_dir();
+    let v = vehicle();
+    let rec = tmp("disarm.mcap");
+    let summary = tmp("disarm.json");
+    let site = tmp("disarm-site.toml");
+    let text = std::fs::read_to_string(site_path()).unwrap().replace(
+        "mode = \"manual\"",
+        "mode = \"manual\"\ndisarm_on_exit = true",
+    );
+    std::fs::write(&site, text).unwrap();
+    let mut child = markhold()
+        .args(["run", "--arm", "--engage", "--no-preflight", "--site"])
+        .arg(&site)
+        .arg("--camera")
+        .arg(format!("frames:{}", frames.display()))
+        .arg("--link")
+        .arg(format!("udpout:{}", v.addr))
+        .arg("--record")
+        .arg(&rec)
+        .arg("--summary")
+        .arg(&summary)
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    let mut err = BufReader::new(child.stderr.take().unwrap());
+    let mut line = String::new();
+    let deadline = Instant::now() + Duration::from_secs(20);
+    while !line.contains("running") {
+        line.clear();
+        assert!(
+            err.read_line(&mut line).unwrap() > 0,
+            "exited before running"
+        );
+        assert!(Instant::now() < deadline);
+    }
+    std::thread::sleep(Duration::from_millis(300));
+    let killed = Command::new("kill")
+        .args(["-TERM", &child.id().to_string()])
+        .status()
+        .unwrap();
+    assert!(killed.success());
+    let mut rest = String::new();
+    std::io::Read::read_to_string(&mut err, &mut rest).unwrap();
+    let status = loop {
+        if let Some(s) = child.try_wait().unwrap() {
+            break s;
+        }
+        assert!(Instant::now() < deadline, "did not stop after SIGTERM");
+        std::thread::sleep(Duration::from_millis(20));
+    };
+    let end = v.finish();
+    let (stats, armed) = (end.stats, end.truth.armed);
+    assert_eq!(status.code(), Some(0), "{rest}");
+    assert!(rest.contains("disarm on exit: Accepted"), "{rest}");
+    // The vehicle is disarmed, by markhold (well before its own 3 s pilot failsafe: the
+    // run lasted 0.3 s after start-up and input went out on every frame).
+    assert!(!armed, "vehicle still armed; {stats:?}");
+    let report: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&summary).unwrap()).unwrap();
+    assert_eq!(report["stopped_by"], "signal", "{report}");
+    assert_eq!(report["disarm"], "Accepted", "{report}");
+    // Recording finalized; its last frame is the shutdown's neutral input.
+    let cmds = commands(&rec);
+    let last = cmds.last().unwrap();
+    assert!(last.directive.starts_with("shutdown"), "{last:?}");
+}
+
+/// Per frame of a `--trace` CSV: (seq, detected).
+fn detections(trace: &Path) -> Vec<(u64, bool)> {
+    std::fs::read_to_string(trace)
+        .unwrap()
+        .lines()
+        .skip(1)
+        .map(|l| {
+            let f: Vec<&str> = l.split(',').collect();
+            (f[0].parse().unwrap(), f[6] == "1")
+        })
+        .collect()
+}
+
+/// One recorded-frames format: `hil --snapshot` writes what `run --camera frames:` reads,
+/// the run sees the same detections on it, and `run --record-frames` writes the same
+/// folder again.
+#[test]
+fn a_snapshot_plays_back_as_a_camera_with_the_same_detections() {
+    let snap = tmp("snap");
+    let again = tmp("again");
+    let (hil_trace, run_trace) = (tmp("hil.csv"), tmp("run.csv"));
+    for d in [&snap, &again] {
+        let _ = std::fs::remove_dir_all(d);
+    }
+    let o = markhold()
+        .args(["hil", "--quiet", "--seconds", "2", "--site"])
+        .arg(site_path())
+        .args(["--snapshot-every", "1", "--snapshot"])
+        .arg(&snap)
+        .arg("--trace")
+        .arg(&hil_trace)
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+
+    let v = vehicle();
+    let o = markhold()
+        .args(["run", "--engage", "--no-preflight", "--no-pace", "--site"])
+        .arg(site_path())
+        .arg("--camera")
+        .arg(format!("frames:{}", snap.display()))
+        .arg("--link")
+        .arg(format!("udpout:{}", v.addr))
+        .arg("--trace")
+        .arg(&run_trace)
+        .arg("--record-frames")
+        .arg(&again)
+        .output()
+        .unwrap();
+    let _ = v.finish();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+
+    let (seen, replayed) = (detections(&hil_trace), detections(&run_trace));
+    assert_eq!(seen.len(), 60, "two seconds at 30 fps");
+    assert!(
+        seen.iter().filter(|d| d.1).count() > 30,
+        "the marker is seen"
+    );
+    assert_eq!(replayed, seen, "the same frames give the same detections");
+    let csv = |d: &Path| std::fs::read_to_string(d.join("frames.csv")).unwrap();
+    assert_eq!(
+        csv(&again),
+        csv(&snap),
+        "stamps and exposures written again"
+    );
+    for name in ["frame_000000.png", "frame_000059.png"] {
+        let a = std::fs::read(snap.join(name)).unwrap();
+        let b = std::fs::read(again.join(name)).unwrap();
+        assert!(a == b, "{name}: the pixels are written again as they were");
+    }
+}
