@@ -43,13 +43,36 @@ pub fn site_path() -> PathBuf {
 /// `name` in a scratch directory of this test process (`markhold-{prefix}-{pid}`), with
 /// no file or folder left there by an earlier run. The tests of a binary share its
 /// process: each file uses its own `prefix`, each test its own `name`.
+/// Scratch folders of earlier test processes that have ended are removed on first use of a
+/// prefix, so runs do not pile recordings up in the temp folder.
 pub fn tmp_path(prefix: &str, name: &str) -> PathBuf {
     let dir = std::env::temp_dir().join(format!("markhold-{prefix}-{}", std::process::id()));
+    if !dir.exists() {
+        remove_ended_runs(prefix);
+    }
     std::fs::create_dir_all(&dir).unwrap();
     let p = dir.join(name);
     let _ = std::fs::remove_dir_all(&p);
     let _ = std::fs::remove_file(&p);
     p
+}
+
+/// Removes `markhold-{prefix}-{pid}` folders whose process no longer runs (Linux: no
+/// `/proc/{pid}`).
+fn remove_ended_runs(prefix: &str) {
+    let Ok(entries) = std::fs::read_dir(std::env::temp_dir()) else {
+        return;
+    };
+    let head = format!("markhold-{prefix}-");
+    for e in entries.flatten() {
+        let name = e.file_name();
+        let Some(pid) = name.to_str().and_then(|n| n.strip_prefix(&head)) else {
+            continue;
+        };
+        if pid.parse::<u32>().is_ok() && !Path::new("/proc").join(pid).exists() {
+            let _ = std::fs::remove_dir_all(e.path());
+        }
+    }
 }
 
 /// An empty scratch folder: [`tmp_path`] created.
