@@ -11,25 +11,12 @@ mod common;
 
 use std::path::Path;
 
-use common::{markhold, repo, tmp_path};
+use common::{differences, markhold, repo, same_as_file, tmp_path, without_wall_clock};
 use markhold_autopilot::ControllerConfig;
 use serde_json::Value;
 
 const SECONDS: &str = "5";
 const SEED: &str = "1";
-
-/// The summary fields the wall clock changes, and the renderer's build (which changes the
-/// speed only: `hil_e2e render_loops_change_the_speed_not_the_run`).
-const NOT_COMPARED: [&str; 8] = [
-    "wall_seconds",
-    "realtime_factor",
-    "world_wall_seconds",
-    "world_realtime_factor",
-    "loop_latency_p99_ms",
-    "stream_added_latency_p50_ms",
-    "stream_added_latency_p99_ms",
-    "render_loops",
-];
 
 /// The summary of `site`'s golden run, the fields above removed.
 fn run(site: &Path, summary: &Path) -> Value {
@@ -46,53 +33,19 @@ fn run(site: &Path, summary: &Path) -> Value {
         site.display(),
         String::from_utf8_lossy(&o.stderr)
     );
-    let mut v: Value = serde_json::from_str(&std::fs::read_to_string(summary).unwrap()).unwrap();
-    let m = v.as_object_mut().unwrap();
-    for k in NOT_COMPARED {
-        m.remove(k);
-    }
-    v
-}
-
-/// The fields of `a` and `b` that differ, one line each.
-fn differences(a: &Value, b: &Value) -> String {
-    let (a, b) = (a.as_object().unwrap(), b.as_object().unwrap());
-    let mut keys: Vec<&String> = a.keys().chain(b.keys()).collect();
-    keys.sort();
-    keys.dedup();
-    keys.into_iter()
-        .filter(|k| a.get(*k) != b.get(*k))
-        .map(|k| format!("  {k}: golden {:?}, now {:?}\n", b.get(k), a.get(k)))
-        .collect()
+    without_wall_clock(serde_json::from_str(&std::fs::read_to_string(summary).unwrap()).unwrap())
 }
 
 fn golden(site: &str) {
-    let file = repo(&format!("tests/golden/{site}.json"));
     let now = run(
         &repo(&format!("params/{site}.toml")),
         &tmp_path("golden", &format!("{site}.json")),
     );
-    if std::env::var_os("MARKHOLD_BLESS").is_some_and(|v| v == "1") {
-        let text = serde_json::to_string_pretty(&now).unwrap() + "\n";
-        std::fs::create_dir_all(file.parent().unwrap()).unwrap();
-        std::fs::write(&file, text).unwrap();
-        eprintln!("golden: rewrote {}", file.display());
-        return;
-    }
-    let text = std::fs::read_to_string(&file).unwrap_or_else(|e| {
-        panic!(
-            "{}: {e}; MARKHOLD_BLESS=1 cargo test --release --test golden writes it",
-            file.display()
-        )
-    });
-    let want: Value = serde_json::from_str(&text).unwrap();
-    assert!(
-        now == want,
-        "{site}: the {SECONDS} s run of seed {SEED} moved from {}:\n{}\
-         if the change is meant, MARKHOLD_BLESS=1 cargo test --release --test golden \
-         rewrites the files (commit them with the reason)",
-        file.display(),
-        differences(&now, &want)
+    same_as_file(
+        &repo(&format!("tests/golden/{site}.json")),
+        &now,
+        &format!("{site}: the {SECONDS} s run of seed {SEED}"),
+        "cargo test --release --test golden",
     );
 }
 

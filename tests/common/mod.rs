@@ -1,7 +1,8 @@
 //! Helpers shared by the integration tests: the built binary, paths in the repository,
 //! the small fixture site, scratch paths, a WebSocket frame reader for the live view, a
-//! hostile HTTP server and the pymavlink vehicle; with the simulator (`sim`), the
-//! simulated world as a free-running vehicle (`sim.rs`).
+//! hostile HTTP server, the pymavlink vehicle and summaries compared with committed result
+//! files (`results.rs`); with the simulator (`sim`), the simulated world as a free-running
+//! vehicle (`sim.rs`).
 #![allow(dead_code)]
 #![allow(clippy::unwrap_used)] // Tests fail loudly on a broken setup, by design.
 
@@ -13,6 +14,8 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
 use std::time::Duration;
 
+mod results;
+pub use results::*;
 #[cfg(feature = "sim")]
 mod sim;
 // Not every binary uses the simulated world.
