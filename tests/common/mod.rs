@@ -15,6 +15,8 @@ use std::sync::Arc;
 use std::time::Duration;
 
 mod results;
+// Not every binary compares result files.
+#[allow(unused_imports)]
 pub use results::*;
 #[cfg(feature = "sim")]
 mod sim;
