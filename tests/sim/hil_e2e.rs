@@ -94,24 +94,19 @@ fn readme_site_run(site: &str) -> serde_json::Value {
     s
 }
 
-/// A row of the README's results table: the run equals its result file.
-fn site_as_the_readme_states(site: &str) {
-    readme_site_run(site);
-}
-
 #[test]
 fn connecticut_river_as_the_readme_states() {
-    site_as_the_readme_states("connecticut-river");
+    readme_site_run("connecticut-river");
 }
 
 #[test]
 fn night_harbor_as_the_readme_states() {
-    site_as_the_readme_states("night-harbor");
+    readme_site_run("night-harbor");
 }
 
 #[test]
 fn reef_caustics_as_the_readme_states() {
-    site_as_the_readme_states("reef-caustics");
+    readme_site_run("reef-caustics");
 }
 
 #[test]
