@@ -3,6 +3,11 @@
 //! drift and no socket queue grows. The default is 1 simulated minute; the full hour:
 //!
 //!   MARKHOLD_SOAK_SECONDS=3600 cargo test --release --test soak -- --nocapture
+//!
+//! `MARKHOLD_SOAK_RSS_SLACK_KB` sets how far the peak RSS may grow after the first window
+//! (default 8 MB: allocator noise over a minute); `MARKHOLD_SOAK_OUT=FILE.json` writes the
+//! figures there, before the checks (the long tier, `scripts/long-checks`, runs the hour
+//! with a 1 MB bound).
 #![cfg(feature = "sim")]
 #![allow(clippy::unwrap_used)] // Tests fail loudly on a broken setup, by design.
 
@@ -149,10 +154,30 @@ fn station_keeping_soak() {
         queue_max,
         hil.rig.truth().lockstep_timeouts
     );
-    // Memory flat: the peak after the first window grows by less than 8 MB (allocator
+    let rss_slack_kb: u64 = std::env::var("MARKHOLD_SOAK_RSS_SLACK_KB")
+        .ok()
+        .and_then(|v| v.parse().ok())
+        .unwrap_or(8 * 1024);
+    if let Some(out) = std::env::var_os("MARKHOLD_SOAK_OUT") {
+        let figures = serde_json::json!({
+            "seconds": seconds,
+            "site": "tests/fixtures/pool-640.toml at 320x240",
+            "wall_s": wall.elapsed().as_secs_f64(),
+            "rss_start_peak_kb": rss_start.1,
+            "rss_end_peak_kb": rss_end.1,
+            "rss_slack_kb": rss_slack_kb,
+            "rms_first_m": first,
+            "rms_last_m": last,
+            "rms_max_m": err2.iter().cloned().fold(0.0, f64::max),
+            "queue_max_bytes": queue_max,
+            "lockstep_timeouts": hil.rig.truth().lockstep_timeouts,
+        });
+        std::fs::write(&out, serde_json::to_string_pretty(&figures).unwrap()).unwrap();
+    }
+    // Memory flat: the peak after the first window grows by less than the slack (allocator
     // noise, tracing), whatever the length of the run.
     assert!(
-        rss_end.1 <= rss_start.1 + 8 * 1024,
+        rss_end.1 <= rss_start.1 + rss_slack_kb,
         "peak RSS grew {} -> {} kB",
         rss_start.1,
         rss_end.1

@@ -128,3 +128,65 @@ fn a_figure_edited_by_hand_is_found() {
     );
     assert_eq!(again, generated);
 }
+
+/// `scripts/long-tier-section.py RESULTS DOC CHECK` on `doc` with the committed results.
+fn long_tier_check(results: &std::path::Path, doc: &std::path::Path) -> std::process::Output {
+    std::process::Command::new("python3")
+        .arg(repo("scripts/long-tier-section.py"))
+        .arg(results)
+        .arg(doc)
+        .arg("1")
+        .output()
+        .expect("python3 runs (scripts/install-deps)")
+}
+
+/// docs/results.md's long-tier section is what docs/results/long/ gives.
+#[test]
+fn the_long_tier_section_is_the_result_files() {
+    let out = long_tier_check(&repo("docs/results/long"), &repo("docs/results.md"));
+    assert!(
+        out.status.success(),
+        "{}scripts/long-checks docs rewrites the section",
+        String::from_utf8_lossy(&out.stderr)
+    );
+}
+
+/// The check can fail: a long-tier figure edited by hand, and a result file that moved
+/// without the section, are both found.
+#[test]
+fn a_long_tier_figure_edited_by_hand_is_found() {
+    let dir = crate::common::tmp_path("result-tables", "long-tier");
+    std::fs::create_dir_all(&dir).unwrap();
+    let results = dir.join("long");
+    std::fs::create_dir_all(&results).unwrap();
+    for e in std::fs::read_dir(repo("docs/results/long")).into_iter().flatten() {
+        let e = e.unwrap();
+        std::fs::copy(e.path(), results.join(e.file_name())).unwrap();
+    }
+    let doc = dir.join("results.md");
+    let text = std::fs::read_to_string(repo("docs/results.md")).unwrap();
+    // A result file that moved: a soak status the section does not show.
+    let status = serde_json::json!({
+        "component": "soak", "exit_code": 0, "wall_s": 1234, "date": "2000-01-01",
+        "host": "a test host", "commit": "abc1234", "scale": 1
+    });
+    std::fs::write(&doc, &text).unwrap();
+    std::fs::write(results.join("soak.status.json"), status.to_string()).unwrap();
+    let out = long_tier_check(&results, &doc);
+    assert!(!out.status.success(), "a moved result file went unnoticed");
+    assert!(String::from_utf8_lossy(&out.stderr).contains("long-tier section differs"));
+    // Rewritten from the files, it passes; then one character of it edited by hand fails.
+    let rewrite = std::process::Command::new("python3")
+        .arg(repo("scripts/long-tier-section.py"))
+        .arg(&results)
+        .arg(&doc)
+        .arg("0")
+        .status()
+        .unwrap();
+    assert!(rewrite.success());
+    assert!(long_tier_check(&results, &doc).status.success());
+    let generated = std::fs::read_to_string(&doc).unwrap();
+    assert!(generated.contains("1234 s wall"), "the section shows the status");
+    std::fs::write(&doc, generated.replacen("1234 s wall", "1233 s wall", 1)).unwrap();
+    assert!(!long_tier_check(&results, &doc).status.success());
+}
