@@ -127,27 +127,26 @@ fn entries(toml_text: &str) -> Vec<(u32, Vector3<f64>, [f64; 3])> {
         .collect()
 }
 
-/// Every `[[marker.map]]` entry of `truth` is in the section `text` within 5 mm and 0.5
-/// degree.
-fn check_layout(truth: &MarkerConfig, text: &str) {
+/// Every `[[marker.map]]` entry of `truth` is in the section `text` within `max_mm` and
+/// `max_deg`.
+fn check_layout(truth: &MarkerConfig, text: &str, max_mm: f64, max_deg: f64) {
     let got = entries(text);
     assert_eq!(got.len(), truth.map.len(), "{text}");
     let q = |r: [f64; 3]| {
         let [a, b, c] = r.map(f64::to_radians);
         UnitQuaternion::from_euler_angles(a, b, c)
     };
+    let (mut worst_mm, mut worst_deg) = (0.0f64, 0.0f64);
     for t in &truth.map {
         let (_, p, rpy) = got.iter().find(|(id, _, _)| *id == t.id).unwrap();
-        let dp = (p - Vector3::from(t.position_m)).norm();
-        assert!(
-            dp < 0.005,
-            "marker {}: {:.2} mm off\n{text}",
-            t.id,
-            dp * 1e3
-        );
+        let dp = (p - Vector3::from(t.position_m)).norm() * 1e3;
         let da = q(*rpy).angle_to(&q(t.rpy_deg)).to_degrees();
-        assert!(da < 0.5, "marker {}: {da:.3} deg off\n{text}", t.id);
+        worst_mm = worst_mm.max(dp);
+        worst_deg = worst_deg.max(da);
+        assert!(dp < max_mm, "marker {}: {dp:.2} mm off\n{text}", t.id);
+        assert!(da < max_deg, "marker {}: {da:.3} deg off\n{text}", t.id);
     }
+    eprintln!("layout: every marker within {worst_mm:.3} mm and {worst_deg:.4} deg");
 }
 
 #[test]
@@ -174,8 +173,9 @@ fn map_recovers_the_layout_from_a_frames_folder() {
     assert!(text.contains("seen in 27 frames"), "{text}");
     assert!(text.contains("reprojection RMS"), "{text}");
 
+    // docs/design/mapping.md: within 0.1 mm and 0.03 degree (0.100 mm, 0.034 degree).
     let truth = markhold::params::load(&fixture()).unwrap().site.marker;
-    check_layout(&truth, &text);
+    check_layout(&truth, &text, 0.15, 0.05);
 
     // The section pasted under the fixture's [marker] makes a site that loads.
     let base = std::fs::read_to_string(&site).unwrap();
@@ -338,7 +338,7 @@ fn map_reads_every_image_of_a_recording() {
 
 /// The test at CI length: `markhold hil` on the four-marker fixture (the HIL
 /// renders every marker of the map), recorded, then `markhold map` on the recording with
-/// the site's poses zeroed: each marker within 5 mm and 0.5 degree of the fixture's
+/// the site's poses zeroed: each marker within 0.3 mm and 0.05 degree of the fixture's
 /// layout. 10 s of simulated time instead of 60 to keep CI short; the 60 s figures
 /// come from the command in docs/design/mapping.md.
 #[cfg(feature = "sim")]
@@ -367,8 +367,10 @@ fn map_from_a_hil_recording_recovers_the_layout() {
     assert!(out.status.success(), "{out:?}");
     let text = String::from_utf8(out.stdout).unwrap();
     println!("{text}");
+    // docs/design/mapping.md: within 0.3 mm and 0.05 degree at this length (0.17 mm,
+    // 0.031 degree).
     let truth = markhold::params::load(&fixture()).unwrap().site.marker;
-    check_layout(&truth, &text);
+    check_layout(&truth, &text, 0.3, 0.05);
     let _ = std::fs::remove_file(&rec);
     let _ = std::fs::remove_file(&site);
 }
