@@ -254,6 +254,25 @@ impl RecordedCamera {
     pub fn rewind(&mut self) {
         self.next = 0;
     }
+
+    /// The stamp of the frame `ahead` places after the one the next `grab` reads (0: that
+    /// one), from the sidecar, without reading the image; None past the end.
+    pub fn peek_stamp_s(&self, ahead: usize) -> Option<f64> {
+        self.entries
+            .get(self.next.checked_add(ahead)?)
+            .map(|e| e.meta.stamp_s)
+    }
+
+    /// Passes over the frame the next `grab` would read, without reading its image (a
+    /// real-time player drops what the loop was too slow for); false at the end.
+    pub fn skip(&mut self) -> bool {
+        if self.next < self.entries.len() {
+            self.next += 1;
+            true
+        } else {
+            false
+        }
+    }
 }
 
 impl Camera for RecordedCamera {
@@ -449,6 +468,14 @@ mod tests {
         cam.rewind();
         cam.grab(&mut g).unwrap();
         assert_eq!(g.meta.seq, 10);
+        // A frame passed over unread: the stamps come from the sidecar.
+        assert_eq!(cam.peek_stamp_s(0), Some(1.5 + 1.0 / 30.0));
+        assert_eq!(cam.peek_stamp_s(1), Some(1.5 + 2.0 / 30.0));
+        assert_eq!(cam.peek_stamp_s(2), None);
+        assert!(cam.skip());
+        cam.grab(&mut g).unwrap();
+        assert_eq!(g.meta.seq, 12);
+        assert!(!cam.skip());
         std::fs::remove_dir_all(&dir).ok();
     }
 

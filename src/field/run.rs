@@ -11,7 +11,8 @@ use markhold_autopilot::{CommandStatus, Directive, FailsafeEvent, VehicleLink};
 use markhold_exposure::{Camera, CameraError};
 use serde::Serialize;
 
-use super::camera::{open_camera, CameraUrl, LiveCamera};
+use super::camera::stream::DecoderReport;
+use super::camera::{open_camera, CameraUrl, FrameAge, LiveCamera};
 pub use super::engage::HandBack;
 use super::engage::{EngagedLink, ExitPolicy, ExitReport, Transition};
 use super::preflight::{self, Checklist};
@@ -154,6 +155,21 @@ pub struct RunReport {
     pub disarm: Option<CommandStatus>,
     /// Frames the camera took that the loop was too slow to see (it acts on the newest).
     pub frames_passed_over: u64,
+    /// Frames the loop acted on per second of camera time (frame stamps).
+    pub effective_fps: Option<f64>,
+    /// Frames the camera gave per second of camera time, those passed over included.
+    pub camera_fps: Option<f64>,
+    /// The frame rate the keeper was designed and checked at: the site's `[camera] fps`.
+    pub designed_fps: f64,
+    /// Times the loop's rate over a window of camera time fell under the designed rate
+    /// (each one warned on the console and in the log).
+    pub rate_warnings: u64,
+    /// How old the frames the loop acted on were when it came back for the next one
+    /// (paced recordings).
+    pub frame_age: Option<FrameAge>,
+    /// A stream camera's H.264 decoder: the element, hardware or not, and the decoders
+    /// tried before it with the reason each was passed over.
+    pub stream_decoder: Option<DecoderReport>,
     /// Times the pilot (or `--engage`) engaged markhold.
     pub engagements: u64,
     /// Engagement changes with their loop time.
@@ -386,6 +402,78 @@ pub fn build_loop<L: CommandLink>(
     Pipeline::new(site, LoopStart::of_site(site), link, observers)
 }
 
+/// The loop's rate falls under this fraction of the designed rate: warned.
+pub const RATE_WARN_FRACTION: f64 = 0.9;
+/// The loop's rate is judged over windows of this much camera time.
+pub const RATE_WINDOW_S: f64 = 2.0;
+/// Test-only: milliseconds the loop sleeps after each frame, to show a loop slower than
+/// its camera acting on the newest frame. Never set in the field; a run says so when it is.
+pub const TEST_DELAY_ENV: &str = "MARKHOLD_TEST_LOOP_DELAY_MS";
+
+/// The test-only delay per frame from [`TEST_DELAY_ENV`] (at most 1 s), if set.
+fn test_delay() -> anyhow::Result<Option<Duration>> {
+    let Ok(v) = std::env::var(TEST_DELAY_ENV) else {
+        return Ok(None);
+    };
+    let ms: u64 = v
+        .trim()
+        .parse()
+        .ok()
+        .filter(|ms| *ms <= 1000)
+        .ok_or_else(|| anyhow::anyhow!("{TEST_DELAY_ENV}={v}: expected milliseconds 0..=1000"))?;
+    Ok(Some(Duration::from_millis(ms)))
+}
+
+/// The loop's frame rate over windows of camera time, against the designed rate.
+struct RateWatch {
+    designed_fps: f64,
+    window_start_s: Option<f64>,
+    frames: u64,
+    below: bool,
+    warnings: u64,
+}
+
+impl RateWatch {
+    fn new(designed_fps: f64) -> Self {
+        Self {
+            designed_fps,
+            window_start_s: None,
+            frames: 0,
+            below: false,
+            warnings: 0,
+        }
+    }
+
+    /// A frame acted on at `stamp_s`: at the end of a window, the window's rate and
+    /// whether it just fell under the designed rate (warn once until it recovers).
+    fn frame(&mut self, stamp_s: f64) -> Option<(f64, bool)> {
+        let Some(t0) = self.window_start_s else {
+            self.window_start_s = Some(stamp_s);
+            return None;
+        };
+        self.frames += 1;
+        let span = stamp_s - t0;
+        if span < RATE_WINDOW_S {
+            // A stamp going back (a rebuilt stream) starts the window again.
+            if span < 0.0 {
+                self.window_start_s = Some(stamp_s);
+                self.frames = 0;
+            }
+            return None;
+        }
+        let rate = self.frames as f64 / span;
+        self.window_start_s = Some(stamp_s);
+        self.frames = 0;
+        let low = rate < RATE_WARN_FRACTION * self.designed_fps;
+        let fell = low && !self.below;
+        self.below = low;
+        if fell {
+            self.warnings += 1;
+        }
+        Some((rate, fell))
+    }
+}
+
 /// Counters of the loop while it runs.
 #[derive(Default)]
 struct Counts {
@@ -459,6 +547,7 @@ fn sync_camera(pipeline: &Pipeline<EngagedLink>, cam: &mut LiveCamera, n: &mut C
 
 /// Step until a signal, the end of a recorded stream, `max_seconds` (camera or wall
 /// time) or `[camera] stall_exit_s` without frames.
+#[allow(clippy::too_many_arguments)]
 fn drive(
     pipeline: &mut Pipeline<EngagedLink>,
     cam: &mut LiveCamera,
@@ -466,6 +555,8 @@ fn drive(
     opts: &RunOptions,
     stop: &ShutdownFlag,
     n: &mut Counts,
+    rate: &mut RateWatch,
+    delay: Option<Duration>,
 ) -> anyhow::Result<StopReason> {
     let started = Instant::now();
     let stall_exit = Duration::from_secs_f64(site.site.camera.stall_exit_s);
@@ -537,6 +628,22 @@ fn drive(
         n.frames += 1;
         n.detected += u64::from(rec.detected);
         n.last_stamp = rec.stamp_s;
+        if let Some((fps, fell)) = rate.frame(rec.stamp_s) {
+            if fell {
+                tracing::warn!(
+                    fps,
+                    designed_fps = rate.designed_fps,
+                    "loop slower than designed"
+                );
+                eprintln!(
+                    "markhold run: acting on {fps:.1} frames a second, under the {:.0} fps the keeper is designed for ([camera] fps): the loop takes the newest frame (older ones are passed over), but each command comes later",
+                    rate.designed_fps
+                );
+            }
+        }
+        if let Some(d) = delay {
+            std::thread::sleep(d);
+        }
         tell_pilot(pipeline, site, Some(&rec), rec.stamp_s, &mut n.events)?;
         if let Some(b) = &n.board {
             b.set_engagement(pipeline.link().engager().state());
@@ -561,6 +668,41 @@ fn exit_budget(site: &LoadedSite) -> Duration {
     Duration::from_secs_f64(l.hand_back_timeout_s + disarm + neutral_and_close)
         + super::camera::CONTROL_FINISH
         + Duration::from_secs(5)
+}
+
+/// Says which stream decoder runs, and the test-only delay when set; returns the delay.
+fn say_decoder_and_delay(cam: &LiveCamera) -> anyhow::Result<Option<Duration>> {
+    if let Some(d) = cam.decoder() {
+        eprintln!("markhold run: stream decoder {d}");
+    }
+    let delay = test_delay()?;
+    if let Some(d) = delay {
+        eprintln!(
+            "markhold run: {TEST_DELAY_ENV}={}: the loop sleeps that long after each frame (a test setting)",
+            d.as_millis()
+        );
+    }
+    Ok(delay)
+}
+
+/// The loop's and the camera's frame rates over the run (frames acted on, and those with
+/// the ones passed over, per second of camera time); a loop under the designed rate is
+/// said on the console.
+fn run_rates(
+    acted: u64,
+    passed_over: u64,
+    loop_seconds: f64,
+    designed_fps: f64,
+) -> (Option<f64>, Option<f64>) {
+    let per_s =
+        |frames: u64| (loop_seconds > 0.0).then(|| frames.saturating_sub(1) as f64 / loop_seconds);
+    let effective_fps = per_s(acted);
+    if let Some(fps) = effective_fps.filter(|f| *f < RATE_WARN_FRACTION * designed_fps) {
+        eprintln!(
+            "markhold run: the loop acted on {fps:.1} frames a second over the run, under the {designed_fps:.0} fps the keeper is designed for ([camera] fps); {passed_over} camera frames passed over"
+        );
+    }
+    (effective_fps, per_s(acted + passed_over))
 }
 
 /// Run the loop until a signal, the end of a recorded stream or `max_seconds`.
@@ -608,14 +750,26 @@ pub fn run_live(
             )
         }
     );
+    let delay = say_decoder_and_delay(&cam)?;
     let mut n = Counts {
         last_stamp: cam.next.meta.stamp_s,
         events: Vec::with_capacity(16),
         board,
         ..Counts::default()
     };
+    let designed_fps = site.site.camera.fps;
+    let mut rate = RateWatch::new(designed_fps);
     let loop_started = Instant::now();
-    let stopped = drive(&mut pipeline, &mut cam, site, opts, stop, &mut n);
+    let stopped = drive(
+        &mut pipeline,
+        &mut cam,
+        site,
+        opts,
+        stop,
+        &mut n,
+        &mut rate,
+        delay,
+    );
     let wall_seconds = loop_started.elapsed().as_secs_f64();
     // The exit below is bounded: after a signal, the watchdog waits for it.
     stop.allow_exit_within(exit_budget(site));
@@ -642,17 +796,26 @@ pub fn run_live(
     }
     let stopped_by = stopped?;
     let link = pipeline.link();
+    let loop_seconds = n.first_stamp.map_or(0.0, |t0| n.last_stamp - t0);
+    let passed_over = cam.frames_passed_over();
+    let (effective_fps, camera_fps) = run_rates(n.frames, passed_over, loop_seconds, designed_fps);
     Ok(RunReport {
         frames: n.frames,
         detected: n.detected,
-        loop_seconds: n.first_stamp.map_or(0.0, |t0| n.last_stamp - t0),
+        loop_seconds,
         stopped_by,
         record: record_stats.map(|h| h.get()),
         record_error: observers_done.err().map(|e| format!("{e:#}")),
         foxglove_addr,
         vision_stalls: n.vision_stalls,
         disarm,
-        frames_passed_over: cam.frames_passed_over(),
+        frames_passed_over: passed_over,
+        effective_fps,
+        camera_fps,
+        designed_fps,
+        rate_warnings: rate.warnings,
+        frame_age: cam.frame_age(),
+        stream_decoder: cam.decoder().cloned(),
         engagements: link.engager().engagements(),
         engagement: link.transitions.clone(),
         withheld: link.withheld,
@@ -665,4 +828,40 @@ pub fn run_live(
         camera_restore_error,
         wall_seconds,
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_rate_is_judged_per_window_and_warned_once_per_fall() {
+        let mut w = RateWatch::new(30.0);
+        let mut ends = Vec::new();
+        // 3 s at 30 fps, 4 s at 15 fps, 6 s at 30 fps again, 5 s at 10 fps.
+        let mut t = 0.0;
+        let mut feed = |w: &mut RateWatch, fps: f64, secs: f64, t: &mut f64| {
+            for _ in 0..(fps * secs).round() as u32 {
+                *t += 1.0 / fps;
+                if let Some(e) = w.frame(*t) {
+                    ends.push(e);
+                }
+            }
+        };
+        feed(&mut w, 30.0, 3.0, &mut t);
+        feed(&mut w, 15.0, 4.0, &mut t);
+        feed(&mut w, 30.0, 6.0, &mut t);
+        feed(&mut w, 10.0, 5.0, &mut t);
+        let fell: Vec<bool> = ends.iter().map(|e| e.1).collect();
+        assert_eq!(fell.iter().filter(|f| **f).count(), 2, "{ends:?}");
+        assert_eq!(w.warnings, 2);
+        // Full windows report their rate.
+        assert!(ends.iter().any(|e| (e.0 - 15.0).abs() < 0.6), "{ends:?}");
+        assert!(ends.iter().any(|e| (e.0 - 30.0).abs() < 0.6), "{ends:?}");
+        // A stamp going back starts the window again instead of a negative rate.
+        let mut w = RateWatch::new(30.0);
+        assert!(w.frame(5.0).is_none());
+        assert!(w.frame(0.1).is_none());
+        assert!(w.frame(2.2).is_some_and(|(r, _)| r > 0.0));
+    }
 }

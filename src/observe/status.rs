@@ -139,6 +139,9 @@ pub struct FailsafeStatus {
 pub struct Status {
     /// Frames the loop stepped so far.
     pub frames: u64,
+    /// Frames the loop stepped per second of frame time, over the last second or more
+    /// (a loop slower than its camera acts on fewer frames than the camera gives).
+    pub effective_fps: Option<f64>,
     pub seq: u64,
     pub stamp_s: f64,
     pub engagement: Engagement,
@@ -291,6 +294,8 @@ pub struct StatusObserver {
     behind: bool,
     /// Dropped at the end of the run (the web server, which stops then).
     keep: Option<Box<dyn Send>>,
+    /// The rate's window: its first frame time and the frames since.
+    rate_window: Option<(f64, u64)>,
 }
 
 impl StatusObserver {
@@ -309,6 +314,7 @@ impl StatusObserver {
             status: Status::default(),
             behind: false,
             keep: None,
+            rate_window: None,
         }
     }
 
@@ -322,6 +328,18 @@ impl StatusObserver {
         let r = v.rec;
         let s = &mut self.status;
         s.frames += 1;
+        self.rate_window = match self.rate_window {
+            Some((t0, k)) if r.stamp_s >= t0 => {
+                let span = r.stamp_s - t0;
+                if span >= 1.0 {
+                    s.effective_fps = Some((k + 1) as f64 / span);
+                    Some((r.stamp_s, 0))
+                } else {
+                    Some((t0, k + 1))
+                }
+            }
+            _ => Some((r.stamp_s, 0)),
+        };
         s.seq = r.seq;
         s.stamp_s = r.stamp_s;
         if r.detected {

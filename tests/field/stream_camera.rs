@@ -743,3 +743,205 @@ fn sigterm_ends_a_run_waiting_on_a_silent_rtsp_server() {
     assert!(code == Some(2) || code == Some(130), "{code:?}: {err}");
     assert!(took < Duration::from_secs(6), "{took:?}: {err}");
 }
+
+// ---- the H.264 decoder: hardware where it exists, else software -----------------
+
+/// A free UDP port on loopback (bound and released).
+fn free_udp_port() -> u16 {
+    std::net::UdpSocket::bind("127.0.0.1:0")
+        .unwrap()
+        .local_addr()
+        .unwrap()
+        .port()
+}
+
+/// H.264 over RTP to `port` on loopback, 30 fps of `frame`, until the flag is set
+/// (at most 60 s).
+fn h264_sender(
+    port: u16,
+    frame: Frame,
+) -> (
+    std::sync::Arc<std::sync::atomic::AtomicBool>,
+    std::thread::JoinHandle<()>,
+) {
+    use std::sync::atomic::{AtomicBool, Ordering};
+    let stop = std::sync::Arc::new(AtomicBool::new(false));
+    let stopped = stop.clone();
+    let t = std::thread::spawn(move || {
+        let sender = Sender::start(frame.width, frame.height, 30.0, port).unwrap();
+        let t0 = Instant::now();
+        let mut i = 0u32;
+        while !stopped.load(Ordering::Relaxed) && t0.elapsed() < Duration::from_secs(60) {
+            sender.push(&frame, f64::from(i) / 30.0).unwrap();
+            i += 1;
+            let due = t0 + Duration::from_millis(33 * u64::from(i));
+            std::thread::sleep(due.saturating_duration_since(Instant::now()));
+        }
+    });
+    (stop, t)
+}
+
+fn gradient_frame(w: u32, h: u32) -> Frame {
+    let mut f = Frame::new(w, h);
+    for (i, p) in f.data.iter_mut().enumerate() {
+        *p = ((i / w as usize) * 255 / h as usize) as u8;
+    }
+    f
+}
+
+fn installed(element: &str) -> bool {
+    markhold::field::camera::stream::init().unwrap();
+    gstreamer::ElementFactory::find(element).is_some()
+}
+
+/// The decoder a `udp:` stream camera chose with `choice`, after its first frame.
+fn decoder_with(
+    choice: &markhold::field::camera::stream::DecoderChoice,
+) -> markhold::field::camera::stream::DecoderReport {
+    use markhold::field::camera::stream::{StreamCamera, StreamSource};
+    use markhold::field::camera::worker::ControlHandle;
+    let port = free_udp_port();
+    let (stop, sender) = h264_sender(port, gradient_frame(320, 240));
+    let src = StreamSource::Udp {
+        host: Some("127.0.0.1".into()),
+        port,
+    };
+    let cfg = stream_config_30fps(Duration::from_secs(8));
+    let opened = StreamCamera::open_with(&src, &cfg, ControlHandle::none().unwrap(), choice);
+    let report = opened.map(|mut cam| {
+        let mut f = Frame::default();
+        let deadline = Instant::now() + Duration::from_secs(5);
+        while cam.grab(&mut f).is_err() {
+            assert!(Instant::now() < deadline, "no frame after the first");
+        }
+        assert_eq!((f.width, f.height), (320, 240));
+        // The gradient survives the decoder: dark rows at the top, bright at the bottom.
+        assert!(
+            f.data[320 * 10] < 40 && f.data[320 * 230] > 200,
+            "{choice:?}"
+        );
+        cam.decoder().cloned().unwrap()
+    });
+    stop.store(true, std::sync::atomic::Ordering::Relaxed);
+    sender.join().unwrap();
+    report.unwrap()
+}
+
+#[test]
+fn the_stream_decoder_prefers_hardware_and_falls_back_to_software_saying_why() {
+    use markhold::field::camera::stream::{DecoderChoice, HARDWARE_H264, SOFTWARE_H264};
+    // The platform's choice: a hardware decoder where one is installed and starts, else
+    // software, with each hardware decoder tried named and why it was passed over.
+    let auto = decoder_with(&DecoderChoice::auto());
+    let tried: Vec<&str> = auto
+        .passed_over
+        .iter()
+        .map(|s| s.element.as_str())
+        .collect();
+    if HARDWARE_H264.iter().any(|e| installed(e)) {
+        eprintln!("this host has a hardware H.264 decoder: {auto}");
+        assert!(auto.hardware || auto.element == SOFTWARE_H264, "{auto}");
+    } else {
+        assert_eq!(auto.element, SOFTWARE_H264, "{auto}");
+        assert!(!auto.hardware);
+        assert_eq!(tried, HARDWARE_H264.to_vec(), "{auto}");
+        assert!(
+            auto.passed_over
+                .iter()
+                .all(|s| s.reason.starts_with("not installed")),
+            "{auto}"
+        );
+    }
+    eprintln!("auto: {auto}");
+
+    // A forced preference for an element this host lacks: a fallback, not an error.
+    if !installed("v4l2h264dec") {
+        let r = decoder_with(&DecoderChoice::parse("v4l2h264dec").unwrap());
+        assert_eq!(r.element, SOFTWARE_H264, "{r}");
+        assert_eq!(r.passed_over.len(), 1, "{r}");
+        assert_eq!(r.passed_over[0].element, "v4l2h264dec");
+        assert!(r.passed_over[0].reason.starts_with("not installed"), "{r}");
+    }
+
+    // An element that is installed but cannot start on H.264 (libav's H.265 decoder, in
+    // the same plugin as avdec_h264): passed over with the reason, then software.
+    assert!(
+        installed("avdec_h265"),
+        "avdec_h265 missing: install gstreamer1.0-libav"
+    );
+    let r = decoder_with(&DecoderChoice::prefer(["avdec_h265"]));
+    eprintln!("avdec_h265 first: {r}");
+    assert_eq!(r.element, SOFTWARE_H264, "{r}");
+    assert_eq!(r.passed_over.len(), 1, "{r}");
+    assert_eq!(r.passed_over[0].element, "avdec_h265", "{r}");
+    assert!(r.passed_over[0].reason.starts_with("does not start"), "{r}");
+
+    // A preferred decoder that is installed and works is the one used (openh264's
+    // software decoder stands in for a hardware one on this host).
+    assert!(
+        installed("openh264dec"),
+        "openh264dec missing: install gstreamer1.0-plugins-bad"
+    );
+    let r = decoder_with(&DecoderChoice::prefer(["openh264dec"]));
+    eprintln!("openh264dec first: {r}");
+    assert_eq!(r.element, "openh264dec", "{r}");
+    assert!(!r.hardware, "{r}");
+    assert!(r.passed_over.is_empty(), "{r}");
+}
+
+#[test]
+fn run_reports_its_stream_decoder_and_a_forced_absent_one_as_a_fallback() {
+    // On the Raspberry Pi the forced decoder is there and used; elsewhere it is a fallback.
+    let on_pi = installed("v4l2h264dec");
+    let port = free_udp_port();
+    let mut rig = station_rig(false);
+    rig.set_exposure_us(3000.0).unwrap();
+    let mut frame = Frame::default();
+    rig.grab(&mut frame).unwrap();
+    let (stop, sender) = h264_sender(port, frame);
+    let v = RealTimeVehicle::start(station_rig(false));
+    let summary = tmp_path("stream", "decoder-run.json");
+    let o = markhold()
+        .args([
+            "run",
+            "--engage",
+            "--no-preflight",
+            "--seconds",
+            "2",
+            "--site",
+        ])
+        .arg(site_path())
+        .arg("--camera")
+        .arg(format!("udp:127.0.0.1:{port}"))
+        .arg("--link")
+        .arg(format!("udpout:{}", v.addr))
+        .arg("--summary")
+        .arg(&summary)
+        .env("MARKHOLD_H264_DECODER", "v4l2h264dec")
+        .output()
+        .unwrap();
+    stop.store(true, std::sync::atomic::Ordering::Relaxed);
+    sender.join().unwrap();
+    v.finish();
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(o.status.success(), "{err}");
+    let s: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&summary).unwrap()).unwrap();
+    let d = &s["stream_decoder"];
+    if on_pi {
+        assert_eq!(d["element"], "v4l2h264dec", "{s}");
+        assert_eq!(d["hardware"], true, "{s}");
+    } else {
+        assert!(
+            err.contains(
+                "stream decoder avdec_h264 (software); before it v4l2h264dec: not installed"
+            ),
+            "{err}"
+        );
+        assert_eq!(d["element"], "avdec_h264", "{s}");
+        assert_eq!(d["hardware"], false, "{s}");
+        assert_eq!(d["passed_over"][0]["element"], "v4l2h264dec", "{s}");
+    }
+    assert!(s["frames"].as_u64().unwrap() > 10, "{s}");
+    assert!(s["effective_fps"].as_f64().unwrap() > 0.0, "{s}");
+}

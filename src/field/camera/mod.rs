@@ -67,10 +67,54 @@ impl std::fmt::Display for CameraUrl {
 /// the supervisor sees loop time pass while the camera is stalled.
 pub const NO_FRAME_TICK: Duration = Duration::from_millis(50);
 
+/// Where a live run's frames come from: a recording (paced, it plays as a real-time
+/// camera: frames whose time has passed while the loop was busy are passed over unread)
+/// or a camera.
+enum Source {
+    Recorded(RecordedCamera),
+    Other(Box<dyn Camera>),
+}
+
+impl Source {
+    fn cam(&mut self) -> &mut dyn Camera {
+        match self {
+            Self::Recorded(c) => c,
+            Self::Other(c) => c.as_mut(),
+        }
+    }
+    fn cam_ref(&self) -> &dyn Camera {
+        match self {
+            Self::Recorded(c) => c,
+            Self::Other(c) => c.as_ref(),
+        }
+    }
+}
+
+/// How old each frame the loop acted on was when the loop came back for the next one:
+/// the stamp of the newest frame due then minus the frame's own stamp (0 when no newer
+/// one was due). Camera time, from stamps; known for paced recordings.
+#[derive(Debug, Clone, Copy, Default, PartialEq, serde::Serialize)]
+pub struct FrameAge {
+    /// Frames measured.
+    pub frames: u64,
+    pub mean_s: f64,
+    pub max_s: f64,
+    /// The same, in frame periods of the recording's own rate.
+    pub max_frames: u64,
+}
+
 /// The opened camera with its next frame kept for the loop (the first one from the
 /// start-up check), paced if recorded.
 pub struct LiveCamera {
-    inner: Box<dyn Camera>,
+    inner: Source,
+    /// Recorded frames passed over by the pacing (the loop was slower than their stamps).
+    passed_over: u64,
+    /// The stamp of the frame handed out last, until its age at use is known.
+    handed_stamp: Option<f64>,
+    /// Ages at use: count, sum, max (seconds) and max in frames.
+    ages: (u64, f64, f64, u64),
+    /// A stream camera's H.264 decoder, as chosen at start.
+    decoder: Option<stream::DecoderReport>,
     /// The next frame, grabbed but not handed out yet (buffer allocated once).
     pub(super) next: Frame,
     next_valid: bool,
@@ -127,6 +171,78 @@ impl LiveCamera {
     pub fn since_last_frame(&self) -> Duration {
         self.delivered_at.map_or(Duration::ZERO, |t| t.elapsed())
     }
+
+    /// A stream camera's H.264 decoder, as chosen at start.
+    pub fn decoder(&self) -> Option<&stream::DecoderReport> {
+        self.decoder.as_ref()
+    }
+
+    /// The ages at use of the frames the loop acted on (paced recordings; None for other
+    /// cameras, or before one was measured).
+    pub fn frame_age(&self) -> Option<FrameAge> {
+        let (n, sum, max, max_frames) = self.ages;
+        (n > 0).then(|| FrameAge {
+            frames: n,
+            mean_s: sum / n as f64,
+            max_s: max,
+            max_frames,
+        })
+    }
+
+    /// A paced recording plays as a real-time camera that keeps only its newest frame:
+    /// the frame held, and each one after it whose successor's time has come, are passed
+    /// over unread, so a loop slower than the recording acts on the newest frame due
+    /// instead of working through a growing backlog. Also measures the age at use of the
+    /// frame handed out last.
+    fn drop_stale(&mut self) {
+        let Source::Recorded(rec) = &mut self.inner else {
+            return;
+        };
+        let first = if self.next_valid {
+            Some(self.next.meta.stamp_s)
+        } else {
+            rec.peek_stamp_s(0)
+        };
+        let Some(first) = first else { return };
+        let (w0, s0) = *self.t0.get_or_insert((Instant::now(), first));
+        let now_s = s0 + w0.elapsed().as_secs_f64();
+        let mut newest = None;
+        let mut dropped = 0u64;
+        if self.next_valid {
+            if first <= now_s {
+                newest = Some(first);
+            }
+            if rec.peek_stamp_s(0).is_some_and(|s| s <= now_s) {
+                self.next_valid = false;
+                dropped += 1;
+            }
+        }
+        if !self.next_valid {
+            while rec.peek_stamp_s(1).is_some_and(|s| s <= now_s) {
+                rec.skip();
+                dropped += 1;
+            }
+            if let Some(s) = rec.peek_stamp_s(0).filter(|s| *s <= now_s) {
+                newest = Some(s);
+            }
+        }
+        self.passed_over += dropped;
+        if let Some(last) = self.handed_stamp.take() {
+            let age = newest.map_or(0.0, |n| (n - last).max(0.0));
+            // In frames: the recording's own spacing around the frame (1/fps).
+            let fps = rec.exposure_limits().fps;
+            let frames = if fps > 0.0 {
+                (age * fps).round() as u64
+            } else {
+                0
+            };
+            let (n, sum, max, max_frames) = &mut self.ages;
+            *n += 1;
+            *sum += age;
+            *max = max.max(age);
+            *max_frames = (*max_frames).max(frames);
+        }
+    }
 }
 
 impl Drop for LiveCamera {
@@ -140,20 +256,23 @@ impl Drop for LiveCamera {
 
 impl Camera for LiveCamera {
     fn name(&self) -> &str {
-        self.inner.name()
+        self.inner.cam_ref().name()
     }
     fn exposure_limits(&self) -> ExposureLimits {
-        self.inner.exposure_limits()
+        self.inner.cam_ref().exposure_limits()
     }
     fn set_exposure_us(&mut self, exposure_us: f64) -> Result<f64, CameraError> {
-        self.inner.set_exposure_us(exposure_us)
+        self.inner.cam().set_exposure_us(exposure_us)
     }
     fn frames_passed_over(&self) -> u64 {
-        self.inner.frames_passed_over()
+        self.inner.cam_ref().frames_passed_over() + self.passed_over
     }
     fn grab(&mut self, frame: &mut Frame) -> Result<(), CameraError> {
+        if self.pace {
+            self.drop_stale();
+        }
         if !self.next_valid {
-            if let Err(e) = self.inner.grab(&mut self.next) {
+            if let Err(e) = self.inner.cam().grab(&mut self.next) {
                 // A stream with no frame this tick: the supervisor's stall clock runs on.
                 if matches!(&e, CameraError::Read { reason, .. } if reason.starts_with(stream::NO_FRAME_REASON))
                 {
@@ -178,7 +297,7 @@ impl Camera for LiveCamera {
                 if now >= give_up {
                     self.no_frame = true;
                     return Err(CameraError::Read {
-                        device: self.inner.name().to_string(),
+                        device: self.inner.cam_ref().name().to_string(),
                         seq: self.next.meta.seq,
                         reason: format!("no frame within {} ms", NO_FRAME_TICK.as_millis()),
                     });
@@ -191,6 +310,9 @@ impl Camera for LiveCamera {
         std::mem::swap(frame, &mut self.next);
         self.next_valid = false;
         self.delivered_at = Some(Instant::now());
+        if self.pace {
+            self.handed_stamp = Some(frame.meta.stamp_s);
+        }
         Ok(())
     }
 }
@@ -205,7 +327,8 @@ pub fn open_camera(
     let name = url.to_string();
     let cam = &site.site.camera;
     let mut control = None;
-    let (mut inner, paced): (Box<dyn Camera>, bool) = match url {
+    let mut decoder = None;
+    let (mut inner, paced) = match url {
         CameraUrl::V4l2(dev) => {
             let c = V4l2Camera::open(dev, cam.width_px, cam.height_px, cam.fps).map_err(|e| {
                 StartupError::Camera {
@@ -213,7 +336,10 @@ pub fn open_camera(
                     reason: e.to_string(),
                 }
             })?;
-            (Box::new(c.with_exposure_limits(site.limits())), false)
+            (
+                Source::Other(Box::new(c.with_exposure_limits(site.limits()))),
+                false,
+            )
         }
         CameraUrl::Frames(dir) => {
             let c = RecordedCamera::open(dir).map_err(|e| StartupError::Camera {
@@ -226,7 +352,7 @@ pub fn open_camera(
                     reason: "the folder's frames.csv lists no frames".into(),
                 });
             }
-            (Box::new(c), pace)
+            (Source::Recorded(c), pace)
         }
         #[cfg(not(feature = "genicam"))]
         CameraUrl::Genicam(_) => {
@@ -253,15 +379,16 @@ pub fn open_camera(
                 url: name.clone(),
                 reason: e.to_string(),
             })?;
-            (Box::new(c), false)
+            (Source::Other(Box::new(c)), false)
         }
         CameraUrl::Stream(src) => {
             let (cam, handle) = open_stream(site, src, initial_us, &name, stop)?;
             control = Some(handle);
-            (Box::new(cam), false)
+            decoder = cam.decoder().cloned();
+            (Source::Other(Box::new(cam)), false)
         }
     };
-    let first = match first_frame(site, inner.as_mut(), initial_us, &name) {
+    let first = match first_frame(site, inner.cam(), initial_us, &name) {
         Ok(f) => f,
         Err(e) => {
             // The camera goes back as found (it may have been taken already).
@@ -275,6 +402,10 @@ pub fn open_camera(
     };
     Ok(LiveCamera {
         inner,
+        passed_over: 0,
+        handed_stamp: None,
+        ages: (0, 0.0, 0.0, 0),
+        decoder,
         next: first,
         next_valid: true,
         pace: paced,

@@ -1,7 +1,10 @@
 //! Stream cameras: H.264 over RTP/UDP (BlueOS's default stream), RTSP, or any GStreamer
 //! pipeline ending in an appsink, decoded to 8-bit grey.
 //!
-//! The decoder's output is used as it comes: its first (luma) plane is the grey image.
+//! The decoder is the platform's hardware H.264 decoder where one is installed and starts
+//! (`v4l2h264dec` on a Raspberry Pi), else libav's software decoder; which one runs is
+//! reported ([`DecoderReport`]). Its output is used as it comes: its first (luma) plane
+//! is the grey image.
 //! GStreamer through gstreamer-rs: appsink hands over each frame with its timestamp
 //! (the pipeline's running time) and, with `drop=true max-buffers=1`, keeps only the
 //! newest decoded frame, so the loop never works through a backlog. Frames it passed
@@ -77,21 +80,29 @@ impl StreamSource {
         Some(Ok(Self::Udp { host, port }))
     }
 
-    /// The GStreamer pipeline description.
+    /// The GStreamer pipeline description with the software decoder.
     pub fn pipeline(&self) -> String {
-        const DECODE: &str =
-            "rtph264depay ! h264parse ! avdec_h264 max-threads=1 ! appsink name=markhold_sink";
+        self.pipeline_with(SOFTWARE_H264)
+    }
+
+    /// The GStreamer pipeline description with the H.264 decoder `decoder` (an element
+    /// name; a `gst:` pipeline is as given).
+    pub fn pipeline_with(&self, decoder: &str) -> String {
+        let decode = format!(
+            "rtph264depay ! h264parse ! {} ! appsink name=markhold_sink",
+            decoder_desc(decoder)
+        );
         match self {
             Self::Udp { host, port } => {
                 let addr = host
                     .as_ref()
                     .map_or(String::new(), |h| format!(" address={h}"));
                 format!(
-                    "udpsrc port={port}{addr} caps=\"application/x-rtp,media=video,clock-rate=90000,encoding-name=H264,payload=96\" buffer-size=8388608 ! rtpjitterbuffer mode=none latency=0 ! {DECODE}"
+                    "udpsrc port={port}{addr} caps=\"application/x-rtp,media=video,clock-rate=90000,encoding-name=H264,payload=96\" buffer-size=8388608 ! rtpjitterbuffer mode=none latency=0 ! {decode}"
                 )
             }
             Self::Rtsp(url) => {
-                format!("rtspsrc location=\"{url}\" latency=0 buffer-mode=none ! {DECODE}")
+                format!("rtspsrc location=\"{url}\" latency=0 buffer-mode=none ! {decode}")
             }
             Self::Gst(p) => p.clone(),
         }
@@ -110,6 +121,142 @@ impl std::fmt::Display for StreamSource {
             Self::Gst(p) => write!(f, "gst:{p}"),
         }
     }
+}
+
+/// Hardware H.264 decoders, tried in this order: the Raspberry Pi's stateful V4L2 decoder
+/// (bcm2835-codec, `/dev/video10`), a stateless V4L2 one (other ARM boards), VA-API on
+/// x86 (the `va` plugin, then the older `vaapi` one). GStreamer registers the V4L2 ones
+/// only where the device exists, the VA ones only where a VA driver answers.
+pub const HARDWARE_H264: [&str; 4] = ["v4l2h264dec", "v4l2slh264dec", "vah264dec", "vaapih264dec"];
+/// The software decoder every host has (gstreamer1.0-libav), the fallback.
+pub const SOFTWARE_H264: &str = "avdec_h264";
+/// Environment variable: the H.264 decoders to try before the software one, comma
+/// separated (`software`: none), instead of [`HARDWARE_H264`].
+pub const DECODER_ENV: &str = "MARKHOLD_H264_DECODER";
+/// The decoder element's name in the pipeline (its errors name it).
+const DECODER_NAME: &str = "markhold_decoder";
+
+/// The element and options of decoder `name` in a pipeline description.
+fn decoder_desc(name: &str) -> String {
+    if name == SOFTWARE_H264 {
+        // One thread: frame threads would add a frame of latency each.
+        format!("{name} name={DECODER_NAME} max-threads=1")
+    } else {
+        format!("{name} name={DECODER_NAME}")
+    }
+}
+
+/// Which H.264 decoders a stream tries before the software one.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct DecoderChoice {
+    pub preferred: Vec<String>,
+}
+
+impl DecoderChoice {
+    /// The platform's hardware decoders ([`HARDWARE_H264`]).
+    pub fn auto() -> Self {
+        Self::prefer(HARDWARE_H264)
+    }
+
+    /// The software decoder alone.
+    pub fn software() -> Self {
+        Self {
+            preferred: Vec::new(),
+        }
+    }
+
+    /// These elements first, in order.
+    pub fn prefer<S: AsRef<str>>(names: impl IntoIterator<Item = S>) -> Self {
+        Self {
+            preferred: names.into_iter().map(|n| n.as_ref().to_string()).collect(),
+        }
+    }
+
+    /// From `value` ([`DECODER_ENV`]'s form): element names, comma separated, or
+    /// `software`.
+    pub fn parse(value: &str) -> Result<Self, String> {
+        let mut names = Vec::new();
+        for n in value.split(',').map(str::trim).filter(|n| !n.is_empty()) {
+            if n == "software" || n == SOFTWARE_H264 {
+                continue;
+            }
+            let ok = n
+                .chars()
+                .all(|c| c.is_ascii_alphanumeric() || c == '_' || c == '-');
+            if !ok {
+                return Err(format!(
+                    "{DECODER_ENV}={value}: '{n}' is not a GStreamer element name (letters, digits, '_', '-'; names comma separated, or 'software')"
+                ));
+            }
+            names.push(n.to_string());
+        }
+        Ok(Self { preferred: names })
+    }
+
+    /// [`DECODER_ENV`] if set, else [`Self::auto`].
+    pub fn from_env() -> Result<Self, String> {
+        match std::env::var(DECODER_ENV) {
+            Ok(v) => Self::parse(&v),
+            Err(_) => Ok(Self::auto()),
+        }
+    }
+}
+
+/// A decoder tried first and not used, and why.
+#[derive(Debug, Clone, PartialEq, Eq, serde::Serialize)]
+pub struct DecoderSkipped {
+    pub element: String,
+    pub reason: String,
+}
+
+/// The H.264 decoder a stream runs, reported at start and in a run's summary.
+#[derive(Debug, Clone, PartialEq, Eq, serde::Serialize)]
+pub struct DecoderReport {
+    /// The decoding element (its factory name).
+    pub element: String,
+    /// Its factory's class says `Hardware`.
+    pub hardware: bool,
+    /// The decoders tried before it, with the reason each was not used: a fallback, not
+    /// an error.
+    pub passed_over: Vec<DecoderSkipped>,
+}
+
+impl std::fmt::Display for DecoderReport {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        let kind = if self.hardware {
+            "hardware"
+        } else {
+            "software"
+        };
+        write!(f, "{} ({kind})", self.element)?;
+        for (i, s) in self.passed_over.iter().enumerate() {
+            let sep = if i == 0 { "; before it " } else { ", " };
+            write!(f, "{sep}{}: {}", s.element, s.reason)?;
+        }
+        Ok(())
+    }
+}
+
+/// True when the element factory's class says it is hardware.
+fn is_hardware(factory: &gst::ElementFactory) -> bool {
+    factory.klass().contains("Hardware")
+}
+
+/// The video decoder in a built pipeline (a `gst:` pipeline's own), if any.
+fn find_decoder(pipeline: &gst::Pipeline) -> Option<DecoderReport> {
+    pipeline
+        .iterate_recurse()
+        .into_iter()
+        .flatten()
+        .find_map(|e| {
+            let f = e.factory()?;
+            let klass = f.klass();
+            (klass.contains("Decoder") && klass.contains("Video")).then(|| DecoderReport {
+                element: f.name().to_string(),
+                hardware: is_hardware(&f),
+                passed_over: Vec::new(),
+            })
+        })
 }
 
 /// Options of a stream camera.
@@ -172,6 +319,19 @@ impl Built {
             sink,
             bus,
         })
+    }
+
+    /// Builds and starts `desc`; a pipeline that does not start is stopped here (its
+    /// sockets released) before the error returns.
+    fn start(url: &str, desc: &str) -> Result<Self, StreamError> {
+        let b = Self::new(url, desc)?;
+        match b.play(url) {
+            Ok(()) => Ok(b),
+            Err(e) => {
+                let _ = b.pipeline.set_state(gst::State::Null);
+                Err(e)
+            }
+        }
     }
 
     fn play(&self, url: &str) -> Result<(), StreamError> {
@@ -243,6 +403,12 @@ pub struct StreamCamera {
     stop: ShutdownFlag,
     /// The first frame, pulled while waiting for it at start-up.
     held: Option<gst::Sample>,
+    /// The H.264 decoder running (None: a `gst:` pipeline without a video decoder).
+    decoder: Option<DecoderReport>,
+    /// `udp:` / `rtsp://`: the source the pipeline is made for (the guard's address for
+    /// RTSP), to build it with the software decoder when a hardware one fails before the
+    /// first frame.
+    local: Option<StreamSource>,
     /// A frame was delivered already.
     delivered: bool,
     /// Luma to grey, for the range the stream's caps say (video or full).
@@ -317,22 +483,55 @@ fn bus_problem(bus: &gst::Bus) -> Option<String> {
 }
 
 impl StreamCamera {
-    /// Builds and starts the pipeline and waits (bounded) for the first frame.
+    /// Builds and starts the pipeline and waits (bounded) for the first frame; the
+    /// decoders tried are [`DecoderChoice::from_env`]'s.
     pub fn open(
         source: &StreamSource,
         cfg: &StreamConfig,
         control: ControlHandle,
     ) -> Result<Self, StreamError> {
-        let mut cam = Self::start(source, cfg, control)?;
+        let choice = Self::env_choice(source)?;
+        Self::open_with(source, cfg, control, &choice)
+    }
+
+    /// [`Self::open`] trying `choice`'s decoders before the software one.
+    pub fn open_with(
+        source: &StreamSource,
+        cfg: &StreamConfig,
+        control: ControlHandle,
+        choice: &DecoderChoice,
+    ) -> Result<Self, StreamError> {
+        let mut cam = Self::start_with(source, cfg, control, choice)?;
         cam.wait_first_frame(cfg.first_frame_timeout)?;
         Ok(cam)
     }
 
-    /// Builds and starts the pipeline (its sockets are bound on return).
+    fn env_choice(source: &StreamSource) -> Result<DecoderChoice, StreamError> {
+        DecoderChoice::from_env().map_err(|reason| StreamError::Pipeline {
+            url: source.to_string(),
+            reason,
+        })
+    }
+
+    /// Builds and starts the pipeline (its sockets are bound on return) with the
+    /// software decoder: the simulation's stream (`hil --camera-transport h264-rtp`)
+    /// repeats bit for bit for a seed whatever decoders the host has.
     pub fn start(
         source: &StreamSource,
         cfg: &StreamConfig,
         control: ControlHandle,
+    ) -> Result<Self, StreamError> {
+        Self::start_with(source, cfg, control, &DecoderChoice::software())
+    }
+
+    /// [`Self::start`] trying `choice`'s decoders before the software one: each that is
+    /// installed is built and set playing; the first that plays decodes, and the ones
+    /// before it are reported with the reason (not installed, does not start).
+    pub fn start_with(
+        source: &StreamSource,
+        cfg: &StreamConfig,
+        control: ControlHandle,
+        choice: &DecoderChoice,
     ) -> Result<Self, StreamError> {
         let url = source.to_string();
         init().map_err(|reason| StreamError::Gst {
@@ -340,7 +539,7 @@ impl StreamCamera {
             reason,
         })?;
         // rtsp://: rtspsrc talks to the server through the guard.
-        let (desc, guard) = match source {
+        let (local, guard) = match source {
             StreamSource::Rtsp(u) => {
                 let (server, path) =
                     rtsp_guard::split_url(u).ok_or_else(|| StreamError::Pipeline {
@@ -352,12 +551,29 @@ impl StreamCamera {
                     reason: format!("{server}: {e}"),
                 })?;
                 let local = StreamSource::Rtsp(format!("rtsp://127.0.0.1:{}{path}", guard.port()));
-                (local.pipeline(), Some(guard))
+                (Some(local), Some(guard))
             }
-            _ => (source.pipeline(), None),
+            StreamSource::Udp { .. } => (Some(source.clone()), None),
+            StreamSource::Gst(_) => (None, None),
         };
-        let built = Built::new(&url, &desc)?;
-        built.play(&url)?;
+        let (built, desc, decoder) = match &local {
+            Some(local) => {
+                let (b, desc, report) = start_decoding(&url, local, choice)?;
+                (b, desc, Some(report))
+            }
+            None => {
+                let desc = source.pipeline();
+                let b = Built::start(&url, &desc)?;
+                let report = find_decoder(&b.pipeline);
+                (b, desc, report)
+            }
+        };
+        match &decoder {
+            Some(d) => tracing::info!(camera = %url, pipeline = %desc, "stream decoder {d}"),
+            None => {
+                tracing::info!(camera = %url, pipeline = %desc, "stream pipeline (no video decoder)")
+            }
+        }
         let step_us = control.step_us();
         let applied = control.applied();
         Ok(Self {
@@ -387,6 +603,8 @@ impl StreamCamera {
             built_at: Some(Instant::now()),
             stop: cfg.stop.clone(),
             held: None,
+            decoder,
+            local,
             delivered: false,
             lut: range_lut(false),
             lut_limited: false,
@@ -402,10 +620,10 @@ impl StreamCamera {
             waited_ms: t0.elapsed().as_millis(),
             why,
         };
-        let Some(built) = &self.built else {
-            return Err(no_frame(self, ": the stream is stopped".into()));
-        };
         loop {
+            let Some(built) = &self.built else {
+                return Err(no_frame(self, ": the stream is stopped".into()));
+            };
             if let Some(sample) = built
                 .sink
                 .try_pull_sample(gst::ClockTime::from_mseconds(20))
@@ -417,6 +635,9 @@ impl StreamCamera {
                 return Err(no_frame(self, format!(": {why}")));
             }
             if let Some(why) = bus_problem(&built.bus) {
+                if self.software_after(&why)? {
+                    continue;
+                }
                 return Err(no_frame(self, format!(": {why}")));
             }
             if self.stop.is_set() {
@@ -429,6 +650,40 @@ impl StreamCamera {
                 ));
             }
         }
+    }
+
+    /// The pipeline with a decoder other than the software one failed (`why`, from the
+    /// bus) before the first frame: it is built again with the software decoder and the
+    /// failure reported as a fallback. False when the software decoder was running.
+    fn software_after(&mut self, why: &str) -> Result<bool, StreamError> {
+        let (Some(local), Some(report)) = (&self.local, &mut self.decoder) else {
+            return Ok(false);
+        };
+        // Any error before the first frame: a decoder that cannot negotiate may leave the
+        // error to the source element ("internal data flow error").
+        if report.element == SOFTWARE_H264 {
+            return Ok(false);
+        }
+        tracing::warn!(camera = %self.name, "{}: {why}; decoding in software", report.element);
+        report.passed_over.push(DecoderSkipped {
+            element: report.element.clone(),
+            reason: format!("failed before the first frame: {why}"),
+        });
+        let desc = local.pipeline_with(SOFTWARE_H264);
+        if let Some(b) = self.built.take() {
+            let _ = b.pipeline.set_state(gst::State::Null);
+        }
+        self.built = Some(Built::start(&self.name, &desc)?);
+        self.built_at = Some(Instant::now());
+        report.element = SOFTWARE_H264.into();
+        report.hardware = false;
+        self.desc = desc;
+        Ok(true)
+    }
+
+    /// The H.264 decoder running (None: a `gst:` pipeline without a video decoder).
+    pub fn decoder(&self) -> Option<&DecoderReport> {
+        self.decoder.as_ref()
     }
 
     /// The delay from command to frame, frames, as estimated so far.
@@ -492,7 +747,7 @@ impl StreamCamera {
         self.backoff = (self.backoff * 2).min(RESTART_MAX);
         self.restart_at = Some(Instant::now() + self.backoff);
         self.restarts += 1;
-        let built = Built::new(&self.name, &self.desc).and_then(|b| b.play(&self.name).map(|()| b));
+        let built = Built::start(&self.name, &self.desc);
         match built {
             Ok(b) => {
                 tracing::warn!(camera = %self.name, restarts = self.restarts, "stream pipeline built again");
@@ -578,6 +833,51 @@ impl Drop for StreamCamera {
             let _ = b.pipeline.set_state(gst::State::Null);
         }
     }
+}
+
+/// Builds and starts `local`'s pipeline with the first of `choice`'s decoders that is
+/// installed and starts, else with the software decoder (whose failure is the error).
+fn start_decoding(
+    url: &str,
+    local: &StreamSource,
+    choice: &DecoderChoice,
+) -> Result<(Built, String, DecoderReport), StreamError> {
+    let mut passed_over = Vec::new();
+    for name in choice.preferred.iter().filter(|n| *n != SOFTWARE_H264) {
+        let Some(factory) = gst::ElementFactory::find(name) else {
+            passed_over.push(DecoderSkipped {
+                element: name.clone(),
+                reason: "not installed (no such GStreamer element on this host)".into(),
+            });
+            continue;
+        };
+        let desc = local.pipeline_with(name);
+        match Built::start(url, &desc) {
+            Ok(b) => {
+                let report = DecoderReport {
+                    element: name.clone(),
+                    hardware: is_hardware(&factory),
+                    passed_over,
+                };
+                return Ok((b, desc, report));
+            }
+            Err(e) => {
+                tracing::info!(camera = %url, "decoder {name}: {e}; trying the next");
+                passed_over.push(DecoderSkipped {
+                    element: name.clone(),
+                    reason: format!("does not start: {e}"),
+                });
+            }
+        }
+    }
+    let desc = local.pipeline_with(SOFTWARE_H264);
+    let b = Built::start(url, &desc)?;
+    let report = DecoderReport {
+        element: SOFTWARE_H264.into(),
+        hardware: false,
+        passed_over,
+    };
+    Ok((b, desc, report))
 }
 
 fn find_appsink(pipeline: &gst::Pipeline) -> Option<gst_app::AppSink> {
@@ -775,6 +1075,51 @@ mod tests {
             assert!(matches!(StreamSource::parse(bad), Some(Err(_))), "{bad}");
         }
         assert!(StreamSource::parse("v4l2:/dev/video0").is_none());
+    }
+
+    #[test]
+    fn decoder_preferences_parse_and_reports_name_the_fallback() {
+        assert_eq!(DecoderChoice::auto().preferred, HARDWARE_H264.to_vec());
+        assert_eq!(
+            DecoderChoice::parse(" v4l2h264dec , vah264dec,").unwrap(),
+            DecoderChoice::prefer(["v4l2h264dec", "vah264dec"])
+        );
+        assert!(DecoderChoice::parse("software")
+            .unwrap()
+            .preferred
+            .is_empty());
+        assert!(DecoderChoice::parse("avdec_h264")
+            .unwrap()
+            .preferred
+            .is_empty());
+        let e = DecoderChoice::parse("v4l2h264dec ! fakesink").unwrap_err();
+        assert!(
+            e.contains(DECODER_ENV) && e.contains("v4l2h264dec ! fakesink"),
+            "{e}"
+        );
+        assert_eq!(
+            decoder_desc(SOFTWARE_H264),
+            "avdec_h264 name=markhold_decoder max-threads=1"
+        );
+        let udp = StreamSource::Udp {
+            host: None,
+            port: 5600,
+        };
+        assert!(udp
+            .pipeline_with("v4l2h264dec")
+            .contains("h264parse ! v4l2h264dec name=markhold_decoder ! appsink"));
+        let r = DecoderReport {
+            element: SOFTWARE_H264.into(),
+            hardware: false,
+            passed_over: vec![DecoderSkipped {
+                element: "v4l2h264dec".into(),
+                reason: "not installed".into(),
+            }],
+        };
+        assert_eq!(
+            r.to_string(),
+            "avdec_h264 (software); before it v4l2h264dec: not installed"
+        );
     }
 
     #[test]
