@@ -560,13 +560,107 @@ mod hil {
             sum.to_str().unwrap(),
         ]));
         let s = json(&sum);
+        let (errs, nees) = graded(&s, &base);
+        for (id, e, sigma) in &errs {
+            assert!(*e < 0.003, "marker {id}: {:.2} mm off\n{text}", e * 1e3);
+            assert!(
+                *e < 3.0 * sigma,
+                "marker {id}: {:.3} mm off, 1-sigma {:.3} mm\n{text}",
+                e * 1e3,
+                sigma * 1e3
+            );
+            eprintln!(
+                "marker {id}: error {:.3} mm, 1-sigma {:.3} mm (worst axis)",
+                e * 1e3,
+                sigma * 1e3
+            );
+        }
+        eprintln!("NEES {nees:.2} over {} markers\n{text}", errs.len());
+        assert!(nees < 3.0, "NEES {nees}\n{text}");
+        let wall = &s["planes"][0];
+        assert_eq!(wall["name"], "wall");
+        assert!(wall["max_m"].as_f64().unwrap() < 0.001, "{wall}");
+        focal_5_percent_long(calib, &site, &frames, &base);
+    }
+
+    /// The same frames mapped with the calibration's focal length 5 % too long: by
+    /// default the map refines it back (within 0.5 %) and keeps every marker within 3 mm;
+    /// with the intrinsics held, the wall's plane is reported and the stated 1-sigma never
+    /// claims less than a third of the real error.
+    fn focal_5_percent_long(calib: &Path, site: &Path, frames: &Path, base: &str) {
+        let mut c = CameraCalibration::load(calib).unwrap();
+        let truth_f = c.fx;
+        c.fx *= 1.05;
+        c.fy *= 1.05;
+        let long = scratch("hil-calib-f105.yaml");
+        let notes = CameraCalibration::load_notes(calib).unwrap();
+        std::fs::write(&long, c.to_yaml(&notes, &[])).unwrap();
+        let text = std::fs::read_to_string(site)
+            .unwrap()
+            .replace(&calib.display().to_string(), &long.display().to_string());
+        let long_site = scratch("map-site-f105.toml");
+        std::fs::write(&long_site, text).unwrap();
+        for held in [false, true] {
+            let sum = scratch(&format!("map-f105-{held}.json"));
+            let mut args = vec![
+                "map",
+                "--site",
+                long_site.to_str().unwrap(),
+                "--frames",
+                frames.to_str().unwrap(),
+                "--summary",
+                sum.to_str().unwrap(),
+            ];
+            if held {
+                args.extend(["--intrinsics", "fixed"]);
+            }
+            let out = ok(&markhold(&args));
+            let s = json(&sum);
+            let (errs, nees) = graded(&s, base);
+            eprintln!("f 5 % long, intrinsics held {held}: {errs:?}, NEES {nees:.2}\n{out}");
+            for (id, e, sigma) in &errs {
+                assert!(
+                    *e <= 3.0 * sigma,
+                    "held {held}: marker {id}: {:.3} mm off, 1-sigma {:.3} mm\n{out}",
+                    e * 1e3,
+                    sigma * 1e3
+                );
+            }
+            assert!(s["planes"][0]["max_m"].as_f64().is_some(), "{out}");
+            assert!(out.contains("# plane \"wall\""), "{out}");
+            if held {
+                assert!(out.contains("held as given"), "{out}");
+            } else {
+                assert!(out.contains("# intrinsics: refined"), "{out}");
+                let f = s["intrinsics_refined"]
+                    .as_array()
+                    .unwrap()
+                    .iter()
+                    .find(|r| r[0] == "f")
+                    .unwrap_or_else(|| panic!("f not refined\n{out}"))[2]
+                    .as_f64()
+                    .unwrap();
+                assert!(
+                    (f / truth_f - 1.0).abs() < 0.005,
+                    "f {f}, the calibration's {truth_f}\n{out}"
+                );
+                for (id, e, _) in &errs {
+                    assert!(*e < 0.003, "marker {id}: {:.2} mm off\n{out}", e * 1e3);
+                }
+            }
+        }
+    }
+
+    /// Each mapped marker's (id, position error, stated 1-sigma on its worst axis) against
+    /// the pool fixture's layout (`base`: its text), and the markers' mean NEES (3 axes).
+    fn graded(s: &serde_json::Value, base: &str) -> (Vec<(u32, f64, f64)>, f64) {
         let truth: MarkerConfig =
-            markhold::params::parse(&repo("tests/fixtures/pool-640-map4.toml"), &base)
+            markhold::params::parse(&repo("tests/fixtures/pool-640-map4.toml"), base)
                 .unwrap()
                 .site
                 .marker;
         let mut nees = 0.0;
-        let mut n = 0.0;
+        let mut out = Vec::new();
         for m in s["markers"].as_array().unwrap().iter().skip(1) {
             let id = m["id"].as_u64().unwrap() as u32;
             let want = truth
@@ -584,32 +678,11 @@ mod hil {
                 .collect();
             let e = Vector3::new(p[0], p[1], p[2]) - want;
             let cov = Matrix3::from_fn(|i, j| m["covariance"][i][j].as_f64().unwrap());
-            let sigma = m["sigma_position_m"].as_f64().unwrap();
-            assert!(
-                e.norm() < 0.003,
-                "marker {id}: {:.2} mm off\n{text}",
-                e.norm() * 1e3
-            );
-            assert!(
-                e.norm() < 3.0 * sigma,
-                "marker {id}: {:.3} mm off, 1-sigma {:.3} mm\n{text}",
-                e.norm() * 1e3,
-                sigma * 1e3
-            );
             nees += (e.transpose() * cov.try_inverse().unwrap() * e)[(0, 0)] / 3.0;
-            n += 1.0;
-            eprintln!(
-                "marker {id}: error {:.3} mm, 1-sigma {:.3} mm (worst axis)",
-                e.norm() * 1e3,
-                sigma * 1e3
-            );
+            out.push((id, e.norm(), m["sigma_position_m"].as_f64().unwrap()));
         }
-        let nees = nees / n;
-        eprintln!("NEES {nees:.2} over {n} markers\n{text}");
-        assert!(nees < 3.0, "NEES {nees}\n{text}");
-        let wall = &s["planes"][0];
-        assert_eq!(wall["name"], "wall");
-        assert!(wall["max_m"].as_f64().unwrap() < 0.001, "{wall}");
+        let n = out.len() as f64;
+        (out, nees / n)
     }
 }
 

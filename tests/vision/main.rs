@@ -7,6 +7,7 @@
 #[path = "../common/mod.rs"]
 mod common;
 
+mod apriltag3;
 mod calibrate;
 mod clipped_edges;
 mod dock_map;

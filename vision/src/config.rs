@@ -191,6 +191,61 @@ impl std::str::FromStr for MarkerFamily {
     }
 }
 
+/// What finds and decodes the markers (`[marker] detector`); the sub-pixel corners, the
+/// pose and the tracking are markhold's either way.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Hash, Serialize, Deserialize)]
+pub enum MarkerDetector {
+    /// OpenCV 4.6's aruco `detectMarkers` (every family).
+    #[default]
+    #[serde(rename = "opencv")]
+    OpenCv,
+    /// AprilTag 3's own detector (Debian's libapriltag; the cargo feature `apriltag3`):
+    /// the AprilTag families only. On small, distant tags it finds more than OpenCV
+    /// (docs/design/vision.md).
+    #[serde(rename = "apriltag3")]
+    AprilTag3,
+}
+
+impl MarkerDetector {
+    /// The site-file name.
+    pub fn as_str(self) -> &'static str {
+        match self {
+            Self::OpenCv => "opencv",
+            Self::AprilTag3 => "apriltag3",
+        }
+    }
+
+    /// Whether this build's detector decodes `family`.
+    pub fn supports(self, family: MarkerFamily) -> bool {
+        match self {
+            Self::OpenCv => true,
+            Self::AprilTag3 => {
+                cfg!(feature = "apriltag3")
+                    && matches!(
+                        family,
+                        F::AprilTag36h11 | F::AprilTag36h10 | F::AprilTag25h9 | F::AprilTag16h5
+                    )
+            }
+        }
+    }
+
+    /// The error for a detector this build cannot use for `family`.
+    pub(crate) fn unavailable_for(self, family: MarkerFamily) -> ConfigError {
+        let expected = if cfg!(feature = "apriltag3") {
+            format!("\"opencv\" for {family}: AprilTag 3 decodes apriltag_36h11, apriltag_36h10, apriltag_25h9 and apriltag_16h5")
+        } else {
+            "\"opencv\": this markhold is built without AprilTag 3 (cargo feature apriltag3, which needs Debian's libapriltag-dev)".to_string()
+        };
+        ConfigError::new("marker.detector", format!("\"{self}\""), expected)
+    }
+}
+
+impl std::fmt::Display for MarkerDetector {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(self.as_str())
+    }
+}
+
 /// The most markers a map holds (the origin marker included): bounds the work of a frame
 /// and the buffers sized at start-up.
 pub const MAX_MAP_MARKERS: usize = 32;
@@ -214,6 +269,13 @@ pub struct MarkerConfig {
     /// whether the markers of each named plane come out coplanar.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub plane: Option<String>,
+    /// What finds and decodes the markers: `"opencv"` (the default) or `"apriltag3"`.
+    #[serde(default, skip_serializing_if = "is_default_detector")]
+    pub detector: MarkerDetector,
+}
+
+fn is_default_detector(d: &MarkerDetector) -> bool {
+    *d == MarkerDetector::default()
 }
 
 /// One `[[marker.map]]` entry: a marker of the site placed in the site frame.
@@ -268,6 +330,7 @@ impl MarkerConfig {
             size_m,
             map: Vec::new(),
             plane: None,
+            detector: MarkerDetector::default(),
         }
     }
 
@@ -312,6 +375,9 @@ impl MarkerConfig {
     pub fn validate(&self) -> Result<(), ConfigError> {
         let n = self.family.id_count();
         let in_family = format!("an id of {} in 0..{n}", self.family);
+        if !self.detector.supports(self.family) {
+            return Err(self.detector.unavailable_for(self.family));
+        }
         Checks::new("marker")
             .range("id", self.id, ..n, &in_family)
             .positive("size_m", self.size_m, "a size > 0 in metres")
@@ -581,6 +647,37 @@ mod tests {
         assert!(e.contains("marker.size_m") && e.contains("-1"), "{e}");
         let ok = MarkerConfig { size_m: 0.15, ..m };
         ok.validate().unwrap();
+    }
+
+    #[test]
+    fn marker_detector_parses_and_is_checked_against_the_family() {
+        let m: MarkerConfig = toml::from_str(
+            "family = \"apriltag_25h9\"\nid = 3\nsize_m = 0.1\ndetector = \"apriltag3\"\n",
+        )
+        .unwrap();
+        assert_eq!(m.detector, MarkerDetector::AprilTag3);
+        let default: MarkerConfig =
+            toml::from_str("family = \"aruco_4x4_50\"\nid = 3\nsize_m = 0.1\n").unwrap();
+        assert_eq!(default.detector, MarkerDetector::OpenCv);
+        default.validate().unwrap();
+        let e = toml::from_str::<MarkerConfig>(
+            "family = \"apriltag_25h9\"\nid = 3\nsize_m = 0.1\ndetector = \"zbar\"\n",
+        )
+        .unwrap_err()
+        .to_string();
+        assert!(e.contains("zbar") && e.contains("apriltag3"), "{e}");
+        // This build decodes AprilTag families with AprilTag 3 exactly when it has the
+        // feature; ArUco dictionaries never.
+        assert_eq!(m.validate().is_ok(), cfg!(feature = "apriltag3"));
+        let aruco = MarkerConfig {
+            family: MarkerFamily::Aruco4x4_50,
+            ..m
+        };
+        let e = aruco.validate().unwrap_err().to_string();
+        assert!(
+            e.starts_with("marker.detector = \"apriltag3\": expected \"opencv\""),
+            "{e}"
+        );
     }
 
     #[test]

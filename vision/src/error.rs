@@ -46,6 +46,8 @@ pub enum VisionError {
         ids: String,
         detail: String,
     },
+    #[error("AprilTag 3: {reason}")]
+    AprilTag { reason: String },
     #[error("calibration refused: {reason}")]
     CalibrationRefused { reason: String },
     #[error(transparent)]

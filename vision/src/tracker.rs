@@ -2,7 +2,8 @@
 //! sub-pixel corners, IPPE_SQUARE pose per marker with ambiguity resolution, one joint
 //! pose over every marker in view with outliers left out, and its covariance.
 
-use crate::config::{DetectorConfig, MarkerConfig, PlacedMarker};
+use crate::apriltag3::AprilTag3;
+use crate::config::{DetectorConfig, MarkerConfig, MarkerDetector, PlacedMarker};
 use crate::corners::{ClipModel, CornerCov, EdgeCovariance, EdgeRefiner};
 use crate::dict::dictionary;
 use crate::error::CvContext;
@@ -276,6 +277,10 @@ impl MarkerTracker {
                 corners: core::Vector::new(),
                 ids: core::Vector::new(),
                 rejected: core::Vector::new(),
+                apriltag: match marker.detector {
+                    MarkerDetector::OpenCv => None,
+                    MarkerDetector::AprilTag3 => Some(AprilTag3::new(marker.family)?),
+                },
             },
             camera_matrix,
             dist_coeffs,
@@ -1130,6 +1135,8 @@ struct Detector {
     corners: core::Vector<core::Vector<core::Point2f>>,
     ids: core::Vector<i32>,
     rejected: core::Vector<core::Vector<core::Point2f>>,
+    /// AprilTag 3's detector in place of OpenCV's (`[marker] detector = "apriltag3"`).
+    apriltag: Option<AprilTag3>,
 }
 
 impl Detector {
@@ -1138,7 +1145,7 @@ impl Detector {
     /// of the map were found.
     fn detect_in(
         &mut self,
-        image: &impl core::ToInputArray,
+        image: &(impl core::MatTraitConst + core::ToInputArray),
         offset: (f64, f64),
         min_perimeter_rate: f64,
     ) -> Result<usize, VisionError> {
@@ -1147,6 +1154,10 @@ impl Detector {
             .max_perimeter_rate
             .max(min_perimeter_rate * 1.01)
             .min(4.0);
+        if let Some(at) = self.apriltag.as_mut() {
+            let rates = (min_perimeter_rate, max_rate);
+            return at.detect_into(image, offset, rates, &self.index_of_id, &mut self.found);
+        }
         self.params
             .set_min_marker_perimeter_rate(min_perimeter_rate);
         self.params.set_max_marker_perimeter_rate(max_rate);

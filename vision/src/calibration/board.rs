@@ -18,11 +18,12 @@ use markhold_camera::{Corners, Frame};
 use nalgebra::{Point3, Vector2};
 use opencv::{aruco, calib3d, core, imgproc, prelude::*};
 
+use crate::apriltag3::AprilTag3;
 use crate::corners::{ClipModel, EdgeRefiner};
 use crate::dict::dictionary;
 use crate::error::CvContext;
 use crate::pose::marker_object_points;
-use crate::{CameraCalibration, MarkerFamily, VisionError};
+use crate::{CameraCalibration, MarkerDetector, MarkerFamily, VisionError};
 
 /// One marker of a marker grid: its id, side, centre on the target and turn in the
 /// target's plane (counter-clockwise as printed, degrees).
@@ -212,6 +213,9 @@ pub struct BoardDetector {
     params: core::Ptr<aruco::DetectorParameters>,
     charuco: Option<core::Ptr<aruco::CharucoBoard>>,
     edges: EdgeRefiner,
+    /// AprilTag 3's detector in place of OpenCV's for a marker grid
+    /// ([`BoardDetector::with_detector`]).
+    apriltag: Option<AprilTag3>,
 }
 
 impl BoardDetector {
@@ -242,7 +246,23 @@ impl BoardDetector {
             params,
             charuco,
             edges: EdgeRefiner::new(),
+            apriltag: None,
         })
+    }
+
+    /// The same with the markers of a marker grid found and decoded by `detector`
+    /// (`[marker] detector`); the corners are markhold's edge fit either way.
+    pub fn with_detector(target: &Target, detector: MarkerDetector) -> Result<Self, VisionError> {
+        let mut d = Self::new(target)?;
+        if detector == MarkerDetector::AprilTag3 {
+            let family = match target {
+                Target::Markers { family, .. } => *family,
+                Target::Charuco { family, .. } => *family,
+                Target::Checkerboard { .. } => MarkerFamily::Aruco4x4_50,
+            };
+            d.apriltag = Some(AprilTag3::new(family)?);
+        }
+        Ok(d)
     }
 
     pub fn target(&self) -> &Target {
@@ -273,11 +293,18 @@ impl BoardDetector {
 
     fn detect_markers(
         &mut self,
-        image: &impl core::ToInputArray,
+        image: &(impl core::MatTraitConst + core::ToInputArray),
     ) -> Result<(core::Vector<core::Vector<core::Point2f>>, core::Vector<i32>), VisionError> {
         let mut corners = core::Vector::<core::Vector<core::Point2f>>::new();
         let mut ids = core::Vector::<i32>::new();
         let mut rejected = core::Vector::<core::Vector<core::Point2f>>::new();
+        if let Some(at) = self.apriltag.as_mut() {
+            at.detect(image, |id, c| {
+                corners.push(c.iter().map(|p| core::Point2f::new(p[0], p[1])).collect());
+                ids.push(id as i32);
+            })?;
+            return Ok((corners, ids));
+        }
         let Some(dict) = &self.dict else {
             return Ok((corners, ids));
         };
@@ -295,7 +322,7 @@ impl BoardDetector {
 
     fn charuco(
         &mut self,
-        image: &impl core::ToInputArray,
+        image: &(impl core::MatTraitConst + core::ToInputArray),
         calib: Option<&CameraCalibration>,
     ) -> Result<Found, VisionError> {
         let (corners, ids) = self.detect_markers(image)?;
@@ -352,7 +379,7 @@ impl BoardDetector {
     fn markers(
         &mut self,
         frame: &Frame,
-        image: &impl core::ToInputArray,
+        image: &(impl core::MatTraitConst + core::ToInputArray),
         family: MarkerFamily,
         markers: &[GridMarker],
         calib: Option<&CameraCalibration>,

@@ -43,7 +43,7 @@ fn layout() -> MarkerConfig {
             entry(2, 0.2, [0.05, 0.45, -0.1], [12.0, 0.0, 0.0]),
             entry(3, 0.1, [-0.5, -0.15, 0.2], [-5.0, 25.0, 15.0]),
         ],
-        plane: None,
+        ..MarkerConfig::single(MarkerFamily::AprilTag36h11, 0, 0.15)
     }
 }
 
@@ -307,6 +307,7 @@ fn wall() -> MarkerConfig {
             on_wall(5, [-0.45, -0.3]),
         ],
         plane: Some("wall".into()),
+        ..MarkerConfig::single(MarkerFamily::AprilTag36h11, 0, 0.15)
     }
 }
 
