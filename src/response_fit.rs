@@ -322,9 +322,13 @@ pub fn write_table(
     let mut text = format!(
         "# g'(I) = d ln f^-1 / dI for I = 0..=255 (markhold response fit, regularised)\n\
          # valid on grey levels {lo}..={hi}; outside, ln g' is extrapolated linearly\n\
-         # lambda {:e}, cross-validation rms {:.5} in ln t, {:.0} equations\n",
+         # lambda {:e}, {}, {:.0} equations\n",
         fit.lambda,
-        fit.cv_rms(),
+        if fit.cv_rms().is_finite() {
+            format!("cross-validation rms {:.5} in ln t", fit.cv_rms())
+        } else {
+            "given (no cross-validation)".to_string()
+        },
         fit.equations
     );
     for (i, v) in fit.g_prime.iter().enumerate() {
