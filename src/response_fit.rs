@@ -277,7 +277,7 @@ pub fn cli(cmd: ResponseCommand) -> anyhow::Result<()> {
             let (lo, hi) = fit.range;
             crate::outln!(
                 "# {} exposures, {} pairs of them, {:.0} equations; valid on grey levels \
-                 {lo}..={hi} (extrapolated outside)",
+                 {lo}..={hi} (outside: coarse levels, or extrapolated beyond the data)",
                 eq.exposures,
                 eq.pairs,
                 fit.equations,
@@ -321,7 +321,8 @@ pub fn write_table(
     let (lo, hi) = fit.range;
     let mut text = format!(
         "# g'(I) = d ln f^-1 / dI for I = 0..=255 (markhold response fit, regularised)\n\
-         # valid on grey levels {lo}..={hi}; outside, ln g' is extrapolated linearly\n\
+         # valid on grey levels {lo}..={hi}; outside, coarse levels (one level spans\n\
+         # more than 0.25 in ln t) or ln g' extrapolated linearly beyond the data\n\
          # lambda {:e}, {}, {:.0} equations\n",
         fit.lambda,
         if fit.cv_rms().is_finite() {

@@ -347,7 +347,7 @@ pub fn equations(means: &[MeanImage], folds: usize) -> Result<SweepEquations, Fi
 /// A regularised fit and how it was chosen.
 #[derive(Debug, Clone)]
 pub struct RegularisedFit {
-    /// `g'(I)` for I = 0..=255: fitted on `range`, extrapolated outside it.
+    /// `g'(I)` for I = 0..=255: fitted where there are data, extrapolated beyond.
     pub g_prime: [f64; 256],
     /// The grey levels the fit is valid on (both ends included).
     pub range: (u8, u8),
