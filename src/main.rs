@@ -68,7 +68,8 @@ enum Command {
     /// checkerboard, AprilTag grid): the calibration file, per-view errors, a coverage
     /// picture; or the printable target (--print-target).
     Calibrate(Box<markhold::calibrate::CalibrateArgs>),
-    /// The camera response: fit the paper's polynomial form from an exposure sweep.
+    /// The camera response: fit it from an exposure sweep (a regularised g' table, or the
+    /// paper's polynomial form).
     Response {
         #[command(subcommand)]
         command: markhold::response_fit::ResponseCommand,

@@ -149,8 +149,8 @@ pub struct CameraSection {
     /// vehicle gets neutral input from `controller.vision_stall_s` on).
     #[serde(default = "default_stall_exit")]
     pub stall_exit_s: f64,
-    /// The camera response (`linear` by default; `polynomial` as calibrated by
-    /// `markhold response fit`), used by every exposure method that needs one and by
+    /// The camera response (`linear` by default; `table` or `polynomial` as calibrated
+    /// by `markhold response fit`), used by every exposure method that needs one and by
     /// the HIL camera. A table file is relative to the site file.
     #[serde(default)]
     pub response: ResponseModel,

@@ -1,13 +1,18 @@
-//! `markhold response fit`: the camera response in the paper's polynomial form, from
-//! frames of one static scene taken at several exposures.
+//! `markhold response fit`: the camera response from frames of one static scene taken at
+//! several exposures.
 //!
 //! With `g = ln f^-1`, a pixel seen at grey `I_a` with exposure `t_a` and at `I_b` with
-//! `t_b` satisfies `g(I_b) - g(I_a) = ln(t_b / t_a)` (same irradiance). For
-//! `g'(I) = sum_j c_j I^j` the left side is linear in the coefficients,
-//! `sum_j c_j (I_b^(j+1) - I_a^(j+1)) / (j + 1)`, so every pixel of every pair of frames
-//! adjacent in exposure gives one row of a linear least-squares problem (solved by SVD,
-//! in the grey level scaled to [0, 1] for conditioning). Pixels black or clipped in either
-//! frame carry no equation.
+//! `t_b` satisfies `g(I_b) - g(I_a) = ln(t_b / t_a)` (same irradiance). Two fits:
+//! - `regularised` (the default, [`regularised`]): a discrete `g` over the grey levels,
+//!   monotone and smooth, its smoothness chosen by cross-validation; written as a `g'`
+//!   table file with the range of levels it is valid on.
+//! - `polynomial`: the paper's form `g'(I) = sum_j c_j I^j`, unregularised least squares.
+//!   The left side is linear in the coefficients,
+//!   `sum_j c_j (I_b^(j+1) - I_a^(j+1)) / (j + 1)`, so every pixel of every pair of frames
+//!   adjacent in exposure gives one row (solved by SVD, in the grey level scaled to
+//!   [0, 1] for conditioning). Pixels black or clipped in either frame carry no equation.
+
+pub mod regularised;
 
 use anyhow::{bail, Context};
 use markhold_exposure::{Frame, ResponseModel};
@@ -167,11 +172,23 @@ pub fn frames_of_folder(dir: &std::path::Path) -> anyhow::Result<Vec<Frame>> {
 /// `markhold response ...`.
 #[derive(Debug, Clone, clap::Subcommand)]
 pub enum ResponseCommand {
-    /// Fit the camera response (the paper's polynomial form) from an exposure sweep and
-    /// print the `[camera]` line for the site file. The sweep is rendered by the HIL
-    /// camera of `--site`, or read from `--frames DIR` (a real camera's frames of one
-    /// static scene at several exposures, with `frames.csv`).
+    /// Fit the camera response from an exposure sweep and print the `[camera]` line for
+    /// the site file. The sweep is rendered by the HIL camera of `--site`, or read from
+    /// `--frames DIR` (a real camera's frames of one static scene at several exposures,
+    /// with `frames.csv`). The default fit is regularised (monotone, smooth, its
+    /// smoothness chosen by cross-validation) and writes a g' table file; `--method
+    /// polynomial` fits the paper's polynomial form without regularisation.
     Fit(FitArgs),
+}
+
+/// Which fit `response fit` runs.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+pub enum FitMethod {
+    /// A discrete g over the grey levels, monotone, with a smoothness penalty on ln g'
+    /// chosen by k-fold cross-validation; writes a table file (`--out`).
+    Regularised,
+    /// The paper's polynomial g'(I) of `--degree`, unregularised least squares.
+    Polynomial,
 }
 
 #[derive(Debug, Clone, clap::Args)]
@@ -182,12 +199,30 @@ pub struct FitArgs {
     /// Fit these frames instead of a HIL sweep.
     #[arg(long, value_name = "DIR")]
     pub frames: Option<PathBuf>,
-    /// Degree of the polynomial g'(I), 0..=15 (the paper's camera: 14).
+    /// The fit.
+    #[arg(long, value_enum, default_value_t = FitMethod::Regularised)]
+    pub method: FitMethod,
+    /// Regularised: the g' table file to write (256 values, the valid range in its header).
+    #[arg(long, value_name = "FILE", default_value = "response-table.txt")]
+    pub out: PathBuf,
+    /// Regularised: folds of the cross-validation (exposures dealt to folds), 2..=20.
+    #[arg(long, default_value_t = 5)]
+    pub folds: usize,
+    /// Regularised: this smoothness weight instead of the cross-validated one.
+    #[arg(long)]
+    pub lambda: Option<f64>,
+    /// Polynomial: degree of g'(I), 0..=15 (the paper's camera: 14).
     #[arg(long, default_value_t = 4)]
     pub degree: usize,
-    /// HIL sweep: exposures from the camera's minimum to its maximum, this many.
-    #[arg(long, default_value_t = 12)]
+    /// HIL sweep: exposures from the camera's minimum to its maximum, this many (the
+    /// regularised fit compares frames at most 4x apart: 32 over the HIL camera's 1500x
+    /// range are 1.27x apart).
+    #[arg(long, default_value_t = 32)]
     pub steps: usize,
+    /// HIL sweep, regularised: frames taken at each exposure (averaged: the sensor's noise
+    /// would otherwise bias the fit where the scene's histogram bends).
+    #[arg(long, default_value_t = 8)]
+    pub repeats: usize,
     /// HIL sweep: seed of the simulated world.
     #[arg(long, default_value_t = 1)]
     pub seed: u64,
@@ -195,21 +230,115 @@ pub struct FitArgs {
 
 pub fn cli(cmd: ResponseCommand) -> anyhow::Result<()> {
     let ResponseCommand::Fit(args) = cmd;
-    let frames = match &args.frames {
-        Some(dir) => frames_of_folder(dir)?,
-        None => hil_sweep(&args)?,
-    };
-    let fit = fit_polynomial(&frames, args.degree)?;
-    crate::outln!(
-        "# {} frames, {} equations over grey levels {}..={}, rms residual {:.4} in ln t",
-        frames.len(),
-        fit.rows,
-        fit.levels.0,
-        fit.levels.1,
-        fit.rms_ln
+    if args.method == FitMethod::Regularised {
+        if !(2..=20).contains(&args.folds) {
+            bail!("--folds {}: expected 2..=20", args.folds);
+        }
+        if let Some(l) = args.lambda {
+            if !(l.is_finite() && l >= 0.0) {
+                bail!("--lambda {l}: expected a finite weight >= 0");
+            }
+        }
+    }
+    match args.method {
+        FitMethod::Polynomial => {
+            let frames = match &args.frames {
+                Some(dir) => frames_of_folder(dir)?,
+                None => hil_sweep(&args)?,
+            };
+            let fit = fit_polynomial(&frames, args.degree)?;
+            crate::outln!(
+                "# {} frames, {} equations over grey levels {}..={}, rms residual {:.4} in ln t",
+                frames.len(),
+                fit.rows,
+                fit.levels.0,
+                fit.levels.1,
+                fit.rms_ln
+            );
+            crate::outln!("# under [camera] in {}:", args.site.display());
+            crate::outln!("{}", fit.toml_line());
+        }
+        FitMethod::Regularised => {
+            let means = match &args.frames {
+                Some(dir) => {
+                    let mut frames = frames_of_folder(dir)?;
+                    frames.sort_by(|a, b| a.meta.exposure_us.total_cmp(&b.meta.exposure_us));
+                    let mut avg = regularised::Averager::new();
+                    for f in &frames {
+                        avg.push(f)?;
+                    }
+                    avg.finish()
+                }
+                None => hil_means(&args)?,
+            };
+            let eq = regularised::equations(&means, args.folds)?;
+            let fit = regularised::fit(&eq, args.lambda);
+            write_table(&args.out, &fit)?;
+            let (lo, hi) = fit.range;
+            crate::outln!(
+                "# {} exposures, {} pairs of them, {:.0} equations; valid on grey levels \
+                 {lo}..={hi} (outside: coarse levels, or extrapolated beyond the data)",
+                eq.exposures,
+                eq.pairs,
+                fit.equations,
+            );
+            for (l, e) in &fit.cv {
+                if e.is_finite() {
+                    crate::outln!("# lambda {l:.3e}: cross-validation rms {e:.5} in ln t");
+                }
+            }
+            match args.lambda {
+                Some(l) => crate::outln!("# lambda {l:e} (given), rms residual {:.5} in ln t", fit.rms_ln),
+                None => crate::outln!(
+                    "# chosen lambda {:.3e} ({}-fold cross-validation rms {:.5} in ln t), rms residual {:.5}",
+                    fit.lambda,
+                    args.folds,
+                    fit.cv_rms(),
+                    fit.rms_ln
+                ),
+            }
+            crate::outln!("# g' table written to {}", args.out.display());
+            crate::outln!("# under [camera] in {}:", args.site.display());
+            let file = std::path::absolute(&args.out).unwrap_or_else(|_| args.out.clone());
+            crate::outln!("{}", table_toml_line(&file));
+        }
+    }
+    Ok(())
+}
+
+/// The site file's `response` line for a table file (TOML basic string).
+pub fn table_toml_line(file: &std::path::Path) -> String {
+    let quoted = toml::Value::String(file.display().to_string()).to_string();
+    format!("response = {{ model = \"table\", file = {quoted} }}")
+}
+
+/// Write the fit as a `g'` table file that `[camera] response = { model = "table" }` reads.
+pub fn write_table(
+    path: &std::path::Path,
+    fit: &regularised::RegularisedFit,
+) -> anyhow::Result<()> {
+    use std::fmt::Write;
+    let (lo, hi) = fit.range;
+    let mut text = format!(
+        "# g'(I) = d ln f^-1 / dI for I = 0..=255 (markhold response fit, regularised)\n\
+         # valid on grey levels {lo}..={hi}; outside, coarse levels (one level spans\n\
+         # more than 0.25 in ln t) or ln g' extrapolated linearly beyond the data\n\
+         # lambda {:e}, {}, {:.0} equations\n",
+        fit.lambda,
+        if fit.cv_rms().is_finite() {
+            format!("cross-validation rms {:.5} in ln t", fit.cv_rms())
+        } else {
+            "given (no cross-validation)".to_string()
+        },
+        fit.equations
     );
-    crate::outln!("# under [camera] in {}:", args.site.display());
-    crate::outln!("{}", fit.toml_line());
+    for (i, v) in fit.g_prime.iter().enumerate() {
+        let _ = writeln!(text, "{v:e}  # {i}");
+    }
+    // The file must load as the site would load it.
+    markhold_exposure::Response::parse_table(path, &text)
+        .with_context(|| format!("the fitted table for {}", path.display()))?;
+    std::fs::write(path, text).with_context(|| format!("writing {}", path.display()))?;
     Ok(())
 }
 
@@ -217,6 +346,38 @@ pub fn cli(cmd: ResponseCommand) -> anyhow::Result<()> {
 fn hil_sweep(args: &FitArgs) -> anyhow::Result<Vec<Frame>> {
     let site = crate::params::load(&args.site)?;
     crate::sim::hil::exposure_sweep(&site, args.seed, args.steps)
+}
+
+/// The regularised fit's HIL sweep: `--steps` exposures over the camera's range,
+/// `--repeats` frames at each, averaged as they are rendered.
+#[cfg(feature = "sim")]
+fn hil_means(args: &FitArgs) -> anyhow::Result<Vec<regularised::MeanImage>> {
+    if args.steps < 2 || !(1..=256).contains(&args.repeats) {
+        bail!(
+            "--steps {} --repeats {}: expected 2 or more exposures and 1..=256 frames at each",
+            args.steps,
+            args.repeats
+        );
+    }
+    let site = crate::params::load(&args.site)?;
+    let limits = site.limits();
+    let (lo, hi) = (limits.min_us, limits.effective_max_us());
+    let exposures: Vec<f64> = (0..args.steps)
+        .flat_map(|k| {
+            let t = lo * (hi / lo).powf(k as f64 / (args.steps - 1) as f64);
+            std::iter::repeat_n(t, args.repeats)
+        })
+        .collect();
+    let mut avg = regularised::Averager::new();
+    crate::sim::hil::station_frames_each(&site, args.seed, &site.site.lighting, &exposures, |f| {
+        avg.push(f).map_err(anyhow::Error::from)
+    })?;
+    Ok(avg.finish())
+}
+
+#[cfg(not(feature = "sim"))]
+fn hil_means(_: &FitArgs) -> anyhow::Result<Vec<regularised::MeanImage>> {
+    bail!("this build has no HIL camera (built without the cargo feature `sim`): use --frames DIR")
 }
 
 #[cfg(not(feature = "sim"))]
@@ -231,7 +392,7 @@ mod tests {
 
     /// A static scene of varied irradiance seen by `response` at each exposure.
     fn sweep(response: &Response, exposures: &[f64]) -> Vec<Frame> {
-        let (w, h) = (64u32, 48u32);
+        let (w, h) = (192u32, 144u32);
         let mut seed = 0x2545_f491_4f6c_dd1du64;
         let irradiance: Vec<f64> = (0..w * h)
             .map(|_| {
@@ -288,6 +449,59 @@ mod tests {
             );
         }
         assert!(fit.rms_ln < 0.05, "{}", fit.rms_ln);
+    }
+
+    fn means(frames: &[Frame]) -> Vec<regularised::MeanImage> {
+        let mut avg = regularised::Averager::new();
+        for f in frames {
+            avg.push(f).unwrap();
+        }
+        avg.finish()
+    }
+
+    #[test]
+    fn regularised_recovers_a_gamma_response_over_its_range() {
+        let truth = Response::gamma(2.2).unwrap();
+        let exposures: Vec<f64> = (0..16).map(|k| 100.0 * 1.3f64.powi(k)).collect();
+        let eq = regularised::equations(&means(&sweep(&truth, &exposures)), 5).unwrap();
+        let fit = regularised::fit(&eq, None);
+        let (lo, hi) = fit.range;
+        assert!(lo <= 10 && hi >= 250, "{lo}..={hi}");
+        for i in lo.max(10)..=hi {
+            let (a, b) = (truth.g_prime(i), fit.g_prime[i as usize]);
+            assert!((b / a - 1.0).abs() < 0.05, "g'({i}): fit {b} truth {a}");
+        }
+        // g' > 0 everywhere, and the table loads as a response.
+        assert!(fit.g_prime.iter().all(|v| *v > 0.0));
+        Response::from_g_prime(fit.g_prime).unwrap();
+        // Cross-validation tried a grid and chose from it.
+        assert!(fit.cv.len() > 5 && fit.cv.iter().any(|c| c.0 == fit.lambda));
+    }
+
+    #[test]
+    fn regularised_refuses_what_cannot_be_fitted() {
+        let truth = Response::linear();
+        let e = regularised::equations(&means(&sweep(&truth, &[500.0, 510.0])), 5)
+            .err()
+            .unwrap()
+            .to_string();
+        assert!(e.contains("two or more exposures"), "{e}");
+        // Exposures 10x apart: no pair close enough to share unclipped pixels.
+        let e = regularised::equations(&means(&sweep(&truth, &[100.0, 1000.0, 10_000.0])), 5)
+            .err()
+            .unwrap()
+            .to_string();
+        assert!(e.contains("no two frames"), "{e}");
+        // A flat scene: two grey levels only.
+        let mut flat = sweep(&truth, &[500.0, 600.0]);
+        for (k, f) in flat.iter_mut().enumerate() {
+            f.data.fill(100 + 10 * k as u8);
+        }
+        let e = regularised::equations(&means(&flat), 5)
+            .err()
+            .unwrap()
+            .to_string();
+        assert!(e.contains("grey level"), "{e}");
     }
 
     #[test]

@@ -1,23 +1,130 @@
 //! `markhold response fit` end to end: the line it prints, put under `[camera]`, makes a
-//! site that `params check` accepts and that runs.
+//! site that `params check` accepts and that runs; the regularised fit of a HIL sweep
+//! reproduces the rendering camera's g' (the paper's code's degree-14 polynomial, and a
+//! linear camera's 1/I) over the range it reports, where the unregularised polynomial
+//! invents a shoulder.
 #![cfg(feature = "sim")]
 #![allow(clippy::unwrap_used)] // Tests fail loudly on a broken setup, by design.
 
-use crate::common::{markhold, site_path, tmp_dir};
+use crate::common::{markhold, repo, site_path, tmp_dir};
+use markhold_exposure::{Response, ResponseModel};
+use std::path::{Path, PathBuf};
 
-#[test]
-fn fitted_line_makes_a_valid_site() {
-    let fixture = site_path();
+/// `response fit ARGS --site SITE`: its stdout (the command must succeed).
+fn fit(site: &Path, args: &[&str]) -> String {
     let o = markhold()
-        .args(["response", "fit", "--degree", "4", "--steps", "8", "--site"])
-        .arg(&fixture)
+        .args(["response", "fit"])
+        .args(args)
+        .arg("--site")
+        .arg(site)
         .output()
         .unwrap();
-    let out = String::from_utf8_lossy(&o.stdout);
+    let out = String::from_utf8_lossy(&o.stdout).to_string();
     assert!(
         o.status.success(),
         "{out}{}",
         String::from_utf8_lossy(&o.stderr)
+    );
+    out
+}
+
+/// The regularised fit of `site`'s HIL sweep: the table it wrote and the valid range it
+/// reported.
+fn regularised(site: &Path, name: &str) -> (Response, (u8, u8), String) {
+    let out_file: PathBuf = tmp_dir("response-fit", name).join("g-prime.txt");
+    let out = fit(site, &["--out", out_file.to_str().unwrap()]);
+    let range = out
+        .lines()
+        .find_map(|l| l.split("valid on grey levels ").nth(1))
+        .and_then(|r| r.split_whitespace().next())
+        .and_then(|r| r.split_once("..="))
+        .map(|(a, b)| (a.parse::<u8>().unwrap(), b.parse::<u8>().unwrap()))
+        .unwrap_or_else(|| panic!("no valid range in\n{out}"));
+    assert!(out.contains("chosen lambda"), "{out}");
+    assert!(out.contains("cross-validation rms"), "{out}");
+    let line = out
+        .lines()
+        .find(|l| l.starts_with("response = { model = \"table\""))
+        .unwrap_or_else(|| panic!("no response line in\n{out}"));
+    // The printed line names the written file.
+    let v: toml::Table = toml::from_str(line).unwrap();
+    let model: ResponseModel = v["response"].clone().try_into().unwrap();
+    (model.load().unwrap(), range, out)
+}
+
+/// The levels of `lo..=hi` where the fit is more than 10 % off `truth`.
+fn off_by_more_than_10_percent(
+    fit: &Response,
+    truth: impl Fn(u8) -> f64,
+    lo: u8,
+    hi: u8,
+) -> Vec<String> {
+    (lo..=hi)
+        .filter_map(|i| {
+            let (got, want) = (fit.g_prime(i), truth(i));
+            ((got / want - 1.0).abs() > 0.10).then(|| format!("g'({i}) = {got:.5} vs {want:.5}"))
+        })
+        .collect()
+}
+
+#[test]
+fn regularised_fit_reproduces_the_paper_codes_response() {
+    // At the camera's longest exposure (30 ms) the pool's brightest parts reach grey 239
+    // through the code's response: the fit is valid, and checked, up to there.
+    let site = repo("tests/fixtures/pool-paper-camera.toml");
+    let (r, (lo, hi), out) = regularised(&site, "paper");
+    assert!(lo <= 10 && hi >= 235, "valid range {lo}..={hi}\n{out}");
+    let code = Response::paper_code();
+    let bad = off_by_more_than_10_percent(&r, |i| code.g_prime(i), 10, hi.min(250));
+    assert!(bad.is_empty(), "{}\n{out}", bad.join("\n"));
+}
+
+#[test]
+fn regularised_fit_reproduces_the_paper_codes_shoulder_with_long_exposures() {
+    // The same camera and scene swept up to 0.4 s: the fit covers the shoulder.
+    let site = repo("tests/fixtures/pool-paper-camera-long.toml");
+    let (r, (lo, hi), out) = regularised(&site, "paper-long");
+    assert!(lo <= 10 && hi >= 250, "valid range {lo}..={hi}\n{out}");
+    let code = Response::paper_code();
+    let bad = off_by_more_than_10_percent(&r, |i| code.g_prime(i), 10, 250);
+    assert!(bad.is_empty(), "{}\n{out}", bad.join("\n"));
+}
+
+#[test]
+fn regularised_fit_reproduces_a_linear_camera_without_the_polynomials_shoulder() {
+    let site = site_path();
+    let (r, (lo, hi), out) = regularised(&site, "linear");
+    // The range reported covers nearly every level: it cannot pass by shrinking. Above
+    // it, where the sensor's noise clips a share of the pixels, the table is extrapolated;
+    // it must hold there too (the shoulder's levels 239..=255 are all checked).
+    assert!(lo <= 5 && hi >= 240, "valid range {lo}..={hi}\n{out}");
+    let linear = |i: u8| 1.0 / i as f64;
+    let bad = off_by_more_than_10_percent(&r, linear, lo, 255);
+    assert!(bad.is_empty(), "{}\n{out}", bad.join("\n"));
+    // The unregularised degree-4 polynomial of the same camera overshoots near clipping.
+    let poly = fit(&site, &["--method", "polynomial", "--degree", "4"]);
+    let line = poly
+        .lines()
+        .find(|l| l.starts_with("response = { model = \"polynomial\""))
+        .unwrap_or_else(|| panic!("no response line in\n{poly}"));
+    let v: toml::Table = toml::from_str(line).unwrap();
+    let model: ResponseModel = v["response"].clone().try_into().unwrap();
+    let p = model.load().unwrap();
+    let shoulder = (239u8..=255)
+        .map(|i| p.g_prime(i) * i as f64)
+        .fold(0.0, f64::max);
+    assert!(
+        shoulder > 1.3,
+        "polynomial g' x I up to {shoulder} at 239..=255"
+    );
+}
+
+#[test]
+fn fitted_line_makes_a_valid_site() {
+    let fixture = site_path();
+    let out = fit(
+        &fixture,
+        &["--method", "polynomial", "--degree", "4", "--steps", "8"],
     );
     let line = out
         .lines()
@@ -45,4 +152,19 @@ fn fitted_line_makes_a_valid_site() {
         .output()
         .unwrap();
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+}
+
+#[test]
+fn too_few_exposures_are_refused_by_name() {
+    let o = markhold()
+        .args(["response", "fit", "--steps", "2", "--site"])
+        .arg(site_path())
+        .arg("--out")
+        .arg(tmp_dir("response-fit", "refused").join("t.txt"))
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(!o.status.success(), "{err}");
+    // 2 steps over 20..30000 us are 1500x apart: no pair to compare.
+    assert!(err.contains("no two frames"), "{err}");
 }
