@@ -149,7 +149,9 @@ fn clipped_at(img: &ImageView<'_>, x: f64, y: f64) -> bool {
     if !(x >= 0.0 && y >= 0.0) {
         return false;
     }
-    let (x0, y0) = (x.floor() as usize, y.floor() as usize);
+    // Truncation is the floor of a non-negative value (a call to libm's floor on the
+    // baseline x86_64 target, which has no SSE4.1 rounding instruction).
+    let (x0, y0) = (x as usize, y as usize);
     if x0 + 1 >= img.width || y0 + 1 >= img.height {
         return false;
     }
@@ -163,7 +165,8 @@ fn sample(img: &ImageView<'_>, x: f64, y: f64) -> Option<f64> {
     if !(x >= 0.0 && y >= 0.0) {
         return None;
     }
-    let (x0, y0) = (x.floor() as usize, y.floor() as usize);
+    // Truncation is the floor of a non-negative value, as in `clipped_at`.
+    let (x0, y0) = (x as usize, y as usize);
     if x0 + 1 >= img.width || y0 + 1 >= img.height {
         return None;
     }

@@ -159,11 +159,20 @@ pub struct MarkerTracker {
     tvecs: core::Vector<core::Mat>,
     reproj: core::Mat,
     small: core::Mat,
+    /// The frame at the full search's downscale, and at twice it (the bounded search).
+    coarse: core::Mat,
+    coarser: core::Mat,
     edges: EdgeRefiner,
     /// The last pose of the site frame (frame stamp, `t_cam_site`) while a marker is
     /// tracked: places the untracked markers of the map in the image.
     last_site: Option<(f64, Isometry3<f64>)>,
     frames_since_full: u32,
+    /// The next part of the bounded search of frames without a marker
+    /// ([`absent_search_part`]), and whether the last full search found nothing.
+    absent_part: u32,
+    searched_empty: bool,
+    /// Stamp of the last frame a marker was found in.
+    last_found_s: Option<f64>,
     last_search: Option<Roi>,
     stats: TrackerStats,
 }
@@ -173,6 +182,11 @@ pub struct MarkerTracker {
 /// shifts of the markers differ), 0.5 leaves the yaw too conservative (figures:
 /// docs/design/vision.md, "Clipped edges").
 const MAP_CLIP_CORRELATION: f64 = 0.75;
+
+/// Perimeters a tracked window accepts, as fractions of the marker's expected perimeter
+/// (its last side, or the side the map projects): a marker does not halve or double its
+/// size between two frames of a track.
+const TRACK_PERIMETER_RANGE: (f64, f64) = (0.5, 2.0);
 
 /// `(m + m^T) / 2`: a sandwich `K C K^T` symmetric to rounding.
 fn sym(m: Matrix6<f64>) -> Matrix6<f64> {
@@ -293,9 +307,14 @@ impl MarkerTracker {
             tvecs: core::Vector::new(),
             reproj: core::Mat::default(),
             small: core::Mat::default(),
+            coarse: core::Mat::default(),
+            coarser: core::Mat::default(),
             edges: EdgeRefiner::new(),
             last_site: None,
             frames_since_full: 0,
+            absent_part: 0,
+            searched_empty: false,
+            last_found_s: None,
             last_search: None,
             stats: TrackerStats::default(),
         })
@@ -387,6 +406,8 @@ impl MarkerTracker {
         }
         self.last_site = None;
         self.frames_since_full = 0;
+        self.searched_empty = false;
+        self.last_found_s = None;
         self.last_search = None;
     }
 
@@ -438,7 +459,7 @@ impl MarkerTracker {
                 // Already found in another marker's window.
                 continue;
             }
-            let Some((roi, scale)) = self.predicted_window(i, stamp) else {
+            let Some((roi, scale, side)) = self.predicted_window(i, stamp) else {
                 continue;
             };
             searched = true;
@@ -446,7 +467,7 @@ impl MarkerTracker {
             if self.last_search.is_none() {
                 self.last_search = Some(roi);
             }
-            self.detect_window(&image, roi, scale)?;
+            self.detect_window(&image, roi, scale, Some(side))?;
             self.take_found(true);
         }
         if !searched {
@@ -457,6 +478,7 @@ impl MarkerTracker {
             return Ok(Tracked::NeedsFullSearch);
         }
         self.stats.tracked_hits += hits as u64;
+        self.last_found_s = Some(stamp);
         self.frames_since_full += 1;
         Ok(Tracked::Done(self.finish(frame, &image)?))
     }
@@ -476,8 +498,18 @@ impl MarkerTracker {
             s.found_tracked = false;
             s.in_pose = false;
         }
-        self.full_search(&image)?;
-        if self.slots.iter().all(|s| s.found.is_none()) {
+        let stamp = frame.meta.stamp_s;
+        // A marker found within `track_max_age_s` is likely still in view (washed out,
+        // covered for a moment): search for it completely.
+        let recent = self
+            .last_found_s
+            .is_some_and(|t| (0.0..=self.cfg.track_max_age_s).contains(&(stamp - t)));
+        self.full_search(&image, recent)?;
+        self.searched_empty = self.slots.iter().all(|s| s.found.is_none());
+        if !self.searched_empty {
+            self.last_found_s = Some(stamp);
+        }
+        if self.searched_empty {
             let mut lost = false;
             for s in &mut self.slots {
                 lost |= s.track.take().is_some();
@@ -802,11 +834,11 @@ impl MarkerTracker {
         (s as u32).clamp(1, 4)
     }
 
-    /// Search window and scale for marker `i` this frame: its last corners moved by the
-    /// predicted motion, padded by a fraction of its side and by the motion itself; or,
-    /// without a track, where the last pose of the site puts it (every corner in the
-    /// image).
-    fn predicted_window(&self, i: usize, stamp_s: f64) -> Option<(Roi, u32)> {
+    /// Search window, scale and the marker's expected side (pixels) for marker `i` this
+    /// frame: its last corners moved by the predicted motion, padded by a fraction of its
+    /// side and by the motion itself; or, without a track, where the last pose of the
+    /// site puts it (every corner in the image).
+    fn predicted_window(&self, i: usize, stamp_s: f64) -> Option<(Roi, u32, f64)> {
         let s = &self.slots[i];
         let (pred, side, motion) = match &s.track {
             Some(t) => {
@@ -844,14 +876,26 @@ impl MarkerTracker {
             Some(t) => self.track_scale(side_px(&t.corners)),
             None => self.track_scale(side),
         };
-        Some((roi, scale))
+        Some((roi, scale, side))
     }
 
     /// Full-frame search, on a downscaled image when configured (then each marker found
     /// is searched again at full resolution in a window around its coarse corners).
+    ///
+    /// The first search, a search with a marker tracked until now (a track lost this
+    /// frame, or the periodic search), a search after one that found a marker and any
+    /// search within `track_max_age_s` of the last frame a marker was found in (`recent`)
+    /// are complete: the downscaled image, and the whole image at full resolution when that
+    /// finds nothing (`full_search_fallback_full_res`). After a search that found
+    /// nothing, with nothing tracked, the search is coarse to fine and bounded: the image
+    /// at twice the downscale every frame (a marker of about 70 px or more at the
+    /// default, found on its first frame), then one part of the finer searches in turn
+    /// (`absent_search_part`): rows of the image at the downscale, or a band of it at
+    /// full resolution.
     fn full_search(
         &mut self,
         image: &(impl core::MatTraitConst + core::ToInputArray),
+        recent: bool,
     ) -> Result<(), VisionError> {
         let full = Roi {
             x: 0,
@@ -861,32 +905,146 @@ impl MarkerTracker {
         };
         let s = self.cfg.full_search_downscale;
         if s <= 1 {
-            self.detect_window(image, full, 1)?;
+            self.detect_window(image, full, 1, None)?;
             self.take_found(false);
             return Ok(());
         }
+        let tracked = self.last_site.is_some() || self.slots.iter().any(|sl| sl.track.is_some());
+        if tracked || recent || !self.searched_empty {
+            self.absent_part = 0;
+            self.complete_search(image, s)
+        } else {
+            self.bounded_search(image, s)
+        }
+    }
+
+    /// The whole frame at `s`, and at full resolution when that finds nothing
+    /// (`full_search_fallback_full_res`).
+    #[inline(never)]
+    fn complete_search(
+        &mut self,
+        image: &(impl core::MatTraitConst + core::ToInputArray),
+        s: u32,
+    ) -> Result<(), VisionError> {
+        let full = Roi {
+            x: 0,
+            y: 0,
+            width: self.calib.width,
+            height: self.calib.height,
+        };
         let size = core::Size::new(
             (self.calib.width / s) as i32,
             (self.calib.height / s) as i32,
         );
         imgproc::resize(image, &mut self.small, size, 0.0, 0.0, imgproc::INTER_AREA)
             .cv("resize")?;
-        let coarse =
-            self.det
-                .detect_in(&self.small, (0.0, 0.0), self.cfg.min_marker_perimeter_rate)?;
-        if coarse == 0 {
-            // Too small to be found at the reduced scale? Look at full resolution.
-            if self.cfg.full_search_fallback_full_res {
-                self.detect_window(image, full, 1)?;
-                self.take_found(false);
-            }
+        let coarse = self.det.detect_in(
+            &self.small,
+            (0.0, 0.0),
+            self.cfg.min_marker_perimeter_rate,
+            None,
+        )?;
+        if coarse > 0 {
+            return self.refine_coarse(image, s);
+        }
+        // Too small to be found at the reduced scale? Look at full resolution.
+        if self.cfg.full_search_fallback_full_res {
+            self.detect_window(image, full, 1, None)?;
+            self.take_found(false);
+        }
+        Ok(())
+    }
+
+    /// The frame at twice the downscale `s`, then one part of the finer searches in turn
+    /// ([`absent_search_part`]).
+    #[inline(never)]
+    fn bounded_search(
+        &mut self,
+        image: &(impl core::MatTraitConst + core::ToInputArray),
+        s: u32,
+    ) -> Result<(), VisionError> {
+        // The frame at the downscale, then at twice it (two integer-block area
+        // averages: OpenCV's fast path, where one by 2 s takes its general one).
+        let (w, h) = (self.calib.width / s, self.calib.height / s);
+        imgproc::resize(
+            image,
+            &mut self.coarse,
+            core::Size::new(w as i32, h as i32),
+            0.0,
+            0.0,
+            imgproc::INTER_AREA,
+        )
+        .cv("resize")?;
+        let half = core::Mat::roi(
+            &self.coarse,
+            core::Rect::new(0, 0, (w / 2 * 2) as i32, (h / 2 * 2) as i32),
+        )
+        .cv("roi")?;
+        imgproc::resize(
+            &half,
+            &mut self.coarser,
+            core::Size::new((w / 2).max(1) as i32, (h / 2).max(1) as i32),
+            0.0,
+            0.0,
+            imgproc::INTER_AREA,
+        )
+        .cv("resize")?;
+        let found = self.det.detect_in(
+            &self.coarser,
+            (0.0, 0.0),
+            self.cfg.min_marker_perimeter_rate,
+            None,
+        )?;
+        if found > 0 {
+            return self.refine_coarse(image, 2 * s);
+        }
+        let (roi, scale) = absent_search_part(
+            self.absent_part,
+            self.calib.width,
+            self.calib.height,
+            self.cfg.full_search_fallback_full_res,
+        );
+        self.absent_part = self.absent_part.wrapping_add(1);
+        if scale == 1 {
+            self.detect_window(image, roi, 1, None)?;
+            self.take_found(false);
             return Ok(());
         }
+        // Rows of the downscaled frame: its markers' corners are coarse (the edge fit
+        // refines them at full resolution, as a tracked window's).
+        let (y0, y1) = (roi.y / s, ((roi.y + roi.height) / s).min(h));
+        let band = core::Mat::roi(
+            &self.coarse,
+            core::Rect::new(0, y0 as i32, w as i32, (y1 - y0) as i32),
+        )
+        .cv("roi")?;
+        // Rates are of the searched image's larger side: the band's is the frame's width.
+        let min_rate = self.cfg.min_marker_perimeter_rate * w.max(h) as f64 / w.max(y1 - y0) as f64;
+        self.det.detect_in(&band, (0.0, 0.0), min_rate, None)?;
+        let sf = s as f64;
+        for (_, c) in self.det.found.iter_mut().flatten() {
+            for p in c.iter_mut() {
+                p[0] = (p[0] as f64 * sf + (sf - 1.0) / 2.0) as f32;
+                p[1] = ((p[1] as f64 + y0 as f64) * sf + (sf - 1.0) / 2.0) as f32;
+            }
+        }
+        self.take_found(false);
+        Ok(())
+    }
+
+    /// The markers of the detector's last search of the whole image downscaled by
+    /// `scale`: each searched again at full resolution in a window around its coarse
+    /// corners.
+    fn refine_coarse(
+        &mut self,
+        image: &(impl core::MatTraitConst + core::ToInputArray),
+        scale: u32,
+    ) -> Result<(), VisionError> {
         for (slot, f) in self.slots.iter_mut().zip(self.det.found.iter()) {
             slot.coarse = f.map(|(_, c)| c);
         }
         // Small pixel i covers full pixels [s i, s i + s): its centre is s i + (s-1)/2.
-        let sf = s as f64;
+        let sf = scale as f64;
         for i in 0..self.slots.len() {
             if self.slots[i].found.is_some() {
                 continue;
@@ -900,7 +1058,7 @@ impl MarkerTracker {
             }
             let pad = 0.25 * side_px(&c) + 2.0 * sf + 2.0 * self.cfg.subpix_window_px as f64;
             if let Some(roi) = padded_window(&c, pad, self.calib.width, self.calib.height) {
-                self.detect_window(image, roi, 1)?;
+                self.detect_window(image, roi, 1, None)?;
                 self.take_found(false);
             }
         }
@@ -915,6 +1073,7 @@ impl MarkerTracker {
         image: &impl core::MatTraitConst,
         roi: Roi,
         scale: u32,
+        expect_side_px: Option<f64>,
     ) -> Result<(), VisionError> {
         // A downscaled window is cropped to whole multiples of the scale (at most
         // `scale - 1` pixels off its right and bottom padding): then the ratio is an exact
@@ -933,14 +1092,24 @@ impl MarkerTracker {
         // so a window accepts the same marker sizes in pixels as the full frame.
         let full_max = self.calib.width.max(self.calib.height) as f64;
         let roi_max = roi.width.max(roi.height).max(1) as f64;
-        let min_rate = self.cfg.min_marker_perimeter_rate * full_max / roi_max;
+        let mut min_rate = self.cfg.min_marker_perimeter_rate * full_max / roi_max;
         if min_rate >= 4.0 {
             self.det.found.fill(None);
             return Ok(());
         }
+        // A window searched for a marker of known size passes OpenCV only the contours
+        // of about that size: the others (the texture around it, its own cells) cost a
+        // polygon fit and, when they make a quad, a decode against every id of the
+        // dictionary. Rates are of the searched image's larger side, at any scale.
+        let mut max_rate = None;
+        if let Some(side) = expect_side_px {
+            let expected = 4.0 * side / roi_max;
+            min_rate = min_rate.max(TRACK_PERIMETER_RANGE.0 * expected);
+            max_rate = Some(TRACK_PERIMETER_RANGE.1 * expected);
+        }
         if scale <= 1 {
             self.det
-                .detect_in(&view, (roi.x as f64, roi.y as f64), min_rate)?;
+                .detect_in(&view, (roi.x as f64, roi.y as f64), min_rate, max_rate)?;
             return Ok(());
         }
         let size = core::Size::new(
@@ -949,7 +1118,8 @@ impl MarkerTracker {
         );
         imgproc::resize(&view, &mut self.small, size, 0.0, 0.0, imgproc::INTER_AREA)
             .cv("resize window")?;
-        self.det.detect_in(&self.small, (0.0, 0.0), min_rate)?;
+        self.det
+            .detect_in(&self.small, (0.0, 0.0), min_rate, max_rate)?;
         // Small pixel i covers full pixels [s i, s i + s): its centre is s i + (s-1)/2.
         let sf = scale as f64;
         for (_, c) in self.det.found.iter_mut().flatten() {
@@ -1148,10 +1318,11 @@ impl Detector {
         image: &(impl core::MatTraitConst + core::ToInputArray),
         offset: (f64, f64),
         min_perimeter_rate: f64,
+        max_perimeter_rate: Option<f64>,
     ) -> Result<usize, VisionError> {
         self.found.fill(None);
-        let max_rate = self
-            .max_perimeter_rate
+        let max_rate = max_perimeter_rate
+            .map_or(self.max_perimeter_rate, |m| m.min(self.max_perimeter_rate))
             .max(min_perimeter_rate * 1.01)
             .min(4.0);
         if let Some(at) = self.apriltag.as_mut() {
@@ -1270,6 +1441,55 @@ fn window(x0: f64, y0: f64, x1: f64, y1: f64, w: u32, h: u32) -> Option<Roi> {
     })
 }
 
+/// Full-resolution bands of the bounded search without a marker, and the rows two
+/// neighbours share (a marker smaller than that, which the downscaled searches miss,
+/// lies whole in one of them).
+const ABSENT_FULL_BANDS: u32 = 16;
+const ABSENT_BAND_OVERLAP_PX: u32 = 64;
+/// Parts of the frame searched at the downscale in turn: each 0.4 of the frame's height
+/// at 0, 0.3 and 0.6 of it (two neighbours share a tenth of the frame).
+const ABSENT_COARSE_PARTS: u32 = 3;
+
+/// Part `k` of the bounded search of a `width` x `height` frame with no marker tracked,
+/// after the whole frame at twice the downscale found nothing: the window, and 1 for a
+/// full-resolution band or 0 for rows searched at the downscale. With `full_res`, the
+/// downscaled parts and the full-resolution bands alternate, so every part of the frame
+/// is searched at the downscale once in 2 x [`ABSENT_COARSE_PARTS`] frames and at full
+/// resolution once in 2 x [`ABSENT_FULL_BANDS`]. Without, the downscaled parts in turn.
+fn absent_search_part(k: u32, width: u32, height: u32, full_res: bool) -> (Roi, u32) {
+    let coarse = |i: u32| {
+        let y = (height * 3 * i) / 10;
+        let h = (height * 4).div_ceil(10).min(height - y);
+        (
+            Roi {
+                x: 0,
+                y,
+                width,
+                height: h,
+            },
+            0,
+        )
+    };
+    if !full_res {
+        return coarse(k % ABSENT_COARSE_PARTS);
+    }
+    if k.is_multiple_of(2) {
+        return coarse((k / 2) % ABSENT_COARSE_PARTS);
+    }
+    let band = (k / 2) % ABSENT_FULL_BANDS;
+    let y = band * height / ABSENT_FULL_BANDS;
+    let h = (height.div_ceil(ABSENT_FULL_BANDS) + ABSENT_BAND_OVERLAP_PX).min(height - y);
+    (
+        Roi {
+            x: 0,
+            y,
+            width,
+            height: h,
+        },
+        1,
+    )
+}
+
 /// `roi` cropped at its right and bottom to whole `scale` x `scale` blocks (unchanged
 /// when it holds less than one block a side, or at scale 1).
 fn whole_blocks(roi: Roi, scale: u32) -> Roi {
@@ -1308,6 +1528,43 @@ mod tests {
         }
         // Smaller than a block: left alone (the detector rejects it as too small).
         assert_eq!(whole_blocks(r(0, 0, 2, 9), 3), r(0, 0, 2, 9));
+    }
+
+    #[test]
+    fn the_bounded_search_covers_the_frame() {
+        for (w, h) in [(1440, 1080), (1920, 1080), (640, 480)] {
+            let cycle = 2 * ABSENT_COARSE_PARTS * ABSENT_FULL_BANDS;
+            let (mut coarse, mut full) = (Vec::new(), Vec::new());
+            for k in 0..cycle {
+                let (r, s) = absent_search_part(k, w, h, true);
+                assert_eq!((r.x, r.width), (0, w));
+                assert!(r.height > 0 && r.y + r.height <= h, "{r:?}");
+                assert_eq!(s, k % 2, "{k}");
+                if s == 0 {
+                    coarse.push((r.y, r.y + r.height));
+                } else {
+                    full.push((r.y, r.y + r.height));
+                }
+            }
+            // Any run of rows up to a tenth of the frame lies whole in a downscaled
+            // part, and up to the overlap in a full-resolution band.
+            for (parts, span) in [(&coarse, h / 10), (&full, ABSENT_BAND_OVERLAP_PX)] {
+                for y0 in 0..=h - span {
+                    let y1 = y0 + span;
+                    assert!(
+                        parts.iter().any(|(a, b)| *a <= y0 && y1 <= *b),
+                        "rows {y0}..{y1} of {h}"
+                    );
+                }
+            }
+            // Without the full-resolution bands: the downscaled parts in turn.
+            for k in 0..ABSENT_COARSE_PARTS {
+                assert_eq!(
+                    absent_search_part(k, w, h, false),
+                    absent_search_part(2 * k, w, h, true)
+                );
+            }
+        }
     }
 
     #[test]

@@ -343,3 +343,43 @@ fn continuity_resolves_the_ipe_ambiguity_of_a_distant_marker() {
     assert_eq!(flips_continuous, 0);
     assert!(tracker.stats().ambiguous > 0, "{:?}", tracker.stats());
 }
+
+/// With nothing tracked, after a search that found nothing, the bounded search (the
+/// frame at a quarter of its resolution, then one part at half or full resolution in
+/// turn) finds a close marker on its first frame in view, and a distant one within its
+/// cycle: 6 frames for a marker the half-resolution parts find, 32 for the smallest.
+#[test]
+fn the_bounded_search_finds_near_and_far_markers_within_its_cycle() {
+    let calib = calib();
+    let mut rng = ChaCha8Rng::seed_from_u64(45);
+    let mut frame = Frame::default();
+    // 0.2 m at f = 1000 px: 133 px, 50 px and 29 px.
+    for (range, within) in [(1.5, 1), (4.0, 6), (7.0, 32)] {
+        let mut tracker =
+            MarkerTracker::new(&marker(), &DetectorConfig::default(), calib.clone()).unwrap();
+        // Out of view: the first search (complete) finds nothing.
+        render(
+            &mut frame,
+            &calib,
+            &pose([50.0, 0.0, range], 10.0, 0.0),
+            0,
+            &mut rng,
+        );
+        assert!(tracker.process(&frame).unwrap().is_none());
+        let truth = pose([0.1, -0.05, range], 10.0, 0.0);
+        let mut found = None;
+        for k in 1..=within {
+            render(&mut frame, &calib, &truth, k, &mut rng);
+            if let Some(o) = tracker.process(&frame).unwrap() {
+                found = Some((k, o));
+                break;
+            }
+        }
+        let (k, o) = found.unwrap_or_else(|| panic!("{range} m: not found in {within} frames"));
+        assert!(
+            position_error(&o.t_cam_marker, &truth) < 0.01 * range,
+            "{range} m, frame {k}"
+        );
+        println!("{range} m: found on frame {k} of at most {within}");
+    }
+}
