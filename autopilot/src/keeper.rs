@@ -363,6 +363,10 @@ impl Axis {
     }
 }
 
+/// ALT_HOLD's depth target is used within this heave error (m); farther off, the
+/// approach is flown with the throttle stick as in the other modes.
+const DEPTH_TARGET_WITHIN_M: f64 = 0.05;
+
 /// Holds the vehicle at its station in front of the marker.
 #[derive(Clone, Debug)]
 pub struct StationKeeper {
@@ -722,7 +726,7 @@ impl StationKeeper {
     /// (LOCAL_POSITION_NED's z, as given to `set_depth`), for the link to send as
     /// SET_POSITION_TARGET_GLOBAL_INT; None when the heave goes out as stick (any other
     /// mode, no depth telemetry, the marker not seen this frame, the view guard
-    /// steering heave).
+    /// steering heave, a heave error beyond 5 cm: the approach is flown on the stick).
     ///
     /// The target is the vehicle's depth estimate now plus the camera's heave error: the
     /// station's depth in the autopilot's own frame. ArduSub's depth controller then
@@ -739,7 +743,9 @@ impl StationKeeper {
     /// The heave goes to the autopilot's depth controller: ALT_HOLD with the vehicle's
     /// depth in telemetry.
     fn depth_to_autopilot(&self) -> bool {
-        self.holds.depth && self.nav.down_m.is_some()
+        self.holds.depth
+            && self.nav.down_m.is_some()
+            && self.filter.x[2].abs() <= DEPTH_TARGET_WITHIN_M
     }
 
     fn autopilot_depth_target(&self) -> Option<f64> {
@@ -963,28 +969,33 @@ mod tests {
 
     #[test]
     fn in_alt_hold_with_depth_telemetry_the_heave_is_a_depth_target() {
-        // 0.1 m above the station, held there, the vehicle reporting 3 m down.
+        // 3 cm above the station, held there, the vehicle reporting 3 m down.
         let goal = StationConfig::default().t_marker_vehicle();
-        let above = goal * Isometry3::translation(0.0, 0.0, -0.1);
-        let run = |mode: Option<ArduSubMode>, depth: Option<f64>, last_seen: bool| {
-            let mut k = keeper();
-            let mut last = (Effort::NEUTRAL, None);
-            for i in 0..30 {
-                let t = i as f64 / 30.0;
-                k.set_autopilot_mode(mode);
-                k.set_depth(depth);
-                let m = meas_for(t, &above);
-                let e = k.update(t, (last_seen || i < 29).then_some(&m));
-                last = (e, k.depth_target_m());
-            }
-            last
-        };
-        // ALT_HOLD with the depth known: no throttle stick, the target 0.1 m deeper than
+        let run_at =
+            |above_m: f64, mode: Option<ArduSubMode>, depth: Option<f64>, last_seen: bool| {
+                let above = goal * Isometry3::translation(0.0, 0.0, -above_m);
+                let mut k = keeper();
+                let mut last = (Effort::NEUTRAL, None);
+                for i in 0..30 {
+                    let t = i as f64 / 30.0;
+                    k.set_autopilot_mode(mode);
+                    k.set_depth(depth);
+                    let m = meas_for(t, &above);
+                    let e = k.update(t, (last_seen || i < 29).then_some(&m));
+                    last = (e, k.depth_target_m());
+                }
+                last
+            };
+        let run = |mode, depth, last_seen| run_at(0.03, mode, depth, last_seen);
+        // ALT_HOLD with the depth known: no throttle stick, the target 3 cm deeper than
         // the vehicle's own depth estimate.
         let (e, target) = run(Some(ArduSubMode::AltHold), Some(3.0), true);
         assert_eq!(e.heave, 0.0, "{e:?}");
         let target = target.unwrap();
-        assert!((target - 3.1).abs() < 1e-3, "{target}");
+        assert!((target - 3.03).abs() < 1e-3, "{target}");
+        // 10 cm off: the approach on the stick.
+        let (e, target) = run_at(0.1, Some(ArduSubMode::AltHold), Some(3.0), true);
+        assert!(e.heave > 0.05 && target.is_none(), "{e:?} {target:?}");
         // Without depth telemetry, or in a mode that takes no depth target: the stick.
         for (mode, depth) in [
             (Some(ArduSubMode::AltHold), None),
@@ -992,7 +1003,7 @@ mod tests {
             (Some(ArduSubMode::Manual), Some(3.0)),
         ] {
             let (e, target) = run(mode, depth, true);
-            assert!(e.heave > 0.05, "{mode:?} {depth:?}: {e:?}");
+            assert!(e.heave > 0.01, "{mode:?} {depth:?}: {e:?}");
             assert_eq!(target, None, "{mode:?} {depth:?}");
         }
         // A frame without the marker sends no target (ArduSub holds the last one) and
