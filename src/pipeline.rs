@@ -69,6 +69,11 @@ pub trait CommandLink {
     ) -> anyhow::Result<()> {
         Ok(())
     }
+    /// ALT_HOLD's depth target (metres down in the vehicle's local frame), sent after
+    /// this frame's effort; a link without a vehicle keeps nothing.
+    fn send_depth_target(&mut self, _down_m: f64, _now_s: f64) -> anyhow::Result<()> {
+        Ok(())
+    }
     /// Loop time of the vehicle's last heartbeat, if one was heard.
     fn vehicle_heartbeat_s(&self) -> Option<f64>;
     /// The vehicle's state as the link knows it (for the recorder); none for a sink.
@@ -98,6 +103,10 @@ impl CommandLink for VehicleLink {
     }
     fn send_neutral(&mut self, now_s: f64) -> anyhow::Result<()> {
         Ok(VehicleLink::send_neutral(self, now_s)?)
+    }
+    fn send_depth_target(&mut self, down_m: f64, now_s: f64) -> anyhow::Result<()> {
+        VehicleLink::send_depth_target(self, down_m, now_s)?;
+        Ok(())
     }
     fn send_setpoint(
         &mut self,
@@ -342,6 +351,9 @@ impl<L: CommandLink> Pipeline<L> {
             }
             Directive::Command => {
                 self.link.send_effort(&effort, now_s)?;
+                if let Some(down) = self.keeper.depth_target_m() {
+                    self.link.send_depth_target(down, now_s)?;
+                }
                 (directive, effort)
             }
             Directive::Neutral | Directive::Shutdown { .. } => {

@@ -67,17 +67,19 @@ pub enum KeeperStatus {
 ///   to centre ArduSub holds the heading it then has (control_althold.cpp /
 ///   mode_althold.cpp `althold_run`). The keeper's yaw effort is therefore already
 ///   integrated by ArduSub: its integral term would make a double integrator (the
-///   heading wound up and swung), so it is off.
-/// - ALT_HOLD also holds depth, but the keeper keeps its whole heave loop, integral
-///   included: only the camera sees the marker's depth, and turning the integral off
-///   made no measurable difference on SITL while it moved the lamp-map site's exposure
-///   to where one marker is no longer decoded (docs/design/sitl.md).
+///   heading wound up and swung), so it is off, and so is its derivative
+///   (`fit_yaw_to_rate_stick`).
+/// - ALT_HOLD also holds depth: with the vehicle's depth in telemetry the keeper's heave
+///   goes to ArduSub's depth controller as a target (`StationKeeper::depth_target_m`),
+///   not as throttle stick (see there).
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize)]
 pub struct AutopilotHolds {
     /// Roll and pitch held level.
     pub attitude: bool,
     /// Heading held, yaw stick a rate.
     pub heading: bool,
+    /// Depth held, and a depth target taken (SET_POSITION_TARGET_GLOBAL_INT).
+    pub depth: bool,
 }
 
 impl AutopilotHolds {
@@ -85,9 +87,15 @@ impl AutopilotHolds {
     /// position-target modes, where the keeper does not send efforts).
     pub fn of_mode(mode: Option<ArduSubMode>) -> Self {
         match mode {
-            Some(ArduSubMode::Stabilize | ArduSubMode::AltHold) => Self {
+            Some(ArduSubMode::Stabilize) => Self {
                 attitude: true,
                 heading: true,
+                depth: false,
+            },
+            Some(ArduSubMode::AltHold) => Self {
+                attitude: true,
+                heading: true,
+                depth: true,
             },
             _ => Self::default(),
         }
@@ -256,6 +264,8 @@ struct Axis {
     active: bool,
     /// The integral term runs (off where the autopilot integrates the command itself).
     integrate: bool,
+    /// The derivative term runs (off where the autopilot damps the axis itself).
+    derivative: bool,
 }
 
 impl Axis {
@@ -275,6 +285,7 @@ impl Axis {
             band,
             active: false,
             integrate: true,
+            derivative: true,
         }
     }
 
@@ -317,7 +328,11 @@ impl Axis {
         // The crate computes setpoint - measurement: feed -err against a zero setpoint so
         // that angle wrapping is ours.
         let o = self.pid.next_control_output(-err);
-        let d = (self.cfg.kd * self.rate).clamp(-self.cfg.d_limit, self.cfg.d_limit);
+        let d = if self.derivative {
+            (self.cfg.kd * self.rate).clamp(-self.cfg.d_limit, self.cfg.d_limit)
+        } else {
+            0.0
+        };
         self.last_i = o.i;
         let out = (o.p + o.i + d).clamp(-lim, lim);
         self.last_out = if out.is_finite() { out } else { 0.0 };
@@ -348,6 +363,10 @@ impl Axis {
     }
 }
 
+/// ALT_HOLD's depth target is used within this heave error (m); farther off, the
+/// approach is flown with the throttle stick as in the other modes.
+const DEPTH_TARGET_WITHIN_M: f64 = 0.05;
+
 /// Holds the vehicle at its station in front of the marker.
 #[derive(Clone, Debug)]
 pub struct StationKeeper {
@@ -377,6 +396,8 @@ pub struct StationKeeper {
     search_max_s: f64,
     /// What the autopilot holds in its current mode (`set_autopilot_mode`).
     holds: AutopilotHolds,
+    /// This frame's depth target for ALT_HOLD (`depth_target_m`).
+    depth_target: Option<f64>,
 }
 
 impl StationKeeper {
@@ -439,6 +460,7 @@ impl StationKeeper {
             nav: view::Nav::default(),
             search_max_s: ctl.marker_lost_action_after_s,
             holds: AutopilotHolds::default(),
+            depth_target: None,
         })
     }
 
@@ -476,6 +498,7 @@ impl StationKeeper {
         }
         let dt = dt.clamp(0.0, self.max_gap_s);
         self.last_stamp = Some(stamp_s);
+        self.depth_target = None;
         self.filter.predict(dt);
         let bridged = self.propagate_attitude();
 
@@ -528,6 +551,7 @@ impl StationKeeper {
                     g.apply(&mut self.out, &seen.edge);
                     self.last_view = Some(seen);
                 }
+                self.depth_target = self.autopilot_depth_target();
             }
         }
         if !seen {
@@ -609,6 +633,11 @@ impl StationKeeper {
                 o[3] = 0.0;
                 o[4] = 0.0;
             }
+            if self.depth_to_autopilot() {
+                // The depth goes to ArduSub's depth controller as a target instead.
+                self.axes[2].reset();
+                o[2] = 0.0;
+            }
             self.pid_out = Effort::from_array(o);
             self.acc -= self.dt_step;
             steps += 1;
@@ -662,7 +691,8 @@ impl StationKeeper {
             return;
         }
         self.holds = holds;
-        let [_, _, _, roll, pitch, yaw] = &mut self.axes;
+        let [_, _, heave, roll, pitch, yaw] = &mut self.axes;
+        heave.reset();
         for (a, held) in [
             (roll, holds.attitude),
             (pitch, holds.attitude),
@@ -672,11 +702,59 @@ impl StationKeeper {
             a.reset();
             a.integrate = !held;
         }
+        self.fit_yaw_to_rate_stick(holds.heading);
+    }
+
+    /// The yaw loop through a heading-holding mode's rate stick: proportional only.
+    /// ArduSub turns the stick into a yaw rate (`get_pilot_desired_yaw_rate`, 152 deg/s
+    /// at full stick with ACRO_YAW_P 3.375) that its attitude controller follows with its
+    /// own lag (input shaping, the attitude loop, the vehicle's inertia) and damps
+    /// itself; the keeper's derivative, a rate feedback through that lag and the
+    /// camera's frame, closed a second loop around ArduSub's own that limit-cycled at
+    /// about 1 Hz, +-8 degrees on SITL (docs/design/sitl.md). So the heading error alone
+    /// commands the rate; the integral is off as well (ArduSub integrates the rate).
+    fn fit_yaw_to_rate_stick(&mut self, heading_held: bool) {
+        self.axes[5].derivative = !heading_held;
     }
 
     /// What the keeper leaves to the autopilot now.
     pub fn autopilot_holds(&self) -> AutopilotHolds {
         self.holds
+    }
+
+    /// This frame's depth target for ALT_HOLD, metres down in the vehicle's local frame
+    /// (LOCAL_POSITION_NED's z, as given to `set_depth`), for the link to send as
+    /// SET_POSITION_TARGET_GLOBAL_INT; None when the heave goes out as stick (any other
+    /// mode, no depth telemetry, the marker not seen this frame, the view guard
+    /// steering heave, a heave error beyond 5 cm: the approach is flown on the stick).
+    ///
+    /// The target is the vehicle's depth estimate now plus the camera's heave error: the
+    /// station's depth in the autopilot's own frame. ArduSub's depth controller then
+    /// closes the loop on its 400 Hz estimate, and the outer loop through the camera
+    /// moves its target each frame, so what its estimate wanders from the true depth
+    /// (barometer noise, its filter) is taken out too: the target moves with the
+    /// estimate. The throttle stick instead moves ArduSub's target only past a dead zone
+    /// (THR_DZ, or this fork's 5 % of throttle), so its smallest command is already a
+    /// climb of 10-19 cm/s.
+    pub fn depth_target_m(&self) -> Option<f64> {
+        self.depth_target
+    }
+
+    /// The heave goes to the autopilot's depth controller: ALT_HOLD with the vehicle's
+    /// depth in telemetry.
+    fn depth_to_autopilot(&self) -> bool {
+        self.holds.depth
+            && self.nav.down_m.is_some()
+            && self.filter.x[2].abs() <= DEPTH_TARGET_WITHIN_M
+    }
+
+    fn autopilot_depth_target(&self) -> Option<f64> {
+        if !self.depth_to_autopilot() || self.out.heave != 0.0 {
+            return None;
+        }
+        let down = self.nav.down_m?;
+        let target = down + self.filter.x[2];
+        target.is_finite().then_some(target)
     }
 
     /// Where the guard band starts: a fraction of the image inside its edges.
@@ -887,6 +965,51 @@ mod tests {
         }
         // Unknown mode (no heartbeat yet): nothing is left to the autopilot.
         assert_eq!(run(None).0, AutopilotHolds::default());
+    }
+
+    #[test]
+    fn in_alt_hold_with_depth_telemetry_the_heave_is_a_depth_target() {
+        // 3 cm above the station, held there, the vehicle reporting 3 m down.
+        let goal = StationConfig::default().t_marker_vehicle();
+        let run_at =
+            |above_m: f64, mode: Option<ArduSubMode>, depth: Option<f64>, last_seen: bool| {
+                let above = goal * Isometry3::translation(0.0, 0.0, -above_m);
+                let mut k = keeper();
+                let mut last = (Effort::NEUTRAL, None);
+                for i in 0..30 {
+                    let t = i as f64 / 30.0;
+                    k.set_autopilot_mode(mode);
+                    k.set_depth(depth);
+                    let m = meas_for(t, &above);
+                    let e = k.update(t, (last_seen || i < 29).then_some(&m));
+                    last = (e, k.depth_target_m());
+                }
+                last
+            };
+        let run = |mode, depth, last_seen| run_at(0.03, mode, depth, last_seen);
+        // ALT_HOLD with the depth known: no throttle stick, the target 3 cm deeper than
+        // the vehicle's own depth estimate.
+        let (e, target) = run(Some(ArduSubMode::AltHold), Some(3.0), true);
+        assert_eq!(e.heave, 0.0, "{e:?}");
+        let target = target.unwrap();
+        assert!((target - 3.03).abs() < 1e-3, "{target}");
+        // 10 cm off: the approach on the stick.
+        let (e, target) = run_at(0.1, Some(ArduSubMode::AltHold), Some(3.0), true);
+        assert!(e.heave > 0.05 && target.is_none(), "{e:?} {target:?}");
+        // Without depth telemetry, or in a mode that takes no depth target: the stick.
+        for (mode, depth) in [
+            (Some(ArduSubMode::AltHold), None),
+            (Some(ArduSubMode::Stabilize), Some(3.0)),
+            (Some(ArduSubMode::Manual), Some(3.0)),
+        ] {
+            let (e, target) = run(mode, depth, true);
+            assert!(e.heave > 0.01, "{mode:?} {depth:?}: {e:?}");
+            assert_eq!(target, None, "{mode:?} {depth:?}");
+        }
+        // A frame without the marker sends no target (ArduSub holds the last one) and
+        // no stick either.
+        let (e, target) = run(Some(ArduSubMode::AltHold), Some(3.0), false);
+        assert_eq!((e.heave, target), (0.0, None));
     }
 
     #[test]

@@ -43,9 +43,11 @@ pub use crate::types::ArduSubMode;
 use crate::types::{wrap_pi, Effort};
 use crate::vision_pose::{t_vision_marker, upper_triangle, VisionPose};
 
+mod depth;
 mod exit;
 mod gcs;
 mod station;
+pub use depth::depth_target_mask;
 pub use exit::{CloseReport, NeutralShown, Settled};
 pub use gcs::{PilotSeen, Severity, NAMED_VALUE_MAX, STATUSTEXT_MAX};
 pub use station::{StationSeen, STATION_RELAY_S};
@@ -402,6 +404,10 @@ const ARM_MAGIC_FORCE: f32 = 21196.0;
 /// Streams requested with SET_MESSAGE_INTERVAL: ATTITUDE, LOCAL_POSITION_NED,
 /// SERVO_OUTPUT_RAW, RC_CHANNELS, SCALED_PRESSURE2.
 pub const STREAMS: [u32; 5] = [30, 32, 36, 65, 137];
+const LOCAL_POSITION_NED_ID: u32 = 32;
+/// LOCAL_POSITION_NED is asked for at least this often: ALT_HOLD's depth target is
+/// rebased on it each camera frame.
+pub const LOCAL_POSITION_MIN_HZ: f64 = 50.0;
 const GRAVITY: f64 = 9.80665;
 
 #[derive(Clone, Copy, Debug)]
@@ -449,6 +455,8 @@ pub struct VehicleLink {
     /// Setpoint mode: vision estimates written / withheld for want of a covariance.
     vision_sent: u64,
     vision_withheld: u64,
+    /// ALT_HOLD depth targets written ([`VehicleLink::send_depth_target`]).
+    depth_targets: u64,
     last_tick_s: Option<f64>,
     /// Keep-alive neutral pilot input while the vehicle's heartbeat is current.
     pilot_keepalive: bool,
@@ -561,6 +569,7 @@ impl VehicleLink {
             last_target: None,
             vision_sent: 0,
             vision_withheld: 0,
+            depth_targets: 0,
             last_tick_s: None,
             pilot_keepalive: true,
             send_failing: false,
@@ -770,8 +779,15 @@ impl VehicleLink {
     }
 
     fn request_streams(&mut self) -> Result<(), AutopilotError> {
-        let interval_us = (1e6 / self.cfg.stream_hz) as f32;
         for id in STREAMS {
+            // The depth target is the local position's depth plus the camera's error
+            // (`send_depth_target`): its age is the target's error on a moving estimate.
+            let hz = if id == LOCAL_POSITION_NED_ID {
+                self.cfg.stream_hz.max(LOCAL_POSITION_MIN_HZ)
+            } else {
+                self.cfg.stream_hz
+            };
+            let interval_us = (1e6 / hz) as f32;
             self.command_long(
                 MavCmd::MAV_CMD_SET_MESSAGE_INTERVAL,
                 [id as f32, interval_us, 0.0, 0.0, 0.0, 0.0, 0.0],

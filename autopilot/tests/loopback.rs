@@ -198,15 +198,22 @@ fn udp_arm_mode_hold_station_and_neutral_on_exit() {
     // Every command from the GCS id.
     // Every command from the vehicle's own system id (markhold is its component 191).
     assert!(r.commands.iter().all(|(sys, _)| *sys == 1));
-    // Streams requested.
-    for id in [30.0, 32.0, 36.0, 65.0, 137.0] {
+    // Streams requested: at stream_hz (10), LOCAL_POSITION_NED at 50 Hz at least (the
+    // depth target is rebased on it).
+    for (id, interval_us) in [
+        (30.0, 1e5),
+        (32.0, 2e4),
+        (36.0, 1e5),
+        (65.0, 1e5),
+        (137.0, 1e5),
+    ] {
         assert!(
             r.commands
                 .iter()
                 .any(|(_, c)| c.command == MavCmd::MAV_CMD_SET_MESSAGE_INTERVAL
                     && c.param1 == id
-                    && (c.param2 - 1e5).abs() < 1.0),
-            "stream {id} not requested"
+                    && (f64::from(c.param2) - interval_us).abs() < 1.0),
+            "stream {id} not requested at {interval_us} us"
         );
     }
     // markhold's heartbeats: from the vehicle's system, component 191, an onboard

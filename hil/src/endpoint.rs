@@ -28,7 +28,8 @@ use mavlink::dialects::ardupilotmega::{
     PositionTargetTypemask, ATTITUDE_DATA, ATTITUDE_QUATERNION_DATA, COMMAND_ACK_DATA,
     COMMAND_LONG_DATA, HEARTBEAT_DATA, LOCAL_POSITION_NED_DATA, MANUAL_CONTROL_DATA,
     RC_CHANNELS_DATA, RC_CHANNELS_OVERRIDE_DATA, SCALED_PRESSURE2_DATA, SERVO_OUTPUT_RAW_DATA,
-    SET_POSITION_TARGET_LOCAL_NED_DATA, VISION_POSITION_ESTIMATE_DATA,
+    SET_POSITION_TARGET_GLOBAL_INT_DATA, SET_POSITION_TARGET_LOCAL_NED_DATA,
+    VISION_POSITION_ESTIMATE_DATA,
 };
 use mavlink::error::MessageReadError;
 use mavlink::{MAVLinkMessageRaw, MavHeader, MavlinkReader, MavlinkVersion};
@@ -325,6 +326,8 @@ pub struct EndpointStats {
     pub pilot_inputs_dropped: u64,
     /// Guided position / velocity targets accepted.
     pub guided_targets: u64,
+    /// ALT_HOLD depth targets accepted (SET_POSITION_TARGET_GLOBAL_INT).
+    pub depth_targets: u64,
     /// Inputs a lock-step client sends once per frame that arrived addressed to us,
     /// accepted or not: RC_CHANNELS_OVERRIDE, MANUAL_CONTROL, SET_POSITION_TARGET_*.
     pub lockstep_inputs: u64,
@@ -789,14 +792,7 @@ impl VehicleEndpoint {
             }
             MavMessage::SET_POSITION_TARGET_GLOBAL_INT(t) if self.is_for_us(t.target_system) => {
                 self.stats.lockstep_inputs += 1;
-                // ArduSub's ALT_HOLD takes its depth target from here (alt is negative
-                // under water); the horizontal part needs a global position we lack.
-                let ignore_z = t
-                    .type_mask
-                    .contains(PositionTargetTypemask::POSITION_TARGET_TYPEMASK_Z_IGNORE);
-                if self.mode == mode::ALT_HOLD && !ignore_z && t.alt.is_finite() && t.alt <= 0.0 {
-                    self.controller.set_depth_target(-(t.alt as f64));
-                }
+                self.global_target(&t);
             }
             MavMessage::VISION_POSITION_ESTIMATE(v) => self.vision_estimate(&v),
             MavMessage::ODOMETRY(o) => {
@@ -1047,6 +1043,32 @@ impl VehicleEndpoint {
             stamp_s: self.now_s,
         });
         self.stats.guided_targets += 1;
+    }
+
+    /// SET_POSITION_TARGET_GLOBAL_INT as ArduSub takes it in ALT_HOLD
+    /// (`GCS_MAVLINK_Sub::handleMessage`, ArduSub/GCS_Mavlink.cpp): when none of the
+    /// three position-ignore bits is set (`type_mask & MAVLINK_SET_POS_TYPE_MASK_POS_IGNORE`,
+    /// x, y and z: any one of them ignores the position),
+    /// `pos_control.set_alt_target(alt*100)`, an altitude in metres above the EKF origin,
+    /// up; the frame, latitude and longitude are not read, and nothing else is done. ALT_HOLD then holds that target
+    /// while the throttle stick is centred (`Sub::control_depth`). Here the altitude is
+    /// in the frame of the LOCAL_POSITION_NED this endpoint reports (its z is the nav
+    /// frame's once vision aligned it, else the world's depth). GUIDED's global targets
+    /// need a global position this vehicle lacks: ignored, as in every other mode.
+    fn global_target(&mut self, t: &SET_POSITION_TARGET_GLOBAL_INT_DATA) {
+        let pos_ignore = t.type_mask.intersects(
+            PositionTargetTypemask::POSITION_TARGET_TYPEMASK_X_IGNORE
+                | PositionTargetTypemask::POSITION_TARGET_TYPEMASK_Y_IGNORE
+                | PositionTargetTypemask::POSITION_TARGET_TYPEMASK_Z_IGNORE,
+        );
+        if self.mode != mode::ALT_HOLD || pos_ignore || !t.alt.is_finite() {
+            return;
+        }
+        // LOCAL_POSITION_NED's z = world depth + the nav frame's offset (a yaw-only
+        // rotation leaves z alone).
+        let z_off = self.t_nav_world.map_or(0.0, |n| n.translation.vector.z);
+        self.controller.set_depth_target(-f64::from(t.alt) - z_off);
+        self.stats.depth_targets += 1;
     }
 
     fn vision_estimate(&mut self, v: &VISION_POSITION_ESTIMATE_DATA) {

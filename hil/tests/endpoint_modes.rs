@@ -208,26 +208,58 @@ fn poshold_resists_a_current_that_carries_a_manual_vehicle_away() {
     assert!((p.z - DEPTH_M).abs() < 0.1, "{p:?}");
 }
 
+/// ArduSub's ALT_HOLD (`GCS_MAVLINK_Sub::handleMessage`, ArduSub/GCS_Mavlink.cpp):
+/// SET_POSITION_TARGET_GLOBAL_INT with none of the x, y, z ignore bits set sets the
+/// depth target (`pos_control.set_alt_target(alt * 100)`, metres up from the origin of
+/// LOCAL_POSITION_NED); with any one of them set the position is ignored; outside
+/// ALT_HOLD (here STABILIZE) nothing is taken.
 #[test]
 fn alt_hold_takes_a_depth_target_from_set_position_target_global_int() {
-    let mut r = Run::new(VehicleConfig::default());
-    r.arm();
-    assert_eq!(r.mode(mode::ALT_HOLD), MavResult::MAV_RESULT_ACCEPTED);
-    r.c.send(&MavMessage::SET_POSITION_TARGET_GLOBAL_INT(
-        SET_POSITION_TARGET_GLOBAL_INT_DATA {
-            alt: -(DEPTH_M as f32 + 0.5),
-            type_mask: PositionTargetTypemask::POSITION_TARGET_TYPEMASK_X_IGNORE
-                | PositionTargetTypemask::POSITION_TARGET_TYPEMASK_Y_IGNORE,
+    let target = |alt: f32, mask: PositionTargetTypemask| {
+        MavMessage::SET_POSITION_TARGET_GLOBAL_INT(SET_POSITION_TARGET_GLOBAL_INT_DATA {
+            alt,
+            type_mask: mask,
             target_system: 1,
             target_component: 1,
             coordinate_frame: MavFrame::MAV_FRAME_GLOBAL_RELATIVE_ALT,
             ..Default::default()
-        },
+        })
+    };
+    let position_only = PositionTargetTypemask::POSITION_TARGET_TYPEMASK_VX_IGNORE
+        | PositionTargetTypemask::POSITION_TARGET_TYPEMASK_VY_IGNORE
+        | PositionTargetTypemask::POSITION_TARGET_TYPEMASK_VZ_IGNORE
+        | PositionTargetTypemask::POSITION_TARGET_TYPEMASK_AX_IGNORE
+        | PositionTargetTypemask::POSITION_TARGET_TYPEMASK_AY_IGNORE
+        | PositionTargetTypemask::POSITION_TARGET_TYPEMASK_AZ_IGNORE
+        | PositionTargetTypemask::POSITION_TARGET_TYPEMASK_YAW_IGNORE;
+    let mut r = Run::new(VehicleConfig::default());
+    r.arm();
+    // STABILIZE: not taken.
+    assert_eq!(r.mode(mode::STABILIZE), MavResult::MAV_RESULT_ACCEPTED);
+    r.c.send(&target(-(DEPTH_M as f32 + 0.5), position_only));
+    r.fly(1, NEUTRAL, false);
+    assert_eq!(r.rig.endpoint_stats().depth_targets, 0);
+    assert_eq!(r.mode(mode::ALT_HOLD), MavResult::MAV_RESULT_ACCEPTED);
+    r.fly(60, NEUTRAL, false);
+    let held = r.pos().z;
+    // x and y ignored (only z meant): ArduSub ignores the whole position.
+    r.c.send(&target(
+        -(DEPTH_M as f32 + 0.5),
+        position_only
+            | PositionTargetTypemask::POSITION_TARGET_TYPEMASK_X_IGNORE
+            | PositionTargetTypemask::POSITION_TARGET_TYPEMASK_Y_IGNORE,
     ));
+    r.fly(120, NEUTRAL, false);
+    assert_eq!(r.rig.endpoint_stats().depth_targets, 0);
+    assert!((r.pos().z - held).abs() < 0.03, "{held} -> {}", r.pos().z);
+    // Position used: the vehicle goes to the depth and holds it.
+    r.c.send(&target(-(DEPTH_M as f32 + 0.5), position_only));
     r.fly(240, NEUTRAL, false);
     let z = r.pos().z;
     assert!((z - (DEPTH_M + 0.5)).abs() < 0.06, "depth {z}");
-    assert_eq!(r.rig.endpoint_stats().lockstep_inputs, 241);
+    assert_eq!(r.rig.endpoint_stats().depth_targets, 1);
+    // Every stick input (1 + 60 + 120 + 240 frames) and the three targets.
+    assert_eq!(r.rig.endpoint_stats().lockstep_inputs, 421 + 3);
 }
 
 #[test]

@@ -634,6 +634,14 @@ impl CommandLink for EngagedLink {
         }
     }
 
+    fn send_depth_target(&mut self, down_m: f64, now_s: f64) -> anyhow::Result<()> {
+        // A command like the effort it goes with: only while engaged.
+        if self.engager.state == EngageState::Engaged {
+            self.link.send_depth_target(down_m, now_s)?;
+        }
+        Ok(())
+    }
+
     fn send_neutral(&mut self, now_s: f64) -> anyhow::Result<()> {
         match self.engager.state {
             EngageState::Engaged => Ok(self.link.send_neutral(now_s)?),

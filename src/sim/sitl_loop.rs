@@ -127,7 +127,10 @@ impl ArduSubProcess {
             .with_context(|| format!("creating ArduSub's folder {}", dir.display()))?;
         let log = std::fs::File::create(dir.join("ardusub.log"))
             .with_context(|| format!("creating {}", dir.join("ardusub.log").display()))?;
-        let mut cmd = Command::new(bin);
+        // Resolved here: the process starts in its own folder.
+        let bin = std::fs::canonicalize(bin)
+            .with_context(|| format!("--ardusub {}: no such file", bin.display()))?;
+        let mut cmd = Command::new(&bin);
         cmd.current_dir(&dir)
             .args(["--model", "JSON", "-w"])
             .args(["--speedup", &opts.speedup.max(1).to_string()])
