@@ -159,7 +159,10 @@ fn a_long_tier_figure_edited_by_hand_is_found() {
     std::fs::create_dir_all(&dir).unwrap();
     let results = dir.join("long");
     std::fs::create_dir_all(&results).unwrap();
-    for e in std::fs::read_dir(repo("docs/results/long")).into_iter().flatten() {
+    for e in std::fs::read_dir(repo("docs/results/long"))
+        .into_iter()
+        .flatten()
+    {
         let e = e.unwrap();
         std::fs::copy(e.path(), results.join(e.file_name())).unwrap();
     }
@@ -186,7 +189,10 @@ fn a_long_tier_figure_edited_by_hand_is_found() {
     assert!(rewrite.success());
     assert!(long_tier_check(&results, &doc).status.success());
     let generated = std::fs::read_to_string(&doc).unwrap();
-    assert!(generated.contains("1234 s wall"), "the section shows the status");
+    assert!(
+        generated.contains("1234 s wall"),
+        "the section shows the status"
+    );
     std::fs::write(&doc, generated.replacen("1234 s wall", "1233 s wall", 1)).unwrap();
     assert!(!long_tier_check(&results, &doc).status.success());
 }
