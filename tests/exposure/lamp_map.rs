@@ -64,7 +64,7 @@ fn a_lit_and_a_dark_marker_are_both_decoded_over_the_markers_in_view() {
         sum * 100.0,
         camera_ae * 100.0
     );
-    // The precision docs/design/exposure.md states: log-sum 97.5 % (at least 97 %), every
+    // The precision docs/design/exposure.md states: log-sum 99.7 % (at least 97 %), every
     // other choice 0.0 % (at most 0.5 %).
     assert!(
         log_sum >= 0.97,

@@ -111,7 +111,7 @@ fn the_map_puts_every_marker_in_view_into_the_pose() {
     );
     assert!(pose_map > 0.0, "{map}");
     // docs/results.md: the map makes the pose 7-70 times more accurate (seeds 1-5, 60 s);
-    // held here at its weakest, 7x (seed 1 on 20 s: 0.032).
+    // held here at its weakest, 7x (seed 1 on 20 s: 0.043).
     assert!(
         pose_map <= pose_one / 7.0,
         "map {pose_map} central {pose_one}"
