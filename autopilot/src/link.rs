@@ -405,8 +405,8 @@ const ARM_MAGIC_FORCE: f32 = 21196.0;
 /// SERVO_OUTPUT_RAW, RC_CHANNELS, SCALED_PRESSURE2.
 pub const STREAMS: [u32; 5] = [30, 32, 36, 65, 137];
 const LOCAL_POSITION_NED_ID: u32 = 32;
-/// LOCAL_POSITION_NED is asked for at least this often: ALT_HOLD's depth target is
-/// rebased on it each camera frame.
+/// LOCAL_POSITION_NED is asked for at least this often on an ALT_HOLD site: the depth
+/// target is rebased on it each camera frame.
 pub const LOCAL_POSITION_MIN_HZ: f64 = 50.0;
 const GRAVITY: f64 = 9.80665;
 
@@ -782,7 +782,11 @@ impl VehicleLink {
         for id in STREAMS {
             // The depth target is the local position's depth plus the camera's error
             // (`send_depth_target`): its age is the target's error on a moving estimate.
-            let hz = if id == LOCAL_POSITION_NED_ID {
+            // Only where the depth target is sent: elsewhere the position would come
+            // five times as often as the attitude, and a camera placed from telemetry
+            // (`hil --vehicle`) would pair a new position with an old attitude.
+            let depth_target = matches!(self.cfg.mode, crate::config::LinkMode::AltHold);
+            let hz = if id == LOCAL_POSITION_NED_ID && depth_target {
                 self.cfg.stream_hz.max(LOCAL_POSITION_MIN_HZ)
             } else {
                 self.cfg.stream_hz

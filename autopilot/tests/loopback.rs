@@ -198,11 +198,11 @@ fn udp_arm_mode_hold_station_and_neutral_on_exit() {
     // Every command from the GCS id.
     // Every command from the vehicle's own system id (markhold is its component 191).
     assert!(r.commands.iter().all(|(sys, _)| *sys == 1));
-    // Streams requested: at stream_hz (10), LOCAL_POSITION_NED at 50 Hz at least (the
-    // depth target is rebased on it).
+    // Streams requested: at stream_hz (10); LOCAL_POSITION_NED too on this MANUAL link
+    // (at 50 Hz at least only on an ALT_HOLD one, where the depth target is rebased on it).
     for (id, interval_us) in [
         (30.0, 1e5),
-        (32.0, 2e4),
+        (32.0, 1e5),
         (36.0, 1e5),
         (65.0, 1e5),
         (137.0, 1e5),
@@ -634,4 +634,42 @@ fn udp_datagrams_sent_before_a_tick_are_applied_in_that_tick() {
         assert_eq!(s.attitude.unwrap().time_boot_ms, step);
         assert_eq!(s.heartbeats, u64::from(step) + 1);
     }
+}
+
+/// An ALT_HOLD link asks for LOCAL_POSITION_NED at 50 Hz at least (its depth target is
+/// rebased on it each frame) and for the other streams at `stream_hz`.
+#[test]
+fn an_alt_hold_link_asks_for_the_local_position_at_50_hz() {
+    let fake = FakeVehicle::start(Kind::UdpServer);
+    let addr = fake.addr.unwrap();
+    let cfg = LinkConfig {
+        mode: LinkMode::AltHold,
+        ..link_cfg(format!("udpout:{addr}"))
+    };
+    let link = VehicleLink::connect(&cfg).unwrap();
+    let mut h = Harness {
+        link,
+        fake,
+        now: 0.0,
+    };
+    let interval = |r: &common::Rec, id: f32| {
+        r.commands
+            .iter()
+            .find(|(_, c)| c.command == MavCmd::MAV_CMD_SET_MESSAGE_INTERVAL && c.param1 == id)
+            .map(|(_, c)| f64::from(c.param2))
+    };
+    h.tick_until("stream requests", |_, r| {
+        interval(r, 32.0).is_some() && interval(r, 30.0).is_some()
+    });
+    let r = h.fake.rec();
+    assert!(
+        (interval(&r, 32.0).unwrap() - 2e4).abs() < 1.0,
+        "{:?}",
+        r.commands
+    );
+    assert!(
+        (interval(&r, 30.0).unwrap() - 1e5).abs() < 1.0,
+        "{:?}",
+        r.commands
+    );
 }

@@ -819,7 +819,11 @@ fn a_run_of_each_camera_kind_records_and_replays() {
             "{name}: {} frames replayed, commands match: {}",
             out.frames_replayed, out.commands_match
         );
-        assert!(out.frames_replayed >= 20, "{name}: {out:?}");
+        // The rendered folder has 30 frames, read unpaced; the live stream (45 frames in
+        // the 1.5 s) passes frames over on a loaded host, newest first, and the saved
+        // folder holds what it delivered: at least 15 frames of those.
+        let floor = if name == "frames" { 20 } else { 15 };
+        assert!(out.frames_replayed >= floor, "{name}: {out:?}");
         // The recorder never blocks the loop: on a loaded host it may drop a frame, and
         // says so; replay then stops there, every command before it matched.
         let dropped = out
