@@ -806,11 +806,6 @@ fn a_run_of_each_camera_kind_records_and_replays() {
         if save {
             cmd.arg("--record-frames").arg(&saved);
         }
-        if camera.starts_with("frames:") {
-            // Every frame, as fast as the loop goes: paced, a loaded host would skip
-            // frames (newest first), which is the rate tests' concern, not this one's.
-            cmd.arg("--no-pace");
-        }
         let o = cmd.output().unwrap();
         let err = String::from_utf8_lossy(&o.stderr);
         assert!(o.status.success(), "{name}: {err}");
@@ -819,11 +814,6 @@ fn a_run_of_each_camera_kind_records_and_replays() {
             "{name}: {} frames replayed, commands match: {}",
             out.frames_replayed, out.commands_match
         );
-        // The rendered folder has 30 frames, read unpaced; the live stream (45 frames in
-        // the 1.5 s) passes frames over on a loaded host, newest first, and the saved
-        // folder holds what it delivered: at least 15 frames of those.
-        let floor = if name == "frames" { 20 } else { 15 };
-        assert!(out.frames_replayed >= floor, "{name}: {out:?}");
         // The recorder never blocks the loop: on a loaded host it may drop a frame, and
         // says so; replay then stops there, every command before it matched.
         let dropped = out
@@ -831,6 +821,11 @@ fn a_run_of_each_camera_kind_records_and_replays() {
             .as_ref()
             .is_some_and(|m| m.field == "image" && m.recorded == "dropped while recording");
         assert!(out.commands_match || dropped, "{name}: {out:?}");
+        // Paced at 30 fps for 1.5 s: a loaded host acts on the newest frame and passes
+        // the others over (at least 15 are acted on); a frame the recorder dropped ends
+        // the replay there, so then only some must have replayed.
+        let floor = if dropped { 5 } else { 15 };
+        assert!(out.frames_replayed >= floor, "{name}: {out:?}");
         assert_eq!(
             out.commands_compared, out.frames_replayed,
             "{name}: {out:?}"
