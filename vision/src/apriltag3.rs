@@ -242,7 +242,7 @@ impl AprilTag3 {
             let Some(best) = slot.and_then(|s| found.get_mut(s)) else {
                 return;
             };
-            let side = mean_side(&c);
+            let side = crate::tracker::side_px(&c);
             if !(lo..=hi).contains(&(4.0 * side)) {
                 return;
             }
@@ -259,16 +259,6 @@ impl AprilTag3 {
         })?;
         Ok(count)
     }
-}
-
-fn mean_side(c: &Corners) -> f64 {
-    (0..4)
-        .map(|i| {
-            let (a, b) = (c[i], c[(i + 1) % 4]);
-            ((a[0] - b[0]) as f64).hypot((a[1] - b[1]) as f64)
-        })
-        .sum::<f64>()
-        / 4.0
 }
 
 fn alloc_error(what: &str) -> VisionError {

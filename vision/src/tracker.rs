@@ -882,6 +882,16 @@ impl MarkerTracker {
     /// Full-frame search, on a downscaled image when configured (then each marker found
     /// is searched again at full resolution in a window around its coarse corners).
     ///
+    /// The whole image as a window.
+    fn full_roi(&self) -> Roi {
+        Roi {
+            x: 0,
+            y: 0,
+            width: self.calib.width,
+            height: self.calib.height,
+        }
+    }
+
     /// The first search, a search with a marker tracked until now (a track lost this
     /// frame, or the periodic search), a search after one that found a marker and any
     /// search within `track_max_age_s` of the last frame a marker was found in (`recent`)
@@ -897,12 +907,7 @@ impl MarkerTracker {
         image: &(impl core::MatTraitConst + core::ToInputArray),
         recent: bool,
     ) -> Result<(), VisionError> {
-        let full = Roi {
-            x: 0,
-            y: 0,
-            width: self.calib.width,
-            height: self.calib.height,
-        };
+        let full = self.full_roi();
         let s = self.cfg.full_search_downscale;
         if s <= 1 {
             self.detect_window(image, full, 1, None)?;
@@ -926,12 +931,7 @@ impl MarkerTracker {
         image: &(impl core::MatTraitConst + core::ToInputArray),
         s: u32,
     ) -> Result<(), VisionError> {
-        let full = Roi {
-            x: 0,
-            y: 0,
-            width: self.calib.width,
-            height: self.calib.height,
-        };
+        let full = self.full_roi();
         let size = core::Size::new(
             (self.calib.width / s) as i32,
             (self.calib.height / s) as i32,
@@ -1398,7 +1398,7 @@ fn centre(c: &Corners) -> [f64; 2] {
 }
 
 /// Mean side length of the quadrilateral, pixels.
-fn side_px(c: &Corners) -> f64 {
+pub(crate) fn side_px(c: &Corners) -> f64 {
     (0..4)
         .map(|i| {
             let (a, b) = (c[i], c[(i + 1) % 4]);
