@@ -3,7 +3,10 @@
 
 #![allow(clippy::unwrap_used)] // A benchmark's setup fails loudly when broken, by design.
 
-use criterion::{criterion_group, criterion_main, BenchmarkId, Criterion, Throughput};
+use criterion::measurement::WallTime;
+use criterion::{
+    criterion_group, criterion_main, BenchmarkGroup, BenchmarkId, Criterion, Throughput,
+};
 use markhold_exposure::*;
 use std::hint::black_box;
 
@@ -16,9 +19,8 @@ fn frame(w: u32, h: u32, marker_side: u32) -> (Frame, Corners) {
     let (x0, y0) = (cx - side / 2.0, cy - side / 2.0);
     for y in 0..h as usize {
         for x in 0..w as usize {
-            let (fx, fy) = (x as f64, y as f64);
-            let u = (fx - x0) / side;
-            let v = (fy - y0) / side;
+            let u = (x as f64 - x0) / side;
+            let v = (y as f64 - y0) / side;
             let g = if (0.0..1.0).contains(&u) && (0.0..1.0).contains(&v) {
                 let cell = ((u * 6.0) as u32 * 7 + (v * 6.0) as u32 * 3) % 2;
                 if cell == 1 {
@@ -27,12 +29,9 @@ fn frame(w: u32, h: u32, marker_side: u32) -> (Frame, Corners) {
                     30.0
                 }
             } else {
-                60.0 + 30.0 * (fx * 0.11).sin() * (fy * 0.07).cos()
-                    + 10.0 * (fx * 0.5 + fy * 0.3).sin()
+                markhold_testkit::rock_grey(x, y)
             };
-            // Sensor noise of a few grey levels (a fixed hash, so runs repeat).
-            let hsh = (x as u32).wrapping_mul(2_654_435_761) ^ (y as u32).wrapping_mul(40_503);
-            let noise = (hsh.wrapping_mul(2_246_822_519) >> 29) as f64 - 3.5;
+            let noise = markhold_testkit::sensor_noise(x, y);
             f.data[y * w as usize + x] = (g + noise).clamp(0.0, 255.0) as u8;
         }
     }
@@ -53,6 +52,22 @@ fn limits() -> ExposureLimits {
     }
 }
 
+/// `fast/{size}`: the controller's update on `f`, exposed as it last commanded.
+fn bench_fast(
+    g: &mut BenchmarkGroup<'_, WallTime>,
+    size: &str,
+    ctrl: &mut dyn ExposureController,
+    f: &mut Frame,
+    marker: Option<&Corners>,
+) {
+    g.bench_function(BenchmarkId::new("fast", size), |b| {
+        b.iter(|| {
+            f.meta.exposure_us = ctrl.commanded_us();
+            black_box(ctrl.update(black_box(&*f), marker))
+        })
+    });
+}
+
 fn bench_aaec(c: &mut Criterion) {
     // Marker 250 px: the padded RoI is 300 x 300.
     let (mut f, corners) = frame(1440, 1080, 250);
@@ -64,12 +79,7 @@ fn bench_aaec(c: &mut Criterion) {
     let response = Response::linear();
     let mut g = c.benchmark_group("aaec_update_roi");
     g.throughput(Throughput::Elements(roi.area()));
-    g.bench_function(BenchmarkId::new("fast", "300x300"), |b| {
-        b.iter(|| {
-            f.meta.exposure_us = ctrl.commanded_us();
-            black_box(ctrl.update(black_box(&f), Some(&corners)))
-        })
-    });
+    bench_fast(&mut g, "300x300", ctrl.as_mut(), &mut f, Some(&corners));
     // The metric alone, dispatched (AVX2 where the CPU has it) and portable (SSE2): the
     // ratio of the two is what the runtime dispatch buys on this machine.
     let mut metric = GradientMetric::new(&response, params);
@@ -99,12 +109,7 @@ fn bench_aec(c: &mut Criterion) {
     let response = Response::linear();
     let mut g = c.benchmark_group("aec_update");
     g.throughput(Throughput::Elements(1440 * 1080));
-    g.bench_function(BenchmarkId::new("fast", "1440x1080"), |b| {
-        b.iter(|| {
-            f.meta.exposure_us = ctrl.commanded_us();
-            black_box(ctrl.update(black_box(&f), None))
-        })
-    });
+    bench_fast(&mut g, "1440x1080", ctrl.as_mut(), &mut f, None);
     g.bench_function(BenchmarkId::new("reference_full_sort", "1440x1080"), |b| {
         b.iter(|| black_box(reference::aec_metric(f.view(), 8, &response, &params)))
     });
@@ -118,12 +123,7 @@ fn bench_gec(c: &mut Criterion) {
     let gcfg = cfg.gec.clone();
     let mut g = c.benchmark_group("gec_update");
     g.throughput(Throughput::Elements(1440 * 1080));
-    g.bench_function(BenchmarkId::new("fast", "1440x1080"), |b| {
-        b.iter(|| {
-            f.meta.exposure_us = ctrl.commanded_us();
-            black_box(ctrl.update(black_box(&f), None))
-        })
-    });
+    bench_fast(&mut g, "1440x1080", ctrl.as_mut(), &mut f, None);
     g.bench_function(BenchmarkId::new("reference_naive", "1440x1080"), |b| {
         b.iter(|| {
             let (w, h, data) = reference::downsample(f.view(), gcfg.downsample as usize);

@@ -8,7 +8,6 @@ fn main() {
     let mut data = vec![0u8; w * h];
     for y in 0..h {
         for x in 0..w {
-            let (fx, fy) = (x as f64, y as f64);
             let cell = ((x / 42) * 7 + (y / 42) * 3) % 2;
             let base = if (25..275).contains(&x) && (25..275).contains(&y) {
                 if cell == 1 {
@@ -17,11 +16,9 @@ fn main() {
                     30.0
                 }
             } else {
-                60.0 + 30.0 * (fx * 0.11).sin() * (fy * 0.07).cos()
-                    + 10.0 * (fx * 0.5 + fy * 0.3).sin()
+                markhold_testkit::rock_grey(x, y)
             };
-            let hsh = (x as u32).wrapping_mul(2_654_435_761) ^ (y as u32).wrapping_mul(40_503);
-            let noise = (hsh.wrapping_mul(2_246_822_519) >> 29) as f64 - 3.5;
+            let noise = markhold_testkit::sensor_noise(x, y);
             data[y * w + x] = (base + noise).clamp(0.0, 255.0) as u8;
         }
     }

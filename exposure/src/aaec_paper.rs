@@ -316,12 +316,7 @@ impl ExposureController for AaecPaper {
             &self.limits,
             self.commanded_us,
         );
-        ExposureStep {
-            exposure_us: self.commanded_us,
-            metric: v.m,
-            used_frame: true,
-            roi: Some(roi),
-        }
+        ExposureStep::used(self.commanded_us, v.m, Some(roi))
     }
 
     fn commanded_us(&self) -> f64 {
@@ -345,15 +340,8 @@ impl ExposureController for AaecPaper {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::test_frames::{self, limits};
     use crate::ImageView;
-
-    fn limits() -> ExposureLimits {
-        ExposureLimits {
-            min_us: 5.0,
-            max_us: 20000.0,
-            fps: 30.0,
-        }
-    }
 
     #[test]
     fn momentum_law_matches_a_hand_computed_sequence() {
@@ -421,13 +409,7 @@ mod tests {
 
     /// A 40x30 frame of 8x8 blocks (40 / 200 grey) exposed for `t`.
     fn blocks(t: f64) -> Frame {
-        let mut f = Frame::new(40, 30);
-        for (i, p) in f.data.iter_mut().enumerate() {
-            let (x, y) = (i % 40, i / 40);
-            *p = if (x / 8 + y / 8) % 2 == 0 { 40 } else { 200 };
-        }
-        f.meta.exposure_us = t;
-        f
+        test_frames::blocks(t, 40)
     }
 
     #[test]

@@ -117,13 +117,12 @@ impl AecConfig {
 
     /// The metric parameters this configuration implies.
     pub fn metric_params(&self) -> MetricParams {
-        MetricParams {
-            percentile: self.percentile,
-            weight_power: self.weight_power,
-            saturation_grey: self.saturation_grey,
-            saturation_penalty: self.saturation_penalty,
-            ..MetricParams::default()
-        }
+        MetricParams::configured(
+            self.percentile,
+            self.weight_power,
+            self.saturation_grey,
+            self.saturation_penalty,
+        )
     }
 }
 
@@ -233,12 +232,7 @@ impl ExposureController for Aec {
         let cap = self.cfg.max_change_frac * t;
         update = update.clamp(-cap, cap);
         self.commanded_us = self.limits.clamp(t + update);
-        ExposureStep {
-            exposure_us: self.commanded_us,
-            metric: mv.m,
-            used_frame: true,
-            roi: None,
-        }
+        ExposureStep::used(self.commanded_us, mv.m, None)
     }
 
     fn commanded_us(&self) -> f64 {

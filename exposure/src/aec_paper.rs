@@ -185,12 +185,7 @@ impl ExposureController for AecPaper {
         self.stall
             .warn_once("aec-paper", self.cfg.min_step_us, rate);
         self.commanded_us = code_command(next, self.cfg.floor_us, &self.limits, self.commanded_us);
-        ExposureStep {
-            exposure_us: self.commanded_us,
-            metric: v.m,
-            used_frame: true,
-            roi: None,
-        }
+        ExposureStep::used(self.commanded_us, v.m, None)
     }
 
     fn commanded_us(&self) -> f64 {
@@ -212,37 +207,23 @@ impl ExposureController for AecPaper {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::test_frames::{blocks, limits};
 
-    fn limits() -> ExposureLimits {
-        ExposureLimits {
-            min_us: 5.0,
-            max_us: 20000.0,
-            fps: 30.0,
-        }
-    }
-
-    /// A 40x30 frame of 8x8 blocks (`lo` / 200 grey) exposed for `t`.
-    fn blocks(t: f64, lo: u8) -> Frame {
-        let mut f = Frame::new(40, 30);
-        for (i, p) in f.data.iter_mut().enumerate() {
-            let (x, y) = (i % 40, i / 40);
-            *p = if (x / 8 + y / 8) % 2 == 0 { lo } else { 200 };
-        }
-        f.meta.exposure_us = t;
-        f
-    }
-
-    #[test]
-    fn holds_until_a_marker_is_seen_then_steps_on_the_whole_frame() {
-        let cfg = AecPaperConfig::default();
-        let mut c = AecPaper::new(
-            cfg.clone(),
+    fn linear_at_1000(cfg: AecPaperConfig) -> AecPaper {
+        AecPaper::new(
+            cfg,
             &Response::linear(),
             MeanAeConfig::default(),
             limits(),
             1000.0,
         )
-        .unwrap();
+        .unwrap()
+    }
+
+    #[test]
+    fn holds_until_a_marker_is_seen_then_steps_on_the_whole_frame() {
+        let cfg = AecPaperConfig::default();
+        let mut c = linear_at_1000(cfg);
         let s = c.update(&blocks(1000.0, 40), None);
         assert!(!s.used_frame && s.exposure_us == 1000.0);
         let corners = [[8.0, 8.0], [32.0, 8.0], [32.0, 24.0], [8.0, 24.0]];
@@ -267,14 +248,7 @@ mod tests {
     fn a_small_derivative_or_step_is_not_taken() {
         // A flat frame: dM/dt = 0 < 15000.
         let cfg = AecPaperConfig::default();
-        let mut c = AecPaper::new(
-            cfg,
-            &Response::linear(),
-            MeanAeConfig::default(),
-            limits(),
-            1000.0,
-        )
-        .unwrap();
+        let mut c = linear_at_1000(cfg);
         let corners = [[8.0, 8.0], [32.0, 8.0], [32.0, 24.0], [8.0, 24.0]];
         let s = c.update(&blocks(1000.0, 200), Some(&corners));
         assert!(s.used_frame);
@@ -284,14 +258,7 @@ mod tests {
             rate: 1e-20,
             ..Default::default()
         };
-        let mut c = AecPaper::new(
-            cfg,
-            &Response::linear(),
-            MeanAeConfig::default(),
-            limits(),
-            1000.0,
-        )
-        .unwrap();
+        let mut c = linear_at_1000(cfg);
         for _ in 0..30 {
             assert_eq!(
                 c.update(&blocks(1000.0, 40), Some(&corners)).exposure_us,

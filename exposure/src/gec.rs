@@ -355,12 +355,7 @@ impl ExposureController for Gec {
             gec_ratio(gamma_hat, self.cfg.kp, self.cfg.d)
         };
         self.commanded_us = self.limits.clamp(self.commanded_us * ratio);
-        ExposureStep {
-            exposure_us: self.commanded_us,
-            metric: scores[3],
-            used_frame: true,
-            roi: None,
-        }
+        ExposureStep::used(self.commanded_us, scores[3], None)
     }
 
     fn commanded_us(&self) -> f64 {

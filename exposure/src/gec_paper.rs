@@ -498,12 +498,7 @@ impl ExposureController for GecPaper {
         let gamma = gec_paper_gamma(first, &scores);
         let next = gec_paper_update(self.commanded_us, gamma, self.cfg.kp, self.cfg.d);
         self.commanded_us = code_command(next, self.cfg.floor_us, &self.limits, self.commanded_us);
-        ExposureStep {
-            exposure_us: self.commanded_us,
-            metric: first,
-            used_frame: true,
-            roi: Some(roi),
-        }
+        ExposureStep::used(self.commanded_us, first, Some(roi))
     }
 
     fn commanded_us(&self) -> f64 {

@@ -19,6 +19,8 @@ pub mod paper_code;
 pub mod pyramid;
 pub mod reference;
 mod response;
+#[cfg(test)]
+mod test_frames;
 
 pub use aaec::{Aaec, AaecConfig, AaecFallback, MarkerRegions, StepLaw};
 pub use aaec_paper::{AaecPaper, AaecPaperConfig, LawStep, PaperGate, PaperMomentum};
@@ -92,6 +94,17 @@ impl ExposureStep {
             metric: f64::NAN,
             used_frame: false,
             roi: None,
+        }
+    }
+
+    /// A frame the controller used: its `metric`, the region it metered (`roi`) and the
+    /// exposure it commands next.
+    pub fn used(exposure_us: f64, metric: f64, roi: Option<Roi>) -> Self {
+        Self {
+            exposure_us,
+            metric,
+            used_frame: true,
+            roi,
         }
     }
 }

@@ -109,12 +109,7 @@ impl ExposureController for MeanAe {
         // Half a grey level keeps ln finite on an all-black frame.
         let ln_step = self.cfg.kappa * (self.cfg.target_grey.ln() - mean.max(0.5).ln());
         self.commanded_us = self.limits.clamp(self.commanded_us * ln_step.exp());
-        ExposureStep {
-            exposure_us: self.commanded_us,
-            metric: mean,
-            used_frame: true,
-            roi,
-        }
+        ExposureStep::used(self.commanded_us, mean, roi)
     }
 
     fn commanded_us(&self) -> f64 {

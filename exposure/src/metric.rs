@@ -41,6 +41,24 @@ impl Default for MetricParams {
     }
 }
 
+impl MetricParams {
+    /// The configured weights and saturation penalty, the default penalty floor.
+    pub fn configured(
+        percentile: f64,
+        weight_power: u32,
+        saturation_grey: u8,
+        saturation_penalty: f64,
+    ) -> Self {
+        Self {
+            percentile,
+            weight_power,
+            saturation_grey,
+            saturation_penalty,
+            ..Self::default()
+        }
+    }
+}
+
 /// The metric on one image or RoI.
 #[derive(Debug, Clone, Copy, PartialEq, Default)]
 pub struct MetricValue {
@@ -90,6 +108,20 @@ fn binomial(n: u32, k: u32) -> f64 {
 #[inline(always)]
 fn cmul(a: (f64, f64), b: (f64, f64)) -> (f64, f64) {
     (a.0 * b.0 - a.1 * b.1, a.0 * b.1 + a.1 * b.0)
+}
+
+/// `sum_i coef[i] im(z^(2i+1)) part(zp^(2i+1))` with `z = e^{i angle}`, `zp = z shift` and
+/// `part` the imaginary part (`IM`, the head's sines) or the real part (the tail's
+/// cosines): the closed form of both branches' partial sums.
+#[inline(always)]
+fn harmonic_sum<const IM: bool>(coef: &[f64; 5], angle: f64, shift: (f64, f64)) -> f64 {
+    let z = unit(angle);
+    let (a, b) = (odd_powers(z), odd_powers(cmul(z, shift)));
+    let mut acc = 0.0;
+    for i in 0..5 {
+        acc += coef[i] * a[i].1 * if IM { b[i].1 } else { b[i].0 };
+    }
+    acc
 }
 
 /// z, z^3, z^5, z^7, z^9 as (re, im).
@@ -189,14 +221,7 @@ impl RankWeights {
         if self.n == 0 {
             return 1.0;
         }
-        let z = unit(0.5 * self.c1 * r as f64);
-        let zp = cmul(z, self.head_shift);
-        let (a, b) = (odd_powers(z), odd_powers(zp));
-        let mut acc = 0.0;
-        for i in 0..5 {
-            acc += self.head_coef[i] * a[i].1 * b[i].1;
-        }
-        acc
+        harmonic_sum::<true>(&self.head_coef, 0.5 * self.c1 * r as f64, self.head_shift)
     }
 
     /// `sum_{q=1}^{j} cos(c2 q)^k`, with
@@ -205,14 +230,7 @@ impl RankWeights {
         if j == 0 {
             return 0.0;
         }
-        let z = unit(0.5 * self.c2 * j as f64);
-        let zp = cmul(z, self.tail_shift);
-        let (a, b) = (odd_powers(z), odd_powers(zp));
-        let mut acc = 0.0;
-        for i in 0..5 {
-            acc += self.tail_coef[i] * a[i].1 * b[i].0;
-        }
-        acc
+        harmonic_sum::<false>(&self.tail_coef, 0.5 * self.c2 * j as f64, self.tail_shift)
     }
 
     /// `W(r) = sum_{i=0}^{r-1} w_i`, unnormalized, for r in 0..=S.

@@ -539,6 +539,18 @@ mod tests {
         assert_eq!(side_columns(0, 1), (0, 0));
     }
 
+    /// The 3x3 Sobel derivatives (x, y) of `f` at (x, y).
+    fn sobel(f: &impl Fn(isize, isize) -> f64, x: isize, y: isize) -> (f64, f64) {
+        let dx =
+            f(x + 1, y - 1) - f(x - 1, y - 1) + 2.0 * (f(x + 1, y) - f(x - 1, y)) + f(x + 1, y + 1)
+                - f(x - 1, y + 1);
+        let dy = f(x - 1, y + 1) + 2.0 * f(x, y + 1) + f(x + 1, y + 1)
+            - f(x - 1, y - 1)
+            - 2.0 * f(x, y - 1)
+            - f(x + 1, y - 1);
+        (dx, dy)
+    }
+
     /// The metric by the naive route: every pixel's key, a full sort of (key, position).
     fn naive(
         img: &[u8],
@@ -559,22 +571,8 @@ mod tests {
         for y in 0..rh {
             for x in 0..rw {
                 let (gx, gy) = (roi.x as isize + x, roi.y as isize + y);
-                let ix = at(gx + 1, gy - 1) - at(gx - 1, gy - 1)
-                    + 2.0 * (at(gx + 1, gy) - at(gx - 1, gy))
-                    + at(gx + 1, gy + 1)
-                    - at(gx - 1, gy + 1);
-                let iy = at(gx - 1, gy + 1) + 2.0 * at(gx, gy + 1) + at(gx + 1, gy + 1)
-                    - at(gx - 1, gy - 1)
-                    - 2.0 * at(gx, gy - 1)
-                    - at(gx + 1, gy - 1);
-                let dx = dat(x + 1, y - 1) - dat(x - 1, y - 1)
-                    + 2.0 * (dat(x + 1, y) - dat(x - 1, y))
-                    + dat(x + 1, y + 1)
-                    - dat(x - 1, y + 1);
-                let dy = dat(x - 1, y + 1) + 2.0 * dat(x, y + 1) + dat(x + 1, y + 1)
-                    - dat(x - 1, y - 1)
-                    - 2.0 * dat(x, y - 1)
-                    - dat(x + 1, y - 1);
+                let (ix, iy) = sobel(&at, gx, gy);
+                let (dx, dy) = sobel(&dat, x, y);
                 let key = match p.metric {
                     PaperMetric::AbsIx => ix.abs(),
                     PaperMetric::Published => ix * ix + iy * iy,

@@ -94,6 +94,60 @@ pub fn require_pymavlink() {
     }
 }
 
+/// The grey of a rocky background at pixel (x, y): 60 with two interfering ripples
+/// (about 20 to 100), the surround of the synthetic marker pictures.
+pub fn rock_grey(x: usize, y: usize) -> f64 {
+    let (fx, fy) = (x as f64, y as f64);
+    60.0 + 30.0 * (fx * 0.11).sin() * (fy * 0.07).cos() + 10.0 * (fx * 0.5 + fy * 0.3).sin()
+}
+
+/// Sensor noise of a few grey levels (-3.5 to 3.5) at pixel (x, y): a fixed hash, so
+/// runs repeat.
+pub fn sensor_noise(x: usize, y: usize) -> f64 {
+    let hsh = (x as u32).wrapping_mul(2_654_435_761) ^ (y as u32).wrapping_mul(40_503);
+    (hsh.wrapping_mul(2_246_822_519) >> 29) as f64 - 3.5
+}
+
+/// A forward-looking camera (x_c = y_b, y_c = z_b, z_c = x_b) at (`x`, 0, `z`) in the
+/// vehicle's body frame (forward, right, down), metres: `t_vehicle_cam`.
+pub fn forward_camera(x: f64, z: f64) -> nalgebra::Isometry3<f64> {
+    use nalgebra::{Isometry3, Matrix3, Rotation3, Translation3, UnitQuaternion, Vector3};
+    let r = Rotation3::from_matrix_unchecked(Matrix3::from_columns(&[
+        Vector3::new(0.0, 1.0, 0.0),
+        Vector3::new(0.0, 0.0, 1.0),
+        Vector3::new(1.0, 0.0, 0.0),
+    ]));
+    Isometry3::from_parts(
+        Translation3::new(x, 0.0, z),
+        UnitQuaternion::from_rotation_matrix(&r),
+    )
+}
+
+/// The header of vehicle 1's autopilot (component 1), sequence 0.
+pub const VEHICLE_HEADER: mavlink::MavHeader = mavlink::MavHeader {
+    system_id: 1,
+    component_id: 1,
+    sequence: 0,
+};
+
+/// An active ArduSub's HEARTBEAT in flight mode `custom_mode` with `base_mode`.
+pub fn sub_heartbeat(
+    custom_mode: u32,
+    base_mode: mavlink::dialects::ardupilotmega::MavModeFlag,
+) -> mavlink::dialects::ardupilotmega::MavMessage {
+    use mavlink::dialects::ardupilotmega::{
+        MavAutopilot, MavMessage, MavState, MavType, HEARTBEAT_DATA,
+    };
+    MavMessage::HEARTBEAT(HEARTBEAT_DATA {
+        custom_mode,
+        mavtype: MavType::MAV_TYPE_SUBMARINE,
+        autopilot: MavAutopilot::MAV_AUTOPILOT_ARDUPILOTMEGA,
+        base_mode,
+        system_status: MavState::MAV_STATE_ACTIVE,
+        mavlink_version: 3,
+    })
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

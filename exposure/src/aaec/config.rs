@@ -286,12 +286,11 @@ impl AaecConfig {
 
     /// The metric parameters this configuration implies.
     pub fn metric_params(&self) -> MetricParams {
-        MetricParams {
-            percentile: self.percentile,
-            weight_power: self.weight_power,
-            saturation_grey: self.saturation_grey,
-            saturation_penalty: self.saturation_penalty,
-            ..MetricParams::default()
-        }
+        MetricParams::configured(
+            self.percentile,
+            self.weight_power,
+            self.saturation_grey,
+            self.saturation_penalty,
+        )
     }
 }

@@ -333,12 +333,7 @@ impl ExposureController for Aaec {
             self.v_us = 0.0;
         }
         self.commanded_us = next;
-        ExposureStep {
-            exposure_us: next,
-            metric: mv.m,
-            used_frame: true,
-            roi: Some(roi),
-        }
+        ExposureStep::used(next, mv.m, Some(roi))
     }
 
     fn commanded_us(&self) -> f64 {

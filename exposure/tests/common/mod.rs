@@ -119,14 +119,7 @@ impl Scene {
             let d2 = ((px - 160.0).powi(2) + (py - 120.0).powi(2)) / radius.powi(2);
             refl * (ambient + spot * (-d2).exp())
         });
-        let corners = square_corners(mx, my, side);
-        Self {
-            irradiance,
-            corners,
-            response,
-            caustic_amp: 0.0,
-            noise_grey: 0.0,
-        }
+        Self::still(irradiance, square_corners(mx, my, side), response)
     }
 
     /// The adversarial picture: a lamp lights a round plate (radius `plate_r` px) holding
@@ -158,14 +151,7 @@ impl Scene {
                 rock(px, py) * ambient
             }
         });
-        let corners = square_corners(mx, my, side);
-        Self {
-            irradiance,
-            corners,
-            response,
-            caustic_amp: 0.0,
-            noise_grey: 0.0,
-        }
+        Self::still(irradiance, square_corners(mx, my, side), response)
     }
 
     /// Mean grey of the white cells minus that of the black cells, each sampled on the
@@ -217,9 +203,15 @@ impl Scene {
                 irradiance[y * w + x] = vignette * pattern;
             }
         }
+        let corners = [[80.0, 60.0], [240.0, 60.0], [240.0, 180.0], [80.0, 180.0]];
+        Self::still(irradiance, corners, response)
+    }
+
+    /// A scene of `irradiance` with the marker at `corners`, without caustics or noise.
+    fn still(irradiance: Vec<f64>, corners: [[f32; 2]; 4], response: Response) -> Self {
         Self {
             irradiance,
-            corners: [[80.0, 60.0], [240.0, 60.0], [240.0, 180.0], [80.0, 180.0]],
+            corners,
             response,
             caustic_amp: 0.0,
             noise_grey: 0.0,
