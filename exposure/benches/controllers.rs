@@ -21,18 +21,9 @@ fn frame(w: u32, h: u32, marker_side: u32) -> (Frame, Corners) {
         for x in 0..w as usize {
             let u = (x as f64 - x0) / side;
             let v = (y as f64 - y0) / side;
-            let g = if (0.0..1.0).contains(&u) && (0.0..1.0).contains(&v) {
-                let cell = ((u * 6.0) as u32 * 7 + (v * 6.0) as u32 * 3) % 2;
-                if cell == 1 {
-                    220.0
-                } else {
-                    30.0
-                }
-            } else {
-                markhold_testkit::rock_grey(x, y)
-            };
-            let noise = markhold_testkit::sensor_noise(x, y);
-            f.data[y * w as usize + x] = (g + noise).clamp(0.0, 255.0) as u8;
+            let inside = (0.0..1.0).contains(&u) && (0.0..1.0).contains(&v);
+            let cell = inside.then(|| ((u * 6.0) as u32 * 7 + (v * 6.0) as u32 * 3) % 2 == 1);
+            f.data[y * w as usize + x] = markhold_testkit::synthetic_grey(x, y, cell);
         }
     }
     let c = [

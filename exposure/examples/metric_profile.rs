@@ -8,18 +8,9 @@ fn main() {
     let mut data = vec![0u8; w * h];
     for y in 0..h {
         for x in 0..w {
-            let cell = ((x / 42) * 7 + (y / 42) * 3) % 2;
-            let base = if (25..275).contains(&x) && (25..275).contains(&y) {
-                if cell == 1 {
-                    220.0
-                } else {
-                    30.0
-                }
-            } else {
-                markhold_testkit::rock_grey(x, y)
-            };
-            let noise = markhold_testkit::sensor_noise(x, y);
-            data[y * w + x] = (base + noise).clamp(0.0, 255.0) as u8;
+            let inside = (25..275).contains(&x) && (25..275).contains(&y);
+            let cell = inside.then(|| ((x / 42) * 7 + (y / 42) * 3) % 2 == 1);
+            data[y * w + x] = markhold_testkit::synthetic_grey(x, y, cell);
         }
     }
     let v = ImageView::new(w, h, &data).expect("the buffer holds w * h pixels");

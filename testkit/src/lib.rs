@@ -94,18 +94,22 @@ pub fn require_pymavlink() {
     }
 }
 
-/// The grey of a rocky background at pixel (x, y): 60 with two interfering ripples
-/// (about 20 to 100), the surround of the synthetic marker pictures.
-pub fn rock_grey(x: usize, y: usize) -> f64 {
+/// Pixel (x, y) of the synthetic marker pictures: a marker cell (`Some(white)`: 220 or
+/// 30) or, outside the marker (`None`), a rocky background (60 with two interfering
+/// ripples, about 20 to 100); plus sensor noise of a few grey levels (-3.5 to 3.5, a
+/// fixed hash, so runs repeat).
+pub fn synthetic_grey(x: usize, y: usize, cell: Option<bool>) -> u8 {
     let (fx, fy) = (x as f64, y as f64);
-    60.0 + 30.0 * (fx * 0.11).sin() * (fy * 0.07).cos() + 10.0 * (fx * 0.5 + fy * 0.3).sin()
-}
-
-/// Sensor noise of a few grey levels (-3.5 to 3.5) at pixel (x, y): a fixed hash, so
-/// runs repeat.
-pub fn sensor_noise(x: usize, y: usize) -> f64 {
+    let g = match cell {
+        Some(true) => 220.0,
+        Some(false) => 30.0,
+        None => {
+            60.0 + 30.0 * (fx * 0.11).sin() * (fy * 0.07).cos() + 10.0 * (fx * 0.5 + fy * 0.3).sin()
+        }
+    };
     let hsh = (x as u32).wrapping_mul(2_654_435_761) ^ (y as u32).wrapping_mul(40_503);
-    (hsh.wrapping_mul(2_246_822_519) >> 29) as f64 - 3.5
+    let noise = (hsh.wrapping_mul(2_246_822_519) >> 29) as f64 - 3.5;
+    (g + noise).clamp(0.0, 255.0) as u8
 }
 
 /// A forward-looking camera (x_c = y_b, y_c = z_b, z_c = x_b) at (`x`, 0, `z`) in the
