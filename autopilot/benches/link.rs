@@ -13,9 +13,9 @@ use std::time::Duration;
 
 use criterion::{criterion_group, criterion_main, Criterion};
 use markhold_autopilot::*;
-use mavlink::dialects::ardupilotmega::{MavMessage, RC_CHANNELS_OVERRIDE_DATA};
+use mavlink::dialects::ardupilotmega::MavMessage;
 use mavlink::{AsyncMavConnection, MavConnection, MavHeader};
-use nalgebra::{Isometry3, Matrix3, Matrix6, Rotation3, Translation3, UnitQuaternion, Vector3};
+use nalgebra::{Isometry3, Matrix6, Translation3};
 
 fn sink() -> (
     std::net::SocketAddr,
@@ -37,18 +37,7 @@ fn sink() -> (
 }
 
 fn rc_msg(map: &PilotMap, e: &Effort) -> MavMessage {
-    let ch = map.rc_channels(e);
-    MavMessage::RC_CHANNELS_OVERRIDE(RC_CHANNELS_OVERRIDE_DATA {
-        chan1_raw: ch[0],
-        chan2_raw: ch[1],
-        chan3_raw: ch[2],
-        chan4_raw: ch[3],
-        chan5_raw: ch[4],
-        chan6_raw: ch[5],
-        target_system: 1,
-        target_component: 1,
-        ..Default::default()
-    })
+    markhold_autopilot::link::rc_override(map, e, 1, 1)
 }
 
 fn pilot_input(c: &mut Criterion) {
@@ -104,15 +93,7 @@ fn pilot_input(c: &mut Criterion) {
 }
 
 fn keeper(c: &mut Criterion) {
-    let r = Rotation3::from_matrix_unchecked(Matrix3::from_columns(&[
-        Vector3::new(0.0, 1.0, 0.0),
-        Vector3::new(0.0, 0.0, 1.0),
-        Vector3::new(1.0, 0.0, 0.0),
-    ]));
-    let cam = Isometry3::from_parts(
-        Translation3::new(0.2, 0.0, 0.0),
-        UnitQuaternion::from_rotation_matrix(&r),
-    );
+    let cam = markhold_testkit::forward_camera(0.2, 0.0);
     let mut k =
         StationKeeper::new(&StationConfig::default(), &ControllerConfig::default(), cam).unwrap();
     let goal = StationConfig::default().t_marker_vehicle();
@@ -145,23 +126,12 @@ fn telemetry(c: &mut Criterion) {
         };
         let mut link = VehicleLink::connect(&cfg).unwrap();
         let to = ("127.0.0.1", link.local_addr().unwrap().port());
-        let h = MavHeader {
-            system_id: 1,
-            component_id: 1,
-            sequence: 0,
-        };
+        let h = markhold_testkit::VEHICLE_HEADER;
         let mut hb = Vec::new();
         mavlink::write_v2_msg(
             &mut hb,
             h,
-            &MavMessage::HEARTBEAT(HEARTBEAT_DATA {
-                custom_mode: 19,
-                mavtype: MavType::MAV_TYPE_SUBMARINE,
-                autopilot: MavAutopilot::MAV_AUTOPILOT_ARDUPILOTMEGA,
-                base_mode: MavModeFlag::MAV_MODE_FLAG_CUSTOM_MODE_ENABLED,
-                system_status: MavState::MAV_STATE_ACTIVE,
-                mavlink_version: 3,
-            }),
+            &markhold_testkit::sub_heartbeat(19, MavModeFlag::MAV_MODE_FLAG_CUSTOM_MODE_ENABLED),
         )
         .unwrap();
         vehicle.send_to(&hb, to).unwrap();

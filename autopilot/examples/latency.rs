@@ -9,7 +9,7 @@ use std::sync::mpsc;
 use std::time::{Duration, Instant};
 
 use markhold_autopilot::*;
-use nalgebra::{Isometry3, Matrix3, Matrix6, Rotation3, Translation3, UnitQuaternion, Vector3};
+use nalgebra::{Isometry3, Matrix6, Translation3};
 
 fn main() {
     let frames: usize = std::env::args()
@@ -44,15 +44,7 @@ fn main() {
         ..Default::default()
     };
     let mut link = VehicleLink::connect(&cfg).expect("link");
-    let r = Rotation3::from_matrix_unchecked(Matrix3::from_columns(&[
-        Vector3::new(0.0, 1.0, 0.0),
-        Vector3::new(0.0, 0.0, 1.0),
-        Vector3::new(1.0, 0.0, 0.0),
-    ]));
-    let cam = Isometry3::from_parts(
-        Translation3::new(0.2, 0.0, 0.0),
-        UnitQuaternion::from_rotation_matrix(&r),
-    );
+    let cam = markhold_testkit::forward_camera(0.2, 0.0);
     let mut keeper =
         StationKeeper::new(&StationConfig::default(), &ControllerConfig::default(), cam)
             .expect("keeper");

@@ -475,6 +475,31 @@ pub struct VehicleLink {
     heard_at: Option<std::time::Instant>,
 }
 
+/// The RC_CHANNELS_OVERRIDE that asks `target_system` / `target_component` for effort
+/// `e`: channels 1 to 6 from the pilot map, 7 and 8 released (0 = back to the RC
+/// receiver / joystick).
+pub fn rc_override(
+    map: &PilotMap,
+    e: &Effort,
+    target_system: u8,
+    target_component: u8,
+) -> MavMessage {
+    let ch = map.rc_channels(e);
+    MavMessage::RC_CHANNELS_OVERRIDE(RC_CHANNELS_OVERRIDE_DATA {
+        chan1_raw: ch[0],
+        chan2_raw: ch[1],
+        chan3_raw: ch[2],
+        chan4_raw: ch[3],
+        chan5_raw: ch[4],
+        chan6_raw: ch[5],
+        chan7_raw: 0,
+        chan8_raw: 0,
+        target_system,
+        target_component,
+        ..Default::default()
+    })
+}
+
 /// A MAVLink 2 signing key file: 32 raw bytes, or 64 hex digits.
 pub fn read_key(path: &std::path::Path) -> Result<[u8; 32], AutopilotError> {
     let p = path.display().to_string();
@@ -1245,21 +1270,7 @@ impl VehicleLink {
     fn send_pilot(&mut self, e: &Effort, now_s: f64) -> Result<(), AutopilotError> {
         let msg = match self.cfg.pilot_input {
             PilotInput::RcOverride => {
-                let ch = self.map.rc_channels(e);
-                MavMessage::RC_CHANNELS_OVERRIDE(RC_CHANNELS_OVERRIDE_DATA {
-                    chan1_raw: ch[0],
-                    chan2_raw: ch[1],
-                    chan3_raw: ch[2],
-                    chan4_raw: ch[3],
-                    chan5_raw: ch[4],
-                    chan6_raw: ch[5],
-                    // 0 = release the channel back to the RC receiver / joystick.
-                    chan7_raw: 0,
-                    chan8_raw: 0,
-                    target_system: self.state.system_id,
-                    target_component: self.state.component_id,
-                    ..Default::default()
-                })
+                rc_override(&self.map, e, self.state.system_id, self.state.component_id)
             }
             PilotInput::ManualControl => {
                 let v = self.map.manual_control(e);

@@ -302,24 +302,9 @@ mod tests {
             let x = f64::from(m.manual_control(&e)[0]);
             let rc = m.rc_channels(&e)[channel::FORWARD - 1];
             assert_eq!((1500.0 + x * 0.4 * 0.5).trunc() as u16, rc, "effort {k}e-3");
-            let z = f64::from(
-                m.manual_control(&Effort::from_array([
-                    0.0,
-                    0.0,
-                    k as f64 * 1e-3,
-                    0.0,
-                    0.0,
-                    0.0,
-                ]))[2],
-            );
-            let thr = m.rc_channels(&Effort::from_array([
-                0.0,
-                0.0,
-                k as f64 * 1e-3,
-                0.0,
-                0.0,
-                0.0,
-            ]))[channel::THROTTLE - 1];
+            let heave = Effort::from_array([0.0, 0.0, k as f64 * 1e-3, 0.0, 0.0, 0.0]);
+            let z = f64::from(m.manual_control(&heave)[2]);
+            let thr = m.rc_channels(&heave)[channel::THROTTLE - 1];
             assert_eq!(
                 (1500.0 + (z - 500.0) * 0.8 * 0.5).trunc() as u16,
                 thr,

@@ -39,14 +39,7 @@ fn tcp_close_delivers_every_frame_and_ends_without_a_reset() {
         s.set_nodelay(true).unwrap();
         let hb = frame(
             0,
-            &MavMessage::HEARTBEAT(HEARTBEAT_DATA {
-                custom_mode: 19,
-                mavtype: MavType::MAV_TYPE_SUBMARINE,
-                autopilot: MavAutopilot::MAV_AUTOPILOT_ARDUPILOTMEGA,
-                base_mode: MavModeFlag::empty(),
-                system_status: MavState::MAV_STATE_ACTIVE,
-                mavlink_version: 3,
-            }),
+            &markhold_testkit::sub_heartbeat(19, MavModeFlag::empty()),
         );
         let att = frame(1, &MavMessage::ATTITUDE(ATTITUDE_DATA::default()));
         s.set_read_timeout(Some(Duration::from_millis(5))).unwrap();

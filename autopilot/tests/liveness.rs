@@ -67,14 +67,7 @@ const FRAMES_PER_DATAGRAM: usize = 50;
 const BYTES_PER_DATAGRAM_IN_KERNEL: usize = 4096;
 
 fn heartbeat() -> MavMessage {
-    MavMessage::HEARTBEAT(HEARTBEAT_DATA {
-        custom_mode: 0,
-        mavtype: MavType::MAV_TYPE_SUBMARINE,
-        autopilot: MavAutopilot::MAV_AUTOPILOT_ARDUPILOTMEGA,
-        base_mode: MavModeFlag::empty(),
-        system_status: MavState::MAV_STATE_ACTIVE,
-        mavlink_version: 3,
-    })
+    markhold_testkit::sub_heartbeat(0, MavModeFlag::empty())
 }
 
 fn attitude() -> MavMessage {

@@ -11,26 +11,26 @@ use std::time::{Duration, Instant};
 use common::{FakeVehicle, Kind, STEP_S};
 use markhold_autopilot::*;
 use mavlink::dialects::ardupilotmega::{MavAutopilot, MavCmd, MavType};
-use nalgebra::{Isometry3, Matrix3, Matrix6, Rotation3, Translation3, UnitQuaternion, Vector3};
+use nalgebra::{Isometry3, Matrix6, Vector3};
 
 const WAIT: Duration = Duration::from_secs(10);
 
 fn cam() -> Isometry3<f64> {
-    let r = Rotation3::from_matrix_unchecked(Matrix3::from_columns(&[
-        Vector3::new(0.0, 1.0, 0.0),
-        Vector3::new(0.0, 0.0, 1.0),
-        Vector3::new(1.0, 0.0, 0.0),
-    ]));
-    Isometry3::from_parts(
-        Translation3::new(0.25, 0.0, 0.05),
-        UnitQuaternion::from_rotation_matrix(&r),
-    )
+    markhold_testkit::forward_camera(0.25, 0.05)
 }
 
 struct Harness {
     link: VehicleLink,
     fake: FakeVehicle,
     now: f64,
+}
+
+/// How many SET_MESSAGE_INTERVAL requests the fake vehicle has had.
+fn stream_requests(r: &common::Rec) -> usize {
+    r.commands
+        .iter()
+        .filter(|(_, c)| c.command == MavCmd::MAV_CMD_SET_MESSAGE_INTERVAL)
+        .count()
 }
 
 impl Harness {
@@ -67,6 +67,21 @@ impl Harness {
         });
     }
 
+    /// The supervisor's directive now, with a frame and the marker seen this instant and
+    /// the vehicle's heartbeat as the link last heard it.
+    fn supervise(&self, sup: &mut Supervisor, events: &mut Vec<FailsafeEvent>) -> Directive {
+        sup.update(
+            &SupervisorInput {
+                now_s: self.now,
+                vehicle_heartbeat_s: self.link.state().last_heartbeat_s,
+                last_frame_s: Some(self.now),
+                marker_seen_s: Some(self.now),
+                shutdown: false,
+            },
+            events,
+        )
+    }
+
     /// Closed loop: measurement from the fake's pose, keeper, effort on the wire, wait for
     /// the fake to apply it (one plant step per override).
     fn hold(&mut self, keeper: &mut StationKeeper, steps: usize) {
@@ -81,16 +96,7 @@ impl Harness {
                 t_cam_marker: (t_mv * cam()).inverse(),
                 cov_cam: Matrix6::identity() * 1e-6,
             };
-            let d = sup.update(
-                &SupervisorInput {
-                    now_s: self.now,
-                    vehicle_heartbeat_s: self.link.state().last_heartbeat_s,
-                    last_frame_s: Some(self.now),
-                    marker_seen_s: Some(self.now),
-                    shutdown: false,
-                },
-                &mut events,
-            );
+            let d = self.supervise(&mut sup, &mut events);
             assert_eq!(d, Directive::Command, "{events:?}");
             let e = keeper.update(self.now, Some(&meas));
             let before = self.fake.rec().steps;
@@ -392,16 +398,7 @@ fn heartbeat_loss_stops_commanding_until_it_returns() {
         age > timeout && age <= timeout + STEP_S + 1e-9,
         "lost {age} s after the last message (timeout {timeout} s)"
     );
-    let d = sup.update(
-        &SupervisorInput {
-            now_s: h.now,
-            vehicle_heartbeat_s: h.link.state().last_heartbeat_s,
-            last_frame_s: Some(h.now),
-            marker_seen_s: Some(h.now),
-            shutdown: false,
-        },
-        &mut events,
-    );
+    let d = h.supervise(&mut sup, &mut events);
     assert_eq!(d, Directive::Silent);
     assert!(events
         .iter()
@@ -421,36 +418,17 @@ fn heartbeat_loss_stops_commanding_until_it_returns() {
     );
 
     // It comes back: streams are requested again, commanding resumes.
-    let streams_before = h
-        .fake
-        .rec()
-        .commands
-        .iter()
-        .filter(|(_, c)| c.command == MavCmd::MAV_CMD_SET_MESSAGE_INTERVAL)
-        .count();
+    let streams_before = stream_requests(&h.fake.rec());
     h.fake.rec().heartbeats_on = true;
     h.tick_until("heartbeat back", |l, _| l.state().heartbeat_ok);
     events.clear();
-    let d = sup.update(
-        &SupervisorInput {
-            now_s: h.now,
-            vehicle_heartbeat_s: h.link.state().last_heartbeat_s,
-            last_frame_s: Some(h.now),
-            marker_seen_s: Some(h.now),
-            shutdown: false,
-        },
-        &mut events,
-    );
+    let d = h.supervise(&mut sup, &mut events);
     assert_eq!(d, Directive::Command);
     assert!(events
         .iter()
         .any(|e| matches!(e, FailsafeEvent::VehicleHeartbeatRestored { .. })));
     h.tick_until("streams re-requested", |_, r| {
-        r.commands
-            .iter()
-            .filter(|(_, c)| c.command == MavCmd::MAV_CMD_SET_MESSAGE_INTERVAL)
-            .count()
-            >= streams_before + 5
+        stream_requests(r) >= streams_before + 5
     });
 }
 
@@ -605,21 +583,11 @@ fn udp_datagrams_sent_before_a_tick_are_applied_in_that_tick() {
     let cfg = link_cfg(format!("udpout:{}", vehicle.local_addr().unwrap()));
     let mut link = VehicleLink::connect(&cfg).unwrap();
     let to = ("127.0.0.1", link.local_addr().unwrap().port());
-    let h = mavlink::MavHeader {
-        system_id: 1,
-        component_id: 1,
-        sequence: 0,
-    };
+    let h = markhold_testkit::VEHICLE_HEADER;
     for step in 0..50u32 {
         let mut buf = Vec::new();
-        let hb = MavMessage::HEARTBEAT(HEARTBEAT_DATA {
-            custom_mode: 19,
-            mavtype: MavType::MAV_TYPE_SUBMARINE,
-            autopilot: MavAutopilot::MAV_AUTOPILOT_ARDUPILOTMEGA,
-            base_mode: MavModeFlag::MAV_MODE_FLAG_CUSTOM_MODE_ENABLED,
-            system_status: MavState::MAV_STATE_ACTIVE,
-            mavlink_version: 3,
-        });
+        let hb =
+            markhold_testkit::sub_heartbeat(19, MavModeFlag::MAV_MODE_FLAG_CUSTOM_MODE_ENABLED);
         let att = MavMessage::ATTITUDE(ATTITUDE_DATA {
             time_boot_ms: step,
             yaw: step as f32 * 0.01,

@@ -163,6 +163,18 @@ fn check_telemetry(s: &VehicleState) {
     assert!(!s.armed, "disarm not reflected");
 }
 
+/// Drives the vehicle `v` over a link with `cfg`; its verdict is ok and the telemetry
+/// came through.
+fn drive_and_judge(v: &mut Vehicle, cfg: LinkConfig) {
+    let link = drive(cfg);
+    let verdict = verdict(v);
+    assert!(
+        verdict.contains("\"ok\": true"),
+        "pymavlink vehicle: {verdict}"
+    );
+    check_telemetry(link.state());
+}
+
 #[test]
 fn pymavlink_vehicle_over_udp_with_rc_override() {
     let (mut v, first) = spawn("udp", "rc");
@@ -170,16 +182,13 @@ fn pymavlink_vehicle_over_udp_with_rc_override() {
         .strip_prefix("UDP ")
         .and_then(|p| p.parse().ok())
         .unwrap_or_else(|| panic!("unexpected first line {first:?}"));
-    let link = drive(LinkConfig {
-        url: format!("udpout:127.0.0.1:{port}"),
-        ..Default::default()
-    });
-    let verdict = verdict(&mut v);
-    assert!(
-        verdict.contains("\"ok\": true"),
-        "pymavlink vehicle: {verdict}"
+    drive_and_judge(
+        &mut v,
+        LinkConfig {
+            url: format!("udpout:127.0.0.1:{port}"),
+            ..Default::default()
+        },
     );
-    check_telemetry(link.state());
 }
 
 #[test]
@@ -189,17 +198,14 @@ fn pymavlink_vehicle_over_serial_pty_with_manual_control() {
         .strip_prefix("PTY ")
         .unwrap_or_else(|| panic!("unexpected first line {first:?}"))
         .to_string();
-    let link = drive(LinkConfig {
-        url: format!("serial:{path}:115200"),
-        pilot_input: PilotInput::ManualControl,
-        ..Default::default()
-    });
-    let verdict = verdict(&mut v);
-    assert!(
-        verdict.contains("\"ok\": true"),
-        "pymavlink vehicle: {verdict}"
+    drive_and_judge(
+        &mut v,
+        LinkConfig {
+            url: format!("serial:{path}:115200"),
+            pilot_input: PilotInput::ManualControl,
+            ..Default::default()
+        },
     );
-    check_telemetry(link.state());
 }
 
 /// A peer opened with `mavutil.mavlink_connection(url)`; returns it and its local port.

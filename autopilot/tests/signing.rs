@@ -10,7 +10,7 @@ use std::time::{Duration, Instant};
 
 use markhold_autopilot::*;
 use mavlink::dialects::ardupilotmega::*;
-use mavlink::{MavHeader, MavlinkReader, SigningConfig, SigningData};
+use mavlink::{MavlinkReader, SigningConfig, SigningData};
 
 const KEY: [u8; 32] = [
     0x11, 0x22, 0x33, 0x44, 0x55, 0x66, 0x77, 0x88, 0x99, 0xaa, 0xbb, 0xcc, 0xdd, 0xee, 0xff, 0x00,
@@ -28,19 +28,8 @@ fn hex(k: &[u8]) -> String {
 }
 
 fn vehicle_heartbeat(signing: Option<&SigningData>) -> Vec<u8> {
-    let msg = MavMessage::HEARTBEAT(HEARTBEAT_DATA {
-        custom_mode: 19,
-        mavtype: MavType::MAV_TYPE_SUBMARINE,
-        autopilot: MavAutopilot::MAV_AUTOPILOT_ARDUPILOTMEGA,
-        base_mode: MavModeFlag::MAV_MODE_FLAG_CUSTOM_MODE_ENABLED,
-        system_status: MavState::MAV_STATE_ACTIVE,
-        mavlink_version: 3,
-    });
-    let h = MavHeader {
-        system_id: 1,
-        component_id: 1,
-        sequence: 0,
-    };
+    let msg = markhold_testkit::sub_heartbeat(19, MavModeFlag::MAV_MODE_FLAG_CUSTOM_MODE_ENABLED);
+    let h = markhold_testkit::VEHICLE_HEADER;
     let mut v = Vec::new();
     mavlink::write_v2_msg_signed(&mut v, h, &msg, signing).unwrap();
     v

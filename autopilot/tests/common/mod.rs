@@ -413,14 +413,7 @@ impl Rec {
         if self.armed {
             base |= MavModeFlag::MAV_MODE_FLAG_SAFETY_ARMED;
         }
-        out.push(MavMessage::HEARTBEAT(HEARTBEAT_DATA {
-            custom_mode: self.mode,
-            mavtype: MavType::MAV_TYPE_SUBMARINE,
-            autopilot: MavAutopilot::MAV_AUTOPILOT_ARDUPILOTMEGA,
-            base_mode: base,
-            system_status: MavState::MAV_STATE_ACTIVE,
-            mavlink_version: 3,
-        }));
+        out.push(markhold_testkit::sub_heartbeat(self.mode, base));
         out.push(MavMessage::ATTITUDE(ATTITUDE_DATA {
             time_boot_ms: 1000,
             roll: 0.01,

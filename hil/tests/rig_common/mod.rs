@@ -33,15 +33,7 @@ pub fn t_world_marker() -> Isometry3<f64> {
 
 /// Forward-looking camera: x_c = y_b, y_c = z_b, z_c = x_b.
 pub fn t_vehicle_cam() -> Isometry3<f64> {
-    let r = Matrix3::from_columns(&[
-        nalgebra::Vector3::new(0.0, 1.0, 0.0),
-        nalgebra::Vector3::new(0.0, 0.0, 1.0),
-        nalgebra::Vector3::new(1.0, 0.0, 0.0),
-    ]);
-    Isometry3::from_parts(
-        Translation3::new(0.2, 0.0, 0.0),
-        UnitQuaternion::from_rotation_matrix(&Rotation3::from_matrix_unchecked(r)),
-    )
+    markhold_testkit::forward_camera(0.2, 0.0)
 }
 
 pub fn small_camera() -> CameraModel {
