@@ -7,7 +7,6 @@
 
 #![allow(clippy::unwrap_used)] // Tests fail loudly on a broken setup, by design.
 
-use std::io::{BufRead, BufReader};
 use std::process::{Child, Command, Stdio};
 use std::sync::mpsc;
 use std::time::{Duration, Instant};
@@ -41,14 +40,7 @@ fn spawn_script(script: &str, args: &[&str], what: &str) -> (Vehicle, String) {
         .spawn()
         .expect("spawn python3");
     let out = child.stdout.take().expect("stdout");
-    let (tx, rx) = mpsc::channel();
-    std::thread::spawn(move || {
-        for line in BufReader::new(out).lines().map_while(Result::ok) {
-            if tx.send(line).is_err() {
-                break;
-            }
-        }
-    });
+    let rx = markhold_testkit::lines_on_channel(out);
     let first = rx
         .recv_timeout(Duration::from_secs(20))
         .unwrap_or_else(|_| panic!("{what} did not start"));

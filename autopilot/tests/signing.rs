@@ -27,6 +27,23 @@ fn hex(k: &[u8]) -> String {
     k.iter().map(|b| format!("{b:02x}")).collect()
 }
 
+/// The vehicle sends `frames` to `to`; the link then ticks 30 ms of loop time on (after
+/// 10 ms of wall time).
+fn send_then_tick(
+    vehicle: &std::net::UdpSocket,
+    to: (&str, u16),
+    frames: &[Vec<u8>],
+    link: &mut VehicleLink,
+    now: &mut f64,
+) {
+    for f in frames {
+        vehicle.send_to(f, to).unwrap();
+    }
+    *now += 0.03;
+    link.tick(*now).unwrap();
+    std::thread::sleep(Duration::from_millis(10));
+}
+
 fn vehicle_heartbeat(signing: Option<&SigningData>) -> Vec<u8> {
     let msg = markhold_testkit::sub_heartbeat(19, MavModeFlag::MAV_MODE_FLAG_CUSTOM_MODE_ENABLED);
     let h = markhold_testkit::VEHICLE_HEADER;
@@ -81,13 +98,11 @@ fn signed_link_signs_and_checks() {
     let mut now = 0.0;
     let t0 = Instant::now();
     while t0.elapsed() < Duration::from_millis(300) {
-        vehicle.send_to(&vehicle_heartbeat(None), to).unwrap();
-        vehicle
-            .send_to(&vehicle_heartbeat(Some(&signer_bad)), to)
-            .unwrap();
-        now += 0.03;
-        link.tick(now).unwrap();
-        std::thread::sleep(Duration::from_millis(10));
+        let unsigned_and_bad = [
+            vehicle_heartbeat(None),
+            vehicle_heartbeat(Some(&signer_bad)),
+        ];
+        send_then_tick(&vehicle, to, &unsigned_and_bad, &mut link, &mut now);
     }
     assert!(
         !link.state().discovered,
@@ -109,12 +124,8 @@ fn signed_link_signs_and_checks() {
             t0.elapsed() < Duration::from_secs(5),
             "signed heartbeat not accepted"
         );
-        vehicle
-            .send_to(&vehicle_heartbeat(Some(&signer)), to)
-            .unwrap();
-        now += 0.03;
-        link.tick(now).unwrap();
-        std::thread::sleep(Duration::from_millis(10));
+        let signed = [vehicle_heartbeat(Some(&signer))];
+        send_then_tick(&vehicle, to, &signed, &mut link, &mut now);
     }
     assert_eq!(link.state().mode, Some(ArduSubMode::Manual));
     let _ = std::fs::remove_file(path);

@@ -77,6 +77,23 @@ unsafe impl GlobalAlloc for CountingAlloc {
     }
 }
 
+/// Every line `out` gives (a child's stdout), sent on a channel by a thread of its own,
+/// so that a test can wait for a line with a bound.
+pub fn lines_on_channel(
+    out: impl std::io::Read + Send + 'static,
+) -> std::sync::mpsc::Receiver<String> {
+    use std::io::BufRead;
+    let (tx, rx) = std::sync::mpsc::channel();
+    std::thread::spawn(move || {
+        for line in std::io::BufReader::new(out).lines().map_while(Result::ok) {
+            if tx.send(line).is_err() {
+                break;
+            }
+        }
+    });
+    rx
+}
+
 /// Panics unless pymavlink can be imported: scripts/install-deps installs it, a test never
 /// installs anything, and a missing pymavlink fails the test rather than skipping it.
 #[allow(clippy::panic)] // A test helper: failing loudly is its job.
