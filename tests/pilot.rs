@@ -16,13 +16,16 @@
 
 mod common;
 
-use std::io::{BufRead, BufReader, Read};
+use std::io::Read;
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};
 use std::sync::{mpsc, OnceLock};
 use std::time::{Duration, Instant};
 
-use common::{markhold, repo, rig_at, site_path, station_frames, tmp_path};
+use common::{
+    frames_camera, markhold, pymav_texts, pymav_verdict, repo, rig_at, run_engaged, site_path,
+    station_frames, tmp_path,
+};
 use markhold::field::engage::{EngagedLink, ExitPolicy};
 use markhold_autopilot::{Effort, LinkConfig, LinkMode, NeutralShown, VehicleLink};
 use serde_json::Value;
@@ -45,51 +48,11 @@ fn frames_dir() -> &'static Path {
     DIR.get_or_init(|| station_frames(tmp("frames"), 240))
 }
 
-/// The pymavlink vehicle; killed on drop if still running.
-struct Vehicle(Child);
+use common::PymavVehicle as Vehicle;
 
-impl Drop for Vehicle {
-    fn drop(&mut self) {
-        let _ = self.0.kill();
-        let _ = self.0.wait();
-    }
-}
-
-/// Start the vehicle with `args`; its UDP port.
+/// Start the pymavlink vehicle with `args` (at most 40 s); its UDP port.
 fn vehicle(args: &[&str]) -> (Vehicle, u16) {
-    markhold_testkit::require_pymavlink();
-    let mut child = Command::new("python3")
-        .arg(repo("autopilot/tests/pymav_vehicle.py"))
-        .args(["--deadline", "40"])
-        .args(args)
-        .stdout(Stdio::piped())
-        .stderr(Stdio::inherit())
-        .spawn()
-        .expect("spawn python3");
-    let mut line = String::new();
-    BufReader::new(child.stdout.as_mut().unwrap())
-        .read_line(&mut line)
-        .unwrap();
-    let port = line
-        .trim()
-        .strip_prefix("UDP ")
-        .unwrap_or_else(|| panic!("vehicle said {line:?}"))
-        .parse()
-        .unwrap();
-    (Vehicle(child), port)
-}
-
-/// The vehicle's verdict (it ends 1.5 s after markhold falls silent).
-fn verdict(v: &mut Vehicle) -> serde_json::Value {
-    let mut out = String::new();
-    v.0.stdout
-        .as_mut()
-        .unwrap()
-        .read_to_string(&mut out)
-        .unwrap();
-    let _ = v.0.wait();
-    let last = out.lines().last().unwrap_or_default();
-    serde_json::from_str(last).unwrap_or_else(|e| panic!("verdict {out:?}: {e}"))
+    common::pymav_vehicle(&[&["--deadline", "40"], args].concat())
 }
 
 /// What markhold sent, as whom: every (system id, component id, message) the vehicle
@@ -131,15 +94,6 @@ fn gcs_frames(v: &Value) -> Vec<f64> {
         .collect()
 }
 
-fn texts(v: &serde_json::Value) -> Vec<String> {
-    v["texts"]
-        .as_array()
-        .unwrap()
-        .iter()
-        .map(|t| t[2].as_str().unwrap().to_string())
-        .collect()
-}
-
 /// The fixture site with extra `[link]` keys, written next to the original (its paths
 /// are relative to it).
 fn site_with(name: &str, link_keys: &str) -> PathBuf {
@@ -172,8 +126,8 @@ fn the_pilot_engages_takes_over_and_gets_the_vehicle_back() {
     let o = run(&site_path(), port, &summary);
     let stderr = String::from_utf8_lossy(&o.stderr);
     assert!(o.status.success(), "{stderr}");
-    let verdict = verdict(&mut v);
-    let said = texts(&verdict);
+    let verdict = pymav_verdict(&mut v);
+    let said = pymav_texts(&verdict);
     assert_eq!(
         verdict["failures"],
         serde_json::json!([]),
@@ -258,8 +212,8 @@ fn with_nobody_at_the_joystick_the_hand_back_disarms_and_says_so() {
     let o = run(&site, port, &summary);
     let stderr = String::from_utf8_lossy(&o.stderr);
     assert!(o.status.success(), "{stderr}");
-    let verdict = verdict(&mut v);
-    let said = texts(&verdict);
+    let verdict = pymav_verdict(&mut v);
+    let said = pymav_texts(&verdict);
     assert_eq!(verdict["failures"], serde_json::json!([]), "{verdict}");
     assert!(
         said.iter()
@@ -294,7 +248,7 @@ fn preflight_with(vehicle_args: &[&str], extra: &[&str]) -> (std::process::Outpu
         .arg(format!("udpout:127.0.0.1:{port}"))
         .output()
         .unwrap();
-    (o, verdict(&mut v))
+    (o, pymav_verdict(&mut v))
 }
 
 #[test]
@@ -362,7 +316,7 @@ fn run_refuses_to_start_on_a_failed_preflight() {
     assert_eq!(o.status.code(), Some(2), "{stderr}");
     assert!(stderr.contains("failed the preflight check"), "{stderr}");
     assert!(stderr.contains("--no-preflight"), "{stderr}");
-    let verdict = verdict(&mut v);
+    let verdict = pymav_verdict(&mut v);
     // Nothing but parameter traffic: no pilot input, no arming.
     assert_eq!(verdict["armed_at_end"], false, "{verdict}");
 }
@@ -505,8 +459,7 @@ fn hil_on_an_external_vehicle_hands_over_to_the_pilot_and_regains_station() {
     // ... and markhold brought it back after the pilot engaged it again (the error at
     // the run's last frame, from the vehicle's telemetry: after it the exit hands back
     // and the vehicle, neutral, drifts on its buoyancy).
-    let summary: serde_json::Value =
-        serde_json::from_str(&std::fs::read_to_string(&out).unwrap()).unwrap();
+    let summary = common::read_json(&out);
     let err = summary["final_position_error_m"].as_f64().unwrap();
     assert!(err < 0.15, "{err:.3} m from station at the end\n{stderr}");
     eprintln!(
@@ -553,7 +506,7 @@ fn thrust_run(
         std::thread::sleep(Duration::from_millis(20));
     }
     drop(l);
-    verdict(&mut v)
+    pymav_verdict(&mut v)
 }
 
 /// Against a vehicle that reads pilot input as ArduSub does and turns it into thrust
@@ -643,7 +596,7 @@ fn hil_vehicle(site: &Path, port: u16, seconds: &str) -> std::process::Output {
 /// window (`STATION_RELAY_S`) and the vehicle's 0.3 s check period later than without
 /// it.
 fn assert_station_loss_lets_the_failsafe_fire(verdict: &Value, stderr: &str) {
-    let said = texts(verdict);
+    let said = pymav_texts(verdict);
     assert_eq!(verdict["failures"], serde_json::json!([]), "{verdict}");
     assert!(
         said.iter()
@@ -702,7 +655,7 @@ fn when_the_pilot_station_falls_silent_markhold_stops_as_the_gcs_and_the_failsaf
     let o = run(&site_path(), port, &summary);
     let stderr = String::from_utf8_lossy(&o.stderr);
     assert!(o.status.success(), "{stderr}");
-    let verdict = verdict(&mut v);
+    let verdict = pymav_verdict(&mut v);
     assert_station_loss_lets_the_failsafe_fire(&verdict, &stderr);
     let s: Value = serde_json::from_slice(&std::fs::read(&summary).unwrap()).unwrap();
     assert_eq!(s["hand_back"], "not_commanding", "{s}");
@@ -727,7 +680,7 @@ fn on_ardusub_4_2_the_gcs_failsafe_fires_as_without_markhold() {
     let o = run(&site_path(), port, &tmp("station-42.json"));
     let stderr = String::from_utf8_lossy(&o.stderr);
     assert!(o.status.success(), "{stderr}");
-    let verdict = verdict(&mut v);
+    let verdict = pymav_verdict(&mut v);
     assert_eq!(verdict["failures"], serde_json::json!([]), "{verdict}");
     assert_identity(&verdict);
     let last_hb = verdict["station_last_hb"].as_f64().unwrap();
@@ -755,8 +708,25 @@ fn hil_vehicle_stops_as_the_gcs_when_the_pilot_station_falls_silent() {
     let o = hil_vehicle(&site_path(), port, "8");
     let stderr = String::from_utf8_lossy(&o.stderr);
     assert!(o.status.success(), "{stderr}");
-    let verdict = verdict(&mut v);
+    let verdict = pymav_verdict(&mut v);
     assert_station_loss_lets_the_failsafe_fire(&verdict, &stderr);
+}
+
+/// After the pilot's takeover: one neutral, the text, the release; then nothing to the
+/// end of the run and its exit (the order markhold sent them in). The pilot flies on
+/// (still armed), no failsafe fired, and markhold spoke as whom it should.
+fn assert_released_after_takeover(verdict: &Value) {
+    let around = &verdict["around_off_text"];
+    assert_eq!(around["before"], "neutral", "{verdict}");
+    assert_eq!(around["after"], serde_json::json!(["release"]), "{verdict}");
+    assert!(
+        pymav_texts(verdict).iter().any(|t| t == "markhold stopped"),
+        "{verdict}"
+    );
+    assert_eq!(verdict["failsafe"], serde_json::json!([]), "{verdict}");
+    assert_eq!(verdict["gcs_failsafe"], serde_json::json!([]), "{verdict}");
+    assert_eq!(verdict["armed_at_end"], true, "{verdict}");
+    assert_identity(verdict);
 }
 
 /// After the pilot's takeover (a mode switch) `run` sends one neutral, says why, sends
@@ -770,19 +740,9 @@ fn after_a_takeover_run_sends_nothing_as_the_gcs_also_at_exit() {
     let o = run(&site_path(), port, &summary);
     let stderr = String::from_utf8_lossy(&o.stderr);
     assert!(o.status.success(), "{stderr}");
-    let verdict = verdict(&mut v);
+    let verdict = pymav_verdict(&mut v);
     assert_eq!(verdict["failures"], serde_json::json!([]), "{verdict}");
-    let around = &verdict["around_off_text"];
-    assert_eq!(around["before"], "neutral", "{verdict}");
-    assert_eq!(around["after"], serde_json::json!(["release"]), "{verdict}");
-    assert!(
-        texts(&verdict).iter().any(|t| t == "markhold stopped"),
-        "{verdict}"
-    );
-    assert_eq!(verdict["failsafe"], serde_json::json!([]), "{verdict}");
-    assert_eq!(verdict["gcs_failsafe"], serde_json::json!([]), "{verdict}");
-    assert_eq!(verdict["armed_at_end"], true, "{verdict}");
-    assert_identity(&verdict);
+    assert_released_after_takeover(&verdict);
     let s: Value = serde_json::from_slice(&std::fs::read(&summary).unwrap()).unwrap();
     assert_eq!(s["hand_back"], "not_commanding", "{s}");
     assert_eq!(s["exit"]["commanding"], false, "{s}");
@@ -798,22 +758,10 @@ fn hil_vehicle_after_a_takeover_sends_nothing_as_the_gcs_also_at_exit() {
     let o = hil_vehicle(&site_path(), port, "4");
     let stderr = String::from_utf8_lossy(&o.stderr);
     assert!(o.status.success(), "{stderr}");
-    let verdict = verdict(&mut v);
+    let verdict = pymav_verdict(&mut v);
     assert_eq!(verdict["failures"], serde_json::json!([]), "{verdict}");
     assert!(stderr.contains("disengaged why=ModeChanged"), "{stderr}");
-    // One neutral, the text, the release; then nothing to the end of the run and its
-    // exit (the order markhold sent them in).
-    let around = &verdict["around_off_text"];
-    assert_eq!(around["before"], "neutral", "{verdict}");
-    assert_eq!(around["after"], serde_json::json!(["release"]), "{verdict}");
-    assert!(
-        texts(&verdict).iter().any(|t| t == "markhold stopped"),
-        "{verdict}"
-    );
-    assert_eq!(verdict["failsafe"], serde_json::json!([]), "{verdict}");
-    assert_eq!(verdict["gcs_failsafe"], serde_json::json!([]), "{verdict}");
-    assert_eq!(verdict["armed_at_end"], true, "{verdict}");
-    assert_identity(&verdict);
+    assert_released_after_takeover(&verdict);
 }
 
 /// `hil --vehicle` ends as `run` does: with nobody at the joystick the hand-back keeps
@@ -826,9 +774,9 @@ fn hil_vehicle_exit_without_a_pilot_hands_back_then_disarms_and_no_failsafe_fire
     let o = hil_vehicle(&site, port, "3");
     let stderr = String::from_utf8_lossy(&o.stderr);
     assert!(o.status.success(), "{stderr}");
-    let verdict = verdict(&mut v);
+    let verdict = pymav_verdict(&mut v);
     assert_eq!(verdict["failures"], serde_json::json!([]), "{verdict}");
-    let said = texts(&verdict);
+    let said = pymav_texts(&verdict);
     for t in [
         "markhold off: stopped",
         "markhold stopped: take the controls",
@@ -881,14 +829,7 @@ impl ExitVehicle {
             .spawn()
             .expect("spawn python3");
         let out = child.stdout.take().unwrap();
-        let (tx, rx) = mpsc::channel();
-        std::thread::spawn(move || {
-            for line in BufReader::new(out).lines().map_while(Result::ok) {
-                if tx.send(line).is_err() {
-                    break;
-                }
-            }
-        });
+        let rx = markhold_testkit::lines_on_channel(out);
         let first = rx
             .recv_timeout(Duration::from_secs(20))
             .expect("the exit vehicle did not start");
@@ -1070,17 +1011,11 @@ fn every_sigterm_leaves_neutral_applied() {
     let port = first.trim_start_matches("UDP ").to_string();
     let n = 100;
     for i in 0..n {
-        let mut child = markhold()
-            .args(["run", "--engage", "--no-preflight", "--site"])
-            .arg(&site)
-            .arg("--camera")
-            .arg(format!("frames:{}", frames.display()))
-            .arg("--link")
-            .arg(format!("udpout:127.0.0.1:{port}"))
-            .stdout(Stdio::null())
-            .stderr(Stdio::piped())
-            .spawn()
-            .unwrap();
+        let mut child = common::spawn_quiet(
+            run_engaged(&site, &frames_camera(frames))
+                .arg("--link")
+                .arg(format!("udpout:127.0.0.1:{port}")),
+        );
         let t0 = Instant::now();
         while v.commanded() <= i {
             if let Some(status) = child.try_wait().unwrap() {
@@ -1095,18 +1030,8 @@ fn every_sigterm_leaves_neutral_applied() {
             std::thread::sleep(Duration::from_millis(2));
         }
         std::thread::sleep(Duration::from_millis((i * 37) % 100));
-        let killed = Command::new("kill")
-            .args(["-TERM", &child.id().to_string()])
-            .status()
-            .unwrap();
-        assert!(killed.success());
-        let mut err = String::new();
-        child
-            .stderr
-            .take()
-            .unwrap()
-            .read_to_string(&mut err)
-            .unwrap();
+        assert!(common::sigterm(&child));
+        let err = common::stderr_text(&mut child);
         let status = child.wait().unwrap();
         assert_eq!(status.code(), Some(0), "run {i}: {err}");
         assert!(

@@ -9,10 +9,10 @@
 use std::io::Read;
 use std::net::{TcpListener, TcpStream};
 use std::path::{Path, PathBuf};
-use std::process::{Command, Output};
+use std::process::{Child, Command, ExitStatus, Output};
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
-use std::time::Duration;
+use std::time::{Duration, Instant};
 
 mod results;
 // Not every binary compares result files.
@@ -33,6 +33,50 @@ pub fn markhold() -> Command {
 /// `markhold ARGS` run to its end: its exit status and output.
 pub fn run_markhold(args: &[&str]) -> Output {
     markhold().args(args).output().unwrap()
+}
+
+/// `markhold run --engage --no-preflight --site SITE --camera CAMERA`: the loop engaged
+/// from the start, without the pre-flight checks.
+pub fn run_engaged(site: &Path, camera: &str) -> Command {
+    let mut c = markhold();
+    c.args(["run", "--engage", "--no-preflight", "--site"])
+        .arg(site)
+        .args(["--camera", camera]);
+    c
+}
+
+/// `frames:DIR`: the recorded-frames camera playing `dir`.
+pub fn frames_camera(dir: &Path) -> String {
+    format!("frames:{}", dir.display())
+}
+
+/// Runs `cmd` to its end; the test fails, showing its stderr, unless it exits 0.
+pub fn run_ok(cmd: &mut Command) -> Output {
+    let o = cmd.output().unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    o
+}
+
+/// `markhold map --site SITE --SOURCE PATH ARGS` run to its end, SOURCE `frames` or
+/// `recording`.
+pub fn run_map(site: &Path, source: &str, path: &Path, args: &[&str]) -> Output {
+    let (site, path) = (site.to_str().unwrap(), path.to_str().unwrap());
+    let source = format!("--{source}");
+    run_markhold(&[&["map", "--site", site, &source, path], args].concat())
+}
+
+/// A camera at `c` looking at `target` (site frame, image x along the site's x): the
+/// site's pose in the camera.
+pub fn look_at(
+    c: nalgebra::Vector3<f64>,
+    target: nalgebra::Vector3<f64>,
+) -> nalgebra::Isometry3<f64> {
+    use nalgebra::{Isometry3, Matrix3, Rotation3, Translation3, UnitQuaternion, Vector3};
+    let z = (target - c).normalize();
+    let x = z.cross(&Vector3::y()).normalize();
+    let y = z.cross(&x);
+    let r = Rotation3::from_matrix_unchecked(Matrix3::from_columns(&[x, y, z]));
+    Isometry3::from_parts(Translation3::from(c), UnitQuaternion::from(r)).inverse()
 }
 
 /// A path in the repository.
@@ -80,6 +124,89 @@ fn remove_ended_runs(prefix: &str) {
     }
 }
 
+/// The JSON file at `path` (a summary, a report), parsed.
+pub fn read_json(path: impl AsRef<Path>) -> serde_json::Value {
+    let path = path.as_ref();
+    let text =
+        std::fs::read_to_string(path).unwrap_or_else(|e| panic!("read {}: {e}", path.display()));
+    serde_json::from_str(&text).unwrap_or_else(|e| panic!("{}: {e}", path.display()))
+}
+
+/// A loopback UDP port nobody listens on (bound, then released).
+pub fn free_udp_port() -> u16 {
+    std::net::UdpSocket::bind("127.0.0.1:0")
+        .unwrap()
+        .local_addr()
+        .unwrap()
+        .port()
+}
+
+/// Sends SIGTERM to `child` (what a service manager does to stop it); whether `kill`
+/// did.
+pub fn sigterm(child: &Child) -> bool {
+    Command::new("kill")
+        .args(["-TERM", &child.id().to_string()])
+        .status()
+        .is_ok_and(|s| s.success())
+}
+
+/// `child`'s exit status once it has exited; past `deadline` it is killed and the test
+/// fails with `what`.
+pub fn exit_status_by(child: &mut Child, deadline: Instant, what: &str) -> ExitStatus {
+    loop {
+        if let Some(s) = child.try_wait().unwrap() {
+            return s;
+        }
+        if Instant::now() > deadline {
+            let _ = child.kill();
+            panic!("{what}");
+        }
+        std::thread::sleep(Duration::from_millis(20));
+    }
+}
+
+/// `cmd` started with its stdout discarded and its stderr piped.
+pub fn spawn_quiet(cmd: &mut Command) -> Child {
+    cmd.stdout(std::process::Stdio::null())
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .unwrap()
+}
+
+/// A thread reading `child`'s piped stderr to its end (so that a chatty child never
+/// blocks on a full pipe); joined, it gives the text.
+pub fn stderr_on_thread(child: &mut Child) -> std::thread::JoinHandle<String> {
+    let err = child.stderr.take().unwrap();
+    std::thread::spawn(move || String::from_utf8_lossy(&read_all(err)).into_owned())
+}
+
+/// All that `r` gives to its end (what it gave before an error, if one came).
+pub fn read_all(mut r: impl Read) -> Vec<u8> {
+    let mut b = Vec::new();
+    let _ = r.read_to_end(&mut b);
+    b
+}
+
+/// The largest resident set process `pid` reached so far, kB (`VmHWM`).
+pub fn peak_rss_kb(pid: u32) -> Option<u64> {
+    let s = std::fs::read_to_string(format!("/proc/{pid}/status")).ok()?;
+    s.lines()
+        .find_map(|l| l.strip_prefix("VmHWM:"))
+        .and_then(|v| v.trim().trim_end_matches("kB").trim().parse().ok())
+}
+
+/// All that `child` writes to its (piped) stderr, to its end.
+pub fn stderr_text(child: &mut Child) -> String {
+    let mut err = String::new();
+    child
+        .stderr
+        .take()
+        .unwrap()
+        .read_to_string(&mut err)
+        .unwrap();
+    err
+}
+
 /// An empty scratch folder: [`tmp_path`] created.
 pub fn tmp_dir(prefix: &str, name: &str) -> PathBuf {
     let d = tmp_path(prefix, name);
@@ -108,6 +235,20 @@ pub fn ws_read_frame(s: &mut TcpStream) -> std::io::Result<(u8, Vec<u8>)> {
     Ok((h[0] & 0x0f, data))
 }
 
+/// A request's head (through its empty line) read from `c`; `None` if the peer went or
+/// the read timed out first.
+pub fn read_request_head(c: &mut TcpStream) -> Option<Vec<u8>> {
+    let mut buf = [0u8; 4096];
+    let mut req = Vec::new();
+    while !req.windows(4).any(|w| w == b"\r\n\r\n") {
+        match c.read(&mut buf) {
+            Ok(0) | Err(_) => return None,
+            Ok(n) => req.extend_from_slice(&buf[..n]),
+        }
+    }
+    Some(req)
+}
+
 /// An HTTP server on loopback that answers every request by `answer`, which writes to
 /// the connection (and may drip, hang or flood). Stops when dropped.
 pub struct Hostile {
@@ -132,14 +273,9 @@ impl Hostile {
                         std::thread::spawn(move || {
                             c.set_nonblocking(false).unwrap();
                             c.set_read_timeout(Some(Duration::from_secs(2))).unwrap();
-                            let mut buf = [0u8; 4096];
-                            let mut req = Vec::new();
-                            while !req.windows(4).any(|w| w == b"\r\n\r\n") {
-                                match c.read(&mut buf) {
-                                    Ok(0) | Err(_) => return,
-                                    Ok(n) => req.extend_from_slice(&buf[..n]),
-                                }
-                            }
+                            let Some(req) = read_request_head(&mut c) else {
+                                return;
+                            };
                             let line = String::from_utf8_lossy(&req)
                                 .lines()
                                 .next()
@@ -196,6 +332,16 @@ pub fn pymav_vehicle(args: &[&str]) -> (PymavVehicle, u16) {
         .parse()
         .unwrap();
     (PymavVehicle(child), port)
+}
+
+/// The STATUSTEXTs the vehicle's verdict lists, in order.
+pub fn pymav_texts(verdict: &serde_json::Value) -> Vec<String> {
+    verdict["texts"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|t| t[2].as_str().unwrap().to_string())
+        .collect()
 }
 
 /// The vehicle's verdict, its last stdout line (it ends 1.5 s after markhold falls

@@ -50,6 +50,15 @@ pub fn station_rig(lock_step: bool) -> HilRig {
     rig_at(&site, start, 5, lock_step)
 }
 
+/// The station rig exposed at 3000 us, and its first frame.
+pub fn station_camera() -> (HilRig, Frame) {
+    let mut rig = station_rig(false);
+    rig.set_exposure_us(3000.0).unwrap();
+    let mut frame = Frame::default();
+    rig.grab(&mut frame).unwrap();
+    (rig, frame)
+}
+
 /// `n` frames rendered on station at 3000 us, written as a recorded-frames folder `dir`
 /// (what `--camera frames:DIR` plays back).
 pub fn station_frames(dir: PathBuf, n: usize) -> PathBuf {
@@ -111,6 +120,11 @@ impl RealTimeVehicle {
             }
         });
         Self { addr, stop, thread }
+    }
+
+    /// Its `--link` URL (markhold sends to it).
+    pub fn link(&self) -> String {
+        format!("udpout:{}", self.addr)
     }
 
     /// Stop it and report.

@@ -44,8 +44,7 @@ fn holds_station_on_an_external_vehicle() {
     let truth = end.truth;
     let stderr = String::from_utf8_lossy(&o.stderr);
     assert!(o.status.success(), "{stderr}");
-    let summary: serde_json::Value =
-        serde_json::from_str(&std::fs::read_to_string(&out).unwrap()).unwrap();
+    let summary = common::read_json(&out);
     assert!(
         summary["detection_rate"].as_f64().unwrap() > 0.9,
         "{summary}"

@@ -14,14 +14,18 @@
 
 use crate::common;
 
-use std::io::{BufRead, BufReader, Read, Write};
+use std::io::{BufRead, BufReader, Write};
 use std::net::UdpSocket;
 use std::path::{Path, PathBuf};
-use std::process::{Command, Output, Stdio};
+use std::process::{Child, Command, Output, Stdio};
 use std::sync::OnceLock;
 use std::time::{Duration, Instant};
 
-use common::{markhold, site_path, sources_json, station_frames, station_rig, tmp_path, Hostile};
+use common::{
+    exit_status_by, free_udp_port, markhold, pymav_texts, pymav_verdict, read_json, sigterm,
+    site_path, sources_json, spawn_quiet, station_camera, station_frames, stderr_on_thread,
+    stderr_text, tmp_path, Hostile,
+};
 use markhold::sim::stream::{Sender, SimCameraManager};
 use markhold_exposure::{Camera, ExposureLimits, Frame};
 
@@ -61,19 +65,6 @@ use common::PymavVehicle as Vehicle;
 
 fn vehicle(args: &[&str]) -> (Vehicle, u16) {
     common::pymav_vehicle(&[&["--scenario", "hold", "--deadline", "90"], args].concat())
-}
-
-fn verdict(v: &mut Vehicle) -> serde_json::Value {
-    common::pymav_verdict(v)
-}
-
-fn texts(v: &serde_json::Value) -> Vec<String> {
-    v["texts"]
-        .as_array()
-        .unwrap()
-        .iter()
-        .map(|t| t[2].as_str().unwrap().to_string())
-        .collect()
 }
 
 /// (arrival time s, kind) of every pilot input markhold sent.
@@ -129,36 +120,27 @@ fn input_budget(s: &serde_json::Value, pilot_input_hz: f64) -> f64 {
 /// Runs `cmd`, killing it if it is still running after `limit`: (output, wall time).
 fn run_bounded(cmd: &mut Command, limit: Duration) -> (Output, Duration) {
     let t0 = Instant::now();
-    let mut child = cmd
-        .stdout(Stdio::piped())
-        .stderr(Stdio::piped())
-        .spawn()
-        .unwrap();
-    let mut err = child.stderr.take().unwrap();
-    let reader = std::thread::spawn(move || {
-        let mut s = Vec::new();
-        let _ = err.read_to_end(&mut s);
-        s
-    });
-    loop {
-        if let Some(_status) = child.try_wait().unwrap() {
-            break;
+    let mut child = spawn_quiet(cmd);
+    let reader = stderr_on_thread(&mut child);
+    let status = loop {
+        if let Some(status) = child.try_wait().unwrap() {
+            break status;
         }
         if t0.elapsed() > limit {
             let _ = child.kill();
             let _ = child.wait();
             let err = reader.join().unwrap();
-            panic!(
-                "still running after {limit:?}: {}",
-                String::from_utf8_lossy(&err)
-            );
+            panic!("still running after {limit:?}: {err}");
         }
         std::thread::sleep(Duration::from_millis(20));
-    }
+    };
     let took = t0.elapsed();
-    let stderr = reader.join().unwrap();
-    let mut out = child.wait_with_output().unwrap();
-    out.stderr = stderr;
+    let stderr = reader.join().unwrap().into_bytes();
+    let out = Output {
+        status,
+        stdout: Vec::new(),
+        stderr,
+    };
     (out, took)
 }
 
@@ -176,8 +158,43 @@ fn run_cmd(site: &Path, camera: &str, port: u16, summary: &Path, args: &[&str]) 
     c
 }
 
+/// `markhold run --engage --arm --seconds 60` on the H.264/RTP stream to loopback port
+/// `udp`, the vehicle at `port`; started with its stderr piped.
+fn run_on_rtp(site: &Path, udp: u16, port: u16, summary: &Path) -> Child {
+    spawn_quiet(&mut run_cmd(
+        site,
+        &format!("udp:127.0.0.1:{udp}"),
+        port,
+        summary,
+        &["--engage", "--arm", "--seconds", "60"],
+    ))
+}
+
+/// SIGTERM to the run, then its exit status (within 20 s).
+fn stop(child: &mut Child) -> std::process::ExitStatus {
+    sigterm(child);
+    let deadline = Instant::now() + Duration::from_secs(20);
+    exit_status_by(child, deadline, "markhold did not stop")
+}
+
 fn summary(path: &Path) -> serde_json::Value {
-    serde_json::from_str(&std::fs::read_to_string(path).unwrap()).unwrap()
+    read_json(path)
+}
+
+/// The vehicle saw no failsafe.
+fn no_failsafe(verdict: &serde_json::Value) {
+    assert_eq!(
+        verdict["failsafe"].as_array().unwrap().len(),
+        0,
+        "{verdict}"
+    );
+}
+
+/// Never a flood: the loop's pilot inputs within [`input_budget`] at the link's 20 Hz.
+fn assert_within_budget(verdict: &serde_json::Value, s: &serde_json::Value) {
+    let sent = loop_inputs(verdict) as f64;
+    let budget = input_budget(s, 20.0);
+    assert!(sent <= budget, "{sent} inputs, budget {budget}");
 }
 
 #[test]
@@ -198,8 +215,8 @@ fn run_engage_arm_with_a_stream_camera_stays_engaged_for_30_s() {
     let err = String::from_utf8_lossy(&o.stderr);
     assert!(o.status.success(), "{err}");
     let s = summary(&sum);
-    let verdict = verdict(&mut v);
-    let said = texts(&verdict);
+    let verdict = pymav_verdict(&mut v);
+    let said = pymav_texts(&verdict);
     // Engaged once, never let go until the run ended.
     assert_eq!(s["engagements"], 1, "{s}\n{said:?}\n{err}");
     let off: Vec<&String> = said
@@ -207,11 +224,7 @@ fn run_engage_arm_with_a_stream_camera_stays_engaged_for_30_s() {
         .filter(|t| t.starts_with("markhold off") && t.as_str() != "markhold off: stopped")
         .collect();
     assert!(off.is_empty(), "{off:?}\n{err}");
-    assert_eq!(
-        verdict["failsafe"].as_array().unwrap().len(),
-        0,
-        "{verdict}"
-    );
+    no_failsafe(&verdict);
     assert_eq!(s["stopped_by"], "max_seconds", "{s}");
     assert!(s["loop_seconds"].as_f64().unwrap() >= 29.0, "{s}");
     // Pilot input all along: no gap near what the pilot-input failsafe (3 s) sees.
@@ -251,7 +264,7 @@ fn a_stream_that_ends_is_built_again_and_the_run_ends_on_the_wall_clock() {
     let err = String::from_utf8_lossy(&o.stderr);
     assert!(o.status.success(), "{err}");
     let s = summary(&sum);
-    let verdict = verdict(&mut v);
+    let verdict = pymav_verdict(&mut v);
     assert_eq!(s["stopped_by"], "max_seconds", "{s}");
     // Frames came back after each end: more than one stream's worth.
     assert!(s["frames"].as_u64().unwrap() >= 90, "{s}\n{err}");
@@ -269,11 +282,7 @@ fn a_stream_that_ends_is_built_again_and_the_run_ends_on_the_wall_clock() {
         took.as_secs_f64()
     );
     assert!(sent <= budget, "{sent} inputs, budget {budget}");
-    assert_eq!(
-        verdict["failsafe"].as_array().unwrap().len(),
-        0,
-        "{verdict}"
-    );
+    no_failsafe(&verdict);
 }
 
 #[test]
@@ -286,48 +295,23 @@ fn a_stream_that_stays_dead_ends_the_run_after_stall_exit_s() {
         "",
     );
     let sum = tmp("dead.json");
-    let udp = UdpSocket::bind("127.0.0.1:0")
-        .unwrap()
-        .local_addr()
-        .unwrap()
-        .port();
+    let udp = free_udp_port();
     let mut source = RtpSource::new(udp);
-    let mut child = run_cmd(
-        &site,
-        &format!("udp:127.0.0.1:{udp}"),
-        port,
-        &sum,
-        &["--engage", "--arm", "--seconds", "60"],
-    )
-    .stdout(Stdio::null())
-    .stderr(Stdio::piped())
-    .spawn()
-    .unwrap();
+    let mut child = run_on_rtp(&site, udp, port, &sum);
     // 1.5 s of rendered frames over H.264/RTP, then nothing ever again.
     std::thread::sleep(Duration::from_millis(500));
     source.send(0, 45);
     let ended = Instant::now();
     let ended_epoch = epoch_now();
     let deadline = ended + Duration::from_secs(30);
-    let status = loop {
-        if let Some(s) = child.try_wait().unwrap() {
-            break s;
-        }
-        if Instant::now() > deadline {
-            let _ = child.kill();
-            panic!("the run did not end after its camera died");
-        }
-        std::thread::sleep(Duration::from_millis(20));
-    };
+    let status = exit_status_by(
+        &mut child,
+        deadline,
+        "the run did not end after its camera died",
+    );
     let after = ended.elapsed();
-    let mut err = String::new();
-    child
-        .stderr
-        .take()
-        .unwrap()
-        .read_to_string(&mut err)
-        .unwrap();
-    let verdict = verdict(&mut v);
+    let err = stderr_text(&mut child);
+    let verdict = pymav_verdict(&mut v);
     assert_eq!(status.code(), Some(1), "{err}");
     let s = summary(&sum);
     eprintln!(
@@ -347,11 +331,7 @@ fn a_stream_that_stays_dead_ends_the_run_after_stall_exit_s() {
     let rate = rate_between(&inputs(&verdict), end + 0.8, end + 2.8);
     eprintln!("pilot input while no frame came: {rate:.1} per second");
     assert!((5.0..=11.5).contains(&rate), "{rate} inputs per second");
-    assert_eq!(
-        verdict["failsafe"].as_array().unwrap().len(),
-        0,
-        "{verdict}"
-    );
+    no_failsafe(&verdict);
 }
 
 /// Rendered station frames over H.264/RTP to a loopback port (made before markhold
@@ -364,10 +344,7 @@ struct RtpSource {
 
 impl RtpSource {
     fn new(port: u16) -> Self {
-        let mut rig = station_rig(false);
-        rig.set_exposure_us(3000.0).unwrap();
-        let mut frame = Frame::default();
-        rig.grab(&mut frame).unwrap();
+        let (rig, frame) = station_camera();
         Self { rig, frame, port }
     }
 
@@ -392,48 +369,18 @@ fn a_stream_that_goes_silent_is_built_again_and_taken_back() {
     let (mut v, port) = vehicle(&[]);
     let site = site("silent.toml", "", "on_exit = \"disarm\"", "");
     let sum = tmp("silent.json");
-    let udp = UdpSocket::bind("127.0.0.1:0")
-        .unwrap()
-        .local_addr()
-        .unwrap()
-        .port();
+    let udp = free_udp_port();
     let mut source = RtpSource::new(udp);
-    let mut child = run_cmd(
-        &site,
-        &format!("udp:127.0.0.1:{udp}"),
-        port,
-        &sum,
-        &["--engage", "--arm", "--seconds", "60"],
-    )
-    .stdout(Stdio::null())
-    .stderr(Stdio::piped())
-    .spawn()
-    .unwrap();
+    let mut child = run_on_rtp(&site, udp, port, &sum);
     std::thread::sleep(Duration::from_millis(500));
     // 3 s of frames, 4 s of silence (the stream is built again after 2 s), 3 s of
     // frames from a new sender (a camera whose encoder restarted).
     source.send(0, 90);
     std::thread::sleep(Duration::from_secs(4));
     source.send(210, 90);
-    let _ = Command::new("kill")
-        .args(["-TERM", &child.id().to_string()])
-        .status();
-    let deadline = Instant::now() + Duration::from_secs(20);
-    let status = loop {
-        if let Some(s) = child.try_wait().unwrap() {
-            break s;
-        }
-        assert!(Instant::now() < deadline, "markhold did not stop");
-        std::thread::sleep(Duration::from_millis(20));
-    };
-    let mut err = String::new();
-    child
-        .stderr
-        .take()
-        .unwrap()
-        .read_to_string(&mut err)
-        .unwrap();
-    let verdict = verdict(&mut v);
+    let status = stop(&mut child);
+    let err = stderr_text(&mut child);
+    let verdict = pymav_verdict(&mut v);
     assert_eq!(status.code(), Some(0), "{err}");
     let s = summary(&sum);
     eprintln!(
@@ -448,14 +395,8 @@ fn a_stream_that_goes_silent_is_built_again_and_taken_back() {
     // (a loaded host hands over fewer than the 30 a second sent: passed over).
     assert!(s["frames"].as_u64().unwrap() >= 100, "{s}\n{err}");
     assert_eq!(s["stopped_by"], "signal", "{s}");
-    let sent = loop_inputs(&verdict) as f64;
-    let budget = input_budget(&s, 20.0);
-    assert!(sent <= budget, "{sent} inputs, budget {budget}");
-    assert_eq!(
-        verdict["failsafe"].as_array().unwrap().len(),
-        0,
-        "{verdict}"
-    );
+    assert_within_budget(&verdict, &s);
+    no_failsafe(&verdict);
 }
 
 #[test]
@@ -463,26 +404,9 @@ fn a_burst_of_bad_rtp_is_recovered_from() {
     let (mut v, port) = vehicle(&[]);
     let site = site("burst.toml", "", "on_exit = \"disarm\"", "");
     let sum = tmp("burst.json");
-    let udp = UdpSocket::bind("127.0.0.1:0")
-        .unwrap()
-        .local_addr()
-        .unwrap()
-        .port();
-    let mut rig = station_rig(false);
-    rig.set_exposure_us(3000.0).unwrap();
-    let mut frame = Frame::default();
-    rig.grab(&mut frame).unwrap();
-    let mut child = run_cmd(
-        &site,
-        &format!("udp:127.0.0.1:{udp}"),
-        port,
-        &sum,
-        &["--engage", "--arm", "--seconds", "60"],
-    )
-    .stdout(Stdio::null())
-    .stderr(Stdio::piped())
-    .spawn()
-    .unwrap();
+    let udp = free_udp_port();
+    let (mut rig, mut frame) = station_camera();
+    let mut child = run_on_rtp(&site, udp, port, &sum);
     let err_pipe = child.stderr.take().unwrap();
     let (tx, rx) = std::sync::mpsc::channel();
     let reader = std::thread::spawn(move || {
@@ -535,19 +459,9 @@ fn a_burst_of_bad_rtp_is_recovered_from() {
     }
     drop(sender);
     // SIGTERM: neutral, exit 0.
-    let _ = Command::new("kill")
-        .args(["-TERM", &child.id().to_string()])
-        .status();
-    let deadline = Instant::now() + Duration::from_secs(20);
-    let status = loop {
-        if let Some(s) = child.try_wait().unwrap() {
-            break s;
-        }
-        assert!(Instant::now() < deadline, "markhold did not stop");
-        std::thread::sleep(Duration::from_millis(20));
-    };
+    let status = stop(&mut child);
     let err = reader.join().unwrap();
-    let verdict = verdict(&mut v);
+    let verdict = pymav_verdict(&mut v);
     assert_eq!(status.code(), Some(0), "{err}");
     let s = summary(&sum);
     eprintln!(
@@ -557,14 +471,8 @@ fn a_burst_of_bad_rtp_is_recovered_from() {
     // Frames after the burst were taken in: at least half of the 4 s of them (a dead
     // pipeline would stop at 31; one rebuilt waits up to 1 s for a key frame).
     assert!(s["frames"].as_u64().unwrap() >= 90, "{s}\n{err}");
-    let sent = loop_inputs(&verdict) as f64;
-    let budget = input_budget(&s, 20.0);
-    assert!(sent <= budget, "{sent} inputs, budget {budget}");
-    assert_eq!(
-        verdict["failsafe"].as_array().unwrap().len(),
-        0,
-        "{verdict}"
-    );
+    assert_within_budget(&verdict, &s);
+    no_failsafe(&verdict);
 }
 
 // ---- the pilot's camera, left as found -------------------------------------------
@@ -624,17 +532,13 @@ fn the_camera_is_put_back_at_disengage_and_at_exit() {
         &control_section(&mgr.url()),
     );
     let sum = tmp("putback.json");
-    let mut child = run_cmd(
+    let mut child = spawn_quiet(&mut run_cmd(
         &site1,
         &frozen_camera(None),
         port,
         &sum,
         &["--engage", "--arm", "--seconds", "7"],
-    )
-    .stdout(Stdio::null())
-    .stderr(Stdio::piped())
-    .spawn()
-    .unwrap();
+    ));
     assert!(
         wait_auto(&mgr, 1, Duration::from_secs(20)),
         "never taken: {:?}",
@@ -649,23 +553,13 @@ fn the_camera_is_put_back_at_disengage_and_at_exit() {
     assert!(child.try_wait().unwrap().is_none(), "put back only at exit");
     let back = mgr.controls();
     assert_eq!(back.exposure_units, 20, "{back:?}");
-    let status = loop {
-        if let Some(s) = child.try_wait().unwrap() {
-            break s;
-        }
-        std::thread::sleep(Duration::from_millis(20));
-    };
-    let mut err = String::new();
-    child
-        .stderr
-        .take()
-        .unwrap()
-        .read_to_string(&mut err)
-        .unwrap();
+    let deadline = Instant::now() + Duration::from_secs(60);
+    let status = exit_status_by(&mut child, deadline, "markhold did not stop");
+    let err = stderr_text(&mut child);
     assert!(status.success(), "{err}");
-    let said = verdict(&mut v);
+    let said = pymav_verdict(&mut v);
     assert!(
-        texts(&said)
+        pymav_texts(&said)
             .iter()
             .any(|t| t == "markhold off: mode changed"),
         "{said}"
@@ -704,7 +598,7 @@ fn the_camera_is_put_back_at_disengage_and_at_exit() {
         Duration::from_secs(40),
     );
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
-    let _ = verdict(&mut v);
+    let _ = pymav_verdict(&mut v);
     let c = mgr.controls();
     assert!(c.posts >= 4, "taken and put back: {c:?}");
     assert_eq!((c.auto_exposure, c.exposure_units), (3, 20), "{c:?}");
@@ -810,7 +704,7 @@ fn a_dripping_camera_manager_leaves_the_loop_period_unchanged() {
         cmd.arg("--trace").arg(&trace);
         let (o, _) = run_bounded(&mut cmd, Duration::from_secs(60));
         let err = String::from_utf8_lossy(&o.stderr).into_owned();
-        let _ = verdict(&mut v);
+        let _ = pymav_verdict(&mut v);
         assert!(o.status.success(), "{err}");
         (periods(&trace), summary(&sum), err)
     };

@@ -18,7 +18,9 @@ use std::process::{Child, Command, Stdio};
 use std::sync::{Mutex, MutexGuard};
 use std::time::{Duration, Instant};
 
-use common::{markhold, site_path, station_rig, tmp_path, RealTimeVehicle};
+use common::{
+    exit_status_by, read_json, run_engaged, site_path, station_rig, tmp_path, RealTimeVehicle,
+};
 use markhold::params;
 use markhold::record::{FrameMsg, TOPIC_COMMAND, TOPIC_FRAME};
 use markhold_camera::genicam::{
@@ -395,46 +397,27 @@ fn run_with_fake_genicam_camera_on_hil_vehicle() {
     let v = RealTimeVehicle::start(station_rig(false));
     let rec = tmp("run.mcap");
     let summary = tmp("run.json");
-    let mut child = markhold()
-        .args([
-            "run",
-            "--engage",
-            "--no-preflight",
-            "--seconds",
-            "2",
-            "--site",
-        ])
-        .arg(site_path())
-        .args(["--camera", "genicam:127.0.0.1", "--link"])
-        .arg(format!("udpout:{}", v.addr))
-        .arg("--record")
-        .arg(&rec)
-        .arg("--summary")
-        .arg(&summary)
-        .stdout(Stdio::null())
-        .stderr(Stdio::piped())
-        .spawn()
-        .unwrap();
+    let mut child = common::spawn_quiet(
+        run_engaged(&site_path(), "genicam:127.0.0.1")
+            .args(["--seconds", "2", "--link", &v.link()])
+            .arg("--record")
+            .arg(&rec)
+            .arg("--summary")
+            .arg(&summary),
+    );
     let err = BufReader::new(child.stderr.take().unwrap());
     let log = std::thread::spawn(move || err.lines().map_while(Result::ok).collect::<Vec<_>>());
     let deadline = Instant::now() + Duration::from_secs(60);
-    let status = loop {
-        if let Some(s) = child.try_wait().unwrap() {
-            break s;
-        }
-        if Instant::now() >= deadline {
-            let _ = child.kill();
-            let _ = child.wait();
-            panic!("markhold run did not stop after --seconds 2");
-        }
-        std::thread::sleep(Duration::from_millis(20));
-    };
+    let status = exit_status_by(
+        &mut child,
+        deadline,
+        "markhold run did not stop after --seconds 2",
+    );
     let log = log.join().unwrap().join("\n");
     std::thread::sleep(Duration::from_millis(100));
     let stats = v.finish().stats;
     assert!(status.success(), "{log}");
-    let report: serde_json::Value =
-        serde_json::from_str(&std::fs::read_to_string(&summary).unwrap()).unwrap();
+    let report = read_json(&summary);
     eprintln!("genicam run: {report}");
     assert_eq!(report["stopped_by"], "max_seconds", "{report}");
     // 2 s of camera time at 30 fps; when the loop is slower (2 shared cores) each grab
@@ -499,10 +482,8 @@ fn run_with_a_missing_genicam_camera_exits_2_naming_it() {
     let _l = lock();
     assert!(!gvcp_answers(Duration::from_millis(200)));
     let rec = tmp("never.mcap");
-    let o = markhold()
-        .args(["run", "--engage", "--no-preflight", "--site"])
-        .arg(site_path())
-        .args(["--camera", "genicam:127.0.0.1", "--record"])
+    let o = run_engaged(&site_path(), "genicam:127.0.0.1")
+        .arg("--record")
         .arg(&rec)
         .output()
         .unwrap();

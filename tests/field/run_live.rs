@@ -8,12 +8,13 @@ use crate::common;
 
 use std::io::{BufRead, BufReader};
 use std::path::{Path, PathBuf};
-use std::process::{Command, Stdio};
+use std::process::{Child, ChildStderr, Command, ExitStatus, Output, Stdio};
 use std::sync::OnceLock;
 use std::time::{Duration, Instant};
 
 use common::{
-    markhold, site_path, station_frames, station_rig, tmp_path, ws_read_frame, RealTimeVehicle,
+    frames_camera, markhold, read_json, run_engaged, site_path, station_frames, station_rig,
+    tmp_path, ws_read_frame, RealTimeVehicle,
 };
 use markhold::record::{CommandMsg, TOPIC_COMMAND};
 use markhold_camera::FrameRecorder;
@@ -34,48 +35,90 @@ fn vehicle() -> RealTimeVehicle {
     RealTimeVehicle::start(station_rig(false))
 }
 
-fn commands(path: &Path) -> Vec<CommandMsg> {
-    let buf = std::fs::read(path).unwrap();
-    mcap::Summary::read(&buf)
-        .unwrap()
-        .expect("a finalized recording");
-    mcap::MessageStream::new(&buf)
-        .unwrap()
-        .map(|m| m.unwrap())
-        .filter(|m| m.channel.topic == TOPIC_COMMAND)
-        .map(|m| serde_json::from_slice(&m.data).unwrap())
-        .collect()
+/// `markhold run --engage --no-preflight` on `site` with the recorded frames in `frames`
+/// as its camera.
+fn run_on_frames(site: &Path, frames: &Path) -> Command {
+    run_engaged(site, &frames_camera(frames))
 }
 
-#[test]
-fn run_on_hil_vehicle_with_recorded_frames_end_to_end() {
-    let frames = frames_dir();
+/// [`run_on_frames`] on the test site with `v` as the vehicle.
+fn run_with_vehicle(frames: &Path, v: &RealTimeVehicle) -> Command {
+    let mut c = run_on_frames(&site_path(), frames);
+    c.args(["--link", &v.link()]);
+    c
+}
+
+/// Waits for the run's "running" line on stderr (at most 20 s), lets it run 0.3 s, then
+/// sends it SIGTERM: the rest of its stderr, and the deadline for its exit.
+fn sigterm_once_running(child: &mut Child) -> (BufReader<ChildStderr>, Instant) {
+    let deadline = Instant::now() + Duration::from_secs(20);
+    let mut err = BufReader::new(child.stderr.take().unwrap());
+    let mut line = String::new();
+    while !line.contains("running") {
+        line.clear();
+        assert!(
+            err.read_line(&mut line).unwrap() > 0,
+            "exited before running"
+        );
+        assert!(Instant::now() < deadline);
+    }
+    std::thread::sleep(Duration::from_millis(300));
+    assert!(common::sigterm(child));
+    (err, deadline)
+}
+
+/// The child's exit status, waited for until `deadline`.
+fn exit_by(child: &mut Child, deadline: Instant) -> ExitStatus {
+    common::exit_status_by(child, deadline, "did not stop after SIGTERM")
+}
+
+/// `frames` run engaged (at their pace) against a fresh vehicle, recorded to
+/// `NAME.mcap` with the summary `NAME.json`: (its output, the vehicle still running, the
+/// recording, the summary).
+fn run_recorded(frames: &Path, name: &str) -> (Output, RealTimeVehicle, PathBuf, PathBuf) {
     let v = vehicle();
-    let rec = tmp("e2e.mcap");
-    let summary = tmp("e2e.json");
-    // At the recorded pace: the vehicle runs in real time, and markhold judges the link
-    // on frame stamps (0.9 s without a message = silent). With --no-pace the stamps ran
-    // ahead of the vehicle's messages and a stall of its thread read as a silent link
-    // (9 of 90 frames silent).
-    let o = markhold()
-        .args(["run", "--engage", "--no-preflight", "--site"])
-        .arg(site_path())
-        .arg("--camera")
-        .arg(format!("frames:{}", frames.display()))
-        .arg("--link")
-        .arg(format!("udpout:{}", v.addr))
+    let (rec, summary) = (tmp(&format!("{name}.mcap")), tmp(&format!("{name}.json")));
+    let o = run_with_vehicle(frames, &v)
         .arg("--record")
         .arg(&rec)
         .arg("--summary")
         .arg(&summary)
         .output()
         .unwrap();
+    (o, v, rec, summary)
+}
+
+/// The messages on `topic` of the recording at `path`, decoded from JSON, in order.
+fn messages<T: serde::de::DeserializeOwned>(path: &Path, topic: &str) -> Vec<T> {
+    let buf = std::fs::read(path).unwrap();
+    mcap::MessageStream::new(&buf)
+        .unwrap()
+        .map(|m| m.unwrap())
+        .filter(|m| m.channel.topic == topic)
+        .map(|m| serde_json::from_slice(&m.data).unwrap())
+        .collect()
+}
+
+fn commands(path: &Path) -> Vec<CommandMsg> {
+    let buf = std::fs::read(path).unwrap();
+    mcap::Summary::read(&buf)
+        .unwrap()
+        .expect("a finalized recording");
+    messages(path, TOPIC_COMMAND)
+}
+
+#[test]
+fn run_on_hil_vehicle_with_recorded_frames_end_to_end() {
+    // At the recorded pace: the vehicle runs in real time, and markhold judges the link
+    // on frame stamps (0.9 s without a message = silent). With --no-pace the stamps ran
+    // ahead of the vehicle's messages and a stall of its thread read as a silent link
+    // (9 of 90 frames silent).
+    let (o, v, rec, summary) = run_recorded(frames_dir(), "e2e");
     // Let the vehicle take in the last inputs before stopping it.
     std::thread::sleep(Duration::from_millis(100));
     let stats = v.finish().stats;
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
-    let report: serde_json::Value =
-        serde_json::from_str(&std::fs::read_to_string(&summary).unwrap()).unwrap();
+    let report = read_json(&summary);
     // Played in real time, each frame is acted on or, when the loop was still busy with
     // an older one (a loaded host), passed over: never queued.
     let acted = report["frames"].as_u64().unwrap();
@@ -114,13 +157,7 @@ fn sigterm_sends_neutral_closes_the_recording_and_exits_0() {
     let frames = frames_dir();
     let v = vehicle();
     let rec = tmp("sigterm.mcap");
-    let mut child = markhold()
-        .args(["run", "--engage", "--no-preflight", "--site"])
-        .arg(site_path())
-        .arg("--camera")
-        .arg(format!("frames:{}", frames.display()))
-        .arg("--link")
-        .arg(format!("udpout:{}", v.addr))
+    let mut child = run_with_vehicle(frames, &v)
         .arg("--record")
         .arg(&rec)
         .stdout(Stdio::piped())
@@ -128,30 +165,8 @@ fn sigterm_sends_neutral_closes_the_recording_and_exits_0() {
         .spawn()
         .unwrap();
     // Paced at 30 fps the 90 frames last 3 s: stop it once it runs.
-    let mut err = BufReader::new(child.stderr.take().unwrap());
-    let mut line = String::new();
-    let deadline = Instant::now() + Duration::from_secs(20);
-    while !line.contains("running") {
-        line.clear();
-        assert!(
-            err.read_line(&mut line).unwrap() > 0,
-            "exited before running"
-        );
-        assert!(Instant::now() < deadline);
-    }
-    std::thread::sleep(Duration::from_millis(300));
-    let killed = Command::new("kill")
-        .args(["-TERM", &child.id().to_string()])
-        .status()
-        .unwrap();
-    assert!(killed.success());
-    let status = loop {
-        if let Some(s) = child.try_wait().unwrap() {
-            break s;
-        }
-        assert!(Instant::now() < deadline, "did not stop after SIGTERM");
-        std::thread::sleep(Duration::from_millis(20));
-    };
+    let (_err, deadline) = sigterm_once_running(&mut child);
+    let status = exit_by(&mut child, deadline);
     let _ = v.finish();
     let mut out = String::new();
     std::io::Read::read_to_string(&mut child.stdout.take().unwrap(), &mut out).unwrap();
@@ -174,10 +189,8 @@ fn missing_camera_unreachable_link_and_bad_record_path_exit_2_leaving_nothing() 
     let frames = frames_dir();
     let rec = tmp("never.mcap");
 
-    let o = markhold()
-        .args(["run", "--engage", "--no-preflight", "--site"])
-        .arg(site_path())
-        .args(["--camera", "frames:/no/such/folder", "--record"])
+    let o = run_on_frames(&site_path(), Path::new("/no/such/folder"))
+        .arg("--record")
         .arg(&rec)
         .output()
         .unwrap();
@@ -190,18 +203,8 @@ fn missing_camera_unreachable_link_and_bad_record_path_exit_2_leaving_nothing() 
         .local_addr()
         .unwrap()
         .port();
-    let o = markhold()
-        .args([
-            "run",
-            "--engage",
-            "--no-preflight",
-            "--heartbeat-timeout-s",
-            "0.5",
-            "--site",
-        ])
-        .arg(site_path())
-        .arg("--camera")
-        .arg(format!("frames:{}", frames.display()))
+    let o = run_on_frames(&site_path(), frames)
+        .args(["--heartbeat-timeout-s", "0.5"])
         .arg("--link")
         .arg(format!("udpout:127.0.0.1:{port}"))
         .arg("--record")
@@ -212,11 +215,7 @@ fn missing_camera_unreachable_link_and_bad_record_path_exit_2_leaving_nothing() 
     assert!(!rec.exists(), "half-written recording left behind");
 
     let bad = tmp("no-such-dir").join("x.mcap");
-    let o = markhold()
-        .args(["run", "--engage", "--no-preflight", "--site"])
-        .arg(site_path())
-        .arg("--camera")
-        .arg(format!("frames:{}", frames.display()))
+    let o = run_on_frames(&site_path(), frames)
         .arg("--record")
         .arg(&bad)
         .output()
@@ -225,14 +224,8 @@ fn missing_camera_unreachable_link_and_bad_record_path_exit_2_leaving_nothing() 
     assert!(!bad.exists());
 
     // 640x480 frames against a site calibrated for 1440x1080.
-    let pool = Path::new(env!("CARGO_MANIFEST_DIR")).join("params/pool.toml");
-    let o = markhold()
-        .args(["run", "--engage", "--no-preflight", "--site"])
-        .arg(pool)
-        .arg("--camera")
-        .arg(format!("frames:{}", frames.display()))
-        .output()
-        .unwrap();
+    let pool = common::repo("params/pool.toml");
+    let o = run_on_frames(&pool, frames).output().unwrap();
     assert_exit_2(
         &o,
         "640x480 frames but the site's calibration is for 1440x1080",
@@ -306,13 +299,9 @@ fn stalling_frames_dir() -> &'static Path {
 
 /// The vehicle states the recording holds, per frame: (stamp, pilot inputs sent so far).
 fn pilot_inputs_per_frame(path: &Path) -> Vec<(f64, u64)> {
-    let buf = std::fs::read(path).unwrap();
-    mcap::MessageStream::new(&buf)
-        .unwrap()
-        .map(|m| m.unwrap())
-        .filter(|m| m.channel.topic == markhold::record::TOPIC_VEHICLE)
-        .map(|m| {
-            let v: serde_json::Value = serde_json::from_slice(&m.data).unwrap();
+    messages::<serde_json::Value>(path, markhold::record::TOPIC_VEHICLE)
+        .iter()
+        .map(|v| {
             (
                 v["stamp_s"].as_f64().unwrap(),
                 v["state"]["counters"]["pilot_inputs"].as_u64().unwrap(),
@@ -323,27 +312,10 @@ fn pilot_inputs_per_frame(path: &Path) -> Vec<(f64, u64)> {
 
 #[test]
 fn camera_stall_goes_neutral_on_loop_time_then_resumes() {
-    let frames = stalling_frames_dir();
-    let v = vehicle();
-    let rec = tmp("stall.mcap");
-    let summary = tmp("stall.json");
-    let o = markhold()
-        .args(["run", "--engage", "--no-preflight", "--site"])
-        .arg(site_path())
-        .arg("--camera")
-        .arg(format!("frames:{}", frames.display()))
-        .arg("--link")
-        .arg(format!("udpout:{}", v.addr))
-        .arg("--record")
-        .arg(&rec)
-        .arg("--summary")
-        .arg(&summary)
-        .output()
-        .unwrap();
+    let (o, v, rec, summary) = run_recorded(stalling_frames_dir(), "stall");
     let _ = v.finish();
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
-    let report: serde_json::Value =
-        serde_json::from_str(&std::fs::read_to_string(&summary).unwrap()).unwrap();
+    let report = read_json(&summary);
     // Each frame acted on or passed over (a loaded host), never queued.
     assert_eq!(
         report["frames"].as_u64().unwrap() + report["frames_passed_over"].as_u64().unwrap(),
@@ -393,13 +365,8 @@ fn sigterm_with_disarm_on_exit_sends_neutral_then_disarms() {
         "mode = \"manual\"\ndisarm_on_exit = true",
     );
     std::fs::write(&site, text).unwrap();
-    let mut child = markhold()
-        .args(["run", "--arm", "--engage", "--no-preflight", "--site"])
-        .arg(&site)
-        .arg("--camera")
-        .arg(format!("frames:{}", frames.display()))
-        .arg("--link")
-        .arg(format!("udpout:{}", v.addr))
+    let mut child = run_on_frames(&site, frames)
+        .args(["--arm", "--link", &v.link()])
         .arg("--record")
         .arg(&rec)
         .arg("--summary")
@@ -408,32 +375,10 @@ fn sigterm_with_disarm_on_exit_sends_neutral_then_disarms() {
         .stderr(Stdio::piped())
         .spawn()
         .unwrap();
-    let mut err = BufReader::new(child.stderr.take().unwrap());
-    let mut line = String::new();
-    let deadline = Instant::now() + Duration::from_secs(20);
-    while !line.contains("running") {
-        line.clear();
-        assert!(
-            err.read_line(&mut line).unwrap() > 0,
-            "exited before running"
-        );
-        assert!(Instant::now() < deadline);
-    }
-    std::thread::sleep(Duration::from_millis(300));
-    let killed = Command::new("kill")
-        .args(["-TERM", &child.id().to_string()])
-        .status()
-        .unwrap();
-    assert!(killed.success());
+    let (mut err, deadline) = sigterm_once_running(&mut child);
     let mut rest = String::new();
     std::io::Read::read_to_string(&mut err, &mut rest).unwrap();
-    let status = loop {
-        if let Some(s) = child.try_wait().unwrap() {
-            break s;
-        }
-        assert!(Instant::now() < deadline, "did not stop after SIGTERM");
-        std::thread::sleep(Duration::from_millis(20));
-    };
+    let status = exit_by(&mut child, deadline);
     let end = v.finish();
     let (stats, armed) = (end.stats, end.truth.armed);
     assert_eq!(status.code(), Some(0), "{rest}");
@@ -441,8 +386,7 @@ fn sigterm_with_disarm_on_exit_sends_neutral_then_disarms() {
     // The vehicle is disarmed, by markhold (well before its own 3 s pilot failsafe: the
     // run lasted 0.3 s after start-up and input went out on every frame).
     assert!(!armed, "vehicle still armed; {stats:?}");
-    let report: serde_json::Value =
-        serde_json::from_str(&std::fs::read_to_string(&summary).unwrap()).unwrap();
+    let report = read_json(&summary);
     assert_eq!(report["stopped_by"], "signal", "{report}");
     assert_eq!(report["disarm"], "Accepted", "{report}");
     // Recording finalized; its last frame is the shutdown's neutral input.
@@ -475,25 +419,19 @@ fn a_snapshot_plays_back_as_a_camera_with_the_same_detections() {
     for d in [&snap, &again] {
         let _ = std::fs::remove_dir_all(d);
     }
-    let o = markhold()
-        .args(["hil", "--quiet", "--seconds", "2", "--site"])
-        .arg(site_path())
-        .args(["--snapshot-every", "1", "--snapshot"])
-        .arg(&snap)
-        .arg("--trace")
-        .arg(&hil_trace)
-        .output()
-        .unwrap();
-    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    common::run_ok(
+        markhold()
+            .args(["hil", "--quiet", "--seconds", "2", "--site"])
+            .arg(site_path())
+            .args(["--snapshot-every", "1", "--snapshot"])
+            .arg(&snap)
+            .arg("--trace")
+            .arg(&hil_trace),
+    );
 
     let v = vehicle();
-    let o = markhold()
-        .args(["run", "--engage", "--no-preflight", "--no-pace", "--site"])
-        .arg(site_path())
-        .arg("--camera")
-        .arg(format!("frames:{}", snap.display()))
-        .arg("--link")
-        .arg(format!("udpout:{}", v.addr))
+    let o = run_with_vehicle(&snap, &v)
+        .arg("--no-pace")
         .arg("--trace")
         .arg(&run_trace)
         .arg("--record-frames")
@@ -553,13 +491,7 @@ fn a_loop_slower_than_its_60_fps_frames_acts_on_the_newest_and_says_so() {
     let summary = tmp("slow60.json");
     // The test-only delay: the loop sleeps 50 ms after each frame, so it cannot act on
     // more than 20 frames a second of a recording played at 60.
-    let o = markhold()
-        .args(["run", "--engage", "--no-preflight", "--site"])
-        .arg(site_path())
-        .arg("--camera")
-        .arg(format!("frames:{}", frames.display()))
-        .arg("--link")
-        .arg(format!("udpout:{}", v.addr))
+    let o = run_with_vehicle(frames, &v)
         .arg("--summary")
         .arg(&summary)
         .env("MARKHOLD_TEST_LOOP_DELAY_MS", "50")
@@ -568,8 +500,7 @@ fn a_loop_slower_than_its_60_fps_frames_acts_on_the_newest_and_says_so() {
     v.finish();
     let err = String::from_utf8_lossy(&o.stderr);
     assert!(o.status.success(), "{err}");
-    let s: serde_json::Value =
-        serde_json::from_str(&std::fs::read_to_string(&summary).unwrap()).unwrap();
+    let s = read_json(&summary);
     let num = |k: &str| {
         s[k].as_f64()
             .unwrap_or_else(|| panic!("summary has no {k}: {s}"))

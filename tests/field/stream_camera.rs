@@ -7,11 +7,12 @@
 use crate::common;
 
 use std::io::{BufRead, BufReader};
-use std::path::Path;
-use std::process::Stdio;
 use std::time::{Duration, Instant};
 
-use common::{markhold, repo, site_path, station_rig, tmp_path, RealTimeVehicle};
+use common::{
+    free_udp_port, markhold, peak_rss_kb, read_json, repo, run_engaged, sigterm, site_path,
+    spawn_quiet, station_camera, station_rig, stderr_on_thread, tmp_path, RealTimeVehicle,
+};
 use markhold::field::camera::control::{BlueosRest, ExposureControl};
 use markhold::sim::stream::{Sender, SimCameraManager, SIM_DEVICE};
 use markhold_exposure::{Camera, ExposureLimits, Frame};
@@ -38,7 +39,7 @@ fn hil_stream(name: &str, args: &[&str]) -> serde_json::Value {
         "hil {args:?}: {}",
         String::from_utf8_lossy(&o.stderr)
     );
-    serde_json::from_str(&std::fs::read_to_string(&out).unwrap()).unwrap()
+    read_json(&out)
 }
 
 fn f(s: &serde_json::Value, k: &str) -> f64 {
@@ -241,11 +242,7 @@ fn bad_urls_and_pipelines_exit_2_with_a_clear_error() {
     );
     assert_exit_2(&run("gst:no_such_element ! appsink"), "no_such_element");
     // A stream that never starts: a bounded wait, then an error naming the URL.
-    let port = std::net::UdpSocket::bind("127.0.0.1:0")
-        .unwrap()
-        .local_addr()
-        .unwrap()
-        .port();
+    let port = free_udp_port();
     let url = format!("udp:127.0.0.1:{port}");
     assert_exit_2(&run(&url), &format!("{url}: no frame within"));
 }
@@ -253,31 +250,17 @@ fn bad_urls_and_pipelines_exit_2_with_a_clear_error() {
 #[test]
 fn a_stream_that_dies_mid_run_goes_neutral_within_1_s_and_says_why() {
     let v = RealTimeVehicle::start(station_rig(false));
-    let port = std::net::UdpSocket::bind("127.0.0.1:0")
-        .unwrap()
-        .local_addr()
-        .unwrap()
-        .port();
+    let port = free_udp_port();
     let summary = tmp_path("stream", "dies.json");
-    let mut child = markhold()
-        .args(["run", "--engage", "--no-preflight", "--site"])
-        .arg(site_path())
-        .arg("--camera")
-        .arg(format!("udp:127.0.0.1:{port}"))
-        .arg("--link")
-        .arg(format!("udpout:{}", v.addr))
-        .arg("--summary")
-        .arg(&summary)
-        .stdout(Stdio::null())
-        .stderr(Stdio::piped())
-        .spawn()
-        .unwrap();
+    let mut child = common::spawn_quiet(
+        run_engaged(&site_path(), &format!("udp:127.0.0.1:{port}"))
+            .args(["--link", &v.link()])
+            .arg("--summary")
+            .arg(&summary),
+    );
     // Let it bind the port; then 2 s of rendered frames at 30 fps, then nothing.
     std::thread::sleep(Duration::from_millis(500));
-    let mut rig = station_rig(false);
-    rig.set_exposure_us(3000.0).unwrap();
-    let mut frame = Frame::default();
-    rig.grab(&mut frame).unwrap();
+    let (mut rig, mut frame) = station_camera();
     let sender = Sender::start(frame.width, frame.height, 30.0, port).unwrap();
     let t0 = Instant::now();
     for i in 0..60u32 {
@@ -289,10 +272,7 @@ fn a_stream_that_dies_mid_run_goes_neutral_within_1_s_and_says_why() {
     drop(sender);
     std::thread::sleep(Duration::from_millis(2000));
     // SIGTERM: neutral, exit 0.
-    let pid = child.id().to_string();
-    let _ = std::process::Command::new("kill")
-        .args(["-TERM", &pid])
-        .status();
+    sigterm(&child);
     let deadline = Instant::now() + Duration::from_secs(10);
     while child.try_wait().unwrap().is_none() {
         assert!(Instant::now() < deadline, "markhold did not stop");
@@ -304,8 +284,7 @@ fn a_stream_that_dies_mid_run_goes_neutral_within_1_s_and_says_why() {
         err.push('\n');
     }
     let _ = v.finish();
-    let report: serde_json::Value =
-        serde_json::from_str(&std::fs::read_to_string(Path::new(&summary)).unwrap()).unwrap();
+    let report = read_json(&summary);
     assert!(report["frames"].as_u64().unwrap() >= 20, "{report}\n{err}");
     assert_eq!(report["vision_stalls"], 1, "{report}\n{err}");
     // The failsafe says why, with the age of the last frame when it acted: under 1 s.
@@ -526,27 +505,14 @@ fn hostile_camera_managers_fail_in_bounded_time_with_clean_messages() {
         "sends 50 MB to the close",
         "body is over 4194304 bytes",
         Box::new(|c, _| {
-            let _ = c.write_all(b"HTTP/1.1 200 OK\r\nConnection: close\r\n\r\n");
-            let chunk = vec![b' '; 1 << 20];
-            for _ in 0..50 {
-                if c.write_all(&chunk).is_err() {
-                    return;
-                }
-            }
+            let head = b"HTTP/1.1 200 OK\r\nConnection: close\r\n\r\n";
+            flood(c, head, b' ', 1 << 20, 50);
         }),
     ));
     cases.push((
         "an endless header",
         "head is over",
-        Box::new(|c, _| {
-            let _ = c.write_all(b"HTTP/1.1 200 OK\r\nX-Pad: ");
-            let chunk = vec![b'a'; 64 << 10];
-            for _ in 0..64 {
-                if c.write_all(&chunk).is_err() {
-                    return;
-                }
-            }
-        }),
+        Box::new(|c, _| flood(c, b"HTTP/1.1 200 OK\r\nX-Pad: ", b'a', 64 << 10, 64)),
     ));
     cases.push((
         "an error page with escapes, 1 MB",
@@ -609,31 +575,16 @@ fn a_chunked_camera_manager_answer_is_read() {
     assert_eq!((found.auto_exposure, found.exposure_units), (Some(3), 20));
 }
 
-/// The largest resident set a process reached so far, kB (`VmHWM`).
-fn peak_rss_kb(pid: u32) -> Option<u64> {
-    let s = std::fs::read_to_string(format!("/proc/{pid}/status")).ok()?;
-    s.lines()
-        .find_map(|l| l.strip_prefix("VmHWM:"))
-        .and_then(|v| v.trim().trim_end_matches("kB").trim().parse().ok())
-}
-
 /// An RTSP server on loopback that reads the first request and answers with `answer`.
 fn hostile_rtsp(answer: impl Fn(&mut std::net::TcpStream) + Send + 'static) -> u16 {
-    use std::io::Read;
     let l = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
     let port = l.local_addr().unwrap().port();
     std::thread::spawn(move || {
         if let Ok((mut c, _)) = l.accept() {
             let _ = c.set_read_timeout(Some(Duration::from_secs(5)));
-            let mut buf = [0u8; 4096];
-            let mut req = Vec::new();
-            while !req.windows(4).any(|w| w == b"\r\n\r\n") {
-                match c.read(&mut buf) {
-                    Ok(0) | Err(_) => return,
-                    Ok(n) => req.extend_from_slice(&buf[..n]),
-                }
+            if common::read_request_head(&mut c).is_some() {
+                answer(&mut c);
             }
-            answer(&mut c);
         }
     });
     port
@@ -643,24 +594,16 @@ fn hostile_rtsp(answer: impl Fn(&mut std::net::TcpStream) + Send + 'static) -> u
 /// camera); its exit status, stderr, wall time and peak memory. `term_after`: send
 /// SIGTERM then.
 fn run_rtsp(port: u16, term_after: Option<Duration>) -> (Option<i32>, String, Duration, u64) {
-    use std::io::Read;
     let t0 = Instant::now();
-    let mut child = markhold()
-        .args(["run", "--no-preflight", "--site"])
-        .arg(site_path())
-        .arg("--camera")
-        .arg(format!("rtsp://127.0.0.1:{port}/cam"))
-        .args(["--link", "udpout:127.0.0.1:9"])
-        .stdout(Stdio::null())
-        .stderr(Stdio::piped())
-        .spawn()
-        .unwrap();
-    let mut err_pipe = child.stderr.take().unwrap();
-    let reader = std::thread::spawn(move || {
-        let mut s = String::new();
-        let _ = err_pipe.read_to_string(&mut s);
-        s
-    });
+    let mut child = spawn_quiet(
+        markhold()
+            .args(["run", "--no-preflight", "--site"])
+            .arg(site_path())
+            .arg("--camera")
+            .arg(format!("rtsp://127.0.0.1:{port}/cam"))
+            .args(["--link", "udpout:127.0.0.1:9"]),
+    );
+    let reader = stderr_on_thread(&mut child);
     let mut peak = 0;
     let mut termed = false;
     let status = loop {
@@ -671,9 +614,7 @@ fn run_rtsp(port: u16, term_after: Option<Duration>) -> (Option<i32>, String, Du
         if let (Some(t), false) = (term_after, termed) {
             if t0.elapsed() >= t {
                 termed = true;
-                let _ = std::process::Command::new("kill")
-                    .args(["-TERM", &child.id().to_string()])
-                    .status();
+                sigterm(&child);
             }
         }
         if t0.elapsed() > Duration::from_secs(40) {
@@ -685,18 +626,24 @@ fn run_rtsp(port: u16, term_after: Option<Duration>) -> (Option<i32>, String, Du
     (status.code(), reader.join().unwrap(), t0.elapsed(), peak)
 }
 
+/// Writes `head`, then `n` chunks of `len` bytes `fill`, until the peer goes.
+fn flood(c: &mut std::net::TcpStream, head: &[u8], fill: u8, len: usize, n: usize) {
+    use std::io::Write;
+    let _ = c.write_all(head);
+    let chunk = vec![fill; len];
+    for _ in 0..n {
+        if c.write_all(&chunk).is_err() {
+            return;
+        }
+    }
+}
+
 #[test]
 fn a_hostile_rtsp_server_is_cut_off_with_memory_bounded() {
-    use std::io::Write;
     // A 2 GB answer, sent as fast as loopback takes it.
     let port = hostile_rtsp(|c| {
-        let _ = c.write_all(b"RTSP/1.0 200 OK\r\nCSeq: 1\r\nContent-Length: 2000000000\r\n\r\n");
-        let chunk = vec![b'v'; 1 << 20];
-        for _ in 0..2000 {
-            if c.write_all(&chunk).is_err() {
-                return;
-            }
-        }
+        let head = b"RTSP/1.0 200 OK\r\nCSeq: 1\r\nContent-Length: 2000000000\r\n\r\n";
+        flood(c, head, b'v', 1 << 20, 2000);
     });
     let (code, err, took, peak_kb) = run_rtsp(port, None);
     eprintln!(
@@ -710,13 +657,13 @@ fn a_hostile_rtsp_server_is_cut_off_with_memory_bounded() {
 
     // A header that never ends.
     let port = hostile_rtsp(|c| {
-        let _ = c.write_all(b"RTSP/1.0 200 OK\r\nCSeq: 1\r\nX-Pad: ");
-        let chunk = vec![b'a'; 64 << 10];
-        for _ in 0..4000 {
-            if c.write_all(&chunk).is_err() {
-                return;
-            }
-        }
+        flood(
+            c,
+            b"RTSP/1.0 200 OK\r\nCSeq: 1\r\nX-Pad: ",
+            b'a',
+            64 << 10,
+            4000,
+        )
     });
     let (code, err, took, peak_kb) = run_rtsp(port, None);
     eprintln!(
@@ -745,15 +692,6 @@ fn sigterm_ends_a_run_waiting_on_a_silent_rtsp_server() {
 }
 
 // ---- the H.264 decoder: hardware where it exists, else software -----------------
-
-/// A free UDP port on loopback (bound and released).
-fn free_udp_port() -> u16 {
-    std::net::UdpSocket::bind("127.0.0.1:0")
-        .unwrap()
-        .local_addr()
-        .unwrap()
-        .port()
-}
 
 /// H.264 over RTP to `port` on loopback, 30 fps of `frame`, until the flag is set
 /// (at most 60 s).
@@ -827,6 +765,16 @@ fn decoder_with(
     report.unwrap()
 }
 
+/// The decoder `r` is software, after passing over the preferred `element` alone for
+/// a reason that starts with `why`.
+fn assert_fell_back(r: &markhold::field::camera::stream::DecoderReport, element: &str, why: &str) {
+    use markhold::field::camera::stream::SOFTWARE_H264;
+    assert_eq!(r.element, SOFTWARE_H264, "{r}");
+    assert_eq!(r.passed_over.len(), 1, "{r}");
+    assert_eq!(r.passed_over[0].element, element, "{r}");
+    assert!(r.passed_over[0].reason.starts_with(why), "{r}");
+}
+
 #[test]
 fn the_stream_decoder_prefers_hardware_and_falls_back_to_software_saying_why() {
     use markhold::field::camera::stream::{DecoderChoice, HARDWARE_H264, SOFTWARE_H264};
@@ -857,10 +805,7 @@ fn the_stream_decoder_prefers_hardware_and_falls_back_to_software_saying_why() {
     // A forced preference for an element this host lacks: a fallback, not an error.
     if !installed("v4l2h264dec") {
         let r = decoder_with(&DecoderChoice::parse("v4l2h264dec").unwrap());
-        assert_eq!(r.element, SOFTWARE_H264, "{r}");
-        assert_eq!(r.passed_over.len(), 1, "{r}");
-        assert_eq!(r.passed_over[0].element, "v4l2h264dec");
-        assert!(r.passed_over[0].reason.starts_with("not installed"), "{r}");
+        assert_fell_back(&r, "v4l2h264dec", "not installed");
     }
 
     // An element that is installed but cannot start on H.264 (libav's H.265 decoder, in
@@ -871,10 +816,7 @@ fn the_stream_decoder_prefers_hardware_and_falls_back_to_software_saying_why() {
     );
     let r = decoder_with(&DecoderChoice::prefer(["avdec_h265"]));
     eprintln!("avdec_h265 first: {r}");
-    assert_eq!(r.element, SOFTWARE_H264, "{r}");
-    assert_eq!(r.passed_over.len(), 1, "{r}");
-    assert_eq!(r.passed_over[0].element, "avdec_h265", "{r}");
-    assert!(r.passed_over[0].reason.starts_with("does not start"), "{r}");
+    assert_fell_back(&r, "avdec_h265", "does not start");
 
     // A preferred decoder that is installed and works is the one used (openh264's
     // software decoder stands in for a hardware one on this host).
@@ -894,27 +836,12 @@ fn run_reports_its_stream_decoder_and_a_forced_absent_one_as_a_fallback() {
     // On the Raspberry Pi the forced decoder is there and used; elsewhere it is a fallback.
     let on_pi = installed("v4l2h264dec");
     let port = free_udp_port();
-    let mut rig = station_rig(false);
-    rig.set_exposure_us(3000.0).unwrap();
-    let mut frame = Frame::default();
-    rig.grab(&mut frame).unwrap();
+    let (_, frame) = station_camera();
     let (stop, sender) = h264_sender(port, frame);
     let v = RealTimeVehicle::start(station_rig(false));
     let summary = tmp_path("stream", "decoder-run.json");
-    let o = markhold()
-        .args([
-            "run",
-            "--engage",
-            "--no-preflight",
-            "--seconds",
-            "2",
-            "--site",
-        ])
-        .arg(site_path())
-        .arg("--camera")
-        .arg(format!("udp:127.0.0.1:{port}"))
-        .arg("--link")
-        .arg(format!("udpout:{}", v.addr))
+    let o = run_engaged(&site_path(), &format!("udp:127.0.0.1:{port}"))
+        .args(["--seconds", "2", "--link", &v.link()])
         .arg("--summary")
         .arg(&summary)
         .env("MARKHOLD_H264_DECODER", "v4l2h264dec")
@@ -925,8 +852,7 @@ fn run_reports_its_stream_decoder_and_a_forced_absent_one_as_a_fallback() {
     v.finish();
     let err = String::from_utf8_lossy(&o.stderr);
     assert!(o.status.success(), "{err}");
-    let s: serde_json::Value =
-        serde_json::from_str(&std::fs::read_to_string(&summary).unwrap()).unwrap();
+    let s = read_json(&summary);
     let d = &s["stream_decoder"];
     if on_pi {
         assert_eq!(d["element"], "v4l2h264dec", "{s}");

@@ -16,7 +16,10 @@ use std::process::{Child, Command, Stdio};
 use std::sync::mpsc;
 use std::time::{Duration, Instant};
 
-use common::{markhold, site_path, station_frames, station_rig, tmp_dir, RealTimeVehicle};
+use common::{
+    frames_camera, markhold, run_engaged, site_path, station_frames, station_rig, tmp_dir,
+    RealTimeVehicle,
+};
 
 /// A markhold command with the page on loopback; SIGTERM and reaped when dropped.
 struct Hil {
@@ -319,13 +322,8 @@ fn run_shows_its_engagement_and_link_on_the_page() {
     let dir = scratch("run");
     let frames = station_frames(dir.join("frames"), 150);
     let vehicle = RealTimeVehicle::start(station_rig(false));
-    let mut cmd = markhold();
-    cmd.args(["run", "--engage", "--no-preflight", "--site"])
-        .arg(site_path())
-        .arg("--camera")
-        .arg(format!("frames:{}", frames.display()))
-        .arg("--link")
-        .arg(format!("udpout:{}", vehicle.addr));
+    let mut cmd = run_engaged(&site_path(), &frames_camera(&frames));
+    cmd.args(["--link", &vehicle.link()]);
     let run = Hil::spawn(cmd);
     wait_status(run.addr, "engaged with frames and the vehicle heard", |s| {
         let st = &s["status"];
