@@ -42,6 +42,58 @@ class Out:
         self.send(bytes(data))
 
 
+def open_udp():
+    """A non-blocking UDP socket on a free loopback port, announced on stdout as `UDP
+    PORT` (the first line the test reads)."""
+    sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    sock.bind(("127.0.0.1", 0))
+    sock.setblocking(False)
+    print("UDP %d" % sock.getsockname()[1], flush=True)
+    return sock
+
+
+def udp_reply(sock):
+    """(peer, send): `peer[0]` is the address last heard from, and send(b) answers it
+    (nothing is sent before a first datagram)."""
+    peer = [None]
+
+    def send(b):
+        if peer[0] is not None:
+            sock.sendto(b, peer[0])
+
+    return peer, send
+
+
+def recv_udp(sock, peer):
+    """A datagram that came within 5 ms, or b""; its sender becomes `peer[0]`."""
+    r, _, _ = select.select([sock], [], [], 0.005)
+    if not r:
+        return b""
+    data, addr = sock.recvfrom(4096)
+    peer[0] = addr
+    return data
+
+
+def open_pty():
+    """The master side of a new raw pseudo-terminal, non-blocking; the slave's path is
+    announced on stdout as `PTY PATH` (the first line the test reads)."""
+    import tty
+
+    master, slave = os.openpty()
+    tty.setraw(slave)
+    os.set_blocking(master, False)
+    print("PTY %s" % os.ttyname(slave), flush=True)
+    return master
+
+
+def pty_write(master, b):
+    """Writes `b` to the pseudo-terminal; a peer gone is not an error."""
+    try:
+        os.write(master, b)
+    except OSError:
+        pass
+
+
 def main():
     ap = argparse.ArgumentParser()
     ap.add_argument("--mode", choices=["udp", "pty", "tcp"], default="udp")
@@ -74,38 +126,18 @@ def main():
 
     peer = [None]
     if args.mode == "udp":
-        sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-        sock.bind(("127.0.0.1", 0))
-        sock.setblocking(False)
+        sock = open_udp()
         udp_peers = {}  # address -> its current Session
         udp_seqs = {}  # address -> {(system, component): last MAVLink sequence}
-        print("UDP %d" % sock.getsockname()[1], flush=True)
-
-        def send(b):
-            if peer[0] is not None:
-                sock.sendto(b, peer[0])
+        peer, send = udp_reply(sock)
 
         def recv():
-            r, _, _ = select.select([sock], [], [], 0.005)
-            if not r:
-                return b""
-            data, addr = sock.recvfrom(4096)
-            peer[0] = addr
-            return data
+            return recv_udp(sock, peer)
     else:
-        import tty
-
-        master, slave = os.openpty()
-        tty.setraw(slave)
-        path = os.ttyname(slave)
-        os.set_blocking(master, False)
-        print("PTY %s" % path, flush=True)
+        master = open_pty()
 
         def send(b):
-            try:
-                os.write(master, b)
-            except OSError:
-                pass
+            pty_write(master, b)
 
         def recv():
             r, _, _ = select.select([master], [], [], 0.005)
@@ -435,15 +467,8 @@ def pilot_main(args):
         k, v = kv.split("=", 1)
         params[k] = float(v)
     names = sorted(params)
-    sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-    sock.bind(("127.0.0.1", 0))
-    sock.setblocking(False)
-    print("UDP %d" % sock.getsockname()[1], flush=True)
-    peer = [None]
-
-    def send(b):
-        if peer[0] is not None:
-            sock.sendto(b, peer[0])
+    sock = open_udp()
+    peer, send = udp_reply(sock)
 
     veh = mav2.MAVLink(Out(send), srcSystem=1, srcComponent=1)
     veh.robust_parsing = True
@@ -560,13 +585,11 @@ def pilot_main(args):
                 pilot_mode(STABILIZE)
                 plan["js"] = True
                 plan["step"] = 3
-        r, _, _ = select.select([sock], [], [], 0.005)
-        if not r:
+        data = recv_udp(sock, peer)
+        if not data:
             if last_heard[0] is not None and now - last_heard[0] > 1.5:
                 break
             continue
-        data, addr = sock.recvfrom(4096)
-        peer[0] = addr
         last_heard[0] = now
         try:
             msgs = veh.parse_buffer(data) or []
@@ -840,12 +863,9 @@ def exit_main(args):
     watch = [stdin]
     done = False
     if args.mode == "udp":
-        sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-        sock.bind(("127.0.0.1", 0))
-        sock.setblocking(False)
+        sock = open_udp()
         udp_peers = {}  # address -> its current Session
         udp_seqs = {}  # address -> {(system, component): last MAVLink sequence}
-        print("UDP %d" % sock.getsockname()[1], flush=True)
         watch.append(sock)
     elif args.mode == "tcp":
         lsock = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
@@ -858,19 +878,11 @@ def exit_main(args):
         conns = {}  # socket -> Session
         n_conn = [0]
     else:
-        import tty
-        master, slave = os.openpty()
-        tty.setraw(slave)
-        path = os.ttyname(slave)
-        os.set_blocking(master, False)
-        print("PTY %s" % path, flush=True)
+        master = open_pty()
         watch.append(master)
 
         def pty_send(b):
-            try:
-                os.write(master, b)
-            except OSError:
-                pass
+            pty_write(master, b)
         pty_session = [Session("pty-0", pty_send)]
         pty_parser = mav2.MAVLink(Out(lambda b: None), srcSystem=1, srcComponent=1)
         pty_parser.robust_parsing = True
@@ -1077,15 +1089,8 @@ def thrust_main(args):
     1500 + 400 x output, truncated) and records the T200 thrust at `--volts`. Ends 1 s
     after the link falls silent; the verdict lists every distinct input it saw."""
     table = load_t200(args.volts)
-    sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-    sock.bind(("127.0.0.1", 0))
-    sock.setblocking(False)
-    print("UDP %d" % sock.getsockname()[1], flush=True)
-    peer = [None]
-
-    def send(b):
-        if peer[0] is not None:
-            sock.sendto(b, peer[0])
+    sock = open_udp()
+    peer, send = udp_reply(sock)
 
     veh = mav2.MAVLink(Out(send), srcSystem=1, srcComponent=1)
     veh.robust_parsing = True
@@ -1114,13 +1119,12 @@ def thrust_main(args):
             base = mav2.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED | (mav2.MAV_MODE_FLAG_SAFETY_ARMED if st["armed"] else 0)
             veh.heartbeat_send(mav2.MAV_TYPE_SUBMARINE, mav2.MAV_AUTOPILOT_ARDUPILOTMEGA, base, st["mode"], mav2.MAV_STATE_ACTIVE)
             veh.attitude_send(1234, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
-        r, _, _ = select.select([sock], [], [], 0.005)
-        if not r:
+        data = recv_udp(sock, peer)
+        if not data:
             if last_heard is not None and now - last_heard > 1.0:
                 break
             continue
-        data, addr = sock.recvfrom(4096)
-        peer[0], last_heard = addr, now
+        last_heard = now
         for m in veh.parse_buffer(data) or []:
             t = m.get_type()
             if t in PILOT_TYPES and m.get_srcSystem() != 255:
@@ -1165,15 +1169,8 @@ def hold_main(args):
     ("cmd", "neutral", "release"). With --pilot-mode-after S the pilot (QGroundControl,
     255/190) selects STABILIZE S seconds after markhold says it is on. Ends 1.5 s after
     markhold falls silent (or at the deadline); the verdict is the record."""
-    sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-    sock.bind(("127.0.0.1", 0))
-    sock.setblocking(False)
-    print("UDP %d" % sock.getsockname()[1], flush=True)
-    peer = [None]
-
-    def send(b):
-        if peer[0] is not None:
-            sock.sendto(b, peer[0])
+    sock = open_udp()
+    peer, send = udp_reply(sock)
 
     veh = mav2.MAVLink(Out(send), srcSystem=1, srcComponent=1)
     veh.robust_parsing = True
@@ -1205,13 +1202,12 @@ def hold_main(args):
             qgc.command_long_send(1, 1, mav2.MAV_CMD_DO_SET_MODE, 0, 1, STABILIZE, 0, 0, 0, 0, 0)
             st["mode"] = STABILIZE
             st["hb_now"] = True
-        r, _, _ = select.select([sock], [], [], 0.005)
-        if not r:
+        data = recv_udp(sock, peer)
+        if not data:
             if last_heard is not None and now - last_heard > 1.5:
                 break
             continue
-        data, addr = sock.recvfrom(4096)
-        peer[0], last_heard = addr, now
+        last_heard = now
         for m in veh.parse_buffer(data) or []:
             t = m.get_type()
             if t == "BAD_DATA":
