@@ -8,8 +8,8 @@
 use std::net::{SocketAddr, UdpSocket};
 use std::time::{Duration, Instant};
 
-use markhold_exposure::{ExposureLimits, ResponseModel};
-use markhold_hil::camera::{CameraModel, SensorConfig};
+use markhold_exposure::ResponseModel;
+use markhold_hil::camera::CameraModel;
 use markhold_hil::scene::{LightingConfig, MarkerSpec, WaterConfig};
 use markhold_hil::{EndpointConfig, HilSetup, VehicleConfig, VehicleMotion};
 use mavlink::dialects::ardupilotmega::*;
@@ -37,6 +37,8 @@ pub fn t_vehicle_cam() -> Isometry3<f64> {
 }
 
 pub fn small_camera() -> CameraModel {
+    // The Blackfly S model (no distortion, 30 fps, 20 us to 30 ms, one frame of delay)
+    // at 160x120.
     CameraModel {
         width: 160,
         height: 120,
@@ -44,17 +46,7 @@ pub fn small_camera() -> CameraModel {
         fy: 100.0,
         cx: 79.5,
         cy: 59.5,
-        dist: [0.0; 5],
-        fps: 30.0,
-        limits: ExposureLimits {
-            min_us: 20.0,
-            max_us: 30_000.0,
-            fps: 30.0,
-        },
-        gain_db: 0.0,
-        delay_frames: 1,
-        response: ResponseModel::default(),
-        sensor: SensorConfig::default(),
+        ..CameraModel::blackfly_s(ResponseModel::default())
     }
 }
 
@@ -190,14 +182,15 @@ impl Client {
 
     /// RC override: [pitch, roll, throttle, yaw, forward, lateral] PWM.
     pub fn rc(&mut self, ch: [u16; 6]) {
+        let [chan1_raw, chan2_raw, chan3_raw, chan4_raw, chan5_raw, chan6_raw] = ch;
         self.send(&MavMessage::RC_CHANNELS_OVERRIDE(
             RC_CHANNELS_OVERRIDE_DATA {
-                chan1_raw: ch[0],
-                chan2_raw: ch[1],
-                chan3_raw: ch[2],
-                chan4_raw: ch[3],
-                chan5_raw: ch[4],
-                chan6_raw: ch[5],
+                chan1_raw,
+                chan2_raw,
+                chan3_raw,
+                chan4_raw,
+                chan5_raw,
+                chan6_raw,
                 chan7_raw: u16::MAX,
                 chan8_raw: u16::MAX,
                 target_system: 1,
