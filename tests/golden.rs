@@ -33,7 +33,7 @@ fn run(site: &Path, summary: &Path) -> Value {
         site.display(),
         String::from_utf8_lossy(&o.stderr)
     );
-    without_wall_clock(serde_json::from_str(&std::fs::read_to_string(summary).unwrap()).unwrap())
+    without_wall_clock(common::read_json(summary))
 }
 
 fn golden(site: &str) {
@@ -63,7 +63,7 @@ fn a_keeper_gain_one_percent_off_is_not_the_golden_run() {
     std::fs::write(&site, format!("{text}\n[controller.surge]\nkp = {kp}\n")).unwrap();
     let off = run(&site, &tmp_path("golden", "pool-surge-kp.json"));
     let file = repo("tests/golden/pool.json");
-    let want: Value = serde_json::from_str(&std::fs::read_to_string(file).unwrap()).unwrap();
+    let want: Value = common::read_json(file);
     assert!(off != want, "surge kp {kp} ran exactly as the default");
     eprintln!("surge kp {kp}:\n{}", differences(&off, &want));
 }

@@ -5,7 +5,7 @@
 use std::process::{Output, Stdio};
 use std::time::{Duration, Instant};
 
-use crate::common::{markhold, repo, tmp_path};
+use crate::common::{exit_status_by, markhold, read_all, repo, tmp_path};
 
 /// Runs markhold with `args`, killed after 30 s; its output (read on other threads, so
 /// a long script never blocks the child on a full pipe).
@@ -16,26 +16,12 @@ fn run_bounded(args: &[&str]) -> Output {
         .stderr(Stdio::piped())
         .spawn()
         .unwrap();
-    let read = |mut r: Box<dyn std::io::Read + Send>| {
-        std::thread::spawn(move || {
-            let mut b = Vec::new();
-            let _ = r.read_to_end(&mut b);
-            b
-        })
-    };
-    let out = read(Box::new(child.stdout.take().unwrap()));
-    let err = read(Box::new(child.stderr.take().unwrap()));
+    let (out, err) = (child.stdout.take().unwrap(), child.stderr.take().unwrap());
+    let out = std::thread::spawn(move || read_all(out));
+    let err = std::thread::spawn(move || read_all(err));
     let deadline = Instant::now() + Duration::from_secs(30);
-    let status = loop {
-        if let Some(st) = child.try_wait().unwrap() {
-            break st;
-        }
-        if Instant::now() > deadline {
-            let _ = child.kill();
-            panic!("markhold {args:?} did not exit within 30 s");
-        }
-        std::thread::sleep(Duration::from_millis(10));
-    };
+    let what = format!("markhold {args:?} did not exit within 30 s");
+    let status = exit_status_by(&mut child, deadline, &what);
     let out = Output {
         status,
         stdout: out.join().unwrap(),

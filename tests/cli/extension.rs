@@ -170,16 +170,7 @@ fn the_labels_blueos_reads_are_present_and_valid() {
 #[test]
 fn the_entry_point_talks_to_blueos_and_leaves_engaging_to_the_pilot() {
     let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("blueos/entrypoint.sh");
-    let sh = std::process::Command::new("sh")
-        .arg("-n")
-        .arg(&path)
-        .output()
-        .unwrap();
-    assert!(
-        sh.status.success(),
-        "{}",
-        String::from_utf8_lossy(&sh.stderr)
-    );
+    crate::common::run_ok(std::process::Command::new("sh").arg("-n").arg(&path));
     #[cfg(unix)]
     {
         use std::os::unix::fs::PermissionsExt;

@@ -67,27 +67,29 @@ fn off_by_more_than_10_percent(
         .collect()
 }
 
+/// The regularised fit on the paper camera of tests/fixtures/`fixture`: valid from level
+/// 10 or lower to `hi_min` or higher, and within 10 % of the code's response from 10 to
+/// `check_to(top of the valid range)`.
+fn fits_the_paper_code(fixture: &str, name: &str, hi_min: u8, check_to: impl Fn(u8) -> u8) {
+    let site = repo(&format!("tests/fixtures/{fixture}"));
+    let (r, (lo, hi), out) = regularised(&site, name);
+    assert!(lo <= 10 && hi >= hi_min, "valid range {lo}..={hi}\n{out}");
+    let code = Response::paper_code();
+    let bad = off_by_more_than_10_percent(&r, |i| code.g_prime(i), 10, check_to(hi));
+    assert!(bad.is_empty(), "{}\n{out}", bad.join("\n"));
+}
+
 #[test]
 fn regularised_fit_reproduces_the_paper_codes_response() {
     // At the camera's longest exposure (30 ms) the pool's brightest parts reach grey 239
     // through the code's response: the fit is valid, and checked, up to there.
-    let site = repo("tests/fixtures/pool-paper-camera.toml");
-    let (r, (lo, hi), out) = regularised(&site, "paper");
-    assert!(lo <= 10 && hi >= 235, "valid range {lo}..={hi}\n{out}");
-    let code = Response::paper_code();
-    let bad = off_by_more_than_10_percent(&r, |i| code.g_prime(i), 10, hi.min(250));
-    assert!(bad.is_empty(), "{}\n{out}", bad.join("\n"));
+    fits_the_paper_code("pool-paper-camera.toml", "paper", 235, |hi| hi.min(250));
 }
 
 #[test]
 fn regularised_fit_reproduces_the_paper_codes_shoulder_with_long_exposures() {
     // The same camera and scene swept up to 0.4 s: the fit covers the shoulder.
-    let site = repo("tests/fixtures/pool-paper-camera-long.toml");
-    let (r, (lo, hi), out) = regularised(&site, "paper-long");
-    assert!(lo <= 10 && hi >= 250, "valid range {lo}..={hi}\n{out}");
-    let code = Response::paper_code();
-    let bad = off_by_more_than_10_percent(&r, |i| code.g_prime(i), 10, 250);
-    assert!(bad.is_empty(), "{}\n{out}", bad.join("\n"));
+    fits_the_paper_code("pool-paper-camera-long.toml", "paper-long", 250, |_| 250);
 }
 
 #[test]
@@ -138,20 +140,14 @@ fn fitted_line_makes_a_valid_site() {
         text.replacen("[camera]\n", &format!("[camera]\n{line}\n"), 1),
     )
     .unwrap();
-    let o = markhold()
-        .args(["params", "check"])
-        .arg(&site)
-        .output()
-        .unwrap();
+    let o = crate::common::run_ok(markhold().args(["params", "check"]).arg(&site));
     let printed = String::from_utf8_lossy(&o.stdout);
-    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     assert!(printed.contains("polynomial"), "{printed}");
-    let o = markhold()
-        .args(["hil", "--quiet", "--seconds", "1", "--site"])
-        .arg(&site)
-        .output()
-        .unwrap();
-    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    crate::common::run_ok(
+        markhold()
+            .args(["hil", "--quiet", "--seconds", "1", "--site"])
+            .arg(&site),
+    );
 }
 
 #[test]

@@ -113,17 +113,12 @@ fn hil_record_from_the_binary_holds_raw_mavlink_and_replays() {
     let path = dir.join("run.mcap");
     let site = site_path();
     let bin = env!("CARGO_BIN_EXE_markhold");
-    let out = std::process::Command::new(bin)
-        .args(["hil", "--quiet", "--seconds", "2", "--site"])
-        .arg(&site)
-        .arg("--record")
-        .arg(&path)
-        .output()
-        .unwrap();
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
+    crate::common::run_ok(
+        std::process::Command::new(bin)
+            .args(["hil", "--quiet", "--seconds", "2", "--site"])
+            .arg(&site)
+            .arg("--record")
+            .arg(&path),
     );
     let buf = std::fs::read(&path).unwrap();
     let (mut out_frames, mut in_frames) = (0u64, 0u64);
@@ -142,17 +137,12 @@ fn hil_record_from_the_binary_holds_raw_mavlink_and_replays() {
     assert!(out_frames >= 58, "{out_frames}");
     assert!(in_frames >= 2, "{in_frames}");
     let summary = dir.join("replay.json");
-    let rep = std::process::Command::new(bin)
-        .arg("replay")
-        .arg(&path)
-        .arg("--summary")
-        .arg(&summary)
-        .output()
-        .unwrap();
-    assert!(
-        rep.status.success(),
-        "{}",
-        String::from_utf8_lossy(&rep.stderr)
+    crate::common::run_ok(
+        std::process::Command::new(bin)
+            .arg("replay")
+            .arg(&path)
+            .arg("--summary")
+            .arg(&summary),
     );
     let s: serde_json::Value = serde_json::from_slice(&std::fs::read(&summary).unwrap()).unwrap();
     assert_eq!(s["commands_match"], true, "{s}");

@@ -318,38 +318,34 @@ fn cli_hil_record_then_replay_summary() {
     let rec = temp_path("cli.mcap");
     let summary = temp_path("cli-replay.json");
     let hil_summary = temp_path("cli-hil.json");
-    let o = std::process::Command::new(bin)
-        .args([
-            "hil",
-            "--quiet",
-            "--seconds",
-            "1",
-            "--site",
-            SITE,
-            "--record",
-        ])
-        .arg(&rec)
-        .arg("--summary")
-        .arg(&hil_summary)
-        .output()
-        .unwrap();
-    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    common::run_ok(
+        std::process::Command::new(bin)
+            .args([
+                "hil",
+                "--quiet",
+                "--seconds",
+                "1",
+                "--site",
+                SITE,
+                "--record",
+            ])
+            .arg(&rec)
+            .arg("--summary")
+            .arg(&hil_summary),
+    );
     // A recorded run is the same runner as any other: the world's own time is reported.
-    let h: serde_json::Value =
-        serde_json::from_str(&std::fs::read_to_string(&hil_summary).unwrap()).unwrap();
+    let h = common::read_json(&hil_summary);
     assert!(h["world_wall_seconds"].as_f64().unwrap() > 0.0, "{h}");
     assert!(h["world_realtime_factor"].as_f64().unwrap() > 0.0, "{h}");
     assert_ne!(h["render_loops"], "", "{h}");
-    let o = std::process::Command::new(bin)
-        .arg("replay")
-        .arg(&rec)
-        .arg("--summary")
-        .arg(&summary)
-        .output()
-        .unwrap();
-    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
-    let s: serde_json::Value =
-        serde_json::from_str(&std::fs::read_to_string(&summary).unwrap()).unwrap();
+    common::run_ok(
+        std::process::Command::new(bin)
+            .arg("replay")
+            .arg(&rec)
+            .arg("--summary")
+            .arg(&summary),
+    );
+    let s = common::read_json(&summary);
     assert_eq!(s["commands_match"], true, "{s}");
     assert_eq!(s["frames_replayed"], 30, "{s}");
     assert!(s["first_mismatch"].is_null());
@@ -534,21 +530,19 @@ fn a_jpeg_recording_is_smaller_and_replay_says_it_is_not_exact() {
 #[test]
 fn sigterm_during_a_recorded_hil_run_finalizes_the_file() {
     let rec = temp_path("sigterm.mcap");
-    let mut child = common::markhold()
-        .args([
-            "hil",
-            "--quiet",
-            "--seconds",
-            "600",
-            "--site",
-            SITE,
-            "--record",
-        ])
-        .arg(&rec)
-        .stdout(std::process::Stdio::null())
-        .stderr(std::process::Stdio::piped())
-        .spawn()
-        .unwrap();
+    let mut child = common::spawn_quiet(
+        common::markhold()
+            .args([
+                "hil",
+                "--quiet",
+                "--seconds",
+                "600",
+                "--site",
+                SITE,
+                "--record",
+            ])
+            .arg(&rec),
+    );
     // Wait (bounded) until frames are being written.
     let deadline = std::time::Instant::now() + std::time::Duration::from_secs(60);
     while std::fs::metadata(&rec).map(|m| m.len()).unwrap_or(0) < 5_000_000 {
@@ -690,32 +684,12 @@ fn one_frame_recording(path: &Path, info: &RunInfo, png: &[u8]) {
 
 /// `markhold ARGS`: exit status, stderr and peak memory (kB), bounded in time.
 fn markhold_peak(args: &[&std::ffi::OsStr]) -> (Option<i32>, String, u64) {
-    use std::io::Read;
-    let mut child = common::markhold()
-        .args(args)
-        .stdout(std::process::Stdio::null())
-        .stderr(std::process::Stdio::piped())
-        .spawn()
-        .unwrap();
-    let mut err = child.stderr.take().unwrap();
-    let reader = std::thread::spawn(move || {
-        let mut s = String::new();
-        let _ = err.read_to_string(&mut s);
-        s
-    });
-    let status = format!("/proc/{}/status", child.id());
+    let mut child = common::spawn_quiet(common::markhold().args(args));
+    let reader = common::stderr_on_thread(&mut child);
     let mut peak = 0;
     let deadline = std::time::Instant::now() + std::time::Duration::from_secs(120);
     let code = loop {
-        if let Ok(s) = std::fs::read_to_string(&status) {
-            if let Some(kb) = s
-                .lines()
-                .find_map(|l| l.strip_prefix("VmHWM:"))
-                .and_then(|v| v.trim().trim_end_matches("kB").trim().parse::<u64>().ok())
-            {
-                peak = peak.max(kb);
-            }
-        }
+        peak = peak.max(common::peak_rss_kb(child.id()).unwrap_or(0));
         if let Some(s) = child.try_wait().unwrap() {
             break s.code();
         }

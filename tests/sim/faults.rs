@@ -342,22 +342,20 @@ fn dropped_and_late_frames_keep_station() {
 fn fault_flags_end_to_end_in_the_summary() {
     let pool = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/fixtures/pool-640.toml");
     let out = common::tmp_path("faults", "summary.json");
-    let o = common::markhold()
-        .args(["hil", "--quiet", "--seconds", "4", "--site"])
-        .arg(&pool)
-        .args(["--fault", "occlude@1+0.5", "--fault", "drop_frames@2"])
-        .arg("--summary")
-        .arg(&out)
-        .output()
-        .unwrap();
-    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let o = common::run_ok(
+        common::markhold()
+            .args(["hil", "--quiet", "--seconds", "4", "--site"])
+            .arg(&pool)
+            .args(["--fault", "occlude@1+0.5", "--fault", "drop_frames@2"])
+            .arg("--summary")
+            .arg(&out),
+    );
     let stdout = String::from_utf8_lossy(&o.stdout);
     assert!(
         stdout.contains("fault occlude 1.00 s .. 1.50 s"),
         "{stdout}"
     );
-    let v: serde_json::Value =
-        serde_json::from_str(&std::fs::read_to_string(&out).unwrap()).unwrap();
+    let v = common::read_json(&out);
     let faults = v["faults"].as_array().unwrap();
     assert_eq!(faults.len(), 2);
     assert_eq!(faults[0]["kind"], "occlude");
@@ -620,29 +618,40 @@ fn lamp_switched_off_and_on_exposure_follows_without_oscillation() {
     }
 }
 
+/// For each light seed, `seconds` of the stabilize site with the ambient step `fault`:
+/// the exposure follows the change between `from_to` s (`brighter`) without oscillating.
+fn ambient_step_settles(
+    fault: &str,
+    seconds: f64,
+    from_to: (f64, f64),
+    brighter: bool,
+    what: &str,
+) {
+    let s = site("stabilize");
+    for seed in LIGHT_SEEDS {
+        let o = run_seed(&s, seconds, &[fault], None, seed);
+        let fps = s.site.camera.fps;
+        assert_eq!(o.reports[0].kind, FaultKind::AmbientStep);
+        let what = format!("seed {seed}, {what}");
+        light_change(&o, fps, from_to.0, from_to.1, brighter, &what);
+    }
+}
+
 #[test]
 fn ambient_light_back_from_10x_exposure_recovers_without_oscillation() {
     // 10x daylight from the start (the loop settles in it), back to the site's at 5 s.
-    let s = site("stabilize");
-    for seed in LIGHT_SEEDS {
-        let o = run_seed(&s, 9.0, &["ambient_step@0+5"], None, seed);
-        let fps = s.site.camera.fps;
-        assert_eq!(o.reports[0].kind, FaultKind::AmbientStep);
-        let what = format!("seed {seed}, ambient 10x -> 1x");
-        light_change(&o, fps, 5.0, 9.0, false, &what);
-    }
+    ambient_step_settles(
+        "ambient_step@0+5",
+        9.0,
+        (5.0, 9.0),
+        false,
+        "ambient 10x -> 1x",
+    );
 }
 
 /// A 10x step up in daylight (without AAEC's restart policy this wandered for 2.5 s;
 /// see docs/design/exposure.md).
 #[test]
 fn ambient_light_10x_step_up_exposure_recovers_without_oscillation() {
-    let s = site("stabilize");
-    for seed in LIGHT_SEEDS {
-        let o = run_seed(&s, 8.0, &["ambient_step@4"], None, seed);
-        let fps = s.site.camera.fps;
-        assert_eq!(o.reports[0].kind, FaultKind::AmbientStep);
-        let what = format!("seed {seed}, ambient 1x -> 10x");
-        light_change(&o, fps, 4.0, 8.0, true, &what);
-    }
+    ambient_step_settles("ambient_step@4", 8.0, (4.0, 8.0), true, "ambient 1x -> 10x");
 }

@@ -27,7 +27,7 @@ fn run_summary(args: &[&str], out: &Path) -> serde_json::Value {
         String::from_utf8_lossy(&o.stderr),
         String::from_utf8_lossy(&o.stdout)
     );
-    serde_json::from_str(&std::fs::read_to_string(out).unwrap()).unwrap()
+    common::read_json(out)
 }
 
 /// The pool row of the README's results table (`markhold hil --site params/pool.toml

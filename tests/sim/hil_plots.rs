@@ -89,22 +89,16 @@ fn plots_of_a_run_are_written_and_match_the_summary() {
     let dir = tmp_path("hil-plots", "plots");
     let _ = std::fs::remove_dir_all(&dir);
     let summary = tmp_path("hil-plots", "summary.json");
-    let out = markhold()
-        .args(["hil", "--quiet", "--seconds", "3", "--seed", "1", "--site"])
-        .arg(site_path())
-        .arg("--plots")
-        .arg(&dir)
-        .arg("--summary")
-        .arg(&summary)
-        .output()
-        .unwrap();
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
+    common::run_ok(
+        markhold()
+            .args(["hil", "--quiet", "--seconds", "3", "--seed", "1", "--site"])
+            .arg(site_path())
+            .arg("--plots")
+            .arg(&dir)
+            .arg("--summary")
+            .arg(&summary),
     );
-    let s: serde_json::Value =
-        serde_json::from_str(&std::fs::read_to_string(&summary).unwrap()).unwrap();
+    let s = common::read_json(&summary);
     let frames = s["frames"].as_u64().unwrap() as usize;
 
     for (stem, size) in [

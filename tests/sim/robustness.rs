@@ -159,8 +159,7 @@ fn command_writes_report_results_and_heat_map() {
             "{p:?}"
         );
     }
-    let json: serde_json::Value =
-        serde_json::from_str(&std::fs::read_to_string(out.join("results.json")).unwrap()).unwrap();
+    let json = common::read_json(out.join("results.json"));
     assert_eq!(json["cells"].as_array().map(Vec::len), Some(2));
     assert_eq!(json["cells"][1]["cell"]["tether"], true);
     assert_eq!(o.status.success(), json["all_held"] == true);

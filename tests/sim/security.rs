@@ -97,6 +97,17 @@ fn rogue_override(seq: u8, key: Option<[u8; 32]>) -> Vec<u8> {
 }
 
 /// Signed both ways: the vehicle requires signed input (unsigned frames dropped) and
+/// `seconds` of HIL from station (seed 6), the vehicle keyed with `vehicle_key` if any.
+fn on_station(seconds: f64, vehicle_key: Option<PathBuf>) -> HilOptions {
+    HilOptions {
+        seconds,
+        seed: 6,
+        start_on_station: true,
+        vehicle_signing_key_file: vehicle_key,
+        ..HilOptions::default()
+    }
+}
+
 /// markhold drops unsigned frames; the run arms, holds station and nothing is rejected.
 /// A sender without the key (unsigned, and signed with another key) on another port
 /// sends full-forward RC overrides from the GCS system id every frame: all dropped, the
@@ -106,12 +117,7 @@ fn signed_run_holds_station_and_unsigned_override_is_ignored() {
     let dir = scratch("signed");
     let key = key_file(&dir, "key.hex", 0x40);
     let site = site(Some(&key));
-    let opts = HilOptions {
-        seconds: 6.0,
-        seed: 6,
-        start_on_station: true,
-        ..HilOptions::default()
-    };
+    let opts = on_station(6.0, None);
     let mut hil = HilRun::build(&site, &opts, Observers::new()).unwrap();
     hil.arm(site.site.link.mode.ardusub()).unwrap();
     let vehicle = hil.rig.mavlink_udp_addr();
@@ -188,13 +194,7 @@ fn wrongly_keyed_markhold_never_commands_the_vehicle_and_says_why() {
     let ours = key_file(&dir, "markhold.hex", 0x10);
     let theirs = key_file(&dir, "vehicle.hex", 0x90);
     let site = site(Some(&ours));
-    let opts = HilOptions {
-        seconds: 1.0,
-        seed: 6,
-        start_on_station: true,
-        vehicle_signing_key_file: Some(theirs),
-        ..HilOptions::default()
-    };
+    let opts = on_station(1.0, Some(theirs));
     let mut hil = HilRun::build(&site, &opts, Observers::new()).unwrap();
     let err = hil
         .arm(site.site.link.mode.ardusub())
@@ -228,13 +228,7 @@ fn unsigned_markhold_is_refused_by_a_signing_vehicle() {
     let dir = scratch("unsigned");
     let theirs = key_file(&dir, "vehicle.hex", 0x90);
     let site = site(None);
-    let opts = HilOptions {
-        seconds: 1.0,
-        seed: 6,
-        start_on_station: true,
-        vehicle_signing_key_file: Some(theirs),
-        ..HilOptions::default()
-    };
+    let opts = on_station(1.0, Some(theirs));
     let mut hil = HilRun::build(&site, &opts, Observers::new()).unwrap();
     assert!(hil.arm(site.site.link.mode.ardusub()).is_err());
     let st = hil.rig.endpoint_stats();
@@ -242,6 +236,19 @@ fn unsigned_markhold_is_refused_by_a_signing_vehicle() {
     assert_eq!((st.messages, st.pilot_inputs), (0, 0), "{st:?}");
     assert!(!hil.rig.truth().armed);
     std::fs::remove_dir_all(&dir).unwrap();
+}
+
+/// markhold's listening links at `urls` are bound to `ip`, as the kernel has them.
+fn assert_links_bound(urls: [&str; 2], ip: Ipv4Addr) {
+    for url in urls {
+        let link = VehicleLink::connect(&LinkConfig {
+            url: url.into(),
+            ..Default::default()
+        })
+        .unwrap();
+        let proto = if url.starts_with("udp") { "udp" } else { "tcp" };
+        assert_bound(url, proto, link.local_addr().unwrap(), ip);
+    }
 }
 
 /// The local address of the socket on `port` in /proc/net/{udp,tcp} (TCP: listening
@@ -351,15 +358,7 @@ fn every_listener_binds_loopback_by_default_and_the_configured_address_when_give
     drop(rec);
 
     // markhold's listening links.
-    for url in ["udpin:127.0.0.1:0", "tcpin:127.0.0.1:0"] {
-        let link = VehicleLink::connect(&LinkConfig {
-            url: url.into(),
-            ..Default::default()
-        })
-        .unwrap();
-        let proto = if url.starts_with("udp") { "udp" } else { "tcp" };
-        assert_bound(url, proto, link.local_addr().unwrap(), lo);
-    }
+    assert_links_bound(["udpin:127.0.0.1:0", "tcpin:127.0.0.1:0"], lo);
 
     // The configured address, on a loopback alias.
     let a2 = alias();
@@ -387,15 +386,7 @@ fn every_listener_binds_loopback_by_default_and_the_configured_address_when_give
     )
     .unwrap();
     assert_bound("sitl (configured)", "udp", sitl.local_addr().unwrap(), a2);
-    for url in ["udpin:127.0.0.2:0", "tcpin:127.0.0.2:0"] {
-        let link = VehicleLink::connect(&LinkConfig {
-            url: url.into(),
-            ..Default::default()
-        })
-        .unwrap();
-        let proto = if url.starts_with("udp") { "udp" } else { "tcp" };
-        assert_bound(url, proto, link.local_addr().unwrap(), a2);
-    }
+    assert_links_bound(["udpin:127.0.0.2:0", "tcpin:127.0.0.2:0"], a2);
 }
 
 fn heartbeat_from(system_id: u8, component_id: u8, seq: u8) -> Vec<u8> {
@@ -477,20 +468,13 @@ fn udpin_is_not_hijacked_by_a_junk_sender() {
 
 /// Run the built binary with `args`, bounded to 60 s; (status code, stderr).
 fn run_bounded(args: &[&str]) -> (Option<i32>, String) {
-    let mut child = common::markhold()
-        .args(args)
-        .stdout(std::process::Stdio::null())
-        .stderr(std::process::Stdio::piped())
-        .spawn()
-        .unwrap();
+    let mut child = common::spawn_quiet(common::markhold().args(args));
     let deadline = std::time::Instant::now() + Duration::from_secs(60);
-    while child.try_wait().unwrap().is_none() {
-        if std::time::Instant::now() > deadline {
-            let _ = child.kill();
-            panic!("markhold {args:?} did not end");
-        }
-        std::thread::sleep(Duration::from_millis(10));
-    }
+    common::exit_status_by(
+        &mut child,
+        deadline,
+        &format!("markhold {args:?} did not end"),
+    );
     let out = child.wait_with_output().unwrap();
     (
         out.status.code(),

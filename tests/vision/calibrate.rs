@@ -7,14 +7,14 @@
 use std::path::{Path, PathBuf};
 use std::process::Output;
 
-use crate::common::{repo, run_markhold as markhold, tmp_path};
+use crate::common::{look_at, repo, run_markhold as markhold, tmp_path};
 
 use markhold_camera::FrameRecorder;
 use markhold_exposure::Frame;
 use markhold_vision::calibration::board::{read_image, BoardDetector, Target};
 use markhold_vision::synth::{render_markers, SceneParams};
 use markhold_vision::{marker_bitmap, CameraCalibration, MarkerFamily};
-use nalgebra::{Isometry3, Matrix3, Rotation3, Translation3, UnitQuaternion, Vector3};
+use nalgebra::{Isometry3, Vector3};
 use opencv::{aruco, core, imgcodecs, prelude::*};
 
 fn scratch(name: &str) -> PathBuf {
@@ -31,7 +31,7 @@ fn ok(o: &Output) -> String {
 }
 
 fn json(path: &Path) -> serde_json::Value {
-    serde_json::from_str(&std::fs::read_to_string(path).unwrap()).unwrap()
+    crate::common::read_json(path)
 }
 
 const CHARUCO: &[&str] = &[
@@ -205,15 +205,6 @@ fn the_charuco_photographs_give_the_published_calibration() {
     assert!(png.starts_with(b"\x89PNG"));
 }
 
-/// A camera at `c` looking at `target` (site frame, image x along the site's x).
-fn look_at(c: Vector3<f64>, target: Vector3<f64>) -> Isometry3<f64> {
-    let z = (target - c).normalize();
-    let x = z.cross(&Vector3::y()).normalize();
-    let y = z.cross(&x);
-    let r = Rotation3::from_matrix_unchecked(Matrix3::from_columns(&[x, y, z]));
-    Isometry3::from_parts(Translation3::from(c), UnitQuaternion::from(r)).inverse()
-}
-
 /// A 4x3 AprilTag grid of 60 mm tags, 80 mm apart, rendered face-on from each camera
 /// position (looking straight along -z) into a recorded-frames folder.
 fn face_on_frames(dir: &Path, cams: &[Vector3<f64>]) {
@@ -354,7 +345,9 @@ fn the_printed_board_is_what_the_detector_expects() {
 #[cfg(feature = "sim")]
 mod hil {
     use super::*;
+    use crate::common::run_map;
     use markhold_vision::MarkerConfig;
+    use nalgebra::Matrix3;
 
     /// The HIL site of the calibration test: `[camera]` of the pool fixture at 640x480 with
     /// a pincushion lens (as a flat port gives), the station and mount of one view, and
@@ -550,15 +543,12 @@ mod hil {
         let site = scratch("map-site.toml");
         std::fs::write(&site, zeroed).unwrap();
         let sum = scratch("map.json");
-        let text = ok(&markhold(&[
-            "map",
-            "--site",
-            site.to_str().unwrap(),
-            "--frames",
-            frames.to_str().unwrap(),
-            "--summary",
-            sum.to_str().unwrap(),
-        ]));
+        let text = ok(&run_map(
+            &site,
+            "frames",
+            &frames,
+            &["--summary", sum.to_str().unwrap()],
+        ));
         let s = json(&sum);
         let (errs, nees) = graded(&s, &base);
         for (id, e, sigma) in &errs {
@@ -602,19 +592,11 @@ mod hil {
         std::fs::write(&long_site, text).unwrap();
         for held in [false, true] {
             let sum = scratch(&format!("map-f105-{held}.json"));
-            let mut args = vec![
-                "map",
-                "--site",
-                long_site.to_str().unwrap(),
-                "--frames",
-                frames.to_str().unwrap(),
-                "--summary",
-                sum.to_str().unwrap(),
-            ];
+            let mut args = vec!["--summary", sum.to_str().unwrap()];
             if held {
                 args.extend(["--intrinsics", "fixed"]);
             }
-            let out = ok(&markhold(&args));
+            let out = ok(&run_map(&long_site, "frames", frames, &args));
             let s = json(&sum);
             let (errs, nees) = graded(&s, base);
             eprintln!("f 5 % long, intrinsics held {held}: {errs:?}, NEES {nees:.2}\n{out}");

@@ -53,7 +53,7 @@ fn hil(site: &Path, extra: &[&str], out: &Path) -> serde_json::Value {
         site.display(),
         String::from_utf8_lossy(&o.stderr)
     );
-    serde_json::from_str(&std::fs::read_to_string(out).unwrap()).unwrap()
+    common::read_json(out)
 }
 
 fn num(s: &serde_json::Value, k: &str) -> f64 {

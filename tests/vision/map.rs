@@ -8,14 +8,15 @@
 #![allow(clippy::unwrap_used)] // Tests fail loudly on a broken setup, by design.
 
 use std::path::{Path, PathBuf};
+use std::process::Output;
 
-use crate::common::{repo, run_markhold as markhold, tmp_path};
+use crate::common::{look_at, repo, run_map as map, run_markhold as markhold, tmp_path};
 
 use markhold_camera::FrameRecorder;
 use markhold_exposure::Frame;
 use markhold_vision::synth::{render_markers, SceneParams};
 use markhold_vision::{marker_bitmap, CameraCalibration, MarkerConfig};
-use nalgebra::{Isometry3, Matrix3, Rotation3, Translation3, UnitQuaternion, Vector3};
+use nalgebra::{UnitQuaternion, Vector3};
 
 fn fixture() -> PathBuf {
     repo("tests/fixtures/pool-640-map4.toml")
@@ -47,13 +48,10 @@ fn site_without_poses(name: &str) -> PathBuf {
     p
 }
 
-/// A camera at `c` (site frame) looking at `target`, image x along the site's x.
-fn look_at(c: Vector3<f64>, target: Vector3<f64>) -> Isometry3<f64> {
-    let z = (target - c).normalize();
-    let x = z.cross(&Vector3::y()).normalize();
-    let y = z.cross(&x);
-    let r = Rotation3::from_matrix_unchecked(Matrix3::from_columns(&[x, y, z]));
-    Isometry3::from_parts(Translation3::from(c), UnitQuaternion::from(r)).inverse()
+/// The stderr of a run that must have failed.
+fn failed(out: Output) -> String {
+    assert!(!out.status.success(), "{out:?}");
+    String::from_utf8(out.stderr).unwrap()
 }
 
 /// Frames of the fixture's layout from a grid of camera poses 0.9 to 1.5 m in front of
@@ -155,15 +153,12 @@ fn map_recovers_the_layout_from_a_frames_folder() {
     render_frames(&dir, |_, _| true);
     let site = site_without_poses("site-all.toml");
     let out_file = scratch("map.toml");
-    let out = markhold(&[
-        "map",
-        "--site",
-        site.to_str().unwrap(),
-        "--frames",
-        dir.to_str().unwrap(),
-        "--out",
-        out_file.to_str().unwrap(),
-    ]);
+    let out = map(
+        &site,
+        "frames",
+        &dir,
+        &["--out", out_file.to_str().unwrap()],
+    );
     assert!(out.status.success(), "{out:?}");
     let stdout = String::from_utf8(out.stdout).unwrap();
     assert!(stdout.contains("4 markers from 27 frames"), "{stdout}");
@@ -186,15 +181,7 @@ fn map_recovers_the_layout_from_a_frames_folder() {
     assert!(check.status.success(), "{check:?}");
 
     // Another origin: the site frame is marker 1's, and marker 0 is in the map.
-    let out = markhold(&[
-        "map",
-        "--site",
-        site.to_str().unwrap(),
-        "--frames",
-        dir.to_str().unwrap(),
-        "--origin",
-        "1",
-    ]);
+    let out = map(&site, "frames", &dir, &["--origin", "1"]);
     assert!(out.status.success(), "{out:?}");
     let text = String::from_utf8(out.stdout).unwrap();
     assert!(text.contains("set [marker] id = 1"), "{text}");
@@ -217,15 +204,7 @@ fn map_names_the_folder_and_the_markers_it_cannot_place() {
         _ => i % 3 != 0,
     });
     let site = site_without_poses("site-apart.toml");
-    let out = markhold(&[
-        "map",
-        "--site",
-        site.to_str().unwrap(),
-        "--frames",
-        dir.to_str().unwrap(),
-    ]);
-    assert!(!out.status.success(), "{out:?}");
-    let err = String::from_utf8(out.stderr).unwrap();
+    let err = failed(map(&site, "frames", &dir, &[]));
     assert!(err.contains(dir.to_str().unwrap()), "{err}");
     assert!(
         err.contains("markers 2, 3 are not linked to origin marker 0"),
@@ -237,15 +216,7 @@ fn map_names_the_folder_and_the_markers_it_cannot_place() {
     // Each marker alone in its frame: no frame to map from.
     let dir = scratch("frames-alone");
     render_frames(&dir, |i, id| id == (i % 4) as u32);
-    let out = markhold(&[
-        "map",
-        "--site",
-        site.to_str().unwrap(),
-        "--frames",
-        dir.to_str().unwrap(),
-    ]);
-    assert!(!out.status.success(), "{out:?}");
-    let err = String::from_utf8(out.stderr).unwrap();
+    let err = failed(map(&site, "frames", &dir, &[]));
     assert!(err.contains(dir.to_str().unwrap()), "{err}");
     assert!(
         err.contains("no frame shows two or more of the map's markers together (27 frames read)"),
@@ -282,17 +253,12 @@ fn map_reads_every_image_of_a_recording() {
     let frames = h["frames"].as_integer().unwrap() as u64;
     assert!(frames >= 29, "{h}");
     for (every, read) in [(1, frames), (4, frames.div_ceil(4))] {
-        let out = markhold(&[
-            "map",
-            "--site",
-            site.to_str().unwrap(),
-            "--recording",
-            rec.to_str().unwrap(),
-            "--every",
-            &every.to_string(),
-        ]);
-        assert!(!out.status.success(), "{out:?}");
-        let err = String::from_utf8(out.stderr).unwrap();
+        let err = failed(map(
+            &site,
+            "recording",
+            &rec,
+            &["--every", &every.to_string()],
+        ));
         assert!(err.contains(rec.to_str().unwrap()), "{err}");
         assert!(err.contains(site.to_str().unwrap()), "{err}");
         assert!(
@@ -303,31 +269,13 @@ fn map_reads_every_image_of_a_recording() {
         );
     }
     // An origin the site does not have: refused before the frames are read.
-    let out = markhold(&[
-        "map",
-        "--site",
-        site.to_str().unwrap(),
-        "--recording",
-        rec.to_str().unwrap(),
-        "--origin",
-        "7",
-    ]);
-    assert!(!out.status.success(), "{out:?}");
-    let err = String::from_utf8(out.stderr).unwrap();
+    let err = failed(map(&site, "recording", &rec, &["--origin", "7"]));
     assert!(
         err.contains("--origin 7: not a marker of") && err.contains("(its markers: 0)"),
         "{err}"
     );
     // Not a recording: named.
-    let out = markhold(&[
-        "map",
-        "--site",
-        site.to_str().unwrap(),
-        "--recording",
-        site.to_str().unwrap(),
-    ]);
-    assert!(!out.status.success(), "{out:?}");
-    let err = String::from_utf8(out.stderr).unwrap();
+    let err = failed(map(&site, "recording", &site, &[]));
     assert!(
         err.contains("pool-640.toml: not a readable MCAP file"),
         "{err}"
@@ -357,13 +305,7 @@ fn map_from_a_hil_recording_recovers_the_layout() {
     ]);
     assert!(out.status.success(), "{out:?}");
     let site = site_without_poses("site-hil.toml");
-    let out = markhold(&[
-        "map",
-        "--site",
-        site.to_str().unwrap(),
-        "--recording",
-        rec.to_str().unwrap(),
-    ]);
+    let out = map(&site, "recording", &rec, &[]);
     assert!(out.status.success(), "{out:?}");
     let text = String::from_utf8(out.stdout).unwrap();
     println!("{text}");
