@@ -33,7 +33,26 @@ fn stream_requests(r: &common::Rec) -> usize {
         .count()
 }
 
+/// The station keeper with the default station and controller, the camera at [`cam`].
+fn default_keeper() -> StationKeeper {
+    StationKeeper::new(
+        &StationConfig::default(),
+        &ControllerConfig::default(),
+        cam(),
+    )
+    .unwrap()
+}
+
 impl Harness {
+    /// `link` to `fake`, loop time at 0.
+    fn new(link: VehicleLink, fake: FakeVehicle) -> Self {
+        Self {
+            link,
+            fake,
+            now: 0.0,
+        }
+    }
+
     /// Ticks with loop time advancing `STEP_S` per call and a short wall sleep, until `f`
     /// holds or the wall deadline passes.
     fn tick_until(&mut self, what: &str, mut f: impl FnMut(&VehicleLink, &common::Rec) -> bool) {
@@ -158,18 +177,9 @@ fn udp_arm_mode_hold_station_and_neutral_on_exit() {
         r.current_m = [0.02, 0.0, 0.0];
     }
     let link = VehicleLink::connect(&link_cfg(format!("udpout:{addr}"))).unwrap();
-    let mut h = Harness {
-        link,
-        fake,
-        now: 0.0,
-    };
+    let mut h = Harness::new(link, fake);
     h.arm_manual();
-    let mut keeper = StationKeeper::new(
-        &StationConfig::default(),
-        &ControllerConfig::default(),
-        cam(),
-    )
-    .unwrap();
+    let mut keeper = default_keeper();
     let t_start = h.now;
     h.hold(&mut keeper, 900);
     let sim_s = h.now - t_start;
@@ -278,18 +288,9 @@ fn tcpout_hold_and_reconnect() {
     let addr = fake.addr.unwrap();
     fake.rec().pos_m = [0.0, 0.1, 1.2];
     let link = VehicleLink::connect(&link_cfg(format!("tcpout:{addr}"))).unwrap();
-    let mut h = Harness {
-        link,
-        fake,
-        now: 0.0,
-    };
+    let mut h = Harness::new(link, fake);
     h.arm_manual();
-    let mut keeper = StationKeeper::new(
-        &StationConfig::default(),
-        &ControllerConfig::default(),
-        cam(),
-    )
-    .unwrap();
+    let mut keeper = default_keeper();
     h.hold(&mut keeper, 450);
     let (pos_err, _) = station_error(&h.fake.rec());
     assert!(pos_err < 0.05, "position error {pos_err} m");
@@ -315,11 +316,7 @@ fn udp_receive_in_a_task_works_too() {
         udp_receive_on_tick: false,
         ..link_cfg(format!("udpout:{addr}"))
     };
-    let mut h = Harness {
-        link: VehicleLink::connect(&cfg).unwrap(),
-        fake,
-        now: 0.0,
-    };
+    let mut h = Harness::new(VehicleLink::connect(&cfg).unwrap(), fake);
     h.arm_manual();
     h.tick_until("telemetry", |l, _| l.state().depth.is_some());
 }
@@ -329,11 +326,7 @@ fn tcpin_accepts_vehicle_and_arms() {
     let link = VehicleLink::connect(&link_cfg("tcpin:127.0.0.1:0".into())).unwrap();
     let addr = link.local_addr().unwrap();
     let fake = FakeVehicle::start(Kind::TcpClient(addr));
-    let mut h = Harness {
-        link,
-        fake,
-        now: 0.0,
-    };
+    let mut h = Harness::new(link, fake);
     h.arm_manual();
     assert!(h.fake.rec().armed);
 }
@@ -343,11 +336,7 @@ fn udpin_replies_to_the_vehicle_that_spoke() {
     let link = VehicleLink::connect(&link_cfg("udpin:127.0.0.1:0".into())).unwrap();
     let addr = link.local_addr().unwrap();
     let fake = FakeVehicle::start(Kind::UdpClient(addr));
-    let mut h = Harness {
-        link,
-        fake,
-        now: 0.0,
-    };
+    let mut h = Harness::new(link, fake);
     let before = h.link.state().mode_changes;
     h.arm_manual();
     assert_eq!(h.fake.rec().mode, 19);
@@ -360,11 +349,7 @@ fn heartbeat_loss_stops_commanding_until_it_returns() {
     let fake = FakeVehicle::start(Kind::UdpServer);
     let addr = fake.addr.unwrap();
     let link = VehicleLink::connect(&link_cfg(format!("udpout:{addr}"))).unwrap();
-    let mut h = Harness {
-        link,
-        fake,
-        now: 0.0,
-    };
+    let mut h = Harness::new(link, fake);
     h.tick_until("vehicle heartbeat", |l, _| l.state().heartbeat_ok);
     let mut sup = Supervisor::new(&ControllerConfig::default(), h.link.config());
     let mut events = Vec::new();
@@ -462,11 +447,7 @@ fn setpoint_mode_sends_guided_targets_vision_and_origin_once() {
         ..Default::default()
     };
     let link = VehicleLink::connect(&cfg).unwrap();
-    let mut h = Harness {
-        link,
-        fake,
-        now: 0.0,
-    };
+    let mut h = Harness::new(link, fake);
     h.tick_until("telemetry", |l, _| {
         l.state().local_position.is_some() && l.state().attitude.is_some()
     });
@@ -615,11 +596,7 @@ fn an_alt_hold_link_asks_for_the_local_position_at_50_hz() {
         ..link_cfg(format!("udpout:{addr}"))
     };
     let link = VehicleLink::connect(&cfg).unwrap();
-    let mut h = Harness {
-        link,
-        fake,
-        now: 0.0,
-    };
+    let mut h = Harness::new(link, fake);
     let interval = |r: &common::Rec, id: f32| {
         r.commands
             .iter()
