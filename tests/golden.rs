@@ -11,7 +11,7 @@ mod common;
 
 use std::path::Path;
 
-use common::{differences, markhold, repo, same_as_file, tmp_path, without_wall_clock};
+use common::{differences, repo, same_as_file, tmp_path, without_wall_clock};
 use markhold_autopilot::ControllerConfig;
 use serde_json::Value;
 
@@ -20,20 +20,8 @@ const SEED: &str = "1";
 
 /// The summary of `site`'s golden run, the fields above removed.
 fn run(site: &Path, summary: &Path) -> Value {
-    let o = markhold()
-        .args(["hil", "--site"])
-        .arg(site)
-        .args(["--seconds", SECONDS, "--seed", SEED, "--quiet", "--summary"])
-        .arg(summary)
-        .output()
-        .expect("run markhold");
-    assert!(
-        o.status.success(),
-        "markhold hil --site {} failed: {}",
-        site.display(),
-        String::from_utf8_lossy(&o.stderr)
-    );
-    without_wall_clock(common::read_json(summary))
+    let args = ["--seconds", SECONDS, "--seed", SEED];
+    without_wall_clock(common::hil_summary(site, &args, summary))
 }
 
 fn golden(site: &str) {

@@ -79,6 +79,25 @@ pub fn look_at(
     Isometry3::from_parts(Translation3::from(c), UnitQuaternion::from(r)).inverse()
 }
 
+/// `markhold hil --site SITE ARGS --quiet --summary OUT`, which must succeed: its summary.
+pub fn hil_summary(site: &Path, args: &[&str], out: &Path) -> serde_json::Value {
+    let o = markhold()
+        .args(["hil", "--site"])
+        .arg(site)
+        .args(args)
+        .args(["--quiet", "--summary"])
+        .arg(out)
+        .output()
+        .expect("run markhold");
+    assert!(
+        o.status.success(),
+        "markhold hil --site {} {args:?} failed: {}",
+        site.display(),
+        String::from_utf8_lossy(&o.stderr)
+    );
+    read_json(out)
+}
+
 /// A path in the repository.
 pub fn repo(p: &str) -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR")).join(p)

@@ -40,20 +40,8 @@ fn sites(d: &Path) -> (PathBuf, PathBuf) {
 }
 
 fn hil(site: &Path, extra: &[&str], out: &Path) -> serde_json::Value {
-    let o = markhold()
-        .args(["hil", "--site", site.to_str().unwrap()])
-        .args(["--seconds", SECONDS, "--seed", "1", "--quiet", "--summary"])
-        .arg(out)
-        .args(extra)
-        .output()
-        .expect("run markhold");
-    assert!(
-        o.status.success(),
-        "markhold hil {} {extra:?} failed: {}",
-        site.display(),
-        String::from_utf8_lossy(&o.stderr)
-    );
-    common::read_json(out)
+    let args = [&["--seconds", SECONDS, "--seed", "1"], extra].concat();
+    common::hil_summary(site, &args, out)
 }
 
 fn num(s: &serde_json::Value, k: &str) -> f64 {
