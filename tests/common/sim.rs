@@ -43,6 +43,26 @@ pub fn rig_at(
     .unwrap()
 }
 
+/// The HIL loop of `site` with `opts`, the vehicle armed in the site's mode.
+pub fn armed_hil(
+    site: &LoadedSite,
+    opts: &markhold::sim::hil::HilOptions,
+) -> markhold::sim::hil::HilRun {
+    let mut hil =
+        markhold::sim::hil::HilRun::build(site, opts, markhold::pipeline::Observers::new())
+            .unwrap();
+    hil.arm(site.site.link.mode.ardusub()).unwrap();
+    hil
+}
+
+/// A UDP socket on loopback that waits at most 1 ms for a datagram: a sender of its own
+/// beside the loop's link.
+pub fn side_socket() -> std::net::UdpSocket {
+    let s = std::net::UdpSocket::bind("127.0.0.1:0").unwrap();
+    s.set_read_timeout(Some(Duration::from_millis(1))).unwrap();
+    s
+}
+
 /// The test site's simulated world with the vehicle on station (seed 5).
 pub fn station_rig(lock_step: bool) -> HilRig {
     let site = params::load(&site_path()).unwrap();

@@ -9,8 +9,7 @@ use std::path::Path;
 use std::time::Duration;
 
 use markhold::params;
-use markhold::pipeline::Observers;
-use markhold::sim::hil::{HilOptions, HilRun};
+use markhold::sim::hil::HilOptions;
 use markhold_autopilot::FailsafeEvent;
 
 /// Seeded garbage, with the shapes that hurt parsers: empty, one magic byte, a MAVLink 2
@@ -86,13 +85,9 @@ fn garbage_run(to_vehicle: bool, to_link: bool) {
         },
         ..HilOptions::default()
     };
-    let mut hil = HilRun::build(&site, &opts, Observers::new()).unwrap();
-    hil.arm(site.site.link.mode.ardusub()).unwrap();
+    let mut hil = crate::common::armed_hil(&site, &opts);
     let vehicle = hil.rig.mavlink_udp_addr();
-    let attacker = UdpSocket::bind("127.0.0.1:0").unwrap();
-    attacker
-        .set_read_timeout(Some(Duration::from_millis(1)))
-        .unwrap();
+    let attacker = crate::common::side_socket();
     let received_before = hil.pipeline.link().messages_received();
     let mut sent = 0;
     let mut events = Vec::new();

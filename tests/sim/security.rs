@@ -118,13 +118,9 @@ fn signed_run_holds_station_and_unsigned_override_is_ignored() {
     let key = key_file(&dir, "key.hex", 0x40);
     let site = site(Some(&key));
     let opts = on_station(6.0, None);
-    let mut hil = HilRun::build(&site, &opts, Observers::new()).unwrap();
-    hil.arm(site.site.link.mode.ardusub()).unwrap();
+    let mut hil = common::armed_hil(&site, &opts);
     let vehicle = hil.rig.mavlink_udp_addr();
-    let rogue = UdpSocket::bind("127.0.0.1:0").unwrap();
-    rogue
-        .set_read_timeout(Some(Duration::from_millis(1)))
-        .unwrap();
+    let rogue = common::side_socket();
     let fps = site.site.camera.fps;
     let frames = (opts.seconds * fps) as usize;
     let mut sent_unsigned = 0u64;
