@@ -419,11 +419,7 @@ fn hil_on_an_external_vehicle_hands_over_to_the_pilot_and_regains_station() {
     let out = tmp("hil-pilot.json");
     // The pilot has left by the end: the exit hands back, hears nobody for 1 s, disarms.
     let site_file = site_with("hil-pilot.toml", "hand_back_timeout_s = 1.0");
-    let o = markhold()
-        .args(["hil", "--quiet", "--seconds", "16", "--site"])
-        .arg(&site_file)
-        .arg("--vehicle")
-        .arg(format!("tcp:{tcp}"))
+    let o = common::hil_on_vehicle(&site_file, "16", &format!("tcp:{tcp}"))
         .arg("--summary")
         .arg(&out)
         .output()
@@ -579,11 +575,7 @@ fn the_smallest_forward_command_makes_the_thrust_the_keeper_intends() {
 
 /// `markhold hil --vehicle` for `seconds` on the pymavlink vehicle at `port`.
 fn hil_vehicle(site: &Path, port: u16, seconds: &str) -> std::process::Output {
-    markhold()
-        .args(["hil", "--quiet", "--seconds", seconds, "--site"])
-        .arg(site)
-        .arg("--vehicle")
-        .arg(format!("udpout:127.0.0.1:{port}"))
+    common::hil_on_vehicle(site, seconds, &format!("udpout:127.0.0.1:{port}"))
         .output()
         .unwrap()
 }

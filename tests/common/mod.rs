@@ -98,6 +98,16 @@ pub fn hil_summary(site: &Path, args: &[&str], out: &Path) -> serde_json::Value 
     read_json(out)
 }
 
+/// `markhold hil --quiet --seconds SECONDS --site SITE --vehicle VEHICLE`: the loop run
+/// against an external vehicle at the `--vehicle` URL.
+pub fn hil_on_vehicle(site: &Path, seconds: &str, vehicle: &str) -> Command {
+    let mut c = markhold();
+    c.args(["hil", "--quiet", "--seconds", seconds, "--site"])
+        .arg(site)
+        .args(["--vehicle", vehicle]);
+    c
+}
+
 /// A path in the repository.
 pub fn repo(p: &str) -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR")).join(p)

@@ -7,7 +7,7 @@
 
 use crate::common;
 
-use common::{markhold, rig_at, tmp_path, RealTimeVehicle};
+use common::{rig_at, tmp_path, RealTimeVehicle};
 use markhold::params;
 use markhold::sim::hil::start_offset;
 
@@ -29,11 +29,7 @@ fn holds_station_on_an_external_vehicle() {
 
     let out = tmp_path("external", "summary.json");
     let plots = tmp_path("external", "plots");
-    let o = markhold()
-        .args(["hil", "--quiet", "--seconds", "12", "--site"])
-        .arg(&site_path)
-        .arg("--vehicle")
-        .arg(format!("udpout:{addr}"))
+    let o = common::hil_on_vehicle(&site_path, "12", &format!("udpout:{addr}"))
         .arg("--summary")
         .arg(&out)
         .arg("--plots")
