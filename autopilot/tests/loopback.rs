@@ -35,12 +35,7 @@ fn stream_requests(r: &common::Rec) -> usize {
 
 /// The station keeper with the default station and controller, the camera at [`cam`].
 fn default_keeper() -> StationKeeper {
-    StationKeeper::new(
-        &StationConfig::default(),
-        &ControllerConfig::default(),
-        cam(),
-    )
-    .unwrap()
+    StationKeeper::new(&Default::default(), &Default::default(), cam()).unwrap()
 }
 
 impl Harness {

@@ -79,11 +79,9 @@ pub fn look_at(
     Isometry3::from_parts(Translation3::from(c), UnitQuaternion::from(r)).inverse()
 }
 
-/// `markhold hil --site SITE ARGS --quiet --summary OUT`, which must succeed: its summary.
-pub fn hil_summary(site: &Path, args: &[&str], out: &Path) -> serde_json::Value {
+/// `markhold ARGS --quiet --summary OUT`, which must succeed: its summary.
+pub fn run_summary(args: &[&str], out: &Path) -> serde_json::Value {
     let o = markhold()
-        .args(["hil", "--site"])
-        .arg(site)
         .args(args)
         .args(["--quiet", "--summary"])
         .arg(out)
@@ -91,11 +89,17 @@ pub fn hil_summary(site: &Path, args: &[&str], out: &Path) -> serde_json::Value 
         .expect("run markhold");
     assert!(
         o.status.success(),
-        "markhold hil --site {} {args:?} failed: {}",
-        site.display(),
-        String::from_utf8_lossy(&o.stderr)
+        "markhold {args:?} failed: {}\n{}",
+        String::from_utf8_lossy(&o.stderr),
+        String::from_utf8_lossy(&o.stdout)
     );
     read_json(out)
+}
+
+/// `markhold hil --site SITE ARGS --quiet --summary OUT`, which must succeed: its summary.
+pub fn hil_summary(site: &Path, args: &[&str], out: &Path) -> serde_json::Value {
+    let site = site.to_str().unwrap();
+    run_summary(&[&["hil", "--site", site], args].concat(), out)
 }
 
 /// `markhold hil --quiet --seconds SECONDS --site SITE --vehicle VEHICLE`: the loop run
@@ -106,6 +110,13 @@ pub fn hil_on_vehicle(site: &Path, seconds: &str, vehicle: &str) -> Command {
         .arg(site)
         .args(["--vehicle", vehicle]);
     c
+}
+
+/// The stderr of a run that must have exited with `code`.
+pub fn stderr_of_exit(o: &Output, code: i32) -> String {
+    let err = String::from_utf8_lossy(&o.stderr).into_owned();
+    assert_eq!(o.status.code(), Some(code), "{err}");
+    err
 }
 
 /// A path in the repository.

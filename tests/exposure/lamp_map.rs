@@ -8,8 +8,7 @@
 use std::path::Path;
 
 use markhold::params;
-use markhold::pipeline::Observers;
-use markhold::sim::hil::{HilOptions, HilRun};
+use markhold::sim::hil::HilOptions;
 use markhold_exposure::ExposureMethod;
 
 /// The lit marker and a dark one.
@@ -30,8 +29,7 @@ fn both_decoded(regions: &str, method: Option<ExposureMethod>, seconds: f64) -> 
         exposure: method,
         ..HilOptions::default()
     };
-    let mut hil = HilRun::build(&site, &opts, Observers::new()).unwrap();
-    hil.arm(site.site.link.mode.ardusub()).unwrap();
+    let mut hil = crate::common::armed_hil(&site, &opts);
     let fps = site.site.camera.fps;
     let frames = (seconds * fps).round() as usize;
     let settle = (SETTLE_S * fps).round() as usize;

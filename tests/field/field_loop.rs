@@ -655,8 +655,7 @@ fn after_kill_9_the_next_start_puts_the_camera_back() {
             .arg("udpout:127.0.0.1:9"),
         Duration::from_secs(30),
     );
-    let err = String::from_utf8_lossy(&o.stderr);
-    assert_eq!(o.status.code(), Some(2), "{err}");
+    let err = crate::common::stderr_of_exit(&o, 2);
     assert!(err.contains("put back"), "{err}");
     let c = mgr.controls();
     assert_eq!((c.auto_exposure, c.exposure_units), (3, 20), "{c:?}");

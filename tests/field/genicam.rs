@@ -487,8 +487,7 @@ fn run_with_a_missing_genicam_camera_exits_2_naming_it() {
         .arg(&rec)
         .output()
         .unwrap();
-    let err = String::from_utf8_lossy(&o.stderr);
-    assert_eq!(o.status.code(), Some(2), "{err}");
+    let err = crate::common::stderr_of_exit(&o, 2);
     assert!(
         err.contains("camera genicam:127.0.0.1") && err.contains("no such camera"),
         "{err}"

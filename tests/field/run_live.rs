@@ -179,8 +179,7 @@ fn sigterm_sends_neutral_closes_the_recording_and_exits_0() {
 }
 
 fn assert_exit_2(o: &std::process::Output, needle: &str) {
-    let err = String::from_utf8_lossy(&o.stderr);
-    assert_eq!(o.status.code(), Some(2), "{err}");
+    let err = crate::common::stderr_of_exit(o, 2);
     assert!(err.contains(needle), "expected '{needle}' in: {err}");
 }
 

@@ -189,8 +189,7 @@ fn a_bad_rotation_key_is_refused_with_its_name() {
         .arg(&site)
         .output()
         .unwrap();
-    let err = String::from_utf8_lossy(&out.stderr);
-    assert_eq!(out.status.code(), Some(78), "{err}");
+    let err = crate::common::stderr_of_exit(&out, 78);
     assert!(
         err.contains("record.rotation.quota_mb") && err.contains("150"),
         "{err}"

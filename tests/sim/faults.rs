@@ -8,9 +8,8 @@ use crate::common;
 use std::path::Path;
 
 use markhold::params::{self, LoadedSite};
-use markhold::pipeline::Observers;
 use markhold::sim::faults::{FaultKind, FaultReport, FaultSpec, STATION_TOL_M};
-use markhold::sim::hil::{HilOptions, HilRun};
+use markhold::sim::hil::HilOptions;
 use markhold_autopilot::{ArduSubMode, Directive};
 use markhold_hil::Truth;
 
@@ -58,8 +57,7 @@ fn run_seed(
             .collect(),
         ..HilOptions::default()
     };
-    let mut hil = HilRun::build(site, &opts, Observers::new()).unwrap();
-    hil.arm(site.site.link.mode.ardusub()).unwrap();
+    let mut hil = crate::common::armed_hil(site, &opts);
     let frames = (seconds * site.site.camera.fps).round() as usize;
     let mut out = Outcome {
         reports: Vec::new(),

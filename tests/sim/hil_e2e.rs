@@ -7,27 +7,10 @@ use crate::common;
 
 use std::path::{Path, PathBuf};
 
-use common::{markhold, repo, tmp_dir};
+use common::{markhold, repo, run_summary, tmp_dir};
 
 fn tmpdir(name: &str) -> PathBuf {
     tmp_dir("e2e", name)
-}
-
-fn run_summary(args: &[&str], out: &Path) -> serde_json::Value {
-    let o = markhold()
-        .args(args)
-        .arg("--quiet")
-        .arg("--summary")
-        .arg(out)
-        .output()
-        .expect("run markhold");
-    assert!(
-        o.status.success(),
-        "markhold {args:?} failed: {}\n{}",
-        String::from_utf8_lossy(&o.stderr),
-        String::from_utf8_lossy(&o.stdout)
-    );
-    common::read_json(out)
 }
 
 /// The pool row of the README's results table (`markhold hil --site params/pool.toml
@@ -157,8 +140,7 @@ fn missing_site_file_is_named() {
         .args(["hil", "--quiet", "--site", "/nonexistent/site.toml"])
         .output()
         .unwrap();
-    let err = String::from_utf8_lossy(&o.stderr);
-    assert_eq!(o.status.code(), Some(78), "{err}");
+    let err = crate::common::stderr_of_exit(&o, 78);
     assert!(err.contains("/nonexistent/site.toml"), "{err}");
     assert!(!err.contains("panicked"), "{err}");
 }

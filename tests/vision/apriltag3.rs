@@ -80,8 +80,7 @@ fn apriltag3_for_an_aruco_dictionary_is_refused_by_name() {
     let bad = common::tmp_path("apriltag3", "aruco.toml");
     std::fs::write(&bad, with("aruco_4x4_50")).unwrap();
     let o = common::run_markhold(&["params", "check", bad.to_str().unwrap()]);
-    let err = String::from_utf8_lossy(&o.stderr);
-    assert_eq!(o.status.code(), Some(78), "{err}");
+    let err = crate::common::stderr_of_exit(&o, 78);
     let line = with("aruco_4x4_50")
         .lines()
         .position(|l| l.starts_with("detector"))

@@ -255,8 +255,7 @@ fn one_view_and_face_on_views_are_refused_with_the_reason() {
     args.extend_from_slice(CHARUCO);
     args.extend_from_slice(&["--medium", "air", "--out", out.to_str().unwrap()]);
     let o = markhold(&args);
-    let err = String::from_utf8_lossy(&o.stderr);
-    assert_eq!(o.status.code(), Some(2), "{err}");
+    let err = crate::common::stderr_of_exit(&o, 2);
     assert!(
         err.contains("1 usable view") && err.contains("at least 3 views"),
         "{err}"
