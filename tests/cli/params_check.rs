@@ -5,19 +5,10 @@
 
 use std::path::Path;
 
-use crate::common::{markhold, repo, tmp_dir, tmp_path};
+use crate::common::{markhold, outcome, repo, tmp_dir, tmp_path};
 
 fn check(path: &Path) -> (i32, String, String) {
-    let o = markhold()
-        .args(["params", "check"])
-        .arg(path)
-        .output()
-        .expect("run markhold");
-    (
-        o.status.code().unwrap_or(-1),
-        String::from_utf8_lossy(&o.stdout).into_owned(),
-        String::from_utf8_lossy(&o.stderr).into_owned(),
-    )
+    outcome(markhold().args(["params", "check"]).arg(path))
 }
 
 #[test]

@@ -4,23 +4,14 @@
 
 use std::path::{Path, PathBuf};
 
-use crate::common::{markhold, repo, tmp_path};
+use crate::common::{markhold, outcome, repo, tmp_path};
 
 fn scratch(name: &str) -> PathBuf {
     tmp_path("tag", name)
 }
 
 fn tag(args: &[&str]) -> (i32, String, String) {
-    let o = markhold()
-        .arg("tag")
-        .args(args)
-        .output()
-        .expect("run markhold");
-    (
-        o.status.code().unwrap_or(-1),
-        String::from_utf8_lossy(&o.stdout).into_owned(),
-        String::from_utf8_lossy(&o.stderr).into_owned(),
-    )
+    outcome(markhold().arg("tag").args(args))
 }
 
 /// `markhold tag --site SITE --out OUT`.

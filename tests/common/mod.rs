@@ -112,6 +112,16 @@ pub fn hil_on_vehicle(site: &Path, seconds: &str, vehicle: &str) -> Command {
     c
 }
 
+/// `cmd` run to its end: (exit code, -1 when a signal ended it; stdout; stderr).
+pub fn outcome(cmd: &mut Command) -> (i32, String, String) {
+    let o = cmd.output().expect("run markhold");
+    (
+        o.status.code().unwrap_or(-1),
+        String::from_utf8_lossy(&o.stdout).into_owned(),
+        String::from_utf8_lossy(&o.stderr).into_owned(),
+    )
+}
+
 /// The stderr of a run that must have exited with `code`.
 pub fn stderr_of_exit(o: &Output, code: i32) -> String {
     let err = String::from_utf8_lossy(&o.stderr).into_owned();
