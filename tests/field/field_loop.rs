@@ -197,24 +197,30 @@ fn assert_within_budget(verdict: &serde_json::Value, s: &serde_json::Value) {
     assert!(sent <= budget, "{sent} inputs, budget {budget}");
 }
 
+/// `markhold run --engage --arm --seconds SECONDS` on the frozen station stream
+/// (`frames`: it ends after that many) against a new hold vehicle, on the site `NAME.toml`
+/// that disarms at exit, bounded by `limit`; it must succeed: (the vehicle, the run's
+/// stderr, its summary, its wall time).
+fn engaged_on_frozen(
+    name: &str,
+    frames: Option<u32>,
+    seconds: &str,
+    limit: Duration,
+) -> (Vehicle, String, serde_json::Value, Duration) {
+    let (v, port) = vehicle(&[]);
+    let site = site(&format!("{name}.toml"), "", "on_exit = \"disarm\"", "");
+    let sum = tmp(&format!("{name}.json"));
+    let args = ["--engage", "--arm", "--seconds", seconds];
+    let cmd = &mut run_cmd(&site, &frozen_camera(frames), port, &sum, &args);
+    let (o, took) = run_bounded(cmd, limit);
+    let err = String::from_utf8_lossy(&o.stderr).into_owned();
+    assert!(o.status.success(), "{err}");
+    (v, err, summary(&sum), took)
+}
+
 #[test]
 fn run_engage_arm_with_a_stream_camera_stays_engaged_for_30_s() {
-    let (mut v, port) = vehicle(&[]);
-    let site = site("hold30.toml", "", "on_exit = \"disarm\"", "");
-    let sum = tmp("hold30.json");
-    let (o, _) = run_bounded(
-        &mut run_cmd(
-            &site,
-            &frozen_camera(None),
-            port,
-            &sum,
-            &["--engage", "--arm", "--seconds", "30"],
-        ),
-        Duration::from_secs(80),
-    );
-    let err = String::from_utf8_lossy(&o.stderr);
-    assert!(o.status.success(), "{err}");
-    let s = summary(&sum);
+    let (mut v, err, s, _) = engaged_on_frozen("hold30", None, "30", Duration::from_secs(80));
     let verdict = pymav_verdict(&mut v);
     let said = pymav_texts(&verdict);
     // Engaged once, never let go until the run ended.
@@ -247,23 +253,8 @@ fn run_engage_arm_with_a_stream_camera_stays_engaged_for_30_s() {
 
 #[test]
 fn a_stream_that_ends_is_built_again_and_the_run_ends_on_the_wall_clock() {
-    let (mut v, port) = vehicle(&[]);
-    let site = site("ends.toml", "", "on_exit = \"disarm\"", "");
-    let sum = tmp("ends.json");
     // 45 frames (1.5 s), then end of stream; built again after 0.5 s, 1 s, 2 s ...
-    let (o, took) = run_bounded(
-        &mut run_cmd(
-            &site,
-            &frozen_camera(Some(45)),
-            port,
-            &sum,
-            &["--engage", "--arm", "--seconds", "8"],
-        ),
-        Duration::from_secs(40),
-    );
-    let err = String::from_utf8_lossy(&o.stderr);
-    assert!(o.status.success(), "{err}");
-    let s = summary(&sum);
+    let (mut v, err, s, took) = engaged_on_frozen("ends", Some(45), "8", Duration::from_secs(40));
     let verdict = pymav_verdict(&mut v);
     assert_eq!(s["stopped_by"], "max_seconds", "{s}");
     // Frames came back after each end: more than one stream's worth.
