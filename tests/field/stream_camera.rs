@@ -765,6 +765,16 @@ fn decoder_with(
     report.unwrap()
 }
 
+/// The decoder a stream camera chose preferring `element`, which must be installed (it
+/// comes with the `package` named).
+fn preferring(element: &str, package: &str) -> markhold::field::camera::stream::DecoderReport {
+    use markhold::field::camera::stream::DecoderChoice;
+    assert!(installed(element), "{element} missing: install {package}");
+    let r = decoder_with(&DecoderChoice::prefer([element]));
+    eprintln!("{element} first: {r}");
+    r
+}
+
 /// The decoder `r` is software, after passing over the preferred `element` alone for
 /// a reason that starts with `why`.
 fn assert_fell_back(r: &markhold::field::camera::stream::DecoderReport, element: &str, why: &str) {
@@ -810,22 +820,12 @@ fn the_stream_decoder_prefers_hardware_and_falls_back_to_software_saying_why() {
 
     // An element that is installed but cannot start on H.264 (libav's H.265 decoder, in
     // the same plugin as avdec_h264): passed over with the reason, then software.
-    assert!(
-        installed("avdec_h265"),
-        "avdec_h265 missing: install gstreamer1.0-libav"
-    );
-    let r = decoder_with(&DecoderChoice::prefer(["avdec_h265"]));
-    eprintln!("avdec_h265 first: {r}");
+    let r = preferring("avdec_h265", "gstreamer1.0-libav");
     assert_fell_back(&r, "avdec_h265", "does not start");
 
     // A preferred decoder that is installed and works is the one used (openh264's
     // software decoder stands in for a hardware one on this host).
-    assert!(
-        installed("openh264dec"),
-        "openh264dec missing: install gstreamer1.0-plugins-bad"
-    );
-    let r = decoder_with(&DecoderChoice::prefer(["openh264dec"]));
-    eprintln!("openh264dec first: {r}");
+    let r = preferring("openh264dec", "gstreamer1.0-plugins-bad");
     assert_eq!(r.element, "openh264dec", "{r}");
     assert!(!r.hardware, "{r}");
     assert!(r.passed_over.is_empty(), "{r}");
