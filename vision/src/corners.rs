@@ -140,7 +140,7 @@ pub(crate) struct EdgeRefiner {
 const MAX_EDGE_POINTS: usize = 80;
 /// Edge points per side of the wide first pass at most: it only brings the corners
 /// within the narrow pass's band, which sets them.
-const MAX_WIDE_EDGE_POINTS: usize = 20;
+const MAX_WIDE_EDGE_POINTS: usize = 40;
 /// Where the white side's grey is read, pixels past the lobe's brightest sample: on the
 /// plateau (docs/design/vision.md, "Clipped edges").
 const BRIGHT_PAST_TOP_PX: f64 = 3.0;
