@@ -406,7 +406,9 @@ pub struct DetectorConfig {
     /// Largest adaptive-threshold window, pixels.
     pub adaptive_thresh_win_max_px: i32,
     /// Step between threshold windows, pixels. Each window is one pass over the
-    /// searched image: the main cost of a search.
+    /// searched image: the main cost of a search. A tracked window, where the marker's
+    /// size is known, is thresholded once, at a window of about two of its modules
+    /// within the smallest and largest.
     pub adaptive_thresh_win_step_px: i32,
     /// Constant subtracted from the local mean in adaptive thresholding, grey levels.
     pub adaptive_thresh_constant: f64,

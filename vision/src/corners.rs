@@ -138,6 +138,9 @@ pub(crate) struct EdgeRefiner {
 /// Edge points per side at most (beyond this the line is already far more precise
 /// than the model; the cost is linear in it).
 const MAX_EDGE_POINTS: usize = 80;
+/// Edge points per side of the wide first pass at most: it only brings the corners
+/// within the narrow pass's band, which sets them.
+const MAX_WIDE_EDGE_POINTS: usize = 40;
 /// Where the white side's grey is read, pixels past the lobe's brightest sample: on the
 /// plateau (docs/design/vision.md, "Clipped edges").
 const BRIGHT_PAST_TOP_PX: f64 = 3.0;
@@ -207,9 +210,9 @@ impl EdgeRefiner {
         let narrow = (0.5 * module_px).clamp(1.0, 3.0);
         let mut cur = *corners;
         let mut lines = [Line::default(); 4];
-        for band in [wide, narrow] {
+        for (band, max_points) in [(wide, MAX_WIDE_EDGE_POINTS), (narrow, MAX_EDGE_POINTS)] {
             for (i, line) in lines.iter_mut().enumerate() {
-                *line = self.fit_side(img, calib, &cur, i, band)?;
+                *line = self.fit_side(img, calib, &cur, i, band, max_points)?;
             }
             let mut next = cur;
             for i in 0..4 {
@@ -285,6 +288,7 @@ impl EdgeRefiner {
         c: &Corners,
         i: usize,
         band: f64,
+        max_points: usize,
     ) -> Option<Line> {
         let a = Vector2::new(c[i][0] as f64, c[i][1] as f64);
         let b = Vector2::new(c[(i + 1) % 4][0] as f64, c[(i + 1) % 4][1] as f64);
@@ -304,9 +308,9 @@ impl EdgeRefiner {
         if t0 >= 0.45 {
             return None;
         }
-        // One edge point per pixel of edge, at most MAX_EDGE_POINTS per side.
+        // One edge point per pixel of edge, at most `max_points` per side.
         let usable = len * (1.0 - 2.0 * t0);
-        let n_samples = usable.clamp(6.0, MAX_EDGE_POINTS as f64) as usize;
+        let n_samples = usable.clamp(6.0, max_points as f64) as usize;
         self.spacing_px = usable / n_samples as f64;
         let step = PROFILE_STEP_PX;
         let n_steps = (band / step).ceil() as i32;

@@ -188,6 +188,11 @@ const MAP_CLIP_CORRELATION: f64 = 0.75;
 /// size between two frames of a track.
 const TRACK_PERIMETER_RANGE: (f64, f64) = (0.5, 2.0);
 
+/// Adaptive-threshold window of a tracked window's search, in modules of the marker as
+/// searched (its expected side over the scale, over the cells of a side), within the
+/// configured smallest and largest windows.
+const TRACK_THRESH_WINDOW_MODULES: f64 = 2.0;
+
 /// `(m + m^T) / 2`: a sandwich `K C K^T` symmetric to rounding.
 fn sym(m: Matrix6<f64>) -> Matrix6<f64> {
     (m + m.transpose()) * 0.5
@@ -286,6 +291,10 @@ impl MarkerTracker {
                 index_of_id,
                 found: vec![None; n],
                 max_perimeter_rate: detector.max_marker_perimeter_rate,
+                thresh_windows_px: (
+                    detector.adaptive_thresh_win_min_px,
+                    detector.adaptive_thresh_win_max_px,
+                ),
                 dict,
                 params,
                 corners: core::Vector::new(),
@@ -943,6 +952,7 @@ impl MarkerTracker {
             (0.0, 0.0),
             self.cfg.min_marker_perimeter_rate,
             None,
+            None,
         )?;
         if coarse > 0 {
             return self.refine_coarse(image, s);
@@ -994,6 +1004,7 @@ impl MarkerTracker {
             (0.0, 0.0),
             self.cfg.min_marker_perimeter_rate,
             None,
+            None,
         )?;
         if found > 0 {
             return self.refine_coarse(image, 2 * s);
@@ -1020,7 +1031,8 @@ impl MarkerTracker {
         .cv("roi")?;
         // Rates are of the searched image's larger side: the band's is the frame's width.
         let min_rate = self.cfg.min_marker_perimeter_rate * w.max(h) as f64 / w.max(y1 - y0) as f64;
-        self.det.detect_in(&band, (0.0, 0.0), min_rate, None)?;
+        self.det
+            .detect_in(&band, (0.0, 0.0), min_rate, None, None)?;
         let sf = s as f64;
         for (_, c) in self.det.found.iter_mut().flatten() {
             for p in c.iter_mut() {
@@ -1101,15 +1113,30 @@ impl MarkerTracker {
         // of about that size: the others (the texture around it, its own cells) cost a
         // polygon fit and, when they make a quad, a decode against every id of the
         // dictionary. Rates are of the searched image's larger side, at any scale.
+        // Its module's size is known too: one adaptive-threshold window of about two
+        // modules binarises its border whole, where the configured range of windows
+        // (for markers of any size) costs a threshold, contours and polygon fits each.
         let mut max_rate = None;
+        let mut thresh_win = None;
         if let Some(side) = expect_side_px {
             let expected = 4.0 * side / roi_max;
             min_rate = min_rate.max(TRACK_PERIMETER_RANGE.0 * expected);
             max_rate = Some(TRACK_PERIMETER_RANGE.1 * expected);
+            let cells = (self.marker.family.data_bits() + 2) as f64;
+            thresh_win = Some(track_thresh_window(
+                TRACK_THRESH_WINDOW_MODULES * side / f64::from(scale) / cells,
+                self.cfg.adaptive_thresh_win_min_px,
+                self.cfg.adaptive_thresh_win_max_px,
+            ));
         }
         if scale <= 1 {
-            self.det
-                .detect_in(&view, (roi.x as f64, roi.y as f64), min_rate, max_rate)?;
+            self.det.detect_in(
+                &view,
+                (roi.x as f64, roi.y as f64),
+                min_rate,
+                max_rate,
+                thresh_win,
+            )?;
             return Ok(());
         }
         let size = core::Size::new(
@@ -1119,7 +1146,7 @@ impl MarkerTracker {
         imgproc::resize(&view, &mut self.small, size, 0.0, 0.0, imgproc::INTER_AREA)
             .cv("resize window")?;
         self.det
-            .detect_in(&self.small, (0.0, 0.0), min_rate, max_rate)?;
+            .detect_in(&self.small, (0.0, 0.0), min_rate, max_rate, thresh_win)?;
         // Small pixel i covers full pixels [s i, s i + s): its centre is s i + (s-1)/2.
         let sf = scale as f64;
         for (_, c) in self.det.found.iter_mut().flatten() {
@@ -1300,6 +1327,8 @@ struct Detector {
     /// in full-image pixels.
     found: Vec<Option<(f64, Corners)>>,
     max_perimeter_rate: f64,
+    /// The configured smallest and largest adaptive-threshold windows, pixels.
+    thresh_windows_px: (i32, i32),
     dict: core::Ptr<aruco::Dictionary>,
     params: core::Ptr<aruco::DetectorParameters>,
     corners: core::Vector<core::Vector<core::Point2f>>,
@@ -1319,6 +1348,7 @@ impl Detector {
         offset: (f64, f64),
         min_perimeter_rate: f64,
         max_perimeter_rate: Option<f64>,
+        thresh_win_px: Option<i32>,
     ) -> Result<usize, VisionError> {
         self.found.fill(None);
         let max_rate = max_perimeter_rate
@@ -1332,6 +1362,9 @@ impl Detector {
         self.params
             .set_min_marker_perimeter_rate(min_perimeter_rate);
         self.params.set_max_marker_perimeter_rate(max_rate);
+        let (win_min, win_max) = thresh_win_px.map_or(self.thresh_windows_px, |w| (w, w));
+        self.params.set_adaptive_thresh_win_size_min(win_min);
+        self.params.set_adaptive_thresh_win_size_max(win_max);
         aruco::detect_markers(
             image,
             &self.dict,
@@ -1374,6 +1407,22 @@ impl Detector {
             }
         }
         Ok(count)
+    }
+}
+
+/// The adaptive-threshold window of `size_px` pixels, odd (OpenCV makes an even window
+/// the odd one above it), within `min_px..=max_px`.
+fn track_thresh_window(size_px: f64, min_px: i32, max_px: i32) -> i32 {
+    // `max` before `min`: a NaN size takes the smallest window.
+    let w = size_px
+        .round()
+        .max(f64::from(min_px))
+        .min(f64::from(max_px)) as i32;
+    // An even window becomes the odd one below it, unless that is under the smallest.
+    if w % 2 == 1 || w - 1 < min_px {
+        w | 1
+    } else {
+        w - 1
     }
 }
 
@@ -1586,5 +1635,17 @@ mod tests {
         );
         assert_eq!(window(70.0, 30.0, 100.0, 50.0, 80, 40), None);
         assert_eq!(window(f64::NAN, 0.0, 10.0, 10.0, 80, 40), None);
+    }
+
+    #[test]
+    fn a_tracked_threshold_window_is_odd_and_within_the_range() {
+        // Two modules of a 36h11 marker (8 cells a side) searched at 64 and 128 px.
+        assert_eq!(track_thresh_window(2.0 * 64.0 / 8.0, 3, 23), 15);
+        assert_eq!(track_thresh_window(2.0 * 128.0 / 8.0, 3, 23), 23);
+        assert_eq!(track_thresh_window(17.4, 3, 23), 17);
+        assert_eq!(track_thresh_window(1.0, 3, 23), 3);
+        assert_eq!(track_thresh_window(18.0, 3, 23), 17);
+        assert_eq!(track_thresh_window(4.0, 4, 23), 5);
+        assert_eq!(track_thresh_window(f64::NAN, 3, 23), 3);
     }
 }

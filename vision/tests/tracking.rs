@@ -383,3 +383,76 @@ fn the_bounded_search_finds_near_and_far_markers_within_its_cycle() {
         println!("{range} m: found on frame {k} of at most {within}");
     }
 }
+
+#[test]
+fn tracked_corners_hold_the_rendered_truth_at_every_window_scale() {
+    // 1440x1080 with lens distortion, the marker drifting and turning at four ranges:
+    // sides of about 80, 165, 250 and 330 px, tracked windows searched at 1/1 to 1/4.
+    // Each tracked frame's corners against the rendered ones, and against a full
+    // search's (a fresh search of the same frame) error on the same frames.
+    let calib = calib_distorted();
+    let m = marker();
+    let bm = bitmap(&m);
+    let cfg = DetectorConfig {
+        full_search_period_frames: 0,
+        ..Default::default()
+    };
+    let full_cfg = DetectorConfig {
+        full_search_period_frames: 1,
+        ..Default::default()
+    };
+    let mut rng = ChaCha8Rng::seed_from_u64(45);
+    let mut frame = Frame::default();
+    let frames = 12;
+    for range in [2.5, 1.2, 0.8, 0.6] {
+        let mut tracker = MarkerTracker::new(&m, &cfg, calib.clone()).unwrap();
+        let mut full = MarkerTracker::new(&m, &full_cfg, calib.clone()).unwrap();
+        let (mut sq_tracked, mut sq_full, mut worst) = (0.0f64, 0.0f64, 0.0f64);
+        let mut n = 0;
+        for k in 0..frames {
+            let s = k as f64 / frames as f64;
+            let truth = pose(
+                [(-0.06 + 0.1 * s) * range, (0.04 - 0.06 * s) * range, range],
+                20.0 - 30.0 * s,
+                -15.0 + 10.0 * s,
+            );
+            let exact = render_marker(
+                &mut frame,
+                &calib,
+                &bm,
+                m.size_m,
+                &truth,
+                &SceneParams::default(),
+            )
+            .map(|p| p.expect("corner in front of the camera"));
+            add_noise(&mut frame, 2.0, &mut rng);
+            frame.meta.seq = k as u64;
+            frame.meta.stamp_s = k as f64 / 30.0;
+            let a = tracker.process(&frame).unwrap().expect("tracked");
+            let b = full.process(&frame).unwrap().expect("full");
+            assert_eq!(a.tracked, k > 0, "{range} m frame {k}");
+            if !a.tracked {
+                continue;
+            }
+            for ((p, q), e) in a.corners.iter().zip(&b.corners).zip(&exact) {
+                let ea = (p[0] as f64 - e[0]).powi(2) + (p[1] as f64 - e[1]).powi(2);
+                let eb = (q[0] as f64 - e[0]).powi(2) + (q[1] as f64 - e[1]).powi(2);
+                sq_tracked += ea;
+                sq_full += eb;
+                worst = worst.max(ea.sqrt());
+                n += 1;
+            }
+        }
+        let rms_tracked = (sq_tracked / n as f64).sqrt();
+        let rms_full = (sq_full / n as f64).sqrt();
+        println!(
+            "{range} m: tracked corner error RMS {rms_tracked:.4} px (max {worst:.4}), full search {rms_full:.4} px"
+        );
+        assert!(rms_tracked < 0.1, "{range} m: tracked RMS {rms_tracked} px");
+        assert!(worst < 0.3, "{range} m: tracked corner off by {worst} px");
+        assert!(
+            rms_tracked < 1.05 * rms_full + 0.005,
+            "{range} m: tracked RMS {rms_tracked} px against the full search's {rms_full} px"
+        );
+    }
+}
