@@ -26,7 +26,6 @@ use rapier3d::pipeline::PhysicsWorld;
 use serde::{Deserialize, Serialize};
 
 use crate::disturbance::{ModelError, TetherConfig};
-use crate::endpoint::ArduSubParams;
 use crate::mixer::{Frame6Dof, Mixer, MAX_MOTORS};
 use crate::thruster::{Thruster, ThrusterConfig};
 use crate::HilError;
@@ -202,10 +201,6 @@ pub struct VehicleConfig {
     /// Age of what the vehicle's telemetry reports (attitude, position, depth) when it is
     /// sent, milliseconds of simulation time.
     pub telemetry_latency_ms: f64,
-    /// The vehicle's ArduSub parameters: a QGroundControl `.params` or MAVProxy `.parm`
-    /// file (unknown names ignored); absent = ArduSub 4.5's defaults. The simulated
-    /// autopilot's pilot scaling, failsafes and MOT_FV_CPLNG_K mixing follow it.
-    pub params_file: Option<std::path::PathBuf>,
 }
 
 impl Default for VehicleConfig {
@@ -236,7 +231,6 @@ impl Default for VehicleConfig {
             external_moment_nm: [0.0; 3],
             model_error: ModelError::default(),
             telemetry_latency_ms: 0.0,
-            params_file: None,
         }
     }
 }
@@ -299,14 +293,6 @@ impl VehicleConfig {
             .then(|| self.model_error.validate())
             .finite_range("telemetry_latency_ms", self.telemetry_latency_ms, 0.0..=1000.0, "0..=1000 ms")
             .done()
-    }
-
-    /// The ArduSub parameters: `params_file` read, or ArduSub 4.5's defaults.
-    pub fn ardusub_params(&self) -> Result<ArduSubParams, ConfigError> {
-        match &self.params_file {
-            Some(path) => ArduSubParams::read(path),
-            None => Ok(ArduSubParams::default()),
-        }
     }
 
     /// The frame's published table in this site's water, with this config's overrides
@@ -392,8 +378,6 @@ pub struct Vehicle {
     cfg: VehicleConfig,
     hydro: Hydrodynamics,
     mixer: Mixer,
-    /// The ArduSub parameters (`VehicleConfig::params_file`).
-    ardusub: ArduSubParams,
     thrusters: [Thruster; MAX_MOTORS],
     world: PhysicsWorld,
     body: RigidBodyHandle,
@@ -453,7 +437,6 @@ impl Vehicle {
         seed: u64,
     ) -> Result<Self, HilError> {
         cfg.validate()?;
-        let ardusub = cfg.ardusub_params()?;
         let hydro = cfg.hydrodynamics();
         let dt = cfg.dt_s();
         let mut world = PhysicsWorld::new();
@@ -481,8 +464,7 @@ impl Vehicle {
         let mut v = Self {
             cfg: cfg.clone(),
             hydro,
-            mixer: Mixer::new(cfg.frame).with_fv_coupling(ardusub.mot_fv_cplng_k),
-            ardusub,
+            mixer: Mixer::new(cfg.frame),
             thrusters: [Thruster::default(); MAX_MOTORS],
             world,
             body,
@@ -515,11 +497,6 @@ impl Vehicle {
 
     pub fn mixer(&self) -> &Mixer {
         &self.mixer
-    }
-
-    /// The vehicle's ArduSub parameters (`VehicleConfig::params_file`).
-    pub fn ardusub_params(&self) -> &ArduSubParams {
-        &self.ardusub
     }
 
     pub fn frame(&self) -> Frame6Dof {
