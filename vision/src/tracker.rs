@@ -888,9 +888,6 @@ impl MarkerTracker {
         Some((roi, scale, side))
     }
 
-    /// Full-frame search, on a downscaled image when configured (then each marker found
-    /// is searched again at full resolution in a window around its coarse corners).
-    ///
     /// The whole image as a window.
     fn full_roi(&self) -> Roi {
         Roi {
@@ -901,6 +898,9 @@ impl MarkerTracker {
         }
     }
 
+    /// Full-frame search, on a downscaled image when configured (then each marker found
+    /// is searched again at full resolution in a window around its coarse corners).
+    ///
     /// The first search, a search with a marker tracked until now (a track lost this
     /// frame, or the periodic search), a search after one that found a marker and any
     /// search within `track_max_age_s` of the last frame a marker was found in (`recent`)
