@@ -7,7 +7,7 @@
 //! paths the commands and the tests use.
 
 pub use markhold_core::{
-    feasibility, observe, outln, params, pipeline, print_report, record, web, write_summary,
+    error, feasibility, observe, outln, params, pipeline, print_report, record, web, write_summary,
 };
 
 /// The real-vehicle edge (`markhold-field`), with the engagement and signal handling it

@@ -195,13 +195,24 @@ fn main() -> ExitCode {
         Ok(()) => ExitCode::SUCCESS,
         Err(e) => {
             eprintln!("markhold: error: {e:#}");
-            if e.downcast_ref::<ParamsError>().is_some() {
+            if is_site_error(&e) {
                 ExitCode::from(EXIT_CONFIG as u8)
             } else {
                 ExitCode::from(2)
             }
         }
     }
+}
+
+/// A site file that cannot be read or used, wherever in the chain it surfaced (the
+/// crates' error enums carry it unchanged).
+fn is_site_error(e: &anyhow::Error) -> bool {
+    e.chain().any(|c| {
+        c.is::<ParamsError>()
+            || c.downcast_ref::<markhold::error::CoreError>()
+                .and_then(markhold::error::CoreError::params)
+                .is_some()
+    })
 }
 
 /// The logs: on stderr, printed above the progress bars (tracing-indicatif draws the bars,

@@ -16,6 +16,7 @@ use super::camera::{open_camera, CameraUrl, FrameAge, LiveCamera};
 use super::preflight::{self, Checklist};
 pub use markhold_core::engage::HandBack;
 use markhold_core::engage::{EngagedLink, ExitPolicy, ExitReport, Transition};
+use markhold_core::error::{Chain, CoreError};
 use markhold_core::observe::{Snapshots, StatusBoard, TraceWriter};
 use markhold_core::params::LoadedSite;
 use markhold_core::pipeline::{CommandLink, LoopStart, Observers, Pipeline};
@@ -269,11 +270,8 @@ fn open_link(
     Ok(link)
 }
 
-fn is_end_of_stream(e: &anyhow::Error) -> bool {
-    matches!(
-        e.downcast_ref::<CameraError>(),
-        Some(CameraError::EndOfStream { .. })
-    )
+fn is_end_of_stream(e: &CoreError) -> bool {
+    matches!(e.camera(), Some(CameraError::EndOfStream { .. }))
 }
 
 /// The observers, the recording's counters, the live view's address and the web page's
@@ -385,14 +383,14 @@ fn files(opts: &RunOptions, list: &mut Observers) -> Result<(), StartupError> {
     if let Some(p) = &opts.trace {
         let t = TraceWriter::create(p).map_err(|e| StartupError::Output {
             flag: "--trace",
-            reason: format!("{e:#}"),
+            reason: Chain(&e).to_string(),
         })?;
         list.push(t);
     }
     if let Some(dir) = &opts.frames_dir {
         let s = Snapshots::create(dir, opts.frames_every).map_err(|e| StartupError::Output {
             flag: "--record-frames",
-            reason: format!("{e:#}"),
+            reason: Chain(&e).to_string(),
         })?;
         list.push(s);
     }
@@ -406,7 +404,12 @@ pub fn build_loop<L: CommandLink>(
     link: L,
     observers: Observers,
 ) -> anyhow::Result<Pipeline<L>> {
-    Pipeline::new(site, LoopStart::of_site(site), link, observers)
+    Ok(Pipeline::new(
+        site,
+        LoopStart::of_site(site),
+        link,
+        observers,
+    )?)
 }
 
 /// The loop's rate falls under this fraction of the designed rate: warned.
@@ -628,7 +631,7 @@ fn drive(
                 continue;
             }
             Err(e) if is_end_of_stream(&e) => return Ok(StopReason::EndOfStream),
-            Err(e) => return Err(e.context(format!("frame {}", n.frames))),
+            Err(e) => return Err(anyhow::Error::new(e).context(format!("frame {}", n.frames))),
         };
         last_idle_s = None;
         said_stall = false;
@@ -812,7 +815,7 @@ pub fn run_live(
         loop_seconds,
         stopped_by,
         record: record_stats.map(|h| h.get()),
-        record_error: observers_done.err().map(|e| format!("{e:#}")),
+        record_error: observers_done.err().map(|e| Chain(&e).to_string()),
         foxglove_addr,
         vision_stalls: n.vision_stalls,
         disarm,

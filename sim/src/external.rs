@@ -150,7 +150,12 @@ pub fn build_loop<L: CommandLink>(
     link: L,
     observers: Observers,
 ) -> anyhow::Result<Pipeline<L>> {
-    Pipeline::new(site, loop_start(site, opts), link, observers)
+    Ok(Pipeline::new(
+        site,
+        loop_start(site, opts),
+        link,
+        observers,
+    )?)
 }
 
 /// Run the loop against an external vehicle for `opts.seconds` of its real time.
