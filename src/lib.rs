@@ -14,7 +14,7 @@ pub use markhold_core::{
 /// shares with the simulator (`markhold-core`).
 pub mod field {
     pub use markhold_core::{engage, signal};
-    pub use markhold_field::{camera, preflight, run};
+    pub use markhold_field::{camera, preflight, run, FieldError};
 }
 
 #[cfg(feature = "sim")]

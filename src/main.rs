@@ -212,6 +212,9 @@ fn is_site_error(e: &anyhow::Error) -> bool {
             || c.downcast_ref::<markhold::error::CoreError>()
                 .and_then(markhold::error::CoreError::params)
                 .is_some()
+            || c.downcast_ref::<markhold::field::FieldError>()
+                .and_then(markhold::field::FieldError::params)
+                .is_some()
     })
 }
 
