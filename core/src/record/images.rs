@@ -10,7 +10,7 @@ use foxglove::schemas::CompressedImage;
 use foxglove::Decode;
 use markhold_exposure::{Frame, FrameMeta};
 
-use super::replay::{decode_image, for_each_record, recording, run_info_of};
+use super::replay::{decode_image, for_each_record, no_run_info, recording, run_info_of};
 use super::{METADATA_NAME, TOPIC_IMAGE};
 
 /// What [`for_each_image`] read.
@@ -108,17 +108,7 @@ pub fn for_each_image<E: From<CoreError>>(
         Ok(())
     })?;
     if frame.is_none() {
-        return Err(match out.ended_early {
-            Some(reason) => CoreError::NotMcap {
-                path: path.to_path_buf(),
-                reason,
-            },
-            None => recording(
-                path,
-                format!("no `{METADATA_NAME}` metadata: not a markhold recording"),
-            ),
-        }
-        .into());
+        return Err(no_run_info(path, out.ended_early).into());
     }
     Ok(out)
 }

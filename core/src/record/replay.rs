@@ -146,6 +146,21 @@ pub(crate) fn recording(path: &Path, reason: String) -> CoreError {
     }
 }
 
+/// The recording `path` gave no run description: it ended early (`ended_early`: why)
+/// or it is not a markhold recording.
+pub(crate) fn no_run_info(path: &Path, ended_early: Option<String>) -> CoreError {
+    match ended_early {
+        Some(reason) => CoreError::NotMcap {
+            path: path.to_path_buf(),
+            reason,
+        },
+        None => recording(
+            path,
+            format!("no `{METADATA_NAME}` metadata: not a markhold recording"),
+        ),
+    }
+}
+
 /// A part of the recording `path` could not be read, for the error `source`.
 fn part(
     path: &Path,
@@ -476,16 +491,7 @@ pub fn replay_from(
         Ok(())
     })?;
     let Some(r) = replayer else {
-        return Err(match ended_early {
-            Some(reason) => CoreError::NotMcap {
-                path: path.to_path_buf(),
-                reason,
-            },
-            None => recording(
-                path,
-                format!("no `{METADATA_NAME}` metadata: not a markhold recording"),
-            ),
-        });
+        return Err(no_run_info(path, ended_early));
     };
     let mut out = r.finish();
     if let Some(why) = ended_early {
