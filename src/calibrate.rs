@@ -497,13 +497,14 @@ fn read_source(
         return Ok(dir.display().to_string());
     }
     if let Some(path) = &args.recording {
-        let read = crate::record::images::for_each_image(path, args.every, |frame| {
-            sel.offer(
-                format!("{} image {}", path.display(), frame.meta.seq),
-                frame,
-            )?;
-            Ok(())
-        })?;
+        let read =
+            crate::record::images::for_each_image::<anyhow::Error>(path, args.every, |frame| {
+                sel.offer(
+                    format!("{} image {}", path.display(), frame.meta.seq),
+                    frame,
+                )?;
+                Ok(())
+            })?;
         if let Some(why) = &read.ended_early {
             tracing::warn!("{}: the file ends early ({why})", path.display());
         }

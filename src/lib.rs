@@ -7,14 +7,14 @@
 //! paths the commands and the tests use.
 
 pub use markhold_core::{
-    feasibility, observe, outln, params, pipeline, print_report, record, web, write_summary,
+    error, feasibility, observe, outln, params, pipeline, print_report, record, web, write_summary,
 };
 
 /// The real-vehicle edge (`markhold-field`), with the engagement and signal handling it
 /// shares with the simulator (`markhold-core`).
 pub mod field {
     pub use markhold_core::{engage, signal};
-    pub use markhold_field::{camera, preflight, run};
+    pub use markhold_field::{camera, preflight, run, FieldError};
 }
 
 #[cfg(feature = "sim")]

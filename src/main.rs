@@ -195,13 +195,40 @@ fn main() -> ExitCode {
         Ok(()) => ExitCode::SUCCESS,
         Err(e) => {
             eprintln!("markhold: error: {e:#}");
-            if e.downcast_ref::<ParamsError>().is_some() {
+            if is_site_error(&e) {
                 ExitCode::from(EXIT_CONFIG as u8)
             } else {
                 ExitCode::from(2)
             }
         }
     }
+}
+
+/// A site file that cannot be read or used, wherever in the chain it surfaced (the
+/// crates' error enums carry it unchanged).
+fn is_site_error(e: &anyhow::Error) -> bool {
+    e.chain().any(|c| {
+        c.is::<ParamsError>()
+            || c.downcast_ref::<markhold::error::CoreError>()
+                .and_then(markhold::error::CoreError::params)
+                .is_some()
+            || c.downcast_ref::<markhold::field::FieldError>()
+                .and_then(markhold::field::FieldError::params)
+                .is_some()
+            || is_sim_site_error(c)
+    })
+}
+
+#[cfg(feature = "sim")]
+fn is_sim_site_error(e: &(dyn std::error::Error + 'static)) -> bool {
+    e.downcast_ref::<markhold::sim::SimError>()
+        .and_then(markhold::sim::SimError::params)
+        .is_some()
+}
+
+#[cfg(not(feature = "sim"))]
+fn is_sim_site_error(_: &(dyn std::error::Error + 'static)) -> bool {
+    false
 }
 
 /// The logs: on stderr, printed above the progress bars (tracing-indicatif draws the bars,
@@ -263,23 +290,23 @@ impl<'w> tracing_subscriber::fmt::FormatFields<'w> for PlainFields {
 fn run(cli: Cli) -> anyhow::Result<()> {
     match cli.command {
         #[cfg(feature = "sim")]
-        Command::Hil(args) => markhold::sim::cmd::hil(args),
+        Command::Hil(args) => Ok(markhold::sim::cmd::hil(args)?),
         Command::Params {
             command: ParamsCommand::Check { file },
         } => params_check(&file),
         #[cfg(feature = "sim")]
-        Command::Sitl(args) => markhold::sim::cmd::sitl(args),
+        Command::Sitl(args) => Ok(markhold::sim::cmd::sitl(args)?),
         #[cfg(feature = "sim")]
-        Command::SitlLoop(args) => markhold::sim::sitl_loop::cli(args),
+        Command::SitlLoop(args) => Ok(markhold::sim::sitl_loop::cli(args)?),
         #[cfg(feature = "sim")]
-        Command::SitlCompare(args) => markhold::sim::side_by_side::cli(args),
+        Command::SitlCompare(args) => Ok(markhold::sim::side_by_side::cli(args)?),
         Command::Replay(args) => replay(args),
         Command::Run(args) => run_cmd(args),
         Command::Preflight(args) => preflight_cmd(args),
         #[cfg(feature = "sim")]
-        Command::Compare(args) => markhold::sim::compare::cli(args),
+        Command::Compare(args) => Ok(markhold::sim::compare::cli(args)?),
         #[cfg(feature = "sim")]
-        Command::Robustness(args) => markhold::sim::robustness::cli(args),
+        Command::Robustness(args) => Ok(markhold::sim::robustness::cli(args)?),
         Command::Map(args) => markhold::map::cli(args),
         Command::Tag(args) => markhold::tag::cli(args),
         Command::Calibrate(args) => markhold::calibrate::cli(*args),

@@ -210,12 +210,16 @@ pub fn build(
     let mut builder = MapBuilder::new(marker, site.calibration.clone());
     let source = match (&args.recording, &args.frames) {
         (Some(path), _) => {
-            let read = crate::record::images::for_each_image(path, args.every, |frame| {
-                builder
-                    .detect(&mut tracker, frame)
-                    .with_context(|| format!("{}: image {}", path.display(), frame.meta.seq))?;
-                Ok(())
-            })?;
+            let read = crate::record::images::for_each_image::<anyhow::Error>(
+                path,
+                args.every,
+                |frame| {
+                    builder
+                        .detect(&mut tracker, frame)
+                        .with_context(|| format!("{}: image {}", path.display(), frame.meta.seq))?;
+                    Ok(())
+                },
+            )?;
             if let Some(why) = &read.ended_early {
                 tracing::warn!(
                     "{}: the file ends early ({why}): mapped from its {} complete images",

@@ -345,7 +345,9 @@ pub fn write_table(
 #[cfg(feature = "sim")]
 fn hil_sweep(args: &FitArgs) -> anyhow::Result<Vec<Frame>> {
     let site = crate::params::load(&args.site)?;
-    crate::sim::hil::exposure_sweep(&site, args.seed, args.steps)
+    Ok(crate::sim::hil::exposure_sweep(
+        &site, args.seed, args.steps,
+    )?)
 }
 
 /// The regularised fit's HIL sweep: `--steps` exposures over the camera's range,
@@ -369,9 +371,13 @@ fn hil_means(args: &FitArgs) -> anyhow::Result<Vec<regularised::MeanImage>> {
         })
         .collect();
     let mut avg = regularised::Averager::new();
-    crate::sim::hil::station_frames_each(&site, args.seed, &site.site.lighting, &exposures, |f| {
-        avg.push(f).map_err(anyhow::Error::from)
-    })?;
+    crate::sim::hil::station_frames_each::<anyhow::Error>(
+        &site,
+        args.seed,
+        &site.site.lighting,
+        &exposures,
+        |f| avg.push(f).map_err(anyhow::Error::from),
+    )?;
     Ok(avg.finish())
 }
 

@@ -19,6 +19,7 @@
 mod exit;
 pub use exit::{ExitPolicy, ExitReport, HandBack, CLOSE_TIMEOUT_S};
 
+use crate::CoreError;
 use std::sync::mpsc::SyncSender;
 
 use markhold_autopilot::{
@@ -517,11 +518,11 @@ impl EngagedLink {
         &self.announcer
     }
 
-    fn say(&mut self, (sev, text): Text) -> anyhow::Result<()> {
+    fn say(&mut self, (sev, text): Text) -> Result<(), CoreError> {
         Ok(self.link.send_statustext(sev, text)?)
     }
 
-    fn apply(&mut self, t: Option<Transition>, now_s: f64) -> anyhow::Result<()> {
+    fn apply(&mut self, t: Option<Transition>, now_s: f64) -> Result<(), CoreError> {
         let Some(t) = t else { return Ok(()) };
         self.transitions.push((now_s, t));
         let text = self.announcer.transition(t, self.mode);
@@ -546,14 +547,14 @@ impl EngagedLink {
     }
 
     /// Disengage for `why` now (the supervisor gave up, markhold stops).
-    pub fn disengage(&mut self, why: Disengage, now_s: f64) -> anyhow::Result<()> {
+    pub fn disengage(&mut self, why: Disengage, now_s: f64) -> Result<(), CoreError> {
         let t = self.engager.disengage(why, now_s);
         self.apply(t, now_s)
     }
 
     /// Release the override after a disengage (nothing when markhold was not
     /// commanding: after a pilot takeover nothing more goes out as SYSID_MYGCS).
-    fn release(&mut self) -> anyhow::Result<()> {
+    fn release(&mut self) -> Result<(), CoreError> {
         if !self.engager.commanding() {
             return Ok(());
         }
@@ -563,7 +564,7 @@ impl EngagedLink {
 
     /// The supervisor's transitions of a frame: announced; giving up on the marker
     /// disengages.
-    pub fn on_events(&mut self, events: &[FailsafeEvent], now_s: f64) -> anyhow::Result<()> {
+    pub fn on_events(&mut self, events: &[FailsafeEvent], now_s: f64) -> Result<(), CoreError> {
         if events
             .iter()
             .any(|e| matches!(e, FailsafeEvent::MarkerLostActionDue { .. }))
@@ -580,7 +581,7 @@ impl EngagedLink {
     }
 
     /// The exposure is (or is no longer) at a camera limit.
-    pub fn exposure_at_limit(&mut self, at_limit: bool, now_s: f64) -> anyhow::Result<()> {
+    pub fn exposure_at_limit(&mut self, at_limit: bool, now_s: f64) -> Result<(), CoreError> {
         match self.announcer.exposure_at_limit(at_limit, now_s) {
             Some(t) => self.say(t),
             None => Ok(()),
@@ -589,7 +590,7 @@ impl EngagedLink {
 
     /// The station keeper's way back toward a marker that slipped out of view runs (or
     /// no longer does); said only while engaged, when it moves the vehicle.
-    pub fn searching(&mut self, on: bool, now_s: f64) -> anyhow::Result<()> {
+    pub fn searching(&mut self, on: bool, now_s: f64) -> Result<(), CoreError> {
         let on = on && self.engager.engaged();
         match self.announcer.searching(on, now_s) {
             Some(t) => self.say(t),
@@ -599,7 +600,7 @@ impl EngagedLink {
 
     /// Station error (metres, yaw degrees) as NAMED_VALUE_FLOAT `mh_err_m` and
     /// `mh_yaw_deg`, at `NAMED_VALUE_HZ` while engaged.
-    pub fn station_error(&mut self, err_m: f64, yaw_deg: f64, now_s: f64) -> anyhow::Result<()> {
+    pub fn station_error(&mut self, err_m: f64, yaw_deg: f64, now_s: f64) -> Result<(), CoreError> {
         if !self.engager.engaged() || !self.announcer.named_value_due(now_s) {
             return Ok(());
         }
@@ -612,7 +613,7 @@ impl EngagedLink {
 }
 
 impl CommandLink for EngagedLink {
-    fn tick(&mut self, now_s: f64) -> anyhow::Result<()> {
+    fn tick(&mut self, now_s: f64) -> Result<(), CoreError> {
         self.link.tick(now_s)?;
         let t = self.engager.observe(self.link.state(), now_s);
         self.apply(t, now_s)?;
@@ -622,7 +623,7 @@ impl CommandLink for EngagedLink {
         Ok(())
     }
 
-    fn send_effort(&mut self, effort: &Effort, now_s: f64) -> anyhow::Result<()> {
+    fn send_effort(&mut self, effort: &Effort, now_s: f64) -> Result<(), CoreError> {
         // While releasing, the neutral sent at the disengage holds (an override stays
         // until released), so nothing more goes out.
         match self.engager.state {
@@ -634,7 +635,7 @@ impl CommandLink for EngagedLink {
         }
     }
 
-    fn send_depth_target(&mut self, down_m: f64, now_s: f64) -> anyhow::Result<()> {
+    fn send_depth_target(&mut self, down_m: f64, now_s: f64) -> Result<(), CoreError> {
         // A command like the effort it goes with: only while engaged.
         if self.engager.state == EngageState::Engaged {
             self.link.send_depth_target(down_m, now_s)?;
@@ -642,7 +643,7 @@ impl CommandLink for EngagedLink {
         Ok(())
     }
 
-    fn send_neutral(&mut self, now_s: f64) -> anyhow::Result<()> {
+    fn send_neutral(&mut self, now_s: f64) -> Result<(), CoreError> {
         match self.engager.state {
             EngageState::Engaged => Ok(self.link.send_neutral(now_s)?),
             _ => {
@@ -657,7 +658,7 @@ impl CommandLink for EngagedLink {
         meas: Option<&markhold_autopilot::VisionPose>,
         goal: &nalgebra::Isometry3<f64>,
         now_s: f64,
-    ) -> anyhow::Result<()> {
+    ) -> Result<(), CoreError> {
         match self.engager.state {
             EngageState::Engaged => Ok(self.link.send_setpoint(meas, goal, now_s)?),
             _ => {
@@ -680,12 +681,12 @@ impl CommandLink for EngagedLink {
         Some(self.link.state())
     }
 
-    fn request_mode(&mut self, mode: ArduSubMode, now_s: f64) -> anyhow::Result<()> {
+    fn request_mode(&mut self, mode: ArduSubMode, now_s: f64) -> Result<(), CoreError> {
         self.engager.own_mode_request(mode, now_s);
         Ok(self.link.request_mode(mode, now_s)?)
     }
 
-    fn request_arm(&mut self, arm: bool, now_s: f64) -> anyhow::Result<()> {
+    fn request_arm(&mut self, arm: bool, now_s: f64) -> Result<(), CoreError> {
         Ok(self.link.request_arm(arm, now_s)?)
     }
 

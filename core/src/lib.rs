@@ -33,6 +33,7 @@ pub fn print_report(args: std::fmt::Arguments<'_>) {
 
 pub mod control;
 pub mod engage;
+pub mod error;
 pub mod feasibility;
 pub mod observe;
 pub mod params;
@@ -41,10 +42,17 @@ pub mod record;
 pub mod signal;
 pub mod web;
 
+pub use error::CoreError;
+
 /// Write `value` as pretty JSON to `path`: the `--summary` file of every command.
-pub fn write_summary(path: &std::path::Path, value: &impl serde::Serialize) -> anyhow::Result<()> {
-    use anyhow::Context;
+pub fn write_summary(
+    path: &std::path::Path,
+    value: &impl serde::Serialize,
+) -> Result<(), CoreError> {
     let json = serde_json::to_string_pretty(value)?;
-    std::fs::write(path, json + "\n")
-        .with_context(|| format!("writing --summary {}", path.display()))
+    std::fs::write(path, json + "\n").map_err(|source| CoreError::File {
+        action: "writing --summary",
+        path: path.to_path_buf(),
+        source,
+    })
 }

@@ -6,6 +6,7 @@
 mod failsafe;
 mod observer;
 
+use crate::CoreError;
 use std::sync::mpsc::SyncSender;
 use std::time::Instant;
 
@@ -53,11 +54,11 @@ pub struct FrameRecord {
 /// keeps them.
 pub trait CommandLink {
     /// Drive the link at loop time `now_s` (heartbeats, incoming telemetry).
-    fn tick(&mut self, now_s: f64) -> anyhow::Result<()>;
+    fn tick(&mut self, now_s: f64) -> Result<(), CoreError>;
     /// Send this frame's effort.
-    fn send_effort(&mut self, effort: &Effort, now_s: f64) -> anyhow::Result<()>;
+    fn send_effort(&mut self, effort: &Effort, now_s: f64) -> Result<(), CoreError>;
     /// Send neutral pilot input (on exit, on failsafe).
-    fn send_neutral(&mut self, now_s: f64) -> anyhow::Result<()>;
+    fn send_neutral(&mut self, now_s: f64) -> Result<(), CoreError>;
     /// Setpoint mode: this frame's vehicle pose with its covariance (none when the
     /// marker was not seen) and the goal, both in the marker frame. A link without a
     /// vehicle (replay's sink) keeps nothing.
@@ -66,12 +67,12 @@ pub trait CommandLink {
         _meas: Option<&VisionPose>,
         _goal: &Isometry3<f64>,
         _now_s: f64,
-    ) -> anyhow::Result<()> {
+    ) -> Result<(), CoreError> {
         Ok(())
     }
     /// ALT_HOLD's depth target (metres down in the vehicle's local frame), sent after
     /// this frame's effort; a link without a vehicle keeps nothing.
-    fn send_depth_target(&mut self, _down_m: f64, _now_s: f64) -> anyhow::Result<()> {
+    fn send_depth_target(&mut self, _down_m: f64, _now_s: f64) -> Result<(), CoreError> {
         Ok(())
     }
     /// Loop time of the vehicle's last heartbeat, if one was heard.
@@ -82,11 +83,11 @@ pub trait CommandLink {
     }
     /// Ask the vehicle for a flight mode (acknowledged and retried by a real link; a sink
     /// has no vehicle and ignores it).
-    fn request_mode(&mut self, _mode: ArduSubMode, _now_s: f64) -> anyhow::Result<()> {
+    fn request_mode(&mut self, _mode: ArduSubMode, _now_s: f64) -> Result<(), CoreError> {
         Ok(())
     }
     /// Ask the vehicle to arm or disarm (acknowledged and retried by a real link).
-    fn request_arm(&mut self, _arm: bool, _now_s: f64) -> anyhow::Result<()> {
+    fn request_arm(&mut self, _arm: bool, _now_s: f64) -> Result<(), CoreError> {
         Ok(())
     }
     /// Copy every MAVLink frame sent and received to `tap` (a recorder); a link without
@@ -95,16 +96,16 @@ pub trait CommandLink {
 }
 
 impl CommandLink for VehicleLink {
-    fn tick(&mut self, now_s: f64) -> anyhow::Result<()> {
+    fn tick(&mut self, now_s: f64) -> Result<(), CoreError> {
         Ok(VehicleLink::tick(self, now_s)?)
     }
-    fn send_effort(&mut self, effort: &Effort, now_s: f64) -> anyhow::Result<()> {
+    fn send_effort(&mut self, effort: &Effort, now_s: f64) -> Result<(), CoreError> {
         Ok(VehicleLink::send_effort(self, effort, now_s)?)
     }
-    fn send_neutral(&mut self, now_s: f64) -> anyhow::Result<()> {
+    fn send_neutral(&mut self, now_s: f64) -> Result<(), CoreError> {
         Ok(VehicleLink::send_neutral(self, now_s)?)
     }
-    fn send_depth_target(&mut self, down_m: f64, now_s: f64) -> anyhow::Result<()> {
+    fn send_depth_target(&mut self, down_m: f64, now_s: f64) -> Result<(), CoreError> {
         VehicleLink::send_depth_target(self, down_m, now_s)?;
         Ok(())
     }
@@ -113,7 +114,7 @@ impl CommandLink for VehicleLink {
         meas: Option<&VisionPose>,
         goal: &Isometry3<f64>,
         now_s: f64,
-    ) -> anyhow::Result<()> {
+    ) -> Result<(), CoreError> {
         Ok(VehicleLink::send_setpoint(self, meas, goal, now_s)?)
     }
     fn vehicle_heartbeat_s(&self) -> Option<f64> {
@@ -122,10 +123,10 @@ impl CommandLink for VehicleLink {
     fn vehicle_state(&self) -> Option<&VehicleState> {
         Some(self.state())
     }
-    fn request_mode(&mut self, mode: ArduSubMode, now_s: f64) -> anyhow::Result<()> {
+    fn request_mode(&mut self, mode: ArduSubMode, now_s: f64) -> Result<(), CoreError> {
         Ok(VehicleLink::request_mode(self, mode, now_s)?)
     }
-    fn request_arm(&mut self, arm: bool, now_s: f64) -> anyhow::Result<()> {
+    fn request_arm(&mut self, arm: bool, now_s: f64) -> Result<(), CoreError> {
         Ok(VehicleLink::request_arm(self, arm, now_s)?)
     }
     fn set_raw_tap(&mut self, tap: Option<SyncSender<RawFrame>>) {
@@ -208,7 +209,7 @@ impl<L: CommandLink> Pipeline<L> {
         start: LoopStart,
         mut link: L,
         observers: Observers,
-    ) -> anyhow::Result<Self> {
+    ) -> Result<Self, CoreError> {
         let s = &site.site;
         let calib = &site.calibration;
         let limits = site.limits();
@@ -321,7 +322,7 @@ impl<L: CommandLink> Pipeline<L> {
     }
 
     /// Finish every observer (recording closed, trace flushed): the first error.
-    pub fn finish_observers(&mut self) -> anyhow::Result<()> {
+    pub fn finish_observers(&mut self) -> Result<(), CoreError> {
         self.observers.finish()
     }
 
@@ -334,7 +335,7 @@ impl<L: CommandLink> Pipeline<L> {
         effort: Effort,
         vision: Option<&VisionPose>,
         now_s: f64,
-    ) -> anyhow::Result<(Directive, Effort)> {
+    ) -> Result<(Directive, Effort), CoreError> {
         Ok(match directive {
             Directive::Command if self.setpoint => {
                 let goal = self.keeper.t_marker_vehicle_goal();
@@ -369,7 +370,7 @@ impl<L: CommandLink> Pipeline<L> {
     /// `now_s` (the last frame's stamp plus the time waited) so the vision-stall failsafe
     /// can act, and send what it allows. Returns the directive; the frame-dependent parts
     /// (keeper, exposure) do not run.
-    pub fn tick_without_frame(&mut self, now_s: f64) -> anyhow::Result<Directive> {
+    pub fn tick_without_frame(&mut self, now_s: f64) -> Result<Directive, CoreError> {
         self.link.tick(now_s)?;
         self.events.clear();
         let directive = self.supervisor.update(
@@ -402,7 +403,7 @@ impl<L: CommandLink> Pipeline<L> {
     }
 
     /// Run one frame through the loop.
-    pub fn step(&mut self, camera: &mut dyn Camera) -> anyhow::Result<FrameRecord> {
+    pub fn step(&mut self, camera: &mut dyn Camera) -> Result<FrameRecord, CoreError> {
         camera.grab(&mut self.frame)?;
         let t0 = Instant::now();
         let stamp = self.frame.meta.stamp_s;

@@ -4,5 +4,8 @@
 //! It builds on `markhold-core` and imports no simulation code.
 
 pub mod camera;
+pub mod error;
 pub mod preflight;
 pub mod run;
+
+pub use error::FieldError;

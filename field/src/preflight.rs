@@ -6,6 +6,7 @@
 //! The wall clock bounds the waits here (start-up, before the loop); loop time for the
 //! link is the first frame's stamp plus the time waited.
 
+use crate::error::{FieldError, StartupError};
 use std::fmt::Write as _;
 use std::time::{Duration, Instant};
 
@@ -544,13 +545,15 @@ pub fn preflight(
     url: Option<&str>,
     heartbeat_timeout_s: f64,
     stop: &ShutdownFlag,
-) -> anyhow::Result<Checklist> {
+) -> Result<Checklist, FieldError> {
     let mut cfg = site.site.link.clone();
     if let Some(u) = url {
         cfg.url = u.to_string();
     }
-    let mut link = VehicleLink::connect(&cfg)
-        .map_err(|e| anyhow::anyhow!("link {}: cannot open it: {e}", cfg.url))?;
+    let mut link = VehicleLink::connect(&cfg).map_err(|e| StartupError::Link {
+        url: cfg.url.clone(),
+        reason: e.to_string(),
+    })?;
     // Only parameter traffic: no pilot input at all.
     link.set_pilot_keepalive(false);
     let started = Instant::now();
@@ -560,12 +563,13 @@ pub fn preflight(
         if link.state().last_heartbeat_s.is_some() {
             break;
         }
-        anyhow::ensure!(
-            started.elapsed() < timeout && !stop.is_set(),
-            "link {}: no vehicle heartbeat within {heartbeat_timeout_s} s (is the vehicle on, \
-             and this the right address/port?)",
-            cfg.url
-        );
+        if started.elapsed() >= timeout || stop.is_set() {
+            return Err(StartupError::NoHeartbeat {
+                url: cfg.url,
+                timeout_s: heartbeat_timeout_s,
+            }
+            .into());
+        }
         std::thread::sleep(Duration::from_millis(10));
     }
     Ok(check(

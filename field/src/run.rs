@@ -16,6 +16,9 @@ use super::camera::{open_camera, CameraUrl, FrameAge, LiveCamera};
 use super::preflight::{self, Checklist};
 pub use markhold_core::engage::HandBack;
 use markhold_core::engage::{EngagedLink, ExitPolicy, ExitReport, Transition};
+use markhold_core::error::{Chain, CoreError};
+
+use crate::FieldError;
 use markhold_core::observe::{Snapshots, StatusBoard, TraceWriter};
 use markhold_core::params::LoadedSite;
 use markhold_core::pipeline::{CommandLink, LoopStart, Observers, Pipeline};
@@ -269,11 +272,8 @@ fn open_link(
     Ok(link)
 }
 
-fn is_end_of_stream(e: &anyhow::Error) -> bool {
-    matches!(
-        e.downcast_ref::<CameraError>(),
-        Some(CameraError::EndOfStream { .. })
-    )
+fn is_end_of_stream(e: &CoreError) -> bool {
+    matches!(e.camera(), Some(CameraError::EndOfStream { .. }))
 }
 
 /// The observers, the recording's counters, the live view's address and the web page's
@@ -385,14 +385,14 @@ fn files(opts: &RunOptions, list: &mut Observers) -> Result<(), StartupError> {
     if let Some(p) = &opts.trace {
         let t = TraceWriter::create(p).map_err(|e| StartupError::Output {
             flag: "--trace",
-            reason: format!("{e:#}"),
+            reason: Chain(&e).to_string(),
         })?;
         list.push(t);
     }
     if let Some(dir) = &opts.frames_dir {
         let s = Snapshots::create(dir, opts.frames_every).map_err(|e| StartupError::Output {
             flag: "--record-frames",
-            reason: format!("{e:#}"),
+            reason: Chain(&e).to_string(),
         })?;
         list.push(s);
     }
@@ -405,7 +405,7 @@ pub fn build_loop<L: CommandLink>(
     site: &LoadedSite,
     link: L,
     observers: Observers,
-) -> anyhow::Result<Pipeline<L>> {
+) -> Result<Pipeline<L>, CoreError> {
     Pipeline::new(site, LoopStart::of_site(site), link, observers)
 }
 
@@ -418,7 +418,7 @@ pub const RATE_WINDOW_S: f64 = 2.0;
 pub const TEST_DELAY_ENV: &str = "MARKHOLD_TEST_LOOP_DELAY_MS";
 
 /// The test-only delay per frame from [`TEST_DELAY_ENV`] (at most 1 s), if set.
-fn test_delay() -> anyhow::Result<Option<Duration>> {
+fn test_delay() -> Result<Option<Duration>, FieldError> {
     let Ok(v) = std::env::var(TEST_DELAY_ENV) else {
         return Ok(None);
     };
@@ -427,7 +427,11 @@ fn test_delay() -> anyhow::Result<Option<Duration>> {
         .parse()
         .ok()
         .filter(|ms| *ms <= 1000)
-        .ok_or_else(|| anyhow::anyhow!("{TEST_DELAY_ENV}={v}: expected milliseconds 0..=1000"))?;
+        .ok_or_else(|| FieldError::Env {
+            name: TEST_DELAY_ENV,
+            value: v.clone(),
+            expected: "milliseconds 0..=1000",
+        })?;
     Ok(Some(Duration::from_millis(ms)))
 }
 
@@ -506,7 +510,7 @@ fn tell_pilot(
     rec: Option<&markhold_core::pipeline::FrameRecord>,
     now_s: f64,
     events: &mut Vec<FailsafeEvent>,
-) -> anyhow::Result<()> {
+) -> Result<(), FieldError> {
     // A copy into a buffer kept across frames (no allocation): the link is borrowed
     // mutably while the events are read.
     events.clear();
@@ -564,7 +568,7 @@ fn drive(
     n: &mut Counts,
     rate: &mut RateWatch,
     delay: Option<Duration>,
-) -> anyhow::Result<StopReason> {
+) -> Result<StopReason, FieldError> {
     let started = Instant::now();
     let stall_exit = Duration::from_secs_f64(site.site.camera.stall_exit_s);
     // Without frames the loop ticks no faster than the link's pilot-input rate, so the
@@ -628,7 +632,12 @@ fn drive(
                 continue;
             }
             Err(e) if is_end_of_stream(&e) => return Ok(StopReason::EndOfStream),
-            Err(e) => return Err(e.context(format!("frame {}", n.frames))),
+            Err(source) => {
+                return Err(FieldError::Frame {
+                    frame: n.frames,
+                    source: Box::new(source),
+                })
+            }
         };
         last_idle_s = None;
         said_stall = false;
@@ -678,7 +687,7 @@ fn exit_budget(site: &LoadedSite) -> Duration {
 }
 
 /// Says which stream decoder runs, and the test-only delay when set; returns the delay.
-fn say_decoder_and_delay(cam: &LiveCamera) -> anyhow::Result<Option<Duration>> {
+fn say_decoder_and_delay(cam: &LiveCamera) -> Result<Option<Duration>, FieldError> {
     if let Some(d) = cam.decoder() {
         eprintln!("markhold run: stream decoder {d}");
     }
@@ -720,11 +729,11 @@ pub fn run_live(
     site: &LoadedSite,
     opts: &RunOptions,
     stop: &ShutdownFlag,
-) -> anyhow::Result<RunReport> {
+) -> Result<RunReport, FieldError> {
     let start = LoopStart::of_site(site);
     let (mut observers, record_stats, foxglove_addr, board) = observers(site, opts, &start)?;
     let mut checklist = None;
-    let started = (|| -> anyhow::Result<(LiveCamera, VehicleLink)> {
+    let started = (|| -> Result<(LiveCamera, VehicleLink), FieldError> {
         let cam = open_camera(
             site,
             &opts.camera,
@@ -812,7 +821,7 @@ pub fn run_live(
         loop_seconds,
         stopped_by,
         record: record_stats.map(|h| h.get()),
-        record_error: observers_done.err().map(|e| format!("{e:#}")),
+        record_error: observers_done.err().map(|e| Chain(&e).to_string()),
         foxglove_addr,
         vision_stalls: n.vision_stalls,
         disarm,

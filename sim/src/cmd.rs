@@ -1,9 +1,9 @@
 //! The simulator's commands: `hil` (the loop against the simulated world, or the
 //! simulated camera on an external vehicle) and `sitl` (ArduPilot's JSON physics).
 
+use crate::error::{ensure, FileContext, SimError, StepContext};
 use std::path::PathBuf;
 
-use anyhow::Context;
 use markhold_exposure::ExposureMethod;
 use markhold_hil::camera::RenderLoops;
 use markhold_hil::scene::LightingScenario;
@@ -124,19 +124,21 @@ pub struct HilArgs {
     pub camera_delay_frames: Option<u32>,
 }
 
-pub fn sitl(args: SitlArgs) -> anyhow::Result<()> {
+pub fn sitl(args: SitlArgs) -> Result<(), SimError> {
     let site = params::load(&args.site)?;
     let cfg = markhold_hil::SitlConfig {
         bind_ip: args.bind,
         port: args.port,
     };
     if let Err(e) = cfg.validate() {
-        anyhow::bail!("--port {}: {e}", args.port);
+        return Err(SimError::Usage {
+            reason: format!("--port {}: {e}", args.port),
+        });
     }
     // The vehicle starts on station, in front of the marker.
     let start = site.t_world_marker() * site.site.station.t_marker_vehicle();
     let mut server = markhold_hil::SitlServer::bind(&cfg, &site.site.vehicle, &start, args.seed)
-        .with_context(|| {
+        .step(|| {
             format!(
                 "binding the SITL JSON server on {}:{}",
                 args.bind, args.port
@@ -206,33 +208,47 @@ pub fn sim_vehicle_hint(addr: std::net::SocketAddr) -> String {
 }
 
 /// `markhold hil`: check the options, attach the observers asked for, run, report.
-pub fn hil(args: HilArgs) -> anyhow::Result<()> {
+pub fn hil(args: HilArgs) -> Result<(), SimError> {
     let site = params::load(&args.site)?;
     let start = super::hil::start_in_marker(&site.site, site.site.vehicle.initial_offset_m);
     markhold_core::feasibility::warn_site(&site, Some(&start));
     super::hil::check_start(&site)?;
-    anyhow::ensure!(
+    ensure(
         args.seconds > 0.0 && args.seconds <= super::summary::MAX_SECONDS,
-        "--seconds {}: expected a positive number of simulated seconds, at most {} (a day)",
-        args.seconds,
-        super::summary::MAX_SECONDS
-    );
+        || SimError::Usage {
+            reason: format!(
+                "--seconds {}: expected a positive number of simulated seconds, at most {} (a day)",
+                args.seconds,
+                super::summary::MAX_SECONDS
+            ),
+        },
+    )?;
     if let Some(v) = args.initial_exposure_us {
         params::check_initial_exposure(&site.site, v)?;
     }
-    anyhow::ensure!(
-        args.record.is_none() || args.vehicle.is_none(),
-        "--record with --vehicle is not supported: record a simulated run, or use `markhold run`"
-    );
-    anyhow::ensure!(
-        !args.foxglove || args.vehicle.is_none(),
-        "--foxglove with --vehicle is not supported: watch a simulated run, or use `markhold run`"
-    );
-    anyhow::ensure!(
+    ensure(args.record.is_none() || args.vehicle.is_none(), || {
+        SimError::Usage {
+            reason: "--record with --vehicle is not supported: \
+                     record a simulated run, or use `markhold run`"
+                .into(),
+        }
+    })?;
+    ensure(!args.foxglove || args.vehicle.is_none(), || {
+        SimError::Usage {
+            reason: "--foxglove with --vehicle is not supported: \
+                     watch a simulated run, or use `markhold run`"
+                .into(),
+        }
+    })?;
+    ensure(
         args.camera_transport == crate::stream::CameraTransport::InProcess
             || args.vehicle.is_none(),
-        "--camera-transport h264-rtp with --vehicle is not supported: the stream carries the simulated camera"
-    );
+        || SimError::Usage {
+            reason: "--camera-transport h264-rtp with --vehicle is not supported: the stream \
+                         carries the simulated camera"
+                .into(),
+        },
+    )?;
     let opts = HilOptions {
         seconds: args.seconds,
         seed: args.seed,
@@ -249,8 +265,7 @@ pub fn hil(args: HilArgs) -> anyhow::Result<()> {
         ..HilOptions::default()
     };
     if let Some(dir) = &args.plots {
-        std::fs::create_dir_all(dir)
-            .with_context(|| format!("creating --plots {}", dir.display()))?;
+        std::fs::create_dir_all(dir).file("creating --plots", dir)?;
     }
     let observers = hil_observers(&args, &site, &opts)?;
     let summary = match &args.vehicle {
@@ -276,7 +291,7 @@ fn hil_observers(
     args: &HilArgs,
     site: &params::LoadedSite,
     opts: &HilOptions,
-) -> anyhow::Result<Observers> {
+) -> Result<Observers, SimError> {
     let frames = (args.seconds * site.site.camera.fps).round() as u64;
     let mut list = Observers::new().with(Progress::new(frames, args.quiet));
     if let Some(p) = &args.trace {
@@ -296,7 +311,7 @@ fn hil_observers(
     if let (true, Some(r)) = (args.foxglove, recorder.as_mut()) {
         let port = r
             .serve_live_on(args.foxglove_bind, args.foxglove_port, &site.site.live)
-            .with_context(|| format!("--foxglove-port {}", args.foxglove_port))?;
+            .step(|| format!("--foxglove-port {}", args.foxglove_port))?;
         eprintln!(
             "markhold: Foxglove live view on ws://{}",
             std::net::SocketAddr::new(args.foxglove_bind, port)

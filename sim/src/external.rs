@@ -8,7 +8,7 @@
 
 use std::time::{Duration, Instant};
 
-use anyhow::Context;
+use crate::error::{ensure, SimError, StepContext};
 use markhold_autopilot::{VehicleLink, VehicleState};
 use markhold_exposure::{Camera, CameraError, ExposureLimits, Frame};
 use markhold_hil::camera::UnderwaterCamera;
@@ -116,14 +116,16 @@ impl Camera for ExternalCamera {
 }
 
 /// Wait (bounded) for the vehicle's heartbeat, position and attitude.
-fn wait_for_pose(link: &mut VehicleLink, started: Instant) -> anyhow::Result<Isometry3<f64>> {
+fn wait_for_pose(link: &mut VehicleLink, started: Instant) -> Result<Isometry3<f64>, SimError> {
     let deadline = started + Duration::from_secs(15);
     while Instant::now() < deadline {
         link.tick(started.elapsed().as_secs_f64())?;
         if !link.state().discovered {
             // Refused, no such device: nothing to wait for.
             if let Some(e) = link.transport_error() {
-                anyhow::bail!("the vehicle link: {e}");
+                return Err(SimError::Run {
+                    reason: format!("the vehicle link: {e}"),
+                });
             }
         }
         if let Some(p) = pose_from_telemetry(link.state()) {
@@ -134,13 +136,15 @@ fn wait_for_pose(link: &mut VehicleLink, started: Instant) -> anyhow::Result<Iso
         std::thread::sleep(Duration::from_millis(10));
     }
     let s = link.state();
-    anyhow::bail!(
-        "no pose from the vehicle within 15 s (heartbeat: {}, LOCAL_POSITION_NED: {}, ATTITUDE: {}): \
-         is it running, and does it have a position estimate?",
-        s.discovered,
-        s.local_position.is_some(),
-        s.attitude.is_some()
-    )
+    Err(SimError::Run {
+        reason: format!(
+            "no pose from the vehicle within 15 s (heartbeat: {}, LOCAL_POSITION_NED: {}, \
+             ATTITUDE: {}): is it running, and does it have a position estimate?",
+            s.discovered,
+            s.local_position.is_some(),
+            s.attitude.is_some()
+        ),
+    })
 }
 
 /// The loop of an external-vehicle run: the HIL run's start, the vehicle's link.
@@ -149,8 +153,13 @@ pub fn build_loop<L: CommandLink>(
     opts: &HilOptions,
     link: L,
     observers: Observers,
-) -> anyhow::Result<Pipeline<L>> {
-    Pipeline::new(site, loop_start(site, opts), link, observers)
+) -> Result<Pipeline<L>, SimError> {
+    Ok(Pipeline::new(
+        site,
+        loop_start(site, opts),
+        link,
+        observers,
+    )?)
 }
 
 /// Run the loop against an external vehicle for `opts.seconds` of its real time.
@@ -159,13 +168,13 @@ pub fn run_external(
     url: &str,
     opts: &HilOptions,
     observers: Observers,
-) -> anyhow::Result<Summary> {
+) -> Result<Summary, SimError> {
     let s = &site.site;
     let started = Instant::now();
     let mut link_cfg = s.link.clone();
     link_cfg.url = url.to_string();
-    let mut link = VehicleLink::connect(&link_cfg)
-        .with_context(|| format!("connecting to the vehicle at {url}"))?;
+    let mut link =
+        VehicleLink::connect(&link_cfg).step(|| format!("connecting to the vehicle at {url}"))?;
     // No pilot input before the engagement (it engages once armed, below).
     link.set_pilot_keepalive(false);
     let t_world_vehicle0 = wait_for_pose(&mut link, started)?;
@@ -205,10 +214,9 @@ pub fn run_external(
     link.request_arm(true, now)?;
     let deadline = Instant::now() + Duration::from_secs(10);
     while !(link.state().armed && link.state().mode == Some(mode)) {
-        anyhow::ensure!(
-            Instant::now() < deadline,
-            "the vehicle at {url} did not arm in {mode:?} within 10 s"
-        );
+        ensure(Instant::now() < deadline, || SimError::Run {
+            reason: format!("the vehicle at {url} did not arm in {mode:?} within 10 s"),
+        })?;
         link.tick(started.elapsed().as_secs_f64())?;
         std::thread::sleep(Duration::from_millis(10));
     }
@@ -227,7 +235,7 @@ pub fn run_external(
     cam.started = Instant::now();
     let mut interrupted = false;
     let mut last_stamp = 0.0;
-    let looped = (|| -> anyhow::Result<()> {
+    let looped = (|| -> Result<(), SimError> {
         while cam.frames < frames && !interrupted {
             if opts.stop.as_ref().is_some_and(|s| s.is_set()) {
                 // This frame sends neutral input and is the last.

@@ -5,7 +5,7 @@ use std::time::{Duration, Instant};
 
 use std::path::Path;
 
-use anyhow::Context;
+use crate::error::{ensure, SimError, StepContext};
 use markhold_autopilot::{ArduSubMode, VehicleLink};
 use markhold_exposure::{Camera, ExposureMethod};
 use markhold_hil::camera::{CameraModel, RenderLoops};
@@ -167,10 +167,10 @@ pub fn camera_model(site: &LoadedSite, limits: markhold_exposure::ExposureLimits
 }
 
 /// The site's marker as printed (from the dictionary), for rendering.
-pub fn marker_spec(site: &LoadedSite) -> anyhow::Result<MarkerSpec> {
+pub fn marker_spec(site: &LoadedSite) -> Result<MarkerSpec, SimError> {
     let m = &site.site.marker;
-    let bitmap = marker_bitmap(m.family, m.id)
-        .with_context(|| format!("marker {} id {}", m.family, m.id))?;
+    let bitmap =
+        marker_bitmap(m.family, m.id).step(|| format!("marker {} id {}", m.family, m.id))?;
     Ok(MarkerSpec {
         cells: bitmap.cells,
         white: bitmap.white,
@@ -181,13 +181,13 @@ pub fn marker_spec(site: &LoadedSite) -> anyhow::Result<MarkerSpec> {
 
 /// The map's other markers as printed, each with its pose in the site frame, for
 /// rendering (empty for a map of one).
-pub fn map_specs(site: &LoadedSite) -> anyhow::Result<Vec<(MarkerSpec, Isometry3<f64>)>> {
+pub fn map_specs(site: &LoadedSite) -> Result<Vec<(MarkerSpec, Isometry3<f64>)>, SimError> {
     let m = &site.site.marker;
     m.map
         .iter()
         .map(|e| {
             let bitmap = marker_bitmap(m.family, e.id)
-                .with_context(|| format!("marker.map: marker {} id {}", m.family, e.id))?;
+                .step(|| format!("marker.map: marker {} id {}", m.family, e.id))?;
             let spec = MarkerSpec {
                 cells: bitmap.cells,
                 white: bitmap.white,
@@ -206,7 +206,7 @@ pub fn site_scene(
     lighting: &LightingConfig,
     t_world_marker: Isometry3<f64>,
     seed: u64,
-) -> anyhow::Result<markhold_hil::scene::Scene> {
+) -> Result<markhold_hil::scene::Scene, SimError> {
     let s = &site.site;
     let mut scene = markhold_hil::scene::Scene::new(
         &s.water,
@@ -275,7 +275,7 @@ impl HilRun {
         site: &LoadedSite,
         opts: &HilOptions,
         observers: Observers,
-    ) -> anyhow::Result<Self> {
+    ) -> Result<Self, SimError> {
         let s = &site.site;
         let start = loop_start(site, opts);
         let method = start.method;
@@ -289,10 +289,11 @@ impl HilRun {
             model.delay_frames = d;
         }
         let stream_transport = opts.camera_transport == super::stream::CameraTransport::H264Rtp;
-        anyhow::ensure!(
-            !stream_transport || opts.faults.is_empty(),
-            "--camera-transport h264-rtp with --fault is not supported"
-        );
+        ensure(!stream_transport || opts.faults.is_empty(), || {
+            SimError::Usage {
+                reason: "--camera-transport h264-rtp with --fault is not supported".to_string(),
+            }
+        })?;
         let t_marker_station = s.station.t_marker_vehicle();
         let t_world_marker = site.t_world_marker();
         let setup = HilSetup {
@@ -317,7 +318,7 @@ impl HilRun {
             seed: opts.seed,
             lock_step: true,
         };
-        let mut rig = HilRig::new(setup).context("building the HIL world")?;
+        let mut rig = HilRig::new(setup).step(|| "building the HIL world".to_string())?;
         if s.link.command == markhold_autopilot::CommandKind::Setpoint {
             // The vehicle checks each vision estimate's covariance against the truth in
             // the estimates' frame L (docs/frames.md).
@@ -365,7 +366,8 @@ impl HilRun {
 
         let mut link_cfg = s.link.clone();
         link_cfg.url = format!("udpout:{vehicle_addr}");
-        let link = VehicleLink::connect(&link_cfg).context("connecting to the HIL vehicle")?;
+        let link =
+            VehicleLink::connect(&link_cfg).step(|| "connecting to the HIL vehicle".to_string())?;
         let pipeline = Pipeline::new(site, start, link, observers)?;
         Ok(Self {
             rig,
@@ -384,7 +386,7 @@ impl HilRun {
     /// wall-clock deadline: it waits on sockets, not on simulated time.
     /// GUIDED needs a position estimate first: the vehicle is armed in its own mode and
     /// GUIDED requested after the first vision estimate went out.
-    pub fn arm(&mut self, mode: ArduSubMode) -> anyhow::Result<()> {
+    pub fn arm(&mut self, mode: ArduSubMode) -> Result<(), SimError> {
         let link = self.pipeline.link_mut();
         if mode == ArduSubMode::Guided {
             self.guided_after_vision = true;
@@ -407,12 +409,13 @@ impl HilRun {
             }
             std::thread::sleep(Duration::from_millis(2));
         }
-        match link.signing_diagnosis() {
-            Some(why) => anyhow::bail!("the HIL vehicle did not arm within 5 s: {why}"),
-            None => anyhow::bail!(
-                "the HIL vehicle did not arm within 5 s (no COMMAND_ACK over loopback UDP)"
-            ),
-        }
+        Err(SimError::Run {
+            reason: match link.signing_diagnosis() {
+                Some(why) => format!("the HIL vehicle did not arm within 5 s: {why}"),
+                None => "the HIL vehicle did not arm within 5 s (no COMMAND_ACK over loopback UDP)"
+                    .to_string(),
+            },
+        })
     }
 
     /// NEES of the vision estimates the simulated vehicle has graded so far (setpoint
@@ -423,7 +426,7 @@ impl HilRun {
     }
 
     /// One frame of the loop, with the world's truth after it.
-    pub fn step(&mut self) -> anyhow::Result<(FrameRecord, Truth)> {
+    pub fn step(&mut self) -> Result<(FrameRecord, Truth), SimError> {
         if self.guided_after_vision && self.pipeline.link().vision_estimates().0 > 0 {
             let now_s = self.rig.sim_time_s();
             self.pipeline
@@ -469,7 +472,7 @@ fn fault_rig(
     initial_us: f64,
     t_world_marker: Isometry3<f64>,
     t_marker_station: Isometry3<f64>,
-) -> anyhow::Result<FaultRig> {
+) -> Result<FaultRig, SimError> {
     let plan = FaultPlan {
         specs: opts.faults.clone(),
         seed: opts.seed,
@@ -487,12 +490,14 @@ fn fault_rig(
     for spec in plan.specs.iter().filter(|s| s.kind == FaultKind::Occlude) {
         if let Some(id) = spec.marker.filter(|id| covers.iter().all(|c| c.id != *id)) {
             let ids: Vec<String> = covers.iter().map(|c| c.id.to_string()).collect();
-            anyhow::bail!(
-                "--fault occlude:{id}@{}: marker {id} is not in {}'s map (marker ids {})",
-                spec.start_s,
-                site.path.display(),
-                ids.join(", ")
-            );
+            return Err(SimError::Usage {
+                reason: format!(
+                    "--fault occlude:{id}@{}: marker {id} is not in {}'s map (marker ids {})",
+                    spec.start_s,
+                    site.path.display(),
+                    ids.join(", ")
+                ),
+            });
         }
     }
     let cam = rig.camera_model();
@@ -523,7 +528,7 @@ pub fn run_hil(
     site: &LoadedSite,
     opts: &HilOptions,
     observers: Observers,
-) -> anyhow::Result<Summary> {
+) -> Result<Summary, SimError> {
     let wall = Instant::now();
     let mut run = HilRun::build(site, opts, observers)?;
     run.arm(site.site.link.mode.ardusub())?;
@@ -532,7 +537,7 @@ pub fn run_hil(
     let mut interrupted = false;
     let stepped = (0..frames).try_for_each(|_| {
         if interrupted {
-            return anyhow::Ok(());
+            return Ok::<(), SimError>(());
         }
         if opts.stop.as_ref().is_some_and(|s| s.is_set()) {
             // This frame sends neutral input (the supervisor's shutdown directive) and
@@ -542,7 +547,7 @@ pub fn run_hil(
         }
         let (rec, truth) = run.step()?;
         stats.push(&rec, &truth);
-        anyhow::Ok(())
+        Ok::<(), SimError>(())
     });
     // Leave the vehicle with neutral pilot input, and close the observers (a recording
     // is finalized), also after an error.
@@ -568,7 +573,7 @@ pub fn write_plots_of(
     opts: &HilOptions,
     stats: &RunStats,
     summary: &Summary,
-) -> anyhow::Result<()> {
+) -> Result<(), SimError> {
     let Some(dir) = &opts.plots_dir else {
         return Ok(());
     };
@@ -580,7 +585,7 @@ pub fn write_plots_of(
         marker_size_m: site.site.marker.size_m,
     };
     super::run_plots::write_run_plots(stats, &info, dir)
-        .with_context(|| format!("writing --plots {}", dir.display()))?;
+        .step(|| format!("writing --plots {}", dir.display()))?;
     Ok(())
 }
 
@@ -631,8 +636,10 @@ pub fn exposure_sweep(
     site: &LoadedSite,
     seed: u64,
     steps: usize,
-) -> anyhow::Result<Vec<markhold_exposure::Frame>> {
-    anyhow::ensure!(steps >= 2, "--steps {steps}: expected 2 or more exposures");
+) -> Result<Vec<markhold_exposure::Frame>, SimError> {
+    ensure(steps >= 2, || SimError::Usage {
+        reason: format!("--steps {steps}: expected 2 or more exposures"),
+    })?;
     let limits = site.limits();
     let (lo, hi) = (limits.min_us, limits.effective_max_us());
     let exposures: Vec<f64> = (0..steps)
@@ -649,9 +656,9 @@ pub fn station_frames(
     seed: u64,
     lighting: &LightingConfig,
     exposures: &[f64],
-) -> anyhow::Result<Vec<markhold_exposure::Frame>> {
+) -> Result<Vec<markhold_exposure::Frame>, SimError> {
     let mut out = Vec::with_capacity(exposures.len());
-    station_frames_each(site, seed, lighting, exposures, |f| {
+    station_frames_each::<SimError>(site, seed, lighting, exposures, |f| {
         out.push(f.clone());
         Ok(())
     })?;
@@ -661,13 +668,13 @@ pub fn station_frames(
 /// [`station_frames`] one frame at a time into `each` (nothing kept: a full-size sweep
 /// of hundreds of frames). Consecutive equal exposures give consecutive frames of the
 /// same exposure (the noise and a caustic light change between them).
-pub fn station_frames_each(
+pub fn station_frames_each<E: From<SimError>>(
     site: &LoadedSite,
     seed: u64,
     lighting: &LightingConfig,
     exposures: &[f64],
-    mut each: impl FnMut(&markhold_exposure::Frame) -> anyhow::Result<()>,
-) -> anyhow::Result<()> {
+    mut each: impl FnMut(&markhold_exposure::Frame) -> Result<(), E>,
+) -> Result<(), E> {
     use markhold_hil::camera::UnderwaterCamera;
     let s = &site.site;
     let limits = site.limits();
@@ -675,7 +682,8 @@ pub fn station_frames_each(
     let scene = site_scene(site, lighting, t_world_marker, seed)?;
     let t_world_vehicle = t_world_marker * s.station.t_marker_vehicle();
     let t_world_cam = t_world_vehicle * site.t_vehicle_cam();
-    let mut camera = UnderwaterCamera::new(camera_model(site, limits), seed)?;
+    let mut camera =
+        UnderwaterCamera::new(camera_model(site, limits), seed).map_err(SimError::from)?;
     let dt = 1.0 / s.camera.fps;
     let mut time_s = 0.0;
     let mut frame = markhold_exposure::Frame::new(1, 1);

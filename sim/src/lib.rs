@@ -5,6 +5,7 @@
 pub mod claims;
 pub mod cmd;
 pub mod compare;
+pub mod error;
 pub mod external;
 pub mod faults;
 pub mod hil;
@@ -18,3 +19,5 @@ pub mod sitl_loop;
 pub mod stats;
 pub mod stream;
 pub mod summary;
+
+pub use error::SimError;

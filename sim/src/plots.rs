@@ -6,7 +6,7 @@
 
 use std::path::Path;
 
-use anyhow::Context;
+use crate::error::{SimError, StepContext};
 use markhold_exposure::ExposureMethod;
 use markhold_hil::scene::LightingScenario;
 use opencv::core::{Mat, Point, Rect, Scalar, Vec3b, Vector, CV_8UC3};
@@ -80,14 +80,14 @@ fn bgr(c: BackendColor) -> Scalar {
 }
 
 impl MatBackend {
-    pub fn new(path: &Path, size: (u32, u32)) -> anyhow::Result<Self> {
+    pub fn new(path: &Path, size: (u32, u32)) -> Result<Self, SimError> {
         let img = Mat::new_rows_cols_with_default(
             size.1 as i32,
             size.0 as i32,
             CV_8UC3,
             Scalar::all(255.0),
         )
-        .context("allocating the plot image")?;
+        .step(|| "allocating the plot image".to_string())?;
         Ok(Self {
             img,
             path: path.to_path_buf(),
@@ -253,10 +253,10 @@ impl DrawingBackend for MatBackend {
     }
 }
 
-pub(crate) fn plot_err<E: std::error::Error + Send + Sync>(
-    e: DrawingAreaErrorKind<E>,
-) -> anyhow::Error {
-    anyhow::anyhow!("drawing a plot: {e}")
+pub(crate) fn plot_err<E: std::error::Error + Send + Sync>(e: DrawingAreaErrorKind<E>) -> SimError {
+    SimError::Run {
+        reason: format!("drawing a plot: {e}"),
+    }
 }
 
 /// Draw with `$draw` (a function generic over the backend, called with the drawing area)
@@ -320,7 +320,7 @@ fn static_scatter<DB: DrawingBackend>(
     root: &DrawingArea<DB, Shift>,
     runs: &[&RunSeries],
     l: LightingScenario,
-) -> anyhow::Result<()> {
+) -> Result<(), SimError> {
     root.fill(&WHITE).map_err(plot_err)?;
     let pts: Vec<(ExposureMethod, Vec<(f64, f64)>)> = runs
         .iter()
@@ -388,7 +388,7 @@ fn motion_tracks<DB: DrawingBackend>(
     root: &DrawingArea<DB, Shift>,
     runs: &[&RunSeries],
     l: LightingScenario,
-) -> anyhow::Result<()> {
+) -> Result<(), SimError> {
     root.fill(&WHITE).map_err(plot_err)?;
     let Some(first) = runs.first() else {
         return Ok(());
@@ -457,7 +457,7 @@ fn exposure_time<DB: DrawingBackend>(
     root: &DrawingArea<DB, Shift>,
     runs: &[&RunSeries],
     l: LightingScenario,
-) -> anyhow::Result<()> {
+) -> Result<(), SimError> {
     root.fill(&WHITE).map_err(plot_err)?;
     let t_max = runs
         .iter()
@@ -525,7 +525,7 @@ fn spread<DB: DrawingBackend>(
     root: &DrawingArea<DB, Shift>,
     out: &CompareOutput,
     l: LightingScenario,
-) -> anyhow::Result<()> {
+) -> Result<(), SimError> {
     root.fill(&WHITE).map_err(plot_err)?;
     let r = &out.results;
     let panels = root.split_evenly((2, 2));
@@ -634,7 +634,7 @@ fn spread<DB: DrawingBackend>(
 }
 
 /// Every plot of a compare run, per lighting; returns the file names (relative to `dir`).
-pub fn write_plots(out: &CompareOutput, dir: &Path) -> anyhow::Result<Vec<String>> {
+pub fn write_plots(out: &CompareOutput, dir: &Path) -> Result<Vec<String>, SimError> {
     let mut files = Vec::new();
     for &l in &out.results.lightings {
         let st = runs_of(out, l, RunKind::Static);

@@ -8,7 +8,7 @@
 use std::path::Path;
 use std::time::Instant;
 
-use anyhow::Context;
+use crate::error::{ensure, SimError, StepContext};
 use serde::{Deserialize, Serialize};
 use tracing::Span;
 use tracing_indicatif::span_ext::IndicatifSpanExt;
@@ -200,7 +200,7 @@ pub fn run_cell(
     seed: u64,
     bounds: &Bounds,
     progress: &Span,
-) -> anyhow::Result<CellResult> {
+) -> Result<CellResult, SimError> {
     let span = tracing::error_span!(parent: None, "cell", name = %cell.name);
     let _entered = span.enter();
     let wall = Instant::now();
@@ -329,13 +329,18 @@ pub fn run_robustness(
     seed: u64,
     jobs: usize,
     progress: &Span,
-) -> anyhow::Result<RobustnessResults> {
-    anyhow::ensure!(
-        seconds > 0.0 && seconds <= MAX_CELL_SECONDS,
-        "--seconds {seconds}: expected a positive number of simulated seconds, at most \
+) -> Result<RobustnessResults, SimError> {
+    ensure(seconds > 0.0 && seconds <= MAX_CELL_SECONDS, || {
+        SimError::Usage {
+            reason: format!(
+                "--seconds {seconds}: expected a positive number of simulated seconds, at most \
          {MAX_CELL_SECONDS} (an hour; each cell keeps its series in memory)"
-    );
-    anyhow::ensure!(!cells.is_empty(), "no cells to run");
+            ),
+        }
+    })?;
+    ensure(!cells.is_empty(), || SimError::Run {
+        reason: "no cells to run".to_string(),
+    })?;
     let bounds = Bounds::default();
     let frames = (seconds * site.site.camera.fps).round().max(1.0) as u64;
     progress.pb_set_length(frames * cells.len() as u64);
@@ -427,13 +432,13 @@ pub fn report_md(r: &RobustnessResults) -> String {
 }
 
 /// report.md, results.json and the heat map (PNG and SVG) into `dir`.
-pub fn write_outputs(r: &RobustnessResults, dir: &Path) -> anyhow::Result<Vec<String>> {
-    std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
+pub fn write_outputs(r: &RobustnessResults, dir: &Path) -> Result<Vec<String>, SimError> {
+    std::fs::create_dir_all(dir).step(|| format!("creating {}", dir.display()))?;
     let json = serde_json::to_string_pretty(r)?;
     let p = dir.join("results.json");
-    std::fs::write(&p, json).with_context(|| format!("writing {}", p.display()))?;
+    std::fs::write(&p, json).step(|| format!("writing {}", p.display()))?;
     let p = dir.join("report.md");
-    std::fs::write(&p, report_md(r)).with_context(|| format!("writing {}", p.display()))?;
+    std::fs::write(&p, report_md(r)).step(|| format!("writing {}", p.display()))?;
     let mut files = vec!["report.md".to_string(), "results.json".to_string()];
     files.extend(super::robustness_plot::write_heat_map(r, dir)?);
     Ok(files)
@@ -466,25 +471,30 @@ pub struct RobustnessArgs {
 }
 
 /// Run `markhold robustness`; exit code 1 (an error) when a cell did not hold.
-pub fn cli(args: RobustnessArgs) -> anyhow::Result<()> {
+pub fn cli(args: RobustnessArgs) -> Result<(), SimError> {
     let site = markhold_core::params::load(&args.site)?;
     let mut cells = default_grid(&site);
     if !args.cells.is_empty() {
         for name in &args.cells {
-            anyhow::ensure!(
-                cells.iter().any(|c| &c.name == name),
-                "--cells {name}: no such cell; the grid has {}",
-                cells
-                    .iter()
-                    .map(|c| c.name.as_str())
-                    .collect::<Vec<_>>()
-                    .join(", ")
-            );
+            ensure(cells.iter().any(|c| &c.name == name), || SimError::Usage {
+                reason: format!(
+                    "--cells {name}: no such cell; the grid has {}",
+                    cells
+                        .iter()
+                        .map(|c| c.name.as_str())
+                        .collect::<Vec<_>>()
+                        .join(", ")
+                ),
+            })?;
         }
         cells.retain(|c| args.cells.contains(&c.name));
     }
     let jobs = match args.jobs {
-        Some(0) => anyhow::bail!("--jobs 0: expected at least 1"),
+        Some(0) => {
+            return Err(SimError::Usage {
+                reason: "--jobs 0: expected at least 1".to_string(),
+            })
+        }
         Some(j) => j,
         None => std::thread::available_parallelism().map_or(1, |n| n.get()),
     };
@@ -508,11 +518,12 @@ pub fn cli(args: RobustnessArgs) -> anyhow::Result<()> {
     for c in r.cells.iter().filter(|c| !c.held) {
         markhold_core::outln!("  {} did not hold: {}", c.cell.name, c.failed.join("; "));
     }
-    anyhow::ensure!(
-        r.all_held,
-        "not every cell held (see {})",
-        args.out.join("report.md").display()
-    );
+    ensure(r.all_held, || SimError::Run {
+        reason: format!(
+            "not every cell held (see {})",
+            args.out.join("report.md").display()
+        ),
+    })?;
     Ok(())
 }
 

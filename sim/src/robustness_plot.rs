@@ -3,6 +3,7 @@
 //! it, dark: over it) and labelled with the value. Drawn with plotters, written as SVG
 //! and PNG like compare's plots (`super::plots`).
 
+use crate::error::SimError;
 use std::path::Path;
 
 use plotters::coord::Shift;
@@ -48,7 +49,7 @@ fn size(r: &RobustnessResults) -> (u32, u32) {
 fn heat_map<DB: DrawingBackend>(
     root: &DrawingArea<DB, Shift>,
     r: &RobustnessResults,
-) -> anyhow::Result<()> {
+) -> Result<(), SimError> {
     root.fill(&WHITE).map_err(plot_err)?;
     let title = format!(
         "Robustness on {}: {} s a cell, share of the held bound",
@@ -113,6 +114,6 @@ fn heat_map<DB: DrawingBackend>(
 }
 
 /// `heat_map.svg` and `heat_map.png` in `dir`; returns their names.
-pub fn write_heat_map(r: &RobustnessResults, dir: &Path) -> anyhow::Result<Vec<String>> {
+pub fn write_heat_map(r: &RobustnessResults, dir: &Path) -> Result<Vec<String>, SimError> {
     Ok(both!(dir, "heat_map", size(r), heat_map(r)))
 }

@@ -4,6 +4,7 @@
 //! detection and loop latency over time. Each is written as PNG and SVG with compare's
 //! backends ([`super::plots`]).
 
+use crate::error::SimError;
 use std::path::Path;
 
 use plotters::coord::ranged1d::{AsRangedCoord, ValueFormatter};
@@ -39,7 +40,7 @@ pub fn write_run_plots(
     stats: &RunStats,
     info: &RunPlotInfo,
     dir: &Path,
-) -> anyhow::Result<Vec<String>> {
+) -> Result<Vec<String>, SimError> {
     let mut files = Vec::new();
     files.extend(both!(
         dir,
@@ -92,7 +93,7 @@ fn trajectory<DB: DrawingBackend>(
     root: &DrawingArea<DB, Shift>,
     stats: &RunStats,
     info: &RunPlotInfo,
-) -> anyhow::Result<()> {
+) -> Result<(), SimError> {
     root.fill(&WHITE).map_err(plot_err)?;
     let root = root
         .titled(
@@ -125,7 +126,7 @@ fn trajectory_view<DB: DrawingBackend>(
     stats: &RunStats,
     info: &RunPlotInfo,
     view: &View<'_>,
-) -> anyhow::Result<()> {
+) -> Result<(), SimError> {
     let (h, v) = (view.h, view.v);
     let path: Vec<(f64, f64)> = stats.vehicle_marker.iter().map(|p| (p[h], p[v])).collect();
     let st = stats.t_marker_station().translation.vector;
@@ -223,7 +224,7 @@ fn line_panel<DB: DrawingBackend, Y>(
     t_max: f64,
     y_axis: Y,
     lines: &[Vec<(f64, f64)>],
-) -> anyhow::Result<()>
+) -> Result<(), SimError>
 where
     Y: AsRangedCoord<Value = f64>,
     Y::CoordDescType: ValueFormatter<f64>,
@@ -260,7 +261,7 @@ fn exposure_metric<DB: DrawingBackend>(
     root: &DrawingArea<DB, Shift>,
     stats: &RunStats,
     info: &RunPlotInfo,
-) -> anyhow::Result<()> {
+) -> Result<(), SimError> {
     root.fill(&WHITE).map_err(plot_err)?;
     let (_, h) = root.dim_in_pixel();
     let (upper, lower) = root.split_vertically(h / 2);
@@ -316,7 +317,7 @@ fn detection_latency<DB: DrawingBackend>(
     root: &DrawingArea<DB, Shift>,
     stats: &RunStats,
     info: &RunPlotInfo,
-) -> anyhow::Result<()> {
+) -> Result<(), SimError> {
     root.fill(&WHITE).map_err(plot_err)?;
     let (_, h) = root.dim_in_pixel();
     let (upper, lower) = root.split_vertically(h / 2);

@@ -5,7 +5,7 @@
 
 use std::path::PathBuf;
 
-use anyhow::Context;
+use crate::error::{Required, SimError, StepContext};
 use markhold_autopilot::{Effort, LinkMode};
 use markhold_exposure::{Camera, Frame};
 use nalgebra::Isometry3;
@@ -142,7 +142,7 @@ fn site_in_mode(site: &LoadedSite, mode: LinkMode) -> LoadedSite {
 }
 
 /// Stick steps on markhold's simulated ArduSub, every mode and axis, from the station.
-fn steps_on_ours(site: &LoadedSite, seed: u64) -> anyhow::Result<Vec<StepResponse>> {
+fn steps_on_ours(site: &LoadedSite, seed: u64) -> Result<Vec<StepResponse>, SimError> {
     let mut out = Vec::new();
     for (mode, name) in STEP_MODES {
         for axis in StepAxis::ALL {
@@ -181,7 +181,7 @@ fn steps_on_sitl(
     site: &LoadedSite,
     opts: &SitlLoopOptions,
     seed: u64,
-) -> anyhow::Result<Vec<StepResponse>> {
+) -> Result<Vec<StepResponse>, SimError> {
     let mut out = Vec::new();
     let start = site.t_world_marker() * site.site.station.t_marker_vehicle();
     for (mode, name) in STEP_MODES {
@@ -238,7 +238,7 @@ pub struct Comparison {
 }
 
 /// The hold figures of a run on markhold's simulated ArduSub.
-pub fn hold_on_ours(site: &LoadedSite, opts: &HilOptions) -> anyhow::Result<HoldFigures> {
+pub fn hold_on_ours(site: &LoadedSite, opts: &HilOptions) -> Result<HoldFigures, SimError> {
     let mut run = HilRun::build(site, opts, Observers::new())?;
     run.arm(site.site.link.mode.ardusub())?;
     let frames = (opts.seconds * site.site.camera.fps).round().max(1.0) as usize;
@@ -341,10 +341,10 @@ pub struct SitlCompareArgs {
     pub out: Option<PathBuf>,
 }
 
-pub fn cli(args: SitlCompareArgs) -> anyhow::Result<()> {
+pub fn cli(args: SitlCompareArgs) -> Result<(), SimError> {
     let mut sites = args.sites.clone();
     if sites.is_empty() {
-        for e in std::fs::read_dir("params").context("listing params/")? {
+        for e in std::fs::read_dir("params").step(|| "listing params/".to_string())? {
             let p = e?.path();
             if p.extension().is_some_and(|x| x == "toml") {
                 sites.push(p);
@@ -378,7 +378,7 @@ pub fn cli(args: SitlCompareArgs) -> anyhow::Result<()> {
         let ours = hold_on_ours(&site, &hil)?;
         eprintln!("markhold sitl-compare: {name}: ArduSub SITL");
         let sitl = run_sitl_loop(&site, &opts, &hil, Observers::new())
-            .with_context(|| format!("{name} on ArduSub SITL"))?
+            .step(|| format!("{name} on ArduSub SITL"))?
             .hold;
         out.sites.push(SiteComparison {
             site: name,
@@ -387,7 +387,7 @@ pub fn cli(args: SitlCompareArgs) -> anyhow::Result<()> {
         });
     }
     if !args.no_steps {
-        let site = markhold_core::params::load(sites.first().context("no site")?)?;
+        let site = markhold_core::params::load(sites.first().required(|| "no site".to_string())?)?;
         eprintln!("markhold sitl-compare: stick steps");
         out.steps_ours = steps_on_ours(&site, args.seed)?;
         out.steps_sitl = steps_on_sitl(&site, &opts, args.seed)?;
@@ -395,10 +395,10 @@ pub fn cli(args: SitlCompareArgs) -> anyhow::Result<()> {
     let text = report(&out);
     markhold_core::outln!("{text}");
     if let Some(path) = &args.out {
-        std::fs::write(path, &text).with_context(|| format!("writing {}", path.display()))?;
+        std::fs::write(path, &text).step(|| format!("writing {}", path.display()))?;
         let json = path.with_file_name("results.json");
         std::fs::write(&json, serde_json::to_string_pretty(&out)?)
-            .with_context(|| format!("writing {}", json.display()))?;
+            .step(|| format!("writing {}", json.display()))?;
     }
     Ok(())
 }

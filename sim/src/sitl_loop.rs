@@ -15,7 +15,7 @@ use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
 
-use anyhow::Context;
+use crate::error::{ensure, SimError, StepContext};
 use markhold_autopilot::{ArduSubMode, VehicleLink};
 use markhold_exposure::{Camera, CameraError, ExposureLimits, Frame};
 use markhold_hil::camera::UnderwaterCamera;
@@ -111,7 +111,7 @@ pub struct ArduSubProcess {
 
 impl ArduSubProcess {
     /// Start `bin --model JSON` in its own folder (it writes eeprom.bin and logs there).
-    pub fn start(opts: &SitlLoopOptions, bin: &Path) -> anyhow::Result<Self> {
+    pub fn start(opts: &SitlLoopOptions, bin: &Path) -> Result<Self, SimError> {
         let (dir, remove_dir) = match &opts.work_dir {
             Some(d) => (d.clone(), false),
             None => (
@@ -124,12 +124,12 @@ impl ArduSubProcess {
             ),
         };
         std::fs::create_dir_all(&dir)
-            .with_context(|| format!("creating ArduSub's folder {}", dir.display()))?;
+            .step(|| format!("creating ArduSub's folder {}", dir.display()))?;
         let log = std::fs::File::create(dir.join("ardusub.log"))
-            .with_context(|| format!("creating {}", dir.join("ardusub.log").display()))?;
+            .step(|| format!("creating {}", dir.join("ardusub.log").display()))?;
         // Resolved here: the process starts in its own folder.
         let bin = std::fs::canonicalize(bin)
-            .with_context(|| format!("--ardusub {}: no such file", bin.display()))?;
+            .step(|| format!("--ardusub {}: no such file", bin.display()))?;
         let mut cmd = Command::new(&bin);
         cmd.current_dir(&dir)
             .args(["--model", "JSON", "-w"])
@@ -142,7 +142,7 @@ impl ArduSubProcess {
             .args(["--home", HOME]);
         if let Some(d) = &opts.defaults {
             let d = std::fs::canonicalize(d)
-                .with_context(|| format!("--defaults {}: no such file", d.display()))?;
+                .step(|| format!("--defaults {}: no such file", d.display()))?;
             cmd.arg("--defaults").arg(d);
         }
         let child = cmd
@@ -150,7 +150,7 @@ impl ArduSubProcess {
             .stdout(log.try_clone()?)
             .stderr(log)
             .spawn()
-            .with_context(|| format!("starting ArduSub SITL {}", bin.display()))?;
+            .step(|| format!("starting ArduSub SITL {}", bin.display()))?;
         Ok(Self {
             child,
             dir,
@@ -159,12 +159,14 @@ impl ArduSubProcess {
     }
 
     /// Fails when the process has ended.
-    fn check_alive(&mut self) -> anyhow::Result<()> {
+    fn check_alive(&mut self) -> Result<(), SimError> {
         if let Some(status) = self.child.try_wait()? {
-            anyhow::bail!(
-                "ArduSub SITL exited ({status}); its log: {}",
-                self.dir.join("ardusub.log").display()
-            );
+            return Err(SimError::Run {
+                reason: format!(
+                    "ArduSub SITL exited ({status}); its log: {}",
+                    self.dir.join("ardusub.log").display()
+                ),
+            });
         }
         Ok(())
     }
@@ -262,7 +264,7 @@ fn connect(
     site: &LoadedSite,
     url: &str,
     proc: &mut Option<ArduSubProcess>,
-) -> anyhow::Result<VehicleLink> {
+) -> Result<VehicleLink, SimError> {
     let mut cfg = site.site.link.clone();
     cfg.url = url.to_string();
     let deadline = Instant::now() + Duration::from_secs(20);
@@ -276,9 +278,7 @@ fn connect(
                 }
                 std::thread::sleep(Duration::from_millis(100));
             }
-            Err(e) => {
-                return Err(e).with_context(|| format!("connecting to ArduSub SITL at {url}"))
-            }
+            Err(e) => return Err(e).step(|| format!("connecting to ArduSub SITL at {url}")),
         }
     }
 }
@@ -307,13 +307,13 @@ pub(crate) fn open_peer(
     opts: &SitlLoopOptions,
     start: &Isometry3<f64>,
     seed: u64,
-) -> anyhow::Result<(Peer, VehicleLink)> {
+) -> Result<(Peer, VehicleLink), SimError> {
     let cfg = SitlConfig {
         bind_ip: std::net::IpAddr::from([127, 0, 0, 1]),
         port: opts.json_port(),
     };
     let server = SitlServer::bind(&cfg, &site.site.vehicle, start, seed)
-        .with_context(|| format!("binding the JSON physics on udp 127.0.0.1:{}", cfg.port))?;
+        .step(|| format!("binding the JSON physics on udp 127.0.0.1:{}", cfg.port))?;
     let mut proc = match &opts.ardusub {
         Some(bin) => Some(ArduSubProcess::start(opts, bin)?),
         None => None,
@@ -339,7 +339,7 @@ pub(crate) struct Peer {
 
 impl Peer {
     /// Step the physics by the next servo packet; the reply is held.
-    pub(crate) fn step(&mut self) -> anyhow::Result<()> {
+    pub(crate) fn step(&mut self) -> Result<(), SimError> {
         loop {
             if self.server.receive(Duration::from_millis(200))?.is_some() && self.server.holding() {
                 self.last_packet = Instant::now();
@@ -348,16 +348,19 @@ impl Peer {
             if let Some(p) = self.proc.as_mut() {
                 p.check_alive()?;
             }
-            anyhow::ensure!(
-                self.last_packet.elapsed() < self.timeout,
-                "no servo packet from ArduSub for {:.0} s on udp {} (is it running with \
+            ensure(self.last_packet.elapsed() < self.timeout, || {
+                SimError::Run {
+                    reason: format!(
+                        "no servo packet from ArduSub for {:.0} s on udp {} (is it running with \
                  --model JSON, sending to this port?)",
-                self.timeout.as_secs_f64(),
-                self.server
-                    .local_addr()
-                    .map(|a| a.to_string())
-                    .unwrap_or_default()
-            );
+                        self.timeout.as_secs_f64(),
+                        self.server
+                            .local_addr()
+                            .map(|a| a.to_string())
+                            .unwrap_or_default()
+                    ),
+                }
+            })?;
         }
     }
 
@@ -383,7 +386,7 @@ pub fn run_sitl_loop(
     opts: &SitlLoopOptions,
     hil: &HilOptions,
     observers: Observers,
-) -> anyhow::Result<SitlRun> {
+) -> Result<SitlRun, SimError> {
     let wall = Instant::now();
     let s = &site.site;
     let t_world_marker = site.t_world_marker();
@@ -419,7 +422,7 @@ pub fn run_sitl_loop(
     let mut frame_states = Vec::with_capacity(frames as usize);
     let mut interrupted = false;
     let mut events = Vec::with_capacity(16);
-    let result = (|| -> anyhow::Result<()> {
+    let result = (|| -> Result<(), SimError> {
         while frame < frames && !interrupted {
             peer.step()?;
             steps += 1;
@@ -464,7 +467,7 @@ pub fn run_sitl_loop(
             pipeline.link_mut().inner_mut().tick(t)?;
             peer.server.reply()?;
         }
-        anyhow::Ok(())
+        Ok::<(), SimError>(())
     };
     let settled = settle(&mut peer, &mut pipeline, 0.5).and_then(|_| {
         let now = peer.time_s() - t0;
@@ -532,7 +535,7 @@ pub(crate) fn arm(
     link: &mut VehicleLink,
     mode: ArduSubMode,
     timeout_s: f64,
-) -> anyhow::Result<f64> {
+) -> Result<f64, SimError> {
     let start = peer.server.start_pose();
     let mut surface = start;
     surface.translation.z = 0.0;
@@ -585,14 +588,13 @@ pub(crate) fn arm(
                 }
                 next_request = t + 1.0;
             }
-            anyhow::ensure!(
-                t - t0 < timeout_s,
-                "ArduSub did not arm in {mode:?} within {timeout_s} simulated seconds \
+            ensure(t - t0 < timeout_s, || SimError::Run {
+                reason: format!(
+                    "ArduSub did not arm in {mode:?} within {timeout_s} simulated seconds \
                  (heartbeat {}, mode {:?}, armed {})",
-                discovered,
-                now_mode,
-                armed
-            );
+                    discovered, now_mode, armed
+                ),
+            })?;
         }
         peer.server.reply()?;
         peer.step()?;
@@ -649,20 +651,25 @@ struct SitlLoopSummary<'a> {
     camera_pose_mismatches: u64,
 }
 
-pub fn cli(args: SitlLoopArgs) -> anyhow::Result<()> {
+pub fn cli(args: SitlLoopArgs) -> Result<(), SimError> {
     let site = markhold_core::params::load(&args.site)?;
     super::hil::check_start(&site)?;
-    anyhow::ensure!(
+    ensure(
         args.seconds > 0.0 && args.seconds <= super::summary::MAX_SECONDS,
-        "--seconds {}: expected a positive number of simulated seconds, at most {}",
-        args.seconds,
-        super::summary::MAX_SECONDS
-    );
-    anyhow::ensure!(
-        args.instance <= 100,
-        "--instance {}: expected 0..=100 (ports 5760 + 10 N and 9002 + 10 N)",
-        args.instance
-    );
+        || SimError::Usage {
+            reason: format!(
+                "--seconds {}: expected a positive number of simulated seconds, at most {}",
+                args.seconds,
+                super::summary::MAX_SECONDS
+            ),
+        },
+    )?;
+    ensure(args.instance <= 100, || SimError::Usage {
+        reason: format!(
+            "--instance {}: expected 0..=100 (ports 5760 + 10 N and 9002 + 10 N)",
+            args.instance
+        ),
+    })?;
     let opts = SitlLoopOptions {
         ardusub: args.ardusub,
         defaults: args.defaults,
@@ -707,7 +714,7 @@ pub fn cli(args: SitlLoopArgs) -> anyhow::Result<()> {
             camera_pose_mismatches: run.pose_mismatches,
         };
         let text = serde_json::to_string_pretty(&out)?;
-        std::fs::write(path, text).with_context(|| format!("writing {}", path.display()))?;
+        std::fs::write(path, text).step(|| format!("writing {}", path.display()))?;
     }
     if run.summary.interrupted {
         std::process::exit(markhold_core::signal::INTERRUPTED_EXIT);

@@ -19,7 +19,7 @@ use std::sync::{Arc, Mutex};
 use std::thread::JoinHandle;
 use std::time::{Duration, Instant};
 
-use anyhow::Context;
+use crate::error::{ensure, Required, SimError, StepContext};
 use gstreamer as gst;
 use gstreamer::prelude::*;
 use gstreamer_app as gst_app;
@@ -303,8 +303,8 @@ pub struct Sender {
 }
 
 impl Sender {
-    pub fn start(width: u32, height: u32, fps: f64, port: u16) -> anyhow::Result<Self> {
-        markhold_field::camera::stream::init().map_err(anyhow::Error::msg)?;
+    pub fn start(width: u32, height: u32, fps: f64, port: u16) -> Result<Self, SimError> {
+        markhold_field::camera::stream::init().map_err(|reason| SimError::Run { reason })?;
         let fps_n = (fps * 1000.0).round() as i32;
         let desc = format!(
             "appsrc name=src is-live=true format=time do-timestamp=false \
@@ -315,16 +315,18 @@ impl Sender {
              ! udpsink host=127.0.0.1 port={port} sync=false async=false"
         );
         let pipeline = gst::parse::launch(&desc)
-            .context("the H.264 sender pipeline")?
+            .step(|| "the H.264 sender pipeline".to_string())?
             .downcast::<gst::Pipeline>()
-            .map_err(|_| anyhow::anyhow!("the H.264 sender is not a pipeline"))?;
+            .map_err(|_| SimError::Run {
+                reason: "the H.264 sender is not a pipeline".to_string(),
+            })?;
         let src = pipeline
             .by_name("src")
             .and_then(|e| e.downcast::<gst_app::AppSrc>().ok())
-            .context("the sender's appsrc")?;
-        pipeline
-            .set_state(gst::State::Playing)
-            .context("starting the H.264 sender (x264enc from gstreamer1.0-plugins-ugly?)")?;
+            .required(|| "the sender's appsrc".to_string())?;
+        pipeline.set_state(gst::State::Playing).step(|| {
+            "starting the H.264 sender (x264enc from gstreamer1.0-plugins-ugly?)".to_string()
+        })?;
         Ok(Self {
             pipeline,
             src,
@@ -333,20 +335,25 @@ impl Sender {
     }
 
     /// Encodes and sends `frame`, stamped `stamp_s` (its RTP timestamp).
-    pub fn push(&self, frame: &Frame, stamp_s: f64) -> anyhow::Result<()> {
-        let mut buf = gst::Buffer::with_size(self.buffer_size).context("a frame buffer")?;
+    pub fn push(&self, frame: &Frame, stamp_s: f64) -> Result<(), SimError> {
+        let mut buf =
+            gst::Buffer::with_size(self.buffer_size).step(|| "a frame buffer".to_string())?;
         {
-            let b = buf.get_mut().context("a fresh buffer is writable")?;
+            let b = buf
+                .get_mut()
+                .required(|| "a fresh buffer is writable".to_string())?;
             b.set_pts(gst::ClockTime::from_nseconds(
                 (stamp_s.max(0.0) * 1e9) as u64,
             ));
-            let mut map = b.map_writable().context("mapping a frame buffer")?;
+            let mut map = b
+                .map_writable()
+                .step(|| "mapping a frame buffer".to_string())?;
             let n = self.buffer_size.min(frame.data.len());
             map[..n].copy_from_slice(&frame.data[..n]);
         }
-        self.src
-            .push_buffer(buf)
-            .map_err(|e| anyhow::anyhow!("the H.264 sender refused a frame: {e:?}"))?;
+        self.src.push_buffer(buf).map_err(|e| SimError::Run {
+            reason: format!("the H.264 sender refused a frame: {e:?}"),
+        })?;
         Ok(())
     }
 }
@@ -383,22 +390,23 @@ impl StreamHil {
         limits: ExposureLimits,
         initial_us: f64,
         frames: usize,
-    ) -> anyhow::Result<Self> {
-        markhold_field::camera::stream::init().map_err(anyhow::Error::msg)?;
+    ) -> Result<Self, SimError> {
+        markhold_field::camera::stream::init().map_err(|reason| SimError::Run { reason })?;
         let model = rig.camera_model();
         let manager = SimCameraManager::start(limits, initial_us)
-            .context("starting the simulated camera manager")?;
+            .step(|| "starting the simulated camera manager".to_string())?;
         let control = BlueosRest::open(&manager.url(), SIM_DEVICE, &limits)?;
         // A simulation holds the camera from the start; every request is settled before
         // the next frame is rendered (lock-step, repeatable).
         let control = ControlHandle::spawn(Box::new(control), None, None)?;
         control.set_take(true);
         control.request(quantize(limits.clamp(initial_us), control.step_us()));
-        anyhow::ensure!(
-            control.settle(RECEIVE_TIMEOUT),
-            "the simulated camera manager did not take the initial exposure: {}",
-            control.last_error().unwrap_or_default()
-        );
+        ensure(control.settle(RECEIVE_TIMEOUT), || SimError::Run {
+            reason: format!(
+                "the simulated camera manager did not take the initial exposure: {}",
+                control.last_error().unwrap_or_default()
+            ),
+        })?;
         // The OS picks a free loopback port; the receiver binds it again at once.
         let port = UdpSocket::bind("127.0.0.1:0")?.local_addr()?.port();
         let source = StreamSource::Udp {

@@ -7,6 +7,7 @@
 use std::path::Path;
 use std::sync::{Arc, Mutex};
 
+use markhold::error::CoreError;
 use markhold::params;
 use markhold::pipeline::{CommandLink, LoopStart, Observers, Pipeline};
 use markhold_autopilot::Effort;
@@ -26,15 +27,15 @@ struct OrderLink {
 }
 
 impl CommandLink for OrderLink {
-    fn tick(&mut self, now_s: f64) -> anyhow::Result<()> {
+    fn tick(&mut self, now_s: f64) -> Result<(), CoreError> {
         self.now_s = now_s;
         Ok(())
     }
-    fn send_effort(&mut self, _effort: &Effort, _now_s: f64) -> anyhow::Result<()> {
+    fn send_effort(&mut self, _effort: &Effort, _now_s: f64) -> Result<(), CoreError> {
         self.log.lock().unwrap().push("command");
         Ok(())
     }
-    fn send_neutral(&mut self, _now_s: f64) -> anyhow::Result<()> {
+    fn send_neutral(&mut self, _now_s: f64) -> Result<(), CoreError> {
         self.log.lock().unwrap().push("command");
         Ok(())
     }

@@ -15,6 +15,7 @@
 //!
 //! Loop time here is the last loop time plus the time waited: no frames come any more.
 
+use crate::CoreError;
 use std::time::{Duration, Instant};
 
 use markhold_autopilot::{
@@ -180,7 +181,7 @@ impl EngagedLink {
     /// when the runner steps it, so [`Self::exit`]'s wall-clock waits would starve it:
     /// the caller sends the neutral and steps the vehicle, then this disengages and
     /// releases the override.
-    pub fn stop_lockstep(&mut self, now_s: f64) -> anyhow::Result<()> {
+    pub fn stop_lockstep(&mut self, now_s: f64) -> Result<(), CoreError> {
         self.disengage(Disengage::Stopped, now_s)?;
         self.release()
     }

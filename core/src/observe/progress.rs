@@ -4,6 +4,7 @@
 //! tracing-indicatif, so log lines are printed above it instead of through it. Without
 //! that subscriber (a library user, a test) the span does nothing.
 
+use crate::CoreError;
 use tracing::Span;
 use tracing_indicatif::span_ext::IndicatifSpanExt;
 
@@ -68,7 +69,7 @@ impl Observer for Progress {
             self.bar.pb_set_message(&self.msg);
         }
     }
-    fn finish(self: Box<Self>) -> anyhow::Result<()> {
+    fn finish(self: Box<Self>) -> Result<(), CoreError> {
         // Closing the span clears the bar.
         Ok(())
     }

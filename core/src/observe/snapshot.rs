@@ -4,10 +4,11 @@
 
 use std::path::{Path, PathBuf};
 
-use anyhow::Context;
 use markhold_camera::FrameRecorder;
 
+use crate::error::SnapshotWrite;
 use crate::pipeline::{FrameView, Observer};
+use crate::CoreError;
 
 /// Saves frames whose sequence number is a multiple of `every` into a folder.
 pub struct Snapshots {
@@ -15,14 +16,16 @@ pub struct Snapshots {
     out: FrameRecorder,
     every: u64,
     /// The first failure; later frames are not tried.
-    error: Option<anyhow::Error>,
+    error: Option<SnapshotWrite>,
 }
 
 impl Snapshots {
     /// Creates `dir` if needed, with a fresh `frames.csv`.
-    pub fn create(dir: &Path, every: u64) -> anyhow::Result<Self> {
-        let out = FrameRecorder::create(dir)
-            .with_context(|| format!("creating --snapshot {}", dir.display()))?;
+    pub fn create(dir: &Path, every: u64) -> Result<Self, CoreError> {
+        let out = FrameRecorder::create(dir).map_err(|source| CoreError::SnapshotCreate {
+            dir: dir.to_path_buf(),
+            source,
+        })?;
         Ok(Self {
             dir: dir.to_path_buf(),
             out,
@@ -41,12 +44,15 @@ impl Observer for Snapshots {
             return;
         }
         if let Err(e) = self.out.write(view.frame) {
-            self.error = Some(anyhow::Error::new(e).context(format!("in {}", self.dir.display())));
+            self.error = Some(SnapshotWrite {
+                dir: self.dir.clone(),
+                source: e,
+            });
         }
     }
-    fn finish(self: Box<Self>) -> anyhow::Result<()> {
+    fn finish(self: Box<Self>) -> Result<(), CoreError> {
         match self.error {
-            Some(e) => Err(e.context("saving snapshots")),
+            Some(source) => Err(CoreError::SnapshotSave { source }),
             None => Ok(()),
         }
     }

@@ -8,6 +8,7 @@
 //! skipped and the next frame's carries the news (newest wins). Nothing is allocated on
 //! the loop's side after the first frame of a size.
 
+use crate::CoreError;
 use std::sync::atomic::{AtomicU8, Ordering};
 use std::sync::{Arc, Mutex, MutexGuard, TryLockError};
 
@@ -416,7 +417,7 @@ impl Observer for StatusObserver {
         }
     }
 
-    fn finish(mut self: Box<Self>) -> anyhow::Result<()> {
+    fn finish(mut self: Box<Self>) -> Result<(), CoreError> {
         if self.behind {
             self.board.publish(&self.status);
         }

@@ -3,9 +3,8 @@
 use std::io::{BufWriter, Write};
 use std::path::{Path, PathBuf};
 
-use anyhow::Context;
-
 use crate::pipeline::{FrameRecord, FrameView, Observer};
+use crate::CoreError;
 
 pub struct TraceWriter {
     path: PathBuf,
@@ -15,9 +14,12 @@ pub struct TraceWriter {
 }
 
 impl TraceWriter {
-    pub fn create(path: &Path) -> anyhow::Result<Self> {
-        let file = std::fs::File::create(path)
-            .with_context(|| format!("creating --trace {}", path.display()))?;
+    pub fn create(path: &Path) -> Result<Self, CoreError> {
+        let file = std::fs::File::create(path).map_err(|source| CoreError::File {
+            action: "creating --trace",
+            path: path.to_path_buf(),
+            source,
+        })?;
         let mut w = Self {
             path: path.to_path_buf(),
             out: BufWriter::new(file),
@@ -70,13 +72,16 @@ impl TraceWriter {
     }
 
     /// Flush and report the first write error, naming the file.
-    fn flush_and_report(&mut self) -> anyhow::Result<()> {
-        if let Some(e) = self.error.take() {
-            return Err(e).with_context(|| format!("writing --trace {}", self.path.display()));
-        }
-        self.out
-            .flush()
-            .with_context(|| format!("writing --trace {}", self.path.display()))
+    fn flush_and_report(&mut self) -> Result<(), CoreError> {
+        let flushed = match self.error.take() {
+            Some(e) => Err(e),
+            None => self.out.flush(),
+        };
+        flushed.map_err(|source| CoreError::File {
+            action: "writing --trace",
+            path: self.path.clone(),
+            source,
+        })
     }
 }
 
@@ -87,7 +92,7 @@ impl Observer for TraceWriter {
     fn frame(&mut self, view: &FrameView<'_>) {
         self.row(view.rec, view.markers_in_view.len());
     }
-    fn finish(mut self: Box<Self>) -> anyhow::Result<()> {
+    fn finish(mut self: Box<Self>) -> Result<(), CoreError> {
         self.flush_and_report()
     }
 }

@@ -2,6 +2,7 @@
 //! marker-loss action (a mode change), the way back to the site's mode, and the climb
 //! that stands in for SURFACE when the vehicle refuses it.
 
+use crate::CoreError;
 use markhold_autopilot::{
     ArduSubMode, CommandStatus, FailsafeEvent, MarkerLostAction, StationKeeper,
 };
@@ -109,7 +110,7 @@ impl FailsafeActions {
         keeper: &mut StationKeeper,
         events: &[FailsafeEvent],
         now_s: f64,
-    ) -> anyhow::Result<()> {
+    ) -> Result<(), CoreError> {
         self.transitions.clear();
         let Some(site_mode) = self.site_mode else {
             return Ok(());

@@ -3,6 +3,7 @@
 //! an observer never stops the loop: it keeps its first error and reports it when the
 //! run finishes.
 
+use crate::CoreError;
 use std::sync::mpsc::SyncSender;
 
 use markhold_autopilot::{FailsafeEvent, RawFrame, VehicleState};
@@ -36,7 +37,7 @@ pub trait Observer: Send {
     /// This frame; must not block the loop for long and must not fail it.
     fn frame(&mut self, view: &FrameView<'_>);
     /// Flush and close; the first error met during the run is reported here.
-    fn finish(self: Box<Self>) -> anyhow::Result<()>;
+    fn finish(self: Box<Self>) -> Result<(), CoreError>;
     /// The run never started: remove what was created (a half-made recording).
     fn abort(self: Box<Self>) {
         if let Err(e) = self.finish() {
@@ -91,7 +92,7 @@ impl Observers {
     }
 
     /// Finish every observer (all of them, also after one failed); the first error.
-    pub fn finish(&mut self) -> anyhow::Result<()> {
+    pub fn finish(&mut self) -> Result<(), CoreError> {
         let mut first = Ok(());
         for o in self.list.drain(..) {
             let name = o.name();

@@ -2,15 +2,15 @@
 //! pixels (`markhold map`): read record by record like replay (memory does not grow with
 //! the file), no loop rebuilt.
 
+use crate::CoreError;
 use std::collections::HashMap;
 use std::path::Path;
 
-use anyhow::Context as _;
 use foxglove::schemas::CompressedImage;
 use foxglove::Decode;
 use markhold_exposure::{Frame, FrameMeta};
 
-use super::replay::{decode_image, for_each_record, run_info_of};
+use super::replay::{decode_image, for_each_record, no_run_info, recording, run_info_of};
 use super::{METADATA_NAME, TOPIC_IMAGE};
 
 /// What [`for_each_image`] read.
@@ -30,21 +30,24 @@ pub struct ImagesRead {
 /// recorded camera's size and hand it to `f` (frame meta: the image's index as `seq`,
 /// its log time as the stamp). The recording's metadata gives the image size; a file
 /// that is not a markhold recording is an error naming it.
-pub fn for_each_image(
+pub fn for_each_image<E: From<CoreError>>(
     path: &Path,
     every: u64,
-    mut f: impl FnMut(&Frame) -> anyhow::Result<()>,
-) -> anyhow::Result<ImagesRead> {
+    mut f: impl FnMut(&Frame) -> Result<(), E>,
+) -> Result<ImagesRead, E> {
     use mcap::records::Record;
 
-    let file = crate::params::open_regular(path, u64::MAX)
-        .with_context(|| format!("reading {}", path.display()))?;
+    let file = crate::params::open_regular(path, u64::MAX).map_err(|source| CoreError::File {
+        action: "reading",
+        path: path.to_path_buf(),
+        source,
+    })?;
     let src = std::io::BufReader::with_capacity(1 << 20, file);
     let every = every.max(1);
     let mut image_channels: HashMap<u16, bool> = HashMap::new();
     let mut frame: Option<Frame> = None;
     let mut out = ImagesRead::default();
-    out.ended_early = for_each_record(path, src, |record| {
+    out.ended_early = for_each_record(path, src, |record| -> Result<(), E> {
         match record {
             Record::Channel(c) => {
                 image_channels.insert(c.id, c.topic == TOPIC_IMAGE);
@@ -62,10 +65,11 @@ pub fn for_each_image(
                     return Ok(());
                 }
                 let Some(frame) = frame.as_mut() else {
-                    anyhow::bail!(
-                        "{}: an image before the `{METADATA_NAME}` metadata: not a markhold recording",
-                        path.display()
-                    );
+                    return Err(recording(
+                        path,
+                        format!("an image before the `{METADATA_NAME}` metadata: not a markhold recording"),
+                    )
+                    .into());
                 };
                 let index = out.images;
                 out.images += 1;
@@ -73,17 +77,23 @@ pub fn for_each_image(
                     return Ok(());
                 }
                 let img = CompressedImage::decode(&*data)
-                    .map_err(|e| anyhow::anyhow!("{}: image {index}: {e}", path.display()))?;
+                    .map_err(|e| recording(path, format!("image {index}: {e}")))?;
                 match img.format.as_str() {
                     "png" => {}
                     "jpeg" => out.lossy += 1,
-                    other => anyhow::bail!(
-                        "{}: image {index}: format {other:?}: expected png or jpeg",
-                        path.display()
-                    ),
+                    other => {
+                        return Err(recording(
+                            path,
+                            format!("image {index}: format {other:?}: expected png or jpeg"),
+                        )
+                        .into())
+                    }
                 }
-                decode_image(&img.data, frame)
-                    .with_context(|| format!("{}: image {index}", path.display()))?;
+                decode_image(&img.data, frame).map_err(|e| CoreError::RecordingPart {
+                    path: path.to_path_buf(),
+                    part: format!("image {index}"),
+                    source: Box::new(e),
+                })?;
                 frame.meta = FrameMeta {
                     seq: index,
                     stamp_s: header.log_time as f64 * 1e-9,
@@ -98,13 +108,7 @@ pub fn for_each_image(
         Ok(())
     })?;
     if frame.is_none() {
-        return Err(match out.ended_early {
-            Some(e) => anyhow::anyhow!("{}: not a readable MCAP file: {e}", path.display()),
-            None => anyhow::anyhow!(
-                "{}: no `{METADATA_NAME}` metadata: not a markhold recording",
-                path.display()
-            ),
-        });
+        return Err(no_run_info(path, out.ended_early).into());
     }
     Ok(out)
 }

@@ -27,6 +27,7 @@
 //! Metadata record [`METADATA_NAME`] holds the effective site, its calibration and the
 //! run options, so `replay` needs nothing but the file.
 
+use crate::CoreError;
 use std::collections::BTreeMap;
 use std::fs::File;
 use std::io::{BufWriter, Seek, SeekFrom, Write};
@@ -1291,7 +1292,7 @@ impl Observer for Recorder {
     }
     /// Finalize the file and say what it holds; a write error met during the run (the
     /// run went on without the recording) is an error here.
-    fn finish(self: Box<Self>) -> anyhow::Result<()> {
+    fn finish(self: Box<Self>) -> Result<(), CoreError> {
         let path = self.path.clone();
         let stats = (*self).finish()?;
         let Some(path) = path else { return Ok(()) };

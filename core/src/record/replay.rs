@@ -2,10 +2,10 @@
 //! the recorded clock, with a link that only keeps the commands; each command is
 //! compared bit for bit with the recorded one.
 
+use crate::CoreError;
 use std::collections::{BTreeMap, HashMap};
 use std::path::{Path, PathBuf};
 
-use anyhow::{bail, Context as _};
 use foxglove::schemas::CompressedImage;
 use foxglove::Decode;
 use markhold_autopilot::Effort;
@@ -36,17 +36,17 @@ pub struct SinkLink {
 }
 
 impl CommandLink for SinkLink {
-    fn tick(&mut self, _now_s: f64) -> anyhow::Result<()> {
+    fn tick(&mut self, _now_s: f64) -> Result<(), CoreError> {
         Ok(())
     }
-    fn send_effort(&mut self, effort: &Effort, now_s: f64) -> anyhow::Result<()> {
+    fn send_effort(&mut self, effort: &Effort, now_s: f64) -> Result<(), CoreError> {
         self.sent.push(SentCommand {
             stamp_s: now_s,
             effort: Some(*effort),
         });
         Ok(())
     }
-    fn send_neutral(&mut self, now_s: f64) -> anyhow::Result<()> {
+    fn send_neutral(&mut self, now_s: f64) -> Result<(), CoreError> {
         self.sent.push(SentCommand {
             stamp_s: now_s,
             effort: None,
@@ -131,8 +131,56 @@ pub struct Recovered {
     pub reason: String,
 }
 
-fn mcap_err(path: &Path) -> impl Fn(mcap::McapError) -> anyhow::Error + '_ {
-    move |e| anyhow::anyhow!("{}: not a readable MCAP file: {e}", path.display())
+fn mcap_err(path: &Path) -> impl Fn(mcap::McapError) -> CoreError + '_ {
+    move |e| CoreError::NotMcap {
+        path: path.to_path_buf(),
+        reason: e.to_string(),
+    }
+}
+
+/// The recording `path` is not what replay reads, for `reason`.
+pub(crate) fn recording(path: &Path, reason: String) -> CoreError {
+    CoreError::Recording {
+        path: path.to_path_buf(),
+        reason,
+    }
+}
+
+/// The recording `path` gave no run description: it ended early (`ended_early`: why)
+/// or it is not a markhold recording.
+pub(crate) fn no_run_info(path: &Path, ended_early: Option<String>) -> CoreError {
+    match ended_early {
+        Some(reason) => CoreError::NotMcap {
+            path: path.to_path_buf(),
+            reason,
+        },
+        None => recording(
+            path,
+            format!("no `{METADATA_NAME}` metadata: not a markhold recording"),
+        ),
+    }
+}
+
+/// A part of the recording `path` could not be read, for the error `source`.
+fn part(
+    path: &Path,
+    part: impl Into<String>,
+    source: impl Into<Box<dyn std::error::Error + Send + Sync + 'static>>,
+) -> CoreError {
+    CoreError::RecordingPart {
+        path: path.to_path_buf(),
+        part: part.into(),
+        source: source.into(),
+    }
+}
+
+/// Reading the file `path` failed.
+fn reading(path: &Path, source: std::io::Error) -> CoreError {
+    CoreError::File {
+        action: "reading",
+        path: path.to_path_buf(),
+        source,
+    }
 }
 
 /// The largest record replay accepts (a chunk holds a few frames; a hostile length
@@ -143,33 +191,33 @@ pub(crate) const MAX_RECORD_BYTES: usize = 256 << 20;
 pub fn run_info_of(
     path: &Path,
     metadata: &BTreeMap<String, String>,
-) -> anyhow::Result<(RunInfo, LoadedSite)> {
+) -> Result<(RunInfo, LoadedSite), CoreError> {
     let info = RunInfo::from_metadata(metadata)
-        .map_err(|k| anyhow::anyhow!("{}: run metadata key {k} missing or bad", path.display()))?;
-    let site: Site = toml::from_str(&info.site_toml)
-        .with_context(|| format!("{}: the recorded site", path.display()))?;
-    crate::params::check(&site)
-        .with_context(|| format!("{}: the recorded site is not valid", path.display()))?;
+        .map_err(|k| recording(path, format!("run metadata key {k} missing or bad")))?;
+    let site: Site =
+        toml::from_str(&info.site_toml).map_err(|e| part(path, "the recorded site", e))?;
+    crate::params::check(&site).map_err(|e| part(path, "the recorded site is not valid", e))?;
     let calibration: CameraCalibration = toml::from_str(&info.calibration_toml)
-        .with_context(|| format!("{}: the recorded calibration", path.display()))?;
+        .map_err(|e| part(path, "the recorded calibration", e))?;
     calibration
         .check_resolution(site.camera.width_px, site.camera.height_px)
-        .with_context(|| format!("{}: the recorded calibration", path.display()))?;
+        .map_err(|e| part(path, "the recorded calibration", e))?;
     calibration
         .validate()
-        .with_context(|| format!("{}: the recorded calibration", path.display()))?;
+        .map_err(|e| part(path, "the recorded calibration", e))?;
     let limits = ExposureLimits {
         min_us: site.camera.exposure_min_us,
         max_us: site.camera.exposure_max_us,
         fps: site.camera.fps,
     };
-    anyhow::ensure!(
-        info.initial_exposure_us.is_finite()
-            && (limits.min_us..=limits.max_us).contains(&info.initial_exposure_us),
-        "{}: the recorded initial exposure {} us is outside the recorded site's limits",
-        path.display(),
-        info.initial_exposure_us
-    );
+    if !(info.initial_exposure_us.is_finite()
+        && (limits.min_us..=limits.max_us).contains(&info.initial_exposure_us))
+    {
+        return Err(CoreError::RecordedExposure {
+            path: path.to_path_buf(),
+            exposure_us: info.initial_exposure_us,
+        });
+    }
     Ok((
         info,
         LoadedSite {
@@ -181,23 +229,23 @@ pub fn run_info_of(
 }
 
 /// Read the run description of a whole recording held in memory (its summary section).
-pub fn read_run_info(path: &Path, buf: &[u8]) -> anyhow::Result<(RunInfo, LoadedSite)> {
+pub fn read_run_info(path: &Path, buf: &[u8]) -> Result<(RunInfo, LoadedSite), CoreError> {
     let summary = mcap::Summary::read(buf)
         .map_err(mcap_err(path))?
-        .with_context(|| {
-            format!(
-                "{}: no MCAP summary (was the recording finalized?)",
-                path.display()
+        .ok_or_else(|| {
+            recording(
+                path,
+                "no MCAP summary (was the recording finalized?)".into(),
             )
         })?;
     let idx = summary
         .metadata_indexes
         .iter()
         .find(|i| i.name == METADATA_NAME)
-        .with_context(|| {
-            format!(
-                "{}: no `{METADATA_NAME}` metadata: not a markhold recording",
-                path.display()
+        .ok_or_else(|| {
+            recording(
+                path,
+                format!("no `{METADATA_NAME}` metadata: not a markhold recording"),
             )
         })?;
     let meta = mcap::read::metadata(buf, idx).map_err(mcap_err(path))?;
@@ -205,28 +253,33 @@ pub fn read_run_info(path: &Path, buf: &[u8]) -> anyhow::Result<(RunInfo, Loaded
 }
 
 /// A recorded PNG or JPEG into `out`, which has the recorded site's size.
-pub(crate) fn decode_image(encoded: &[u8], out: &mut Frame) -> anyhow::Result<()> {
+pub(crate) fn decode_image(encoded: &[u8], out: &mut Frame) -> Result<(), CoreError> {
     // The size the header states, before a decoder allocates it.
     markhold_camera::check_encoded_size(encoded, Some((out.width, out.height)))
-        .map_err(anyhow::Error::msg)?;
+        .map_err(|reason| CoreError::Image { reason })?;
     let buf = opencv::core::Mat::from_slice(encoded)?;
     let img = opencv::imgcodecs::imdecode(&buf, opencv::imgcodecs::IMREAD_UNCHANGED)?;
     if img.empty() || img.channels() != 1 || img.depth() != opencv::core::CV_8U {
-        bail!("not an 8-bit grey image");
+        return Err(CoreError::Image {
+            reason: "not an 8-bit grey image".into(),
+        });
     }
     let (w, h) = (img.cols() as u32, img.rows() as u32);
     if (w, h) != (out.width, out.height) {
-        bail!(
-            "a {w}x{h} image in a recording of a {}x{} camera",
-            out.width,
-            out.height
-        );
+        return Err(CoreError::Image {
+            reason: format!(
+                "a {w}x{h} image in a recording of a {}x{} camera",
+                out.width, out.height
+            ),
+        });
     }
     out.resize(w, h);
     let bytes = img.data_bytes()?;
     let n = (w * h) as usize;
     if !img.is_continuous() || bytes.len() < n {
-        bail!("decoded image is not contiguous");
+        return Err(CoreError::Image {
+            reason: "decoded image is not contiguous".into(),
+        });
     }
     out.data.copy_from_slice(&bytes[..n]);
     Ok(())
@@ -274,7 +327,7 @@ pub fn build_loop(
     site: &LoadedSite,
     method: ExposureMethod,
     info: &RunInfo,
-) -> anyhow::Result<Pipeline<SinkLink>> {
+) -> Result<Pipeline<SinkLink>, CoreError> {
     let start = LoopStart {
         method,
         initial_exposure_us: info.initial_exposure_us,
@@ -327,9 +380,9 @@ enum Topic {
 /// Replay a recording and compare its commands. The file is read record by record
 /// (memory does not grow with its length); a file that ends early (a crash, a full disk,
 /// a copy cut short) is replayed up to its last complete chunk and the summary says so.
-pub fn replay(path: &Path) -> anyhow::Result<ReplaySummary> {
-    let file = crate::params::open_regular(path, u64::MAX)
-        .with_context(|| format!("reading {}", path.display()))?;
+pub fn replay(path: &Path) -> Result<ReplaySummary, CoreError> {
+    let file =
+        crate::params::open_regular(path, u64::MAX).map_err(|source| reading(path, source))?;
     let size = file.metadata().map(|m| m.len()).unwrap_or(0);
     replay_from(path, std::io::BufReader::with_capacity(1 << 20, file), size)
 }
@@ -342,11 +395,11 @@ pub fn replay(path: &Path) -> anyhow::Result<ReplaySummary> {
 /// a declared string length before reading it (a hostile 4 GB length in a 20-byte
 /// record). Returns why the file ended early (truncated, never finalized, a bad record),
 /// `None` when it was read to its end.
-pub(crate) fn for_each_record(
+pub(crate) fn for_each_record<E: From<CoreError>>(
     path: &Path,
     mut src: impl std::io::Read,
-    mut f: impl FnMut(mcap::records::Record<'_>) -> anyhow::Result<()>,
-) -> anyhow::Result<Option<String>> {
+    mut f: impl FnMut(mcap::records::Record<'_>) -> Result<(), E>,
+) -> Result<Option<String>, E> {
     use mcap::sans_io::linear_reader::{LinearReadEvent, LinearReader, LinearReaderOptions};
 
     let mut reader = LinearReader::new_with_options(
@@ -359,7 +412,7 @@ pub(crate) fn for_each_record(
             Ok(LinearReadEvent::ReadRequest(n)) => {
                 let got = src
                     .read(reader.insert(n.min(MAX_RECORD_BYTES)))
-                    .with_context(|| format!("reading {}", path.display()))?;
+                    .map_err(|source| reading(path, source))?;
                 reader.notify_read(got);
                 continue;
             }
@@ -390,7 +443,7 @@ pub fn replay_from(
     path: &Path,
     mut src: impl std::io::Read,
     size: u64,
-) -> anyhow::Result<ReplaySummary> {
+) -> Result<ReplaySummary, CoreError> {
     use mcap::records::Record;
 
     let mut topics: HashMap<u16, Topic> = HashMap::new();
@@ -412,21 +465,25 @@ pub fn replay_from(
             }
             Record::Message { header, data } => {
                 let Some(r) = replayer.as_mut() else {
-                    anyhow::bail!(
-                        "{}: messages before the `{METADATA_NAME}` metadata: not a markhold recording",
-                        path.display()
-                    );
+                    return Err(recording(
+                        path,
+                        format!("messages before the `{METADATA_NAME}` metadata: not a markhold recording"),
+                    ));
                 };
                 match topics.get(&header.channel_id) {
                     Some(Topic::Image) => r.image(header.log_time, &data)?,
                     Some(Topic::Frame) => r.frame(header.log_time, &data)?,
                     Some(Topic::Command) => r.command(&data)?,
                     Some(Topic::Other) => {}
-                    None => anyhow::bail!(
-                        "{}: a message on channel {} that was never described",
-                        path.display(),
-                        header.channel_id
-                    ),
+                    None => {
+                        return Err(recording(
+                            path,
+                            format!(
+                                "a message on channel {} that was never described",
+                                header.channel_id
+                            ),
+                        ))
+                    }
                 }
             }
             _ => {}
@@ -434,13 +491,7 @@ pub fn replay_from(
         Ok(())
     })?;
     let Some(r) = replayer else {
-        return Err(match ended_early {
-            Some(e) => anyhow::anyhow!("{}: not a readable MCAP file: {e}", path.display()),
-            None => anyhow::anyhow!(
-                "{}: no `{METADATA_NAME}` metadata: not a markhold recording",
-                path.display()
-            ),
-        });
+        return Err(no_run_info(path, ended_early));
     };
     let mut out = r.finish();
     if let Some(why) = ended_early {
@@ -469,15 +520,19 @@ struct Replayer<'a> {
 
 impl<'a> Replayer<'a> {
     /// The recorded loop, ready for the recorded frames.
-    fn start(path: &'a Path, site: &LoadedSite, info: &RunInfo) -> anyhow::Result<Self> {
-        let method: ExposureMethod = info.exposure_method.parse().map_err(|e| {
-            anyhow::anyhow!(
-                "{}: exposure_method {}: {e}",
-                path.display(),
-                info.exposure_method
-            )
+    fn start(path: &'a Path, site: &LoadedSite, info: &RunInfo) -> Result<Self, CoreError> {
+        let method: ExposureMethod =
+            info.exposure_method
+                .parse()
+                .map_err(|e| CoreError::RecordedValue {
+                    path: path.to_path_buf(),
+                    key: "exposure_method",
+                    value: info.exposure_method.clone(),
+                    reason: e,
+                })?;
+        let pipeline = build_loop(site, method, info).map_err(|e| CoreError::Rebuild {
+            source: Box::new(e),
         })?;
-        let pipeline = build_loop(site, method, info).context("rebuilding the recorded loop")?;
         Ok(Self::new(path, pipeline, site, info))
     }
 
@@ -514,16 +569,18 @@ impl<'a> Replayer<'a> {
         }
     }
 
-    fn image(&mut self, log_time: u64, data: &[u8]) -> anyhow::Result<()> {
+    fn image(&mut self, log_time: u64, data: &[u8]) -> Result<(), CoreError> {
         let img = CompressedImage::decode(data)
-            .map_err(|e| anyhow::anyhow!("{}: image at {log_time} ns: {e}", self.path.display()))?;
+            .map_err(|e| recording(self.path, format!("image at {log_time} ns: {e}")))?;
         match img.format.as_str() {
             "png" => {}
             "jpeg" => self.out.lossy_images += 1,
-            other => bail!(
-                "{}: image at {log_time} ns: format {other:?}: expected png or jpeg",
-                self.path.display()
-            ),
+            other => {
+                return Err(recording(
+                    self.path,
+                    format!("image at {log_time} ns: format {other:?}: expected png or jpeg"),
+                ))
+            }
         }
         // The buffer of the last image is reused: nothing grows with the file.
         let mut buf = self.image.take().map(|(_, b)| b).unwrap_or_default();
@@ -534,14 +591,14 @@ impl<'a> Replayer<'a> {
     }
 
     /// A recorded frame: its image and meta through the loop.
-    fn frame(&mut self, log_time: u64, data: &[u8]) -> anyhow::Result<()> {
+    fn frame(&mut self, log_time: u64, data: &[u8]) -> Result<(), CoreError> {
         let path = self.path;
         self.out.frames_recorded += 1;
         if self.stopped {
             return Ok(());
         }
-        let f: FrameMsg = serde_json::from_slice(data)
-            .with_context(|| format!("{}: frame message", path.display()))?;
+        let f: FrameMsg =
+            serde_json::from_slice(data).map_err(|e| part(path, "frame message", e))?;
         let png = match self.image.take() {
             Some((t, png)) if t == log_time && f.image => png,
             _ => {
@@ -560,7 +617,7 @@ impl<'a> Replayer<'a> {
             }
         };
         decode_image(&png, &mut self.camera.frame)
-            .with_context(|| format!("{}: image of frame {}", path.display(), f.seq))?;
+            .map_err(|e| part(path, format!("image of frame {}", f.seq), e))?;
         self.camera.frame.meta = FrameMeta {
             seq: f.seq,
             stamp_s: f64::from_bits(f.bits.stamp),
@@ -577,12 +634,12 @@ impl<'a> Replayer<'a> {
     }
 
     /// A recorded command: compared with the one the last frame replayed gave.
-    fn command(&mut self, data: &[u8]) -> anyhow::Result<()> {
+    fn command(&mut self, data: &[u8]) -> Result<(), CoreError> {
         if self.stopped {
             return Ok(());
         }
-        let recorded: CommandMsg = serde_json::from_slice(data)
-            .with_context(|| format!("{}: command message", self.path.display()))?;
+        let recorded: CommandMsg =
+            serde_json::from_slice(data).map_err(|e| part(self.path, "command message", e))?;
         let Some(mine) = self.replayed.take() else {
             return Ok(());
         };

@@ -3,7 +3,7 @@
 
 use super::*;
 
-use anyhow::Context;
+use crate::error::{Required, SimError};
 use markhold_hil::scene::LightingScenario;
 use nalgebra::Vector3;
 
@@ -325,7 +325,7 @@ pub(super) fn case_results(
     cases: &[CaseKey],
     series: &[RunSeries],
     optima: &[((LightingScenario, u64), SceneOptimum)],
-) -> anyhow::Result<Vec<CaseResult>> {
+) -> Result<Vec<CaseResult>, SimError> {
     let fps = site.site.camera.fps;
     let (span, speed) = motion_traverse(site, opts.seconds);
     let find = |c: &CaseKey, kind| {
@@ -337,7 +337,7 @@ pub(super) fn case_results(
                     && s.seed == c.seed
                     && s.kind == kind
             })
-            .with_context(|| {
+            .required(|| {
                 format!(
                     "missing {kind:?} run for {} / {} / seed {}",
                     c.method, c.lighting, c.seed
@@ -355,7 +355,7 @@ pub(super) fn case_results(
             .iter()
             .find(|(k, _)| *k == (c.lighting, c.seed))
             .map(|(_, o)| o.clone())
-            .with_context(|| format!("no optimum sweep for {} / seed {}", c.lighting, c.seed))?;
+            .required(|| format!("no optimum sweep for {} / seed {}", c.lighting, c.seed))?;
         out.push(CaseResult {
             method: c.method,
             lighting: c.lighting,

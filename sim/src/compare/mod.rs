@@ -13,6 +13,7 @@ pub use metrics::*;
 pub use report::*;
 pub use run::*;
 
+use crate::error::{ensure, SimError};
 use markhold_exposure::ExposureMethod;
 use markhold_hil::scene::LightingScenario;
 use serde::{Deserialize, Serialize};
@@ -63,24 +64,29 @@ impl Default for CompareOptions {
 }
 
 impl CompareOptions {
-    pub fn validate(&self) -> anyhow::Result<()> {
-        anyhow::ensure!(
+    pub fn validate(&self) -> Result<(), SimError> {
+        ensure(
             self.seconds > 0.0 && self.seconds <= MAX_RUN_SECONDS,
-            "--seconds {}: expected a positive number of simulated seconds, at most \
+            || SimError::Usage {
+                reason: format!(
+                    "--seconds {}: expected a positive number of simulated seconds, at most \
              {MAX_RUN_SECONDS} (an hour; each run keeps its series in memory)",
-            self.seconds
-        );
-        anyhow::ensure!(!self.seeds.is_empty(), "--seeds 0: expected at least 1");
-        anyhow::ensure!(
-            self.seeds.len() <= MAX_SEEDS,
-            "--seeds {}: expected at most {MAX_SEEDS}",
-            self.seeds.len()
-        );
-        anyhow::ensure!(!self.methods.is_empty(), "--methods: expected at least one");
-        anyhow::ensure!(
-            !self.lightings.is_empty(),
-            "--lightings: expected at least one"
-        );
+                    self.seconds
+                ),
+            },
+        )?;
+        ensure(!self.seeds.is_empty(), || SimError::Usage {
+            reason: "--seeds 0: expected at least 1".to_string(),
+        })?;
+        ensure(self.seeds.len() <= MAX_SEEDS, || SimError::Usage {
+            reason: format!("--seeds {}: expected at most {MAX_SEEDS}", self.seeds.len()),
+        })?;
+        ensure(!self.methods.is_empty(), || SimError::Usage {
+            reason: "--methods: expected at least one".to_string(),
+        })?;
+        ensure(!self.lightings.is_empty(), || SimError::Usage {
+            reason: "--lightings: expected at least one".to_string(),
+        })?;
         Ok(())
     }
 }
@@ -435,7 +441,7 @@ pub enum CompareCommand {
 }
 
 /// Run `markhold compare` and print where the outputs went.
-pub fn cli(args: CompareArgs) -> anyhow::Result<()> {
+pub fn cli(args: CompareArgs) -> Result<(), SimError> {
     if let Some(CompareCommand::Merge { dirs, out }) = &args.command {
         let merged = shard::merge(dirs)?;
         let files = write_outputs(&merged, out)?;
@@ -452,13 +458,15 @@ pub fn cli(args: CompareArgs) -> anyhow::Result<()> {
         return Ok(());
     }
     let Some(out_dir) = args.out.as_deref() else {
-        anyhow::bail!("--out DIR: required");
+        return Err(SimError::Usage {
+            reason: "--out DIR: required".to_string(),
+        });
     };
-    anyhow::ensure!(
-        (1..=MAX_SEEDS as u64).contains(&args.seeds),
-        "--seeds {}: expected 1..{MAX_SEEDS}",
-        args.seeds
-    );
+    ensure((1..=MAX_SEEDS as u64).contains(&args.seeds), || {
+        SimError::Usage {
+            reason: format!("--seeds {}: expected 1..{MAX_SEEDS}", args.seeds),
+        }
+    })?;
     let site = markhold_core::params::load(&args.site)?;
     let mut opts = CompareOptions {
         seeds: (1..=args.seeds).collect(),
@@ -472,7 +480,9 @@ pub fn cli(args: CompareArgs) -> anyhow::Result<()> {
         opts.lightings = args.lightings.clone();
     }
     if let Some(j) = args.jobs {
-        anyhow::ensure!(j > 0, "--jobs 0: expected at least 1");
+        ensure(j > 0, || SimError::Usage {
+            reason: "--jobs 0: expected at least 1".to_string(),
+        })?;
         opts.jobs = j;
     }
     opts.validate()?;

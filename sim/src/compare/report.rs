@@ -2,7 +2,7 @@
 
 use super::*;
 
-use anyhow::Context;
+use crate::error::{SimError, StepContext};
 use markhold_exposure::{ExposureMethod, METHODS};
 use markhold_hil::scene::LightingScenario;
 
@@ -535,20 +535,20 @@ pub(super) fn report_plots(o: &mut String, plots: &[String]) {
 
 /// Write `results.json`, the plots and `report.md` into `dir` (created if missing).
 /// Returns the files written, relative to `dir`.
-pub fn write_outputs(out: &CompareOutput, dir: &std::path::Path) -> anyhow::Result<Vec<String>> {
-    std::fs::create_dir_all(dir).with_context(|| format!("creating --out {}", dir.display()))?;
+pub fn write_outputs(out: &CompareOutput, dir: &std::path::Path) -> Result<Vec<String>, SimError> {
+    std::fs::create_dir_all(dir).step(|| format!("creating --out {}", dir.display()))?;
     let json = serde_json::to_string_pretty(&out.results)?;
     let p = dir.join("results.json");
-    std::fs::write(&p, json + "\n").with_context(|| format!("writing {}", p.display()))?;
+    std::fs::write(&p, json + "\n").step(|| format!("writing {}", p.display()))?;
     let mut files = vec!["results.json".to_string()];
     let p = dir.join("timings.json");
     let t = serde_json::to_string_pretty(&out.timings)?;
-    std::fs::write(&p, t + "\n").with_context(|| format!("writing {}", p.display()))?;
+    std::fs::write(&p, t + "\n").step(|| format!("writing {}", p.display()))?;
     files.push("timings.json".to_string());
     let plots = crate::plots::write_plots(out, dir)?;
     let md = report_markdown(&out.results, &plots);
     let p = dir.join("report.md");
-    std::fs::write(&p, md).with_context(|| format!("writing {}", p.display()))?;
+    std::fs::write(&p, md).step(|| format!("writing {}", p.display()))?;
     files.push("report.md".to_string());
     files.extend(plots);
     Ok(files)

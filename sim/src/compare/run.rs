@@ -7,7 +7,7 @@ use std::sync::atomic::{AtomicUsize, Ordering};
 use std::sync::Mutex;
 use std::time::Instant;
 
-use anyhow::Context;
+use crate::error::{Required, SimError, StepContext};
 use markhold_exposure::ExposureMethod;
 use markhold_hil::scene::LightingScenario;
 use markhold_hil::VehicleMotion;
@@ -70,7 +70,7 @@ pub fn run_compare(
     site: &LoadedSite,
     opts: &CompareOptions,
     progress: &Span,
-) -> anyhow::Result<CompareOutput> {
+) -> Result<CompareOutput, SimError> {
     let run = run_cases(site, opts, &opts.cases(), progress)?;
     let results = assemble(CompareHeader::of(site, opts), run.cases);
     Ok(CompareOutput {
@@ -86,7 +86,7 @@ pub fn run_cases(
     opts: &CompareOptions,
     cases: &[CaseKey],
     progress: &Span,
-) -> anyhow::Result<CasesRun> {
+) -> Result<CasesRun, SimError> {
     opts.validate()?;
     let fps = site.site.camera.fps;
     let frames = (opts.seconds * fps).round().max(1.0) as u64;
@@ -151,7 +151,7 @@ pub(super) fn run_jobs(
     jobs: &[Job],
     frames: u64,
     progress: &Span,
-) -> anyhow::Result<Vec<RunSeries>> {
+) -> Result<Vec<RunSeries>, SimError> {
     run_parallel(
         jobs,
         opts.jobs,
@@ -171,11 +171,11 @@ pub(super) fn run_jobs(
 pub fn run_parallel<J: Sync, R: Send>(
     jobs: &[J],
     workers: usize,
-    run: impl Fn(&J) -> anyhow::Result<R> + Sync,
+    run: impl Fn(&J) -> Result<R, SimError> + Sync,
     describe: impl Fn(&J) -> String,
-) -> anyhow::Result<Vec<R>> {
+) -> Result<Vec<R>, SimError> {
     let next = AtomicUsize::new(0);
-    let out: Mutex<Vec<Option<anyhow::Result<R>>>> =
+    let out: Mutex<Vec<Option<Result<R, SimError>>>> =
         Mutex::new((0..jobs.len()).map(|_| None).collect());
     let workers = workers.clamp(1, jobs.len().max(1));
     std::thread::scope(|scope| {
@@ -195,14 +195,18 @@ pub fn run_parallel<J: Sync, R: Send>(
             });
         }
     });
-    let out = out
-        .into_inner()
-        .map_err(|_| anyhow::anyhow!("a worker panicked"))?;
+    let out = out.into_inner().map_err(|_| SimError::Run {
+        reason: "a worker panicked".to_string(),
+    })?;
     let mut results = Vec::with_capacity(jobs.len());
     for (r, job) in out.into_iter().zip(jobs) {
         match r {
-            Some(r) => results.push(r.with_context(|| describe(job))?),
-            None => anyhow::bail!("a run was not executed (an earlier run failed)"),
+            Some(r) => results.push(r.step(|| describe(job))?),
+            None => {
+                return Err(SimError::Run {
+                    reason: "a run was not executed (an earlier run failed)".to_string(),
+                })
+            }
         }
     }
     Ok(results)
@@ -214,7 +218,7 @@ pub(super) fn run_one(
     job: &Job,
     frames: u64,
     progress: &Span,
-) -> anyhow::Result<RunSeries> {
+) -> Result<RunSeries, SimError> {
     // Every log line of this run names it (the worker thread enters the span). Error level:
     // the span is there whatever the log level lets through.
     let span = tracing::error_span!(
@@ -291,13 +295,16 @@ pub(super) fn run_one(
     })
 }
 
+/// A lighting and seed with its scene's optimum.
+pub(super) type SceneOptimumOf = ((LightingScenario, u64), SceneOptimum);
+
 /// The scene optimum of every (lighting, seed) among `cases` (it does not depend on the
 /// method, so each is swept once), on `opts.jobs` threads.
 pub(super) fn scene_optima(
     site: &LoadedSite,
     opts: &CompareOptions,
     cases: &[CaseKey],
-) -> anyhow::Result<Vec<((LightingScenario, u64), SceneOptimum)>> {
+) -> Result<Vec<SceneOptimumOf>, SimError> {
     let mut keys: Vec<(LightingScenario, u64)> = Vec::new();
     for c in cases {
         if !keys.contains(&(c.lighting, c.seed)) {
@@ -318,7 +325,7 @@ pub fn scene_optimum(
     site: &LoadedSite,
     lighting: LightingScenario,
     seed: u64,
-) -> anyhow::Result<SceneOptimum> {
+) -> Result<SceneOptimum, SimError> {
     use markhold_exposure::{
         code_region, PaperMetric, PaperMetricEval, PaperMetricParams, Response,
     };
@@ -343,7 +350,9 @@ pub fn scene_optimum(
     let (w, h) = (site.calibration.width, site.calibration.height);
     let roi = station_corners(site)
         .and_then(|c| code_region(&c, 0.1, w, h))
-        .context("the marker is not in the image from the station: no optimum to sweep")?;
+        .required(|| {
+            "the marker is not in the image from the station: no optimum to sweep".to_string()
+        })?;
     // M does not depend on the response (only its derivative does).
     let mut eval = PaperMetricEval::new(&Response::linear());
     let params = PaperMetricParams {
@@ -358,7 +367,7 @@ pub fn scene_optimum(
     )?;
     let (mut m, mut det) = (Vec::new(), Vec::new());
     let (mut m_sum, mut det_sum, mut k) = (0.0, 0.0, 0usize);
-    station_frames_each(site, seed, &light, &repeated, |f| {
+    station_frames_each::<SimError>(site, seed, &light, &repeated, |f| {
         m_sum += eval
             .evaluate(f.view(), roi, f.meta.exposure_us.max(1.0), &params)
             .map_or(0.0, |v| v.m);

@@ -15,7 +15,7 @@ use std::collections::BTreeMap;
 use std::io::Read as _;
 use std::path::{Path, PathBuf};
 
-use anyhow::Context;
+use crate::error::{ensure, Required, SimError, StepContext};
 use serde::{Deserialize, Serialize};
 use tracing::Span;
 
@@ -93,8 +93,9 @@ pub struct Sweep {
 }
 
 impl Sweep {
-    pub fn of(site: &LoadedSite, opts: &CompareOptions) -> anyhow::Result<Self> {
-        let site_json = serde_json::to_string(&site.site).context("serializing the site")?;
+    pub fn of(site: &LoadedSite, opts: &CompareOptions) -> Result<Self, SimError> {
+        let site_json =
+            serde_json::to_string(&site.site).step(|| "serializing the site".to_string())?;
         Ok(Self {
             header: CompareHeader::of(site, opts),
             site_content: format!("{:016x}", fnv1a(FNV_OFFSET, site_json.as_bytes())),
@@ -165,15 +166,15 @@ fn fnv1a(mut h: u64, bytes: &[u8]) -> u64 {
 
 /// markhold's version and a hash of the running executable: shards of different builds
 /// may give different numbers, so they do not merge.
-fn build_id() -> anyhow::Result<String> {
-    let exe = std::env::current_exe().context("finding the markhold executable")?;
-    let mut f = std::fs::File::open(&exe).with_context(|| format!("reading {}", exe.display()))?;
+fn build_id() -> Result<String, SimError> {
+    let exe = std::env::current_exe().step(|| "finding the markhold executable".to_string())?;
+    let mut f = std::fs::File::open(&exe).step(|| format!("reading {}", exe.display()))?;
     let mut h = FNV_OFFSET;
     let mut buf = vec![0u8; 1 << 20];
     loop {
         let n = f
             .read(&mut buf)
-            .with_context(|| format!("reading {}", exe.display()))?;
+            .step(|| format!("reading {}", exe.display()))?;
         if n == 0 {
             break;
         }
@@ -183,14 +184,14 @@ fn build_id() -> anyhow::Result<String> {
 }
 
 /// Write a shard's file into `dir` (created if missing); returns its path.
-pub fn write_shard(dir: &Path, file: &ShardFile) -> anyhow::Result<PathBuf> {
-    std::fs::create_dir_all(dir).with_context(|| format!("creating --out {}", dir.display()))?;
+pub fn write_shard(dir: &Path, file: &ShardFile) -> Result<PathBuf, SimError> {
+    std::fs::create_dir_all(dir).step(|| format!("creating --out {}", dir.display()))?;
     let path = dir.join(file.shard.file_name());
     let tmp = dir.join(format!(".{}.partial", file.shard.file_name()));
-    let json = serde_json::to_string(file).context("serializing the shard")?;
-    std::fs::write(&tmp, json).with_context(|| format!("writing {}", tmp.display()))?;
+    let json = serde_json::to_string(file).step(|| "serializing the shard".to_string())?;
+    std::fs::write(&tmp, json).step(|| format!("writing {}", tmp.display()))?;
     std::fs::rename(&tmp, &path)
-        .with_context(|| format!("renaming {} to {}", tmp.display(), path.display()))?;
+        .step(|| format!("renaming {} to {}", tmp.display(), path.display()))?;
     Ok(path)
 }
 
@@ -208,23 +209,24 @@ fn is_shard_name(name: &str) -> bool {
 }
 
 /// Every shard file in `dirs`, read and parsed, sorted by path.
-fn read_shards(dirs: &[PathBuf]) -> anyhow::Result<Vec<(PathBuf, ShardFile)>> {
+fn read_shards(dirs: &[PathBuf]) -> Result<Vec<(PathBuf, ShardFile)>, SimError> {
     let mut paths = Vec::new();
     for d in dirs {
-        let entries = std::fs::read_dir(d)
-            .with_context(|| format!("reading shard folder {}", d.display()))?;
+        let entries =
+            std::fs::read_dir(d).step(|| format!("reading shard folder {}", d.display()))?;
         let before = paths.len();
         for e in entries {
-            let e = e.with_context(|| format!("reading shard folder {}", d.display()))?;
+            let e = e.step(|| format!("reading shard folder {}", d.display()))?;
             if e.file_name().to_str().is_some_and(is_shard_name) {
                 paths.push(e.path());
             }
         }
-        anyhow::ensure!(
-            paths.len() > before,
-            "{}: no shard files (shard-I-of-N.json, written by markhold compare --shard I/N)",
-            d.display()
-        );
+        ensure(paths.len() > before, || SimError::Run {
+            reason: format!(
+                "{}: no shard files (shard-I-of-N.json, written by markhold compare --shard I/N)",
+                d.display()
+            ),
+        })?;
     }
     paths.sort();
     let mut out = Vec::with_capacity(paths.len());
@@ -232,23 +234,30 @@ fn read_shards(dirs: &[PathBuf]) -> anyhow::Result<Vec<(PathBuf, ShardFile)>> {
         // Regular files of bounded size only: not a FIFO (it would wait for a writer), not
         // a link to a device.
         let text = markhold_config::read_regular(&p, MAX_SHARD_BYTES)
-            .with_context(|| format!("reading {}", p.display()))?;
+            .step(|| format!("reading {}", p.display()))?;
         let f: ShardFile = serde_json::from_str(&text)
-            .with_context(|| format!("{}: not a markhold compare shard file", p.display()))?;
-        anyhow::ensure!(
-            f.format == FORMAT,
-            "{}: shard file format {} (this markhold reads {FORMAT})",
-            p.display(),
-            f.format
-        );
-        check_values(&f).map_err(|e| anyhow::anyhow!("{}: {e}", p.display()))?;
+            .step(|| format!("{}: not a markhold compare shard file", p.display()))?;
+        ensure(f.format == FORMAT, || SimError::Run {
+            reason: format!(
+                "{}: shard file format {} (this markhold reads {FORMAT})",
+                p.display(),
+                f.format
+            ),
+        })?;
+        check_values(&f).map_err(|e| SimError::Run {
+            reason: format!("{}: {e}", p.display()),
+        })?;
         let expect = f.shard.file_name();
-        anyhow::ensure!(
+        ensure(
             p.file_name().and_then(|n| n.to_str()) == Some(expect.as_str()),
-            "{}: holds shard {} (file name {expect})",
-            p.display(),
-            f.shard
-        );
+            || SimError::Run {
+                reason: format!(
+                    "{}: holds shard {} (file name {expect})",
+                    p.display(),
+                    f.shard
+                ),
+            },
+        )?;
         out.push((p, f));
     }
     Ok(out)
@@ -391,59 +400,68 @@ fn check_case(c: &CaseResult, max_frames: u64) -> Result<(), String> {
 }
 
 /// Refuse shards of different sweeps or shard counts, duplicates and missing shards.
-fn check_complete(shards: &[(PathBuf, ShardFile)]) -> anyhow::Result<()> {
+fn check_complete(shards: &[(PathBuf, ShardFile)]) -> Result<(), SimError> {
     let Some((p0, f0)) = shards.first() else {
-        anyhow::bail!("no shard files given");
+        return Err(SimError::Run {
+            reason: "no shard files given".to_string(),
+        });
     };
     for (p, f) in &shards[1..] {
         let d = f0.sweep.differences(&f.sweep);
-        anyhow::ensure!(
-            d.is_empty(),
-            "shards of different sweeps: {} and {} differ in {}",
-            p0.display(),
-            p.display(),
-            d.join("; ")
-        );
-        anyhow::ensure!(
-            f.shard.count == f0.shard.count,
-            "shards of different cuts of the sweep: {} is one of {} shards, {} one of {}",
-            p0.display(),
-            f0.shard.count,
-            p.display(),
-            f.shard.count
-        );
+        ensure(d.is_empty(), || SimError::Run {
+            reason: format!(
+                "shards of different sweeps: {} and {} differ in {}",
+                p0.display(),
+                p.display(),
+                d.join("; ")
+            ),
+        })?;
+        ensure(f.shard.count == f0.shard.count, || SimError::Run {
+            reason: format!(
+                "shards of different cuts of the sweep: {} is one of {} shards, {} one of {}",
+                p0.display(),
+                f0.shard.count,
+                p.display(),
+                f.shard.count
+            ),
+        })?;
     }
     let n = f0.shard.count;
     let mut seen: BTreeMap<u32, &Path> = BTreeMap::new();
     for (p, f) in shards {
         if let Some(other) = seen.insert(f.shard.index, p) {
-            anyhow::bail!(
-                "duplicate shard {}: {} and {} (keep one)",
-                f.shard,
-                other.display(),
-                p.display()
-            );
+            return Err(SimError::Run {
+                reason: format!(
+                    "duplicate shard {}: {} and {} (keep one)",
+                    f.shard,
+                    other.display(),
+                    p.display()
+                ),
+            });
         }
     }
     let missing: Vec<String> = (1..=n)
         .filter(|i| !seen.contains_key(i))
         .map(|i| format!("{i}/{n}"))
         .collect();
-    anyhow::ensure!(
-        missing.is_empty(),
-        "missing shard(s) {} of {n}: rerun each with markhold compare --shard I/{n} and the \
+    ensure(missing.is_empty(), || SimError::Run {
+        reason: format!(
+            "missing shard(s) {} of {n}: rerun each with markhold compare --shard I/{n} and the \
          same options",
-        missing.join(", ")
-    );
+            missing.join(", ")
+        ),
+    })?;
     Ok(())
 }
 
 /// Merge the shard files in `dirs` into the output of the unsharded sweep.
-pub fn merge(dirs: &[PathBuf]) -> anyhow::Result<CompareOutput> {
+pub fn merge(dirs: &[PathBuf]) -> Result<CompareOutput, SimError> {
     let shards = read_shards(dirs)?;
     check_complete(&shards)?;
     let Some((_, first)) = shards.first() else {
-        anyhow::bail!("no shard files given");
+        return Err(SimError::Run {
+            reason: "no shard files given".to_string(),
+        });
     };
     let h = first.sweep.header.clone();
     let opts = CompareOptions {
@@ -460,14 +478,15 @@ pub fn merge(dirs: &[PathBuf]) -> anyhow::Result<CompareOutput> {
     for (p, f) in shards {
         for c in f.cases {
             let k = format!("{:?}", key(&c));
-            anyhow::ensure!(
-                !by_key.contains_key(&k),
-                "{}: case {} / {} / seed {} is in two shards",
-                p.display(),
-                c.method,
-                c.lighting,
-                c.seed
-            );
+            ensure(!by_key.contains_key(&k), || SimError::Run {
+                reason: format!(
+                    "{}: case {} / {} / seed {} is in two shards",
+                    p.display(),
+                    c.method,
+                    c.lighting,
+                    c.seed
+                ),
+            })?;
             by_key.insert(k, c);
         }
         series.extend(f.series);
@@ -476,7 +495,7 @@ pub fn merge(dirs: &[PathBuf]) -> anyhow::Result<CompareOutput> {
     let mut cases = Vec::with_capacity(by_key.len());
     for c in opts.cases() {
         let k = format!("{:?}", (c.method, c.lighting, c.seed));
-        let r = by_key.remove(&k).with_context(|| {
+        let r = by_key.remove(&k).required(|| {
             format!(
                 "no shard holds case {} / {} / seed {}",
                 c.method, c.lighting, c.seed
@@ -506,7 +525,7 @@ pub(super) fn run_shard(
     shard: Shard,
     dir: &std::path::Path,
     bar: &Span,
-) -> anyhow::Result<()> {
+) -> Result<(), SimError> {
     let sweep = Sweep::of(site, opts)?;
     let cases = shard.cases(opts);
     let run = run_cases(site, opts, &cases, bar)?;
