@@ -3,7 +3,7 @@
 //! reported: hold figures, and the vehicle's response to keeper-effort steps in each
 //! flight mode (what a plant model of ArduSub has to reproduce).
 
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 
 use crate::error::{Required, SimError, StepContext};
 use markhold_autopilot::{Effort, LinkMode};
@@ -13,7 +13,7 @@ use serde::Serialize;
 
 use super::hil::{HilOptions, HilRun};
 use super::hold::{HoldFigures, HoldSeries};
-use super::sitl_loop::{arm, open_peer, run_sitl_loop, SitlLoopOptions};
+use super::sitl_loop::{arm, open_peer, run_sitl_loop, SitlLoopOptions, SITL_DEPTH_NOISE_M};
 use markhold_core::params::LoadedSite;
 use markhold_core::pipeline::Observers;
 
@@ -232,6 +232,8 @@ pub struct Comparison {
     pub seed: u64,
     pub seconds: f64,
     pub ardusub: String,
+    /// SIM_BARO_RND given to ArduSub SITL (m).
+    pub depth_noise_m: f64,
     pub sites: Vec<SiteComparison>,
     pub steps_ours: Vec<StepResponse>,
     pub steps_sitl: Vec<StepResponse>,
@@ -255,10 +257,11 @@ pub fn hold_on_ours(site: &LoadedSite, opts: &HilOptions) -> Result<HoldFigures,
 /// The markdown report of a comparison.
 pub fn report(c: &Comparison) -> String {
     let mut s = format!(
-        "Seed {}, {} simulated seconds a run, figures over each run's last half; ArduSub: {}.\n\n\
+        "Seed {}, {} simulated seconds a run, figures over each run's last half; ArduSub: {} \
+         (its depth-sensor noise SIM_BARO_RND {} m).\n\n\
          | site | vehicle | position RMS mm | final error mm | heading std deg | yaw effort std | heave effort std | thruster reversals /s | marker % |\n\
          |---|---|---|---|---|---|---|---|---|\n",
-        c.seed, c.seconds, c.ardusub
+        c.seed, c.seconds, c.ardusub, c.depth_noise_m
     );
     for site in &c.sites {
         for (who, f) in [
@@ -321,6 +324,11 @@ pub struct SitlCompareArgs {
     /// Its parameter defaults (Tools/autotest/default_params/sub-6dof.parm).
     #[arg(long, value_name = "FILE.parm")]
     pub defaults: Option<PathBuf>,
+    /// ArduSub SITL's depth-sensor noise, SIM_BARO_RND (m, uniform +-), set after
+    /// --defaults. SITL's own default, 0.2, is an aircraft's altitude noise: 0.2 m of
+    /// water.
+    #[arg(long, value_name = "M", default_value_t = SITL_DEPTH_NOISE_M)]
+    pub depth_noise_m: f64,
     /// The ArduSub version flown, as the report names it (e.g. "ArduSub V4.2.0-dev
     /// b6606a8f5d").
     #[arg(long, default_value = "ArduSub SITL")]
@@ -352,9 +360,20 @@ pub fn cli(args: SitlCompareArgs) -> Result<(), SimError> {
         }
         sites.sort();
     }
+    // The report's folder exists before an hour of runs, not after.
+    if let Some(dir) = args.out.as_deref().and_then(Path::parent) {
+        if !dir.as_os_str().is_empty() {
+            std::fs::create_dir_all(dir).map_err(|source| SimError::File {
+                action: "creating --out's folder",
+                path: dir.to_path_buf(),
+                source,
+            })?;
+        }
+    }
     let opts = SitlLoopOptions {
         ardusub: Some(args.ardusub.clone()),
         defaults: args.defaults.clone(),
+        depth_noise_m: args.depth_noise_m,
         instance: args.instance,
         ..SitlLoopOptions::default()
     };
@@ -367,6 +386,7 @@ pub fn cli(args: SitlCompareArgs) -> Result<(), SimError> {
         seed: args.seed,
         seconds: args.seconds,
         ardusub: args.ardusub_version.clone(),
+        depth_noise_m: args.depth_noise_m,
         sites: Vec::new(),
         steps_ours: Vec::new(),
         steps_sitl: Vec::new(),

@@ -44,6 +44,13 @@ const ARM_SETTLE_S: f64 = 10.0;
 const DESCENT_MPS: f64 = 0.25;
 /// Held still at the start this long before it is armed, s.
 const HOLD_BEFORE_ARM_S: f64 = 2.0;
+/// The depth-sensor noise a started ArduSub SITL gets (`SIM_BARO_RND`, m): the value
+/// ArduSub's own sub-6dof.parm sets under the name `BARO_RND`, which ArduSub does not
+/// read (SITL's parameters carry the `SIM_` prefix: ArduSub/Parameters.cpp `GOBJECT(sitl,
+/// "SIM_", SITL::SITL)`), so without it SITL keeps its aircraft default of 0.2 m.
+pub const SITL_DEPTH_NOISE_M: f64 = 0.02;
+/// The parameter file markhold adds after the user's `--defaults`, in ArduSub's folder.
+const SENSOR_PARM: &str = "markhold-sitl.parm";
 
 /// How the SITL-in-the-loop run finds its ArduSub.
 #[derive(Debug, Clone)]
@@ -55,6 +62,10 @@ pub struct SitlLoopOptions {
     /// Parameter defaults for the started binary (`--defaults`), e.g.
     /// Tools/autotest/default_params/sub-6dof.parm.
     pub defaults: Option<PathBuf>,
+    /// SITL's depth-sensor noise, `SIM_BARO_RND` (m of water; SITL adds it uniformly in
+    /// +-this to the altitude its baro reads, AP_Baro_SITL.cpp `_timer`): written to a
+    /// parameter file read after `defaults`.
+    pub depth_noise_m: f64,
     /// SITL instance: ports 5760 + 10 N (MAVLink) and 9002 + 10 N (JSON).
     pub instance: u16,
     /// ArduSub's `--speedup` (its real-time pacing; the lockstep holds either way).
@@ -78,6 +89,7 @@ impl Default for SitlLoopOptions {
         Self {
             ardusub: None,
             defaults: None,
+            depth_noise_m: SITL_DEPTH_NOISE_M,
             instance: 0,
             speedup: 100,
             vehicle_url: None,
@@ -99,6 +111,66 @@ impl SitlLoopOptions {
             .clone()
             .unwrap_or_else(|| format!("tcp:127.0.0.1:{}", BASE_PORT + 10 * self.instance))
     }
+}
+
+/// ArduSub's `--defaults` for a started SITL: the user's file (if any), then markhold's
+/// own in `dir` setting the depth-sensor noise, comma-separated as
+/// AP_Param::load_defaults_file reads them (a later file's value wins).
+pub fn sitl_defaults(
+    user: Option<&Path>,
+    dir: &Path,
+    depth_noise_m: f64,
+) -> Result<std::ffi::OsString, SimError> {
+    ensure(
+        depth_noise_m.is_finite() && (0.0..=1.0).contains(&depth_noise_m),
+        || {
+            SimError::Usage {
+            reason: format!(
+                "--depth-noise-m {depth_noise_m}: expected SITL's depth-sensor noise in metres, 0 to 1"
+            ),
+        }
+        },
+    )?;
+    let ours = dir.join(SENSOR_PARM);
+    std::fs::write(
+        &ours,
+        format!(
+            "# Written by markhold sitl-loop: SITL's depth-sensor noise (uniform +-m).\n\
+             SIM_BARO_RND {depth_noise_m}\n"
+        ),
+    )
+    .map_err(|source| SimError::File {
+        action: "writing",
+        path: ours.clone(),
+        source,
+    })?;
+    let mut arg = std::ffi::OsString::new();
+    if let Some(d) = user {
+        let d = std::fs::canonicalize(d)
+            .step(|| format!("--defaults {}: no such file", d.display()))?;
+        // ArduSub splits the list at commas.
+        ensure(!d.as_os_str().to_string_lossy().contains(','), || {
+            SimError::Usage {
+            reason: format!(
+                "--defaults {}: ArduSub reads a comma as a separator between files; move or rename it",
+                d.display()
+            ),
+        }
+        })?;
+        arg.push(d);
+        arg.push(",");
+    }
+    let ours = std::fs::canonicalize(&ours).step(|| format!("resolving {}", ours.display()))?;
+    ensure(!ours.as_os_str().to_string_lossy().contains(','), || {
+        SimError::Usage {
+        reason: format!(
+            "--work-dir {}: ArduSub reads a comma as a separator between files; choose a folder without one",
+            dir.display()
+        ),
+    }
+    })?;
+    arg.push(ours);
+    Ok(arg)
 }
 
 /// A started `ardusub`: killed and reaped on drop, its folder removed if it was ours and
@@ -140,11 +212,11 @@ impl ArduSubProcess {
             // -sim_alt)`), meaningless at sim_vehicle.py's default 584 m. The autotest's
             // own ArduSub start (ardusub.py, SITL_START_LOCATION) is at 0 m too.
             .args(["--home", HOME]);
-        if let Some(d) = &opts.defaults {
-            let d = std::fs::canonicalize(d)
-                .step(|| format!("--defaults {}: no such file", d.display()))?;
-            cmd.arg("--defaults").arg(d);
-        }
+        cmd.arg("--defaults").arg(sitl_defaults(
+            opts.defaults.as_deref(),
+            &dir,
+            opts.depth_noise_m,
+        )?);
         let child = cmd
             .stdin(Stdio::null())
             .stdout(log.try_clone()?)
@@ -616,6 +688,12 @@ pub struct SitlLoopArgs {
     /// Tools/autotest/default_params/sub-6dof.parm).
     #[arg(long, value_name = "FILE.parm")]
     pub defaults: Option<PathBuf>,
+    /// The started ArduSub's depth-sensor noise, SITL's SIM_BARO_RND (m, uniform +-),
+    /// set after --defaults. SITL's own default, 0.2, is an aircraft's altitude noise:
+    /// 0.2 m of water.
+    /// [default: 0.02, what ArduSub's sub-6dof.parm means by its BARO_RND]
+    #[arg(long, value_name = "M")]
+    pub depth_noise_m: Option<f64>,
     /// SITL instance N: MAVLink on 5760 + 10 N, JSON servo packets to 9002 + 10 N.
     #[arg(long, default_value_t = 0)]
     pub instance: u16,
@@ -649,6 +727,8 @@ struct SitlLoopSummary<'a> {
     frames: u64,
     armed_after_s: f64,
     camera_pose_mismatches: u64,
+    /// SIM_BARO_RND given to the started ArduSub (none: an ArduSub started elsewhere).
+    sitl_depth_noise_m: Option<f64>,
 }
 
 pub fn cli(args: SitlLoopArgs) -> Result<(), SimError> {
@@ -670,9 +750,18 @@ pub fn cli(args: SitlLoopArgs) -> Result<(), SimError> {
             args.instance
         ),
     })?;
+    ensure(
+        args.ardusub.is_some() || args.depth_noise_m.is_none(),
+        || SimError::Usage {
+            reason: "--depth-noise-m: only for an ArduSub markhold starts (--ardusub); \
+                     for one started elsewhere set SIM_BARO_RND in its parameters"
+                .to_string(),
+        },
+    )?;
     let opts = SitlLoopOptions {
         ardusub: args.ardusub,
         defaults: args.defaults,
+        depth_noise_m: args.depth_noise_m.unwrap_or(SITL_DEPTH_NOISE_M),
         instance: args.instance,
         speedup: args.speedup,
         vehicle_url: args.vehicle,
@@ -712,6 +801,7 @@ pub fn cli(args: SitlLoopArgs) -> Result<(), SimError> {
             frames: run.frames,
             armed_after_s: run.armed_after_s,
             camera_pose_mismatches: run.pose_mismatches,
+            sitl_depth_noise_m: opts.ardusub.is_some().then_some(opts.depth_noise_m),
         };
         let text = serde_json::to_string_pretty(&out)?;
         std::fs::write(path, text).step(|| format!("writing {}", path.display()))?;
@@ -720,4 +810,93 @@ pub fn cli(args: SitlLoopArgs) -> Result<(), SimError> {
         std::process::exit(markhold_core::signal::INTERRUPTED_EXIT);
     }
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn scratch(name: &str) -> PathBuf {
+        let d = std::env::temp_dir().join(format!("markhold-sitl-{}-{name}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&d);
+        std::fs::create_dir_all(&d).expect("scratch folder");
+        d
+    }
+
+    #[test]
+    fn sitl_defaults_lists_the_users_file_then_the_depth_noise() {
+        let dir = scratch("defaults");
+        let user = dir.join("sub-6dof.parm");
+        std::fs::write(&user, "BARO_RND 0.02\n").expect("user file");
+        let arg = sitl_defaults(Some(&user), &dir, 0.005).expect("defaults");
+        let arg = arg.to_string_lossy().into_owned();
+        let (first, ours) = arg.split_once(',').expect("two files");
+        assert_eq!(Path::new(first), std::fs::canonicalize(&user).unwrap());
+        let text = std::fs::read_to_string(ours).expect("markhold's file");
+        assert!(text.lines().any(|l| l == "SIM_BARO_RND 0.005"), "{text}");
+        // Without a user file, markhold's alone.
+        let alone = sitl_defaults(None, &dir, 0.02).expect("defaults");
+        assert!(!alone.to_string_lossy().contains(','));
+        let _ = std::fs::remove_dir_all(&dir);
+    }
+
+    #[test]
+    fn sitl_defaults_refuses_bad_noise_and_comma_paths() {
+        let dir = scratch("refused");
+        for bad in [-0.01, f64::NAN, 2.0] {
+            let e = sitl_defaults(None, &dir, bad)
+                .expect_err("refused")
+                .to_string();
+            assert!(e.contains("--depth-noise-m"), "{e}");
+        }
+        let user = dir.join("a,b.parm");
+        std::fs::write(&user, "").expect("user file");
+        let e = sitl_defaults(Some(&user), &dir, 0.02)
+            .expect_err("refused")
+            .to_string();
+        assert!(e.contains("a,b.parm") && e.contains("comma"), "{e}");
+        let e = sitl_defaults(Some(&dir.join("missing.parm")), &dir, 0.02)
+            .expect_err("refused")
+            .to_string();
+        assert!(e.contains("missing.parm"), "{e}");
+        let _ = std::fs::remove_dir_all(&dir);
+    }
+
+    /// The started binary gets the list: a stand-in `ardusub` that writes its arguments.
+    #[test]
+    fn a_started_ardusub_reads_the_depth_noise_after_the_users_defaults() {
+        use std::os::unix::fs::PermissionsExt;
+        let dir = scratch("spawn");
+        let bin = dir.join("ardusub");
+        std::fs::write(&bin, "#!/bin/sh\nprintf '%s\\n' \"$@\" > args.txt\n").expect("stand-in");
+        std::fs::set_permissions(&bin, std::fs::Permissions::from_mode(0o755)).expect("chmod");
+        let user = dir.join("sub.parm");
+        std::fs::write(&user, "FRAME_CONFIG 2\n").expect("user file");
+        let work = dir.join("work");
+        let opts = SitlLoopOptions {
+            defaults: Some(user.clone()),
+            depth_noise_m: 0.004,
+            work_dir: Some(work.clone()),
+            ..SitlLoopOptions::default()
+        };
+        let mut p = ArduSubProcess::start(&opts, &bin).expect("started");
+        let deadline = Instant::now() + Duration::from_secs(10);
+        while p.child.try_wait().expect("wait").is_none() {
+            assert!(Instant::now() < deadline, "stand-in did not exit");
+            std::thread::sleep(Duration::from_millis(20));
+        }
+        let args = std::fs::read_to_string(work.join("args.txt")).expect("args");
+        let args: Vec<&str> = args.lines().collect();
+        let i = args
+            .iter()
+            .position(|a| *a == "--defaults")
+            .expect("--defaults");
+        let files: Vec<&str> = args[i + 1].split(',').collect();
+        assert_eq!(files.len(), 2, "{args:?}");
+        assert_eq!(Path::new(files[0]), std::fs::canonicalize(&user).unwrap());
+        let ours = std::fs::read_to_string(files[1]).expect("markhold's file");
+        assert!(ours.contains("SIM_BARO_RND 0.004"), "{ours}");
+        drop(p);
+        let _ = std::fs::remove_dir_all(&dir);
+    }
 }
