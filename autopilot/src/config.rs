@@ -493,7 +493,8 @@ pub struct LinkConfig {
     /// joystick gain (`manual_control_gain`).
     pub yaw_deadzone_us: f64,
     /// ArduSub's THR_DZ: the ALT_HOLD climb-rate dead band about centre throttle, in
-    /// throttle control units (0..1000 over the stick travel above RC3_DZ).
+    /// throttle control units (0..1000 over the stick travel above RC3_DZ); ArduSub 4.5
+    /// applies it times the joystick gain (`manual_control_gain`).
     pub thr_dz: f64,
     /// Efforts below this magnitude are sent as exact neutral (no compensation).
     pub effort_epsilon: f64,
