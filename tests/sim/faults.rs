@@ -477,9 +477,22 @@ fn marker_occluded_30_s_alt_hold_holds_depth_then_station_comes_back() {
     // The mode is read from the vehicle's 1 Hz heartbeat.
     assert!(restored - req <= 1.05, "{r:?}");
     assert_eq!(o.truth.last().unwrap().mode, 0);
-    let regained = r.station_regained_at_s.expect("station not regained");
-    assert!(regained - end < 4.0, "{r:?}");
-    assert!(station_error(&s, o.truth.last().unwrap()) < STATION_TOL_M);
+    // The report's `station_regained_at_s` counts only a station that was lost (error
+    // past STATION_TOL_M); ALT_HOLD, holding heading and depth as ArduSub 4.5 does, can
+    // keep the vehicle within it through the whole occlusion.
+    match r.station_regained_at_s {
+        Some(regained) => assert!(regained - end < 4.0, "{r:?}"),
+        None => assert!(
+            r.max_position_error_m <= STATION_TOL_M,
+            "station not regained: {r:?}"
+        ),
+    }
+    // Within the tolerance (truth) from 4 s after the marker came back to the end.
+    let back = ((end + 4.0) * fps).round() as usize;
+    for t in &o.truth[back..] {
+        let e = station_error(&s, t);
+        assert!(e < STATION_TOL_M, "{e:.3} m off at {:.2} s", t.time_s);
+    }
 }
 
 #[test]
