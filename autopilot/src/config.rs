@@ -198,7 +198,7 @@ pub struct ControllerConfig {
     pub climb_stick_scale: f64,
     /// STABILIZE and ALT_HOLD: the yaw axis's output is multiplied by this before it goes
     /// out as the yaw stick, which ArduSub reads as a yaw rate (stick x ACRO_YAW_P, 151.9
-    /// deg/s at full stick with ArduSub 4.5's 3.375): 0.25, 38 deg/s per unit effort, less
+    /// deg/s at full stick with ArduSub 4.5's 3.375): 0.3, 46 deg/s per unit effort, less
     /// than the 60 deg/s the gains are tuned on because ArduSub's heading capture (250 ms
     /// after the stick is centred) adds lag (docs/design/autopilot.md). 1 = the stick as
     /// computed.
@@ -234,9 +234,10 @@ impl Default for ControllerConfig {
             vision_stall_s: 0.5,
             // 0.5 / 5.0 (m/s per unit effort tuned on / PILOT_SPEED_UP); yaw below
             // 60 / 151.9 (deg/s) for the heading capture's lag: pool at rest, 60 s, holds
-            // 2.8-2.9 mm RMS at 0.2-0.3 and chatters 5.6/s at 0.4.
+            // 2.8-2.9 mm RMS at 0.2-0.3 and chatters 5.6/s at 0.4; at 0.25 the slower first
+            // turn at lamp-map lost its lit marker for 2 s.
             climb_stick_scale: 0.1,
-            yaw_rate_stick_scale: 0.25,
+            yaw_rate_stick_scale: 0.3,
         }
     }
 }

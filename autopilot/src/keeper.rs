@@ -1007,8 +1007,8 @@ mod tests {
         };
         for (mode, heave, yaw) in [
             (ArduSubMode::Manual, 1.0, 1.0),
-            (ArduSubMode::Stabilize, 1.0, 0.25),
-            (ArduSubMode::AltHold, 0.1, 0.25),
+            (ArduSubMode::Stabilize, 1.0, 0.3),
+            (ArduSubMode::AltHold, 0.1, 0.3),
         ] {
             let (a, b) = (run(mode, &shipped), run(mode, &unscaled));
             assert!(b.heave.abs() > 0.01 && b.yaw.abs() > 0.01, "{mode:?} {b:?}");
