@@ -323,8 +323,8 @@ fn run_refuses_to_start_on_a_failed_preflight() {
 
 /// The pilot's QGroundControl on a second TCP connection to the external vehicle, as
 /// system 255, component 190 (a `VehicleLink` with QGroundControl's ids): switches mode
-/// away at `away_s`, pushes the vehicle sideways with its own overrides, releases them and
-/// switches back at `back_s` (wall seconds from the start). Returns how far the vehicle
+/// away at `away_s`, pushes the vehicle sideways with its own overrides, centres and
+/// releases them and switches back at `back_s` (wall seconds from the start). Returns how far the vehicle
 /// moved from where it was at `away_s` (its LOCAL_POSITION_NED), metres.
 fn pilot_on_tcp(
     addr: std::net::SocketAddr,
@@ -365,6 +365,12 @@ fn pilot_on_tcp(
                         ..Effort::NEUTRAL
                     };
                     qgc.send_effort(&push, t).unwrap();
+                }
+                // The pilot lets go: centred sticks, then the overrides released. ArduSub
+                // with no RC receiver keeps a released override's last value until the
+                // pilot-input failsafe, so releasing mid-push would go on pushing.
+                1 if t < away_s + 1.5 => {
+                    qgc.send_effort(&Effort::NEUTRAL, t).unwrap();
                 }
                 1 => {
                     qgc.release_pilot().unwrap();

@@ -191,12 +191,26 @@ pub struct ControllerConfig {
     pub max_gap_s: f64,
     /// The camera frames stop arriving for this long: vision stalled, seconds.
     pub vision_stall_s: f64,
+    /// ALT_HOLD: the heave axis's output is multiplied by this before it goes out as the
+    /// throttle stick, which ArduSub reads as a climb rate (PILOT_SPEED_UP, 5 m/s at full
+    /// stick in ArduSub 4.5): 0.1 gives the heave gains 0.5 m/s of climb per unit effort,
+    /// the plant they are tuned on. 1 = the stick as computed.
+    pub climb_stick_scale: f64,
+    /// STABILIZE and ALT_HOLD: the yaw axis's output is multiplied by this before it goes
+    /// out as the yaw stick, which ArduSub reads as a yaw rate (stick x ACRO_YAW_P, 151.9
+    /// deg/s at full stick with ArduSub 4.5's 3.375): 0.3, 46 deg/s per unit effort, less
+    /// than the 60 deg/s the gains are tuned on because ArduSub's heading capture (250 ms
+    /// after the stick is centred) adds lag (docs/design/autopilot.md). 1 = the stick as
+    /// computed.
+    pub yaw_rate_stick_scale: f64,
 }
 
 impl Default for ControllerConfig {
     fn default() -> Self {
         // Gains for a BlueROV2 Heavy at 1 m in MANUAL with dead-band compensation: the
-        // translation axes get ~0.25 effort at 0.3 m, yaw ~0.2 effort at 20 degrees.
+        // translation axes get ~0.25 effort at 0.3 m, yaw ~0.2 effort at 20 degrees. The
+        // rate sticks of STABILIZE and ALT_HOLD are scaled down to the same loop gains
+        // (`climb_stick_scale`, `yaw_rate_stick_scale`).
         Self {
             surge: AxisConfig::with(0.8, 0.08, 0.6, 0.2, 0.5),
             sway: AxisConfig::with(0.8, 0.08, 0.6, 0.2, 0.5),
@@ -218,6 +232,12 @@ impl Default for ControllerConfig {
             filter_gate_sigma: 6.0,
             max_gap_s: 1.0,
             vision_stall_s: 0.5,
+            // 0.5 / 5.0 (m/s per unit effort tuned on / PILOT_SPEED_UP); yaw below
+            // 60 / 151.9 (deg/s) for the heading capture's lag: pool at rest, 60 s, holds
+            // 2.8-2.9 mm RMS at 0.2-0.3 and chatters 5.6/s at 0.4; at 0.25 the slower first
+            // turn at lamp-map lost its lit marker for 2 s.
+            climb_stick_scale: 0.1,
+            yaw_rate_stick_scale: 0.3,
         }
     }
 }
@@ -274,6 +294,8 @@ struct ControllerConfigToml {
     filter_gate_sigma: Option<f64>,
     max_gap_s: Option<f64>,
     vision_stall_s: Option<f64>,
+    climb_stick_scale: Option<f64>,
+    yaw_rate_stick_scale: Option<f64>,
 }
 
 impl From<ControllerConfigToml> for ControllerConfig {
@@ -303,6 +325,8 @@ impl From<ControllerConfigToml> for ControllerConfig {
             filter_gate_sigma: t.filter_gate_sigma.unwrap_or(d.filter_gate_sigma),
             max_gap_s: t.max_gap_s.unwrap_or(d.max_gap_s),
             vision_stall_s: t.vision_stall_s.unwrap_or(d.vision_stall_s),
+            climb_stick_scale: t.climb_stick_scale.unwrap_or(d.climb_stick_scale),
+            yaw_rate_stick_scale: t.yaw_rate_stick_scale.unwrap_or(d.yaw_rate_stick_scale),
         }
     }
 }
@@ -326,6 +350,8 @@ impl ControllerConfig {
             .non_negative("filter_gate_sigma", self.filter_gate_sigma, NON_NEGATIVE)
             .positive("max_gap_s", self.max_gap_s, POSITIVE)
             .positive("vision_stall_s", self.vision_stall_s, POSITIVE)
+            .finite_range("climb_stick_scale", self.climb_stick_scale, 0.001..=1.0, "0.001..=1")
+            .finite_range("yaw_rate_stick_scale", self.yaw_rate_stick_scale, 0.001..=1.0, "0.001..=1")
             .done()
     }
 
@@ -493,7 +519,8 @@ pub struct LinkConfig {
     /// joystick gain (`manual_control_gain`).
     pub yaw_deadzone_us: f64,
     /// ArduSub's THR_DZ: the ALT_HOLD climb-rate dead band about centre throttle, in
-    /// throttle control units (0..1000 over the stick travel above RC3_DZ).
+    /// throttle control units (0..1000 over the stick travel above RC3_DZ); ArduSub 4.5
+    /// applies it times the joystick gain (`manual_control_gain`).
     pub thr_dz: f64,
     /// Efforts below this magnitude are sent as exact neutral (no compensation).
     pub effort_epsilon: f64,

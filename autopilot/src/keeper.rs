@@ -398,6 +398,9 @@ pub struct StationKeeper {
     holds: AutopilotHolds,
     /// This frame's depth target for ALT_HOLD (`depth_target_m`).
     depth_target: Option<f64>,
+    /// `ControllerConfig::climb_stick_scale` / `yaw_rate_stick_scale`.
+    climb_stick_scale: f64,
+    yaw_rate_stick_scale: f64,
 }
 
 impl StationKeeper {
@@ -461,6 +464,8 @@ impl StationKeeper {
             search_max_s: ctl.marker_lost_action_after_s,
             holds: AutopilotHolds::default(),
             depth_target: None,
+            climb_stick_scale: ctl.climb_stick_scale,
+            yaw_rate_stick_scale: ctl.yaw_rate_stick_scale,
         })
     }
 
@@ -637,6 +642,14 @@ impl StationKeeper {
                 // The depth goes to ArduSub's depth controller as a target instead.
                 self.axes[2].reset();
                 o[2] = 0.0;
+            }
+            // Rate sticks: the mode turns the stick into a climb or yaw rate, scaled to
+            // the rates the gains are tuned on.
+            if self.holds.depth {
+                o[2] *= self.climb_stick_scale;
+            }
+            if self.holds.heading {
+                o[5] *= self.yaw_rate_stick_scale;
             }
             self.pid_out = Effort::from_array(o);
             self.acc -= self.dt_step;
@@ -968,6 +981,47 @@ mod tests {
     }
 
     #[test]
+    fn rate_sticks_are_scaled_in_the_modes_that_read_them_as_rates() {
+        // 20 cm above the station (past the depth-target band, so heave is stick) and
+        // yawed 0.1 rad, no depth telemetry: the keeper's outputs with the shipped scales
+        // against scales of 1, per mode.
+        let goal = StationConfig::default().t_marker_vehicle();
+        let off = goal
+            * Isometry3::translation(0.0, 0.0, -0.2)
+            * Isometry3::rotation(Vector3::new(0.0, 0.0, 0.1));
+        let run = |mode: ArduSubMode, ctl: &ControllerConfig| {
+            let mut k = StationKeeper::new(&StationConfig::default(), ctl, forward_cam()).unwrap();
+            let mut last = Effort::NEUTRAL;
+            for i in 0..10 {
+                let t = i as f64 / 30.0;
+                k.set_autopilot_mode(Some(mode));
+                last = k.update(t, Some(&meas_for(t, &off)));
+            }
+            last
+        };
+        let shipped = ControllerConfig::default();
+        let unscaled = ControllerConfig {
+            climb_stick_scale: 1.0,
+            yaw_rate_stick_scale: 1.0,
+            ..ControllerConfig::default()
+        };
+        for (mode, heave, yaw) in [
+            (ArduSubMode::Manual, 1.0, 1.0),
+            (ArduSubMode::Stabilize, 1.0, 0.3),
+            (ArduSubMode::AltHold, 0.1, 0.3),
+        ] {
+            let (a, b) = (run(mode, &shipped), run(mode, &unscaled));
+            assert!(b.heave.abs() > 0.01 && b.yaw.abs() > 0.01, "{mode:?} {b:?}");
+            assert!(
+                (a.heave - heave * b.heave).abs() < 1e-12,
+                "{mode:?} {a:?} {b:?}"
+            );
+            assert!((a.yaw - yaw * b.yaw).abs() < 1e-12, "{mode:?} {a:?} {b:?}");
+            assert_eq!((a.surge, a.sway), (b.surge, b.sway), "{mode:?}");
+        }
+    }
+
+    #[test]
     fn in_alt_hold_with_depth_telemetry_the_heave_is_a_depth_target() {
         // 3 cm above the station, held there, the vehicle reporting 3 m down.
         let goal = StationConfig::default().t_marker_vehicle();
@@ -993,9 +1047,13 @@ mod tests {
         assert_eq!(e.heave, 0.0, "{e:?}");
         let target = target.unwrap();
         assert!((target - 3.03).abs() < 1e-3, "{target}");
-        // 10 cm off: the approach on the stick.
+        // 10 cm off: the approach on the stick, a climb rate scaled to the gains' plant.
+        let climb = ControllerConfig::default().climb_stick_scale;
         let (e, target) = run_at(0.1, Some(ArduSubMode::AltHold), Some(3.0), true);
-        assert!(e.heave > 0.05 && target.is_none(), "{e:?} {target:?}");
+        assert!(
+            e.heave > 0.05 * climb && target.is_none(),
+            "{e:?} {target:?}"
+        );
         // Without depth telemetry, or in a mode that takes no depth target: the stick.
         for (mode, depth) in [
             (Some(ArduSubMode::AltHold), None),
@@ -1003,7 +1061,12 @@ mod tests {
             (Some(ArduSubMode::Manual), Some(3.0)),
         ] {
             let (e, target) = run(mode, depth, true);
-            assert!(e.heave > 0.01, "{mode:?} {depth:?}: {e:?}");
+            let scale = if mode == Some(ArduSubMode::AltHold) {
+                climb
+            } else {
+                1.0
+            };
+            assert!(e.heave > 0.01 * scale, "{mode:?} {depth:?}: {e:?}");
             assert_eq!(target, None, "{mode:?} {depth:?}");
         }
         // A frame without the marker sends no target (ArduSub holds the last one) and

@@ -55,14 +55,14 @@ impl PilotMap {
     /// MANUAL; forward, lateral and throttle in STABILIZE; forward and lateral in
     /// ALT_HOLD) meet only the ESC dead band. Setpoint channels meet ArduSub's input dead
     /// zone, and ArduSub's own loops then push the thrusters past their band: roll and
-    /// pitch RCn_DZ, yaw RC4_DZ x joystick gain, the ALT_HOLD throttle THR_DZ about the
-    /// centre of its RC3_DZ-reduced range.
+    /// pitch RCn_DZ, yaw RC4_DZ x joystick gain, the ALT_HOLD throttle THR_DZ x joystick
+    /// gain about the centre of its RC3_DZ-reduced range.
     pub fn from_config(cfg: &LinkConfig) -> Self {
         let db = cfg.thruster_deadband_us;
         let dz = cfg.input_deadzone_us;
         // `channel_yaw->get_dead_zone() * sub.gain`, passed on as whole microseconds.
         let dzy = (cfg.yaw_deadzone_us * cfg.manual_control_gain).trunc();
-        let climb = climb_dead_zone_us(cfg.input_deadzone_us, cfg.thr_dz);
+        let climb = climb_dead_zone_us(cfg.input_deadzone_us, cfg.thr_dz, cfg.manual_control_gain);
         let offset_us = match cfg.mode {
             LinkMode::Manual | LinkMode::Guided => [db; 6],
             LinkMode::Stabilize => [db, db, db, dz, dz, dzy],
@@ -134,8 +134,9 @@ impl PilotMap {
 /// The ALT_HOLD throttle's dead zone, us from 1500 (the larger of up and down): the
 /// largest offset whose `Sub::get_pilot_desired_climb_rate()` is zero, from
 /// `RC_Channel::pwm_to_range_dz()` (RC3_DZ = `rc3_dz_us`, range 0..1000) and THR_DZ
-/// about `get_control_mid()`, in ArduSub's integer arithmetic (30 us and 100: 77 us).
-pub fn climb_dead_zone_us(rc3_dz_us: f64, thr_dz: f64) -> f64 {
+/// times the joystick gain about `get_control_mid()` (ArduSub 4.5's `Attitude.cpp`), in
+/// ArduSub's arithmetic (30 us, 100 and gain 0.5: 38 us; at gain 1: 77 us).
+pub fn climb_dead_zone_us(rc3_dz_us: f64, thr_dz: f64, gain: f64) -> f64 {
     let low = 1100 + rc3_dz_us.clamp(0.0, 200.0) as i32;
     let ctrl = |pwm: i32| {
         if pwm > low {
@@ -145,7 +146,8 @@ pub fn climb_dead_zone_us(rc3_dz_us: f64, thr_dz: f64) -> f64 {
         }
     };
     let mid = f64::from(1000 * (1500 - low) / (1900 - low));
-    let dz = thr_dz.clamp(0.0, 400.0).trunc();
+    // THR_DZ is an integer parameter; `gain` scales it as a float.
+    let dz = thr_dz.clamp(0.0, 400.0).trunc() * gain;
     let climbs = |pwm: i32| {
         let c = f64::from(ctrl(pwm));
         c > mid + dz || c < mid - dz
@@ -253,11 +255,12 @@ mod tests {
             ]
         };
         // Forward and lateral: only the ESC band (30 us), in every mode: the first PWM
-        // past it. ALT_HOLD throttle: past THR_DZ (77 us with RC3_DZ 30, THR_DZ 100); roll
+        // past it. ALT_HOLD throttle: past THR_DZ x gain (38 us with RC3_DZ 30, THR_DZ 100,
+        // gain 0.5); roll
         // and pitch past RCn_DZ (30); yaw past RC4_DZ x gain (40 x 0.5 = 20).
         assert_eq!(
             smallest(LinkMode::AltHold),
-            [1531, 1469, 1578, 1531, 1469, 1521]
+            [1531, 1469, 1539, 1531, 1469, 1521]
         );
         assert_eq!(
             smallest(LinkMode::Stabilize),
@@ -267,8 +270,9 @@ mod tests {
             smallest(LinkMode::Manual),
             [1531, 1469, 1531, 1531, 1469, 1531]
         );
-        assert_eq!(climb_dead_zone_us(30.0, 100.0), 77.0);
-        assert_eq!(climb_dead_zone_us(30.0, 0.0), 0.0);
+        assert_eq!(climb_dead_zone_us(30.0, 100.0, 0.5), 38.0);
+        assert_eq!(climb_dead_zone_us(30.0, 100.0, 1.0), 77.0);
+        assert_eq!(climb_dead_zone_us(30.0, 0.0, 0.5), 0.0);
     }
 
     #[test]

@@ -485,6 +485,20 @@ pub fn parse(path: &Path, text: &str) -> Result<LoadedSite, ParamsError> {
             .map_err(|e| referenced(e.to_string()))?;
         site.link.signing_key_file = Some(full);
     }
+    #[cfg(feature = "sim")]
+    if let Some(rel) = &site.vehicle.params_file {
+        // The vehicle's ArduSub parameter file, relative to the site file, read here so a
+        // bad value is a config error naming the parameter file and its line.
+        let full = base.join(rel);
+        markhold_hil::endpoint::ArduSubParams::read(&full).map_err(|e| {
+            if e.file.is_some() {
+                ParamsError::Config(e)
+            } else {
+                located(path, &at, e)
+            }
+        })?;
+        site.vehicle.params_file = Some(full);
+    }
     Ok(LoadedSite {
         path: path.to_path_buf(),
         site,

@@ -3,12 +3,15 @@
 //! vision position estimates, requested telemetry streams, and the pilot-input and GCS
 //! failsafes. Every time it sees is simulation time passed in by the caller.
 //!
-//! Facts from ArduSub (see docs/reference/ardusub.md): pilot input only from the GCS system id,
-//! MANUAL_CONTROL's target must be our system id, RC overrides expire after 3 s, manual
-//! control is scaled by the joystick gain, each mode reads each channel as ArduSub does
-//! (forward and lateral without a dead zone; roll, pitch, yaw and the ALT_HOLD throttle
-//! through their dead zones: see `control`), disarm after 3 s without pilot input and
-//! 5 s after the GCS heartbeat was lost.
+//! Facts from ArduSub 4.5 (see docs/reference/ardusub.md and docs/design/hil.md
+//! "Conformance"): pilot input only from the GCS system id, MANUAL_CONTROL's target must be
+//! our system id, manual control is scaled by the joystick gain, an RC override that
+//! expires (RC_OVERRIDE_TIME) or is released leaves the channel at its last value (no RC
+//! receiver) until the pilot-input failsafe centres every control and disarms
+//! (FS_PILOT_INPUT, FS_PILOT_TIMEOUT), each mode reads each channel as ArduSub does (see
+//! `control`), ALT_HOLD and SURFACE need a healthy depth sensor and a failed one switches
+//! the depth modes to MANUAL, and the GCS failsafe acts after FS_GCS_TIMEOUT. The
+//! parameters are one [`ArduSubParams`] (ArduSub 4.5's defaults, or a vehicle's file).
 //!
 //! Telemetry can be sent late (`set_telemetry_latency`): attitude, position, depth and
 //! the other sensor messages then report the vehicle's state that much simulation time
@@ -16,6 +19,7 @@
 
 pub mod consistency;
 mod control;
+pub mod params;
 pub mod signing;
 
 use std::collections::VecDeque;
@@ -39,29 +43,42 @@ use serde::{Deserialize, Serialize};
 pub use consistency::VisionNees;
 pub use control::ControlGains;
 use control::{Controller, NavEstimate};
+pub use params::ArduSubParams;
 use signing::{Signing, Verdict};
 
 use crate::mixer::MAX_MOTORS;
 use crate::vehicle::{VehicleState, GRAVITY_MPS2};
 use crate::HilError;
-use markhold_config::{open_closed, Checks, ConfigError};
+use markhold_config::{Checks, ConfigError};
 
 /// ArduSub flight modes (HEARTBEAT.custom_mode).
 pub mod mode {
     pub const STABILIZE: u32 = 0;
     pub const ALT_HOLD: u32 = 2;
     pub const GUIDED: u32 = 4;
+    pub const SURFACE: u32 = 9;
     pub const POSHOLD: u32 = 16;
     pub const MANUAL: u32 = 19;
 
     /// Modes this endpoint flies.
-    pub const SUPPORTED: [u32; 5] = [STABILIZE, ALT_HOLD, GUIDED, POSHOLD, MANUAL];
+    pub const SUPPORTED: [u32; 6] = [STABILIZE, ALT_HOLD, GUIDED, SURFACE, POSHOLD, MANUAL];
+
+    /// Modes that need a depth sensor (`control_check_barometer` in their `init`).
+    pub fn needs_depth(mode: u32) -> bool {
+        matches!(mode, ALT_HOLD | SURFACE)
+    }
+
+    /// Modes that need a position estimate (`requires_GPS`).
+    pub fn needs_position(mode: u32) -> bool {
+        matches!(mode, GUIDED | POSHOLD)
+    }
 
     pub fn name(mode: u32) -> &'static str {
         match mode {
             STABILIZE => "STABILIZE",
             ALT_HOLD => "ALT_HOLD",
             GUIDED => "GUIDED",
+            SURFACE => "SURFACE",
             POSHOLD => "POSHOLD",
             MANUAL => "MANUAL",
             _ => "UNKNOWN",
@@ -97,22 +114,13 @@ pub struct EndpointConfig {
     /// With a key: also accept unsigned frames (MAVLink 1, unsigned MAVLink 2). False:
     /// signing is required and unsigned input is dropped.
     pub signing_accept_unsigned: bool,
-    /// MANUAL_CONTROL scaling (ArduSub's joystick gain, JS_GAIN_DEFAULT): full stick =
-    /// 400 us x gain; it also scales the yaw dead zone of the stabilized modes.
-    pub joystick_gain: f64,
-    /// RC1_DZ .. RC4_DZ (pitch, roll, throttle, yaw input dead zones), us: ArduSub's
-    /// defaults 30, 30, 30, 40.
-    pub rc_dz_us: [u16; 4],
-    /// THR_DZ: the ALT_HOLD / POSHOLD climb-rate dead band about centre throttle, in
-    /// throttle control units (0..1000 over the stick travel above RC3_DZ); default 100.
-    pub thr_dz: u16,
-    /// Disarm after this long without pilot input (FS_PILOT_TIMEOUT); 0 disables.
-    pub pilot_timeout_s: f64,
-    /// Disarm after this long without a GCS heartbeat once one was seen (FS_GCS_TIMEOUT);
-    /// 0 disables.
-    pub gcs_timeout_s: f64,
-    /// RC overrides expire after this long (RC_OVERRIDE_TIME).
-    pub rc_override_timeout_s: f64,
+    /// ArduSub's parameters (joystick gain, dead zones, pilot speeds, failsafes, ...):
+    /// ArduSub 4.5's defaults unless a vehicle's parameter file gives them
+    /// (`[vehicle] params_file`, set by the rig).
+    #[serde(skip)]
+    pub params: ArduSubParams,
+    /// The vehicle has a depth sensor (ALT_HOLD and SURFACE need one).
+    pub depth_sensor: bool,
     /// Guided targets expire after this long.
     pub guided_timeout_s: f64,
     /// Vision position estimates older than this are not used.
@@ -138,12 +146,8 @@ impl Default for EndpointConfig {
             signing_key_file: None,
             signing_link_id: 0,
             signing_accept_unsigned: false,
-            joystick_gain: 0.5,
-            rc_dz_us: [30, 30, 30, 40],
-            thr_dz: 100,
-            pilot_timeout_s: 3.0,
-            gcs_timeout_s: 5.0,
-            rc_override_timeout_s: 3.0,
+            params: ArduSubParams::default(),
+            depth_sensor: true,
             guided_timeout_s: 3.0,
             vision_timeout_s: 2.0,
             heartbeat_hz: 1.0,
@@ -159,22 +163,16 @@ impl EndpointConfig {
         let ip = self.bind_ip;
         let positive = "a positive number";
         let unicast = !(ip.is_multicast() || ip.is_unspecified());
-        let modes = "0 (STABILIZE), 2 (ALT_HOLD), 4 (GUIDED), 16 (POSHOLD) or 19 (MANUAL)";
+        let modes = "0 (STABILIZE), 2 (ALT_HOLD), 4 (GUIDED), 9 (SURFACE), 16 (POSHOLD) or 19 (MANUAL)";
         Checks::new("endpoint")
             .range("system_id", self.system_id, 1.., "1..=255")
             .check("bind_ip", ip, unicast, "one unicast address (127.0.0.1 by default; not 0.0.0.0)")
-            .range("joystick_gain", self.joystick_gain, open_closed(0.0, 1.0), "0 < gain <= 1")
-            .range("rc_dz_us", self.rc_dz_us.iter().copied().max().unwrap_or(0), ..=200,
-                "each 0..=200 us (ArduSub RCn_DZ range)")
-            .range("thr_dz", self.thr_dz, ..=400, "0..=400 (ArduSub THR_DZ range)")
-            .non_negative("pilot_timeout_s", self.pilot_timeout_s, "seconds >= 0 (0 disables)")
-            .non_negative("gcs_timeout_s", self.gcs_timeout_s, "seconds >= 0 (0 disables)")
-            .positive("rc_override_timeout_s", self.rc_override_timeout_s, positive)
             .positive("guided_timeout_s", self.guided_timeout_s, positive)
             .positive("vision_timeout_s", self.vision_timeout_s, positive)
             .positive("heartbeat_hz", self.heartbeat_hz, positive)
             .one_of("initial_mode", self.initial_mode, &mode::SUPPORTED, modes)
             .then(|| self.gains.validate())
+            .then(|| self.params.validate())
             .done()
     }
 }
@@ -278,30 +276,28 @@ struct TcpClient {
 }
 
 /// Pilot input as ArduSub's RC input channels (1-based: 1 pitch, 2 roll, 3 throttle,
-/// 4 yaw, 5 forward, 6 lateral, ...), PWM us.
+/// 4 yaw, 5 forward, 6 lateral, ...), PWM us: `radio_in`. An override that expires
+/// (RC_OVERRIDE_TIME) or is released leaves the channel at its last value: with no RC
+/// receiver, `RC_Channel::update()` keeps `radio_in` when it has no override
+/// (libraries/RC_Channel/RC_Channel.cpp). Channels 1-8 start at 1500 (`init_rc_in`).
 #[derive(Debug, Clone, Copy, PartialEq)]
 struct RcInput {
     pwm: [u16; 18],
-    /// Simulation time each channel was last overridden.
-    stamp_s: [f64; 18],
 }
 
 impl RcInput {
     fn new() -> Self {
-        Self {
-            pwm: [1500; 18],
-            stamp_s: [f64::NEG_INFINITY; 18],
-        }
+        Self { pwm: [1500; 18] }
     }
 
-    /// Channel `ch` (1-based) now, 1500 once its override expired.
-    fn channel(&self, ch: usize, now_s: f64, timeout_s: f64) -> u16 {
-        let i = ch - 1;
-        if now_s - self.stamp_s[i] <= timeout_s {
-            self.pwm[i]
-        } else {
-            1500
-        }
+    /// Channel `ch` (1-based) now.
+    fn channel(&self, ch: usize) -> u16 {
+        self.pwm[ch - 1]
+    }
+
+    /// `Sub::set_neutral_controls()`: the six control channels to 1500.
+    fn neutral(&mut self) {
+        self.pwm[..6].fill(1500);
     }
 }
 
@@ -358,6 +354,12 @@ pub struct VehicleEndpoint {
     arm_time_s: f64,
     last_pilot_s: Option<f64>,
     last_gcs_heartbeat_s: Option<f64>,
+    /// The pilot-input and GCS failsafes have acted (each once, until input returns).
+    pilot_failsafe: bool,
+    gcs_failsafe: bool,
+    /// The depth sensor reads (and its failure was acted on).
+    depth_healthy: bool,
+    depth_failsafe: bool,
     rc: RcInput,
     guided: Option<GuidedTarget>,
     vision: Option<(f64, Isometry3<f64>)>,
@@ -439,6 +441,10 @@ impl VehicleEndpoint {
             arm_time_s: 0.0,
             last_pilot_s: None,
             last_gcs_heartbeat_s: None,
+            pilot_failsafe: false,
+            gcs_failsafe: false,
+            depth_healthy: true,
+            depth_failsafe: false,
             rc: RcInput::new(),
             guided: None,
             vision: None,
@@ -447,14 +453,7 @@ impl VehicleEndpoint {
             streams: Vec::with_capacity(STREAMABLE_IDS.len()),
             next_heartbeat_s: 0.0,
             stats: EndpointStats::default(),
-            controller: Controller::new(
-                cfg.gains.clone(),
-                control::InputParams {
-                    rc_dz_us: cfg.rc_dz_us,
-                    thr_dz: cfg.thr_dz,
-                    joystick_gain: cfg.joystick_gain,
-                },
-            ),
+            controller: Controller::new(cfg.gains.clone(), cfg.params),
             outbox: Vec::with_capacity(16),
             rx_frames: Vec::with_capacity(64),
             signing,
@@ -824,20 +823,18 @@ impl VehicleEndpoint {
         // joystick onto the RC input channels: 1500 + v x 0.4 x gain, throttle
         // 1500 - 500 x s + z x s with s = 0.8 x gain (JS_THR_GAIN 1), truncated to
         // whole microseconds by the conversion to int16 and constrained to 1100..1900.
-        let g = self.cfg.joystick_gain;
+        let g = self.controller.gain();
         let axis = |v: i16| {
             (1500.0 + f64::from(v) * 0.4 * g)
                 .trunc()
                 .clamp(1100.0, 1900.0) as u16
         };
-        let s = 0.8 * g;
+        let s = 0.8 * g * self.cfg.params.js_thr_gain;
         let thr = (1500.0 - 500.0 * s + f64::from(m.z) * s)
             .trunc()
             .clamp(1100.0, 1900.0) as u16;
-        let now = self.now_s;
         let mut set = |ch: usize, pwm: u16| {
             self.rc.pwm[ch - 1] = pwm;
-            self.rc.stamp_s[ch - 1] = now;
         };
         set(3, thr);
         set(4, axis(m.r));
@@ -875,22 +872,18 @@ impl VehicleEndpoint {
         ];
         for (i, &v) in raw.iter().enumerate() {
             // Channels 1-8: 0 releases, UINT16_MAX leaves unchanged. Channels 9-18: 0 and
-            // UINT16_MAX both leave unchanged, and UINT16_MAX - 1 releases.
+            // UINT16_MAX both leave unchanged, and UINT16_MAX - 1 releases. A released
+            // channel keeps its last value (no RC receiver).
             let release = if i < 8 { v == 0 } else { v == u16::MAX - 1 };
             let ignore = if i < 8 {
                 v == u16::MAX
             } else {
                 v == 0 || v == u16::MAX
             };
-            if ignore {
-                continue;
-            }
-            if release {
-                self.rc.stamp_s[i] = f64::NEG_INFINITY;
+            if ignore || release {
                 continue;
             }
             self.rc.pwm[i] = v.clamp(1100, 1900);
-            self.rc.stamp_s[i] = self.now_s;
         }
     }
 
@@ -954,10 +947,20 @@ impl VehicleEndpoint {
             tracing::warn!(mode = m, "mode not supported");
             return false;
         }
-        if (m == mode::GUIDED || m == mode::POSHOLD) && !self.has_position(self.now_s) {
+        if mode::needs_position(m) && !self.has_position(self.now_s) {
             tracing::warn!(mode = mode::name(m), "mode needs a position estimate");
             return false;
         }
+        if mode::needs_depth(m) && !self.depth_ok() {
+            // ModeAlthold::init / ModeSurface::init: `control_check_barometer()`.
+            tracing::warn!(mode = mode::name(m), "mode needs a depth sensor");
+            return false;
+        }
+        self.enter_mode(m);
+        true
+    }
+
+    fn enter_mode(&mut self, m: u32) {
         if m != self.mode {
             tracing::info!(
                 from = mode::name(self.mode),
@@ -968,7 +971,6 @@ impl VehicleEndpoint {
             self.controller.reset();
             self.guided = None;
         }
-        true
     }
 
     fn set_interval(&mut self, id: u32, interval_us: f64) {
@@ -1154,35 +1156,88 @@ impl VehicleEndpoint {
             self.controller.observe(state, nav);
             return [0.0; 6];
         }
-        let tmo = self.cfg.rc_override_timeout_s;
-        let ch = |c: usize| self.rc.channel(c, now, tmo);
+        let ch = |c: usize| self.rc.channel(c);
         let raw = [ch(5), ch(6), ch(3), ch(2), ch(1), ch(4)];
         let guided = self
             .guided
             .filter(|g| now - g.stamp_s <= self.cfg.guided_timeout_s);
-        self.controller
-            .update(self.mode, &raw, state, nav, guided.as_ref(), dt_s)
+        let efforts = self
+            .controller
+            .update(self.mode, &raw, state, nav, guided.as_ref(), dt_s);
+        // ModeSurface::run: at the surface, hold depth there (ALT_HOLD).
+        let depth_cm = state.t_world_vehicle.translation.vector.z * 100.0;
+        if self.mode == mode::SURFACE && depth_cm <= -self.cfg.params.surface_depth_cm {
+            self.set_mode(mode::ALT_HOLD);
+        }
+        efforts
+    }
+
+    /// Whether the depth sensor is present and reads (`control_check_barometer`).
+    fn depth_ok(&self) -> bool {
+        self.cfg.depth_sensor && self.depth_healthy
+    }
+
+    /// Make the simulated depth sensor fail (false) or read again (true). A failure
+    /// switches ALT_HOLD, SURFACE, POSHOLD and GUIDED to MANUAL
+    /// (`Sub::failsafe_sensors_check`).
+    pub fn set_depth_sensor_healthy(&mut self, healthy: bool) {
+        self.depth_healthy = healthy;
     }
 
     fn failsafes(&mut self, now: f64) {
-        if !self.armed {
-            return;
+        let p = self.cfg.params;
+        // Sub::failsafe_sensors_check: once per failure.
+        if self.cfg.depth_sensor && !self.depth_healthy {
+            if !self.depth_failsafe {
+                self.depth_failsafe = true;
+                if mode::needs_depth(self.mode) || mode::needs_position(self.mode) {
+                    tracing::warn!(from = mode::name(self.mode), "depth sensor error: MANUAL");
+                    self.enter_mode(mode::MANUAL);
+                }
+            }
+        } else {
+            self.depth_failsafe = false;
         }
-        if self.cfg.pilot_timeout_s > 0.0 {
+        // Sub::failsafe_pilot_input_check: once, until pilot input returns; centres the
+        // controls (the held RC values go) and disarms with FS_PILOT_INPUT = 2.
+        if p.fs_pilot_input != 0 {
             let last = self
                 .last_pilot_s
                 .unwrap_or(self.arm_time_s)
                 .max(self.arm_time_s);
-            if now - last > self.cfg.pilot_timeout_s {
-                self.stats.failsafe_pilot += 1;
-                self.disarm("pilot input failsafe");
+            if now - last < p.fs_pilot_timeout_s {
+                self.pilot_failsafe = false;
+            } else if !self.pilot_failsafe {
+                self.pilot_failsafe = true;
+                self.rc.neutral();
+                if p.fs_pilot_input == 2 && self.armed {
+                    self.stats.failsafe_pilot += 1;
+                    self.disarm("pilot input failsafe");
+                }
             }
         }
-        if self.cfg.gcs_timeout_s > 0.0 {
+        // Sub::failsafe_gcs_check: once a GCS was heard, FS_GCS_TIMEOUT without its
+        // heartbeat (or pilot input) acts once: 2 disarm, 3 POSHOLD (ALT_HOLD without a
+        // position), 4 SURFACE.
+        if p.fs_gcs_enable != 0 {
             if let Some(last) = self.last_gcs_heartbeat_s {
-                if now - last > self.cfg.gcs_timeout_s {
+                if now - last <= p.fs_gcs_timeout_s {
+                    self.gcs_failsafe = false;
+                } else if !self.gcs_failsafe && self.armed {
+                    self.gcs_failsafe = true;
                     self.stats.failsafe_gcs += 1;
-                    self.disarm("GCS heartbeat failsafe");
+                    match p.fs_gcs_enable {
+                        2 => self.disarm("GCS heartbeat failsafe"),
+                        3 => {
+                            if !self.set_mode(mode::POSHOLD) {
+                                self.set_mode(mode::ALT_HOLD);
+                            }
+                        }
+                        4 => {
+                            self.set_mode(mode::SURFACE);
+                        }
+                        _ => tracing::warn!("GCS heartbeat lost"),
+                    }
                 }
             }
         }
@@ -1330,8 +1385,7 @@ impl VehicleEndpoint {
                 ..Default::default()
             }),
             65 => {
-                let tmo = self.cfg.rc_override_timeout_s;
-                let c = |i: usize| self.rc.channel(i, now, tmo);
+                let c = |i: usize| self.rc.channel(i);
                 MavMessage::RC_CHANNELS(RC_CHANNELS_DATA {
                     time_boot_ms: t_ms,
                     chan1_raw: c(1),
@@ -1451,23 +1505,16 @@ mod tests {
 
     #[test]
     fn config_errors_name_the_key_and_unknown_keys_are_refused() {
-        let c = EndpointConfig {
-            joystick_gain: 2.0,
-            ..Default::default()
-        };
-        assert!(c
-            .validate()
-            .unwrap_err()
-            .to_string()
-            .contains("endpoint.joystick_gain"));
-        let c = EndpointConfig {
-            rc_dz_us: [30, 30, 250, 40],
-            ..Default::default()
-        };
+        let mut c = EndpointConfig::default();
+        c.params.js_gain_default = 2.0;
         let e = c.validate().unwrap_err().to_string();
-        assert!(e.contains("endpoint.rc_dz_us") && e.contains("250"), "{e}");
+        assert!(e.contains("JS_GAIN_DEFAULT") && e.contains('2'), "{e}");
+        let mut c = EndpointConfig::default();
+        c.params.rc_dz_us[2] = 250;
+        let e = c.validate().unwrap_err().to_string();
+        assert!(e.contains("RC3_DZ") && e.contains("250"), "{e}");
         let c = EndpointConfig {
-            initial_mode: 9,
+            initial_mode: 7,
             ..Default::default()
         };
         assert!(c
@@ -1476,12 +1523,12 @@ mod tests {
             .to_string()
             .contains("endpoint.initial_mode"));
         let mut c = EndpointConfig::default();
-        c.gains.depth_kp = f64::NAN;
+        c.gains.depth_pos_p = f64::NAN;
         assert!(c
             .validate()
             .unwrap_err()
             .to_string()
-            .contains("endpoint.gains.depth_kp"));
+            .contains("endpoint.gains.depth_pos_p"));
         assert!(serde_json::from_str::<EndpointConfig>(r#"{"gcs_sysid":255}"#).is_err());
         let c: EndpointConfig = serde_json::from_str(r#"{"gcs_system_id":254}"#).unwrap();
         assert_eq!((c.gcs_system_id, c.system_id), (254, 1));

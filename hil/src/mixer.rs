@@ -17,6 +17,8 @@ pub struct Mixer {
     factors: [[f64; 6]; MAX_MOTORS],
     mounts: [ThrusterMount; MAX_MOTORS],
     n: usize,
+    /// MOT_FV_CPLNG_K (the 6-thruster frame only).
+    fv_coupling: f64,
 }
 
 impl Mixer {
@@ -26,7 +28,14 @@ impl Mixer {
             factors: frame.motor_factors(),
             mounts: frame.thruster_mounts(),
             n: frame.motor_count(),
+            fv_coupling: 1.0,
         }
+    }
+
+    /// The same mixer with MOT_FV_CPLNG_K = `k` (ArduSub's default 1.0; 0 disables).
+    pub fn with_fv_coupling(mut self, k: f64) -> Self {
+        self.fv_coupling = if k.is_finite() { k.max(0.0) } else { 1.0 };
+        self
     }
 
     pub fn frame(&self) -> Frame6Dof {
@@ -57,10 +66,22 @@ impl Mixer {
         let (roll, pitch, yaw) = (e[3], e[4], e[5]);
         let mut vert = [0.0; MAX_MOTORS];
         let mut horz = [0.0; MAX_MOTORS];
+        // AP_Motors6DOF::output_armed_stabilizing_vectored (the 6-thruster frame): under
+        // throttle the forward part of the "rear" horizontal thrusters for the direction
+        // of travel (motors 3 and 4 going forward, 1 and 2 going back) is limited to
+        // 1 - MOT_FV_CPLNG_K x |throttle|.
+        let coupling_limit = (1.0 - self.fv_coupling * throttle.abs()).max(0.0);
         for i in 0..self.n {
             let f = &self.factors[i];
+            let mut fwd = forward;
+            if self.frame == Frame6Dof::Standard && forward != 0.0 && i < 4 {
+                let rear = if forward > 0.0 { i >= 2 } else { i < 2 };
+                if rear {
+                    fwd = forward.clamp(-coupling_limit, coupling_limit);
+                }
+            }
             vert[i] = roll * f[0] + pitch * f[1] + throttle * f[3];
-            horz[i] = yaw * f[2] + forward * f[4] + lateral * f[5];
+            horz[i] = yaw * f[2] + fwd * f[4] + lateral * f[5];
         }
         let mut out = [0.0; MAX_MOTORS];
         match self.frame {
@@ -74,6 +95,8 @@ impl Mixer {
                 }
             }
             Frame6Dof::Standard => {
+                // Roll, pitch and yaw plus the linear part, clamped (ArduSub's vectored
+                // mixer normalizes nothing).
                 for i in 0..self.n {
                     out[i] = (vert[i] + horz[i]).clamp(-1.0, 1.0);
                 }
@@ -143,6 +166,29 @@ mod tests {
                 assert!(w2[axis] < 0.0, "{frame} axis {axis} reversed: {w2:?}");
             }
         }
+    }
+
+    /// AP_Motors6DOF::output_armed_stabilizing_vectored: under throttle the rear pair for
+    /// the direction of travel gets at most 1 - MOT_FV_CPLNG_K x |throttle| of forward;
+    /// the Heavy has no such limit.
+    #[test]
+    fn fv_cplng_k_limits_the_rear_thrusters_of_the_6_thruster_frame_under_throttle() {
+        let std = Mixer::new(Frame6Dof::Standard);
+        // Forward 0.8, throttle up 0.5 (heave -0.5): limit 0.5 on motors 3 and 4.
+        let out = std.mix_outputs(&[0.8, 0.0, -0.5, 0.0, 0.0, 0.0]);
+        assert_eq!([out[0], out[1]], [-0.8, -0.8]);
+        assert_eq!([out[2], out[3]], [0.5, 0.5]);
+        // Going back, motors 1 and 2 are the rear ones.
+        let out = std.mix_outputs(&[-0.8, 0.0, -0.5, 0.0, 0.0, 0.0]);
+        assert_eq!([out[0], out[1], out[2], out[3]], [0.5, 0.5, -0.8, -0.8]);
+        // K = 0 disables it; no throttle, no limit.
+        let off = Mixer::new(Frame6Dof::Standard).with_fv_coupling(0.0);
+        assert_eq!(off.mix_outputs(&[0.8, 0.0, -0.5, 0.0, 0.0, 0.0])[2], 0.8);
+        assert_eq!(std.mix_outputs(&[0.8, 0.0, 0.0, 0.0, 0.0, 0.0])[2], 0.8);
+        let heavy = Mixer::new(Frame6Dof::Heavy);
+        let out = heavy.mix_outputs(&[0.8, 0.0, -0.5, 0.0, 0.0, 0.0]);
+        assert_eq!(out[2], out[3]);
+        assert!((out[2] - 0.8).abs() < 1e-12, "{out:?}");
     }
 
     #[test]

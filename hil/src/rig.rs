@@ -128,7 +128,12 @@ impl HilRig {
             setup.seed.wrapping_add(0x6A09_E667_F3BC_C908),
         )?;
         vehicle.set_motion(setup.motion);
-        let mut endpoint = VehicleEndpoint::bind(&setup.endpoint)?;
+        // The autopilot runs on the vehicle's parameters when it has a file of them.
+        let mut endpoint_cfg = setup.endpoint.clone();
+        if setup.vehicle.params_file.is_some() {
+            endpoint_cfg.params = *vehicle.ardusub_params();
+        }
+        let mut endpoint = VehicleEndpoint::bind(&endpoint_cfg)?;
         endpoint.set_telemetry_latency(setup.vehicle.telemetry_latency_ms / 1000.0, vehicle.dt_s());
         let idle = vehicle.mixer().mix_pwm(&[0.0; 6], false);
         Ok(Self {
@@ -168,6 +173,11 @@ impl HilRig {
         let state = self.vehicle.state();
         self.endpoint.tick(&state, &self.pwm)?;
         Ok(n)
+    }
+
+    /// Make the vehicle's depth sensor fail (false) or read again (true).
+    pub fn set_depth_sensor_healthy(&mut self, healthy: bool) {
+        self.endpoint.set_depth_sensor_healthy(healthy);
     }
 
     /// Ground truth now.

@@ -26,6 +26,7 @@ use rapier3d::pipeline::PhysicsWorld;
 use serde::{Deserialize, Serialize};
 
 use crate::disturbance::{ModelError, TetherConfig};
+use crate::endpoint::ArduSubParams;
 use crate::mixer::{Frame6Dof, Mixer, MAX_MOTORS};
 use crate::thruster::{Thruster, ThrusterConfig};
 use crate::HilError;
@@ -201,6 +202,10 @@ pub struct VehicleConfig {
     /// Age of what the vehicle's telemetry reports (attitude, position, depth) when it is
     /// sent, milliseconds of simulation time.
     pub telemetry_latency_ms: f64,
+    /// The vehicle's ArduSub parameters: a QGroundControl `.params` or MAVProxy `.parm`
+    /// file (unknown names ignored); absent = ArduSub 4.5's defaults. The simulated
+    /// autopilot's pilot scaling, failsafes and MOT_FV_CPLNG_K mixing follow it.
+    pub params_file: Option<std::path::PathBuf>,
 }
 
 impl Default for VehicleConfig {
@@ -231,6 +236,7 @@ impl Default for VehicleConfig {
             external_moment_nm: [0.0; 3],
             model_error: ModelError::default(),
             telemetry_latency_ms: 0.0,
+            params_file: None,
         }
     }
 }
@@ -293,6 +299,14 @@ impl VehicleConfig {
             .then(|| self.model_error.validate())
             .finite_range("telemetry_latency_ms", self.telemetry_latency_ms, 0.0..=1000.0, "0..=1000 ms")
             .done()
+    }
+
+    /// The ArduSub parameters: `params_file` read, or ArduSub 4.5's defaults.
+    pub fn ardusub_params(&self) -> Result<ArduSubParams, ConfigError> {
+        match &self.params_file {
+            Some(path) => ArduSubParams::read(path),
+            None => Ok(ArduSubParams::default()),
+        }
     }
 
     /// The frame's published table in this site's water, with this config's overrides
@@ -378,6 +392,8 @@ pub struct Vehicle {
     cfg: VehicleConfig,
     hydro: Hydrodynamics,
     mixer: Mixer,
+    /// The ArduSub parameters (`VehicleConfig::params_file`).
+    ardusub: ArduSubParams,
     thrusters: [Thruster; MAX_MOTORS],
     world: PhysicsWorld,
     body: RigidBodyHandle,
@@ -437,6 +453,7 @@ impl Vehicle {
         seed: u64,
     ) -> Result<Self, HilError> {
         cfg.validate()?;
+        let ardusub = cfg.ardusub_params()?;
         let hydro = cfg.hydrodynamics();
         let dt = cfg.dt_s();
         let mut world = PhysicsWorld::new();
@@ -464,7 +481,8 @@ impl Vehicle {
         let mut v = Self {
             cfg: cfg.clone(),
             hydro,
-            mixer: Mixer::new(cfg.frame),
+            mixer: Mixer::new(cfg.frame).with_fv_coupling(ardusub.mot_fv_cplng_k),
+            ardusub,
             thrusters: [Thruster::default(); MAX_MOTORS],
             world,
             body,
@@ -497,6 +515,11 @@ impl Vehicle {
 
     pub fn mixer(&self) -> &Mixer {
         &self.mixer
+    }
+
+    /// The vehicle's ArduSub parameters (`VehicleConfig::params_file`).
+    pub fn ardusub_params(&self) -> &ArduSubParams {
+        &self.ardusub
     }
 
     pub fn frame(&self) -> Frame6Dof {
