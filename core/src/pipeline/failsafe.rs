@@ -11,8 +11,8 @@ use serde::Serialize;
 use super::CommandLink;
 
 /// Heave effort (+ down) of the climb when `surface` falls back to ALT_HOLD: half stick
-/// up, i.e. half of ArduSub's pilot climb rate (PILOT_SPEED_UP, 0.5 m/s in the HIL
-/// endpoint), so about 0.25 m/s.
+/// up, which ArduSub 4.5's ALT_HOLD reads as a climb rate, a fraction of PILOT_SPEED_UP
+/// (500 cm/s) past THR_DZ x the joystick gain (`Sub::get_pilot_desired_climb_rate`).
 pub const SURFACE_CLIMB_EFFORT: f64 = -0.5;
 
 /// A mode transition the loop made on its own (marker-loss action and the way back),
