@@ -90,11 +90,12 @@ fn chatter_at_rest_on_the_pool_is_bounded() {
     let site = pool();
     let r = run(&site, &Cell::nominal(&site), 60.0);
     assert!(r.chatter_max_hz <= 2.0 * CHATTER_AT_REST_HZ, "{r:?}");
-    assert!(r.position_rms_m < 2.0 * 0.0058, "{r:?}");
+    assert!(r.position_rms_m < 2.0 * 0.0028, "{r:?}");
 }
 
-/// The measured chatter at rest on the pool (largest axis, surge), sign changes a second.
-const CHATTER_AT_REST_HZ: f64 = 2.14;
+/// The measured chatter at rest on the pool (largest axes, surge and sway), sign changes a
+/// second.
+const CHATTER_AT_REST_HZ: f64 = 2.34;
 
 /// A reduced grid (30 s runs, two cells with the errors piled up; the strongest current
 /// is left to the full grid, whose integrators need longer than 15 s to carry it) holds
