@@ -144,32 +144,26 @@ pub fn sitl_defaults(
         path: ours.clone(),
         source,
     })?;
-    let mut arg = std::ffi::OsString::new();
-    if let Some(d) = user {
-        let d = std::fs::canonicalize(d)
-            .step(|| format!("--defaults {}: no such file", d.display()))?;
-        // ArduSub splits the list at commas.
-        ensure(!d.as_os_str().to_string_lossy().contains(','), || {
+    // ArduSub splits the list at commas: neither path may hold one.
+    let resolve = |path: &Path, flag: &str| -> Result<PathBuf, SimError> {
+        let p = std::fs::canonicalize(path)
+            .step(|| format!("{flag} {}: no such file", path.display()))?;
+        ensure(!p.as_os_str().to_string_lossy().contains(','), || {
             SimError::Usage {
             reason: format!(
-                "--defaults {}: ArduSub reads a comma as a separator between files; move or rename it",
-                d.display()
+                "{flag} {}: ArduSub reads a comma as a separator between files; use a path without one",
+                p.display()
             ),
         }
         })?;
-        arg.push(d);
+        Ok(p)
+    };
+    let mut arg = std::ffi::OsString::new();
+    if let Some(d) = user {
+        arg.push(resolve(d, "--defaults")?);
         arg.push(",");
     }
-    let ours = std::fs::canonicalize(&ours).step(|| format!("resolving {}", ours.display()))?;
-    ensure(!ours.as_os_str().to_string_lossy().contains(','), || {
-        SimError::Usage {
-        reason: format!(
-            "--work-dir {}: ArduSub reads a comma as a separator between files; choose a folder without one",
-            dir.display()
-        ),
-    }
-    })?;
-    arg.push(ours);
+    arg.push(resolve(&ours, "--work-dir")?);
     Ok(arg)
 }
 
