@@ -321,6 +321,11 @@ fn run_refuses_to_start_on_a_failed_preflight() {
     assert_eq!(verdict["armed_at_end"], false, "{verdict}");
 }
 
+/// How far the test pilot nudges the vehicle off station before letting go, m.
+const PILOT_NUDGE_M: f64 = 0.08;
+/// The test pilot's sway stick while nudging.
+const PILOT_SWAY: f64 = 0.3;
+
 /// The pilot's QGroundControl on a second TCP connection to the external vehicle, as
 /// system 255, component 190 (a `VehicleLink` with QGroundControl's ids): switches mode
 /// away at `away_s`, pushes the vehicle sideways with its own overrides, centres and
@@ -343,6 +348,7 @@ fn pilot_on_tcp(
         qgc.set_pilot_keepalive(false);
         let t0 = Instant::now();
         let (mut step, mut at_away, mut moved) = (0, None::<[f64; 3]>, 0.0f64);
+        let (mut centred_at, mut pushing_from) = (None::<f64>, None::<f64>);
         while step < 4 && t0.elapsed() < Duration::from_secs(30) {
             let t = t0.elapsed().as_secs_f64();
             qgc.tick(t).unwrap();
@@ -358,10 +364,17 @@ fn pilot_on_tcp(
                     at_away = pos;
                     step = 1;
                 }
-                // The pilot nudges it off station (not so far that the marker leaves the view).
-                1 if t < away_s + 1.2 => {
+                // The pilot nudges it, watching it move, and lets go 8 cm off station: it
+                // coasts on to about 0.3 m (not so far that the marker leaves the view).
+                // markhold lets go on the HEARTBEAT that reports the new mode: the pilot
+                // waits for the same report before pushing, else the two fight.
+                1 if pushing_from.is_none() && qgc.state().mode == Some(ArduSubMode::Stabilize) => {
+                    pushing_from = Some(t + 0.3);
+                }
+                1 if pushing_from.is_none_or(|p| t < p) => {}
+                1 if centred_at.is_none() && moved < PILOT_NUDGE_M && t < away_s + 3.0 => {
                     let push = Effort {
-                        sway: 0.6,
+                        sway: PILOT_SWAY,
                         ..Effort::NEUTRAL
                     };
                     qgc.send_effort(&push, t).unwrap();
@@ -369,7 +382,7 @@ fn pilot_on_tcp(
                 // The pilot lets go: centred sticks, then the overrides released. ArduSub
                 // with no RC receiver keeps a released override's last value until the
                 // pilot-input failsafe, so releasing mid-push would go on pushing.
-                1 if t < away_s + 1.5 => {
+                1 if t < *centred_at.get_or_insert(t) + 0.3 => {
                     qgc.send_effort(&Effort::NEUTRAL, t).unwrap();
                 }
                 1 => {
@@ -453,7 +466,7 @@ fn hil_on_an_external_vehicle_hands_over_to_the_pilot_and_regains_station() {
     assert!(stderr.contains("disengaged why=ModeChanged"), "{stderr}");
     assert!(stderr.contains("engaged 2 times"), "{stderr}");
     // The vehicle really left its station while markhold was off (the pilot's sideways
-    // push, about 0.2 m, plus its positive buoyancy) ...
+    // nudge and the coast after it, about 0.3 m, plus its positive buoyancy) ...
     assert!(
         moved > 0.15,
         "the vehicle moved {moved:.3} m while markhold was off"
