@@ -212,17 +212,16 @@ impl Default for ControllerConfig {
         // rate sticks of STABILIZE and ALT_HOLD are scaled down to the same loop gains
         // (`climb_stick_scale`, `yaw_rate_stick_scale`).
         Self {
-            surge: AxisConfig::with(0.8, 0.08, 0.6, 0.2, 0.5),
-            sway: AxisConfig::with(0.8, 0.08, 0.6, 0.2, 0.5),
+            surge: AxisConfig::with(0.6, 0.08, 0.6, 0.2, 0.5),
+            sway: AxisConfig::with(0.6, 0.08, 0.6, 0.2, 0.5),
             heave: AxisConfig::with(1.0, 0.15, 0.5, 0.3, 0.6),
             roll: AxisConfig::with(0.4, 0.0, 0.1, 0.0, 0.3),
             pitch: AxisConfig::with(0.4, 0.0, 0.1, 0.0, 0.3),
             yaw: AxisConfig::with(0.6, 0.03, 0.3, 0.15, 0.4),
             rate_hz: 50.0,
-            // 2 Hz and a 0.005 band: at rest in the pool the command changes sign 1.7 times
-            // a second on its busiest axis instead of 4.4, for 3.1 mm RMS instead of 2.0
-            // (docs/design/autopilot.md, `markhold robustness --cells nominal`).
-            derivative_filter_hz: 2.0,
+            // Tuned with the stock frame-to-thrust delay (`[vehicle.delay]`, 93 ms): a slower
+            // filter adds its lag to the delay's (docs/design/autopilot.md, "Gains").
+            derivative_filter_hz: 20.0,
             output_deadband: 0.005,
             marker_lost_hold_s: 0.5,
             marker_lost_action_after_s: 10.0,

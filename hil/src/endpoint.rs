@@ -340,7 +340,13 @@ pub struct EndpointStats {
     /// Failsafe disarms.
     pub failsafe_pilot: u64,
     pub failsafe_gcs: u64,
+    /// Delayed inputs applied early because the delay queue was full.
+    pub delay_overflows: u64,
 }
+
+/// Inputs held back by the frame-to-thrust delay at most at once: several messages a
+/// frame for up to 1 s at 30 frames a second, with room to spare.
+const DELAY_QUEUE: usize = 256;
 
 /// The simulated autopilot's MAVLink side.
 pub struct VehicleEndpoint {
@@ -385,6 +391,11 @@ pub struct VehicleEndpoint {
     history: VecDeque<VehicleState>,
     /// NEES of the vision estimates against the truth (`set_vision_frame` turns it on).
     consistency: consistency::Consistency,
+    /// Frame to thrust, simulation seconds: pilot input, guided targets and vision
+    /// estimates take effect this long after they arrive.
+    input_delay_s: f64,
+    /// Inputs waiting for their time, oldest first: (due time, header, message).
+    delayed: VecDeque<(f64, MavHeader, MavMessage)>,
 }
 
 fn socket_err(
@@ -462,7 +473,33 @@ impl VehicleEndpoint {
             telemetry_latency_s: 0.0,
             history: VecDeque::with_capacity(2),
             consistency: consistency::Consistency::default(),
+            input_delay_s: 0.0,
+            delayed: VecDeque::with_capacity(DELAY_QUEUE),
         })
+    }
+
+    /// Apply pilot input, guided targets and vision estimates `delay_s` (simulation time)
+    /// after they arrive: the frame-to-thrust delay of the loop that sends them.
+    pub fn set_input_delay(&mut self, delay_s: f64) {
+        self.input_delay_s = if delay_s.is_finite() {
+            delay_s.max(0.0)
+        } else {
+            0.0
+        };
+    }
+
+    /// Apply the delayed inputs whose time has come (`now_s`, simulation time).
+    fn release_due(&mut self, now_s: f64) {
+        while let Some(&(due, _, _)) = self.delayed.front() {
+            // Due later than a whole delay from now: the clock went back (a reset), apply.
+            let clock_went_back = due > now_s + self.input_delay_s + 1e-6;
+            if due > now_s + 1e-9 && !clock_went_back {
+                break;
+            }
+            if let Some((_, h, m)) = self.delayed.pop_front() {
+                self.apply(h, m);
+            }
+        }
     }
 
     /// Report the vehicle's state `latency_s` late (simulation time) in telemetry, for
@@ -740,19 +777,53 @@ impl VehicleEndpoint {
         self.last_pilot_s = Some(self.now_s);
     }
 
-    // SET_MODE is deprecated in MAVLink but ArduSub still obeys it, and GCSs still send it.
-    #[allow(deprecated)]
+    /// Inputs a lock-step client sends once per frame, addressed to us (accepted or not).
+    fn is_lockstep_input(&self, msg: &MavMessage) -> bool {
+        match msg {
+            MavMessage::MANUAL_CONTROL(m) => m.target == self.cfg.system_id,
+            MavMessage::RC_CHANNELS_OVERRIDE(m) => self.is_for_us(m.target_system),
+            MavMessage::SET_POSITION_TARGET_LOCAL_NED(t) => self.is_for_us(t.target_system),
+            MavMessage::SET_POSITION_TARGET_GLOBAL_INT(t) => self.is_for_us(t.target_system),
+            _ => false,
+        }
+    }
+
+    /// A message on arrival: counted, then applied now or, when it carries what the loop
+    /// computed from a frame, after the frame-to-thrust delay.
     fn handle(&mut self, h: MavHeader, msg: MavMessage) {
         self.stats.messages += 1;
+        if self.is_lockstep_input(&msg) {
+            self.stats.lockstep_inputs += 1;
+        }
+        let from_frame = self.is_lockstep_input(&msg)
+            || matches!(
+                msg,
+                MavMessage::VISION_POSITION_ESTIMATE(_) | MavMessage::ODOMETRY(_)
+            );
+        if !from_frame || self.input_delay_s == 0.0 {
+            self.apply(h, msg);
+            return;
+        }
+        if self.delayed.len() == DELAY_QUEUE {
+            // Never grow on the per-frame path: the oldest goes early.
+            self.stats.delay_overflows += 1;
+            if let Some((_, oh, om)) = self.delayed.pop_front() {
+                self.apply(oh, om);
+            }
+        }
+        self.delayed
+            .push_back((self.now_s + self.input_delay_s, h, msg));
+    }
+
+    // SET_MODE is deprecated in MAVLink but ArduSub still obeys it, and GCSs still send it.
+    #[allow(deprecated)]
+    fn apply(&mut self, h: MavHeader, msg: MavMessage) {
         let from_gcs = h.system_id == self.cfg.gcs_system_id as u32;
         match msg {
             MavMessage::HEARTBEAT(_) if from_gcs => {
                 self.last_gcs_heartbeat_s = Some(self.now_s);
             }
             MavMessage::MANUAL_CONTROL(m) => {
-                if m.target == self.cfg.system_id {
-                    self.stats.lockstep_inputs += 1;
-                }
                 if !from_gcs || m.target != self.cfg.system_id {
                     self.stats.pilot_inputs_dropped += 1;
                     return;
@@ -761,9 +832,6 @@ impl VehicleEndpoint {
                 self.pilot_input_accepted();
             }
             MavMessage::RC_CHANNELS_OVERRIDE(m) => {
-                if self.is_for_us(m.target_system) {
-                    self.stats.lockstep_inputs += 1;
-                }
                 if !from_gcs || !self.is_for_us(m.target_system) {
                     self.stats.pilot_inputs_dropped += 1;
                     return;
@@ -786,11 +854,9 @@ impl VehicleEndpoint {
                 self.set_mode(m.custom_mode);
             }
             MavMessage::SET_POSITION_TARGET_LOCAL_NED(t) if self.is_for_us(t.target_system) => {
-                self.stats.lockstep_inputs += 1;
                 self.guided_target(&t);
             }
             MavMessage::SET_POSITION_TARGET_GLOBAL_INT(t) if self.is_for_us(t.target_system) => {
-                self.stats.lockstep_inputs += 1;
                 self.global_target(&t);
             }
             MavMessage::VISION_POSITION_ESTIMATE(v) => self.vision_estimate(&v),
@@ -1127,6 +1193,7 @@ impl VehicleEndpoint {
     pub fn efforts(&mut self, state: &VehicleState, dt_s: f64) -> [f64; 6] {
         let now = state.time_s;
         self.now_s = now;
+        self.release_due(now);
         self.failsafes(now);
         // Navigation: when a vision estimate is fresh, align the nav frame to it (an EKF
         // that trusts vision for position and yaw, the IMU in between).

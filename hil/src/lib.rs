@@ -5,6 +5,7 @@
 //! based underwater camera; and ArduPilot's SITL JSON physics server.
 
 pub mod camera;
+pub mod delay;
 pub mod disturbance;
 pub mod endpoint;
 mod error;
@@ -15,6 +16,7 @@ pub mod sitl;
 pub mod thruster;
 pub mod vehicle;
 
+pub use delay::DelayConfig;
 pub use disturbance::{ModelError, TetherConfig};
 pub use endpoint::{EndpointConfig, VehicleEndpoint};
 pub use error::HilError;

@@ -135,6 +135,7 @@ impl HilRig {
         }
         let mut endpoint = VehicleEndpoint::bind(&endpoint_cfg)?;
         endpoint.set_telemetry_latency(setup.vehicle.telemetry_latency_ms / 1000.0, vehicle.dt_s());
+        endpoint.set_input_delay(setup.vehicle.delay.total_ms() / 1000.0);
         let idle = vehicle.mixer().mix_pwm(&[0.0; 6], false);
         Ok(Self {
             physics_hz: setup.vehicle.physics_hz,
@@ -251,6 +252,12 @@ impl HilRig {
     /// The build of the renderer's loops (for the summary: the world's speed depends on it).
     pub fn render_loops(&self) -> RenderLoops {
         self.camera.render_loops()
+    }
+
+    /// How long after a frame's stamp the command computed from it acts, milliseconds
+    /// (`[vehicle.delay]`).
+    pub fn frame_to_thrust_ms(&self) -> f64 {
+        self.vehicle.config().delay.total_ms()
     }
 
     /// Simulation time of the next frame `grab` will render (its stamp).

@@ -177,6 +177,11 @@ pub struct VehicleConfig {
     pub water_density: WaterDensity,
     /// Constant water current, NED, m/s.
     pub current_mps: [f64; 3],
+    /// Added to the current from `current_change_at_s` on, NED, m/s (a current that
+    /// turns or strengthens mid-run).
+    pub current_change_mps: [f64; 3],
+    /// When the current changes, simulation seconds.
+    pub current_change_at_s: f64,
     /// Standard deviation of the gusts added to the current, per NED axis, m/s.
     pub gust_std_mps: [f64; 3],
     /// Correlation time of the gusts (Ornstein-Uhlenbeck), seconds.
@@ -202,6 +207,9 @@ pub struct VehicleConfig {
     /// Age of what the vehicle's telemetry reports (attitude, position, depth) when it is
     /// sent, milliseconds of simulation time.
     pub telemetry_latency_ms: f64,
+    /// Frame to thrust, stage by stage (`[vehicle.delay]`): how long after a frame's stamp
+    /// the command computed from it acts.
+    pub delay: crate::delay::DelayConfig,
     /// The vehicle's ArduSub parameters: a QGroundControl `.params` or MAVProxy `.parm`
     /// file (unknown names ignored); absent = ArduSub 4.5's defaults. The simulated
     /// autopilot's pilot scaling, failsafes and MOT_FV_CPLNG_K mixing follow it.
@@ -224,6 +232,8 @@ impl Default for VehicleConfig {
             battery: BatteryConfig::default(),
             water_density: WaterDensity::default(),
             current_mps: [0.0; 3],
+            current_change_mps: [0.0; 3],
+            current_change_at_s: 0.0,
             gust_std_mps: [0.0; 3],
             gust_time_constant_s: 5.0,
             wave_height_m: 0.0,
@@ -236,6 +246,7 @@ impl Default for VehicleConfig {
             external_moment_nm: [0.0; 3],
             model_error: ModelError::default(),
             telemetry_latency_ms: 0.0,
+            delay: crate::delay::DelayConfig::default(),
             params_file: None,
         }
     }
@@ -284,6 +295,8 @@ impl VehicleConfig {
             .finite_range("battery.internal_resistance_ohm", self.battery.internal_resistance_ohm,
                 0.0..=1.0, "0..=1 ohm")
             .each_finite("current_mps", &self.current_mps, "finite numbers")
+            .each_finite("current_change_mps", &self.current_change_mps, "finite numbers")
+            .with(|c| non_negative(c, "current_change_at_s", &[self.current_change_at_s]))
             .with(|c| non_negative(c, "gust_std_mps", &self.gust_std_mps))
             .positive("gust_time_constant_s", self.gust_time_constant_s, "a positive number of seconds")
             .with(|c| non_negative(c, "wave_height_m", &[self.wave_height_m]))
@@ -298,6 +311,7 @@ impl VehicleConfig {
             .each("external_moment_nm", &self.external_moment_nm, -500.0..=500.0, "-500..=500 N m")
             .then(|| self.model_error.validate())
             .finite_range("telemetry_latency_ms", self.telemetry_latency_ms, 0.0..=1000.0, "0..=1000 ms")
+            .then(|| self.delay.validate())
             .done()
     }
 
@@ -594,6 +608,9 @@ impl Vehicle {
     /// Water velocity (current + gusts + waves) at a world position and time.
     fn water_velocity(&self, p_world: Vector3<f64>, t: f64) -> Vector3<f64> {
         let mut w = Vector3::from(self.cfg.current_mps) + self.gust;
+        if t >= self.cfg.current_change_at_s {
+            w += Vector3::from(self.cfg.current_change_mps);
+        }
         if self.cfg.wave_height_m > 0.0 {
             // Linear deep-water wave: orbital speed pi H / T, decaying as exp(-k depth).
             let omega = std::f64::consts::TAU / self.cfg.wave_period_s;
@@ -927,6 +944,31 @@ mod tests {
         assert_eq!(sa.t_world_vehicle, sb.t_world_vehicle);
         assert_ne!(sa.t_world_vehicle, sc.t_world_vehicle);
         assert!(sa.velocity_world_mps.x > 0.1, "{sa:?}");
+    }
+
+    #[test]
+    fn a_current_that_changes_mid_run_carries_the_vehicle_from_then_on() {
+        let cfg = VehicleConfig {
+            current_change_mps: [0.0, 0.2, 0.0],
+            current_change_at_s: 5.0,
+            ..Default::default()
+        };
+        let mut v = Vehicle::new(&cfg, &at(5.0), 7).unwrap();
+        let steps = |s: f64| (s * cfg.physics_hz).round() as usize;
+        for _ in 0..steps(4.9) {
+            v.step(&[1500; 8]);
+        }
+        assert_eq!(v.state().water_velocity_world_mps.y, 0.0);
+        assert!(
+            v.state().velocity_world_mps.y.abs() < 1e-6,
+            "{:?}",
+            v.state()
+        );
+        for _ in 0..steps(10.0) {
+            v.step(&[1500; 8]);
+        }
+        assert!((v.state().water_velocity_world_mps.y - 0.2).abs() < 1e-9);
+        assert!(v.state().velocity_world_mps.y > 0.1, "{:?}", v.state());
     }
 
     #[test]

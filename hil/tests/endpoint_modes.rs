@@ -529,3 +529,40 @@ fn guided_velocity_targets_then_hold_after_the_target_times_out() {
     r.fly(90, NEUTRAL, true);
     assert!((r.pos() - p1).norm() < 0.05, "{p1:?} -> {:?}", r.pos());
 }
+
+/// Pilot input acts the frame-to-thrust delay (`[vehicle.delay]`) after it arrives: with
+/// 100 ms the thrusters first move in the frame that spans arrival + 100 ms; with none, in
+/// the frame right after it.
+#[test]
+fn pilot_input_acts_the_frame_to_thrust_delay_after_it_arrives() {
+    let first_move = |delay_ms: f64| {
+        let mut s = setup(VehicleConfig::default(), EndpointConfig::default(), false);
+        s.vehicle.delay = s.vehicle.delay.scaled_to(delay_ms);
+        let rig = HilRig::new(s).unwrap();
+        let c = Client::new(rig.mavlink_udp_addr());
+        let mut r = Run {
+            rig,
+            c,
+            f: Frame::default(),
+        };
+        r.arm();
+        r.fly(3, [1500; 6], false);
+        let sent_at = r.rig.truth().time_s;
+        for _ in 0..20 {
+            r.fly(1, [1500, 1500, 1500, 1500, 1800, 1500], false);
+            let t = r.rig.truth();
+            if t.pwm[..4].iter().any(|&p| p != 1500) {
+                return t.time_s - sent_at;
+            }
+        }
+        panic!("the thrusters never moved with {delay_ms} ms");
+    };
+    let frame = 1.0 / 30.0;
+    let none = first_move(0.0);
+    assert!(none <= frame + 1e-6, "{none}");
+    let late = first_move(100.0);
+    assert!(
+        (0.1..=0.1 + frame + 1e-6).contains(&late),
+        "first thrust {late} s after the input"
+    );
+}

@@ -599,6 +599,7 @@ impl HilRun {
             wall_seconds,
             self.rig.truth().lockstep_timeouts,
         );
+        summary.frame_to_thrust_ms = Some(self.rig.frame_to_thrust_ms());
         let world = self.rig.world_wall_seconds();
         summary.world_wall_seconds = world;
         summary.render_loops = self.rig.render_loops().to_string();

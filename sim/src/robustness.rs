@@ -27,6 +27,14 @@ pub const CURRENT_DIRECTION_DEG: f64 = 45.0;
 /// Seconds at the end of a run over which the integrators' drift is measured.
 pub const SETTLE_WINDOW_S: f64 = 5.0;
 
+/// A cell's current change comes this far into the run (before the last half, which
+/// is graded), as a fraction of it.
+pub const CURRENT_CHANGE_AT: f64 = 0.3;
+
+/// Settled: from the last disturbance onset (the start offset, or the current change)
+/// the vehicle stays within this of its station to the end of the run, metres.
+pub const SETTLE_BAND_M: f64 = 0.02;
+
 /// One cell of the grid: the model errors and disturbances of one run.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct Cell {
@@ -44,6 +52,17 @@ pub struct Cell {
     pub tether: bool,
     /// `vehicle.telemetry_latency_ms`.
     pub latency_ms: f64,
+    /// Frame to thrust, milliseconds (`vehicle.delay`, its stages scaled to this sum).
+    #[serde(default)]
+    pub delay_ms: f64,
+    /// Gusts: RMS of the water's horizontal gust speed, m/s (`vehicle.gust_std_mps` of
+    /// this / sqrt 2 on each horizontal axis, half that vertically).
+    #[serde(default)]
+    pub gust_mps: f64,
+    /// The current changes by this much, m/s toward [`CURRENT_DIRECTION_DEG`], at
+    /// [`CURRENT_CHANGE_AT`] of the run.
+    #[serde(default)]
+    pub current_change_mps: f64,
 }
 
 impl Cell {
@@ -57,11 +76,14 @@ impl Cell {
             current_mps: 0.0,
             tether: false,
             latency_ms: 0.0,
+            delay_ms: site.site.vehicle.delay.total_ms(),
+            gust_mps: 0.0,
+            current_change_mps: 0.0,
         }
     }
 
-    /// The site with this cell's errors and disturbances.
-    pub fn apply(&self, site: &LoadedSite) -> LoadedSite {
+    /// The site with this cell's errors and disturbances, for a run of `seconds`.
+    pub fn apply(&self, site: &LoadedSite, seconds: f64) -> LoadedSite {
         let mut s = site.clone();
         let v = &mut s.site.vehicle;
         v.model_error.thrust_scale = self.thrust_scale;
@@ -75,7 +97,25 @@ impl Cell {
             None
         };
         v.telemetry_latency_ms = self.latency_ms;
+        v.delay = v.delay.scaled_to(self.delay_ms);
+        let axis = self.gust_mps / std::f64::consts::SQRT_2;
+        v.gust_std_mps = [axis, axis, 0.5 * axis];
+        v.current_change_mps = [
+            self.current_change_mps * cs,
+            self.current_change_mps * sn,
+            0.0,
+        ];
+        v.current_change_at_s = self.change_at_s(seconds);
         s
+    }
+
+    /// When this cell's current changes in a run of `seconds` (0 when it does not).
+    pub fn change_at_s(&self, seconds: f64) -> f64 {
+        if self.current_change_mps != 0.0 {
+            CURRENT_CHANGE_AT * seconds
+        } else {
+            0.0
+        }
     }
 }
 
@@ -105,6 +145,11 @@ pub fn default_grid(site: &LoadedSite) -> Vec<Cell> {
     cells.push(one("tether", &|c| c.tether = true));
     cells.push(one("latency-50ms", &|c| c.latency_ms = 50.0));
     cells.push(one("latency-100ms", &|c| c.latency_ms = 100.0));
+    cells.push(one("delay-0ms", &|c| c.delay_ms = 0.0));
+    cells.push(one("delay-150ms", &|c| c.delay_ms = 150.0));
+    cells.push(one("delay-300ms", &|c| c.delay_ms = 300.0));
+    cells.push(one("gust-0.1", &|c| c.gust_mps = 0.1));
+    cells.push(one("current-change-0.1", &|c| c.current_change_mps = 0.1));
     let worst = |name: &str, thrust: f64, band: f64, buoy: f64| {
         one(name, &|c| {
             c.thrust_scale = thrust;
@@ -155,6 +200,11 @@ pub struct CellResult {
     /// Largest vehicle-to-station distance over the last half, metres.
     pub worst_excursion_m: f64,
     pub final_error_m: f64,
+    /// Seconds from the last disturbance onset (the start, or the current change) until
+    /// the vehicle stays within [`SETTLE_BAND_M`] of its station to the end; `None` when
+    /// it never does.
+    #[serde(default)]
+    pub settling_s: Option<f64>,
     /// Sign changes a second of the keeper's command per axis (surge, sway, heave, roll,
     /// pitch, yaw), last half; commands under the link's `effort_epsilon` count as none.
     pub chatter_hz: [f64; 6],
@@ -192,6 +242,20 @@ pub fn sign_changes_per_s(v: &[f64], epsilon: f64, seconds: f64) -> f64 {
     }
 }
 
+/// Seconds from `onset_s` until `err` (at `time`) stays within `band` to the end: `None`
+/// when the last sample is outside it.
+pub fn settling_time(time: &[f64], err: &[f64], onset_s: f64, band: f64) -> Option<f64> {
+    let last_out = time
+        .iter()
+        .zip(err)
+        .rposition(|(&t, &e)| t >= onset_s && (e.is_nan() || e > band));
+    match last_out {
+        None => Some(0.0),
+        Some(i) if i + 1 < time.len() => Some(time[i + 1] - onset_s),
+        Some(_) => None,
+    }
+}
+
 /// Run one cell: the site with the cell applied, from the site's start offset.
 pub fn run_cell(
     site: &LoadedSite,
@@ -204,7 +268,7 @@ pub fn run_cell(
     let span = tracing::error_span!(parent: None, "cell", name = %cell.name);
     let _entered = span.enter();
     let wall = Instant::now();
-    let site = cell.apply(site);
+    let site = cell.apply(site, seconds);
     let opts = HilOptions {
         seconds,
         seed,
@@ -282,9 +346,12 @@ pub fn run_cell(
             bounds.excursion_m * 1e3
         ));
     }
+    let onset_s = time.first().copied().unwrap_or(0.0) + cell.change_at_s(seconds);
+    let settling_s = settling_time(&time, &err, onset_s, SETTLE_BAND_M);
     Ok(CellResult {
         cell: cell.clone(),
         frames: frames as u64,
+        settling_s,
         detection_rate,
         position_rms_m,
         worst_excursion_m,
@@ -381,7 +448,8 @@ pub fn report_md(r: &RobustnessResults) -> String {
         s,
         "# Robustness: {} ({})\n\n{} s a cell, seed {}, current toward {} degrees. Held: \
          over the last half, position RMS <= {:.0} mm, worst excursion <= {:.0} mm, \
-         detection >= {:.0} %. Chatter: sign changes a second of the keeper's command, \
+         detection >= {:.0} %. Settled: seconds from the start (or the current change, at \
+         {:.0} % of the run) until the vehicle stays within {:.0} mm of its station. Chatter: sign changes a second of the keeper's command, \
          largest axis (axis order surge, sway, heave, roll, pitch, yaw).\n",
         r.site,
         r.site_file,
@@ -390,18 +458,23 @@ pub fn report_md(r: &RobustnessResults) -> String {
         r.current_direction_deg,
         b.rms_m * 1e3,
         b.excursion_m * 1e3,
-        b.detection * 100.0
+        b.detection * 100.0,
+        CURRENT_CHANGE_AT * 100.0,
+        SETTLE_BAND_M * 1e3
     );
     let _ = writeln!(
         s,
-        "| cell | thrust | dead band | buoyancy | current | tether | latency | RMS | worst | chatter | held |"
+        "| cell | thrust | dead band | buoyancy | current | tether | telemetry | frame to thrust | gusts | current change | RMS | worst | settled | chatter | held |"
     );
-    let _ = writeln!(s, "|---|---|---|---|---|---|---|---|---|---|---|");
+    let _ = writeln!(
+        s,
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"
+    );
     for c in &r.cells {
         let k = &c.cell;
         let _ = writeln!(
             s,
-            "| {} | {:.2} | {:.0} us | {:+.1} N | {:.2} m/s | {} | {:.0} ms | {:.1} mm | {:.1} mm | {:.2}/s | {} |",
+            "| {} | {:.2} | {:.0} us | {:+.1} N | {:.2} m/s | {} | {:.0} ms | {:.0} ms | {:.2} m/s | {:+.2} m/s | {:.1} mm | {:.1} mm | {} | {:.2}/s | {} |",
             k.name,
             k.thrust_scale,
             k.dead_band_half_us,
@@ -409,8 +482,13 @@ pub fn report_md(r: &RobustnessResults) -> String {
             k.current_mps,
             if k.tether { "on" } else { "off" },
             k.latency_ms,
+            k.delay_ms,
+            k.gust_mps,
+            k.current_change_mps,
             c.position_rms_m * 1e3,
             c.worst_excursion_m * 1e3,
+            c.settling_s
+                .map_or_else(|| "never".to_string(), |t| format!("{t:.1} s")),
             c.chatter_max_hz,
             if c.held {
                 "yes".to_string()
@@ -530,6 +608,26 @@ pub fn cli(args: RobustnessArgs) -> Result<(), SimError> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn settling_is_the_time_from_onset_to_staying_inside_the_band() {
+        let t = [0.0, 1.0, 2.0, 3.0, 4.0, 5.0];
+        let e = [0.3, 0.1, 0.01, 0.03, 0.01, 0.005];
+        // Last outside at 3 s: settled from 4 s on.
+        assert_eq!(settling_time(&t, &e, 0.0, 0.02), Some(4.0));
+        // From an onset at 3.5 s it never left the band.
+        assert_eq!(settling_time(&t, &e, 3.5, 0.02), Some(0.0));
+        // Outside at the end: never.
+        assert_eq!(
+            settling_time(&t, &[0.0, 0.0, 0.0, 0.0, 0.0, 0.5], 0.0, 0.02),
+            None
+        );
+        // NaN is outside.
+        assert_eq!(
+            settling_time(&t, &[0.0, f64::NAN, 0.0, 0.0, 0.0, 0.0], 0.0, 0.02),
+            Some(2.0)
+        );
+    }
 
     #[test]
     fn sign_changes_skip_small_commands() {

@@ -55,6 +55,10 @@ pub struct Summary {
     pub measured_position_cov_det: f64,
     /// Frames the HIL vehicle stepped without having received that frame's command.
     pub lockstep_timeouts: u64,
+    /// The simulated loop's delay from a frame's stamp to the thrust its command asks
+    /// for (`[vehicle.delay]`, all stages), milliseconds.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub frame_to_thrust_ms: Option<f64>,
     /// Injected faults (`--fault`) with their timings and what the loop did.
     pub faults: Vec<super::faults::FaultReport>,
     /// Ended early by Ctrl-C / SIGTERM (the last frame sent neutral input).
@@ -286,6 +290,7 @@ impl RunStats {
             loop_latency_p99_ms: percentile(&self.latency_s, 0.99) * 1e3,
             measured_position_cov_det: cov_det(&self.measured),
             lockstep_timeouts,
+            frame_to_thrust_ms: None,
             interrupted: false,
             faults: Vec::new(),
             camera_transport: None,

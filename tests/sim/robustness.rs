@@ -90,16 +90,45 @@ fn chatter_at_rest_on_the_pool_is_bounded() {
     let site = pool();
     let r = run(&site, &Cell::nominal(&site), 60.0);
     assert!(r.chatter_max_hz <= 2.0 * CHATTER_AT_REST_HZ, "{r:?}");
-    assert!(r.position_rms_m < 2.0 * 0.0028, "{r:?}");
+    assert!(r.position_rms_m < 2.0 * 0.0041, "{r:?}");
 }
 
 /// The measured chatter at rest on the pool (largest axes, surge and sway), sign changes a
 /// second.
-const CHATTER_AT_REST_HZ: f64 = 2.34;
+const CHATTER_AT_REST_HZ: f64 = 2.27;
 
-/// A reduced grid (30 s runs, two cells with the errors piled up; the strongest current
-/// is left to the full grid, whose integrators need longer than 15 s to carry it) holds
-/// with the pool's gains; the first cell with the horizontal gains zeroed does not.
+/// With 150 ms from frame to thrust and 0.1 m/s gusts the keeper holds the pool within
+/// 5 cm RMS. The delay is real: in still water the same run without it holds tighter, and
+/// with a derivative filter as slow as 2 Hz (its lag added to the delay's) looser.
+#[test]
+fn a_150_ms_delay_with_gusts_holds_the_pool_within_5_cm() {
+    let site = pool();
+    let gusty = cell(&site, "delay-150ms-gust-0.1", |c| {
+        c.delay_ms = 150.0;
+        c.gust_mps = 0.1;
+    });
+    let r = run(&site, &gusty, 40.0);
+    assert!(r.held && r.position_rms_m < 0.05, "{r:?}");
+    let still = |ms: f64| cell(&site, &format!("delay-{ms}ms"), |c| c.delay_ms = ms);
+    let late = run(&site, &still(150.0), 40.0);
+    let prompt = run(&site, &still(0.0), 40.0);
+    assert!(
+        prompt.position_rms_m < late.position_rms_m,
+        "{prompt:?}\n{late:?}"
+    );
+    let slow = pool_with("[controller]\nderivative_filter_hz = 2.0");
+    let slow = run(&slow, &still(150.0), 40.0);
+    assert!(
+        slow.position_rms_m > late.position_rms_m,
+        "{slow:?}\n{late:?}"
+    );
+}
+
+/// A reduced grid (30 s runs: two cells with the errors piled up, the longest
+/// frame-to-thrust delay, gusts, and a current that changes mid-run; the strongest
+/// standing current is left to the full grid, whose integrators need longer than 15 s to
+/// carry it) holds with the pool's gains; the first cell with the horizontal gains zeroed
+/// does not.
 #[test]
 fn reduced_grid_holds_and_a_broken_controller_does_not() {
     let site = pool();
@@ -116,9 +145,16 @@ fn reduced_grid_holds_and_a_broken_controller_does_not() {
             c.buoyancy_offset_n = 3.0;
             c.latency_ms = 100.0;
         }),
+        cell(&site, "delay-300ms", |c| c.delay_ms = 300.0),
+        cell(&site, "gust-0.1", |c| c.gust_mps = 0.1),
+        cell(&site, "current-change-0.1", |c| c.current_change_mps = 0.1),
     ];
     let r = run_robustness(&site, &cells, 30.0, 1, 2, &Span::none()).unwrap();
     assert!(r.all_held, "{r:#?}");
+    // The current changes 9 s into the run and the vehicle is back within 2 cm before
+    // the graded half begins.
+    let change = &r.cells[4];
+    assert!(change.settling_s.is_some_and(|s| s < 6.0), "{change:?}");
     let broken = pool_with(
         "[controller.surge]\nkp = 0.0\nki = 0.0\nkd = 0.0\n\
          [controller.sway]\nkp = 0.0\nki = 0.0\nkd = 0.0",

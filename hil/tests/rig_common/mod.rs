@@ -66,9 +66,15 @@ pub fn marker() -> MarkerSpec {
     }
 }
 
+/// The world these tests fly: the simulated ArduSub's own response, so pilot input acts
+/// as it arrives (no vision loop's frame-to-thrust delay in front of it; a test that wants
+/// one sets `vehicle.delay` on the result).
 pub fn setup(vehicle: VehicleConfig, endpoint: EndpointConfig, lock_step: bool) -> HilSetup {
     HilSetup {
-        vehicle,
+        vehicle: VehicleConfig {
+            delay: markhold_hil::DelayConfig::NONE,
+            ..vehicle
+        },
         endpoint,
         water: WaterConfig::default(),
         lighting: LightingConfig::default(),
