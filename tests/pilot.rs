@@ -413,7 +413,11 @@ fn hil_on_an_external_vehicle_hands_over_to_the_pilot_and_regains_station() {
     let s = &site.site;
     let t_world_station = site.t_world_marker() * s.station.t_marker_vehicle();
     let rig = HilRig::new(HilSetup {
-        vehicle: s.vehicle.clone(),
+        // ArduSub itself (as SITL would be): the loop's delays are its own, real ones.
+        vehicle: markhold_hil::VehicleConfig {
+            delay: markhold_hil::DelayConfig::NONE,
+            ..s.vehicle.clone()
+        },
         endpoint: EndpointConfig {
             tcp_enabled: true,
             ..EndpointConfig::default()

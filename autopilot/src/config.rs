@@ -219,7 +219,7 @@ impl Default for ControllerConfig {
             pitch: AxisConfig::with(0.4, 0.0, 0.1, 0.0, 0.3),
             yaw: AxisConfig::with(0.6, 0.03, 0.3, 0.15, 0.4),
             rate_hz: 50.0,
-            // Tuned with the stock frame-to-thrust delay (`[vehicle.delay]`, 93 ms): a slower
+            // Tuned with the stock frame-to-thrust delay (`[vehicle.delay]`, 96 ms): a slower
             // filter adds its lag to the delay's (docs/design/autopilot.md, "Gains").
             derivative_filter_hz: 20.0,
             output_deadband: 0.005,

@@ -33,7 +33,8 @@ pub struct DelayConfig {
     pub loop_ms: f64,
     /// MAVLink from markhold through the router to ArduSub.
     pub mavlink_ms: f64,
-    /// ArduSub reads pilot input once a main loop (400 Hz): half a loop on average.
+    /// ArduSub's main loop (400 Hz): an override received in one loop is read by the
+    /// mode's controller in the next and reaches the motors in the one after: 1-2 loops.
     pub ardusub_loop_ms: f64,
 }
 
@@ -46,7 +47,7 @@ impl Default for DelayConfig {
             decode_ms: 10.0,
             loop_ms: 10.0,
             mavlink_ms: 2.0,
-            ardusub_loop_ms: 1.25,
+            ardusub_loop_ms: 3.75,
         }
     }
 }
@@ -125,7 +126,7 @@ mod tests {
     #[test]
     fn the_total_is_the_sum_of_the_stages_and_scales() {
         let d = DelayConfig::default();
-        assert!((d.total_ms() - 93.25).abs() < 1e-9, "{}", d.total_ms());
+        assert!((d.total_ms() - 95.75).abs() < 1e-9, "{}", d.total_ms());
         let s = d.scaled_to(150.0);
         assert!((s.total_ms() - 150.0).abs() < 1e-9);
         assert!((s.encode_ms / s.decode_ms - 3.3).abs() < 1e-9);

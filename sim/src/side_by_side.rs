@@ -141,6 +141,18 @@ fn site_in_mode(site: &LoadedSite, mode: LinkMode) -> LoadedSite {
     s
 }
 
+/// The site as SITL flies it: lock-step frames reach the real ArduSub with only its own
+/// main loop in between, so the simulated side keeps that stage of `[vehicle.delay]` and
+/// drops the camera and link stages SITL does not have.
+fn as_sitl_flies(mut site: LoadedSite) -> LoadedSite {
+    let d = &mut site.site.vehicle.delay;
+    *d = markhold_hil::DelayConfig {
+        ardusub_loop_ms: d.ardusub_loop_ms,
+        ..markhold_hil::DelayConfig::NONE
+    };
+    site
+}
+
 /// Stick steps on markhold's simulated ArduSub, every mode and axis, from the station.
 fn steps_on_ours(site: &LoadedSite, seed: u64) -> Result<Vec<StepResponse>, SimError> {
     let mut out = Vec::new();
@@ -392,7 +404,7 @@ pub fn cli(args: SitlCompareArgs) -> Result<(), SimError> {
         steps_sitl: Vec::new(),
     };
     for path in &sites {
-        let site = markhold_core::params::load(path)?;
+        let site = as_sitl_flies(markhold_core::params::load(path)?);
         let name = site.site.site.name.clone();
         eprintln!("markhold sitl-compare: {name}: simulated ArduSub");
         let ours = hold_on_ours(&site, &hil)?;
@@ -407,7 +419,9 @@ pub fn cli(args: SitlCompareArgs) -> Result<(), SimError> {
         });
     }
     if !args.no_steps {
-        let site = markhold_core::params::load(sites.first().required(|| "no site".to_string())?)?;
+        let site = as_sitl_flies(markhold_core::params::load(
+            sites.first().required(|| "no site".to_string())?,
+        )?);
         eprintln!("markhold sitl-compare: stick steps");
         out.steps_ours = steps_on_ours(&site, args.seed)?;
         out.steps_sitl = steps_on_sitl(&site, &opts, args.seed)?;

@@ -17,7 +17,9 @@ use nalgebra::Isometry3;
 
 use super::site_path;
 
-/// The site's simulated world with a free vehicle starting at `t_world_vehicle_start`.
+/// The site's simulated world with a free vehicle starting at `t_world_vehicle_start`:
+/// the vehicle as ArduSub (or SITL) is, pilot input acting as it arrives; a loop in front
+/// of it brings its own delays (camera, telemetry, its own loop), real ones here.
 pub fn rig_at(
     site: &LoadedSite,
     t_world_vehicle_start: Isometry3<f64>,
@@ -26,7 +28,10 @@ pub fn rig_at(
 ) -> HilRig {
     let s = &site.site;
     HilRig::new(HilSetup {
-        vehicle: s.vehicle.clone(),
+        vehicle: markhold_hil::VehicleConfig {
+            delay: markhold_hil::DelayConfig::NONE,
+            ..s.vehicle.clone()
+        },
         endpoint: EndpointConfig::default(),
         water: s.water.clone(),
         lighting: s.lighting.clone(),
