@@ -547,18 +547,7 @@ impl MarkerTracker {
                 expected_width: self.calib.width,
                 expected_height: self.calib.height,
             })?;
-        let (w, h) = (frame.width as usize, frame.height as usize);
-        if frame.data.len() < w * h {
-            return Err(VisionError::FrameSize {
-                what: "its pixel buffer",
-                width: frame.width,
-                height: frame.height,
-                expected_width: frame.width,
-                expected_height: (frame.data.len() / w.max(1)) as u32,
-            });
-        }
-        core::Mat::new_rows_cols_with_data::<u8>(h as i32, w as i32, &frame.data[..w * h])
-            .cv("wrap frame")
+        mat_of(frame, false)
     }
 
     /// The detector's last findings into the slots not found yet this frame.
@@ -1408,6 +1397,26 @@ impl Detector {
         }
         Ok(count)
     }
+}
+
+/// A frame's pixels as an OpenCV matrix (no copy): an error if its buffer holds fewer
+/// bytes than its size, or (with `refuse_empty`) if it has no pixels at all.
+pub(crate) fn mat_of(
+    frame: &Frame,
+    refuse_empty: bool,
+) -> Result<opencv::boxed_ref::BoxedRef<'_, core::Mat>, VisionError> {
+    let (w, h) = (frame.width as usize, frame.height as usize);
+    if frame.data.len() < w * h || (refuse_empty && (w == 0 || h == 0)) {
+        return Err(VisionError::FrameSize {
+            what: "its pixel buffer",
+            width: frame.width,
+            height: frame.height,
+            expected_width: frame.width,
+            expected_height: (frame.data.len() / w.max(1)) as u32,
+        });
+    }
+    core::Mat::new_rows_cols_with_data::<u8>(h as i32, w as i32, &frame.data[..w * h])
+        .cv("wrap frame")
 }
 
 /// The adaptive-threshold window of `size_px` pixels, odd (OpenCV makes an even window
