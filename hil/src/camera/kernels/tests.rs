@@ -2,6 +2,17 @@
 
 use super::*;
 
+/// Marsaglia's xorshift64 from `seed`: the tests' reproducible inputs.
+fn xorshift(seed: u64) -> impl FnMut() -> u64 {
+    let mut x = seed;
+    move || {
+        x ^= x << 13;
+        x ^= x >> 7;
+        x ^= x << 17;
+        x
+    }
+}
+
 /// The macro's parts tile the run as one read per pixel would: pixel `p` in span
 /// `(first + p) / 16` at offset `(first + p) % 16`, up to the last span.
 #[test]
@@ -58,13 +69,7 @@ fn packed_sensor_matches_portable_at_every_length() {
     for (i, l) in lut.iter_mut().enumerate() {
         *l = ((i * 255) / last) as u8 ^ (i as u8 & 3);
     }
-    let mut x = 0x9E37_79B9_7F4A_7C15u64;
-    let mut next = move || {
-        x ^= x << 13;
-        x ^= x >> 7;
-        x ^= x << 17;
-        x
-    };
+    let mut next = xorshift(0x9E37_79B9_7F4A_7C15u64);
     let n = 70;
     let mean: Vec<f32> = (0..n).map(|_| (next() % 24_000) as f32 - 500.0).collect();
     let na: Vec<i16> = (0..n).map(|_| (next() % 8001) as i16 - 4000).collect();
@@ -106,13 +111,7 @@ fn packed_sensor_matches_portable_at_every_length() {
     ignore = "the build host has no AVX2: nothing packed"
 )]
 fn packed_rock_loops_match_portable_over_all_kinds_of_walks() {
-    let mut x = 0x2545_F491_4F6C_DD1Du64;
-    let mut next = move || {
-        x ^= x << 13;
-        x ^= x >> 7;
-        x ^= x << 17;
-        x
-    };
+    let mut next = xorshift(0x2545_F491_4F6C_DD1Du64);
     let log2 = 7;
     let n = 1usize << (2 * log2);
     let rock = Texture {
@@ -206,13 +205,7 @@ fn packed_rock_loops_match_portable_over_all_kinds_of_walks() {
     ignore = "the build host has no AVX2: nothing packed"
 )]
 fn packed_plate_loops_match_portable_across_the_table_and_its_border() {
-    let mut x = 0x9E37_79B9_7F4A_7C15u64;
-    let mut next = move || {
-        x ^= x << 13;
-        x ^= x >> 7;
-        x ^= x << 17;
-        x
-    };
+    let mut next = xorshift(0x9E37_79B9_7F4A_7C15u64);
     let (w, b) = (0.85f32, 0.05f32);
     let side = 10usize;
     let cells: Vec<f32> = (0..side * side)
