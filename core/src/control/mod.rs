@@ -62,6 +62,24 @@ trait V4l2Writes {
     fn current_us(&mut self) -> &mut f64;
 }
 
+/// [`V4l2Writes`] for a control with `has_auto` and `current_us` fields that writes a
+/// control with its method `$write`.
+macro_rules! v4l2_writes {
+    ($control:ty, $write:ident) => {
+        impl V4l2Writes for $control {
+            fn write(&self, id: u64, value: i64) -> Result<(), ControlError> {
+                self.$write(id, value)
+            }
+            fn has_auto(&self) -> bool {
+                self.has_auto
+            }
+            fn current_us(&mut self) -> &mut f64 {
+                &mut self.current_us
+            }
+        }
+    };
+}
+
 /// Set `exposure_absolute` to `units` unless the camera already runs there; the exposure
 /// it runs at after, us.
 fn set_units(c: &mut impl V4l2Writes, units: i64) -> Result<f64, ControlError> {
@@ -468,17 +486,7 @@ impl BlueosRest {
     }
 }
 
-impl V4l2Writes for BlueosRest {
-    fn write(&self, id: u64, value: i64) -> Result<(), ControlError> {
-        self.post(id, value)
-    }
-    fn has_auto(&self) -> bool {
-        self.has_auto
-    }
-    fn current_us(&mut self) -> &mut f64 {
-        &mut self.current_us
-    }
-}
+v4l2_writes!(BlueosRest, post);
 
 impl ExposureControl for BlueosRest {
     fn found(&self) -> Option<Found> {
@@ -660,17 +668,7 @@ impl V4l2Control {
     }
 }
 
-impl V4l2Writes for V4l2Control {
-    fn write(&self, id: u64, value: i64) -> Result<(), ControlError> {
-        self.set(id, value)
-    }
-    fn has_auto(&self) -> bool {
-        self.has_auto
-    }
-    fn current_us(&mut self) -> &mut f64 {
-        &mut self.current_us
-    }
-}
+v4l2_writes!(V4l2Control, set);
 
 impl ExposureControl for V4l2Control {
     fn found(&self) -> Option<Found> {
