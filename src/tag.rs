@@ -140,11 +140,7 @@ impl Layout {
             font_mm
         };
         let first = paper_mm + 1.2 * font_mm;
-        let caption = lines
-            .into_iter()
-            .enumerate()
-            .map(|(i, l)| (l, text_x, first + 1.4 * font_mm * i as f64))
-            .collect();
+        let caption = caption_lines(lines, text_x, first, font_mm);
         Ok(Layout {
             family,
             id,
@@ -239,6 +235,21 @@ pub fn svg(l: &Layout) -> String {
     })
 }
 
+/// The caption's lines at `x` mm, the first at `first_mm`, the others 1.4 font sizes
+/// apart.
+fn caption_lines<const N: usize>(
+    lines: [String; N],
+    x: f64,
+    first_mm: f64,
+    font_mm: f64,
+) -> Vec<(String, f64, f64)> {
+    lines
+        .into_iter()
+        .enumerate()
+        .map(|(i, l)| (l, x, first_mm + 1.4 * font_mm * i as f64))
+        .collect()
+}
+
 /// What the marker's and the target's pages share: the page's size, mm, and the caption
 /// (its lines at their places, mm from the top-left, and its font size).
 struct Page<'a> {
@@ -248,7 +259,16 @@ struct Page<'a> {
     caption: &'a [(String, f64, f64)],
 }
 
-impl Page<'_> {
+impl<'a> Page<'a> {
+    fn new(w_mm: f64, h_mm: f64, font_mm: f64, caption: &'a [(String, f64, f64)]) -> Self {
+        Page {
+            w_mm,
+            h_mm,
+            font_mm,
+            caption,
+        }
+    }
+
     /// The page as SVG with `title` and `desc` (as they are written, XML-escaped), the
     /// black shapes `black` writes over a white page, and the caption.
     fn svg(&self, title: &str, desc: &str, black: impl FnOnce(&mut String)) -> String {
@@ -335,12 +355,7 @@ impl Page<'_> {
 
 impl Layout {
     fn page(&self) -> Page<'_> {
-        Page {
-            w_mm: self.page_w_mm,
-            h_mm: self.page_h_mm,
-            font_mm: self.font_mm,
-            caption: &self.caption,
-        }
+        Page::new(self.page_w_mm, self.page_h_mm, self.font_mm, &self.caption)
     }
 }
 
@@ -440,17 +455,15 @@ pub fn png(l: &Layout, dpi: f64) -> anyhow::Result<Vec<u8>> {
             (edge(c + len) - edge(c)) as i32,
             (edge(r + 1) - edge(r)) as i32,
         );
-        imgproc::rectangle(
-            &mut img,
-            rect,
-            core::Scalar::all(0.0),
-            imgproc::FILLED,
-            imgproc::LINE_8,
-            0,
-        )
-        .context("drawing a module")?;
+        fill_black(&mut img, rect).context("drawing a module")?;
     }
     l.page().png(img, ppmm, dpi)
+}
+
+/// `rect` of `img` black.
+fn fill_black(img: &mut core::Mat, rect: core::Rect) -> opencv::Result<()> {
+    let black = core::Scalar::all(0.0);
+    imgproc::rectangle(img, rect, black, imgproc::FILLED, imgproc::LINE_8, 0)
 }
 
 /// The caption with OpenCV's Hershey font, cap height about that of Helvetica at the
@@ -741,11 +754,7 @@ impl BoardPage {
         let chars = lines.iter().map(|l| l.chars().count()).max().unwrap_or(1) as f64;
         let font_mm = (board_w / (chars * CHAR_EM + 2.0)).clamp(2.5, 6.0);
         let first = layout.height_m * 1e3 + 2.0 * m + 1.2 * font_mm;
-        let caption = lines
-            .into_iter()
-            .enumerate()
-            .map(|(i, l)| (l, m, first + 1.4 * font_mm * i as f64))
-            .collect();
+        let caption = caption_lines(lines, m, first, font_mm);
         Ok(BoardPage {
             page_w_mm: board_w.max(chars * CHAR_EM * font_mm + 2.0 * m),
             page_h_mm: first + 1.4 * font_mm + 0.8 * font_mm,
@@ -771,12 +780,7 @@ impl BoardPage {
     }
 
     fn page(&self) -> Page<'_> {
-        Page {
-            w_mm: self.page_w_mm,
-            h_mm: self.page_h_mm,
-            font_mm: self.font_mm,
-            caption: &self.caption,
-        }
+        Page::new(self.page_w_mm, self.page_h_mm, self.font_mm, &self.caption)
     }
 
     pub fn pdf(&self) -> Vec<u8> {
@@ -814,15 +818,7 @@ impl BoardPage {
                 let rect =
                     core::Rect::new(x0 as i32, y0 as i32, (x1 - x0) as i32, (y1 - y0) as i32);
                 if rect.width > 0 && rect.height > 0 {
-                    imgproc::rectangle(
-                        &mut img,
-                        rect,
-                        core::Scalar::all(0.0),
-                        imgproc::FILLED,
-                        imgproc::LINE_8,
-                        0,
-                    )
-                    .context("drawing the target")?;
+                    fill_black(&mut img, rect).context("drawing the target")?;
                 }
                 continue;
             }
