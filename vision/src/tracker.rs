@@ -1491,12 +1491,7 @@ fn window(x0: f64, y0: f64, x1: f64, y1: f64, w: u32, h: u32) -> Option<Roi> {
     if x1 - x0 < 16.0 || y1 - y0 < 16.0 {
         return None;
     }
-    Some(Roi {
-        x: x0 as u32,
-        y: y0 as u32,
-        width: (x1 - x0) as u32,
-        height: (y1 - y0) as u32,
-    })
+    Some(Roi::between(x0 as u32, y0 as u32, x1 as u32, y1 as u32))
 }
 
 /// Full-resolution bands of the bounded search without a marker, and the rows two

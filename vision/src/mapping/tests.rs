@@ -9,16 +9,7 @@ use rand_chacha::ChaCha8Rng;
 const SIGMA_PX: f64 = 0.3;
 
 fn calib() -> CameraCalibration {
-    CameraCalibration {
-        width: 1440,
-        height: 1080,
-        fx: 1100.0,
-        fy: 1105.0,
-        cx: 722.0,
-        cy: 538.0,
-        dist: vec![-0.12, 0.04, 0.0005, -0.0003, 0.0],
-        model: crate::DistortionModel::PlumbBob,
-    }
+    crate::pose::tests::calib(vec![-0.12, 0.04, 0.0005, -0.0003, 0.0])
 }
 
 fn entry(id: u32, size_m: f64, position_m: [f64; 3], rpy_deg: [f64; 3]) -> MapMarker {
