@@ -13,6 +13,11 @@ fn xorshift(seed: u64) -> impl FnMut() -> u64 {
     }
 }
 
+/// The two runs hold the same values, bit for bit.
+fn same_bits(a: &[f32], b: &[f32]) -> bool {
+    a.iter().zip(b).all(|(a, b)| a.to_bits() == b.to_bits())
+}
+
 /// The macro's parts tile the run as one read per pixel would: pixel `p` in span
 /// `(first + p) / 16` at offset `(first + p) % 16`, up to the last span.
 #[test]
@@ -178,10 +183,7 @@ fn packed_rock_loops_match_portable_over_all_kinds_of_walks() {
                 for isa in [Isa::Avx2, Isa::Avx512].map(Isa::best_up_to) {
                     let mut got = vec![0f32; len];
                     rock_nodes_run(isa, &mut got, first, &run, &rock, c);
-                    let same = got
-                        .iter()
-                        .zip(&want)
-                        .all(|(a, b)| a.to_bits() == b.to_bits());
+                    let same = same_bits(&got, &want);
                     assert!(
                         same,
                         "{isa:?} kind {kind} caustic {} first {first}",
@@ -212,7 +214,7 @@ fn packed_plate_loops_match_portable_across_the_table_and_its_border() {
         .map(|k| {
             let (c, r) = (k % side, k / side);
             let border = c == 0 || r == 0 || c == side - 1 || r == side - 1;
-            if border || next() % 2 == 0 {
+            if border || next().is_multiple_of(2) {
                 w
             } else {
                 b
@@ -282,10 +284,7 @@ fn packed_plate_loops_match_portable_across_the_table_and_its_border() {
                     for isa in [Isa::Avx2, Isa::Avx512].map(Isa::best_up_to) {
                         let mut got = vec![0f32; len];
                         plate_run(isa, &mut got, first, &r);
-                        let same = got
-                            .iter()
-                            .zip(&want)
-                            .all(|(a, b)| a.to_bits() == b.to_bits());
+                        let same = same_bits(&got, &want);
                         assert!(
                             same,
                             "{isa:?} table {k} caustic {} row {row} first {first}",
