@@ -599,20 +599,21 @@ fn hil_vehicle(site: &Path, port: u16, seconds: &str) -> std::process::Output {
 /// it succeeds; its stderr and the vehicle's verdict.
 fn run_against(args: &[&str], site: &Path, summary: &Path) -> (String, Value) {
     let (mut v, port) = vehicle(args);
-    let o = run(site, port, summary);
-    let stderr = String::from_utf8_lossy(&o.stderr).into_owned();
-    assert!(o.status.success(), "{stderr}");
-    (stderr, pymav_verdict(&mut v))
+    succeeded(run(site, port, summary), &mut v)
 }
 
 /// `hil --vehicle` for `seconds` against a test vehicle started with `args`: it
 /// succeeds; its stderr and the vehicle's verdict.
 fn hil_against(args: &[&str], site: &Path, seconds: &str) -> (String, Value) {
     let (mut v, port) = vehicle(args);
-    let o = hil_vehicle(site, port, seconds);
+    succeeded(hil_vehicle(site, port, seconds), &mut v)
+}
+
+/// markhold's run `o` against `v` succeeded: its stderr and the vehicle's verdict.
+fn succeeded(o: std::process::Output, v: &mut Vehicle) -> (String, Value) {
     let stderr = String::from_utf8_lossy(&o.stderr).into_owned();
     assert!(o.status.success(), "{stderr}");
-    (stderr, pymav_verdict(&mut v))
+    (stderr, pymav_verdict(v))
 }
 
 /// The run's `--summary` JSON.
