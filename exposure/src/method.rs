@@ -98,8 +98,7 @@ pub const METHODS: [MethodInfo; 7] = [
             convergence_s: Some([4.0, 3.0, 6.0]),
         },
         build: |cfg, limits, initial_us| {
-            let response = cfg.response.load()?;
-            let ae = cfg.default.clone();
+            let (response, ae) = (cfg.response.load()?, cfg.default.clone());
             boxed(AaecPaper::new(
                 cfg.aaec_paper.clone(),
                 &response,
@@ -158,8 +157,7 @@ pub const METHODS: [MethodInfo; 7] = [
             convergence_s: Some([63.0, 43.0, 72.0]),
         },
         build: |cfg, limits, initial_us| {
-            let response = cfg.response.load()?;
-            let ae = cfg.default.clone();
+            let (response, ae) = (cfg.response.load()?, cfg.default.clone());
             boxed(AecPaper::new(
                 cfg.aec_paper.clone(),
                 &response,
