@@ -166,31 +166,34 @@ fn assert_results_json(out: &Path) -> CompareResults {
             );
         }
     }
-    for f in [
-        "frames",
-        "seconds",
-        "settled",
-        "oscillates",
-        "frames_to_m_argmax",
-        "frames_to_m_band",
-        "frames_to_detection_band",
-        "final_over_m_argmax",
-    ] {
-        assert!(
-            case["convergence"]["from_long"].get(f).is_some(),
-            "from_long.{f}"
-        );
-    }
-    for f in [
-        "m_argmax_us",
-        "m_band_us",
-        "detection_best",
-        "detection_band_us",
-    ] {
-        assert!(
-            case["convergence"]["optimum"].get(f).is_some(),
-            "optimum.{f}"
-        );
+    let convergence: [(&str, &[&str]); 2] = [
+        (
+            "from_long",
+            &[
+                "frames",
+                "seconds",
+                "settled",
+                "oscillates",
+                "frames_to_m_argmax",
+                "frames_to_m_band",
+                "frames_to_detection_band",
+                "final_over_m_argmax",
+            ],
+        ),
+        (
+            "optimum",
+            &[
+                "m_argmax_us",
+                "m_band_us",
+                "detection_best",
+                "detection_band_us",
+            ],
+        ),
+    ];
+    for (part, fields) in convergence {
+        for f in fields {
+            assert!(case["convergence"][part].get(f).is_some(), "{part}.{f}");
+        }
     }
     let r: CompareResults = serde_json::from_str(&text).expect("results.json parses");
     assert_eq!(r.cases.len(), 2);
