@@ -646,6 +646,20 @@ fn flood(c: &mut std::net::TcpStream, head: &[u8], fill: u8, len: usize, n: usiz
     }
 }
 
+/// A run against the RTSP server at `port` exits 2 saying `says`, its peak RSS under
+/// 400 MB; `what` names the server's answer in the log.
+fn assert_cut_off(port: u16, what: &str, says: &str) {
+    let (code, err, took, peak_kb) = run_rtsp(port, None);
+    eprintln!(
+        "{what}: exit {code:?} after {:.1} s, peak RSS {} MB",
+        took.as_secs_f64(),
+        peak_kb / 1024
+    );
+    assert_eq!(code, Some(2), "{err}");
+    assert!(err.contains(says), "{err}");
+    assert!(peak_kb < 400 << 10, "peak RSS {peak_kb} kB");
+}
+
 #[test]
 fn a_hostile_rtsp_server_is_cut_off_with_memory_bounded() {
     // A 2 GB answer, sent as fast as loopback takes it.
@@ -653,15 +667,7 @@ fn a_hostile_rtsp_server_is_cut_off_with_memory_bounded() {
         let head = b"RTSP/1.0 200 OK\r\nCSeq: 1\r\nContent-Length: 2000000000\r\n\r\n";
         flood(c, head, b'v', 1 << 20, 2000);
     });
-    let (code, err, took, peak_kb) = run_rtsp(port, None);
-    eprintln!(
-        "2 GB answer: exit {code:?} after {:.1} s, peak RSS {} MB",
-        took.as_secs_f64(),
-        peak_kb / 1024
-    );
-    assert_eq!(code, Some(2), "{err}");
-    assert!(err.contains("declared a body of 2000000000 bytes"), "{err}");
-    assert!(peak_kb < 400 << 10, "peak RSS {peak_kb} kB");
+    assert_cut_off(port, "2 GB answer", "declared a body of 2000000000 bytes");
 
     // A header that never ends.
     let port = hostile_rtsp(|c| {
@@ -673,15 +679,7 @@ fn a_hostile_rtsp_server_is_cut_off_with_memory_bounded() {
             4000,
         )
     });
-    let (code, err, took, peak_kb) = run_rtsp(port, None);
-    eprintln!(
-        "endless header: exit {code:?} after {:.1} s, peak RSS {} MB",
-        took.as_secs_f64(),
-        peak_kb / 1024
-    );
-    assert_eq!(code, Some(2), "{err}");
-    assert!(err.contains("head over"), "{err}");
-    assert!(peak_kb < 400 << 10, "peak RSS {peak_kb} kB");
+    assert_cut_off(port, "endless header", "head over");
 }
 
 #[test]
