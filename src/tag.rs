@@ -140,11 +140,7 @@ impl Layout {
             font_mm
         };
         let first = paper_mm + 1.2 * font_mm;
-        let caption = lines
-            .into_iter()
-            .enumerate()
-            .map(|(i, l)| (l, text_x, first + 1.4 * font_mm * i as f64))
-            .collect();
+        let caption = caption_lines(lines, text_x, first, font_mm);
         Ok(Layout {
             family,
             id,
@@ -212,56 +208,155 @@ fn num(v: f64) -> String {
 
 /// The page as SVG: physical size in mm, a viewBox in mm, one rect per black run.
 pub fn svg(l: &Layout) -> String {
-    let (w, h) = (num(l.page_w_mm), num(l.page_h_mm));
-    let mut s = String::new();
-    let _ = writeln!(s, r#"<?xml version="1.0" encoding="UTF-8"?>"#);
-    let _ = writeln!(
-        s,
-        r#"<svg xmlns="http://www.w3.org/2000/svg" width="{w}mm" height="{h}mm" viewBox="0 0 {w} {h}" shape-rendering="crispEdges">"#
-    );
-    let _ = writeln!(
-        s,
-        "<title>{} id {}, black square {} mm</title>",
+    let title = format!(
+        "{} id {}, black square {} mm",
         l.family,
         l.id,
         num(l.size_mm)
     );
-    let _ = writeln!(
-        s,
-        "<desc>Units are millimetres. The black square (outer edge of the black border) is {} mm: \
-         the site file's marker.size_m = {}. White quiet zone {} mm. Print at 100 %.</desc>",
+    let desc = format!(
+        "Units are millimetres. The black square (outer edge of the black border) is {} mm: \
+         the site file's marker.size_m = {}. White quiet zone {} mm. Print at 100 %.",
         num(l.size_mm),
         num(l.size_mm / 1000.0),
         num(l.quiet_mm)
     );
-    let _ = writeln!(
-        s,
-        r##"<rect x="0" y="0" width="{w}" height="{h}" fill="#fff"/>"##
-    );
-    let _ = writeln!(s, r##"<g fill="#000">"##);
-    for [x, y, rw, rh] in l.black_rects_mm() {
+    l.page().svg(&title, &desc, |s| {
+        for [x, y, rw, rh] in l.black_rects_mm() {
+            let _ = writeln!(
+                s,
+                r#"<rect x="{}" y="{}" width="{}" height="{}"/>"#,
+                num(x),
+                num(y),
+                num(rw),
+                num(rh)
+            );
+        }
+    })
+}
+
+/// The caption's lines at `x` mm, the first at `first_mm`, the others 1.4 font sizes
+/// apart.
+fn caption_lines<const N: usize>(
+    lines: [String; N],
+    x: f64,
+    first_mm: f64,
+    font_mm: f64,
+) -> Vec<(String, f64, f64)> {
+    lines
+        .into_iter()
+        .enumerate()
+        .map(|(i, l)| (l, x, first_mm + 1.4 * font_mm * i as f64))
+        .collect()
+}
+
+/// What the marker's and the target's pages share: the page's size, mm, and the caption
+/// (its lines at their places, mm from the top-left, and its font size).
+struct Page<'a> {
+    w_mm: f64,
+    h_mm: f64,
+    font_mm: f64,
+    caption: &'a [(String, f64, f64)],
+}
+
+impl<'a> Page<'a> {
+    fn new(w_mm: f64, h_mm: f64, font_mm: f64, caption: &'a [(String, f64, f64)]) -> Self {
+        Page {
+            w_mm,
+            h_mm,
+            font_mm,
+            caption,
+        }
+    }
+
+    /// The page as SVG with `title` and `desc` (as they are written, XML-escaped), the
+    /// black shapes `black` writes over a white page, and the caption.
+    fn svg(&self, title: &str, desc: &str, black: impl FnOnce(&mut String)) -> String {
+        let (w, h) = (num(self.w_mm), num(self.h_mm));
+        let mut s = String::new();
+        let _ = writeln!(s, r#"<?xml version="1.0" encoding="UTF-8"?>"#);
         let _ = writeln!(
             s,
-            r#"<rect x="{}" y="{}" width="{}" height="{}"/>"#,
-            num(x),
-            num(y),
-            num(rw),
-            num(rh)
+            r#"<svg xmlns="http://www.w3.org/2000/svg" width="{w}mm" height="{h}mm" viewBox="0 0 {w} {h}" shape-rendering="crispEdges">"#
         );
-    }
-    let _ = writeln!(s, "</g>");
-    for (text, x, y) in &l.caption {
+        let _ = writeln!(s, "<title>{title}</title>");
+        let _ = writeln!(s, "<desc>{desc}</desc>");
         let _ = writeln!(
             s,
-            r##"<text x="{}" y="{}" font-family="Helvetica, Arial, sans-serif" font-size="{}" fill="#000">{}</text>"##,
-            num(*x),
-            num(*y),
-            num(l.font_mm),
-            xml_escape(text)
+            r##"<rect x="0" y="0" width="{w}" height="{h}" fill="#fff"/>"##
         );
+        let _ = writeln!(s, r##"<g fill="#000">"##);
+        black(&mut s);
+        let _ = writeln!(s, "</g>");
+        for (text, x, y) in self.caption {
+            let _ = writeln!(
+                s,
+                r##"<text x="{}" y="{}" font-family="Helvetica, Arial, sans-serif" font-size="{}" fill="#000">{}</text>"##,
+                num(*x),
+                num(*y),
+                num(self.font_mm),
+                xml_escape(text)
+            );
+        }
+        s.push_str("</svg>\n");
+        s
     }
-    s.push_str("</svg>\n");
-    s
+
+    /// The page as a PDF: `content` (the black shapes, filled, in points from the
+    /// bottom-left), then the caption in Helvetica.
+    fn pdf(&self, mut content: String) -> Vec<u8> {
+        let k = PT_PER_MM;
+        for (text, x, y) in self.caption {
+            let _ = writeln!(
+                content,
+                "BT /F1 {} Tf {} {} Td ({}) Tj ET",
+                num(self.font_mm * k),
+                num(x * k),
+                num((self.h_mm - y) * k),
+                pdf_escape(text)
+            );
+        }
+        pdf_document(self.w_mm, self.h_mm, &content)
+    }
+
+    /// A white 8-bit grey image of the page at `dpi`, and its pixels per mm; an error for
+    /// a resolution out of range or a PNG too large.
+    fn png_canvas(&self, dpi: f64) -> anyhow::Result<(core::Mat, f64)> {
+        ensure!(
+            dpi.is_finite() && (72.0..=4800.0).contains(&dpi),
+            "--dpi {dpi}: expected a resolution in 72..=4800 dots per inch"
+        );
+        let ppmm = dpi / MM_PER_INCH;
+        let (w, h) = (self.w_mm * ppmm, self.h_mm * ppmm);
+        ensure!(
+            w.max(h) <= MAX_PNG_SIDE_PX,
+            "--dpi {dpi}: the PNG would be {w:.0} x {h:.0} px (at most {MAX_PNG_SIDE_PX:.0} a \
+             side); use a lower --dpi or .svg / .pdf"
+        );
+        let img = core::Mat::new_rows_cols_with_default(
+            h.round() as i32,
+            w.round() as i32,
+            core::CV_8UC1,
+            core::Scalar::all(255.0),
+        )
+        .context("allocating the PNG image")?;
+        Ok((img, ppmm))
+    }
+
+    /// `img` (from [`Page::png_canvas`]) with the caption, as a PNG with its resolution.
+    fn png(&self, mut img: core::Mat, ppmm: f64, dpi: f64) -> anyhow::Result<Vec<u8>> {
+        draw_caption(&mut img, self.caption, self.font_mm, self.w_mm, ppmm)?;
+        let mut buf = core::Vector::<u8>::new();
+        imgcodecs::imencode(".png", &img, &mut buf, &core::Vector::new())
+            .context("encoding the PNG")?;
+        with_phys(&buf.to_vec(), dpi)
+    }
+}
+
+impl Layout {
+    fn page(&self) -> Page<'_> {
+        Page::new(self.page_w_mm, self.page_h_mm, self.font_mm, &self.caption)
+    }
 }
 
 fn xml_escape(t: &str) -> String {
@@ -290,17 +385,7 @@ pub fn pdf(l: &Layout) -> Vec<u8> {
         );
     }
     content.push_str("f\n");
-    for (text, x, y) in &l.caption {
-        let _ = writeln!(
-            content,
-            "BT /F1 {} Tf {} {} Td ({}) Tj ET",
-            num(l.font_mm * k),
-            num(x * k),
-            num((l.page_h_mm - y) * k),
-            pdf_escape(text)
-        );
-    }
-    pdf_document(l.page_w_mm, l.page_h_mm, &content)
+    l.page().pdf(content)
 }
 
 /// A one-page PDF 1.4 of `page_w_mm` x `page_h_mm` whose page is `content` (a content
@@ -353,26 +438,7 @@ fn pdf_escape(t: &str) -> String {
 /// The black square is `round(size_mm * dpi / 25.4)` pixels; module edges are rounded
 /// to whole pixels, so modules differ by at most one pixel.
 pub fn png(l: &Layout, dpi: f64) -> anyhow::Result<Vec<u8>> {
-    ensure!(
-        dpi.is_finite() && (72.0..=4800.0).contains(&dpi),
-        "--dpi {dpi}: expected a resolution in 72..=4800 dots per inch"
-    );
-    let ppmm = dpi / MM_PER_INCH;
-    let (w, h) = (l.page_w_mm * ppmm, l.page_h_mm * ppmm);
-    ensure!(
-        w.max(h) <= MAX_PNG_SIDE_PX,
-        "--dpi {dpi}: the PNG would be {:.0} x {:.0} px (at most {MAX_PNG_SIDE_PX:.0} a side); \
-         use a lower --dpi or .svg / .pdf",
-        w,
-        h
-    );
-    let mut img = core::Mat::new_rows_cols_with_default(
-        h.round() as i32,
-        w.round() as i32,
-        core::CV_8UC1,
-        core::Scalar::all(255.0),
-    )
-    .context("allocating the PNG image")?;
+    let (mut img, ppmm) = l.page().png_canvas(dpi)?;
     let cells = l.bitmap.cells as i64;
     let side = (l.size_mm * ppmm).round() as i64;
     let (x0, y0) = (
@@ -389,21 +455,15 @@ pub fn png(l: &Layout, dpi: f64) -> anyhow::Result<Vec<u8>> {
             (edge(c + len) - edge(c)) as i32,
             (edge(r + 1) - edge(r)) as i32,
         );
-        imgproc::rectangle(
-            &mut img,
-            rect,
-            core::Scalar::all(0.0),
-            imgproc::FILLED,
-            imgproc::LINE_8,
-            0,
-        )
-        .context("drawing a module")?;
+        fill_black(&mut img, rect).context("drawing a module")?;
     }
-    draw_caption(&mut img, &l.caption, l.font_mm, l.page_w_mm, ppmm)?;
-    let mut buf = core::Vector::<u8>::new();
-    imgcodecs::imencode(".png", &img, &mut buf, &core::Vector::new())
-        .context("encoding the PNG")?;
-    with_phys(&buf.to_vec(), dpi)
+    l.page().png(img, ppmm, dpi)
+}
+
+/// `rect` of `img` black.
+fn fill_black(img: &mut core::Mat, rect: core::Rect) -> opencv::Result<()> {
+    let black = core::Scalar::all(0.0);
+    imgproc::rectangle(img, rect, black, imgproc::FILLED, imgproc::LINE_8, 0)
 }
 
 /// The caption with OpenCV's Hershey font, cap height about that of Helvetica at the
@@ -694,11 +754,7 @@ impl BoardPage {
         let chars = lines.iter().map(|l| l.chars().count()).max().unwrap_or(1) as f64;
         let font_mm = (board_w / (chars * CHAR_EM + 2.0)).clamp(2.5, 6.0);
         let first = layout.height_m * 1e3 + 2.0 * m + 1.2 * font_mm;
-        let caption = lines
-            .into_iter()
-            .enumerate()
-            .map(|(i, l)| (l, m, first + 1.4 * font_mm * i as f64))
-            .collect();
+        let caption = caption_lines(lines, m, first, font_mm);
         Ok(BoardPage {
             page_w_mm: board_w.max(chars * CHAR_EM * font_mm + 2.0 * m),
             page_h_mm: first + 1.4 * font_mm + 0.8 * font_mm,
@@ -710,40 +766,21 @@ impl BoardPage {
     }
 
     pub fn svg(&self) -> String {
-        let (w, h) = (num(self.page_w_mm), num(self.page_h_mm));
-        let mut s = String::new();
-        let _ = writeln!(s, r#"<?xml version="1.0" encoding="UTF-8"?>"#);
-        let _ = writeln!(
-            s,
-            r#"<svg xmlns="http://www.w3.org/2000/svg" width="{w}mm" height="{h}mm" viewBox="0 0 {w} {h}" shape-rendering="crispEdges">"#
-        );
-        let _ = writeln!(s, "<title>{}</title>", xml_escape(&self.title));
-        let _ = writeln!(s, "<desc>Units are millimetres. Print at 100 %.</desc>");
-        let _ = writeln!(
-            s,
-            r##"<rect x="0" y="0" width="{w}" height="{h}" fill="#fff"/>"##
-        );
-        let _ = writeln!(s, r##"<g fill="#000">"##);
-        for q in &self.polygons {
-            let pts: Vec<String> = q
-                .iter()
-                .map(|p| format!("{},{}", num(p[0]), num(p[1])))
-                .collect();
-            let _ = writeln!(s, r#"<polygon points="{}"/>"#, pts.join(" "));
-        }
-        let _ = writeln!(s, "</g>");
-        for (text, x, y) in &self.caption {
-            let _ = writeln!(
-                s,
-                r##"<text x="{}" y="{}" font-family="Helvetica, Arial, sans-serif" font-size="{}" fill="#000">{}</text>"##,
-                num(*x),
-                num(*y),
-                num(self.font_mm),
-                xml_escape(text)
-            );
-        }
-        s.push_str("</svg>\n");
-        s
+        let title = xml_escape(&self.title);
+        let desc = "Units are millimetres. Print at 100 %.";
+        self.page().svg(&title, desc, |s| {
+            for q in &self.polygons {
+                let pts: Vec<String> = q
+                    .iter()
+                    .map(|p| format!("{},{}", num(p[0]), num(p[1])))
+                    .collect();
+                let _ = writeln!(s, r#"<polygon points="{}"/>"#, pts.join(" "));
+            }
+        })
+    }
+
+    fn page(&self) -> Page<'_> {
+        Page::new(self.page_w_mm, self.page_h_mm, self.font_mm, &self.caption)
     }
 
     pub fn pdf(&self) -> Vec<u8> {
@@ -762,40 +799,13 @@ impl BoardPage {
             content.push_str("h\n");
         }
         content.push_str("f\n");
-        for (text, x, y) in &self.caption {
-            let _ = writeln!(
-                content,
-                "BT /F1 {} Tf {} {} Td ({}) Tj ET",
-                num(self.font_mm * k),
-                num(x * k),
-                num((self.page_h_mm - y) * k),
-                pdf_escape(text)
-            );
-        }
-        pdf_document(self.page_w_mm, self.page_h_mm, &content)
+        self.page().pdf(content)
     }
 
     /// An 8-bit grey PNG at `dpi` (pHYs set): squares and modules with their edges on
     /// the nearest pixel boundary (turned markers' modules to 1/256 pixel).
     pub fn png(&self, dpi: f64) -> anyhow::Result<Vec<u8>> {
-        ensure!(
-            dpi.is_finite() && (72.0..=4800.0).contains(&dpi),
-            "--dpi {dpi}: expected a resolution in 72..=4800 dots per inch"
-        );
-        let ppmm = dpi / MM_PER_INCH;
-        let (w, h) = (self.page_w_mm * ppmm, self.page_h_mm * ppmm);
-        ensure!(
-            w.max(h) <= MAX_PNG_SIDE_PX,
-            "--dpi {dpi}: the PNG would be {w:.0} x {h:.0} px (at most {MAX_PNG_SIDE_PX:.0} a \
-             side); use a lower --dpi or .svg / .pdf"
-        );
-        let mut img = core::Mat::new_rows_cols_with_default(
-            h.round() as i32,
-            w.round() as i32,
-            core::CV_8UC1,
-            core::Scalar::all(255.0),
-        )
-        .context("allocating the PNG image")?;
+        let (mut img, ppmm) = self.page().png_canvas(dpi)?;
         const SHIFT: i32 = 8;
         let sub = f64::from(1 << SHIFT);
         for q in &self.polygons {
@@ -808,15 +818,7 @@ impl BoardPage {
                 let rect =
                     core::Rect::new(x0 as i32, y0 as i32, (x1 - x0) as i32, (y1 - y0) as i32);
                 if rect.width > 0 && rect.height > 0 {
-                    imgproc::rectangle(
-                        &mut img,
-                        rect,
-                        core::Scalar::all(0.0),
-                        imgproc::FILLED,
-                        imgproc::LINE_8,
-                        0,
-                    )
-                    .context("drawing the target")?;
+                    fill_black(&mut img, rect).context("drawing the target")?;
                 }
                 continue;
             }
@@ -840,11 +842,7 @@ impl BoardPage {
             )
             .context("drawing the target")?;
         }
-        draw_caption(&mut img, &self.caption, self.font_mm, self.page_w_mm, ppmm)?;
-        let mut buf = core::Vector::<u8>::new();
-        imgcodecs::imencode(".png", &img, &mut buf, &core::Vector::new())
-            .context("encoding the PNG")?;
-        with_phys(&buf.to_vec(), dpi)
+        self.page().png(img, ppmm, dpi)
     }
 }
 

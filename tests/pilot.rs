@@ -121,12 +121,8 @@ fn run(site: &Path, port: u16, summary: &Path) -> std::process::Output {
 #[test]
 fn the_pilot_engages_takes_over_and_gets_the_vehicle_back() {
     let _one = one_at_a_time();
-    let (mut v, port) = vehicle(&["--scenario", "pilot"]);
     let summary = tmp("pilot.json");
-    let o = run(&site_path(), port, &summary);
-    let stderr = String::from_utf8_lossy(&o.stderr);
-    assert!(o.status.success(), "{stderr}");
-    let verdict = pymav_verdict(&mut v);
+    let (stderr, verdict) = run_against(&["--scenario", "pilot"], &site_path(), &summary);
     let said = pymav_texts(&verdict);
     assert_eq!(
         verdict["failures"],
@@ -197,7 +193,7 @@ fn the_pilot_engages_takes_over_and_gets_the_vehicle_back() {
     assert!(stderr.contains("vehicle reports a failsafe"), "{stderr}");
     // The preflight ran (parameter reads) before the loop.
     assert!(verdict["param_reads"].as_u64().unwrap() >= 5, "{verdict}");
-    let s: serde_json::Value = serde_json::from_slice(&std::fs::read(&summary).unwrap()).unwrap();
+    let s = read_summary(&summary);
     assert_eq!(s["engagements"], 3, "{s}");
     assert_eq!(s["hand_back"], "pilot_took_over", "{s}");
     assert!(s["withheld"].as_u64().unwrap() > 0, "{s}");
@@ -207,12 +203,12 @@ fn the_pilot_engages_takes_over_and_gets_the_vehicle_back() {
 fn with_nobody_at_the_joystick_the_hand_back_disarms_and_says_so() {
     let _one = one_at_a_time();
     let site = site_with("handback.toml", "hand_back_timeout_s = 1.0");
-    let (mut v, port) = vehicle(&["--scenario", "pilot", "--no-pilot-after-exit"]);
     let summary = tmp("handback.json");
-    let o = run(&site, port, &summary);
-    let stderr = String::from_utf8_lossy(&o.stderr);
-    assert!(o.status.success(), "{stderr}");
-    let verdict = pymav_verdict(&mut v);
+    let (_, verdict) = run_against(
+        &["--scenario", "pilot", "--no-pilot-after-exit"],
+        &site,
+        &summary,
+    );
     let said = pymav_texts(&verdict);
     assert_eq!(verdict["failures"], serde_json::json!([]), "{verdict}");
     assert!(
@@ -224,7 +220,7 @@ fn with_nobody_at_the_joystick_the_hand_back_disarms_and_says_so() {
     // markhold disarmed it; ArduSub's failsafes did not have to.
     assert_eq!(verdict["failsafe"], serde_json::json!([]), "{verdict}");
     assert_eq!(verdict["gcs_failsafe"], serde_json::json!([]), "{verdict}");
-    let s: serde_json::Value = serde_json::from_slice(&std::fs::read(&summary).unwrap()).unwrap();
+    let s = read_summary(&summary);
     assert_eq!(s["hand_back"]["disarmed"], "Accepted", "{s}");
 }
 
@@ -603,6 +599,33 @@ fn hil_vehicle(site: &Path, port: u16, seconds: &str) -> std::process::Output {
         .unwrap()
 }
 
+/// `run` of `site` against a test vehicle started with `args`, its summary to `summary`:
+/// it succeeds; its stderr and the vehicle's verdict.
+fn run_against(args: &[&str], site: &Path, summary: &Path) -> (String, Value) {
+    let (mut v, port) = vehicle(args);
+    succeeded(run(site, port, summary), &mut v)
+}
+
+/// `hil --vehicle` for `seconds` against a test vehicle started with `args`: it
+/// succeeds; its stderr and the vehicle's verdict.
+fn hil_against(args: &[&str], site: &Path, seconds: &str) -> (String, Value) {
+    let (mut v, port) = vehicle(args);
+    succeeded(hil_vehicle(site, port, seconds), &mut v)
+}
+
+/// markhold's run `o` against `v` succeeded: its stderr and the vehicle's verdict.
+fn succeeded(o: std::process::Output, v: &mut Vehicle) -> (String, Value) {
+    let stderr = String::from_utf8_lossy(&o.stderr).into_owned();
+    assert!(o.status.success(), "{stderr}");
+    (stderr, pymav_verdict(v))
+}
+
+/// The run's `--summary` JSON.
+fn read_summary(summary: &Path) -> Value {
+    serde_json::from_slice(&std::fs::read(summary).expect("the run wrote its summary"))
+        .expect("the summary is JSON")
+}
+
 /// The pilot's station stops (tether cut topside, QGroundControl closed) a second after
 /// markhold engaged. markhold must stop every SYSID_MYGCS frame within 0.7 s of the
 /// station's last heartbeat, say why, and the vehicle's GCS failsafe (as ArduSub runs
@@ -665,14 +688,14 @@ fn assert_station_loss_lets_the_failsafe_fire(verdict: &Value, stderr: &str) {
 #[test]
 fn when_the_pilot_station_falls_silent_markhold_stops_as_the_gcs_and_the_failsafe_fires() {
     let _one = one_at_a_time();
-    let (mut v, port) = vehicle(&["--scenario", "station", "--station-silent-after", "1.0"]);
     let summary = tmp("station.json");
-    let o = run(&site_path(), port, &summary);
-    let stderr = String::from_utf8_lossy(&o.stderr);
-    assert!(o.status.success(), "{stderr}");
-    let verdict = pymav_verdict(&mut v);
+    let (stderr, verdict) = run_against(
+        &["--scenario", "station", "--station-silent-after", "1.0"],
+        &site_path(),
+        &summary,
+    );
     assert_station_loss_lets_the_failsafe_fire(&verdict, &stderr);
-    let s: Value = serde_json::from_slice(&std::fs::read(&summary).unwrap()).unwrap();
+    let s = read_summary(&summary);
     assert_eq!(s["hand_back"], "not_commanding", "{s}");
     assert!(s["engagement"].to_string().contains("station_lost"), "{s}");
 }
@@ -719,11 +742,11 @@ fn on_ardusub_4_2_the_gcs_failsafe_fires_as_without_markhold() {
 #[test]
 fn hil_vehicle_stops_as_the_gcs_when_the_pilot_station_falls_silent() {
     let _one = one_at_a_time();
-    let (mut v, port) = vehicle(&["--scenario", "station", "--station-silent-after", "1.0"]);
-    let o = hil_vehicle(&site_path(), port, "8");
-    let stderr = String::from_utf8_lossy(&o.stderr);
-    assert!(o.status.success(), "{stderr}");
-    let verdict = pymav_verdict(&mut v);
+    let (stderr, verdict) = hil_against(
+        &["--scenario", "station", "--station-silent-after", "1.0"],
+        &site_path(),
+        "8",
+    );
     assert_station_loss_lets_the_failsafe_fire(&verdict, &stderr);
 }
 
@@ -750,15 +773,15 @@ fn assert_released_after_takeover(verdict: &Value) {
 #[test]
 fn after_a_takeover_run_sends_nothing_as_the_gcs_also_at_exit() {
     let _one = one_at_a_time();
-    let (mut v, port) = vehicle(&["--scenario", "takeover", "--takeover-after", "1.0"]);
     let summary = tmp("takeover.json");
-    let o = run(&site_path(), port, &summary);
-    let stderr = String::from_utf8_lossy(&o.stderr);
-    assert!(o.status.success(), "{stderr}");
-    let verdict = pymav_verdict(&mut v);
+    let (_, verdict) = run_against(
+        &["--scenario", "takeover", "--takeover-after", "1.0"],
+        &site_path(),
+        &summary,
+    );
     assert_eq!(verdict["failures"], serde_json::json!([]), "{verdict}");
     assert_released_after_takeover(&verdict);
-    let s: Value = serde_json::from_slice(&std::fs::read(&summary).unwrap()).unwrap();
+    let s = read_summary(&summary);
     assert_eq!(s["hand_back"], "not_commanding", "{s}");
     assert_eq!(s["exit"]["commanding"], false, "{s}");
 }
@@ -769,11 +792,11 @@ fn after_a_takeover_run_sends_nothing_as_the_gcs_also_at_exit() {
 #[test]
 fn hil_vehicle_after_a_takeover_sends_nothing_as_the_gcs_also_at_exit() {
     let _one = one_at_a_time();
-    let (mut v, port) = vehicle(&["--scenario", "takeover", "--takeover-after", "1.0"]);
-    let o = hil_vehicle(&site_path(), port, "4");
-    let stderr = String::from_utf8_lossy(&o.stderr);
-    assert!(o.status.success(), "{stderr}");
-    let verdict = pymav_verdict(&mut v);
+    let (stderr, verdict) = hil_against(
+        &["--scenario", "takeover", "--takeover-after", "1.0"],
+        &site_path(),
+        "4",
+    );
     assert_eq!(verdict["failures"], serde_json::json!([]), "{verdict}");
     assert!(stderr.contains("disengaged why=ModeChanged"), "{stderr}");
     assert_released_after_takeover(&verdict);
@@ -785,11 +808,7 @@ fn hil_vehicle_after_a_takeover_sends_nothing_as_the_gcs_also_at_exit() {
 fn hil_vehicle_exit_without_a_pilot_hands_back_then_disarms_and_no_failsafe_fires() {
     let _one = one_at_a_time();
     let site = site_with("hil-noplan.toml", "hand_back_timeout_s = 1.0");
-    let (mut v, port) = vehicle(&["--scenario", "noplan"]);
-    let o = hil_vehicle(&site, port, "3");
-    let stderr = String::from_utf8_lossy(&o.stderr);
-    assert!(o.status.success(), "{stderr}");
-    let verdict = pymav_verdict(&mut v);
+    let (stderr, verdict) = hil_against(&["--scenario", "noplan"], &site, "3");
     assert_eq!(verdict["failures"], serde_json::json!([]), "{verdict}");
     let said = pymav_texts(&verdict);
     for t in [

@@ -48,6 +48,13 @@ impl Harness {
         }
     }
 
+    /// A link listening at `url` and a fake vehicle of `kind` that connects to its address.
+    fn listening(url: &str, kind: impl FnOnce(std::net::SocketAddr) -> Kind) -> Self {
+        let link = VehicleLink::connect(&link_cfg(url.into())).expect("the link listens");
+        let addr = link.local_addr().expect("a listening link has an address");
+        Self::new(link, FakeVehicle::start(kind(addr)))
+    }
+
     /// Ticks with loop time advancing `STEP_S` per call and a short wall sleep, until `f`
     /// holds or the wall deadline passes.
     fn tick_until(&mut self, what: &str, mut f: impl FnMut(&VehicleLink, &common::Rec) -> bool) {
@@ -318,20 +325,14 @@ fn udp_receive_in_a_task_works_too() {
 
 #[test]
 fn tcpin_accepts_vehicle_and_arms() {
-    let link = VehicleLink::connect(&link_cfg("tcpin:127.0.0.1:0".into())).unwrap();
-    let addr = link.local_addr().unwrap();
-    let fake = FakeVehicle::start(Kind::TcpClient(addr));
-    let mut h = Harness::new(link, fake);
+    let mut h = Harness::listening("tcpin:127.0.0.1:0", Kind::TcpClient);
     h.arm_manual();
     assert!(h.fake.rec().armed);
 }
 
 #[test]
 fn udpin_replies_to_the_vehicle_that_spoke() {
-    let link = VehicleLink::connect(&link_cfg("udpin:127.0.0.1:0".into())).unwrap();
-    let addr = link.local_addr().unwrap();
-    let fake = FakeVehicle::start(Kind::UdpClient(addr));
-    let mut h = Harness::new(link, fake);
+    let mut h = Harness::listening("udpin:127.0.0.1:0", Kind::UdpClient);
     let before = h.link.state().mode_changes;
     h.arm_manual();
     assert_eq!(h.fake.rec().mode, 19);

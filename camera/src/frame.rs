@@ -141,6 +141,17 @@ pub struct Roi {
 }
 
 impl Roi {
+    /// The rectangle from corner (`x0`, `y0`) up to (`x1`, `y1`), excluded; empty where
+    /// `x1 <= x0` or `y1 <= y0`.
+    pub fn between(x0: u32, y0: u32, x1: u32, y1: u32) -> Roi {
+        Roi {
+            x: x0,
+            y: y0,
+            width: x1.saturating_sub(x0),
+            height: y1.saturating_sub(y0),
+        }
+    }
+
     pub fn is_empty(&self) -> bool {
         self.width == 0 || self.height == 0
     }
@@ -175,12 +186,7 @@ impl Roi {
         let y0 = self.y.min(h);
         let x1 = self.x.saturating_add(self.width).min(w);
         let y1 = self.y.saturating_add(self.height).min(h);
-        Roi {
-            x: x0,
-            y: y0,
-            width: x1 - x0,
-            height: y1 - y0,
-        }
+        Roi::between(x0, y0, x1, y1)
     }
 
     /// Bounding box of the corners, padded on each side by `pad_frac` of the box's
@@ -205,12 +211,7 @@ impl Roi {
         if x1 <= x0 || y1 <= y0 {
             return None;
         }
-        Some(Roi {
-            x: x0 as u32,
-            y: y0 as u32,
-            width: (x1 - x0) as u32,
-            height: (y1 - y0) as u32,
-        })
+        Some(Roi::between(x0 as u32, y0 as u32, x1 as u32, y1 as u32))
     }
 }
 

@@ -97,7 +97,16 @@ pub const METHODS: [MethodInfo; 7] = [
             motion_adversarial: Some("0.0058 m / 99.32 %"),
             convergence_s: Some([4.0, 3.0, 6.0]),
         },
-        build: build_aaec_paper,
+        build: |cfg, limits, initial_us| {
+            let (response, ae) = (cfg.response.load()?, cfg.default.clone());
+            boxed(AaecPaper::new(
+                cfg.aaec_paper.clone(),
+                &response,
+                ae,
+                limits,
+                initial_us,
+            ))
+        },
     },
     MethodInfo {
         method: ExposureMethod::Aaec,
@@ -121,7 +130,9 @@ pub const METHODS: [MethodInfo; 7] = [
             motion_adversarial: Some("0.0490 m / 29.29 %"),
             convergence_s: None,
         },
-        build: build_gec_paper,
+        build: |cfg, limits, initial_us| {
+            boxed(GecPaper::new(cfg.gec_paper.clone(), limits, initial_us))
+        },
     },
     MethodInfo {
         method: ExposureMethod::Gec,
@@ -131,7 +142,7 @@ pub const METHODS: [MethodInfo; 7] = [
         paper_code: false,
         variant_of: Some("GEC with Shim's published constants"),
         paper: PaperFigures::NONE,
-        build: build_gec,
+        build: |cfg, limits, initial_us| boxed(Gec::new(cfg.gec.clone(), limits, initial_us)),
     },
     MethodInfo {
         method: ExposureMethod::AecPaper,
@@ -145,7 +156,16 @@ pub const METHODS: [MethodInfo; 7] = [
             motion_adversarial: Some("no detection"),
             convergence_s: Some([63.0, 43.0, 72.0]),
         },
-        build: build_aec_paper,
+        build: |cfg, limits, initial_us| {
+            let (response, ae) = (cfg.response.load()?, cfg.default.clone());
+            boxed(AecPaper::new(
+                cfg.aec_paper.clone(),
+                &response,
+                ae,
+                limits,
+                initial_us,
+            ))
+        },
     },
     MethodInfo {
         method: ExposureMethod::Aec,
@@ -155,7 +175,10 @@ pub const METHODS: [MethodInfo; 7] = [
         paper_code: false,
         variant_of: Some("AEC with its official code's safety nets"),
         paper: PaperFigures::NONE,
-        build: build_aec,
+        build: |cfg, limits, initial_us| {
+            let response = cfg.response.load()?;
+            boxed(Aec::new(cfg.aec.clone(), &response, limits, initial_us))
+        },
     },
     MethodInfo {
         method: ExposureMethod::Default,
@@ -169,7 +192,9 @@ pub const METHODS: [MethodInfo; 7] = [
             motion_adversarial: Some("no detection"),
             convergence_s: None,
         },
-        build: build_default,
+        build: |cfg, limits, initial_us| {
+            boxed(MeanAe::new(cfg.default.clone(), limits, initial_us))
+        },
     },
 ];
 
@@ -276,80 +301,11 @@ impl std::str::FromStr for ExposureMethod {
     }
 }
 
-fn build_default(
-    cfg: &ExposureConfig,
-    limits: ExposureLimits,
-    initial_us: f64,
+/// A controller, boxed.
+fn boxed(
+    c: Result<impl ExposureController + 'static, ExposureError>,
 ) -> Result<Box<dyn ExposureController>, ExposureError> {
-    Ok(Box::new(MeanAe::new(
-        cfg.default.clone(),
-        limits,
-        initial_us,
-    )?))
-}
-
-fn build_gec(
-    cfg: &ExposureConfig,
-    limits: ExposureLimits,
-    initial_us: f64,
-) -> Result<Box<dyn ExposureController>, ExposureError> {
-    Ok(Box::new(Gec::new(cfg.gec.clone(), limits, initial_us)?))
-}
-
-fn build_gec_paper(
-    cfg: &ExposureConfig,
-    limits: ExposureLimits,
-    initial_us: f64,
-) -> Result<Box<dyn ExposureController>, ExposureError> {
-    Ok(Box::new(GecPaper::new(
-        cfg.gec_paper.clone(),
-        limits,
-        initial_us,
-    )?))
-}
-
-fn build_aaec_paper(
-    cfg: &ExposureConfig,
-    limits: ExposureLimits,
-    initial_us: f64,
-) -> Result<Box<dyn ExposureController>, ExposureError> {
-    let response = cfg.response.load()?;
-    Ok(Box::new(AaecPaper::new(
-        cfg.aaec_paper.clone(),
-        &response,
-        cfg.default.clone(),
-        limits,
-        initial_us,
-    )?))
-}
-
-fn build_aec_paper(
-    cfg: &ExposureConfig,
-    limits: ExposureLimits,
-    initial_us: f64,
-) -> Result<Box<dyn ExposureController>, ExposureError> {
-    let response = cfg.response.load()?;
-    Ok(Box::new(AecPaper::new(
-        cfg.aec_paper.clone(),
-        &response,
-        cfg.default.clone(),
-        limits,
-        initial_us,
-    )?))
-}
-
-fn build_aec(
-    cfg: &ExposureConfig,
-    limits: ExposureLimits,
-    initial_us: f64,
-) -> Result<Box<dyn ExposureController>, ExposureError> {
-    let response = cfg.response.load()?;
-    Ok(Box::new(Aec::new(
-        cfg.aec.clone(),
-        &response,
-        limits,
-        initial_us,
-    )?))
+    Ok(Box::new(c?))
 }
 
 fn build_aaec(
@@ -362,13 +318,13 @@ fn build_aaec(
         AaecFallback::Mean => Box::new(MeanAe::new(cfg.default.clone(), limits, initial_us)?),
         AaecFallback::Aec => Box::new(Aec::new(cfg.aec.clone(), &response, limits, initial_us)?),
     };
-    Ok(Box::new(Aaec::new(
+    boxed(Aaec::new(
         cfg.aaec.clone(),
         response,
         limits,
         initial_us,
         fallback,
-    )?))
+    ))
 }
 
 #[cfg(test)]

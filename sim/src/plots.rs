@@ -12,6 +12,8 @@ use markhold_hil::scene::LightingScenario;
 use opencv::core::{Mat, Point, Rect, Scalar, Vec3b, Vector, CV_8UC3};
 use opencv::imgproc;
 use opencv::prelude::*;
+use plotters::coord::ranged1d::{AsRangedCoord, ValueFormatter};
+use plotters::coord::types::RangedCoordf64;
 use plotters::coord::Shift;
 use plotters::prelude::*;
 use plotters_backend::{
@@ -68,6 +70,15 @@ type DErr = DrawingErrorKind<MatBackendError>;
 
 fn cv(e: opencv::Error) -> DErr {
     DrawingErrorKind::DrawingError(MatBackendError::OpenCv { source: e })
+}
+
+/// OpenCV's thickness for a shape drawn with `style`: filled, or its stroke width.
+fn thickness<S: BackendStyle>(style: &S, fill: bool) -> i32 {
+    if fill {
+        imgproc::FILLED
+    } else {
+        style.stroke_width().max(1) as i32
+    }
 }
 
 /// OpenCV draws opaque: a translucent colour (plotters' light grid) is blended with the
@@ -161,11 +172,7 @@ impl DrawingBackend for MatBackend {
         style: &S,
         fill: bool,
     ) -> Result<(), DErr> {
-        let thickness = if fill {
-            imgproc::FILLED
-        } else {
-            style.stroke_width().max(1) as i32
-        };
+        let thickness = thickness(style, fill);
         imgproc::rectangle(
             &mut self.img,
             Rect::new(ul.0, ul.1, br.0 - ul.0, br.1 - ul.1),
@@ -184,11 +191,7 @@ impl DrawingBackend for MatBackend {
         style: &S,
         fill: bool,
     ) -> Result<(), DErr> {
-        let thickness = if fill {
-            imgproc::FILLED
-        } else {
-            style.stroke_width().max(1) as i32
-        };
+        let thickness = thickness(style, fill);
         imgproc::circle(
             &mut self.img,
             Point::new(center.0, center.1),
@@ -314,6 +317,69 @@ fn runs_of(out: &CompareOutput, l: LightingScenario, kind: RunKind) -> Vec<&RunS
         .collect()
 }
 
+/// A chart over all of `root` (the caption at 22 pt, the axes' labels room to the left
+/// and below), its mesh drawn with `x_desc` under the x axis.
+#[allow(clippy::type_complexity)]
+fn chart_on<'a, DB: DrawingBackend, X: AsRangedCoord, Y: AsRangedCoord>(
+    root: &'a DrawingArea<DB, Shift>,
+    caption: String,
+    x_desc: &str,
+    x: X,
+    y: Y,
+) -> Result<ChartContext<'a, DB, Cartesian2d<X::CoordDescType, Y::CoordDescType>>, SimError>
+where
+    X::CoordDescType: Ranged<ValueType = X::Value> + ValueFormatter<X::Value>,
+    Y::CoordDescType: Ranged<ValueType = Y::Value> + ValueFormatter<Y::Value>,
+{
+    let mut chart = ChartBuilder::on(root)
+        .caption(caption, ("sans-serif", 22))
+        .margin(15)
+        .x_label_area_size(45)
+        .y_label_area_size(70)
+        .build_cartesian_2d(x, y)
+        .map_err(plot_err)?;
+    chart
+        .configure_mesh()
+        .x_desc(x_desc)
+        .draw()
+        .map_err(plot_err)?;
+    Ok(chart)
+}
+
+/// A method's points as small dots of its colour (`alpha` opaque), in the legend with
+/// its label and `detections`.
+fn draw_dots<'a, DB: DrawingBackend + 'a>(
+    chart: &mut ChartContext<'a, DB, Cartesian2d<RangedCoordf64, RangedCoordf64>>,
+    m: ExposureMethod,
+    points: impl IntoIterator<Item = (f64, f64)>,
+    alpha: f64,
+    detections: usize,
+) -> Result<(), SimError> {
+    let c = method_color(m);
+    chart
+        .draw_series(
+            points
+                .into_iter()
+                .map(|q| Circle::new(q, 2, c.mix(alpha).filled())),
+        )
+        .map_err(plot_err)?
+        .label(format!("{} ({detections} detections)", m.label()))
+        .legend(move |(x, y)| Circle::new((x, y), 4, c.filled()));
+    Ok(())
+}
+
+/// The series' labels in a box over the chart.
+fn draw_legend<'a, DB: DrawingBackend + 'a, CT: CoordTranslate>(
+    chart: &mut ChartContext<'a, DB, CT>,
+) -> Result<(), SimError> {
+    chart
+        .configure_series_labels()
+        .background_style(WHITE.mix(0.8))
+        .border_style(BLACK)
+        .draw()
+        .map_err(plot_err)
+}
+
 /// Measured marker positions, static run: x (right) and y (down) of the camera frame,
 /// millimetres from the true position.
 fn static_scatter<DB: DrawingBackend>(
@@ -346,40 +412,21 @@ fn static_scatter<DB: DrawingBackend>(
         .collect();
     let xr = robust_range(&mut xs);
     let yr = robust_range(&mut ys);
-    let mut chart = ChartBuilder::on(root)
-        .caption(
-            format!("Static: measured marker position - truth [mm], {l} lighting"),
-            ("sans-serif", 22),
-        )
-        .margin(15)
-        .x_label_area_size(45)
-        .y_label_area_size(70)
-        .build_cartesian_2d(xr.0..xr.1, yr.0..yr.1)
-        .map_err(plot_err)?;
-    chart
-        .configure_mesh()
-        .x_desc("x (camera right) [mm]; y (camera down) [mm] on the vertical axis")
-        .draw()
-        .map_err(plot_err)?;
+    let mut chart = chart_on(
+        root,
+        format!("Static: measured marker position - truth [mm], {l} lighting"),
+        "x (camera right) [mm]; y (camera down) [mm] on the vertical axis",
+        xr.0..xr.1,
+        yr.0..yr.1,
+    )?;
     for (m, p) in &pts {
-        let c = method_color(*m);
-        chart
-            .draw_series(
-                p.iter()
-                    .filter(|q| q.0 >= xr.0 && q.0 <= xr.1 && q.1 >= yr.0 && q.1 <= yr.1)
-                    .map(|q| Circle::new(*q, 2, c.mix(0.6).filled())),
-            )
-            .map_err(plot_err)?
-            .label(format!("{} ({} detections)", m.label(), p.len()))
-            .legend(move |(x, y)| Circle::new((x, y), 4, c.filled()));
+        let in_view = p
+            .iter()
+            .copied()
+            .filter(|q| q.0 >= xr.0 && q.0 <= xr.1 && q.1 >= yr.0 && q.1 <= yr.1);
+        draw_dots(&mut chart, *m, in_view, 0.6, p.len())?;
     }
-    chart
-        .configure_series_labels()
-        .background_style(WHITE.mix(0.8))
-        .border_style(BLACK)
-        .draw()
-        .map_err(plot_err)?;
-    Ok(())
+    draw_legend(&mut chart)
 }
 
 /// Motion run: measured marker positions against the true trajectory, x (camera right)
@@ -405,28 +452,19 @@ fn motion_tracks<DB: DrawingBackend>(
     // Show +-5 cm of range around the truth: the tracking error is what matters.
     zs.clear();
     let zr = (zmid - 0.05, zmid + 0.05);
-    let mut chart = ChartBuilder::on(root)
-        .caption(
-            format!("Motion: tracked marker vs truth, {l} lighting"),
-            ("sans-serif", 22),
-        )
-        .margin(15)
-        .x_label_area_size(45)
-        .y_label_area_size(70)
-        .build_cartesian_2d(xr.0..xr.1, zr.0..zr.1)
-        .map_err(plot_err)?;
-    chart
-        .configure_mesh()
-        .x_desc("x (camera right) [m]; range z [m] on the vertical axis")
-        .draw()
-        .map_err(plot_err)?;
+    let mut chart = chart_on(
+        root,
+        format!("Motion: tracked marker vs truth, {l} lighting"),
+        "x (camera right) [m]; range z [m] on the vertical axis",
+        xr.0..xr.1,
+        zr.0..zr.1,
+    )?;
     chart
         .draw_series(LineSeries::new(truth, Color::stroke_width(&BLACK, 2)))
         .map_err(plot_err)?
         .label("truth")
         .legend(|(x, y)| PathElement::new(vec![(x - 8, y), (x + 8, y)], BLACK));
     for r in runs {
-        let c = method_color(r.method);
         let p: Vec<(f64, f64)> = r
             .samples
             .iter()
@@ -434,22 +472,9 @@ fn motion_tracks<DB: DrawingBackend>(
             .filter(|q| q.1 >= zr.0 && q.1 <= zr.1 && q.0 >= xr.0 && q.0 <= xr.1)
             .collect();
         let n = r.samples.iter().filter(|s| s.detected).count();
-        chart
-            .draw_series(
-                p.into_iter()
-                    .map(|q| Circle::new(q, 2, c.mix(0.7).filled())),
-            )
-            .map_err(plot_err)?
-            .label(format!("{} ({} detections)", r.method.label(), n))
-            .legend(move |(x, y)| Circle::new((x, y), 4, c.filled()));
+        draw_dots(&mut chart, r.method, p, 0.7, n)?;
     }
-    chart
-        .configure_series_labels()
-        .background_style(WHITE.mix(0.8))
-        .border_style(BLACK)
-        .draw()
-        .map_err(plot_err)?;
-    Ok(())
+    draw_legend(&mut chart)
 }
 
 /// Exposure over time per method: the two convergence runs (from 10x long and 10x short).
@@ -476,21 +501,13 @@ fn exposure_time<DB: DrawingBackend>(
     if !(lo.is_finite() && hi > 0.0) {
         (lo, hi) = (1.0, 10.0);
     }
-    let mut chart = ChartBuilder::on(root)
-        .caption(
-            format!("Exposure [us] over time from 10x long and 10x short, {l} lighting"),
-            ("sans-serif", 22),
-        )
-        .margin(15)
-        .x_label_area_size(45)
-        .y_label_area_size(70)
-        .build_cartesian_2d(0.0..t_max, (lo * 0.8..hi * 1.25).log_scale())
-        .map_err(plot_err)?;
-    chart
-        .configure_mesh()
-        .x_desc("time [s]; exposure [us] (log) on the vertical axis")
-        .draw()
-        .map_err(plot_err)?;
+    let mut chart = chart_on(
+        root,
+        format!("Exposure [us] over time from 10x long and 10x short, {l} lighting"),
+        "time [s]; exposure [us] (log) on the vertical axis",
+        0.0..t_max,
+        (lo * 0.8..hi * 1.25).log_scale(),
+    )?;
     let mut labelled = Vec::new();
     for r in runs {
         let c = method_color(r.method);
@@ -507,13 +524,7 @@ fn exposure_time<DB: DrawingBackend>(
                 .legend(move |(x, y)| PathElement::new(vec![(x - 8, y), (x + 8, y)], c));
         }
     }
-    chart
-        .configure_series_labels()
-        .background_style(WHITE.mix(0.8))
-        .border_style(BLACK)
-        .draw()
-        .map_err(plot_err)?;
-    Ok(())
+    draw_legend(&mut chart)
 }
 
 /// A method's column of a spread panel: the seeds' values and (low, mean, high).

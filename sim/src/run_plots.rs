@@ -252,6 +252,16 @@ where
     Ok(())
 }
 
+/// `root` filled white and cut into an upper and a lower panel of half its height.
+#[allow(clippy::type_complexity)]
+fn white_halves<DB: DrawingBackend>(
+    root: &DrawingArea<DB, Shift>,
+) -> Result<(DrawingArea<DB, Shift>, DrawingArea<DB, Shift>), SimError> {
+    root.fill(&WHITE).map_err(plot_err)?;
+    let (_, h) = root.dim_in_pixel();
+    Ok(root.split_vertically(h / 2))
+}
+
 fn t_max(stats: &RunStats) -> f64 {
     stats.time_s.last().copied().unwrap_or(0.0).max(1e-3)
 }
@@ -262,9 +272,7 @@ fn exposure_metric<DB: DrawingBackend>(
     stats: &RunStats,
     info: &RunPlotInfo,
 ) -> Result<(), SimError> {
-    root.fill(&WHITE).map_err(plot_err)?;
-    let (_, h) = root.dim_in_pixel();
-    let (upper, lower) = root.split_vertically(h / 2);
+    let (upper, lower) = white_halves(root)?;
     let t = t_max(stats);
     let exposure = segments(&stats.time_s, &stats.exposure_us, true);
     let (lo, hi) = exposure
@@ -318,10 +326,7 @@ fn detection_latency<DB: DrawingBackend>(
     stats: &RunStats,
     info: &RunPlotInfo,
 ) -> Result<(), SimError> {
-    root.fill(&WHITE).map_err(plot_err)?;
-    let (_, h) = root.dim_in_pixel();
-    let (upper, lower) = root.split_vertically(h / 2);
-    let t = t_max(stats);
+    let (upper, lower) = white_halves(root)?;
     let n = stats.detected.len().max(1);
     let rate = stats.detected.iter().filter(|d| **d).count() as f64 / n as f64;
     let detected: Vec<f64> = stats
@@ -329,6 +334,7 @@ fn detection_latency<DB: DrawingBackend>(
         .iter()
         .map(|d| if *d { 1.0 } else { 0.0 })
         .collect();
+    let t = t_max(stats);
     line_panel(
         &upper,
         &format!(

@@ -33,6 +33,11 @@ fn assert_seen_at(frame: &Frame, family: MarkerFamily, id: u32, size_mm: f64, di
     );
 }
 
+/// A page read back from a file is the layout's size (mm).
+fn assert_page_size(l: &Layout, page_mm: (f64, f64)) {
+    assert!((page_mm.0 - l.page_w_mm).abs() < 1e-3 && (page_mm.1 - l.page_h_mm).abs() < 1e-3);
+}
+
 /// The page's black rectangles (mm) painted with exact area coverage into a camera
 /// frame: the page is frontal at `distance_m`, its top-left corner at pixel (500, 400).
 fn camera_view(rects_mm: &[[f64; 4]], page_mm: (f64, f64), distance_m: f64) -> Frame {
@@ -299,7 +304,7 @@ fn svg_in_front_of_a_camera_decodes_and_measures_its_size() {
         "{s}"
     );
     let (page, rects) = parse_svg(&s);
-    assert!((page.0 - l.page_w_mm).abs() < 1e-3 && (page.1 - l.page_h_mm).abs() < 1e-3);
+    assert_page_size(&l, page);
     // Row runs are merged: fewer rects than black modules.
     let black = l.bitmap.white.iter().filter(|w| !**w).count();
     assert!(
@@ -307,13 +312,8 @@ fn svg_in_front_of_a_camera_decodes_and_measures_its_size() {
         "{} rects for {black} modules",
         rects.len()
     );
-    assert_seen_at(
-        &camera_view(&rects, page, distance_m),
-        family,
-        id,
-        size_mm,
-        distance_m,
-    );
+    let frame = camera_view(&rects, page, distance_m);
+    assert_seen_at(&frame, family, id, size_mm, distance_m);
 }
 
 #[test]
@@ -324,14 +324,9 @@ fn pdf_in_front_of_a_camera_decodes_and_measures_its_size() {
     let text = String::from_utf8_lossy(&bytes);
     assert!(text.contains("/BaseFont /Helvetica") && text.contains("(apriltag_25h9 id 11) Tj"));
     let (page, rects) = parse_pdf(&bytes);
-    assert!((page.0 - l.page_w_mm).abs() < 1e-3 && (page.1 - l.page_h_mm).abs() < 1e-3);
-    assert_seen_at(
-        &camera_view(&rects, page, distance_m),
-        family,
-        id,
-        size_mm,
-        distance_m,
-    );
+    assert_page_size(&l, page);
+    let frame = camera_view(&rects, page, distance_m);
+    assert_seen_at(&frame, family, id, size_mm, distance_m);
 }
 
 #[test]

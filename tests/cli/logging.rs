@@ -77,8 +77,8 @@ fn log_file_that_cannot_be_created_is_named() {
         .arg(dir.join("x.log"))
         .output()
         .unwrap();
-    assert_eq!(out.status.code(), Some(2));
-    assert!(String::from_utf8_lossy(&out.stderr).contains("--log-file"));
+    let err = common::stderr_of_exit(&out, 2);
+    assert!(err.contains("--log-file"), "{err}");
 }
 
 #[test]

@@ -68,46 +68,43 @@ fn snapshot(name: &str, actual: &str) {
     );
 }
 
+/// `bad_case` for the example site with the first `from` replaced by `to`.
+fn bad_replacement(name: &str, from: &str, to: &str) {
+    bad_case(name, |t| t.replacen(from, to, 1));
+}
+
 #[test]
 fn unknown_key() {
-    bad_case("unknown_key", |t| {
-        t.replacen("[marker]\n", "[marker]\ncolour = \"red\"\n", 1)
-    });
+    bad_replacement("unknown_key", "[marker]\n", "[marker]\ncolour = \"red\"\n");
 }
 
 #[test]
 fn wrong_type() {
-    bad_case("wrong_type", |t| {
-        t.replacen("fps = 30.0", "fps = \"thirty\"", 1)
-    });
+    bad_replacement("wrong_type", "fps = 30.0", "fps = \"thirty\"");
 }
 
 #[test]
 fn out_of_range() {
-    bad_case("out_of_range", |t| {
-        t.replacen("exposure_max_us = 30000.0", "exposure_max_us = 5.0", 1)
-    });
+    bad_replacement(
+        "out_of_range",
+        "exposure_max_us = 30000.0",
+        "exposure_max_us = 5.0",
+    );
 }
 
 #[test]
 fn unknown_method() {
-    bad_case("unknown_method", |t| {
-        t.replacen("method = \"aaec\"", "method = \"magic\"", 1)
-    });
+    bad_replacement("unknown_method", "method = \"aaec\"", "method = \"magic\"");
 }
 
 #[test]
 fn unknown_marker_family() {
-    bad_case("unknown_family", |t| {
-        t.replacen("apriltag_36h11", "qr_code", 1)
-    });
+    bad_replacement("unknown_family", "apriltag_36h11", "qr_code");
 }
 
 #[test]
 fn crate_section_out_of_range() {
-    bad_case("station_distance", |t| {
-        t.replacen("distance_m = 1.0", "distance_m = -1.0", 1)
-    });
+    bad_replacement("station_distance", "distance_m = 1.0", "distance_m = -1.0");
 }
 
 #[test]

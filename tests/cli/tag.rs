@@ -24,6 +24,13 @@ fn tag_site(site: &Path, out: &Path) -> (i32, String, String) {
     ])
 }
 
+/// `tag_site` for the repository's site file `site`: it succeeds; what it printed.
+fn tag_repo_site(site: &str, out: &Path) -> String {
+    let (code, stdout, err) = tag_site(&repo(site), out);
+    assert_eq!(code, 0, "{err}");
+    stdout
+}
+
 #[test]
 fn writes_every_format_at_its_size() {
     for ext in ["svg", "pdf", "png"] {
@@ -60,9 +67,7 @@ fn writes_every_format_at_its_size() {
 #[test]
 fn site_gives_family_id_and_size() {
     let out = scratch("pool.svg");
-    let site = repo("params/pool.toml");
-    let (code, stdout, err) = tag_site(&site, &out);
-    assert_eq!(code, 0, "{err}");
+    let stdout = tag_repo_site("params/pool.toml", &out);
     assert!(
         stdout.contains("apriltag_36h11 id 0, black square 150 mm"),
         "{stdout}"
@@ -76,9 +81,7 @@ fn site_gives_family_id_and_size() {
 #[test]
 fn a_map_site_gives_every_marker() {
     let out = scratch("dock.svg");
-    let site = repo("params/dock-map.toml");
-    let (code, stdout, err) = tag_site(&site, &out);
-    assert_eq!(code, 0, "{err}");
+    let stdout = tag_repo_site("params/dock-map.toml", &out);
     assert!(
         !out.exists(),
         "no file under the plain --out name for a map"

@@ -42,14 +42,23 @@ fn regularised(site: &Path, name: &str) -> (Response, (u8, u8), String) {
         .unwrap_or_else(|| panic!("no valid range in\n{out}"));
     assert!(out.contains("chosen lambda"), "{out}");
     assert!(out.contains("cross-validation rms"), "{out}");
+    // The printed line names the written file.
+    (printed_response(&out, "table"), range, out)
+}
+
+/// The response of `out`'s `response = { model = "MODEL", ... }` line.
+fn printed_response(out: &str, model: &str) -> Response {
+    let start = format!("response = {{ model = \"{model}\"");
     let line = out
         .lines()
-        .find(|l| l.starts_with("response = { model = \"table\""))
+        .find(|l| l.starts_with(&start))
         .unwrap_or_else(|| panic!("no response line in\n{out}"));
-    // The printed line names the written file.
-    let v: toml::Table = toml::from_str(line).unwrap();
-    let model: ResponseModel = v["response"].clone().try_into().unwrap();
-    (model.load().unwrap(), range, out)
+    let v: toml::Table = toml::from_str(line).expect("the response line is TOML");
+    let model: ResponseModel = v["response"]
+        .clone()
+        .try_into()
+        .expect("the response line is a response model");
+    model.load().expect("the printed response loads")
 }
 
 /// The levels of `lo..=hi` where the fit is more than 10 % off `truth`.
@@ -105,13 +114,7 @@ fn regularised_fit_reproduces_a_linear_camera_without_the_polynomials_shoulder()
     assert!(bad.is_empty(), "{}\n{out}", bad.join("\n"));
     // The unregularised degree-4 polynomial of the same camera overshoots near clipping.
     let poly = fit(&site, &["--method", "polynomial", "--degree", "4"]);
-    let line = poly
-        .lines()
-        .find(|l| l.starts_with("response = { model = \"polynomial\""))
-        .unwrap_or_else(|| panic!("no response line in\n{poly}"));
-    let v: toml::Table = toml::from_str(line).unwrap();
-    let model: ResponseModel = v["response"].clone().try_into().unwrap();
-    let p = model.load().unwrap();
+    let p = printed_response(&poly, "polynomial");
     let shoulder = (239u8..=255)
         .map(|i| p.g_prime(i) * i as f64)
         .fold(0.0, f64::max);

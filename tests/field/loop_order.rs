@@ -124,19 +124,24 @@ fn order(defer_full_search: bool) -> Vec<&'static str> {
     log
 }
 
+/// `per_frame` once for each of the `FRAMES` frames.
+fn every_frame(per_frame: [&'static str; 3]) -> Vec<&'static str> {
+    (0..FRAMES).flat_map(|_| per_frame).collect()
+}
+
 #[test]
 fn the_command_goes_out_before_the_full_search() {
-    let log = order(true);
-    let per_frame = vec!["frame", "command", "full_search"];
-    let expected: Vec<_> = (0..FRAMES).flat_map(|_| per_frame.clone()).collect();
-    assert_eq!(log, expected);
+    assert_eq!(
+        order(true),
+        every_frame(["frame", "command", "full_search"])
+    );
 }
 
 /// The check tells the orders apart: searching first puts the search before the command.
 #[test]
 fn without_deferral_the_search_comes_first() {
-    let log = order(false);
-    let per_frame = vec!["frame", "full_search", "command"];
-    let expected: Vec<_> = (0..FRAMES).flat_map(|_| per_frame.clone()).collect();
-    assert_eq!(log, expected);
+    assert_eq!(
+        order(false),
+        every_frame(["frame", "full_search", "command"])
+    );
 }

@@ -339,6 +339,26 @@ fn stream_config_30fps(
     }
 }
 
+/// A 320-wide frame of the test gradient: the top row darker than `dark_below`, the
+/// row at 220 brighter than `bright_above`.
+fn assert_gradient(f: &Frame, dark_below: u8, bright_above: u8) {
+    let column: Vec<u8> = f.data.iter().step_by(320 * 20).copied().collect();
+    assert!(
+        column[0] < dark_below && column[11] > bright_above,
+        "{column:?}"
+    );
+}
+
+/// Every frame's sequence number and stamp above the one before.
+fn assert_rising(stamps: &[(u64, f64)]) {
+    assert!(
+        stamps
+            .windows(2)
+            .all(|w| w[1].0 > w[0].0 && w[1].1 > w[0].1),
+        "{stamps:?}"
+    );
+}
+
 #[test]
 fn a_gst_pipeline_camera_gives_stamped_grey_frames_and_counts_those_passed_over() {
     use markhold::field::camera::stream::{StreamCamera, StreamSource};
@@ -358,14 +378,8 @@ fn a_gst_pipeline_camera_gives_stamped_grey_frames_and_counts_those_passed_over(
     }
     assert_eq!((f.width, f.height, f.data.len()), (320, 240, 320 * 240));
     // The gradient pattern: dark at the top, bright at the bottom (GRAY8 as it comes).
-    let column: Vec<u8> = f.data.iter().step_by(320 * 20).copied().collect();
-    assert!(column[0] < 40 && column[11] > 200, "{column:?}");
-    assert!(
-        stamps
-            .windows(2)
-            .all(|w| w[1].0 > w[0].0 && w[1].1 > w[0].1),
-        "{stamps:?}"
-    );
+    assert_gradient(&f, 40, 200);
+    assert_rising(&stamps);
     // A loop slower than the camera acts on the newest frame and counts the others.
     std::thread::sleep(Duration::from_millis(300));
     let before = cam.frames_passed_over();
@@ -438,14 +452,8 @@ fn an_rtsp_camera_gives_stamped_grey_frames_from_a_loopback_server() {
     assert_eq!((f.width, f.height, f.data.len()), (320, 240, 320 * 240));
     // The gradient pattern survives H.264 and the luma range expansion: dark at the top,
     // bright at the bottom.
-    let column: Vec<u8> = f.data.iter().step_by(320 * 20).copied().collect();
-    assert!(column[0] < 60 && column[11] > 190, "{column:?}");
-    assert!(
-        stamps
-            .windows(2)
-            .all(|w| w[1].0 > w[0].0 && w[1].1 > w[0].1),
-        "{stamps:?}"
-    );
+    assert_gradient(&f, 60, 190);
+    assert_rising(&stamps);
 }
 
 // ---- hostile peers -------------------------------------------------------------------
@@ -638,6 +646,20 @@ fn flood(c: &mut std::net::TcpStream, head: &[u8], fill: u8, len: usize, n: usiz
     }
 }
 
+/// A run against the RTSP server at `port` exits 2 saying `says`, its peak RSS under
+/// 400 MB; `what` names the server's answer in the log.
+fn assert_cut_off(port: u16, what: &str, says: &str) {
+    let (code, err, took, peak_kb) = run_rtsp(port, None);
+    eprintln!(
+        "{what}: exit {code:?} after {:.1} s, peak RSS {} MB",
+        took.as_secs_f64(),
+        peak_kb / 1024
+    );
+    assert_eq!(code, Some(2), "{err}");
+    assert!(err.contains(says), "{err}");
+    assert!(peak_kb < 400 << 10, "peak RSS {peak_kb} kB");
+}
+
 #[test]
 fn a_hostile_rtsp_server_is_cut_off_with_memory_bounded() {
     // A 2 GB answer, sent as fast as loopback takes it.
@@ -645,15 +667,7 @@ fn a_hostile_rtsp_server_is_cut_off_with_memory_bounded() {
         let head = b"RTSP/1.0 200 OK\r\nCSeq: 1\r\nContent-Length: 2000000000\r\n\r\n";
         flood(c, head, b'v', 1 << 20, 2000);
     });
-    let (code, err, took, peak_kb) = run_rtsp(port, None);
-    eprintln!(
-        "2 GB answer: exit {code:?} after {:.1} s, peak RSS {} MB",
-        took.as_secs_f64(),
-        peak_kb / 1024
-    );
-    assert_eq!(code, Some(2), "{err}");
-    assert!(err.contains("declared a body of 2000000000 bytes"), "{err}");
-    assert!(peak_kb < 400 << 10, "peak RSS {peak_kb} kB");
+    assert_cut_off(port, "2 GB answer", "declared a body of 2000000000 bytes");
 
     // A header that never ends.
     let port = hostile_rtsp(|c| {
@@ -665,15 +679,7 @@ fn a_hostile_rtsp_server_is_cut_off_with_memory_bounded() {
             4000,
         )
     });
-    let (code, err, took, peak_kb) = run_rtsp(port, None);
-    eprintln!(
-        "endless header: exit {code:?} after {:.1} s, peak RSS {} MB",
-        took.as_secs_f64(),
-        peak_kb / 1024
-    );
-    assert_eq!(code, Some(2), "{err}");
-    assert!(err.contains("head over"), "{err}");
-    assert!(peak_kb < 400 << 10, "peak RSS {peak_kb} kB");
+    assert_cut_off(port, "endless header", "head over");
 }
 
 #[test]

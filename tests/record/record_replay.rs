@@ -358,8 +358,8 @@ fn cli_hil_record_then_replay_summary() {
         .arg(&junk)
         .output()
         .unwrap();
-    assert_eq!(o.status.code(), Some(2));
-    assert!(String::from_utf8_lossy(&o.stderr).contains("junk.mcap"));
+    let err = common::stderr_of_exit(&o, 2);
+    assert!(err.contains("junk.mcap"), "{err}");
 }
 
 /// A recording cut short (a crash, a full disk, a copy interrupted) replays up to its

@@ -166,31 +166,34 @@ fn assert_results_json(out: &Path) -> CompareResults {
             );
         }
     }
-    for f in [
-        "frames",
-        "seconds",
-        "settled",
-        "oscillates",
-        "frames_to_m_argmax",
-        "frames_to_m_band",
-        "frames_to_detection_band",
-        "final_over_m_argmax",
-    ] {
-        assert!(
-            case["convergence"]["from_long"].get(f).is_some(),
-            "from_long.{f}"
-        );
-    }
-    for f in [
-        "m_argmax_us",
-        "m_band_us",
-        "detection_best",
-        "detection_band_us",
-    ] {
-        assert!(
-            case["convergence"]["optimum"].get(f).is_some(),
-            "optimum.{f}"
-        );
+    let convergence: [(&str, &[&str]); 2] = [
+        (
+            "from_long",
+            &[
+                "frames",
+                "seconds",
+                "settled",
+                "oscillates",
+                "frames_to_m_argmax",
+                "frames_to_m_band",
+                "frames_to_detection_band",
+                "final_over_m_argmax",
+            ],
+        ),
+        (
+            "optimum",
+            &[
+                "m_argmax_us",
+                "m_band_us",
+                "detection_best",
+                "detection_band_us",
+            ],
+        ),
+    ];
+    for (part, fields) in convergence {
+        for f in fields {
+            assert!(case["convergence"][part].get(f).is_some(), "{part}.{f}");
+        }
     }
     let r: CompareResults = serde_json::from_str(&text).expect("results.json parses");
     assert_eq!(r.cases.len(), 2);
@@ -231,16 +234,27 @@ fn assert_paper_claim(r: &CompareResults) {
     assert!(aaec_static > 0.9, "AAEC static detection {aaec_static}");
 }
 
+/// One seed of `seconds` for `methods` in adversarial light, on `jobs` threads.
+fn adversarial(
+    seed: u64,
+    seconds: f64,
+    methods: Vec<ExposureMethod>,
+    jobs: usize,
+) -> CompareOptions {
+    CompareOptions {
+        seeds: vec![seed],
+        seconds,
+        methods,
+        lightings: vec![LightingScenario::Adversarial],
+        jobs,
+    }
+}
+
 #[test]
 fn same_seeds_same_numbers_whatever_the_thread_count() {
     let site = markhold::params::load(Path::new(SITE)).expect("fixture site");
-    let opts = CompareOptions {
-        seeds: vec![3],
-        seconds: 1.0,
-        methods: vec![ExposureMethod::Aaec, ExposureMethod::Gec],
-        lightings: vec![LightingScenario::Adversarial],
-        jobs: 1,
-    };
+    let methods = vec![ExposureMethod::Aaec, ExposureMethod::Gec];
+    let opts = adversarial(3, 1.0, methods, 1);
     let a = run_compare(&site, &opts, &tracing::Span::none()).expect("first run");
     let b = run_compare(
         &site,
@@ -260,18 +274,13 @@ fn same_seeds_same_numbers_whatever_the_thread_count() {
 #[test]
 fn adversarial_light_ordering_with_margins() {
     let site = markhold::params::load(Path::new(SITE)).expect("fixture site");
-    let opts = CompareOptions {
-        seeds: vec![1],
-        seconds: 8.0,
-        methods: vec![
-            ExposureMethod::Aaec,
-            ExposureMethod::Gec,
-            ExposureMethod::Aec,
-            ExposureMethod::Default,
-        ],
-        lightings: vec![LightingScenario::Adversarial],
-        jobs: 2,
-    };
+    let methods = vec![
+        ExposureMethod::Aaec,
+        ExposureMethod::Gec,
+        ExposureMethod::Aec,
+        ExposureMethod::Default,
+    ];
+    let opts = adversarial(1, 8.0, methods, 2);
     let r = run_compare(&site, &opts, &tracing::Span::none())
         .expect("compare")
         .results;
@@ -349,13 +358,8 @@ fn aaec_stays_within_5_percent_after_8_frames_at_full_size() {
 #[test]
 fn convergence_to_the_optimum_is_reported_and_a_frozen_method_never_gets_there() {
     let site = markhold::params::load(Path::new(SITE)).expect("fixture site");
-    let opts = CompareOptions {
-        seeds: vec![1],
-        seconds: 3.0,
-        methods: vec![ExposureMethod::Aaec, ExposureMethod::GecPaper],
-        lightings: vec![LightingScenario::Adversarial],
-        jobs: 2,
-    };
+    let methods = vec![ExposureMethod::Aaec, ExposureMethod::GecPaper];
+    let opts = adversarial(1, 3.0, methods, 2);
     let r = run_compare(&site, &opts, &tracing::Span::none())
         .expect("compare")
         .results;

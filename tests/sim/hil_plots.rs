@@ -177,7 +177,6 @@ fn plots_folder_that_cannot_be_made_is_named() {
         .arg(file.join("sub"))
         .output()
         .unwrap();
-    assert_eq!(out.status.code(), Some(2));
-    let err = String::from_utf8_lossy(&out.stderr);
+    let err = common::stderr_of_exit(&out, 2);
     assert!(err.contains("--plots"), "{err}");
 }

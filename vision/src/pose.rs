@@ -326,11 +326,12 @@ pub fn unweighted_gain(
 }
 
 #[cfg(test)]
-mod tests {
+pub(crate) mod tests {
     use super::*;
     use nalgebra::Vector3;
 
-    fn calib(dist: Vec<f64>) -> CameraCalibration {
+    /// The 1440x1080 camera of the unit tests with plumb-bob distortion `dist`.
+    pub(crate) fn calib(dist: Vec<f64>) -> CameraCalibration {
         CameraCalibration {
             width: 1440,
             height: 1080,

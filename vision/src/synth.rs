@@ -47,10 +47,8 @@ pub fn render_marker(
     t_cam_marker: &Isometry3<f64>,
     scene: &SceneParams,
 ) -> [Option<[f64; 2]>; 4] {
-    frame.resize(calib.width, calib.height);
-    let bg = scene.background.round().clamp(0.0, 255.0) as u8;
-    frame.data.fill(bg);
-    draw_marker(frame, calib, bitmap, size_m, t_cam_marker, scene)
+    clear(frame, calib, scene);
+    draw_marker(frame, calib, (bitmap, size_m, t_cam_marker), scene)
 }
 
 /// Several markers in one frame (a marker map): the background, then each marker on its
@@ -62,23 +60,27 @@ pub fn render_markers(
     markers: &[(&MarkerBitmap, f64, Isometry3<f64>)],
     scene: &SceneParams,
 ) -> Vec<[Option<[f64; 2]>; 4]> {
-    frame.resize(calib.width, calib.height);
-    let bg = scene.background.round().clamp(0.0, 255.0) as u8;
-    frame.data.fill(bg);
+    clear(frame, calib, scene);
     markers
         .iter()
-        .map(|(bitmap, size_m, t)| draw_marker(frame, calib, bitmap, *size_m, t, scene))
+        .map(|(bitmap, size_m, t)| draw_marker(frame, calib, (bitmap, *size_m, t), scene))
         .collect()
 }
 
-/// One marker over what `frame` holds: pixels that see only the background beyond its
-/// paper are left as they are.
+/// `frame` at the calibration's resolution, every pixel the scene's background.
+fn clear(frame: &mut Frame, calib: &CameraCalibration, scene: &SceneParams) {
+    frame.resize(calib.width, calib.height);
+    let bg = scene.background.round().clamp(0.0, 255.0) as u8;
+    frame.data.fill(bg);
+}
+
+/// One marker (its bitmap, side and pose, as [`render_marker`] takes them) over what
+/// `frame` holds: pixels that see only the background beyond its paper are left as
+/// they are.
 fn draw_marker(
     frame: &mut Frame,
     calib: &CameraCalibration,
-    bitmap: &MarkerBitmap,
-    size_m: f64,
-    t_cam_marker: &Isometry3<f64>,
+    (bitmap, size_m, t_cam_marker): (&MarkerBitmap, f64, &Isometry3<f64>),
     scene: &SceneParams,
 ) -> [Option<[f64; 2]>; 4] {
     let cells = bitmap.cells as f64;

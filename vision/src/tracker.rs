@@ -547,18 +547,7 @@ impl MarkerTracker {
                 expected_width: self.calib.width,
                 expected_height: self.calib.height,
             })?;
-        let (w, h) = (frame.width as usize, frame.height as usize);
-        if frame.data.len() < w * h {
-            return Err(VisionError::FrameSize {
-                what: "its pixel buffer",
-                width: frame.width,
-                height: frame.height,
-                expected_width: frame.width,
-                expected_height: (frame.data.len() / w.max(1)) as u32,
-            });
-        }
-        core::Mat::new_rows_cols_with_data::<u8>(h as i32, w as i32, &frame.data[..w * h])
-            .cv("wrap frame")
+        mat_of(frame, false)
     }
 
     /// The detector's last findings into the slots not found yet this frame.
@@ -1410,6 +1399,26 @@ impl Detector {
     }
 }
 
+/// A frame's pixels as an OpenCV matrix (no copy): an error if its buffer holds fewer
+/// bytes than its size, or (with `refuse_empty`) if it has no pixels at all.
+pub(crate) fn mat_of(
+    frame: &Frame,
+    refuse_empty: bool,
+) -> Result<opencv::boxed_ref::BoxedRef<'_, core::Mat>, VisionError> {
+    let (w, h) = (frame.width as usize, frame.height as usize);
+    if frame.data.len() < w * h || (refuse_empty && (w == 0 || h == 0)) {
+        return Err(VisionError::FrameSize {
+            what: "its pixel buffer",
+            width: frame.width,
+            height: frame.height,
+            expected_width: frame.width,
+            expected_height: (frame.data.len() / w.max(1)) as u32,
+        });
+    }
+    core::Mat::new_rows_cols_with_data::<u8>(h as i32, w as i32, &frame.data[..w * h])
+        .cv("wrap frame")
+}
+
 /// The adaptive-threshold window of `size_px` pixels, odd (OpenCV makes an even window
 /// the odd one above it), within `min_px..=max_px`.
 fn track_thresh_window(size_px: f64, min_px: i32, max_px: i32) -> i32 {
@@ -1482,12 +1491,7 @@ fn window(x0: f64, y0: f64, x1: f64, y1: f64, w: u32, h: u32) -> Option<Roi> {
     if x1 - x0 < 16.0 || y1 - y0 < 16.0 {
         return None;
     }
-    Some(Roi {
-        x: x0 as u32,
-        y: y0 as u32,
-        width: (x1 - x0) as u32,
-        height: (y1 - y0) as u32,
-    })
+    Some(Roi::between(x0 as u32, y0 as u32, x1 as u32, y1 as u32))
 }
 
 /// Full-resolution bands of the bounded search without a marker, and the rows two

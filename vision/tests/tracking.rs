@@ -50,6 +50,29 @@ fn render(
     frame.meta.stamp_s = k as f64 / 30.0;
 }
 
+/// A tracker of the test marker with the default detector.
+fn default_tracker(calib: &CameraCalibration) -> MarkerTracker {
+    MarkerTracker::new(&marker(), &DetectorConfig::default(), calib.clone())
+        .expect("the test marker and calibration make a tracker")
+}
+
+/// The default detector with `full_search_period_frames` set: 1 searches every frame
+/// whole, 0 only when the marker is lost.
+fn with_period(full_search_period_frames: u32) -> DetectorConfig {
+    DetectorConfig {
+        full_search_period_frames,
+        ..Default::default()
+    }
+}
+
+/// The largest distance (px) between the matching corners of two observations.
+fn max_corner_gap(a: &markhold_camera::Corners, b: &markhold_camera::Corners) -> f32 {
+    a.iter()
+        .zip(b)
+        .map(|(p, q)| ((p[0] - q[0]).powi(2) + (p[1] - q[1]).powi(2)).sqrt())
+        .fold(0.0f32, f32::max)
+}
+
 /// Area of the corners' bounding box, pixels.
 fn roi_area_of(c: &markhold_camera::Corners) -> u64 {
     let xs = c.iter().map(|p| p[0]);
@@ -73,14 +96,8 @@ fn out_and_back(n: usize, away: usize) -> Vec<f64> {
 fn tracked_search_matches_full_search_on_a_moving_sequence() {
     let calib = small_calib();
     let m = marker();
-    let tracked_cfg = DetectorConfig {
-        full_search_period_frames: 15,
-        ..Default::default()
-    };
-    let full_cfg = DetectorConfig {
-        full_search_period_frames: 1,
-        ..Default::default()
-    };
+    let tracked_cfg = with_period(15);
+    let full_cfg = with_period(1);
     let mut tracker = MarkerTracker::new(&m, &tracked_cfg, calib.clone()).unwrap();
     let mut full = MarkerTracker::new(&m, &full_cfg, calib.clone()).unwrap();
     let mut rng = ChaCha8Rng::seed_from_u64(21);
@@ -122,12 +139,7 @@ fn tracked_search_matches_full_search_on_a_moving_sequence() {
             dr < 0.05,
             "frame {k}: tracked and full rotations differ by {dr} deg"
         );
-        let max_corner = a
-            .corners
-            .iter()
-            .zip(&b.corners)
-            .map(|(p, q)| ((p[0] - q[0]).powi(2) + (p[1] - q[1]).powi(2)).sqrt())
-            .fold(0.0f32, f32::max);
+        let max_corner = max_corner_gap(&a.corners, &b.corners);
         assert!(
             max_corner < 0.05,
             "frame {k}: corners differ by {max_corner} px"
@@ -148,8 +160,7 @@ fn tracked_search_matches_full_search_on_a_moving_sequence() {
 #[test]
 fn recovers_after_the_marker_leaves_and_reenters() {
     let calib = small_calib();
-    let m = marker();
-    let mut tracker = MarkerTracker::new(&m, &DetectorConfig::default(), calib.clone()).unwrap();
+    let mut tracker = default_tracker(&calib);
     let mut rng = ChaCha8Rng::seed_from_u64(22);
     let mut frame = Frame::default();
     // In view (x = 0), out to the right (x = 2 m at 1.2 m range is far outside the
@@ -184,10 +195,7 @@ fn recovers_after_the_marker_leaves_and_reenters() {
 fn split_search_gives_what_process_gives() {
     let calib = small_calib();
     let m = marker();
-    let cfg = DetectorConfig {
-        full_search_period_frames: 7,
-        ..Default::default()
-    };
+    let cfg = with_period(7);
     let mut whole = MarkerTracker::new(&m, &cfg, calib.clone()).unwrap();
     let mut split = MarkerTracker::new(&m, &cfg, calib.clone()).unwrap();
     let mut rng = ChaCha8Rng::seed_from_u64(23);
@@ -238,8 +246,7 @@ fn split_search_gives_what_process_gives() {
 #[test]
 fn a_jump_beyond_the_window_falls_back_to_a_full_search_in_the_same_frame() {
     let calib = small_calib();
-    let m = marker();
-    let mut tracker = MarkerTracker::new(&m, &DetectorConfig::default(), calib.clone()).unwrap();
+    let mut tracker = default_tracker(&calib);
     let mut rng = ChaCha8Rng::seed_from_u64(23);
     let mut frame = Frame::default();
     let a = pose([-0.3, 0.0, 1.2], 20.0, 0.0);
@@ -268,14 +275,10 @@ fn close_marker_is_tracked_in_a_downscaled_window_with_full_search_accuracy() {
     // 1/4 scale and the corners refined at full resolution.
     let calib = small_calib();
     let m = marker();
-    let cfg = DetectorConfig {
-        full_search_period_frames: 0,
-        ..Default::default()
-    };
+    let cfg = with_period(0);
     let full_cfg = DetectorConfig {
-        full_search_period_frames: 1,
         full_search_downscale: 1,
-        ..Default::default()
+        ..with_period(1)
     };
     let mut tracker = MarkerTracker::new(&m, &cfg, calib.clone()).unwrap();
     let mut full = MarkerTracker::new(&m, &full_cfg, calib.clone()).unwrap();
@@ -287,12 +290,7 @@ fn close_marker_is_tracked_in_a_downscaled_window_with_full_search_accuracy() {
         let a = tracker.process(&frame).unwrap().expect("tracked");
         let b = full.process(&frame).unwrap().expect("full");
         assert_eq!(a.tracked, k > 0);
-        let max_corner = a
-            .corners
-            .iter()
-            .zip(&b.corners)
-            .map(|(p, q)| ((p[0] - q[0]).powi(2) + (p[1] - q[1]).powi(2)).sqrt())
-            .fold(0.0f32, f32::max);
+        let max_corner = max_corner_gap(&a.corners, &b.corners);
         assert!(
             max_corner < 0.05,
             "frame {k}: corners differ by {max_corner} px"
@@ -313,7 +311,7 @@ fn continuity_resolves_the_ipe_ambiguity_of_a_distant_marker() {
     let bm = bitmap(&m);
     let mut rng = ChaCha8Rng::seed_from_u64(25);
     let mut frame = Frame::default();
-    let mut tracker = MarkerTracker::new(&m, &DetectorConfig::default(), calib.clone()).unwrap();
+    let mut tracker = default_tracker(&calib);
     let (mut flips_continuous, mut flips_fresh, mut far_frames) = (0, 0, 0);
     for k in 0..60 {
         let range = (3.0 + 7.0 * k as f64 / 35.0).min(10.0);
@@ -328,7 +326,7 @@ fn continuity_resolves_the_ipe_ambiguity_of_a_distant_marker() {
         if rotation_error_deg(&a.t_cam_marker, &truth) > 5.0 {
             flips_continuous += 1;
         }
-        let mut fresh = MarkerTracker::new(&m, &DetectorConfig::default(), calib.clone()).unwrap();
+        let mut fresh = default_tracker(&calib);
         if let Some(b) = fresh.process(&frame).unwrap() {
             if rotation_error_deg(&b.t_cam_marker, &truth) > 5.0 {
                 flips_fresh += 1;
@@ -355,8 +353,7 @@ fn the_bounded_search_finds_near_and_far_markers_within_its_cycle() {
     let mut frame = Frame::default();
     // 0.2 m at f = 1000 px: 133 px, 50 px and 29 px.
     for (range, within) in [(1.5, 1), (4.0, 6), (7.0, 32)] {
-        let mut tracker =
-            MarkerTracker::new(&marker(), &DetectorConfig::default(), calib.clone()).unwrap();
+        let mut tracker = default_tracker(&calib);
         // Out of view: the first search (complete) finds nothing.
         render(
             &mut frame,
@@ -393,14 +390,8 @@ fn tracked_corners_hold_the_rendered_truth_at_every_window_scale() {
     let calib = calib_distorted();
     let m = marker();
     let bm = bitmap(&m);
-    let cfg = DetectorConfig {
-        full_search_period_frames: 0,
-        ..Default::default()
-    };
-    let full_cfg = DetectorConfig {
-        full_search_period_frames: 1,
-        ..Default::default()
-    };
+    let cfg = with_period(0);
+    let full_cfg = with_period(1);
     let mut rng = ChaCha8Rng::seed_from_u64(45);
     let mut frame = Frame::default();
     let frames = 12;

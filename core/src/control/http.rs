@@ -195,16 +195,17 @@ pub fn request(
         ms: limits.deadline.as_millis(),
         got,
     };
-    let mut s = TcpStream::connect_timeout(&addr, limits.deadline).map_err(|source| {
-        if matches!(source.kind(), ErrorKind::WouldBlock | ErrorKind::TimedOut) {
-            over(0)
-        } else {
-            HttpError::Io {
-                what: "connecting",
-                source,
+    // A timeout is the deadline passing; any other error names what was being done.
+    let failed = |what| {
+        move |source: std::io::Error| {
+            if matches!(source.kind(), ErrorKind::WouldBlock | ErrorKind::TimedOut) {
+                over(0)
+            } else {
+                HttpError::Io { what, source }
             }
         }
-    })?;
+    };
+    let mut s = TcpStream::connect_timeout(&addr, limits.deadline).map_err(failed("connecting"))?;
     let head = format!(
         "{method} {path} HTTP/1.1\r\nHost: {host}\r\nContent-Type: application/json\r\nContent-Length: {}\r\nConnection: close\r\n\r\n",
         body.len()
@@ -217,16 +218,7 @@ pub fn request(
     let _ = s.set_nodelay(true);
     s.write_all(head.as_bytes())
         .and_then(|()| s.write_all(body))
-        .map_err(|source| {
-            if matches!(source.kind(), ErrorKind::WouldBlock | ErrorKind::TimedOut) {
-                over(0)
-            } else {
-                HttpError::Io {
-                    what: "sending the request",
-                    source,
-                }
-            }
-        })?;
+        .map_err(failed("sending the request"))?;
     let mut input = Input {
         r: Bounded {
             s,

@@ -51,6 +51,59 @@ fn exposure_units(us: f64, step_us: f64, min_units: i64, max_units: i64) -> i64 
     (u as i64).clamp(min_units, max_units)
 }
 
+/// A V4L2 camera's exposure controls, however they are reached (BlueOS's REST API or
+/// the device's ioctls), and the exposure markhold last set on it.
+trait V4l2Writes {
+    /// Write control `id`.
+    fn write(&self, id: u64, value: i64) -> Result<(), ControlError>;
+    /// The camera has an auto-exposure control.
+    fn has_auto(&self) -> bool;
+    /// The exposure the camera runs at as far as markhold knows (NaN: unknown), us.
+    fn current_us(&mut self) -> &mut f64;
+}
+
+/// [`V4l2Writes`] for a control with `has_auto` and `current_us` fields that writes a
+/// control with its method `$write`.
+macro_rules! v4l2_writes {
+    ($control:ty, $write:ident) => {
+        impl V4l2Writes for $control {
+            fn write(&self, id: u64, value: i64) -> Result<(), ControlError> {
+                self.$write(id, value)
+            }
+            fn has_auto(&self) -> bool {
+                self.has_auto
+            }
+            fn current_us(&mut self) -> &mut f64 {
+                &mut self.current_us
+            }
+        }
+    };
+}
+
+/// Set `exposure_absolute` to `units` unless the camera already runs there; the exposure
+/// it runs at after, us.
+fn set_units(c: &mut impl V4l2Writes, units: i64) -> Result<f64, ControlError> {
+    let want = units as f64 * V4L2_EXPOSURE_UNIT_US;
+    if (want - *c.current_us()).abs() < 0.5 {
+        return Ok(*c.current_us());
+    }
+    c.write(CID_EXPOSURE_ABSOLUTE, units)?;
+    *c.current_us() = want;
+    Ok(want)
+}
+
+/// Put back what was found: the value while still manual (an inactive control refuses
+/// writes), then the mode. The found value is the camera's own: not clamped to the
+/// site's range.
+fn restore_found(c: &mut impl V4l2Writes, found: &Found) -> Result<(), ControlError> {
+    c.write(CID_EXPOSURE_ABSOLUTE, found.exposure_units)?;
+    if let (true, Some(mode)) = (c.has_auto(), found.auto_exposure) {
+        c.write(CID_EXPOSURE_AUTO, mode)?;
+    }
+    *c.current_us() = found.known_us();
+    Ok(())
+}
+
 /// `[camera.control]` of a site file.
 #[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, tag = "kind", rename_all = "snake_case")]
@@ -433,6 +486,8 @@ impl BlueosRest {
     }
 }
 
+v4l2_writes!(BlueosRest, post);
+
 impl ExposureControl for BlueosRest {
     fn found(&self) -> Option<Found> {
         Some(self.found)
@@ -447,23 +502,10 @@ impl ExposureControl for BlueosRest {
     }
     fn set_exposure_us(&mut self, exposure_us: f64) -> Result<f64, ControlError> {
         let units = self.units(exposure_us);
-        let want = units as f64 * V4L2_EXPOSURE_UNIT_US;
-        if (want - self.current_us).abs() < 0.5 {
-            return Ok(self.current_us);
-        }
-        self.post(CID_EXPOSURE_ABSOLUTE, units)?;
-        self.current_us = want;
-        Ok(want)
+        set_units(self, units)
     }
     fn restore_to(&mut self, found: &Found) -> Result<(), ControlError> {
-        // The value while still manual (an inactive control refuses writes), then the
-        // mode. The found value is the camera's own: not clamped to the site's range.
-        self.post(CID_EXPOSURE_ABSOLUTE, found.exposure_units)?;
-        if let (true, Some(mode)) = (self.has_auto, found.auto_exposure) {
-            self.post(CID_EXPOSURE_AUTO, mode)?;
-        }
-        self.current_us = found.known_us();
-        Ok(())
+        restore_found(self, found)
     }
     fn step_us(&self) -> f64 {
         self.step_us
@@ -626,6 +668,8 @@ impl V4l2Control {
     }
 }
 
+v4l2_writes!(V4l2Control, set);
+
 impl ExposureControl for V4l2Control {
     fn found(&self) -> Option<Found> {
         Some(self.found)
@@ -645,21 +689,10 @@ impl ExposureControl for V4l2Control {
     }
     fn set_exposure_us(&mut self, exposure_us: f64) -> Result<f64, ControlError> {
         let units = exposure_units(exposure_us, self.step_us, self.min_units, self.max_units);
-        let want = units as f64 * V4L2_EXPOSURE_UNIT_US;
-        if (want - self.current_us).abs() < 0.5 {
-            return Ok(self.current_us);
-        }
-        self.set(CID_EXPOSURE_ABSOLUTE, units)?;
-        self.current_us = want;
-        Ok(want)
+        set_units(self, units)
     }
     fn restore_to(&mut self, found: &Found) -> Result<(), ControlError> {
-        self.set(CID_EXPOSURE_ABSOLUTE, found.exposure_units)?;
-        if let (true, Some(mode)) = (self.has_auto, found.auto_exposure) {
-            self.set(CID_EXPOSURE_AUTO, mode)?;
-        }
-        self.current_us = found.known_us();
-        Ok(())
+        restore_found(self, found)
     }
     fn step_us(&self) -> f64 {
         self.step_us

@@ -23,6 +23,7 @@ use crate::corners::{ClipModel, EdgeRefiner};
 use crate::dict::dictionary;
 use crate::error::CvContext;
 use crate::pose::marker_object_points;
+use crate::tracker::mat_of;
 use crate::{CameraCalibration, MarkerDetector, MarkerFamily, VisionError};
 
 /// One marker of a marker grid: its id, side, centre on the target and turn in the
@@ -181,22 +182,6 @@ impl Target {
     }
 }
 
-/// A frame's pixels as an OpenCV matrix (no copy).
-fn mat_of(frame: &Frame) -> Result<opencv::boxed_ref::BoxedRef<'_, core::Mat>, VisionError> {
-    let (w, h) = (frame.width as usize, frame.height as usize);
-    if frame.data.len() < w * h || w == 0 || h == 0 {
-        return Err(VisionError::FrameSize {
-            what: "its pixel buffer",
-            width: frame.width,
-            height: frame.height,
-            expected_width: frame.width,
-            expected_height: (frame.data.len() / w.max(1)) as u32,
-        });
-    }
-    core::Mat::new_rows_cols_with_data::<u8>(h as i32, w as i32, &frame.data[..w * h])
-        .cv("wrap frame")
-}
-
 /// The target's corners found in one image.
 #[derive(Debug, Clone, Default, PartialEq)]
 pub struct Found {
@@ -277,7 +262,7 @@ impl BoardDetector {
         frame: &Frame,
         calib: Option<&CameraCalibration>,
     ) -> Result<Found, VisionError> {
-        let image = mat_of(frame)?;
+        let image = mat_of(frame, true)?;
         match self.target.clone() {
             Target::Charuco { .. } => self.charuco(&image, calib),
             Target::Checkerboard {

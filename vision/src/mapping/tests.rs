@@ -9,16 +9,7 @@ use rand_chacha::ChaCha8Rng;
 const SIGMA_PX: f64 = 0.3;
 
 fn calib() -> CameraCalibration {
-    CameraCalibration {
-        width: 1440,
-        height: 1080,
-        fx: 1100.0,
-        fy: 1105.0,
-        cx: 722.0,
-        cy: 538.0,
-        dist: vec![-0.12, 0.04, 0.0005, -0.0003, 0.0],
-        model: crate::DistortionModel::PlumbBob,
-    }
+    crate::pose::tests::calib(vec![-0.12, 0.04, 0.0005, -0.0003, 0.0])
 }
 
 fn entry(id: u32, size_m: f64, position_m: [f64; 3], rpy_deg: [f64; 3]) -> MapMarker {
@@ -162,15 +153,41 @@ fn check_recovered(map: &MarkerConfig, est: &MapEstimate) {
     assert!(est.rms_px < 2.0 * SIGMA_PX, "{est:#?}");
 }
 
+/// A builder for `map` under `calib`, fed one frame from each of the survey's cameras
+/// (jittered from `seed`).
+fn survey(map: &MarkerConfig, calib: CameraCalibration, seed: u64) -> MapBuilder {
+    let mut rng = ChaCha8Rng::seed_from_u64(seed);
+    let mut b = MapBuilder::new(map, calib);
+    for cam in cameras(&mut rng) {
+        b.add_frame(observe(map, &cam, &mut rng));
+    }
+    b
+}
+
+/// The settings that hold the intrinsics as given.
+fn fixed_intrinsics() -> MapSettings {
+    MapSettings {
+        intrinsics: IntrinsicsMode::Fixed,
+        ..MapSettings::default()
+    }
+}
+
+/// Every marker's stated 1-sigma is at least a third of its real position error.
+fn assert_sigma_at_least_a_third_of_the_error(errs: &[(u32, f64, f64)]) {
+    for (id, e, s) in errs {
+        assert!(
+            *e <= 3.0 * s,
+            "marker {id}: {:.2} mm off, 1-sigma {:.2} mm",
+            e * 1e3,
+            s * 1e3
+        );
+    }
+}
+
 #[test]
 fn recovers_a_four_marker_layout_from_noisy_corners() {
     let map = layout();
-    let mut rng = ChaCha8Rng::seed_from_u64(7);
-    let mut b = MapBuilder::new(&map, calib());
-    for cam in cameras(&mut rng) {
-        let seen = observe(&map, &cam, &mut rng);
-        b.add_frame(seen);
-    }
+    let b = survey(&map, calib(), 7);
     assert!(b.frames_kept() >= 20, "{}", b.frames_kept());
     let est = b.solve(0, &MapSettings::default()).unwrap();
     check_recovered(&map, &est);
@@ -212,11 +229,7 @@ fn chains_through_markers_never_seen_with_the_origin_and_drops_bad_corners() {
 #[test]
 fn another_origin_gives_the_same_layout_seen_from_it() {
     let map = layout();
-    let mut rng = ChaCha8Rng::seed_from_u64(3);
-    let mut b = MapBuilder::new(&map, calib());
-    for cam in cameras(&mut rng) {
-        b.add_frame(observe(&map, &cam, &mut rng));
-    }
+    let b = survey(&map, calib(), 3);
     let est = b.solve(2, &MapSettings::default()).unwrap();
     assert_eq!(est.markers[0].id, 2);
     assert_eq!(est.markers[0].t_site_marker, Isometry3::identity());
@@ -340,11 +353,7 @@ fn normalised_errors(map: &MarkerConfig, est: &MapEstimate) -> (Vec<(u32, f64, f
 #[test]
 fn a_survey_of_a_flat_wall_refines_a_focal_length_5_percent_off() {
     let map = wall();
-    let mut rng = ChaCha8Rng::seed_from_u64(21);
-    let mut b = MapBuilder::new(&map, long_focal());
-    for cam in cameras(&mut rng) {
-        b.add_frame(observe(&map, &cam, &mut rng));
-    }
+    let b = survey(&map, long_focal(), 21);
     let est = b.solve(0, &MapSettings::default()).unwrap();
     let i = &est.intrinsics;
     assert!(!i.refined.is_empty(), "{}", i.reason);
@@ -369,28 +378,13 @@ fn a_survey_of_a_flat_wall_refines_a_focal_length_5_percent_off() {
 #[test]
 fn held_intrinsics_5_percent_off_keep_the_covariance_above_a_third_of_the_error() {
     let map = wall();
-    let mut rng = ChaCha8Rng::seed_from_u64(21);
-    let mut b = MapBuilder::new(&map, long_focal());
-    for cam in cameras(&mut rng) {
-        b.add_frame(observe(&map, &cam, &mut rng));
-    }
-    let settings = MapSettings {
-        intrinsics: IntrinsicsMode::Fixed,
-        ..MapSettings::default()
-    };
-    let est = b.solve(0, &settings).unwrap();
+    let b = survey(&map, long_focal(), 21);
+    let est = b.solve(0, &fixed_intrinsics()).unwrap();
     assert!(est.intrinsics.refined.is_empty());
     assert!(est.variance_factor > 1.0, "{}", est.variance_factor);
     let (errs, _) = normalised_errors(&map, &est);
     // The 1-sigma never claims less than a third of the real error.
-    for (id, e, s) in &errs {
-        assert!(
-            *e <= 3.0 * s,
-            "marker {id}: {:.2} mm off, 1-sigma {:.2} mm",
-            e * 1e3,
-            s * 1e3
-        );
-    }
+    assert_sigma_at_least_a_third_of_the_error(&errs);
     // The surveyed wall stays flat: the cameras absorb a focal length error.
     assert!(est.planes[0].max_m < 0.003, "{:?}", est.planes);
 }
@@ -398,20 +392,11 @@ fn held_intrinsics_5_percent_off_keep_the_covariance_above_a_third_of_the_error(
 #[test]
 fn a_lens_model_gone_wrong_bends_the_wall_and_the_planes_say_so() {
     let map = wall();
-    let mut rng = ChaCha8Rng::seed_from_u64(23);
     // The radial distortion of another medium (k1 0.15 too high), held.
-    let c = calib();
-    let mut wrong = c.clone();
+    let mut wrong = calib();
     wrong.dist[0] += 0.15;
-    let mut b = MapBuilder::new(&map, wrong);
-    for cam in cameras(&mut rng) {
-        b.add_frame(observe(&map, &cam, &mut rng));
-    }
-    let settings = MapSettings {
-        intrinsics: IntrinsicsMode::Fixed,
-        ..MapSettings::default()
-    };
-    let est = b.solve(0, &settings).unwrap();
+    let b = survey(&map, wrong, 23);
+    let est = b.solve(0, &fixed_intrinsics()).unwrap();
     let (errs, _) = normalised_errors(&map, &est);
     // The wall comes out bent by millimetres and tilted by degrees, and the report says
     // by how much.
@@ -419,14 +404,7 @@ fn a_lens_model_gone_wrong_bends_the_wall_and_the_planes_say_so() {
     assert!(wall.max_m > 0.004 && wall.max_tilt_deg > 2.0, "{wall:?}");
     // The residuals show the model error: the 1-sigma stays above a third of the error.
     assert!(est.variance_factor > 3.0, "{}", est.variance_factor);
-    for (id, e, s) in &errs {
-        assert!(
-            *e <= 3.0 * s,
-            "marker {id}: {:.2} mm off, 1-sigma {:.2} mm",
-            e * 1e3,
-            s * 1e3
-        );
-    }
+    assert_sigma_at_least_a_third_of_the_error(&errs);
 }
 
 #[test]

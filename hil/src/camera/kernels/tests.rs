@@ -2,6 +2,22 @@
 
 use super::*;
 
+/// Marsaglia's xorshift64 from `seed`: the tests' reproducible inputs.
+fn xorshift(seed: u64) -> impl FnMut() -> u64 {
+    let mut x = seed;
+    move || {
+        x ^= x << 13;
+        x ^= x >> 7;
+        x ^= x << 17;
+        x
+    }
+}
+
+/// The two runs hold the same values, bit for bit.
+fn same_bits(a: &[f32], b: &[f32]) -> bool {
+    a.iter().zip(b).all(|(a, b)| a.to_bits() == b.to_bits())
+}
+
 /// The macro's parts tile the run as one read per pixel would: pixel `p` in span
 /// `(first + p) / 16` at offset `(first + p) % 16`, up to the last span.
 #[test]
@@ -58,13 +74,7 @@ fn packed_sensor_matches_portable_at_every_length() {
     for (i, l) in lut.iter_mut().enumerate() {
         *l = ((i * 255) / last) as u8 ^ (i as u8 & 3);
     }
-    let mut x = 0x9E37_79B9_7F4A_7C15u64;
-    let mut next = move || {
-        x ^= x << 13;
-        x ^= x >> 7;
-        x ^= x << 17;
-        x
-    };
+    let mut next = xorshift(0x9E37_79B9_7F4A_7C15u64);
     let n = 70;
     let mean: Vec<f32> = (0..n).map(|_| (next() % 24_000) as f32 - 500.0).collect();
     let na: Vec<i16> = (0..n).map(|_| (next() % 8001) as i16 - 4000).collect();
@@ -106,13 +116,7 @@ fn packed_sensor_matches_portable_at_every_length() {
     ignore = "the build host has no AVX2: nothing packed"
 )]
 fn packed_rock_loops_match_portable_over_all_kinds_of_walks() {
-    let mut x = 0x2545_F491_4F6C_DD1Du64;
-    let mut next = move || {
-        x ^= x << 13;
-        x ^= x >> 7;
-        x ^= x << 17;
-        x
-    };
+    let mut next = xorshift(0x2545_F491_4F6C_DD1Du64);
     let log2 = 7;
     let n = 1usize << (2 * log2);
     let rock = Texture {
@@ -179,10 +183,7 @@ fn packed_rock_loops_match_portable_over_all_kinds_of_walks() {
                 for isa in [Isa::Avx2, Isa::Avx512].map(Isa::best_up_to) {
                     let mut got = vec![0f32; len];
                     rock_nodes_run(isa, &mut got, first, &run, &rock, c);
-                    let same = got
-                        .iter()
-                        .zip(&want)
-                        .all(|(a, b)| a.to_bits() == b.to_bits());
+                    let same = same_bits(&got, &want);
                     assert!(
                         same,
                         "{isa:?} kind {kind} caustic {} first {first}",
@@ -206,20 +207,14 @@ fn packed_rock_loops_match_portable_over_all_kinds_of_walks() {
     ignore = "the build host has no AVX2: nothing packed"
 )]
 fn packed_plate_loops_match_portable_across_the_table_and_its_border() {
-    let mut x = 0x9E37_79B9_7F4A_7C15u64;
-    let mut next = move || {
-        x ^= x << 13;
-        x ^= x >> 7;
-        x ^= x << 17;
-        x
-    };
+    let mut next = xorshift(0x9E37_79B9_7F4A_7C15u64);
     let (w, b) = (0.85f32, 0.05f32);
     let side = 10usize;
     let cells: Vec<f32> = (0..side * side)
         .map(|k| {
             let (c, r) = (k % side, k / side);
             let border = c == 0 || r == 0 || c == side - 1 || r == side - 1;
-            if border || next() % 2 == 0 {
+            if border || next().is_multiple_of(2) {
                 w
             } else {
                 b
@@ -289,10 +284,7 @@ fn packed_plate_loops_match_portable_across_the_table_and_its_border() {
                     for isa in [Isa::Avx2, Isa::Avx512].map(Isa::best_up_to) {
                         let mut got = vec![0f32; len];
                         plate_run(isa, &mut got, first, &r);
-                        let same = got
-                            .iter()
-                            .zip(&want)
-                            .all(|(a, b)| a.to_bits() == b.to_bits());
+                        let same = same_bits(&got, &want);
                         assert!(
                             same,
                             "{isa:?} table {k} caustic {} row {row} first {first}",
