@@ -212,16 +212,18 @@ impl Default for ControllerConfig {
         // rate sticks of STABILIZE and ALT_HOLD are scaled down to the same loop gains
         // (`climb_stick_scale`, `yaw_rate_stick_scale`).
         Self {
-            surge: AxisConfig::with(0.6, 0.08, 0.6, 0.2, 0.5),
-            sway: AxisConfig::with(0.6, 0.08, 0.6, 0.2, 0.5),
+            surge: AxisConfig::with(0.8, 0.08, 0.6, 0.2, 0.5),
+            sway: AxisConfig::with(0.8, 0.08, 0.6, 0.2, 0.5),
             heave: AxisConfig::with(1.0, 0.15, 0.5, 0.3, 0.6),
             roll: AxisConfig::with(0.4, 0.0, 0.1, 0.0, 0.3),
             pitch: AxisConfig::with(0.4, 0.0, 0.1, 0.0, 0.3),
             yaw: AxisConfig::with(0.6, 0.03, 0.3, 0.15, 0.4),
             rate_hz: 50.0,
-            // Tuned with the stock frame-to-thrust delay (`[vehicle.delay]`, 96 ms): a slower
-            // filter adds its lag to the delay's (docs/design/autopilot.md, "Gains").
-            derivative_filter_hz: 20.0,
+            // 2 Hz and a 0.005 band: at rest the command changes sign about twice a second
+            // on its busiest axis. With the stock frame-to-thrust delay a 20 Hz filter
+            // (and surge / sway kp 0.6) holds the simulated pool tighter, but swings the
+            // heading on ArduSub SITL (docs/design/autopilot.md, "Gains and the delay").
+            derivative_filter_hz: 2.0,
             output_deadband: 0.005,
             marker_lost_hold_s: 0.5,
             marker_lost_action_after_s: 10.0,

@@ -90,16 +90,16 @@ fn chatter_at_rest_on_the_pool_is_bounded() {
     let site = pool();
     let r = run(&site, &Cell::nominal(&site), 60.0);
     assert!(r.chatter_max_hz <= 2.0 * CHATTER_AT_REST_HZ, "{r:?}");
-    assert!(r.position_rms_m < 2.0 * 0.0041, "{r:?}");
+    assert!(r.position_rms_m < 2.0 * 0.0095, "{r:?}");
 }
 
 /// The measured chatter at rest on the pool (largest axes, surge and sway), sign changes a
 /// second.
-const CHATTER_AT_REST_HZ: f64 = 2.27;
+const CHATTER_AT_REST_HZ: f64 = 1.57;
 
 /// With 150 ms from frame to thrust and 0.1 m/s gusts the keeper holds the pool within
 /// 5 cm RMS. The delay is real: in still water the same run without it holds tighter, and
-/// with a derivative filter as slow as 2 Hz (its lag added to the delay's) looser.
+/// a faster derivative filter (20 Hz, less lag on top of the delay's) holds it tighter too.
 #[test]
 fn a_150_ms_delay_with_gusts_holds_the_pool_within_5_cm() {
     let site = pool();
@@ -116,11 +116,11 @@ fn a_150_ms_delay_with_gusts_holds_the_pool_within_5_cm() {
         prompt.position_rms_m < late.position_rms_m,
         "{prompt:?}\n{late:?}"
     );
-    let slow = pool_with("[controller]\nderivative_filter_hz = 2.0");
-    let slow = run(&slow, &still(150.0), 40.0);
+    let fast = pool_with("[controller]\nderivative_filter_hz = 20.0");
+    let fast = run(&fast, &still(150.0), 40.0);
     assert!(
-        slow.position_rms_m > late.position_rms_m,
-        "{slow:?}\n{late:?}"
+        fast.position_rms_m < late.position_rms_m,
+        "{fast:?}\n{late:?}"
     );
 }
 
