@@ -4,8 +4,8 @@
 //!
 //! The simulated camera renders the vehicle's pose at the frame's stamp and markhold's
 //! command for that frame reaches the simulated ArduSub at once (lock-step), so the whole
-//! delay is applied where the vehicle receives it: pilot input, guided targets and vision
-//! estimates take effect `total_ms` after they arrive (see `VehicleEndpoint::set_input_delay`).
+//! delay is applied where the vehicle receives it: pilot input and guided and depth targets
+//! take effect `total_ms` after they arrive (see `VehicleEndpoint::set_input_delay`).
 //! The thrusters' own spin-up is the thruster model's (`[vehicle.thruster]`), not a stage
 //! here.
 

@@ -391,8 +391,8 @@ pub struct VehicleEndpoint {
     history: VecDeque<VehicleState>,
     /// NEES of the vision estimates against the truth (`set_vision_frame` turns it on).
     consistency: consistency::Consistency,
-    /// Frame to thrust, simulation seconds: pilot input, guided targets and vision
-    /// estimates take effect this long after they arrive.
+    /// Frame to thrust, simulation seconds: pilot input and guided and depth targets take
+    /// effect this long after they arrive.
     input_delay_s: f64,
     /// Inputs waiting for their time, oldest first: (due time, header, message).
     delayed: VecDeque<(f64, MavHeader, MavMessage)>,
@@ -478,8 +478,8 @@ impl VehicleEndpoint {
         })
     }
 
-    /// Apply pilot input, guided targets and vision estimates `delay_s` (simulation time)
-    /// after they arrive: the frame-to-thrust delay of the loop that sends them.
+    /// Apply pilot input and guided and depth targets `delay_s` (simulation time) after
+    /// they arrive: the frame-to-thrust delay of the loop that sends them.
     pub fn set_input_delay(&mut self, delay_s: f64) {
         self.input_delay_s = if delay_s.is_finite() {
             delay_s.max(0.0)
@@ -795,12 +795,9 @@ impl VehicleEndpoint {
         if self.is_lockstep_input(&msg) {
             self.stats.lockstep_inputs += 1;
         }
-        let from_frame = self.is_lockstep_input(&msg)
-            || matches!(
-                msg,
-                MavMessage::VISION_POSITION_ESTIMATE(_) | MavMessage::ODOMETRY(_)
-            );
-        if !from_frame || self.input_delay_s == 0.0 {
+        // Vision estimates are not held back: they carry their frame's time and
+        // ArduSub's EKF fuses them at that time (VISO_DELAY_MS, AP_VisualOdom.cpp).
+        if !self.is_lockstep_input(&msg) || self.input_delay_s == 0.0 {
             self.apply(h, msg);
             return;
         }
