@@ -90,21 +90,26 @@ impl DelayConfig {
             Self::default()
         };
         let k = total_ms / base.total_ms();
+        base.map(|v| v * k)
+    }
+
+    /// Every stage through `f`.
+    fn map(&self, f: impl Fn(f64) -> f64) -> Self {
         Self {
-            exposure_readout_ms: base.exposure_readout_ms * k,
-            encode_ms: base.encode_ms * k,
-            transport_ms: base.transport_ms * k,
-            decode_ms: base.decode_ms * k,
-            loop_ms: base.loop_ms * k,
-            mavlink_ms: base.mavlink_ms * k,
-            ardusub_loop_ms: base.ardusub_loop_ms * k,
+            exposure_readout_ms: f(self.exposure_readout_ms),
+            encode_ms: f(self.encode_ms),
+            transport_ms: f(self.transport_ms),
+            decode_ms: f(self.decode_ms),
+            loop_ms: f(self.loop_ms),
+            mavlink_ms: f(self.mavlink_ms),
+            ardusub_loop_ms: f(self.ardusub_loop_ms),
         }
     }
 
     pub fn validate(&self) -> Result<(), ConfigError> {
         let mut c = Checks::new("vehicle.delay");
         for (name, v) in self.stages() {
-            c = c.finite_range(name, v, 0.0..=1000.0, "0..=1000 ms");
+            c = c.finite_range(name, v, 0.0..=MAX_TOTAL_MS, "0..=1000 ms");
         }
         c.finite_range(
             "total",

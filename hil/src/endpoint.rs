@@ -792,12 +792,13 @@ impl VehicleEndpoint {
     /// computed from a frame, after the frame-to-thrust delay.
     fn handle(&mut self, h: MavHeader, msg: MavMessage) {
         self.stats.messages += 1;
-        if self.is_lockstep_input(&msg) {
+        let lockstep = self.is_lockstep_input(&msg);
+        if lockstep {
             self.stats.lockstep_inputs += 1;
         }
         // Vision estimates are not held back: they carry their frame's time and
         // ArduSub's EKF fuses them at that time (VISO_DELAY_MS, AP_VisualOdom.cpp).
-        if !self.is_lockstep_input(&msg) || self.input_delay_s == 0.0 {
+        if !lockstep || self.input_delay_s == 0.0 {
             self.apply(h, msg);
             return;
         }

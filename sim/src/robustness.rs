@@ -346,7 +346,12 @@ pub fn run_cell(
             bounds.excursion_m * 1e3
         ));
     }
-    let onset_s = time.first().copied().unwrap_or(0.0) + cell.change_at_s(seconds);
+    // The change is at that simulation time; without one, the run's first frame.
+    let onset_s = time
+        .first()
+        .copied()
+        .unwrap_or(0.0)
+        .max(cell.change_at_s(seconds));
     let settling_s = settling_time(&time, &err, onset_s, SETTLE_BAND_M);
     Ok(CellResult {
         cell: cell.clone(),

@@ -26,17 +26,7 @@ fn stock() -> String {
     SITE.get_or_init(|| {
         let text = std::fs::read_to_string(repo("params/bluerov2-stock.toml")).unwrap();
         let path = tmp_path("stream", "bluerov2-stock-no-delay.toml");
-        let zero = [
-            "exposure_readout_ms",
-            "encode_ms",
-            "transport_ms",
-            "decode_ms",
-            "loop_ms",
-            "mavlink_ms",
-            "ardusub_loop_ms",
-        ]
-        .map(|k| format!("{k} = 0.0\n"))
-        .concat();
+        let zero = toml::to_string(&markhold_hil::DelayConfig::NONE).unwrap();
         std::fs::write(&path, format!("{text}\n[vehicle.delay]\n{zero}")).unwrap();
         path.to_str().unwrap().to_string()
     })
